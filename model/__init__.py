@@ -1,0 +1,1 @@
+"""The exact torch MSF-Net, checkpoint I/O and training."""

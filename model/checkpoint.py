@@ -1,0 +1,102 @@
+"""Checkpoint I/O in the published format: ``{'state_dict': ..., 'model': ...}``.
+
+Loading never unpickles arbitrary objects (``weights_only=True``), maps GPU tensors to the CPU,
+reads both the zip and the legacy serialisation, strips DataParallel's ``module.`` prefixes, and
+checks every key and shape against the network before anything is loaded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pickle
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+
+from msfnet.runtime.errors import InputError
+
+from .network import MSFNet
+
+
+class CheckpointError(InputError):
+    """A file that is not an MSF-Net checkpoint, or one that does not fit the network."""
+
+
+def sha256_of(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
+    """The tensors of a checkpoint file, keys without ``module.`` prefixes."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError("checkpoint file not found", path)
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if "weights_only" in str(exc) or "Unsupported global" in str(exc):
+            raise CheckpointError("holds pickled Python objects, not only tensors; refusing to "
+                                  "unpickle it (re-save it as a plain state_dict)", path) from exc
+        raise CheckpointError(f"not a PyTorch checkpoint ({first})", path) from exc
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, KeyError,
+            AttributeError, TypeError, IndexError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise CheckpointError(f"not a readable PyTorch checkpoint ({first[:200]})", path) from exc
+    if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
+        obj = obj["state_dict"]
+    if not isinstance(obj, Mapping) or not obj or not all(
+            isinstance(v, torch.Tensor) for v in obj.values()):
+        raise CheckpointError("does not hold a state_dict of tensors (expected "
+                              "{'state_dict': {...}} or a bare state_dict)", path)
+    return {_strip_prefix(str(k)): v for k, v in obj.items()}
+
+
+def _strip_prefix(key: str) -> str:
+    while key.startswith("module."):
+        key = key[len("module."):]
+    return key
+
+
+def check_state_dict(model: torch.nn.Module, state: Mapping[str, torch.Tensor],
+                     source: str | Path) -> None:
+    """Raise CheckpointError listing missing, unexpected and mis-shaped keys."""
+    expected = model.state_dict()
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    shapes = sorted(f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
+                    for k, v in expected.items() if k in state and state[k].shape != v.shape)
+    problems = []
+    for label, keys in (("missing", missing), ("unexpected", unexpected),
+                        ("mis-shaped", shapes)):
+        if keys:
+            shown = ", ".join(keys[:6]) + (f", ... (+{len(keys) - 6})" if len(keys) > 6 else "")
+            problems.append(f"{len(keys)} {label} key(s): {shown}")
+    if problems:
+        raise CheckpointError("not an MSF-Net checkpoint: " + "; ".join(problems), source)
+
+
+def load_model(path: str | Path, **options: bool) -> MSFNet:
+    """An MSFNet in eval mode with the checkpoint's weights (strict)."""
+    state = read_state_dict(path)
+    model = MSFNet(**options)
+    check_state_dict(model, state, path)
+    model.load_state_dict(state, strict=True)
+    return model.eval()
+
+
+def save_checkpoint(model: torch.nn.Module, path: str | Path, **extra: object) -> Path:
+    """Write ``{'state_dict': ..., 'model': 'MSF_Net', ...}`` atomically (the published layout)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    torch.save({"state_dict": state, "model": "MSF_Net", **extra}, tmp)
+    tmp.replace(path)
+    return path

@@ -1,0 +1,121 @@
+"""Reading and writing images at full bit depth, in RGB order.
+
+OpenCV keeps 16 bits (Pillow silently drops to 8 for 16-bit RGB PNGs) but returns BGR and cannot
+read TGA; Pillow reads TGA. So: OpenCV first, Pillow for what OpenCV cannot decode.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".jpg", ".jpeg", ".bmp", ".exr", ".pgm", ".ppm")
+
+
+def natural_key(name: str) -> list[object]:
+    """Sort key putting ``x.2`` before ``x.10``."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def list_images(folder: Path, exclude: Iterable[str] = ("mask", "normal", "albedo")) -> list[Path]:
+    """Image files of a folder in natural order, skipping masks, normal maps and the like."""
+    files = [
+        p
+        for p in folder.iterdir()
+        if p.is_file()
+        and p.suffix.lower() in IMAGE_SUFFIXES
+        and not any(word in p.stem.lower() for word in exclude)
+    ]
+    return sorted(files, key=lambda p: natural_key(p.name))
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image as H x W x 3 (RGB) or H x W, in its stored dtype (uint8/uint16/float32)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("image file not found", path)
+    img = None if path.suffix.lower() == ".tga" else _read_with_opencv(path)
+    if img is None:
+        img = _read_with_pillow(path)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[:, :, :3]
+    if img.ndim not in (2, 3) or img.size == 0 or (img.ndim == 3 and img.shape[2] != 3):
+        raise InputError(f"unsupported image shape {img.shape}", path)
+    return np.ascontiguousarray(img)
+
+
+def _read_with_opencv(path: Path) -> np.ndarray | None:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is not None and img.ndim == 3:
+        img = img[:, :, 2::-1] if img.shape[2] >= 3 else img  # BGR(A) -> RGB
+    return img
+
+
+def _read_with_pillow(path: Path) -> np.ndarray:
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            im.load()
+            if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr"):
+                im = im.convert("RGB")
+            return np.asarray(im)
+    except Exception as exc:  # Pillow raises many types for corrupt files
+        raise InputError(f"cannot decode image ({type(exc).__name__}: {exc})", path) from exc
+
+
+def to_float(img: np.ndarray) -> np.ndarray:
+    """Raw sensor values as float32 (no rescaling: intensities are relative anyway)."""
+    return np.asarray(img, dtype=np.float32)
+
+
+def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 (8-bit scale)."""
+    img = read_image(path)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    if img.dtype == np.uint16:
+        mask = img > 127 * 257
+    elif np.issubdtype(img.dtype, np.floating):
+        mask = img > 0.5
+    else:
+        mask = img > 127
+    if shape is not None and mask.shape != tuple(shape):
+        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but images are "
+                         f"{shape[1]}x{shape[0]}", path)
+    return mask
+
+
+def write_atomic(path: Path, write) -> None:
+    """Write a file through a temporary sibling and rename, so no half-written file is left."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_png(path: str | Path, img: np.ndarray) -> None:
+    """Write an RGB (or grey) uint8/uint16 image as PNG, atomically."""
+    path = Path(path)
+    arr = np.asarray(img)
+    if arr.ndim == 3:
+        arr = arr[:, :, ::-1]
+
+    def _write(tmp: Path) -> None:
+        if not cv2.imwrite(str(tmp), arr):
+            raise InputError("cannot write image", path)
+
+    write_atomic(path, _write)

@@ -1,0 +1,48 @@
+"""The network's input normalisation, exactly as the published evaluation did it.
+
+1. divide each image by its light's RGB intensity;
+2. per pixel and colour channel, divide the N values by their L2 norm over the lights (+1e-10);
+3. multiply by sqrt(N / train_lights), so the value scale does not depend on N;
+4. multiply by the mask.
+Every step is per pixel, so normalising a tile equals cropping the normalised image: the tiled
+runtime relies on that.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+DEFAULT_TRAIN_LIGHTS = 32
+MULTIPLE = 4  # the network halves H and W once and doubles back: inputs must be multiples of 4
+
+
+def normalise(images: np.ndarray, intensities: np.ndarray, mask: np.ndarray,
+              train_lights: int = DEFAULT_TRAIN_LIGHTS) -> np.ndarray:
+    """(N, H, W, 3) raw images -> (N, 3, H, W) float32 network input."""
+    n = images.shape[0]
+    x = images.astype(np.float32) / intensities.astype(np.float32)[:, None, None, :]
+    norm = np.sqrt(np.einsum("nhwc,nhwc->hwc", x, x, dtype=np.float64)).astype(np.float32)
+    scale = np.float32(np.sqrt(n / train_lights))
+    x *= (scale / (norm + np.float32(1e-10)))[None]
+    x *= mask[None, :, :, None].astype(np.float32)
+    return np.ascontiguousarray(x.transpose(0, 3, 1, 2))
+
+
+def padded_size(size: int, multiple: int = MULTIPLE) -> int:
+    return -(-size // multiple) * multiple
+
+
+def pad_to_multiple(x: np.ndarray, multiple: int = MULTIPLE) -> np.ndarray:
+    """Zero-pad the last two axes (H, W) at the bottom/right to multiples of ``multiple``."""
+    h, w = x.shape[-2:]
+    ph, pw = padded_size(h, multiple) - h, padded_size(w, multiple) - w
+    if ph == 0 and pw == 0:
+        return x
+    pad = [(0, 0)] * (x.ndim - 2) + [(0, ph), (0, pw)]
+    return np.pad(x, pad)
+
+
+def network_lights(lights: np.ndarray) -> np.ndarray:
+    """Unit light directions as float32, (N, 3)."""
+    lights = np.asarray(lights, np.float64)
+    return (lights / np.linalg.norm(lights, axis=1, keepdims=True)).astype(np.float32)
