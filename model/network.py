@@ -87,16 +87,17 @@ class Fusion(nn.Module):
         b = pooled.shape[0]
         x = F.gelu(feats)
         y = F.gelu(pooled)
-        k = self.f_x(x).unflatten(0, (b, -1))  # (B, N, C, h, w)
+        per_sample = (b, -1, *x.shape[1:])  # reshape, not unflatten: keeps B dynamic at export
+        k = self.f_x(x).reshape(per_sample)  # (B, N, C, h, w)
         q = self.f_y(y).unsqueeze(1)  # (B, 1, C, h, w)
         sim = torch.sigmoid((k * q).sum(dim=2, keepdim=True))  # (B, N, 1, h, w)
-        out = (1 - sim) * x.unflatten(0, (b, -1)) + sim * y.unsqueeze(1)
+        out = (1 - sim) * x.reshape(per_sample) + sim * y.unsqueeze(1)
         return out.flatten(0, 1)
 
 
 def max_over_lights(feats: Tensor, batch: int) -> Tensor:
     """(B*N, C, h, w) -> (B, C, h, w), element-wise max over each sample's lights."""
-    return feats.unflatten(0, (batch, -1)).amax(dim=1)
+    return feats.reshape(batch, -1, *feats.shape[1:]).amax(dim=1)
 
 
 class MSFNet(nn.Module):

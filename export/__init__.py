@@ -1,0 +1,1 @@
+"""Checkpoint -> ONNX export with self-verification (needs torch and onnx)."""

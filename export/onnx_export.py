@@ -1,0 +1,173 @@
+"""Checkpoint -> ONNX with a dynamic light count, metadata, and self-verification.
+
+The ONNX contract (also in the README):
+  inputs   images  float32 (B, N, 3, H, W)  normalised as msfnet.runtime.preprocess.normalise
+           lights  float32 (B, N, 3)        unit directions, x right, y up, z to the camera
+  output   normals float32 (B, 3, H, W)     unit normals, same frame
+  N, H, W (and B) are dynamic unless exported --static; H and W must be multiples of 4.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+import msfnet
+from msfnet.model.checkpoint import load_model, sha256_of
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.model_info import METADATA_KEYS, PREPROCESSING_SPEC
+
+DEFAULT_OPSET = 17  # TorchScript exporter: GELU as Erf, runs on older runtimes (OpenVINO 2022)
+TOLERANCE_DEG = 0.01
+EXAMPLE_SHAPE = (2, 4, 24, 20)  # B, N, H, W of the tracing example: differs from every check
+
+
+@dataclass(frozen=True)
+class StaticShape:
+    lights: int
+    height: int
+    width: int
+
+    @classmethod
+    def parse(cls, text: str) -> StaticShape:
+        try:
+            n, h, w = (int(v) for v in text.split(","))
+        except ValueError as exc:
+            raise InputError(f"--static {text!r}: expected N,H,W such as 32,128,128") from exc
+        if n < 1 or h < 4 or w < 4 or h % 4 or w % 4:
+            raise InputError(f"--static {text!r}: need N >= 1 and H, W positive multiples of 4")
+        return cls(n, h, w)
+
+
+def random_inputs(batch: int, lights: int, height: int, width: int,
+                  seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Plausible network inputs: positive normalised images and upper-hemisphere unit lights."""
+    rng = np.random.default_rng(seed)
+    images = rng.random((batch, lights, 3, height, width), dtype=np.float32)
+    images *= np.float32(np.sqrt(1.0 / 32.0))  # about the scale normalise() produces
+    dirs = rng.normal(size=(batch, lights, 3))
+    dirs[..., 2] = np.abs(dirs[..., 2]) + 0.5
+    dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+    return images, dirs.astype(np.float32)
+
+
+def _torch_export(model: torch.nn.Module, path: Path, opset: int,
+                  static: StaticShape | None) -> None:
+    if static is None:
+        b, n, h, w = EXAMPLE_SHAPE
+        dynamic = {
+            "images": {0: "batch", 1: "lights", 3: "height", 4: "width"},
+            "lights": {0: "batch", 1: "lights"},
+            "normals": {0: "batch", 2: "height", 3: "width"},
+        }
+    else:
+        b, n, h, w = 1, static.lights, static.height, static.width
+        dynamic = None
+    images, lights = (torch.from_numpy(a) for a in random_inputs(b, n, h, w))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TorchScript exporter deprecation chatter
+        torch.onnx.export(model, (images, lights), str(path), input_names=["images", "lights"],
+                          output_names=["normals"], dynamic_axes=dynamic, opset_version=opset,
+                          do_constant_folding=True, dynamo=False)
+
+
+def _add_metadata(path: Path, meta: dict[str, str]) -> None:
+    proto = onnx.load(str(path))
+    del proto.metadata_props[:]
+    for key, value in meta.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
+    proto.doc_string = "MSF-Net photometric stereo (msfnet): images + lights -> unit normals"
+    onnx.save(proto, str(path))
+
+
+def simplify(path: Path) -> None:
+    """Run onnxsim on the file in place, keeping the dynamic axes (checked afterwards)."""
+    try:
+        import onnxsim
+    except ImportError as exc:
+        raise InputError("--simplify needs the onnxsim package: pip install onnxsim") from exc
+    proto = onnx.load(str(path))
+    simplified, ok = onnxsim.simplify(proto)
+    if not ok:
+        raise InputError("onnxsim could not validate the simplified graph", path)
+    onnx.save(simplified, str(path))
+
+
+def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]],
+           batch: int = 1, threads: int = 0) -> list[dict[str, float]]:
+    """ONNX Runtime vs PyTorch at each (N, H, W): max/mean angular difference in degrees."""
+    import onnxruntime as ort
+
+    try:
+        onnx.checker.check_model(str(path), full_check=True)
+    except onnx.checker.ValidationError as exc:
+        raise InputError(f"exported graph fails onnx.checker: {str(exc).splitlines()[0]}") from exc
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = threads
+    session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    results = []
+    for i, (n, h, w) in enumerate(checks):
+        images, lights = random_inputs(batch, n, h, w, seed=100 + i)
+        try:
+            (onnx_out,) = session.run(["normals"], {"images": images, "lights": lights})
+        except Exception as exc:  # ORT raises its own Fail/InvalidArgument types
+            raise InputError(f"verification failed: ONNX Runtime cannot run N={n} {w}x{h} "
+                             f"({str(exc).splitlines()[0][:200]})") from exc
+        with torch.no_grad():
+            torch_out = model(torch.from_numpy(images), torch.from_numpy(lights)).numpy()
+        diff = angular_error_deg(onnx_out.transpose(0, 2, 3, 1), torch_out.transpose(0, 2, 3, 1))
+        results.append({"lights": n, "height": h, "width": w,
+                        "max_deg": float(diff.max()), "mean_deg": float(diff.mean())})
+    return results
+
+
+def default_checks(static: StaticShape | None) -> list[tuple[int, int, int]]:
+    """Two light counts unlike the tracing example, one of them at a non-square size."""
+    if static is not None:
+        return [(static.lights, static.height, static.width)]
+    return [(3, 32, 32), (7, 28, 44), (32, 16, 24)]
+
+
+def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int = DEFAULT_OPSET,
+                      train_lights: int = 32, static: StaticShape | None = None,
+                      do_simplify: bool = False, checks: list[tuple[int, int, int]] | None = None,
+                      tolerance_deg: float = TOLERANCE_DEG) -> list[dict[str, float]]:
+    """Export, verify and only then move the file into place; nothing is left on failure."""
+    checkpoint, output = Path(checkpoint), Path(output)
+    model = load_model(checkpoint)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = output.with_name(f".{output.name}.partial.onnx")
+    try:
+        _torch_export(model, tmp, opset, static)
+        if do_simplify:
+            simplify(tmp)
+        meta = {
+            METADATA_KEYS["format"]: "msfnet-normals-v1",
+            METADATA_KEYS["train_lights"]: str(train_lights),
+            METADATA_KEYS["preprocessing"]: json.dumps(PREPROCESSING_SPEC),
+            METADATA_KEYS["checkpoint_sha256"]: sha256_of(checkpoint),
+            METADATA_KEYS["version"]: msfnet.__version__,
+            METADATA_KEYS["input_multiple"]: "4",
+            METADATA_KEYS["static_shape"]: "" if static is None else
+            f"{static.lights},{static.height},{static.width}",
+            METADATA_KEYS["precision"]: "fp32",
+        }
+        _add_metadata(tmp, meta)
+        results = verify(model, tmp, checks or default_checks(static))
+        worst = max(r["max_deg"] for r in results)
+        if not np.isfinite(worst) or worst > tolerance_deg:
+            raise InputError(f"verification failed: ONNX Runtime differs from PyTorch by "
+                             f"{worst:.4g} deg (> {tolerance_deg} deg)", output)
+        tmp.replace(output)
+        return results
+    finally:
+        tmp.unlink(missing_ok=True)
