@@ -72,7 +72,8 @@ class Fusion(nn.Module):
     """Blend each light's feature with the max over lights, gated by a learned similarity.
 
     As the released weights were trained: both inputs pass through GELU first, and the blend uses
-    the GELU'd features: out = (1 - s) * gelu(x) + s * gelu(y), s = sigmoid(<f_x(gelu x), f_y(gelu y)>).
+    the GELU'd features: out = (1 - s) * gelu(x) + s * gelu(y),
+    with s = sigmoid(<f_x(gelu x), f_y(gelu y)>) summed over channels.
     """
 
     def __init__(self) -> None:

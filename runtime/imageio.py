@@ -78,7 +78,7 @@ def to_float(img: np.ndarray) -> np.ndarray:
 
 
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 (8-bit scale)."""
+    """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 of 255."""
     img = read_image(path)
     if img.ndim == 3:
         img = img.max(axis=2)

@@ -124,7 +124,8 @@ def read_normals(path: Path) -> np.ndarray:
             from scipy.io import loadmat
 
             mat = loadmat(str(path))
-            key = "Normal_gt" if "Normal_gt" in mat else next(k for k in mat if not k.startswith("_"))
+            keys = [k for k in mat if not k.startswith("_")]
+            key = "Normal_gt" if "Normal_gt" in mat else keys[0]
             n = np.asarray(mat[key], dtype=np.float32)
         elif suffix == ".npy":
             n = np.load(path, allow_pickle=False).astype(np.float32)
@@ -168,7 +169,7 @@ def parse_select(spec: str, n: int) -> list[int]:
 
 def evenly_spaced(n: int, k: int) -> list[int]:
     """k indices spread evenly over n (for --max-lights)."""
-    return sorted({int(round(i)) for i in np.linspace(0, n - 1, k)})
+    return sorted({round(float(i)) for i in np.linspace(0, n - 1, k)})
 
 
 # ----------------------------------------------------------------------------- loaders
