@@ -31,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--static", type=StaticShape.parse, default=None, metavar="N,H,W",
                    help="export fixed shapes (batch 1) for NPUs / OpenVINO / OAK compilers")
     p.add_argument("--simplify", action="store_true",
-                   help="simplify the graph with onnxsim (dynamic axes are kept)")
+                   help="simplify the graph with onnxslim (dynamic axes are kept)")
     p.add_argument("--tolerance", type=float, default=TOLERANCE_DEG,
                    help=f"max allowed ONNX Runtime vs PyTorch angle in degrees "
                    f"(default {TOLERANCE_DEG})")

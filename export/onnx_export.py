@@ -78,8 +78,18 @@ def _torch_export(model: torch.nn.Module, path: Path, opset: int,
                           do_constant_folding=True, dynamo=False)
 
 
-def _add_metadata(path: Path, meta: dict[str, str]) -> None:
+def _finalise(path: Path, meta: dict[str, str], static: StaticShape | None) -> None:
+    """Declare the output's axes plainly (the exporter names the 3 'Divnormals_dim_1') and
+    attach the metadata the runtime reads."""
     proto = onnx.load(str(path))
+    out_dims = proto.graph.output[0].type.tensor_type.shape.dim
+    names = ["batch", 3, "height", "width"] if static is None else [
+        1, 3, static.height, static.width]
+    for dim, value in zip(out_dims, names, strict=True):
+        if isinstance(value, int):
+            dim.dim_value = value
+        else:
+            dim.dim_param = value
     del proto.metadata_props[:]
     for key, value in meta.items():
         entry = proto.metadata_props.add()
@@ -88,16 +98,22 @@ def _add_metadata(path: Path, meta: dict[str, str]) -> None:
     onnx.save(proto, str(path))
 
 
+def _dims(proto: onnx.ModelProto) -> dict[str, list[str | int]]:
+    return {v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
+            for v in [*proto.graph.input, *proto.graph.output]}
+
+
 def simplify(path: Path) -> None:
-    """Run onnxsim on the file in place, keeping the dynamic axes (checked afterwards)."""
+    """Simplify the graph in place with onnxslim; refuse if any declared axis changed."""
     try:
-        import onnxsim
+        import onnxslim
     except ImportError as exc:
-        raise InputError("--simplify needs the onnxsim package: pip install onnxsim") from exc
+        raise InputError("--simplify needs the onnxslim package: pip install onnxslim") from exc
     proto = onnx.load(str(path))
-    simplified, ok = onnxsim.simplify(proto)
-    if not ok:
-        raise InputError("onnxsim could not validate the simplified graph", path)
+    simplified = onnxslim.slim(proto)
+    if _dims(simplified) != _dims(proto):
+        raise InputError(f"simplification changed the input/output axes {_dims(proto)} -> "
+                         f"{_dims(simplified)}", path)
     onnx.save(simplified, str(path))
 
 
@@ -148,8 +164,6 @@ def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int 
     tmp = output.with_name(f".{output.name}.partial.onnx")
     try:
         _torch_export(model, tmp, opset, static)
-        if do_simplify:
-            simplify(tmp)
         meta = {
             METADATA_KEYS["format"]: "msfnet-normals-v1",
             METADATA_KEYS["train_lights"]: str(train_lights),
@@ -161,7 +175,9 @@ def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int 
             f"{static.lights},{static.height},{static.width}",
             METADATA_KEYS["precision"]: "fp32",
         }
-        _add_metadata(tmp, meta)
+        _finalise(tmp, meta, static)
+        if do_simplify:
+            simplify(tmp)
         results = verify(model, tmp, checks or default_checks(static))
         worst = max(r["max_deg"] for r in results)
         if not np.isfinite(worst) or worst > tolerance_deg:
