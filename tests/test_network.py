@@ -81,10 +81,10 @@ def test_light_order_does_not_matter() -> None:
 def test_batch_samples_are_independent() -> None:
     net = MSFNet().eval()
     images, lights = _inputs(2, 4, 12, 16)
-    with torch.no_grad():
-        both = net(images, lights)
-        first = net(images[:1], lights[:1])
-    assert torch.allclose(both[:1], first, atol=2e-5)
+    with torch.no_grad():  # features, not normals: normalising tiny random outputs amplifies noise
+        both = net.pooled_features(images, lights)[-1]
+        first = net.pooled_features(images[:1], lights[:1])[-1]
+    assert torch.allclose(both[:1], first, rtol=1e-4, atol=1e-6)
 
 
 def test_folded_network_equals_the_published_per_light_loop() -> None:
