@@ -193,8 +193,12 @@ def _read_images(paths: Sequence[Path], threads: int = 4) -> np.ndarray:
 
 
 def load_folder(folder: Path, lights: Path | None = None, intensities: Path | None = None,
-                mask: Path | None = None, threads: int = 4) -> Stack:
-    """A DiLiGenT-layout object folder, or any folder of images plus a lights file."""
+                mask: Path | None = None, threads: int = 4,
+                indices: Sequence[int] | None = None) -> Stack:
+    """A DiLiGenT-layout object folder, or any folder of images plus a lights file.
+
+    ``indices`` (0-based) picks the images to keep; only those are decoded.
+    """
     if not folder.is_dir():
         raise InputError("stack folder not found", folder)
     names_file = folder / "filenames.txt"
@@ -222,6 +226,9 @@ def load_folder(folder: Path, lights: Path | None = None, intensities: Path | No
             raise InputError("light intensities must be positive", int_path)
     else:
         ints = np.ones((len(paths), 3), np.float32)
+    if indices is not None:
+        keep = list(indices)
+        paths, light_dirs, ints = [paths[i] for i in keep], light_dirs[keep], ints[keep]
     images = _read_images(paths, threads)
     hw = images.shape[1:3]
     mask_path = mask or _first_existing(folder, MASK_NAMES) or next(
@@ -263,7 +270,8 @@ def load_stack(path: str | Path, *, lights: str | Path | None = None,
                intensities: str | Path | None = None, mask: str | Path | None = None,
                select: str | None = None, max_lights: int | None = None,
                threads: int = 4) -> Stack:
-    """Load any supported stack, then apply --select and --max-lights."""
+    """Load any supported stack with --select and --max-lights applied (only kept images are
+    decoded)."""
     path = Path(path)
     opt = {k: Path(v) if v is not None else None
            for k, v in (("lights", lights), ("intensities", intensities), ("mask", mask))}
@@ -278,15 +286,30 @@ def load_stack(path: str | Path, *, lights: str | Path | None = None,
         if opt["mask"] is not None:
             stack.mask = read_mask(opt["mask"], stack.shape)
         stack.validate()
-    else:
-        stack = load_folder(path, opt["lights"], opt["intensities"], opt["mask"], threads)
-    if select:
-        stack = stack.subset(parse_select(select, stack.num_lights)).validate()
-    if max_lights is not None and max_lights < stack.num_lights:
+        return stack.subset(_selection(stack.num_lights, select, max_lights)).validate()
+    count = _count_images(path)
+    return load_folder(path, opt["lights"], opt["intensities"], opt["mask"], threads,
+                       _selection(count, select, max_lights) if count else None)
+
+
+def _count_images(folder: Path) -> int:
+    """How many images a folder stack holds, without decoding any (0 if unknown)."""
+    if not folder.is_dir():
+        return 0
+    names_file = folder / "filenames.txt"
+    if names_file.is_file():
+        return sum(1 for ln in names_file.read_text().splitlines() if ln.strip())
+    return len(list_images(folder))
+
+
+def _selection(n: int, select: str | None, max_lights: int | None) -> list[int]:
+    """--select (1-based spec), then --max-lights evenly spread over what is left."""
+    keep = parse_select(select, n) if select else list(range(n))
+    if max_lights is not None and max_lights < len(keep):
         if max_lights < 3:
             raise InputError(f"--max-lights {max_lights}: at least 3 lights are needed")
-        stack = stack.subset(evenly_spaced(stack.num_lights, max_lights)).validate()
-    return stack
+        keep = [keep[i] for i in evenly_spaced(len(keep), max_lights)]
+    return keep
 
 
 # ----------------------------------------------------------------------------- writer

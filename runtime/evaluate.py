@@ -1,0 +1,201 @@
+"""msf-eval: a model (ONNX, through the runtime) and the least-squares baseline over a benchmark.
+
+ROOT is a benchmark folder with ``objects.txt`` (one object folder per line, optionally followed
+by an image selection such as ``21-96`` for DiLiGenT bear) or, without it, every sub-folder that
+holds a stack; ROOT may also be a single object folder. Objects need ground-truth normals.
+Writes results.json, results.md and <object>/<method>_error.png (+ normals png) to OUTDIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .metrics import error_map
+from .outputs import (
+    check_outdir,
+    commit_folder,
+    error_png,
+    normals_png,
+    staging_folder,
+    write_json,
+    write_rgb_png,
+)
+from .run import default_model_path, run_stack
+from .session import create_session
+from .stack import LIGHTS_NAMES, load_stack
+from .tiling import DEFAULT_MAX_MEMORY_MB
+
+PROG = "msf-eval"
+COLUMNS = ("mae_deg", "err15", "err30")
+
+
+def find_objects(root: Path) -> list[tuple[Path, str | None]]:
+    """(object folder, --select spec or None) in benchmark order."""
+    if not root.is_dir():
+        raise InputError("benchmark root not found", root)
+    listing = root / "objects.txt"
+    if listing.is_file():
+        out = []
+        for line in listing.read_text().splitlines():
+            parts = line.split("#", 1)[0].split()
+            if not parts:
+                continue
+            folder = root / parts[0]
+            if not folder.is_dir():
+                raise InputError(f"object folder {parts[0]!r} listed but not found", listing)
+            out.append((folder, parts[1] if len(parts) > 1 else None))
+        if not out:
+            raise InputError("objects.txt lists no objects", listing)
+        return out
+    if any((root / n).is_file() for n in LIGHTS_NAMES):
+        return [(root, None)]
+    found = [(d, None) for d in sorted(root.iterdir())
+             if d.is_dir() and any((d / n).is_file() for n in LIGHTS_NAMES)]
+    if not found:
+        raise InputError("no object folders (with light_directions.txt or lights.txt) and no "
+                         "objects.txt", root)
+    return found
+
+
+def _fmt(v: float | None, pct: bool = False) -> str:
+    if v is None:
+        return "-"
+    return f"{v * 100:.1f}" if pct else f"{v:.2f}"
+
+
+def markdown_table(rows: list[dict], methods: list[str]) -> str:
+    head = ["object", "lights"]
+    for col in COLUMNS:
+        label = {"mae_deg": "MAE deg", "err15": "<15° %", "err30": "<30° %"}[col]
+        head += [f"{label} {m}" for m in methods]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r["object"], str(r["lights"])]
+        for col in COLUMNS:
+            cells += [_fmt(r["results"].get(m, {}).get(col), col != "mae_deg") for m in methods]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def mean_row(rows: list[dict], methods: list[str]) -> dict:
+    res = {}
+    for m in methods:
+        scored = [r["results"][m] for r in rows if m in r["results"]]
+        if scored:
+            res[m] = {c: float(np.mean([s[c] for s in scored])) for c in COLUMNS}
+    return {"object": "**mean**", "lights": "", "results": res}
+
+
+def evaluate(root: Path, outdir: Path, *, onnx: Path | None, use_model: bool = True,
+             use_l2: bool = True, max_lights: int | None = None, threads: int | None = None,
+             provider: str | None = None, tile: int | None = None,
+             max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, overwrite: bool = False,
+             progress: bool = False) -> dict:
+    objects = find_objects(root)
+    check_outdir(outdir, overwrite, [root])
+    methods: list[str] = []
+    session = None
+    if use_model:
+        model = onnx or default_model_path()
+        if not model.is_file():
+            raise InputError(f"no --onnx MODEL given and no bundled model at {model}; pass "
+                             "--onnx or --l2-only")
+        session = create_session(model, threads=threads, provider=provider)
+        methods.append("msf")
+    if use_l2:
+        methods.append("l2")
+    if not methods:
+        raise InputError("nothing to evaluate: both the model and l2 are switched off")
+    tmp = staging_folder(outdir)
+    try:
+        rows = []
+        for folder, select in objects:
+            stack = load_stack(folder, select=select, max_lights=max_lights)
+            row: dict = {"object": folder.name, "lights": stack.num_lights, "results": {},
+                         "select": select}
+            if stack.normals_gt is None:
+                row["note"] = "no ground truth"
+                rows.append(row)
+                continue
+            (tmp / folder.name).mkdir()
+            for m in methods:
+                res = run_stack(stack, method=m, session=session if m == "msf" else None,
+                                write=False, tile=tile, max_memory_mb=max_memory_mb,
+                                progress=progress)
+                assert res.metrics is not None
+                err = error_map(res.normals, stack.normals_gt, stack.mask)
+                write_rgb_png(tmp / folder.name / f"{m}_error.png", error_png(err, stack.mask))
+                write_rgb_png(tmp / folder.name / f"{m}_normals.png",
+                              normals_png(res.normals, stack.mask))
+                row["results"][m] = {**res.metrics,
+                                     "seconds": res.profile["stages"]["total"]["median_s"]}
+            rows.append(row)
+            if progress:
+                print(f"{folder.name}: " + ", ".join(
+                    f"{m} {row['results'][m]['mae_deg']:.2f} deg" for m in methods),
+                    file=sys.stderr)
+        summary = {"root": str(root), "model": str(session.info.path) if session else None,
+                   "methods": methods, "objects": rows,
+                   "mean": mean_row(rows, methods)["results"]}
+        table = markdown_table([*rows, mean_row(rows, methods)], methods)
+        write_json(tmp / "results.json", summary)
+        (tmp / "results.md").write_text(table + "\n")
+        commit_folder(tmp, outdir, overwrite)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    summary["table"] = table
+    return summary
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=PROG,
+        description="Score a model (ONNX via the runtime) and the least-squares baseline on "
+        "every object of a benchmark root (objects.txt, or every object folder). Prints a "
+        "per-object MAE / err15 / err30 table and writes results.json, results.md and "
+        "error maps to OUTDIR.")
+    p.add_argument("root", type=Path, metavar="ROOT", help="benchmark root or one object folder")
+    p.add_argument("--onnx", type=Path, metavar="MODEL",
+                   help="msfnet ONNX model (default: the bundled model)")
+    p.add_argument("--l2-only", action="store_true", help="only the least-squares baseline")
+    p.add_argument("--no-l2", action="store_true", help="skip the least-squares baseline")
+    p.add_argument("-o", "--outdir", type=Path, default=None,
+                   help="output folder (default ./msf-eval/<root name>/)")
+    p.add_argument("--max-lights", type=int, metavar="K", help="use K evenly spaced lights")
+    p.add_argument("--threads", type=int, metavar="T", help="ONNX Runtime threads")
+    p.add_argument("--provider", default="cpu", metavar="P", help="execution provider")
+    p.add_argument("--tile", type=int, metavar="S", help="tile edge in px (0 = untiled)")
+    p.add_argument("--max-memory", type=float, default=DEFAULT_MAX_MEMORY_MB, metavar="MB",
+                   help=f"memory budget in MB (default {DEFAULT_MAX_MEMORY_MB})")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing OUTDIR")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    outdir = args.outdir or Path("msf-eval") / args.root.resolve().name
+    try:
+        if args.l2_only and args.onnx is not None:
+            raise InputError("--l2-only and --onnx contradict each other")
+        summary = evaluate(args.root, outdir, onnx=args.onnx, use_model=not args.l2_only,
+                           use_l2=not args.no_l2, max_lights=args.max_lights,
+                           threads=args.threads, provider=args.provider, tile=args.tile,
+                           max_memory_mb=args.max_memory, overwrite=args.overwrite,
+                           progress=sys.stderr.isatty())
+    except InputError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    print(summary["table"])
+    print(f"wrote {outdir}/ (results.json, results.md, error maps)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

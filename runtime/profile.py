@@ -1,0 +1,75 @@
+"""Per-stage latency over repeated runs, peak RSS and achieved GFLOP/s, as JSON and a table."""
+
+from __future__ import annotations
+
+import resource
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+import numpy as np
+
+STAGES = ("load", "preprocess", "inference", "postprocess", "total")
+
+
+class StageTimer:
+    """Accumulates wall time per stage name (a stage may be entered many times, e.g. per tile)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - start
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far (ru_maxrss: KiB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024
+
+
+@dataclass
+class Profile:
+    runs: list[dict[str, float]] = field(default_factory=list)
+    flops: float = 0.0  # per run, executed by the inference stage (0 for --method l2)
+    info: dict[str, object] = field(default_factory=dict)
+
+    def add(self, timer: StageTimer) -> None:
+        self.runs.append(dict(timer.seconds))
+
+    def summary(self) -> dict[str, object]:
+        stages: dict[str, dict[str, float]] = {}
+        for stage in STAGES:
+            vals = np.array([r.get(stage, 0.0) for r in self.runs], np.float64)
+            stages[stage] = {"median_s": float(np.median(vals)),
+                             "p90_s": float(np.percentile(vals, 90)),
+                             "min_s": float(vals.min())}
+        infer = stages["inference"]["median_s"]
+        gflops = self.flops / infer / 1e9 if self.flops and infer > 0 else None
+        return {"repeat": len(self.runs), "stages": stages, "peak_rss_mb": peak_rss_mb(),
+                "inference_gflop": self.flops / 1e9, "inference_gflops_per_s": gflops,
+                "runs": self.runs, **self.info}
+
+    def table(self) -> str:
+        s = self.summary()
+        stages = s["stages"]
+        assert isinstance(stages, dict)
+        lines = [f"{'stage':<12} {'median s':>10} {'p90 s':>10}   (repeat {s['repeat']})"]
+        for stage in STAGES:
+            lines.append(f"{stage:<12} {stages[stage]['median_s']:>10.3f} "
+                         f"{stages[stage]['p90_s']:>10.3f}")
+        lines.append(f"peak RSS     {s['peak_rss_mb']:>10.0f} MB")
+        if s["inference_gflops_per_s"] is not None:
+            lines.append(f"inference    {s['inference_gflops_per_s']:>10.1f} GFLOP/s "
+                         f"({s['inference_gflop']:.0f} GFLOP per run)")
+        return "\n".join(lines)
+
+
+__all__ = ["STAGES", "Profile", "StageTimer", "peak_rss_mb"]

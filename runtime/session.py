@@ -1,0 +1,106 @@
+"""ONNX Runtime session creation for msfnet models, with the metadata check.
+
+Refuses any ONNX file that is not an msfnet export (wrong metadata or I/O names) before it can
+produce garbage normals.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import onnxruntime as ort
+
+from .errors import InputError
+from .model_info import ModelInfo, model_info_from_metadata
+
+PROVIDER_ALIASES = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+    "dnnl": "DnnlExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+    "directml": "DmlExecutionProvider",
+}
+
+GRAPH_OPT_LEVELS = {
+    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+}
+
+
+@dataclass
+class ModelSession:
+    session: ort.InferenceSession
+    info: ModelInfo
+    provider: str
+    threads: int
+
+    def run(self, images, lights):
+        """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W)."""
+        return self.session.run(["normals"], {"images": images, "lights": lights})[0]
+
+
+def resolve_provider(name: str | None) -> str:
+    """'cpu', 'cuda', ... or a full ORT provider name; must be installed."""
+    provider = PROVIDER_ALIASES.get((name or "cpu").lower(), name or "CPUExecutionProvider")
+    available = ort.get_available_providers()
+    if provider not in available:
+        raise InputError(f"--provider {name!r}: not available in this onnxruntime build "
+                         f"(available: {', '.join(available)})")
+    return provider
+
+
+def default_threads() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def create_session(path: str | Path, *, threads: int | None = None, provider: str | None = None,
+                   graph_opt: str = "all", arena: bool = False) -> ModelSession:
+    """Load an msfnet ONNX model; raise InputError if it is missing, corrupt or not msfnet.
+
+    ``arena``: off by default. With ONNX Runtime's CPU arena on, a full DiLiGenT ball (96 lights,
+    4 tiles of 112 px) peaked at 4.4 GB RSS against 2.2 GB with it off (the arena grows in
+    doubling chunks and keeps them); after warm-up the speed was the same within noise.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("ONNX model not found", path)
+    if graph_opt not in GRAPH_OPT_LEVELS:
+        raise InputError(f"graph optimisation level {graph_opt!r}: expected one of "
+                         f"{', '.join(GRAPH_OPT_LEVELS)}")
+    threads = threads or default_threads()
+    if threads < 1:
+        raise InputError(f"--threads must be positive, got {threads}")
+    prov = resolve_provider(provider)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.graph_optimization_level = GRAPH_OPT_LEVELS[graph_opt]
+    opts.enable_cpu_mem_arena = arena
+    opts.log_severity_level = 3  # keep ORT's warnings off the user's terminal
+    providers = [prov] if prov == "CPUExecutionProvider" else [prov, "CPUExecutionProvider"]
+    try:
+        sess = ort.InferenceSession(str(path), opts, providers=providers)
+    except Exception as exc:  # ORT raises InvalidProtobuf, Fail, ... for bad files
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"cannot load ONNX model ({first[:200]})", path) from exc
+    meta = dict(sess.get_modelmeta().custom_metadata_map)
+    info = model_info_from_metadata(path, meta)
+    inputs = {i.name for i in sess.get_inputs()}
+    outputs = {o.name for o in sess.get_outputs()}
+    if inputs != {"images", "lights"} or "normals" not in outputs:
+        raise InputError(f"not an msfnet model: inputs {sorted(inputs)}, outputs "
+                         f"{sorted(outputs)} (expected images, lights -> normals)", path)
+    return ModelSession(sess, info, prov, threads)
+
+
+__all__ = ["GRAPH_OPT_LEVELS", "ModelSession", "create_session", "default_threads",
+           "resolve_provider"]

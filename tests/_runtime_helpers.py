@@ -1,0 +1,76 @@
+"""Helpers for the runtime tests: a small synthetic stack and a random-weight ONNX model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msfnet.runtime.stack import Stack
+
+
+def sphere_stack(n: int = 8, h: int = 36, w: int = 44, seed: int = 0, name: str = "sphere"
+                 ) -> Stack:
+    """A Lambertian sphere (albedo 0.8, radius ~ 0.45 min(h, w)) under n upper-hemisphere lights."""
+    rng = np.random.default_rng(seed)
+    lights = rng.normal(size=(n, 3))
+    lights[:, 2] = np.abs(lights[:, 2]) + 1.0
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    r = 0.45 * min(h, w)
+    x, y = (xx - w / 2 + 0.5) / r, -(yy - h / 2 + 0.5) / r  # y up
+    mask = x**2 + y**2 < 0.95
+    normals = np.zeros((h, w, 3))
+    normals[..., 0], normals[..., 1] = x, y
+    normals[..., 2] = np.sqrt(np.clip(1 - x**2 - y**2, 0, None))
+    normals[~mask] = 0
+    ints = rng.uniform(0.5, 1.5, size=(n, 3))
+    shading = np.clip(np.einsum("hwc,nc->nhw", normals, lights), 0, None)
+    images = 0.8 * 40000.0 * shading[..., None] * ints[:, None, None, :]
+    return Stack(name, images.astype(np.float32), lights.astype(np.float32),
+                 ints.astype(np.float32), mask, normals.astype(np.float32),
+                 [f"{i + 1:03d}.png" for i in range(n)])
+
+
+def build_random_onnx(folder: Path, sensitive: bool = False) -> Path:
+    """Random-weight MSF-Net (seed 0) exported to ONNX with msf-export's code path.
+
+    PyTorch's default init shrinks activations layer by layer, so that model's output hardly
+    depends on the images (8 vs 96 ball lights: 0.001 deg apart). ``sensitive`` re-initialises
+    the convolutions with He-normal weights (gain for LeakyReLU 0.1), keeping the signal alive
+    through all 17 layers: tests of spatial exactness (tiling) need that to be able to fail.
+    """
+    torch = pytest.importorskip("torch")
+    from msfnet.export.onnx_export import export_checkpoint
+    from msfnet.model.checkpoint import save_checkpoint
+    from msfnet.model.network import MSFNet
+
+    stem = "sensitive" if sensitive else "rand"
+    onnx_path = folder / f"{stem}.onnx"
+    if onnx_path.is_file():
+        return onnx_path
+    torch.manual_seed(0)
+    model = MSFNet()
+    if sensitive:
+        for module in model.modules():
+            if isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
+                torch.nn.init.kaiming_normal_(module.weight, a=0.1, nonlinearity="leaky_relu")
+    save_checkpoint(model, folder / f"{stem}.pth")
+    export_checkpoint(folder / f"{stem}.pth", onnx_path, checks=[(3, 8, 8)])
+    return onnx_path
+
+
+@pytest.fixture(scope="session")
+def random_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Built once per session (the file is reused if another module asks again)."""
+    folder = tmp_path_factory.getbasetemp() / "runtime_model"
+    folder.mkdir(exist_ok=True)
+    return build_random_onnx(folder)
+
+
+@pytest.fixture(scope="session")
+def sensitive_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.getbasetemp() / "runtime_model"
+    folder.mkdir(exist_ok=True)
+    return build_random_onnx(folder, sensitive=True)

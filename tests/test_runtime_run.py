@@ -1,0 +1,86 @@
+"""msf-run end to end on real data: l2 accuracy on ball, tiled ONNX runs, outputs and profile."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from _runtime_helpers import random_onnx, sphere_stack  # noqa: F401  (session fixture)
+
+from msfnet.runtime.cli import main
+from msfnet.runtime.run import run_stack
+
+
+def _check_outputs(out: Path, shape: tuple[int, int], with_gt: bool) -> dict:
+    normals = np.load(out / "normals.npy")
+    assert normals.shape == (*shape, 3) and normals.dtype == np.float32
+    png = cv2.imread(str(out / "normals.png"), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+    assert png.dtype == np.uint16 and png.shape == (*shape, 3)
+    inside = np.any(normals != 0, axis=2)
+    np.testing.assert_allclose(np.linalg.norm(normals[inside], axis=1), 1.0, atol=1e-4)
+    np.testing.assert_allclose(png[inside] / 65535.0 * 2 - 1, normals[inside], atol=2e-5)
+    assert np.all(png[~inside] == 0)
+    profile = json.loads((out / "profile.json").read_text())
+    for stage in ("load", "preprocess", "inference", "postprocess", "total"):
+        assert profile["stages"][stage]["p90_s"] >= profile["stages"][stage]["median_s"] >= 0
+    assert profile["peak_rss_mb"] > 50
+    assert (out / "metrics.json").is_file() == with_gt == (out / "error.png").is_file()
+    return profile
+
+
+def test_l2_on_ball_matches_published(ball_dir: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "ball_l2"
+    assert main(["--method", "l2", str(ball_dir), "-o", str(out), "--repeat", "2"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert abs(metrics["mae_deg"] - 4.1) < 0.3, metrics  # DiLiGenT's L2 baseline: 4.10 deg
+    assert metrics["pixels"] == 15791
+    profile = _check_outputs(out, (512, 612), with_gt=True)
+    assert profile["repeat"] == 2 and len(profile["runs"]) == 2
+    printed = capsys.readouterr().out
+    assert "MAE 4.2" in printed and "p90 s" in printed and "peak RSS" in printed
+    normals = np.load(out / "normals.npy")
+    mask = cv2.imread(str(ball_dir / "mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    assert np.all(normals[~mask] == 0) and np.all(np.any(normals[mask] != 0, axis=1))
+
+
+def test_onnx_on_ball_tiled(random_onnx: Path, ball_dir: Path, tmp_path: Path,  # noqa: F811
+                            capsys) -> None:
+    """Default-suite version: 8 of the 96 lights, small tiles (the full run is marked slow)."""
+    out = tmp_path / "ball_msf"
+    assert main(["--onnx", str(random_onnx), str(ball_dir), "-o", str(out), "--max-lights", "8",
+                 "--tile", "96", "--threads", "2"]) == 0
+    profile = _check_outputs(out, (512, 612), with_gt=True)
+    assert profile["lights"] == 8
+    assert profile["tiles"]["run"] >= 4 and profile["tiles"]["tile_px"] == 96
+    assert profile["inference_gflops_per_s"] > 0
+    assert "tiles:" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path,  # noqa: F811
+                                      tmp_path: Path) -> None:
+    """All 96 lights, default 4096 MB budget; a fresh process so peak RSS is the run's own."""
+    out = tmp_path / "full"
+    proc = subprocess.run([sys.executable, "-m", "msfnet.runtime.cli", "--onnx", str(random_onnx),
+                           str(ball_dir), "-o", str(out), "--threads", "2"],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr
+    profile = _check_outputs(out, (512, 612), with_gt=True)
+    assert profile["lights"] == 96
+    assert profile["tiles"]["run"] >= 2  # the budget forces tiling
+    assert profile["peak_rss_mb"] < 4096  # --max-memory default
+
+
+def test_run_stack_api_on_stack_object(random_onnx: Path) -> None:  # noqa: F811
+    stack = sphere_stack(n=6)
+    untiled = run_stack(stack, onnx=random_onnx, write=False, tile=0, threads=2)
+    assert untiled.outdir is None and untiled.files == []
+    assert untiled.metrics is not None and untiled.plan is not None
+    assert len(untiled.plan.tiles) == 1 and untiled.profile["tiles"]["tile_px"] is None
+    l2 = run_stack(stack, method="l2", write=False)
+    assert l2.metrics is not None and l2.metrics["median_deg"] < 0.01
