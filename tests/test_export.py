@@ -20,9 +20,14 @@ from msfnet.runtime.metrics import angular_error_deg  # noqa: E402
 
 
 def _trained_like_net(seed: int = 0) -> MSFNet:
-    """Random weights plus non-trivial batch-norm statistics, like a trained checkpoint."""
+    """Random weights that keep the signal alive through all layers (PyTorch's default init
+    shrinks it until the output hardly depends on the input, which would make parity checks
+    weak), plus non-trivial batch-norm statistics, like a trained checkpoint."""
     torch.manual_seed(seed)
     net = MSFNet()
+    for module in net.modules():
+        if isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
+            torch.nn.init.kaiming_normal_(module.weight, a=0.1, nonlinearity="leaky_relu")
     for bn in (net.fusion.f_x[1], net.fusion.f_y[1]):
         bn.running_mean.normal_(0, 0.1)
         bn.running_var.uniform_(0.5, 1.5)
