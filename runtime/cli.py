@@ -21,7 +21,11 @@ def build_parser() -> argparse.ArgumentParser:
         "Writes normals.npy, normals.png, profile.json and, with ground truth, metrics.json and "
         "error.png to OUTDIR.",
     )
-    p.add_argument("stack", type=Path, metavar="STACK", help="stack folder or .npz")
+    p.add_argument("stack", type=Path, metavar="STACK", nargs="?",
+                   help="stack folder or .npz (omit with --demo)")
+    p.add_argument("--demo", action="store_true",
+                   help="run on a freshly rendered 32-light synthetic sample with ground truth "
+                   "(bundled model by default) and compare with least squares")
     p.add_argument("--onnx", type=Path, metavar="MODEL",
                      help="msfnet ONNX model (default: the bundled model, if installed)")
     p.add_argument("--method", choices=("msf", "l2"), default="msf",
@@ -58,10 +62,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.method == "l2" and args.onnx is not None:
             raise InputError("--method l2 needs no model; drop --onnx")
+        if (args.stack is None) == (not args.demo):
+            raise InputError("give a STACK (folder or .npz) or --demo, not both or neither")
         from .run import run_stack
 
+        stack = args.stack
+        if args.demo:
+            from .demo import demo_stack
+
+            stack = demo_stack()
         result = run_stack(
-            args.stack, onnx=args.onnx, method=args.method, outdir=args.outdir,
+            stack, onnx=args.onnx, method=args.method, outdir=args.outdir,
             overwrite=args.overwrite, lights=args.lights, intensities=args.intensities,
             mask=args.mask, select=args.select, max_lights=args.max_lights,
             threads=args.threads, provider=args.provider, tile=args.tile,
@@ -85,6 +96,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"MAE {m['mae_deg']:.3f} deg, median {m['median_deg']:.3f} deg, err15 "
               f"{m['err15'] * 100:.1f} %, err30 {m['err30'] * 100:.1f} % over {m['pixels']} px")
     print(result.table)
+    if args.demo and args.method != "l2":
+        from .least_squares import least_squares_normals
+        from .metrics import normal_metrics
+
+        l2 = normal_metrics(least_squares_normals(result.stack), result.stack.normals_gt,
+                            result.stack.mask)
+        print(f"least squares on the same stack: MAE {l2['mae_deg']:.3f} deg, median "
+              f"{l2['median_deg']:.3f} deg, err15 {l2['err15'] * 100:.1f} %")
     if result.outdir is not None:
         print(f"wrote {result.outdir}/ ({', '.join(f.name for f in result.files)})")
     return 0
