@@ -1,1 +1,11 @@
-"""msfnet.calib"""
+"""Light calibration (mirror and matte spheres) and stack capture from cameras and light rigs.
+
+Never imports torch; depthai and pyserial are imported lazily inside their back-ends.
+"""
+
+from .directions import DirectionResult, LightEstimate, estimate_directions
+from .intensities import estimate_intensities
+from .sphere import Circle, fit_circles_from_images, fit_circles_from_mask
+
+__all__ = ["Circle", "DirectionResult", "LightEstimate", "estimate_directions",
+           "estimate_intensities", "fit_circles_from_images", "fit_circles_from_mask"]

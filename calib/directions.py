@@ -1,0 +1,272 @@
+"""Light directions from the highlights on mirror (chrome) spheres.
+
+For each image and sphere: find the highlight blob (sub-pixel, robust to saturation and bloom),
+reflect the view ray about the sphere normal at every blob pixel and average those reflected
+directions, weighted by brightness above the blob threshold and by each pixel's footprint on the
+sphere of directions (1 / n.v), so a foreshortened highlight near the rim is not biased inwards.
+Estimates from several spheres or captures are averaged by confidence.
+
+Output frame (DiLiGenT): x right, y up, z toward the camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from msfnet.runtime.errors import InputError
+
+from .sphere import Circle
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels (for --focal / --intrinsics); None means orthographic."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def rays(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Unit rays from the camera through pixels (camera looks down -z)."""
+        d = np.stack([(x - self.cx) / self.fx, -(y - self.cy) / self.fy, -np.ones_like(x)], -1)
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+@dataclass
+class LightEstimate:
+    """One highlight on one sphere in one image."""
+
+    direction: np.ndarray | None  # (3,) unit, or None when no highlight was found
+    x: float = float("nan")  # weighted image centroid (diagnostics)
+    y: float = float("nan")
+    snr: float = 0.0
+    saturated: float = 0.0  # share of blob pixels at the white level
+    touches_rim: bool = False
+    second_ratio: float = 0.0  # brightness of the strongest other blob relative to this one
+    confidence: float = 0.0
+    sphere: int = 0
+    capture: int = 0
+
+
+@dataclass
+class DirectionResult:
+    directions: np.ndarray  # (N, 3) float64 unit
+    confidence: np.ndarray  # (N,) 0..1
+    estimates: list[list[LightEstimate]]  # per light, every sphere x capture
+    spread_deg: np.ndarray  # (N,) largest angle of a single estimate from the average
+    warnings: list[str] = field(default_factory=list)
+
+
+def sphere_geometry(circle: Circle, x: np.ndarray, y: np.ndarray,
+                    intrinsics: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals and unit view vectors (toward the camera) at pixels on the sphere."""
+    x = np.asarray(x, np.float64)
+    y = np.asarray(y, np.float64)
+    if intrinsics is None:
+        nx = (x - circle.cx) / circle.r
+        ny = -(y - circle.cy) / circle.r
+        nz = np.sqrt(np.clip(1.0 - nx * nx - ny * ny, 0.0, None))
+        n = np.stack([nx, ny, nz], -1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        return n, np.broadcast_to(np.array([0.0, 0.0, 1.0]), n.shape)
+    # Perspective: the silhouette is a cone of rays d with d.c = cos(alpha) around the sphere's
+    # centre direction c. Fit c/cos(alpha) linearly from rays through the circle's outline.
+    th = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    edge = intrinsics.rays(circle.cx + circle.r * np.cos(th), circle.cy + circle.r * np.sin(th))
+    cvec = np.linalg.lstsq(edge, np.ones(len(th)), rcond=None)[0]
+    cos_a = 1.0 / np.linalg.norm(cvec)
+    c = cvec * cos_a
+    dist = 1.0 / np.sqrt(max(1.0 - cos_a * cos_a, 1e-12))  # sphere radius 1
+    centre = c * dist
+    d = intrinsics.rays(x, y)
+    b = d @ centre
+    disc = np.clip(b * b - (centre @ centre - 1.0), 0.0, None)  # clip: rays grazing the rim
+    t = b - np.sqrt(disc)
+    n = t[..., None] * d - centre
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return n, -d
+
+
+def reflect(n: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Mirror direction of v about n (both unit): the light that makes a highlight there."""
+    r = 2.0 * np.sum(n * v, -1, keepdims=True) * n - v
+    return r / np.linalg.norm(r, axis=-1, keepdims=True)
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    a = np.asarray(img, np.float64)
+    return a.mean(axis=-1) if a.ndim == 3 else a
+
+
+def find_highlight(img: np.ndarray, circle: Circle, white_level: float,
+                   intrinsics: Intrinsics | None = None, min_snr: float = 8.0,
+                   level: float = 0.5) -> LightEstimate:
+    """The brightest blob on the sphere and the light direction it implies."""
+    g = _grey(img)
+    h, w = g.shape
+    inside = circle.contains(h, w)
+    if inside.sum() < 20:
+        return LightEstimate(None)
+    vals = g[inside]
+    bg = float(np.median(vals))
+    noise = 1.4826 * float(np.median(np.abs(vals - bg))) + 0.5 * white_level / 255.0
+    smooth = cv2.GaussianBlur(g.astype(np.float32), (0, 0), 1.0)
+    smooth[~inside] = -np.inf
+    py, px = np.unravel_index(int(np.argmax(smooth)), smooth.shape)
+    peak = float(g[inside].max())
+    snr = (peak - bg) / noise
+    if snr < min_snr:
+        return LightEstimate(None, snr=snr)
+    thr = bg + level * (peak - bg)
+    count, labels = cv2.connectedComponents(((g > thr) & inside).astype(np.uint8), connectivity=8)
+    blob = labels == labels[py, px]
+    if labels[py, px] == 0:  # smoothed peak fell between pixels above threshold
+        sums = np.bincount(labels.ravel(), weights=np.clip(g - thr, 0, None).ravel())
+        sums[0] = 0
+        blob = labels == int(np.argmax(sums))
+    # The strongest other blob (two similar highlights make the answer ambiguous).
+    others = [float(g[labels == k].max()) for k in range(1, count)
+              if not blob[labels == k].any() and (labels == k).sum() >= 2]
+    second = (max(others) - bg) / (peak - bg) if others else 0.0
+    ys, xs = np.nonzero(blob)
+    wts = g[ys, xs] - thr
+    n, v = sphere_geometry(circle, xs.astype(np.float64), ys.astype(np.float64), intrinsics)
+    ndotv = np.sum(n * v, -1)
+    r = reflect(n, v)
+    # Footprint of a pixel on the sphere of directions grows as 1/(n.v): weighting by it gives
+    # the centre of the light source itself, not of its foreshortened image.
+    wr = wts / np.maximum(ndotv, 0.05)
+    d = (r * wr[:, None]).sum(0)
+    d /= np.linalg.norm(d)
+    dist = np.hypot(xs - circle.cx, ys - circle.cy)
+    rim = bool(np.any(dist > circle.r - 1.5))
+    sat = float(np.mean(g[ys, xs] >= 0.99 * white_level))
+    est = LightEstimate(d, float((xs * wts).sum() / wts.sum()), float((ys * wts).sum() / wts.sum()),
+                        float(snr), sat, rim, float(second))
+    nz = float(np.sum((wts[:, None] * n).sum(0) / wts.sum() * np.array([0, 0, 1.0])))
+    c_snr = float(np.clip(np.log10(snr / min_snr), 0.0, 1.0))
+    c_rim = 0.2 if rim else float(np.clip(nz / 0.25, 0.0, 1.0))
+    c_unique = float(np.clip(1.0 - second, 0.0, 1.0))
+    est.confidence = c_snr * c_rim * c_unique
+    return est
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), float(a @ b))))
+
+
+def white_level_of(arr: np.ndarray) -> float:
+    if arr.dtype == np.uint8:
+        return 255.0
+    if arr.dtype == np.uint16:
+        return 65535.0
+    return float(np.max(arr))
+
+
+def estimate_directions(captures: list[np.ndarray], circles: list[list[Circle]],
+                        intrinsics: Intrinsics | None = None,
+                        ambient: list[np.ndarray | None] | None = None,
+                        white_level: float | None = None, names: list[str] | None = None,
+                        min_snr: float = 8.0) -> DirectionResult:
+    """Light directions from one or more captures (each (N, H, W[, 3])) of mirror spheres.
+
+    ``circles[k]`` lists the spheres of capture k. All captures must have the same N lights.
+    """
+    if not captures:
+        raise InputError("no images given")
+    nlights = len(captures[0])
+    if any(len(c) != nlights for c in captures):
+        raise InputError(f"captures have different image counts: {[len(c) for c in captures]}")
+    names = names or [f"image {i + 1}" for i in range(nlights)]
+    per_light: list[list[LightEstimate]] = [[] for _ in range(nlights)]
+    for k, cap in enumerate(captures):
+        wl = white_level if white_level is not None else white_level_of(np.asarray(cap))
+        amb = ambient[k] if ambient else None
+        for i in range(nlights):
+            img = np.asarray(cap[i], np.float64)
+            if amb is not None:
+                img = np.clip(img - np.asarray(amb, np.float64), 0.0, None)
+            for s, circ in enumerate(circles[k]):
+                est = find_highlight(img, circ, wl, intrinsics, min_snr)
+                est.sphere, est.capture = s, k
+                per_light[i].append(est)
+    dirs = np.zeros((nlights, 3))
+    conf = np.zeros(nlights)
+    spread = np.zeros(nlights)
+    warnings: list[str] = []
+    missing = []
+    for i, ests in enumerate(per_light):
+        where = lambda e: (f"sphere {e.sphere + 1}" + (f", capture {e.capture + 1}"  # noqa: E731
+                                                       if len(captures) > 1 else ""))
+        for e in ests:
+            if e.direction is None:
+                warnings.append(f"{names[i]}: no highlight on {where(e)} "
+                                f"(peak only {e.snr:.1f} noise levels above the sphere)")
+            else:
+                if e.touches_rim:
+                    warnings.append(f"{names[i]}: highlight clipped at the rim of {where(e)}; "
+                                    "direction unreliable")
+                if e.second_ratio > 0.5:
+                    warnings.append(f"{names[i]}: a second highlight {e.second_ratio:.0%} as "
+                                    f"bright on {where(e)}; check for stray light")
+        good = [e for e in ests if e.direction is not None]
+        if not good:
+            missing.append(names[i])
+            continue
+        wts = np.array([max(e.confidence, 1e-3) for e in good])
+        d = (np.array([e.direction for e in good]) * wts[:, None]).sum(0)
+        d /= np.linalg.norm(d)
+        dirs[i] = d
+        spread[i] = max(_angle_deg(e.direction, d) for e in good)
+        agree = float(np.clip(1.0 - spread[i] / 5.0, 0.0, 1.0))
+        conf[i] = float(np.mean([e.confidence for e in good])) * agree * len(good) / len(ests)
+        if spread[i] > 2.0:
+            warnings.append(f"{names[i]}: spheres/captures disagree by up to {spread[i]:.1f} deg")
+    if missing:
+        raise InputError(f"no highlight found for {len(missing)} light(s): "
+                         f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''} "
+                         "(light off, sphere mask wrong, or exposure too low)")
+    return DirectionResult(dirs, conf, per_light, spread, warnings)
+
+
+def diagnostic_image(images: np.ndarray, circles: list[Circle],
+                     estimates: list[list[LightEstimate]], capture: int = 0) -> np.ndarray:
+    """8-bit RGB: brightest-over-lights image, sphere outlines, numbered highlight marks
+    (green = confident, orange = doubtful, red = rim-clipped or low confidence)."""
+    g = _grey(np.asarray(images, np.float64).max(axis=0))
+    lo, hi = np.percentile(g, [1, 99.9])
+    base = np.clip((g - lo) / max(hi - lo, 1e-9), 0, 1) ** 0.5 * 255
+    up = 2 if max(g.shape) < 800 else 1
+    vis = cv2.cvtColor(base.astype(np.uint8), cv2.COLOR_GRAY2RGB)
+    vis = cv2.resize(vis, None, fx=up, fy=up, interpolation=cv2.INTER_NEAREST)
+    sh = 4  # sub-pixel drawing
+    one = 1 << sh
+
+    def pt(x: float, y: float) -> tuple[int, int]:
+        # pixel centre x of the original lands at (x + 0.5) * up - 0.5 after upscaling
+        return round(((x + 0.5) * up - 0.5) * one), round(((y + 0.5) * up - 0.5) * one)
+
+    for c in circles:
+        cv2.circle(vis, pt(c.cx, c.cy), round(c.r * up * one), (60, 140, 255), 1,
+                   cv2.LINE_AA, sh)
+    for i, ests in enumerate(estimates):
+        for e in ests:
+            if e.capture != capture or e.direction is None:
+                continue
+            col = ((0, 220, 0) if e.confidence >= 0.5 else (255, 160, 0))
+            if e.touches_rim or e.confidence < 0.2:
+                col = (255, 40, 40)
+            p = pt(e.x, e.y)
+            cv2.drawMarker(vis, (p[0] >> sh, p[1] >> sh), col, cv2.MARKER_CROSS, 10, 1,
+                           cv2.LINE_AA)
+            cv2.putText(vis, str(i + 1), ((p[0] >> sh) + 5, (p[1] >> sh) - 5),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.35 * up, col, 1, cv2.LINE_AA)
+    return vis
+
+
+__all__ = ["DirectionResult", "Intrinsics", "LightEstimate", "diagnostic_image",
+           "estimate_directions", "find_highlight", "reflect", "sphere_geometry"]

@@ -1,0 +1,79 @@
+"""Light intensities (per light, per RGB channel) from a matte white sphere or plane.
+
+With the light directions known, a Lambertian target of known normals gives
+``I_c(p) = e_c * rho * max(n(p) . l, 0)``: per light and channel, ``e_c`` is the least-squares
+fit of the (ambient-subtracted) pixel values to the shading ``s = n . l``. Saturated and
+grazing pixels are left out. The result is scaled so its mean is 1 (only ratios matter).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from msfnet.runtime.errors import InputError
+
+from .directions import Intrinsics, sphere_geometry
+from .sphere import Circle
+
+
+def target_normals(shape: tuple[int, int], *, circle: Circle | None = None,
+                   plane_normal: np.ndarray | None = None, mask: np.ndarray | None = None,
+                   intrinsics: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normals (H, W, 3) and valid-pixel mask of a sphere (``circle``) or a plane."""
+    h, w = shape
+    if circle is not None:
+        inside = circle.contains(h, w, shrink=0.97)  # the rim is dominated by edge blur
+        if mask is not None:
+            inside &= mask
+        ys, xs = np.nonzero(inside)
+        n = np.zeros((h, w, 3))
+        n[ys, xs] = sphere_geometry(circle, xs.astype(float), ys.astype(float), intrinsics)[0]
+        return n, inside
+    pn = np.asarray(plane_normal if plane_normal is not None else (0, 0, 1), np.float64)
+    pn = pn / np.linalg.norm(pn)
+    valid = np.ones((h, w), bool) if mask is None else mask.astype(bool)
+    return np.broadcast_to(pn, (h, w, 3)).copy(), valid
+
+
+def estimate_intensities(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
+                         valid: np.ndarray, ambient: np.ndarray | None = None,
+                         white_level: float | None = None, min_shading: float = 0.15,
+                         names: list[str] | None = None) -> tuple[np.ndarray, list[str]]:
+    """(N, 3) relative RGB intensities, mean 1, plus warnings."""
+    imgs = np.asarray(images, np.float64)
+    if imgs.ndim == 3:
+        imgs = np.repeat(imgs[..., None], 3, axis=3)
+    n = len(imgs)
+    if len(lights) != n:
+        raise InputError(f"{len(lights)} light directions for {n} images")
+    if white_level is None:
+        white_level = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(
+            np.asarray(images).dtype, float(imgs.max()))
+    names = names or [f"image {i + 1}" for i in range(n)]
+    amb = None if ambient is None else np.asarray(ambient, np.float64)
+    if amb is not None and amb.ndim == 2:
+        amb = amb[..., None]
+    out = np.zeros((n, 3))
+    warnings = []
+    for i in range(n):
+        img = imgs[i]
+        unsat = np.all(img < 0.99 * white_level, axis=-1)
+        if amb is not None:
+            img = img - amb
+        s = normals @ (lights[i] / np.linalg.norm(lights[i]))
+        use = valid & unsat & (s > min_shading)
+        if use.sum() < 30:
+            raise InputError(f"{names[i]}: fewer than 30 usable lit, unsaturated target pixels "
+                             "(check the mask, the light directions and the exposure)")
+        sat_share = 1.0 - unsat[valid & (s > min_shading)].mean()
+        if sat_share > 0.02:
+            warnings.append(f"{names[i]}: {sat_share:.0%} of the lit target is saturated")
+        sv = s[use]
+        out[i] = (img[use] * sv[:, None]).sum(0) / (sv * sv).sum()
+    if np.any(out <= 0):
+        raise InputError("a light came out with zero or negative intensity (ambient frame "
+                         "brighter than the lit image?)")
+    return out / out.mean(), warnings
+
+
+__all__ = ["estimate_intensities", "target_normals"]

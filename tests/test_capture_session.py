@@ -1,0 +1,138 @@
+"""Simulated capture: chrome calibration, interrupted + resumed object capture, load_stack, LS."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from msfnet.calib import capture_cli, cli
+from msfnet.calib.cameras import SimulatedCamera
+from msfnet.calib.capture import capture_stack, exposure_check
+from msfnet.calib.lights import ManualLights, SerialLights, SimulatedLights, SimulatedRig
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.stack import load_stack
+from msfnet.synth import spheres as S
+
+
+class Interrupting(SimulatedCamera):
+    """A camera whose cable is pulled after ``limit`` frames."""
+
+    def __init__(self, rig, limit):
+        super().__init__(rig)
+        self.limit, self.count = limit, 0
+
+    def capture(self):
+        if self.count >= self.limit:
+            raise KeyboardInterrupt
+        self.count += 1
+        return super().capture()
+
+
+def test_capture_calibrate_resume_load(tmp_path, rng):
+    lights = S.ring_lights(10, (15, 55), seed=11)
+    intens = rng.uniform(0.7, 1.3, (10, 3))
+    # 1. Calibration capture of a chrome sphere, then msf-calib directions on it.
+    chrome = SimulatedRig(S.mirror_scene(160, 128, 56), lights, intens, gain=0.02, bit_depth=8)
+    cal = capture_stack(SimulatedCamera(chrome), SimulatedLights(chrome), tmp_path / "cal",
+                        mask=S.sphere_masks(chrome.scene)[0], progress=False, log=lambda m: None)
+    write = tmp_path / "light_directions.txt"
+    # raw/ holds ambient.png (subtracted automatically); the sphere mask comes from the rig.
+    assert cli.main(["directions", str(cal / "raw"), "--mask", str(cal / "mask.png"),
+                     "-o", str(write)]) == 0
+    # 2. Object capture (matte sphere), interrupted after 6 of 11 frames (ambient + 10).
+    rig = SimulatedRig(S.mirror_scene(160, 128, 56, kind="matte"), lights, intens, noise=20.0)
+    out = tmp_path / "obj"
+    with pytest.raises(KeyboardInterrupt):
+        capture_stack(Interrupting(rig, 6), SimulatedLights(rig), out, progress=False,
+                      log=lambda m: None)
+    assert len(list((out / "raw").glob("*.png"))) == 6
+    assert not (out / "filenames.txt").exists()
+    assert not list((out / "raw").glob(".*"))  # no half-written temporaries
+    cam = Interrupting(rig, 100)
+    logs = []
+    mask = S.sphere_masks(rig.scene)[0]
+    capture_stack(cam, SimulatedLights(rig), out, light_directions=write,
+                  light_intensities=intens, mask=mask, progress=False, log=logs.append)
+    assert cam.count == 5 and any("resuming: 6 of 11" in m for m in logs)
+    session = json.loads((out / "session.json").read_text())
+    assert len(session["frames"]) == 10 and session["count"] == 10
+    # 3. The runtime reads the stack; plain least squares gives the sphere's normals.
+    stack = load_stack(out)
+    assert stack.num_lights == 10 and stack.mask.sum() == mask.sum()
+    assert np.degrees(np.arccos(np.clip((stack.lights * lights).sum(1), -1, 1))).max() < 0.5
+    img = (stack.images / stack.intensities[:, None, None, :]).mean(-1)  # (N, H, W)
+    gt = S.sphere_normals(rig.scene)
+    lit = (np.einsum("hwc,nc->nhw", gt, lights) > 0.05).all(0) & stack.mask
+    b = np.linalg.lstsq(stack.lights, img[:, lit], rcond=None)[0].T
+    n = b / np.linalg.norm(b, axis=1, keepdims=True)
+    err = np.degrees(np.arccos(np.clip((n * gt[lit]).sum(1), -1, 1)))
+    print(f"LS normals from the captured stack: mean {err.mean():.2f} deg over {lit.sum()} px")
+    assert lit.sum() > 2000 and err.mean() < 1.5
+    # Resuming a finished session captures nothing and rebuilds the same stack.
+    cam2 = Interrupting(rig, 0)
+    capture_stack(cam2, SimulatedLights(rig), out, light_directions=write, progress=False,
+                  log=lambda m: None)
+    assert cam2.count == 0
+
+
+def test_exposure_checks():
+    dark = np.full((10, 10, 3), 3, np.uint8)
+    assert exposure_check(dark, 255)["too_dark"]
+    bright = np.full((10, 10, 3), 255, np.uint8)
+    assert exposure_check(bright, 255)["too_bright"]
+    ok = np.tile(np.linspace(0, 200, 10, dtype=np.uint8), (10, 1))
+    chk = exposure_check(ok, 255)
+    assert not chk["too_dark"] and not chk["too_bright"]
+
+
+class FakePort:
+    """The controller side of the serial line protocol."""
+
+    def __init__(self, count=4, broken=False):
+        self.count, self.broken, self.sent, self.replies = count, broken, [], []
+
+    def write(self, data: bytes):
+        line = data.decode().strip()
+        self.sent.append(line)
+        if self.broken:
+            self.replies.append(b"")
+        elif line == "PING":
+            self.replies.append(f"OK MSF-LED {self.count}\n".encode())
+        elif line == "OFF" or (line.startswith("ON ") and 1 <= int(line[3:]) <= self.count):
+            self.replies.append(b"OK\n")
+        else:
+            self.replies.append(b"ERR bad index\n")
+
+    def readline(self):
+        return self.replies.pop(0)
+
+
+def test_serial_protocol_and_manual_prompt():
+    port = FakePort(4)
+    lights = SerialLights(port, settle=0)
+    assert lights.count == 4
+    lights.on(0)
+    lights.on(3)
+    lights.off()
+    assert port.sent == ["PING", "ON 1", "ON 4", "OFF"]
+    with pytest.raises(InputError, match="refused 'ON 5'"):
+        lights.on(4)
+    with pytest.raises(InputError, match="reports 4 lights but 5"):
+        SerialLights(FakePort(4), count=5, settle=0)
+    with pytest.raises(InputError, match="did not answer"):
+        SerialLights(FakePort(broken=True), settle=0)
+    prompts = []
+    m = ManualLights(3, ask=prompts.append)
+    m.on(1)
+    m.off()
+    assert "light 2 of 3" in prompts[0] and "off" in prompts[1].lower()
+
+
+def test_capture_cli_sim(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert capture_cli.main([str(out), "--camera", "sim", "--lights", "sim", "--count", "4"]) == 0
+    assert (out / "004.png").is_file() and (out / "raw" / "ambient.png").is_file()
+    assert capture_cli.main([str(out), "--camera", "opencv", "--lights", "sim"]) == 2
+    assert "go together" in capsys.readouterr().err
