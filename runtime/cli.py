@@ -54,6 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeat", type=int, default=1, metavar="K",
                    help="run K times; the profile reports median and p90 per stage")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUTDIR")
+    from msfnet.calib.capture_cli import add_device_arguments
+
+    # --camera: capture (or resume capturing) into STACK first; the light back-end is named
+    # --light-rig here because --lights already means a light-directions file.
+    add_device_arguments(p, lights_flag="--light-rig", camera_default=None)
     return p
 
 
@@ -67,6 +72,10 @@ def main(argv: list[str] | None = None) -> int:
         from .run import run_stack
 
         stack = args.stack
+        if args.camera is not None:
+            from msfnet.calib.capture_cli import run_capture
+
+            stack = run_capture(args, args.stack)
         if args.demo:
             from .demo import demo_stack
 
