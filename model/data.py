@@ -1,0 +1,214 @@
+"""Training data: random crops and light subsets of stacks, as normalised network batches.
+
+Sources hand out ``Stack`` objects (raw images + lights + intensities + mask + normals_gt):
+- ``SynthSource``: the built-in renderer behind a small pool that is refreshed a few stacks per
+  batch, so rendering costs a fraction of a training step (each stack serves several crops,
+  light subsets and rotations);
+- ``BlobbySource``: the public Blobby / Sculpture photometric-stereo training sets.
+Samples are normalised with ``msfnet.runtime.preprocess.normalise`` itself (crop first: the
+normalisation is per pixel, so cropping commutes with it).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.imageio import read_image
+from msfnet.runtime.preprocess import normalise
+from msfnet.runtime.stack import Stack, read_normals
+from msfnet.synth.render import RenderOptions, render_stack
+
+
+@dataclass
+class Batch:
+    images: torch.Tensor  # (B, N, 3, c, c) normalised network input
+    lights: torch.Tensor  # (B, N, 3)
+    normals: torch.Tensor  # (B, 3, c, c) ground truth
+    mask: torch.Tensor  # (B, c, c) bool
+
+
+# ----------------------------------------------------------------------------- augmentation
+
+def rotate_flip(images: np.ndarray, normals: np.ndarray, mask: np.ndarray, lights: np.ndarray,
+                k: int, flip: bool) -> tuple[np.ndarray, ...]:
+    """Rotate the scene k x 90 deg counter-clockwise about the view axis, then mirror left-right.
+
+    Both are symmetries of orthographic photometric stereo with isotropic materials, provided
+    normals and lights turn with the image: (x, y) -> (-y, x) per quarter turn, x -> -x on flip.
+    images (N, H, W, 3), normals (H, W, 3), mask (H, W), lights (N, 3).
+    """
+    images = np.rot90(images, k, axes=(1, 2))
+    normals = np.rot90(normals, k, axes=(0, 1)).copy()
+    mask = np.rot90(mask, k, axes=(0, 1))
+    lights = lights.copy()
+    for _ in range(k % 4):
+        normals[..., 0], normals[..., 1] = -normals[..., 1], normals[..., 0].copy()
+        lights[:, 0], lights[:, 1] = -lights[:, 1], lights[:, 0].copy()
+    if flip:
+        images, normals, mask = images[:, :, ::-1], normals[:, ::-1].copy(), mask[:, ::-1]
+        normals[..., 0] *= -1
+        lights[:, 0] *= -1
+    return images, normals, mask, lights
+
+
+def random_crop(stack: Stack, crop: int, rng: np.random.Generator,
+                min_fill: float = 0.3, tries: int = 6) -> tuple[int, int]:
+    """Top-left corner of a crop holding at least ``min_fill`` object pixels (best of a few)."""
+    h, w = stack.shape
+    best, best_fill = (0, 0), -1.0
+    for _ in range(tries):
+        r, c = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
+        fill = float(stack.mask[r:r + crop, c:c + crop].mean())
+        if fill >= min_fill:
+            return r, c
+        if fill > best_fill:
+            best, best_fill = (r, c), fill
+    return best
+
+
+def make_sample(stack: Stack, lights: int, crop: int, rng: np.random.Generator,
+                noise: float = 0.01, calib_jitter: float = 0.02,
+                train_lights: int = 32) -> tuple[np.ndarray, ...]:
+    """One augmented training sample: (input (N,3,c,c), lights (N,3), normals (3,c,c), mask)."""
+    if stack.normals_gt is None:
+        raise InputError("training needs ground-truth normals", stack.source or stack.name)
+    h, w = stack.shape
+    if crop > min(h, w):
+        raise InputError(f"crop {crop} is larger than the stack ({w}x{h})",
+                         stack.source or stack.name)
+    r, c = random_crop(stack, crop, rng)
+    idx = rng.choice(stack.num_lights, size=min(lights, stack.num_lights), replace=False)
+    imgs = stack.images[idx, r:r + crop, c:c + crop]
+    imgs, normals, mask, dirs = rotate_flip(
+        imgs, stack.normals_gt[r:r + crop, c:c + crop], stack.mask[r:r + crop, c:c + crop],
+        stack.lights[idx], int(rng.integers(4)), bool(rng.integers(2)))
+    imgs = np.array(imgs, np.float32)
+    if noise > 0:  # extra sensor-like noise on top of whatever the data already has
+        scale = float(np.percentile(imgs, 95)) + 1e-6
+        sigma = rng.uniform(0, noise) * scale
+        imgs += rng.standard_normal(imgs.shape, np.float32) * np.float32(sigma)
+        np.clip(imgs, 0, None, out=imgs)
+    ints = stack.intensities[idx]
+    if calib_jitter > 0:  # imperfect intensity calibration, as on real rigs
+        ints = ints * np.exp(rng.normal(0, calib_jitter, ints.shape)).astype(np.float32)
+    x = normalise(imgs, ints, mask, train_lights)
+    return x, dirs.astype(np.float32), np.ascontiguousarray(normals.transpose(2, 0, 1)), \
+        np.ascontiguousarray(mask)
+
+
+def collate(samples: list[tuple[np.ndarray, ...]]) -> Batch:
+    return Batch(*(torch.from_numpy(np.stack([s[i] for s in samples])) for i in range(4)))
+
+
+# ----------------------------------------------------------------------------- sources
+
+class SynthSource:
+    """Rendered stacks from a pool; ``refresh`` new ones replace the oldest per batch."""
+
+    def __init__(self, seed: int, options: RenderOptions, pool: int = 48, refresh: int = 2,
+                 start: int = 0) -> None:
+        self.seed, self.options, self.refresh = seed, options, refresh
+        self.counter = start  # index of the next object to render (for resuming)
+        self.pool: list[Stack] = []
+        while len(self.pool) < pool:
+            self.pool.append(self._render())
+
+    def _render(self) -> Stack:
+        stack = render_stack(np.random.default_rng([self.seed, self.counter]), self.options,
+                             name=f"train{self.counter}")
+        self.counter += 1
+        return stack
+
+    def batch(self, size: int, lights: int, crop: int, rng: np.random.Generator,
+              **augment: float) -> Batch:
+        for _ in range(self.refresh):
+            self.pool[self.counter % len(self.pool)] = self._render()
+        picks = rng.choice(len(self.pool), size=size, replace=size > len(self.pool))
+        return collate([make_sample(self.pool[i], lights, crop, rng, **augment) for i in picks])
+
+
+def _read_light_list(path: Path) -> tuple[list[str], np.ndarray]:
+    names, dirs = [], []
+    for ln in path.read_text().splitlines():
+        parts = ln.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        if len(parts) < 4:
+            raise InputError(f"expected 'name lx ly lz' per line, got {ln.strip()!r}", path)
+        try:
+            dirs.append([float(v) for v in parts[1:4]])
+        except ValueError as exc:
+            raise InputError(f"bad light direction in line {ln.strip()!r}", path) from exc
+        names.append(parts[0])
+    if not names:
+        raise InputError("image list is empty", path)
+    d = np.asarray(dirs, np.float32)
+    return names, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def find_blobby_samples(root: str | Path) -> list[tuple[Path, Path]]:
+    """(normal map, image list) pairs: every folder holding ``<shape>_normal.png`` and, below
+    it, material folders each with a text file listing ``name lx ly lz`` per image."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError("Blobby/Sculpture root folder not found", root)
+    pairs = []
+    for normal in sorted(root.rglob("*_normal.png")):
+        for mat in sorted(p for p in normal.parent.iterdir() if p.is_dir()):
+            lists = sorted(mat.glob("*.txt"))
+            if lists:
+                pairs.append((normal, lists[0]))
+    if not pairs:
+        raise InputError("no '<shape>_normal.png' with material folders (holding an image list "
+                         "'name lx ly lz') found", root)
+    return pairs
+
+
+def load_blobby_sample(normal_png: Path, image_list: Path) -> Stack:
+    """One shape under one material: images from the list, mask where the normal is non-zero."""
+    normals = read_normals(normal_png)
+    names, dirs = _read_light_list(image_list)
+    imgs = []
+    for name in names:
+        img = read_image(image_list.parent / name).astype(np.float32)
+        if img.ndim == 2:
+            img = np.repeat(img[..., None], 3, axis=2)
+        if img.shape[:2] != normals.shape[:2]:
+            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but the normal map is "
+                             f"{normals.shape[1]}x{normals.shape[0]}", image_list.parent / name)
+        imgs.append(img)
+    mask = np.linalg.norm(normals, axis=2) > 0.5
+    return Stack(f"{normal_png.parent.name}/{image_list.parent.name}", np.stack(imgs), dirs,
+                 np.ones((len(names), 3), np.float32), mask, normals, names,
+                 image_list.parent).validate()
+
+
+class BlobbySource:
+    """Samples from the Blobby / Sculpture sets, decoded lazily with a small LRU cache."""
+
+    def __init__(self, root: str | Path, cache: int = 64) -> None:
+        self.pairs = find_blobby_samples(root)
+        self.cache: OrderedDict[int, Stack] = OrderedDict()
+        self.cache_size = cache
+
+    def get(self, i: int) -> Stack:
+        if i in self.cache:
+            self.cache.move_to_end(i)
+            return self.cache[i]
+        stack = load_blobby_sample(*self.pairs[i])
+        self.cache[i] = stack
+        if len(self.cache) > self.cache_size:
+            self.cache.popitem(last=False)
+        return stack
+
+    def batch(self, size: int, lights: int, crop: int, rng: np.random.Generator,
+              **augment: float) -> Batch:
+        picks = rng.choice(len(self.pairs), size=size, replace=size > len(self.pairs))
+        return collate([make_sample(self.get(int(i)), lights, crop, rng, **augment)
+                        for i in picks])

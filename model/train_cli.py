@@ -1,0 +1,152 @@
+"""``msf-train``: train MSF-Net on built-in synthetic data (or Blobby/Sculpture), resumably."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+from msfnet.runtime.errors import InputError
+
+from .train import TrainConfig, Trainer, parse_curriculum
+
+DEFAULTS = TrainConfig(out="")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d = DEFAULTS
+    p = argparse.ArgumentParser(
+        prog="msf-train",
+        description="Train MSF-Net with three stage losses (0.5:0.5:1) and the selective update "
+                    "strategy. Writes OUT/last.pth (published {'state_dict': ...} format), "
+                    "OUT/best.pth (best held-out synthetic MAE), OUT/last_state.pth (optimizer), "
+                    "OUT/log.jsonl, OUT/curve.png and OUT/config.json. Resume with --resume.")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/last.pth with OUT/config.json; options given "
+                        "explicitly (e.g. --epochs) override the stored ones")
+    p.add_argument("--overwrite", action="store_true", help="start afresh in a non-empty OUT")
+    p.add_argument("--data", default=d.data,
+                   help="'synth' (built-in renderer, default) or a Blobby/Sculpture root folder")
+    p.add_argument("--epochs", type=int, default=d.epochs, help=f"default {d.epochs}")
+    p.add_argument("--steps-per-epoch", type=int, default=d.steps_per_epoch,
+                   help=f"default {d.steps_per_epoch}")
+    p.add_argument("--batch", type=int, default=d.batch, help=f"default {d.batch}")
+    p.add_argument("--curriculum", default=d.curriculum,
+                   help="EPOCH:LMIN-LMAX:CROP[,...]: from EPOCH on, each batch uses a random "
+                        "light count in [LMIN, LMAX] and CROPxCROP crops "
+                        f"(default {d.curriculum!r}; one phase = fixed setting)")
+    p.add_argument("--lights", type=int, default=None,
+                   help="shortcut: a fixed light count for every batch (curriculum with one "
+                        "phase; the paper used 32)")
+    p.add_argument("--crop", type=int, default=None, help="shortcut: fixed crop size")
+    p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
+    p.add_argument("--lr-step", type=int, default=d.lr_step,
+                   help=f"halve the learning rate every this many epochs (default {d.lr_step})")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--threads", type=int, default=d.threads, help=f"default {d.threads}")
+    p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=d.precision,
+                   help="bf16 autocast when the CPU supports it (auto, default) or fp32")
+    p.add_argument("--no-channels-last", action="store_true", help="keep NCHW weights")
+    p.add_argument("--no-mfe", action="store_true",
+                   help="ablation: no multi-stage extraction (extractor1 -> max -> regressor)")
+    p.add_argument("--no-mff", action="store_true",
+                   help="ablation: no fusion module (a stage sees concat(raw, max))")
+    p.add_argument("--no-sus", action="store_true",
+                   help="ablation: no selective update (all stage losses train all modules)")
+    p.add_argument("--render-size", type=int, default=d.render_size,
+                   help=f"synthetic object size in pixels (default {d.render_size})")
+    p.add_argument("--render-lights", type=int, default=d.render_lights,
+                   help=f"lights rendered per synthetic object (default {d.render_lights})")
+    p.add_argument("--pool", type=int, default=d.pool,
+                   help=f"synthetic objects kept in memory (default {d.pool})")
+    p.add_argument("--refresh", type=int, default=d.refresh,
+                   help=f"new synthetic objects rendered per batch (default {d.refresh})")
+    p.add_argument("--noise", type=float, default=d.noise,
+                   help="max extra Gaussian noise, fraction of the crop's 95th percentile "
+                        f"(default {d.noise})")
+    p.add_argument("--val-objects", type=int, default=d.val_objects,
+                   help=f"held-out synthetic validation objects (default {d.val_objects})")
+    p.add_argument("--ckpt-minutes", type=float, default=d.ckpt_minutes,
+                   help=f"save last.pth at least this often (default {d.ckpt_minutes})")
+    p.add_argument("--log-every", type=int, default=d.log_every,
+                   help=f"append a log.jsonl row every this many steps (default {d.log_every})")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+# CLI option -> TrainConfig field (where the names differ)
+RENAME = {"no_channels_last": "channels_last", "no_mfe": "mfe", "no_mff": "mff", "no_sus": "sus"}
+
+
+def _explicit(argv: list[str] | None) -> dict:
+    """Only the options the user typed (for overriding a stored config on --resume)."""
+    p = build_parser()
+    for action in p._actions:
+        action.default = argparse.SUPPRESS
+        action.required = False
+    return vars(p.parse_args(argv))
+
+
+def config_from(args: dict, base: dict) -> TrainConfig:
+    cfg = dict(base)
+    names = {f.name for f in fields(TrainConfig)}
+    for key, value in args.items():
+        if key in RENAME:
+            cfg[RENAME[key]] = not value
+        elif key in names:
+            cfg[key] = str(value) if key == "out" else value
+    if args.get("lights") is not None or args.get("crop") is not None:
+        phase = parse_curriculum(cfg["curriculum"])[0]
+        lights = args.get("lights") or phase.lights_max
+        crop = args.get("crop") or phase.crop
+        cfg["curriculum"] = f"0:{lights}-{lights}:{crop}"
+    out = TrainConfig(**cfg)
+    parse_curriculum(out.curriculum)  # validate early
+    if out.epochs < 1 or out.steps_per_epoch < 1 or out.batch < 1:
+        raise InputError("--epochs, --steps-per-epoch and --batch must be >= 1")
+    if out.data == "synth":
+        crop = max(p.crop for p in parse_curriculum(out.curriculum))
+        if crop > out.render_size:
+            raise InputError(f"crop {crop} exceeds --render-size {out.render_size}")
+    elif not Path(out.data).is_dir():
+        raise InputError("--data: not 'synth' and not a folder", out.data)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        out: Path = args.out
+        if args.resume:
+            stored = out / "config.json"
+            if not stored.is_file():
+                raise InputError("--resume: no config.json in the output folder", out)
+            cfg = config_from(_explicit(argv), json.loads(stored.read_text()))
+        else:
+            if out.exists() and any(out.iterdir()) and not args.overwrite:
+                raise InputError("output folder is not empty (use --resume to continue or "
+                                 "--overwrite to start afresh)", out)
+            if args.overwrite:
+                for name in ("log.jsonl", "last.pth", "last_state.pth", "best.pth"):
+                    (out / name).unlink(missing_ok=True)
+            cfg = config_from(vars(args), {})
+        trainer = Trainer(cfg, resume=args.resume)
+        print(f"msf-train: {'bf16 autocast' if trainer.bf16 else 'fp32'}, "
+              f"{'channels_last' if cfg.channels_last else 'NCHW'}, {cfg.threads} threads, "
+              f"data {cfg.data}, curriculum {cfg.curriculum}, from step {trainer.step}; "
+              f"validation: {len(trainer.val_set)} objects, least squares MAE "
+              f"{trainer.val_ls:.2f} deg", flush=True)
+        result = trainer.run(progress=not args.no_progress)
+    except InputError as exc:
+        print(f"msf-train: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"msf-train: done at step {result['step']}: best held-out MAE "
+          f"{result['best_val_mae']:.2f} deg (least squares {result['val_ls_mae']:.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,57 @@
+"""The Blobby / Sculpture loader, on a tiny generated fake of that layout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msfnet.model.data import BlobbySource, find_blobby_samples, load_blobby_sample
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.imageio import write_png
+from msfnet.synth.shapes import sphere_normals
+
+
+def _fake_root(root, shapes=("blob01", "blob02"), materials=("alum", "gold"), n=5):
+    normals, mask = sphere_normals(16)
+    rng = np.random.default_rng(0)
+    for shape in shapes:
+        folder = root / "Images" / shape
+        folder.mkdir(parents=True)
+        enc = np.where(mask[..., None], np.rint((normals + 1) / 2 * 255), 0).astype(np.uint8)
+        write_png(folder / f"{shape}_normal.png", enc)
+        for mat in materials:
+            mdir = folder / f"{shape}_{mat}"
+            mdir.mkdir()
+            lines = []
+            for i in range(n):
+                d = rng.normal([0, 0, 3], 0.5)
+                d /= np.linalg.norm(d)
+                img = np.clip(np.einsum("hwc,c->hw", normals, d), 0, 1) * 200
+                write_png(mdir / f"l_{i:03d}.png", np.repeat(img[..., None], 3, 2).astype(np.uint8))
+                lines.append(f"l_{i:03d}.png {d[0]:.6f} {d[1]:.6f} {d[2]:.6f}")
+            (mdir / f"{shape}_{mat}.txt").write_text("\n".join(lines) + "\n")
+    return normals, mask
+
+
+def test_blobby_layout_is_found_and_loaded(tmp_path):
+    normals, mask = _fake_root(tmp_path)
+    pairs = find_blobby_samples(tmp_path)
+    assert len(pairs) == 4
+    s = load_blobby_sample(*pairs[1])
+    assert s.images.shape == (5, 16, 16, 3) and s.name == "blob01/blob01_gold"
+    np.testing.assert_array_equal(s.mask, mask)
+    assert np.degrees(np.arccos(np.clip(np.sum(s.normals_gt[mask] * normals[mask], 1),
+                                        -1, 1))).max() < 1.0  # 8-bit encoding
+    src = BlobbySource(tmp_path, cache=2)
+    b = src.batch(3, 4, 8, np.random.default_rng(0))
+    assert tuple(b.images.shape) == (3, 4, 3, 8, 8) and tuple(b.normals.shape) == (3, 3, 8, 8)
+
+
+def test_blobby_errors_name_the_file(tmp_path):
+    with pytest.raises(InputError, match=r"no '<shape>_normal\.png'"):
+        find_blobby_samples(tmp_path)
+    _fake_root(tmp_path, shapes=("s",), materials=("m",), n=3)
+    lst = tmp_path / "Images" / "s" / "s_m" / "s_m.txt"
+    lst.write_text("l_000.png 0 0\n")
+    with pytest.raises(InputError, match=r"s_m\.txt"):
+        load_blobby_sample(*find_blobby_samples(tmp_path)[0])

@@ -1,0 +1,158 @@
+"""Training: stage losses, the selective update strategy, ablations, loss falls, CLI resume."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from msfnet.model.data import collate, make_sample, rotate_flip
+from msfnet.model.network import MSFNet, max_over_lights
+from msfnet.model.train import backward_losses, cosine_loss, stage_losses
+from msfnet.model.train_cli import main as train_main
+from msfnet.runtime.preprocess import normalise
+from msfnet.synth import RenderOptions, render_stack
+from msfnet.synth.shapes import sphere_normals
+
+torch.set_num_threads(2)
+
+
+def _batch(seed=0, b=2, lights=4, crop=16):
+    rng = np.random.default_rng(seed)
+    stacks = [render_stack(seed + i, RenderOptions(size=32, lights=8)) for i in range(b)]
+    return collate([make_sample(s, lights, crop, rng) for s in stacks])
+
+
+def _grads(model):
+    return {n: (None if p.grad is None else p.grad.clone()) for n, p in model.named_parameters()}
+
+
+def test_middle_loss_sends_no_gradient_into_extractor1():
+    torch.manual_seed(0)
+    model = MSFNet()
+    bt = _batch()
+    losses = stage_losses(model, bt.images, bt.lights, bt.normals, bt.mask)
+    assert len(losses) == 3
+    backward_losses(model, losses, sus=True, weights=(0.0, 1.0, 0.0))
+    g = _grads(model)
+    for name, grad in g.items():
+        if name.startswith("extractor1."):
+            assert grad is None or torch.count_nonzero(grad) == 0, name
+    for prefix in ("extractor2.", "fusion.", "regressor."):
+        assert any(grad is not None and grad.abs().sum() > 0
+                   for n, grad in g.items() if n.startswith(prefix)), prefix
+    # extractor3 plays no part in the middle stage
+    assert all(grad is None or torch.count_nonzero(grad) == 0
+               for n, grad in g.items() if n.startswith("extractor3."))
+    # without SUS the same loss does reach extractor1
+    model.zero_grad(set_to_none=True)
+    losses = stage_losses(model, bt.images, bt.lights, bt.normals, bt.mask)
+    backward_losses(model, losses, sus=False, weights=(0.0, 1.0, 0.0))
+    assert model.extractor1.conv1[0].weight.grad.abs().sum() > 0
+
+
+def test_selective_update_equals_detaching_extractor1_for_the_middle_loss():
+    torch.manual_seed(1)
+    model = MSFNet().double()
+    bt = _batch(seed=3)
+    x, lt, n, m = bt.images.double(), bt.lights.double(), bt.normals.double(), bt.mask
+    losses = stage_losses(model, x, lt, n, m)
+    backward_losses(model, losses, sus=True)
+    ours = _grads(model)
+
+    # Reference: an explicit second pass whose stage-2 input is extractor1's detached output.
+    model.zero_grad(set_to_none=True)
+    b, k, _, h, w = x.shape
+    inp = torch.cat([x.flatten(0, 1), lt.reshape(b * k, 3, 1, 1).expand(-1, -1, h, w)], 1)
+    f1 = model.extractor1(inp)
+    m1 = max_over_lights(f1, b)
+    f2 = model.extractor2(model.stage_input(f1, m1))
+    m2 = max_over_lights(f2, b)
+    f3 = model.extractor3(model.stage_input(f2, m2))
+    m3 = max_over_lights(f3, b)
+    f1d = f1.detach()
+    f2d = model.extractor2(model.stage_input(f1d, max_over_lights(f1d, b)))
+    loss = (0.5 * cosine_loss(model.regressor(m1), n, m)
+            + 0.5 * cosine_loss(model.regressor(max_over_lights(f2d, b)), n, m)
+            + cosine_loss(model.regressor(m3), n, m))
+    loss.backward()
+    for name, p in model.named_parameters():
+        ref = p.grad if p.grad is not None else torch.zeros_like(p)
+        got = ours[name] if ours[name] is not None else torch.zeros_like(p)
+        torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-12, msg=name)
+    assert model.extractor1.conv1[0].weight.grad.abs().sum() > 0  # shallow + deep reach it
+
+
+def test_ablation_switches_change_the_graph():
+    full, no_mff, no_mfe = MSFNet(), MSFNet(mff=False), MSFNet(mfe=False)
+    bt = _batch(b=1)
+    prefixes = lambda mdl: {n.split(".")[0] for n, _ in mdl.named_parameters()}  # noqa: E731
+    assert prefixes(full) == {"extractor1", "extractor2", "extractor3", "fusion", "regressor"}
+    assert prefixes(no_mff) == {"extractor1", "extractor2", "extractor3", "regressor"}
+    assert prefixes(no_mfe) == {"extractor1", "regressor"}
+    assert len(stage_losses(full, bt.images, bt.lights, bt.normals, bt.mask)) == 3
+    assert len(stage_losses(no_mff, bt.images, bt.lights, bt.normals, bt.mask)) == 3
+    losses = stage_losses(no_mfe, bt.images, bt.lights, bt.normals, bt.mask)
+    assert len(losses) == 1
+    backward_losses(no_mfe, losses, sus=True)
+    assert no_mfe.extractor1.conv1[0].weight.grad.abs().sum() > 0
+
+
+def test_loss_falls_in_a_few_steps():
+    torch.manual_seed(0)
+    model = MSFNet()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3, betas=(0.9, 0.999))
+    bt = _batch(seed=5, b=2, lights=4, crop=12)
+    history = []
+    for _ in range(10):
+        opt.zero_grad(set_to_none=True)
+        losses = stage_losses(model, bt.images, bt.lights, bt.normals, bt.mask)
+        history.append(float(backward_losses(model, losses, sus=True)))
+        opt.step()
+    assert history[-1] < 0.6 * history[0], history
+
+
+def test_rotate_flip_keeps_a_sphere_a_sphere():
+    n, mask = sphere_normals(24)
+    lights = np.array([[0.3, -0.2, 0.93], [-0.5, 0.1, 0.86]], np.float32)
+    imgs = np.clip(np.einsum("hwc,kc->khw", n, lights), 0, None)[..., None].repeat(3, 3)
+    for k in range(4):
+        for flip in (False, True):
+            im2, n2, m2, l2 = rotate_flip(imgs, n, mask, lights, k, flip)
+            np.testing.assert_allclose(n2, n, atol=1e-12)  # sphere is symmetric
+            np.testing.assert_array_equal(m2, mask)
+            # shading is consistent with the transformed normals and lights
+            shade = np.clip(np.einsum("hwc,kc->khw", n2, l2), 0, None)
+            np.testing.assert_allclose(im2[..., 0], shade, atol=1e-6)
+
+
+def test_sample_input_is_runtime_normalise_of_the_crop():
+    s = render_stack(2, RenderOptions(size=32, lights=10))
+    rng = np.random.default_rng(9)
+    x, _lt, _nrm, _m = make_sample(s, 10, 32, rng, noise=0.0, calib_jitter=0.0)
+    # full crop, all lights: equal to runtime normalise up to the light order and rotation
+    ref = normalise(s.images, s.intensities, s.mask)
+    assert x.shape == (10, 3, 32, 32)
+    np.testing.assert_allclose(np.sort(np.abs(x).ravel()), np.sort(np.abs(ref).ravel()),
+                               rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_cli_trains_saves_and_resumes(tmp_path):
+    out = tmp_path / "run"
+    common = ["--batch", "2", "--lights", "4", "--crop", "16", "--pool", "3", "--render-size",
+              "32", "--val-objects", "1", "--log-every", "1", "--no-progress", "--precision",
+              "fp32"]
+    assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "2",
+                       *common]) == 0
+    ckpt = torch.load(out / "last.pth", weights_only=True)
+    assert set(ckpt) >= {"state_dict", "model"} and ckpt["step"] == 2
+    MSFNet().load_state_dict(ckpt["state_dict"], strict=True)
+    assert train_main(["--out", str(out), "--epochs", "1", *common]) == 2  # refuses non-empty
+    assert train_main(["--out", str(out), "--resume", "--epochs", "2", "--no-progress"]) == 0
+    rows = [json.loads(r) for r in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows if "loss" in r] == [1, 2, 3, 4]
+    assert sum("val_mae" in r for r in rows) == 2
+    assert torch.load(out / "last_state.pth", weights_only=True)["step"] == 4
