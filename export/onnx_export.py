@@ -58,6 +58,30 @@ def random_inputs(batch: int, lights: int, height: int, width: int,
     return images, dirs.astype(np.float32)
 
 
+def rendered_inputs(batch: int, lights: int, height: int, width: int,
+                    seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Network inputs from rendered non-Lambertian objects, normalised exactly as the runtime
+    does, and their object masks (B, H, W): what a real stack looks like to the network.
+
+    Only object pixels are compared: in the empty background a trained network's raw output is
+    a near-zero vector whose direction is ill-conditioned (measured: ~0.5 against a median of
+    ~100 before normalisation), and the runtime zeroes those pixels anyway."""
+    from msfnet.runtime.preprocess import normalise
+    from msfnet.synth.render import RenderOptions, render_stack
+
+    images = np.empty((batch, lights, 3, height, width), np.float32)
+    dirs = np.empty((batch, lights, 3), np.float32)
+    masks = np.empty((batch, height, width), bool)
+    options = RenderOptions(size=max(height, width), lights=lights)
+    for b in range(batch):
+        stack = render_stack(np.random.default_rng([seed, b]), options)
+        crop = stack.images[:, :height, :width]
+        images[b] = normalise(crop, stack.intensities, stack.mask[:height, :width])
+        dirs[b] = stack.lights
+        masks[b] = stack.mask[:height, :width]
+    return images, dirs, masks
+
+
 def _torch_export(model: torch.nn.Module, path: Path, opset: int,
                   static: StaticShape | None) -> None:
     if static is None:
@@ -98,6 +122,31 @@ def _finalise(path: Path, meta: dict[str, str], static: StaticShape | None) -> N
     onnx.save(proto, str(path))
 
 
+def store_weights_fp16(path: Path) -> None:
+    """Store float32 weights as float16 (half the file), each followed by a Cast back to float32.
+
+    ONNX Runtime folds the Casts when it loads the model, so it computes in float32 exactly as a
+    float32 file holding the fp16-rounded weights would. Pair it with a checkpoint whose weights
+    are fp16-rounded (``save_checkpoint(..., fp16=True)``) and parity is exact.
+    """
+    from onnx import TensorProto, helper, numpy_helper
+
+    proto = onnx.load(str(path))
+    casts = []
+    for init in proto.graph.initializer:
+        if init.data_type != TensorProto.FLOAT or int(np.prod(init.dims)) < 16:
+            continue  # keep scalars and shape constants as they are
+        half = numpy_helper.from_array(numpy_helper.to_array(init).astype(np.float16),
+                                       f"{init.name}__fp16")
+        casts.append(helper.make_node("Cast", [half.name], [init.name], to=TensorProto.FLOAT,
+                                      name=f"{init.name}__to_fp32"))
+        init.CopyFrom(half)
+    nodes = [*casts, *proto.graph.node]
+    del proto.graph.node[:]
+    proto.graph.node.extend(nodes)
+    onnx.save(proto, str(path))
+
+
 def _dims(proto: onnx.ModelProto) -> dict[str, list[str | int]]:
     return {v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
             for v in [*proto.graph.input, *proto.graph.output]}
@@ -119,7 +168,8 @@ def simplify(path: Path) -> None:
 
 def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]],
            batch: int = 1, threads: int = 0) -> list[dict[str, float]]:
-    """ONNX Runtime vs PyTorch at each (N, H, W): max/mean angular difference in degrees."""
+    """ONNX Runtime vs PyTorch at each (N, H, W) on rendered objects: max/mean angular
+    difference in degrees over all pixels."""
     import onnxruntime as ort
 
     try:
@@ -132,7 +182,7 @@ def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]
     session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     results = []
     for i, (n, h, w) in enumerate(checks):
-        images, lights = random_inputs(batch, n, h, w, seed=100 + i)
+        images, lights, masks = rendered_inputs(batch, n, h, w, seed=100 + i)
         try:
             (onnx_out,) = session.run(["normals"], {"images": images, "lights": lights})
         except Exception as exc:  # ORT raises its own Fail/InvalidArgument types
@@ -140,8 +190,9 @@ def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]
                              f"({str(exc).splitlines()[0][:200]})") from exc
         with torch.no_grad():
             torch_out = model(torch.from_numpy(images), torch.from_numpy(lights)).numpy()
-        diff = angular_error_deg(onnx_out.transpose(0, 2, 3, 1), torch_out.transpose(0, 2, 3, 1))
-        results.append({"lights": n, "height": h, "width": w,
+        diff = angular_error_deg(onnx_out.transpose(0, 2, 3, 1),
+                                 torch_out.transpose(0, 2, 3, 1))[masks]
+        results.append({"lights": n, "height": h, "width": w, "pixels": int(diff.size),
                         "max_deg": float(diff.max()), "mean_deg": float(diff.mean())})
     return results
 
@@ -156,10 +207,20 @@ def default_checks(static: StaticShape | None) -> list[tuple[int, int, int]]:
 def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int = DEFAULT_OPSET,
                       train_lights: int = 32, static: StaticShape | None = None,
                       do_simplify: bool = False, checks: list[tuple[int, int, int]] | None = None,
-                      tolerance_deg: float = TOLERANCE_DEG) -> list[dict[str, float]]:
-    """Export, verify and only then move the file into place; nothing is left on failure."""
+                      tolerance_deg: float = TOLERANCE_DEG,
+                      fp16_weights: bool = False) -> list[dict[str, float]]:
+    """Export, verify and only then move the file into place; nothing is left on failure.
+
+    ``fp16_weights``: store weights in half precision (computed in float32); the reference for
+    verification is then the network with its weights rounded to float16 likewise.
+    """
     checkpoint, output = Path(checkpoint), Path(output)
     model = load_model(checkpoint)
+    if fp16_weights:
+        with torch.no_grad():
+            for tensor in model.state_dict().values():
+                if tensor.is_floating_point():
+                    tensor.copy_(tensor.half().float())
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = output.with_name(f".{output.name}.partial.onnx")
     try:
@@ -173,11 +234,13 @@ def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int 
             METADATA_KEYS["input_multiple"]: "4",
             METADATA_KEYS["static_shape"]: "" if static is None else
             f"{static.lights},{static.height},{static.width}",
-            METADATA_KEYS["precision"]: "fp32",
+            METADATA_KEYS["precision"]: "fp32 (fp16-stored weights)" if fp16_weights else "fp32",
         }
         _finalise(tmp, meta, static)
         if do_simplify:
             simplify(tmp)
+        if fp16_weights:
+            store_weights_fp16(tmp)
         results = verify(model, tmp, checks or default_checks(static))
         worst = max(r["max_deg"] for r in results)
         if not np.isfinite(worst) or worst > tolerance_deg:

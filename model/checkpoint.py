@@ -91,12 +91,19 @@ def load_model(path: str | Path, **options: bool) -> MSFNet:
     return model.eval()
 
 
-def save_checkpoint(model: torch.nn.Module, path: str | Path, **extra: object) -> Path:
-    """Write ``{'state_dict': ..., 'model': 'MSF_Net', ...}`` atomically (the published layout)."""
+def save_checkpoint(model: torch.nn.Module, path: str | Path, fp16: bool = False,
+                    **extra: object) -> Path:
+    """Write ``{'state_dict': ..., 'model': 'MSF_Net', ...}`` atomically (the published layout).
+
+    ``fp16``: store floating-point tensors in half precision (half the size; load_state_dict
+    casts them back to float32 on load, here and in the authors' code).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    if fp16:
+        state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
     torch.save({"state_dict": state, "model": "MSF_Net", **extra}, tmp)
     tmp.replace(path)
     return path
