@@ -35,6 +35,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tolerance", type=float, default=TOLERANCE_DEG,
                    help=f"max allowed ONNX Runtime vs PyTorch angle in degrees "
                    f"(default {TOLERANCE_DEG})")
+    p.add_argument("--int8", action="store_true",
+                   help="write a static int8 QDQ model (transposed convs rewritten as conv + "
+                   "depth-to-space, per-channel weights), calibrated on --calib stacks")
+    p.add_argument("--calib", type=Path, nargs="+", default=None, metavar="STACK",
+                   help="real stacks to calibrate --int8 on (e.g. DiLiGenT/ballPNG "
+                   "psmImages/cat)")
+    p.add_argument("--fp16-weights", action="store_true",
+                   help="store weights as float16 (half the file size; computed in float32, "
+                   "verified against the network with fp16-rounded weights)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     return p
 
@@ -47,15 +56,30 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError("output exists; pass --overwrite to replace it", output)
         if args.train_lights < 1:
             raise InputError(f"--train-lights must be positive, got {args.train_lights}")
-        results = export_checkpoint(args.checkpoint, output, opset=args.opset,
+        if args.int8 and not args.calib:
+            raise InputError("--int8 needs --calib STACK [STACK ...] (real stacks to calibrate on)")
+        fp32_out = output.with_name(f".{output.stem}.fp32.onnx") if args.int8 else output
+        results = export_checkpoint(args.checkpoint, fp32_out, opset=args.opset,
                                     train_lights=args.train_lights, static=args.static,
-                                    do_simplify=args.simplify, tolerance_deg=args.tolerance)
+                                    do_simplify=args.simplify, tolerance_deg=args.tolerance,
+                                    fp16_weights=args.fp16_weights)
+        if args.int8:  # the verified fp32 graph is the quantiser's input
+            from .quantize import load_calibration_stacks, quantize_int8
+
+            try:
+                summary = quantize_int8(fp32_out, output, load_calibration_stacks(args.calib))
+            finally:
+                fp32_out.unlink(missing_ok=True)
+            print(f"int8: {summary['deconvs_rewritten']} transposed convs rewritten, calibrated "
+                  f"on {summary['calibration_samples']} tiles of "
+                  f"{', '.join(summary['calibration_stacks'])}")
     except InputError as exc:
         print(f"msf-export: error: {exc}", file=sys.stderr)
         return 2
     for r in results:
         print(f"verified N={r['lights']:>3} {r['width']}x{r['height']}: max "
-              f"{r['max_deg']:.2e} deg, mean {r['mean_deg']:.2e} deg (ONNX Runtime vs PyTorch)")
+              f"{r['max_deg']:.2e} deg, mean {r['mean_deg']:.2e} deg over {r['pixels']} object px "
+              "of a rendered stack (ONNX Runtime vs PyTorch)")
     print(f"wrote {output}")
     return 0
 

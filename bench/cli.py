@@ -1,0 +1,286 @@
+"""msf-bench: latency, throughput and accuracy of MSF-Net variants on this CPU, in one run.
+
+Runs the matmul peak measurement, workloads (a)-(c) for every variant and thread count (each
+cell in a fresh process), workload (d) end to end through msf-run, and writes REPORT.md,
+report.json and a latency plot to the report folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.flops import inference_flops
+from msfnet.runtime.metrics import angular_error_deg
+
+from .peak import matmul_peak_gflops
+from .report import write_report
+from .workloads import QUICK_WORKLOADS, VARIANTS, WORKLOADS, Workload, make_input, time_msf_run
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_STACK = REPO.parent / "shared" / "data" / "DiLiGenT" / "ballPNG"
+DEFAULT_CALIB = [DEFAULT_STACK, *(REPO.parent / "shared" / "data" / "psmImages" / o
+                                  for o in ("cat", "owl", "horse"))]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="msf-bench",
+        description="Benchmark MSF-Net on this CPU: ONNX Runtime fp32 / int8, OpenVINO bf16 "
+        "(if installed), PyTorch eager and the published per-light loop, on workloads (a) 16 "
+        "lights 64x64, (b) 32 lights 128x128, (c) 96 lights 128x128 and (d) a full stack "
+        "through msf-run. Reports median/p90 latency, peak RSS, GFLOP/s, fraction of the "
+        "matmul peak measured in the same run, and angular deviation from PyTorch fp32.")
+    p.add_argument("--checkpoint", type=Path, default=None,
+                   help="MSF-Net checkpoint (.pth); default: seeded random weights (accuracy "
+                   "figures then only measure numerical deviation, not normal quality)")
+    p.add_argument("--stack", type=Path, default=DEFAULT_STACK,
+                   help=f"real stack for the inputs and workload (d) (default {DEFAULT_STACK})")
+    p.add_argument("--calib", type=Path, nargs="+", default=None,
+                   help="stacks to calibrate int8 on (default: the stack + psmImages cat/owl/"
+                   "horse when present)")
+    p.add_argument("--report-dir", type=Path, default=Path("msf-bench-out"),
+                   help="where REPORT.md, report.json, latency.png and the models go "
+                   "(default ./msf-bench-out)")
+    p.add_argument("--quick", action="store_true",
+                   help="smoke test: tiny workloads, one timed run each (about 1-2 minutes)")
+    p.add_argument("--variants", default=",".join(VARIANTS),
+                   help=f"comma list from {', '.join(VARIANTS)} (default: all available)")
+    p.add_argument("--threads", default="2,1", help="thread counts (default 2,1)")
+    p.add_argument("--max-memory", type=float, default=4096,
+                   help="msf-run --max-memory for workload (d), MB (default 4096, msf-run's own)")
+    p.add_argument("--no-e2e", action="store_true", help="skip workload (d)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing report")
+    return p
+
+
+def machine_description() -> dict[str, object]:
+    cpu = platform.processor() or ""
+    flags: list[str] = []
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        for line in text.splitlines():
+            if line.startswith("model name") and not cpu.strip():
+                cpu = line.split(":", 1)[1].strip()
+            if line.startswith("flags"):
+                have = set(line.split(":", 1)[1].split())
+                flags = sorted(f for f in have if f.startswith(("avx", "amx", "fma")))
+                break
+    except OSError:
+        pass
+
+    import onnxruntime
+    return {"cpu": cpu, "cores": os.cpu_count(), "isa_flags": flags,
+            "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
+            "platform": platform.platform()}
+
+
+def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str]) -> dict:
+    """fp32 ONNX (and int8) from the checkpoint, or from seeded random weights."""
+    import torch
+
+    from msfnet.export.onnx_export import export_checkpoint
+    from msfnet.model.checkpoint import save_checkpoint
+    from msfnet.model.network import MSFNet
+
+    ckpt = args.checkpoint
+    if ckpt is None:
+        torch.manual_seed(0)
+        ckpt = workdir / "random_seed0.pth"
+        save_checkpoint(MSFNet().eval(), ckpt)
+    elif not ckpt.is_file():
+        raise InputError("checkpoint not found", ckpt)
+    fp32 = workdir / "msfnet_fp32.onnx"
+    export_checkpoint(ckpt, fp32)
+    models = {"checkpoint": str(ckpt), "random_weights": args.checkpoint is None,
+              "fp32": str(fp32)}
+    if "ort-int8" in variants:
+        from msfnet.export.quantize import load_calibration_stacks, quantize_int8
+
+        calib = args.calib or [p for p in DEFAULT_CALIB if p.exists()]
+        stacks = load_calibration_stacks(calib)
+        int8 = workdir / "msfnet_int8.onnx"
+        models["int8_summary"] = quantize_int8(fp32, int8, stacks)
+        models["int8"] = str(int8)
+    return models
+
+
+def schedule(quick: bool, variants: list[str], threads: list[int]):
+    """(workload, variant, threads, warmup, repeats) cells; the torch-fp32 reference first.
+
+    Full mode keeps the total near 10-15 min on 2 cores: the slowest variants run once, and
+    only where they add a ratio the issue asks for.
+    """
+    cells = []
+    wls = QUICK_WORKLOADS if quick else WORKLOADS
+    for wl in wls:
+        for t in threads:
+            for v in ["torch-fp32", *[x for x in variants if x != "torch-fp32"]]:
+                if v not in variants and v != "torch-fp32":
+                    continue
+                if quick:
+                    cells.append((wl, v, t, 0 if v == "per-light" else 1, 1))
+                    continue
+                heavy = wl.key != "a"
+                if t != max(threads) and heavy and v not in ("ort-fp32", "ort-int8"):
+                    continue  # 1 thread on big inputs: the two shipped ORT variants only
+                if wl.key == "c" and (t != max(threads) or v in ("per-light", "ov-bf16")):
+                    continue  # per-light on (c) is extrapolated from (b) (linear in N)
+                if v == "torch-fp32" and t != max(threads) and heavy:
+                    continue
+                if v == "per-light":
+                    cells.append((wl, v, t, 0, 1 if heavy else 2))
+                elif heavy:
+                    cells.append((wl, v, t, 1, 2 if wl.key == "c" else 3))
+                else:
+                    cells.append((wl, v, t, 1, 5))
+    return cells
+
+
+def run_cell_subprocess(spec: dict, tmp: Path) -> dict:
+    spec_file = tmp / "spec.json"
+    spec_file.write_text(json.dumps(spec))
+    proc = subprocess.run([sys.executable, "-m", "msfnet.bench.workloads", str(spec_file)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1][:300] if proc.stderr else "failed"}
+    return json.loads(Path(spec["result"]).read_text())
+
+
+def accuracy(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    d = angular_error_deg(out[0].transpose(1, 2, 0), ref[0].transpose(1, 2, 0))[mask]
+    return {"max_deg": float(d.max()), "mean_deg": float(d.mean())}
+
+
+def bench(args: argparse.Namespace) -> dict:
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
+    if "ov-bf16" in variants:
+        try:
+            import openvino  # noqa: F401
+        except ImportError:
+            print("msf-bench: openvino not installed: skipping ov-bf16", file=sys.stderr)
+            variants.remove("ov-bf16")
+    threads = sorted({int(t) for t in args.threads.split(",")}, reverse=True)
+    if not args.stack.is_dir():
+        raise InputError("stack folder not found", args.stack)
+    workdir = args.report_dir / "models"
+    workdir.mkdir(parents=True, exist_ok=True)
+    started = time.time()
+    result: dict = {"date": time.strftime("%Y-%m-%d %H:%M %Z"), "machine": machine_description(),
+                    "quick": args.quick, "variants": {v: VARIANTS[v] for v in variants}}
+    print("msf-bench: exporting models ...", file=sys.stderr)
+    models = prepare_models(args, workdir, variants)
+    result["models"] = models
+    print("msf-bench: measuring matmul peaks ...", file=sys.stderr)
+    result["peaks"] = [matmul_peak_gflops(d, t) for t in threads for d in ("fp32", "bf16")]
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="msf-bench-") as tmpname:
+        tmp = Path(tmpname)
+        inputs: dict[str, tuple[Path, np.ndarray]] = {}
+        refs: dict[str, np.ndarray] = {}
+        cells = schedule(args.quick, variants, threads)
+        for wl, v, t, warm, reps in tqdm(cells, desc="msf-bench", unit="cell"):
+            if wl.key not in inputs:
+                feed = make_input(args.stack, wl)
+                path = tmp / f"input_{wl.key}.npz"
+                np.savez(path, images=feed["images"], lights=feed["lights"])
+                inputs[wl.key] = (path, feed["mask"])
+            spec = {"variant": v, "threads": t, "warmup": warm, "repeats": reps,
+                    "input": str(inputs[wl.key][0]), "checkpoint": models["checkpoint"],
+                    "onnx": models["int8" if v == "ort-int8" else "fp32"],
+                    "output": str(tmp / "out.npy"), "result": str(tmp / "result.json")}
+            cell = run_cell_subprocess(spec, tmp)
+            row = {"workload": wl.key, "label": wl.label(), "lights": wl.lights,
+                   "pixels": wl.pixels, "variant": v, "threads": t, "gflop": wl.flops / 1e9,
+                   **cell}
+            if "error" not in cell:
+                out = np.load(tmp / "out.npy")
+                if v == "torch-fp32" and wl.key not in refs:
+                    refs[wl.key] = out
+                if wl.key in refs:
+                    row.update(accuracy(out, refs[wl.key], inputs[wl.key][1]))
+                row["gflops_per_s"] = wl.flops / cell["median_s"] / 1e9
+            rows.append(row)
+    result["rows"] = rows
+    if not args.no_e2e:
+        result["e2e"] = end_to_end(args, models, variants, threads)
+    result["elapsed_s"] = time.time() - started
+    return result
+
+
+def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
+               threads: list[int]) -> list[dict]:
+    """Workload (d): msf-run on the whole stack in a fresh process, fp32 and int8."""
+    from msfnet.runtime.stack import load_stack
+
+    max_lights = 8 if args.quick else None  # quick: a smoke test of the path, not a figure
+    stack = load_stack(args.stack, max_lights=max_lights)
+    runs = []
+    names = [("ort-fp32", models["fp32"])]
+    if "ort-int8" in variants:
+        names.append(("ort-int8", models["int8"]))
+    outs = {}
+    for v, onnx in tqdm(names, desc="msf-bench (d)", unit="model"):
+        outdir = args.report_dir / "e2e" / v
+        repeats = 1  # one full-stack run per model keeps the full mode within ~15 min
+        walls = [time_msf_run(args.stack, Path(onnx), outdir, max(threads), args.max_memory,
+                              max_lights) for _ in range(repeats)]
+        normals = np.load(outdir / "normals.npy")
+        outs[v] = normals
+        prof = walls[-1]["profile"]
+        runs.append({"variant": v, "threads": max(threads), "lights": stack.num_lights,
+                     "height": stack.shape[0], "width": stack.shape[1],
+                     "walls_s": [w["wall_s"] for w in walls],
+                     "median_s": float(np.median([w["wall_s"] for w in walls])),
+                     "peak_rss_mb": max(w["peak_rss_mb"] for w in walls),
+                     "command": walls[-1]["command"],
+                     "tiles": prof.get("tiles"), "stages": prof.get("stages"),
+                     "inference_gflops_per_s": prof.get("inference_gflops_per_s"),
+                     "mae_vs_gt_deg": _mae(normals, stack)})
+    if "ort-int8" in outs:
+        d = angular_error_deg(outs["ort-int8"], outs["ort-fp32"])[stack.mask]
+        runs[-1].update({"max_deg_vs_fp32": float(d.max()), "mean_deg_vs_fp32": float(d.mean())})
+    return runs
+
+
+def _mae(normals: np.ndarray, stack) -> float | None:
+    if stack.normals_gt is None:
+        return None
+    return float(angular_error_deg(normals, stack.normals_gt)[stack.mask].mean())
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        report = args.report_dir / "REPORT.md"
+        if report.exists() and not args.overwrite:
+            raise InputError("report exists; pass --overwrite to replace it", report)
+        result = bench(args)
+        files = write_report(result, args.report_dir)
+    except InputError as exc:
+        print(f"msf-bench: error: {exc}", file=sys.stderr)
+        return 2
+    print(files["table"])
+    for f in files["paths"]:
+        print(f"wrote {f}")
+    return 0
+
+
+__all__ = ["Workload", "build_parser", "inference_flops", "main", "schedule"]
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,228 @@
+"""msf-bench output: the printed table, report.json, REPORT.md with targets, and latency.png."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from msfnet.runtime.imageio import write_atomic
+
+FULL_IMAGE_NOTE = ("per-light loop on (d) extrapolated linearly in lights x pixels from its "
+                   "measured (b) run (same threads), untiled full image")
+
+
+def _peak(result: dict, dtype: str, threads: int) -> float | None:
+    for p in result["peaks"]:
+        if p["dtype"] == dtype and p["threads"] == threads:
+            return p["gflops"]
+    return None
+
+
+def _find(rows: list[dict], wl: str, variant: str, threads: int) -> dict | None:
+    for r in rows:
+        if (r["workload"], r["variant"], r["threads"]) == (wl, variant, threads) \
+                and "median_s" in r:
+            return r
+    return None
+
+
+def per_light_estimate(rows: list[dict], lights: int, pixels: int,
+                       threads: int) -> tuple[float, bool] | None:
+    """Per-light loop seconds at (lights, pixels): measured if that cell exists, else scaled
+    from the largest measured per-light cell (linear in lights x pixels). (seconds, measured)."""
+    cands = [r for r in rows if r["variant"] == "per-light" and r["threads"] == threads
+             and "median_s" in r]
+    for r in cands:
+        if r["lights"] == lights and r["pixels"] == pixels:
+            return r["median_s"], True
+    if not cands:
+        return None
+    base = max(cands, key=lambda r: r["lights"] * r["pixels"])
+    return base["median_s"] * lights * pixels / (base["lights"] * base["pixels"]), False
+
+
+def add_ratios(result: dict) -> None:
+    rows = result["rows"]
+    for r in rows:
+        if "median_s" not in r:
+            continue
+        peak = _peak(result, "fp32", r["threads"])
+        r["fraction_fp32_peak"] = r["gflops_per_s"] / peak if peak else None
+        for key, v in (("x_vs_ort_fp32", "ort-fp32"), ("x_vs_torch", "torch-fp32")):
+            ref = _find(rows, r["workload"], v, r["threads"])
+            r[key] = ref["median_s"] / r["median_s"] if ref else None
+        est = per_light_estimate(rows, r["lights"], r["pixels"], r["threads"])
+        r["x_vs_per_light"] = est[0] / r["median_s"] if est else None
+        r["per_light_measured"] = bool(est and est[1])
+
+
+def _fmt(v, spec: str, none: str = "-") -> str:
+    return none if v is None else format(v, spec)
+
+
+def table(result: dict) -> str:
+    head = ("| workload | variant | thr | median s | p90 s | peak RSS MB | GFLOP/s | % fp32 peak "
+            "| x ORT fp32 | x torch | x per-light | max deg | mean deg |")
+    lines = [head, "|" + "---|" * 13]
+    for r in result["rows"]:
+        if "median_s" not in r:
+            lines.append(f"| {r['label']} | {r['variant']} | {r['threads']} | error: "
+                         f"{r.get('error', '')[:80]} |" + " |" * 9)
+            continue
+        pl = _fmt(r["x_vs_per_light"], ".2f")
+        if r["x_vs_per_light"] is not None and not r["per_light_measured"]:
+            pl = "~" + pl
+        frac = r["fraction_fp32_peak"]
+        lines.append(
+            f"| {r['label']} | {r['variant']} | {r['threads']} | {r['median_s']:.3f} | "
+            f"{r['p90_s']:.3f} | {_fmt(r.get('peak_rss_mb'), '.0f')} | {r['gflops_per_s']:.1f} | "
+            f"{_fmt(None if frac is None else 100 * frac, '.0f')} | "
+            f"{_fmt(r['x_vs_ort_fp32'], '.2f')} | {_fmt(r['x_vs_torch'], '.2f')} | {pl} | "
+            f"{_fmt(r.get('max_deg'), '.3f')} | {_fmt(r.get('mean_deg'), '.3f')} |")
+    return "\n".join(lines)
+
+
+def e2e_table(result: dict) -> str:
+    runs = result.get("e2e") or []
+    if not runs:
+        return "(workload (d) not run)"
+    lines = ["| variant | thr | lights | image | tiles run/skipped | median wall s | "
+             "peak RSS MB | inference GFLOP/s | MAE vs GT deg | vs fp32 max/mean deg | "
+             "x per-light (extrapolated) |", "|" + "---|" * 11]
+    for r in runs:
+        tiles = r.get("tiles") or {}
+        dev = ("-" if "mean_deg_vs_fp32" not in r else
+               f"{r['max_deg_vs_fp32']:.2f} / {r['mean_deg_vs_fp32']:.3f}")
+        lines.append(
+            f"| {r['variant']} | {r['threads']} | {r['lights']} | {r['width']}x{r['height']} | "
+            f"{tiles.get('run', '-')}/{tiles.get('skipped', '-')} | {r['median_s']:.1f} | "
+            f"{_fmt(r.get('peak_rss_mb'), '.0f')} | "
+            f"{_fmt(r.get('inference_gflops_per_s'), '.1f')} | "
+            f"{_fmt(r.get('mae_vs_gt_deg'), '.2f')} | {dev} | "
+            f"{_fmt(r.get('x_vs_per_light'), '.1f')} |")
+    return "\n".join(lines)
+
+
+def add_e2e_ratios(result: dict) -> None:
+    for r in result.get("e2e") or []:
+        est = per_light_estimate(result["rows"], r["lights"], r["height"] * r["width"],
+                                 r["threads"])
+        r["per_light_estimate_s"] = est[0] if est else None
+        r["x_vs_per_light"] = est[0] / r["median_s"] if est else None
+
+
+def targets(result: dict) -> list[str]:
+    rows, out = result["rows"], []
+    t = max(r["threads"] for r in rows) if rows else 2
+    fp32 = _find(rows, "b", "ort-fp32", t)
+    if fp32:
+        f = fp32["fraction_fp32_peak"] or 0.0
+        out.append(f"- (b) fp32 ORT, {t} threads: {fp32['gflops_per_s']:.1f} GFLOP/s = "
+                   f"{100 * f:.0f} % of the measured fp32 matmul peak "
+                   f"({_peak(result, 'fp32', t):.1f} GFLOP/s): target >= 75 % "
+                   f"**{'met' if f >= 0.75 else 'not met'}**.")
+    int8 = _find(rows, "b", "ort-int8", t)
+    e2e = {r["variant"]: r for r in result.get("e2e") or []}
+    if int8:
+        x = int8["x_vs_ort_fp32"] or 0.0
+        mean = e2e.get("ort-int8", {}).get("mean_deg_vs_fp32", int8.get("mean_deg"))
+        ok = x >= 3 and mean is not None and mean < 0.5
+        out.append(f"- best shipped variant (int8 ORT) on (b), {t} threads: {x:.2f}x fp32 ORT; "
+                   f"mean deviation {_fmt(mean, '.3f')} deg on ballPNG: target >= 3x within "
+                   f"0.5 deg **{'met' if ok else 'not met'}**.")
+    for v, r in e2e.items():
+        x = r.get("x_vs_per_light")
+        rss = r.get("peak_rss_mb")
+        ok = x is not None and x >= 30 and rss is not None and rss <= 2048
+        out.append(f"- (d) {v} end to end: {r['median_s']:.1f} s, {_fmt(x, '.1f')}x the "
+                   f"per-light loop ({_fmt(r.get('per_light_estimate_s'), '.0f')} s, "
+                   f"{FULL_IMAGE_NOTE}); peak RSS {_fmt(rss, '.0f')} MB: target >= 30x "
+                   f"and <= 2048 MB **{'met' if ok else 'not met'}**.")
+    return out
+
+
+def plot(result: dict, path: Path) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    rows = [r for r in result["rows"] if "median_s" in r]
+    t = max((r["threads"] for r in rows), default=2)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for v in sorted({r["variant"] for r in rows}):
+        pts = sorted((r["lights"], r["pixels"], r["median_s"]) for r in rows
+                     if r["variant"] == v and r["threads"] == t)
+        if not pts:
+            continue
+        axes[0].plot([p[0] for p in pts], [p[2] for p in pts], "o-", label=v)
+        axes[1].plot([p[1] for p in pts], [p[2] for p in pts], "o-", label=v)
+    for r in result.get("e2e") or []:
+        px = (r.get("tiles") or {}).get("pixels_computed", r["height"] * r["width"])
+        axes[0].plot([r["lights"]], [r["median_s"]], "s", label=f"(d) {r['variant']} e2e")
+        axes[1].plot([px], [r["median_s"]], "s", label=f"(d) {r['variant']} e2e")
+    axes[0].set_xlabel("lights")
+    axes[1].set_xlabel("pixels computed")
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_ylabel(f"median latency, s ({t} threads)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[1].legend(fontsize=7)
+    fig.suptitle("MSF-Net latency (workloads (a)-(c) crops of ballPNG; (d) full stack)")
+    fig.tight_layout()
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    plt.close(fig)
+    return True
+
+
+def markdown(result: dict, has_plot: bool) -> str:
+    m = result["machine"]
+    peaks = ", ".join(f"{p['dtype']} {p['threads']} thr {p['gflops']:.1f}" for p in
+                      result["peaks"])
+    models = result["models"]
+    weights = ("seeded random weights (no trained checkpoint given): the deviation columns "
+               "measure numerics only" if models.get("random_weights")
+               else f"checkpoint {models['checkpoint']}")
+    lines = [
+        "# msf-bench report", "",
+        f"- date: {result['date']}; mode: {'quick' if result['quick'] else 'full'}; "
+        f"elapsed {result['elapsed_s'] / 60:.1f} min",
+        f"- machine: {m['cpu']}, {m['cores']} cores, ISA {' '.join(m['isa_flags'])}; "
+        f"{m['platform']}; Python {m['python']}, onnxruntime {m['onnxruntime']}",
+        f"- matmul peak GFLOP/s measured in this run (torch): {peaks}",
+        f"- weights: {weights}",
+        "- inputs: crops of the real ballPNG stack centred on the ball, evenly spaced lights; "
+        "deviation = angle to PyTorch fp32 (lights folded) over mask pixels",
+        "- GFLOP/s from the analytic count (runtime/flops.py, 2 FLOP per MAC); '% fp32 peak' "
+        "divides by the fp32 matmul peak at the same thread count, for every variant",
+        "- the machine is shared and noisy: compare ratios within this run, not across runs",
+        "- `~` marks a per-light ratio extrapolated from the measured (b) per-light run "
+        "(linear in lights x pixels)", "",
+        *[f"- note: {n}" for n in result.get("notes", [])], "",
+        "## Targets", "", *targets(result), "",
+        "## Workloads (a)-(c)", "", table(result), "",
+        "## Workload (d): full stack end to end through msf-run (fresh process: load -> "
+        "normals on disk)", "", e2e_table(result), "",
+    ]
+    if has_plot:
+        lines += ["![latency](latency.png)", ""]
+    lines += ["## Variants", ""] + [f"- `{k}`: {v}" for k, v in result["variants"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(result: dict, folder: Path) -> dict:
+    folder.mkdir(parents=True, exist_ok=True)
+    add_ratios(result)
+    add_e2e_ratios(result)
+    has_plot = plot(result, folder / "latency.png")
+    md = markdown(result, has_plot)
+    write_atomic(folder / "report.json",
+                 lambda tmp: Path(tmp).write_text(json.dumps(result, indent=1, default=str)))
+    write_atomic(folder / "REPORT.md", lambda tmp: Path(tmp).write_text(md))
+    paths = [folder / "REPORT.md", folder / "report.json"]
+    if has_plot:
+        paths.append(folder / "latency.png")
+    return {"table": table(result) + "\n\n" + e2e_table(result), "paths": paths}

@@ -1,0 +1,200 @@
+"""Workloads and variants of msf-bench, and the worker that times one (variant, threads) cell.
+
+Every cell runs in its own process (``python -m msfnet.bench.workloads SPEC.json``) so that its
+peak RSS is its own and thread settings cannot leak between frameworks. Inputs are cut from the
+real ballPNG stack (a crop centred on the ball, evenly spaced lights), so the accuracy figures
+are on real data.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msfnet.runtime.flops import inference_flops
+from msfnet.runtime.preprocess import network_lights, normalise
+
+
+@dataclass(frozen=True)
+class Workload:
+    key: str
+    lights: int
+    size: int  # square crop edge (px)
+
+    @property
+    def pixels(self) -> int:
+        return self.size * self.size
+
+    @property
+    def flops(self) -> float:
+        return inference_flops(self.lights, self.pixels)
+
+    def label(self) -> str:
+        return f"({self.key}) {self.lights} lights {self.size}x{self.size}"
+
+
+WORKLOADS = (Workload("a", 16, 64), Workload("b", 32, 128), Workload("c", 96, 128))
+QUICK_WORKLOADS = (Workload("a", 16, 64), Workload("b", 8, 64))
+
+# variant -> what it runs; "precision" is what the variant asks for
+VARIANTS = {
+    "ort-fp32": "ONNX Runtime CPU, fp32 model (untiled)",
+    "ort-int8": "ONNX Runtime CPU, int8 QDQ model (deconvs rewritten, calibrated on real stacks)",
+    "ov-bf16": "OpenVINO CPU, fp32 model with INFERENCE_PRECISION_HINT=bf16",
+    "torch-fp32": "PyTorch eager fp32, lights folded into the batch",
+    "per-light": "PyTorch per-light loop (published style: recomputes stages)",
+}
+
+
+def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
+    """Normalised (1, N, 3, s, s) crop centred on the mask, N evenly spaced lights."""
+    from msfnet.runtime.stack import load_stack
+
+    stack = load_stack(stack_dir, max_lights=wl.lights)
+    ys, xs = np.nonzero(stack.mask)
+    h, w = stack.mask.shape
+    y0 = int(np.clip(ys.mean() - wl.size / 2, 0, h - wl.size)) // 4 * 4
+    x0 = int(np.clip(xs.mean() - wl.size / 2, 0, w - wl.size)) // 4 * 4
+    sl = (slice(y0, y0 + wl.size), slice(x0, x0 + wl.size))
+    mask = stack.mask[sl]
+    x = normalise(stack.images[:, sl[0], sl[1]], stack.intensities, mask)
+    return {"images": x[None], "lights": network_lights(stack.lights)[None],
+            "mask": mask}
+
+
+def _max_rss_mb() -> float:
+    """Peak RSS of this process. VmHWM, not ru_maxrss: Linux carries ru_maxrss across execve,
+    so a worker started by a big parent would report the parent's peak."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+# Runs msf-run's main in this process, then records VmHWM (see _max_rss_mb) for the parent.
+_E2E_WRAPPER = """
+import runpy, sys
+from msfnet.bench.workloads import _max_rss_mb
+out, sys.argv = sys.argv[1], ["msf-run", *sys.argv[2:]]
+try:
+    runpy.run_module("msfnet.runtime.cli", run_name="__main__")
+finally:
+    open(out, "w").write(str(_max_rss_mb()))
+"""
+
+
+def _runner(variant: str, spec: dict):
+    """Build the variant once; return (callable(images, lights) -> normals (1,3,H,W), info)."""
+    threads = int(spec["threads"])
+    if variant in ("ort-fp32", "ort-int8"):
+        from msfnet.runtime.session import create_session
+
+        sess = create_session(spec["onnx"], threads=threads)
+        return sess.run, {"precision": sess.info.precision}
+    if variant == "ov-bf16":
+        import openvino as ov
+
+        core = ov.Core()
+        compiled = core.compile_model(spec["onnx"], "CPU", {
+            "INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "bf16",
+            "PERFORMANCE_HINT": "LATENCY"})
+        effective = str(compiled.get_property("INFERENCE_PRECISION_HINT"))
+        request = compiled.create_infer_request()
+
+        def run_ov(images, lights):
+            return request.infer({"images": images, "lights": lights})[0]
+
+        caps = core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+        return run_ov, {"precision": effective, "cpu_capabilities": list(caps)}
+    import torch
+
+    from msfnet.model.checkpoint import load_model
+    from msfnet.model.reference import per_light_forward
+
+    torch.set_num_threads(threads)
+    net = load_model(spec["checkpoint"]).eval()
+
+    def run_torch(images, lights):
+        with torch.no_grad():
+            a, b = torch.from_numpy(images), torch.from_numpy(lights)
+            out = net(a, b) if variant == "torch-fp32" else per_light_forward(net, a, b)
+        return out.numpy()
+
+    return run_torch, {"precision": "fp32"}
+
+
+def run_cell(spec: dict) -> dict:
+    """Time one variant on one input: warm-up runs, then ``repeats`` timed runs."""
+    data = np.load(spec["input"])
+    images, lights = data["images"], data["lights"]
+    t0 = time.perf_counter()
+    run, info = _runner(spec["variant"], spec)
+    init_s = time.perf_counter() - t0
+    out = None
+    for _ in range(int(spec["warmup"])):
+        out = run(images, lights)
+    times = []
+    for _ in range(int(spec["repeats"])):
+        t0 = time.perf_counter()
+        out = run(images, lights)
+        times.append(time.perf_counter() - t0)
+    np.save(spec["output"], np.asarray(out, dtype=np.float32))
+    return {"times_s": times, "median_s": statistics.median(times),
+            "p90_s": float(np.percentile(times, 90)), "init_s": init_s,
+            "peak_rss_mb": _max_rss_mb(), **info}
+
+
+def time_msf_run(stack_dir: Path, onnx: Path, outdir: Path, threads: int,
+                 max_memory_mb: float, max_lights: int | None = None) -> dict:
+    """One end-to-end ``msf-run`` in a fresh process (load -> normals on disk)."""
+    import subprocess
+
+    rss_file = outdir.parent / f".{outdir.name}.rss"
+    rss_file.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-c", _E2E_WRAPPER, str(rss_file), str(stack_dir), "--onnx", str(onnx),
+           "-o", str(outdir), "--overwrite", "--threads", str(threads),
+           "--max-memory", str(max_memory_mb)]
+    if max_lights:
+        cmd += ["--max-lights", str(max_lights)]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    _, status, _ = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    if proc.returncode != 0:
+        raise RuntimeError(f"msf-run failed ({proc.returncode}): {err.strip()[-400:]}")
+    profile = {}
+    pfile = outdir / "profile.json"
+    if pfile.is_file():
+        profile = json.loads(pfile.read_text())
+    peak = float(rss_file.read_text())
+    rss_file.unlink()
+    return {"wall_s": wall, "peak_rss_mb": peak, "profile": profile,
+            "command": " ".join(["msf-run", *cmd[4:]])}
+
+
+def main(argv: list[str] | None = None) -> int:
+    spec_path = Path((argv or sys.argv[1:])[0])
+    spec = json.loads(spec_path.read_text())
+    result = run_cell(spec)
+    Path(spec["result"]).write_text(json.dumps(result))
+    return 0
+
+
+__all__ = ["QUICK_WORKLOADS", "VARIANTS", "WORKLOADS", "Workload", "asdict", "make_input",
+           "run_cell", "time_msf_run"]
+
+if __name__ == "__main__":
+    sys.exit(main())

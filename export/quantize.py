@@ -1,0 +1,176 @@
+"""Static int8 (QDQ, per-channel weights) quantisation calibrated on real photometric stacks.
+
+Pipeline: fp32 ONNX -> ConvTranspose rewrite (so every layer is a Conv that quantises, see
+``rewrite.py``) -> onnxruntime.quantization.quantize_static with a CalibrationDataReader that
+feeds normalised tiles cut from real stacks (inside their masks), exactly as the runtime feeds
+the network. Only convolutions are quantised: the fusion's GELU / sigmoid gate and the max over
+lights stay fp32 (they are cheap, and their inputs span ranges that int8 handles poorly).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.model_info import METADATA_KEYS
+from msfnet.runtime.preprocess import normalise
+from msfnet.runtime.stack import Stack, load_stack
+
+from .rewrite import rewrite_deconvs
+
+CALIB_TILE = 64
+CALIB_LIGHTS = 16
+CALIB_TILES_PER_STACK = 3
+# LeakyRelu and DepthToSpace in int8 keep conv -> act -> conv chains quantised (no fp32 round trip)
+QUANT_OPS = ["Conv", "LeakyRelu", "DepthToSpace"]
+
+
+def evenly(n: int, k: int) -> list[int]:
+    """k indices spread over range(n) (all of them when k >= n)."""
+    if k >= n:
+        return list(range(n))
+    return [int(v) for v in np.rint(np.linspace(0, n - 1, k))]
+
+
+def tile_origins(mask: np.ndarray, tile: int, count: int, seed: int = 0) -> list[tuple[int, int]]:
+    """Top-left corners (multiples of 4) of tiles centred on random mask pixels."""
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    rng = np.random.default_rng(seed)
+    picks = rng.choice(len(ys), size=min(count, len(ys)), replace=False)
+    out = []
+    for p in picks:
+        y0 = int(np.clip(ys[p] - tile // 2, 0, max(h - tile, 0))) // 4 * 4
+        x0 = int(np.clip(xs[p] - tile // 2, 0, max(w - tile, 0))) // 4 * 4
+        out.append((y0, x0))
+    return out
+
+
+def calibration_samples(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
+                        lights: int = CALIB_LIGHTS, tiles_per_stack: int = CALIB_TILES_PER_STACK,
+                        train_lights: int = 32,
+                        seed: int = 0) -> Iterator[dict[str, np.ndarray]]:
+    """Network feeds {'images': (1,N,3,t,t), 'lights': (1,N,3)} from real stacks.
+
+    Normalisation is per pixel, so normalising a crop equals cropping the normalised image.
+    Each stack gives tiles at two light counts (all-ish and a few) so the calibrated ranges
+    cover the sqrt(N / 32) scaling the runtime applies.
+    """
+    for si, stack in enumerate(stacks):
+        counts = sorted({min(lights, stack.num_lights), min(max(3, lights // 2), stack.num_lights)})
+        for ti, (y0, x0) in enumerate(tile_origins(stack.mask, tile, tiles_per_stack, seed + si)):
+            n = counts[ti % len(counts)]
+            idx = evenly(stack.num_lights, n)
+            crop = (slice(y0, y0 + tile), slice(x0, x0 + tile))
+            x = normalise(stack.images[idx][:, crop[0], crop[1]], stack.intensities[idx],
+                          stack.mask[crop], train_lights)
+            pad_h, pad_w = tile - x.shape[2], tile - x.shape[3]
+            if pad_h or pad_w:
+                x = np.pad(x, ((0, 0), (0, 0), (0, pad_h), (0, pad_w)))
+            yield {"images": x[None].astype(np.float32),
+                   "lights": stack.lights[idx][None].astype(np.float32)}
+
+
+def load_calibration_stacks(paths: Sequence[str | Path], max_lights: int = 96) -> list[Stack]:
+    """Load each calibration stack; a psmImages-style object folder finds ../lights.txt."""
+    stacks = []
+    for p in paths:
+        p = Path(p)
+        lights = None
+        if p.is_dir() and not any((p / n).exists() for n in ("light_directions.txt", "lights.txt")):
+            parent = p.parent / "lights.txt"
+            lights = parent if parent.is_file() else None
+        stacks.append(load_stack(p, lights=lights, max_lights=max_lights))
+    if not stacks:
+        raise InputError("--calib: give at least one stack to calibrate on")
+    return stacks
+
+
+class _Reader:
+    """onnxruntime.quantization.CalibrationDataReader over precomputed samples."""
+
+    def __init__(self, samples: list[dict[str, np.ndarray]]) -> None:
+        self._it = iter(samples)
+
+    def get_next(self) -> dict[str, np.ndarray] | None:
+        return next(self._it, None)
+
+    def rewind(self) -> None:  # pragma: no cover - ORT calls it only for some methods
+        pass
+
+
+def fp32_conv_names(model: onnx.ModelProto) -> list[str]:
+    """Convs kept in fp32: the fusion's 1x1 gate (its channel sum feeds a sigmoid, so int8
+    error there flips the blend) and the first / last conv (3-6 channels: cheap, and they
+    touch the raw input and the output direction)."""
+    convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    keep = [n.name for n in convs if "fusion" in n.name]
+    return [*keep, convs[0].name, convs[-1].name] if convs else keep
+
+
+def quantize_int8(src: str | Path, dst: str | Path, stacks: Sequence[Stack], *,
+                  method: str = "minmax", tile: int = CALIB_TILE, lights: int = CALIB_LIGHTS,
+                  tiles_per_stack: int = CALIB_TILES_PER_STACK,
+                  reduce_range: bool = False, rewrite: str = "conv3x3") -> dict[str, object]:
+    """fp32 msfnet ONNX -> int8 QDQ ONNX at ``dst``; returns a summary dict.
+
+    method: 'minmax' (default; robust for this ReLU-like network) or 'percentile' / 'entropy'.
+    rewrite: how transposed convs become convs ('conv3x3' or 'phases', see rewrite.py).
+    """
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
+
+    methods = {"minmax": CalibrationMethod.MinMax, "percentile": CalibrationMethod.Percentile,
+               "entropy": CalibrationMethod.Entropy}
+    if method not in methods:
+        raise InputError(f"calibration method {method!r}: expected one of {', '.join(methods)}")
+    model, rewritten = rewrite_deconvs(onnx.load(str(src)), rewrite)
+    samples = list(calibration_samples(stacks, tile=tile, lights=lights,
+                                       tiles_per_stack=tiles_per_stack))
+
+    class Reader(_Reader, CalibrationDataReader):
+        pass
+
+    with tempfile.TemporaryDirectory(prefix="msfnet-quant-") as tmp:
+        rw = Path(tmp) / "rewritten.onnx"
+        onnx.save(model, str(rw))
+        quantize_static(str(rw), str(Path(tmp) / "int8.onnx"), Reader(samples),
+                        quant_format=QuantFormat.QDQ, per_channel=True,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                        op_types_to_quantize=QUANT_OPS, calibrate_method=methods[method],
+                        nodes_to_exclude=fp32_conv_names(model), reduce_range=reduce_range,
+                        extra_options={"CalibPercentile": 99.999} if method == "percentile"
+                        else {})
+        qmodel = onnx.load(str(Path(tmp) / "int8.onnx"))
+    summary = {"deconvs_rewritten": rewritten, "calibration_samples": len(samples),
+               "calibration_stacks": [s.name for s in stacks], "method": method,
+               "tile": tile, "lights": lights, "reduce_range": reduce_range, "rewrite": rewrite,
+               "fp32_convs": fp32_conv_names(model)}
+    _set_meta(qmodel, {METADATA_KEYS["precision"]: "int8-qdq",
+                       "msfnet.quantization": json.dumps(summary)})
+    dst = Path(dst)
+    partial = dst.with_name(f".{dst.name}.partial")
+    onnx.save(qmodel, str(partial))
+    partial.replace(dst)  # atomic: no half-written model on failure
+    return summary
+
+
+def _set_meta(model: onnx.ModelProto, values: dict[str, str]) -> None:
+    """Update metadata_props in place, keeping the fp32 export's other keys."""
+    current = {p.key: p.value for p in model.metadata_props}
+    current.update(values)
+    del model.metadata_props[:]
+    for k, v in current.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = k, v
