@@ -80,6 +80,10 @@ def main(argv: list[str] | None = None) -> int:
             from .demo import demo_stack
 
             stack = demo_stack()
+            if args.outdir is None:
+                from .outputs import fresh_outdir
+
+                args.outdir = fresh_outdir(stack.name)
         result = run_stack(
             stack, onnx=args.onnx, method=args.method, outdir=args.outdir,
             overwrite=args.overwrite, lights=args.lights, intensities=args.intensities,

@@ -24,6 +24,14 @@ def default_outdir(stack_name: str) -> Path:
     return Path("msf-out") / stack_name
 
 
+def fresh_outdir(stack_name: str) -> Path:
+    """``msf-out/<name>``, or ``<name>-2``, ``-3``... : the first that does not exist yet (the
+    demo can be re-run without --overwrite and without touching earlier results)."""
+    base = default_outdir(stack_name)
+    candidates = (base.with_name(f"{base.name}-{i}") if i > 1 else base for i in range(1, 10**6))
+    return next(p for p in candidates if not p.exists())
+
+
 def _inside(path: Path, folder: Path) -> bool:
     try:
         path.resolve().relative_to(folder.resolve())
