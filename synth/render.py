@@ -36,7 +36,7 @@ class RenderOptions:
 def cast_shadow_mask(height: np.ndarray, mask: np.ndarray, lights: np.ndarray) -> np.ndarray:
     """(N, H, W) float32, 0 where the height field blocks the light, by ray marching.
 
-    From each pixel, step towards the light in the image plane (bilinear height lookups at
+    From each pixel, step towards the light in the image plane (nearest-pixel height lookups at
     growing distances) and test whether the surface rises above the ray.
     """
     size_h, size_w = height.shape
@@ -75,30 +75,6 @@ def cast_shadow_mask(height: np.ndarray, mask: np.ndarray, lights: np.ndarray) -
     sub = flat[slanted]
     sub[:, pix] = np.where(blocked, 0.0, 1.0)
     flat[slanted] = sub
-    return lit
-    ls, lxy = lights[slanted], lxy[slanted]
-    drow = (-ls[:, 1] / lxy)[:, None, None]
-    dcol = (ls[:, 0] / lxy)[:, None, None]
-    rise = (step * ls[:, 2] / lxy)[:, None, None]  # ray height gained per pixel travelled
-    reach = min((zmax - zmin) / max(float(rise.min()), 1e-6), 2.0 * max(size_h, size_w))
-    rows, cols = np.mgrid[0:size_h, 0:size_w].astype(np.float32)
-    base = z.reshape(size_h, size_w)[None] + np.float32(0.25 * step)  # bias: no self-shadowing
-    blocked = np.zeros((len(ls), size_h, size_w), bool)
-    t, k = 1.0, 0
-    while t <= reach:
-        r, c = rows + t * drow, cols + t * dcol  # (L, H, W)
-        inside = (r >= 0) & (r <= size_h - 1) & (c >= 0) & (c <= size_w - 1)
-        r0 = np.clip(r.astype(np.intp), 0, size_h - 2)
-        c0 = np.clip(c.astype(np.intp), 0, size_w - 2)
-        fr, fc = np.clip(r - r0, 0, 1), np.clip(c - c0, 0, 1)
-        i00 = r0 * size_w + c0
-        top = z[i00] * (1 - fc) + z[i00 + 1] * fc
-        bottom = z[i00 + size_w] * (1 - fc) + z[i00 + size_w + 1] * fc
-        zs = top * (1 - fr) + bottom * fr
-        blocked |= inside & (zs > base + t * rise)
-        k += 1
-        t += 1.0 + 0.3 * k  # denser near the pixel, where small occluders matter most
-    lit[slanted] = np.where(blocked, 0.0, 1.0)
     return lit
 
 
