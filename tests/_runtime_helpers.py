@@ -59,18 +59,3 @@ def build_random_onnx(folder: Path, sensitive: bool = False) -> Path:
     save_checkpoint(model, folder / f"{stem}.pth")
     export_checkpoint(folder / f"{stem}.pth", onnx_path, checks=[(3, 8, 8)])
     return onnx_path
-
-
-@pytest.fixture(scope="session")
-def random_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Built once per session (the file is reused if another module asks again)."""
-    folder = tmp_path_factory.getbasetemp() / "runtime_model"
-    folder.mkdir(exist_ok=True)
-    return build_random_onnx(folder)
-
-
-@pytest.fixture(scope="session")
-def sensitive_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.getbasetemp() / "runtime_model"
-    folder.mkdir(exist_ok=True)
-    return build_random_onnx(folder, sensitive=True)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _runtime_helpers import build_random_onnx
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -32,3 +33,18 @@ def psm_dir() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="session")
+def random_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Built once per session (the file is reused if another module asks again)."""
+    folder = tmp_path_factory.getbasetemp() / "runtime_model"
+    folder.mkdir(exist_ok=True)
+    return build_random_onnx(folder)
+
+
+@pytest.fixture(scope="session")
+def sensitive_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.getbasetemp() / "runtime_model"
+    folder.mkdir(exist_ok=True)
+    return build_random_onnx(folder, sensitive=True)

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-from _runtime_helpers import random_onnx, sphere_stack  # noqa: F401  (session fixture)
+from _runtime_helpers import sphere_stack
 
 from msfnet.runtime.evaluate import find_objects, main
 from msfnet.runtime.run import run_stack
@@ -30,7 +30,7 @@ def test_find_objects(bench_root: Path, tmp_path: Path) -> None:
     assert [f.name for f, _ in find_objects(bench_root / "objA")] == ["objA"]
 
 
-def test_msf_eval_table(random_onnx: Path, bench_root: Path, tmp_path: Path,  # noqa: F811
+def test_msf_eval_table(random_onnx: Path, bench_root: Path, tmp_path: Path,
                         capsys) -> None:
     out = tmp_path / "eval"
     assert main([str(bench_root), "--onnx", str(random_onnx), "-o", str(out), "--tile", "0",

@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from _runtime_helpers import random_onnx, sphere_stack  # noqa: F401  (session fixture)
+from _runtime_helpers import sphere_stack
 
 from msfnet.runtime.cli import main
 from msfnet.runtime.run import run_stack
@@ -48,7 +48,7 @@ def test_l2_on_ball_matches_published(ball_dir: Path, tmp_path: Path, capsys) ->
     assert np.all(normals[~mask] == 0) and np.all(np.any(normals[mask] != 0, axis=1))
 
 
-def test_onnx_on_ball_tiled(random_onnx: Path, ball_dir: Path, tmp_path: Path,  # noqa: F811
+def test_onnx_on_ball_tiled(random_onnx: Path, ball_dir: Path, tmp_path: Path,
                             capsys) -> None:
     """Default-suite version: 8 of the 96 lights, small tiles (the full run is marked slow)."""
     out = tmp_path / "ball_msf"
@@ -62,7 +62,7 @@ def test_onnx_on_ball_tiled(random_onnx: Path, ball_dir: Path, tmp_path: Path,  
 
 
 @pytest.mark.slow
-def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path,  # noqa: F811
+def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path,
                                       tmp_path: Path) -> None:
     """All 96 lights, default 4096 MB budget; a fresh process so peak RSS is the run's own."""
     out = tmp_path / "full"
@@ -76,7 +76,7 @@ def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path,  # noqa
     assert profile["peak_rss_mb"] < 4096  # --max-memory default
 
 
-def test_run_stack_api_on_stack_object(random_onnx: Path) -> None:  # noqa: F811
+def test_run_stack_api_on_stack_object(random_onnx: Path) -> None:
     stack = sphere_stack(n=6)
     untiled = run_stack(stack, onnx=random_onnx, write=False, tile=0, threads=2)
     assert untiled.outdir is None and untiled.files == []

@@ -6,7 +6,6 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from _runtime_helpers import sensitive_onnx  # noqa: F401  (session fixture)
 
 from msfnet.runtime import flops
 from msfnet.runtime.errors import InputError
@@ -74,7 +73,7 @@ def ball_crop(ball_dir):
     return _crop(stack, 170, 266, 220, 318)
 
 
-def test_tiled_equals_untiled_on_crop(sensitive_onnx, ball_crop) -> None:  # noqa: F811
+def test_tiled_equals_untiled_on_crop(sensitive_onnx, ball_crop) -> None:
     model = create_session(sensitive_onnx, threads=2)
     untiled = infer_normals(model, ball_crop, plan_tiles(ball_crop.mask, None)).normals
     plan = plan_tiles(ball_crop.mask, 64)  # 24 px cores: a 4 x 4 grid over the crop

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from _runtime_helpers import random_onnx, sphere_stack  # noqa: F401  (session fixture)
+from _runtime_helpers import sphere_stack
 
 SCRIPT = r"""
 import importlib.abc, sys
@@ -39,7 +39,7 @@ print("TORCH-FREE OK")
 """
 
 
-def test_runtime_without_torch(random_onnx: Path, tmp_path: Path) -> None:  # noqa: F811
+def test_runtime_without_torch(random_onnx: Path, tmp_path: Path) -> None:
     ref = sphere_stack(n=5, h=28, w=32)
     npz = tmp_path / "sphere.npz"
     np.savez(npz, images=ref.images, lights=ref.lights, intensities=ref.intensities,
