@@ -15,8 +15,6 @@ those layers, a price int8 repays several times).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import onnx
 from onnx import helper, numpy_helper
@@ -147,10 +145,3 @@ def rewrite_deconvs(model: onnx.ModelProto,
     graph.initializer.extend(keep)
     onnx.checker.check_model(model)
     return model, count
-
-
-def rewrite_file(src: str | Path, dst: str | Path, mode: str = "conv3x3") -> int:
-    """Rewrite an ONNX file; returns how many ConvTranspose nodes were replaced."""
-    model, count = rewrite_deconvs(onnx.load(str(src)), mode)
-    onnx.save(model, str(dst))
-    return count

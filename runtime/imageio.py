@@ -72,11 +72,6 @@ def _read_with_pillow(path: Path) -> np.ndarray:
         raise InputError(f"cannot decode image ({type(exc).__name__}: {exc})", path) from exc
 
 
-def to_float(img: np.ndarray) -> np.ndarray:
-    """Raw sensor values as float32 (no rescaling: intensities are relative anyway)."""
-    return np.asarray(img, dtype=np.float32)
-
-
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
     """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 of 255."""
     img = read_image(path)

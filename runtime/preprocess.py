@@ -32,16 +32,6 @@ def padded_size(size: int, multiple: int = MULTIPLE) -> int:
     return -(-size // multiple) * multiple
 
 
-def pad_to_multiple(x: np.ndarray, multiple: int = MULTIPLE) -> np.ndarray:
-    """Zero-pad the last two axes (H, W) at the bottom/right to multiples of ``multiple``."""
-    h, w = x.shape[-2:]
-    ph, pw = padded_size(h, multiple) - h, padded_size(w, multiple) - w
-    if ph == 0 and pw == 0:
-        return x
-    pad = [(0, 0)] * (x.ndim - 2) + [(0, ph), (0, pw)]
-    return np.pad(x, pad)
-
-
 def network_lights(lights: np.ndarray) -> np.ndarray:
     """Unit light directions as float32, (N, 3)."""
     lights = np.asarray(lights, np.float64)
