@@ -125,6 +125,7 @@ class TrainConfig:
     mff: bool = True
     sus: bool = True
     data: str = "synth"  # "synth" or a Blobby/Sculpture root folder
+    init: str | None = None  # start from these weights (fresh optimiser), e.g. the bundled model
     render_size: int = 64
     render_lights: int = 40
     pool: int = 48
@@ -165,6 +166,12 @@ class Trainer:
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         self.model = MSFNet(mfe=cfg.mfe, mff=cfg.mff)
+        if cfg.init and not resume:
+            from .checkpoint import check_state_dict, read_state_dict
+
+            state = read_state_dict(cfg.init)
+            check_state_dict(self.model, state, cfg.init)
+            self.model.load_state_dict(state, strict=True)
         if cfg.precision == "bf16" and not bf16_available():
             raise InputError("--precision bf16: this CPU/torch cannot run bf16 autocast")
         self.bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and bf16_available())

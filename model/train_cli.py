@@ -52,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-channels-last", action="store_true", help="keep NCHW weights")
     p.add_argument("--no-mfe", action="store_true",
                    help="ablation: no multi-stage extraction (extractor1 -> max -> regressor)")
+    p.add_argument("--init", metavar="CKPT",
+                   help="start from these weights with a fresh optimiser (e.g. the bundled "
+                   "msfnet_default.pth), instead of random initialisation")
     p.add_argument("--no-mff", action="store_true",
                    help="ablation: no fusion module (a stage sees concat(raw, max))")
     p.add_argument("--no-sus", action="store_true",

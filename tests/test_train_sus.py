@@ -156,3 +156,19 @@ def test_cli_trains_saves_and_resumes(tmp_path):
     assert [r["step"] for r in rows if "loss" in r] == [1, 2, 3, 4]
     assert sum("val_mae" in r for r in rows) == 2
     assert torch.load(out / "last_state.pth", weights_only=True)["step"] == 4
+
+
+def test_cli_starts_from_given_weights(tmp_path):
+    from msfnet.model.checkpoint import save_checkpoint
+
+    torch.manual_seed(7)
+    start = MSFNet()
+    ckpt = save_checkpoint(start, tmp_path / "start.pth", fp16=True)
+    out = tmp_path / "run"
+    assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "1", "--batch",
+                       "1", "--lights", "3", "--crop", "16", "--pool", "1", "--render-size",
+                       "32", "--val-objects", "1", "--no-progress", "--precision", "fp32",
+                       "--lr", "1e-12", "--init", str(ckpt)]) == 0
+    trained = torch.load(out / "last.pth", weights_only=True)["state_dict"]
+    want = start.state_dict()["regressor.est_normal.0.weight"].half().float()
+    assert torch.allclose(trained["regressor.est_normal.0.weight"], want, atol=1e-6)
