@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from msfnet.runtime.errors import InputError
+from msfnet.runtime.metrics import angular_error_deg
 
 from .sphere import Circle
 
@@ -155,10 +156,6 @@ def find_highlight(img: np.ndarray, circle: Circle, white_level: float,
     return est
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), float(a @ b))))
-
-
 def white_level_of(arr: np.ndarray) -> float:
     if arr.dtype == np.uint8:
         return 255.0
@@ -221,7 +218,7 @@ def estimate_directions(captures: list[np.ndarray], circles: list[list[Circle]],
         d = (np.array([e.direction for e in good]) * wts[:, None]).sum(0)
         d /= np.linalg.norm(d)
         dirs[i] = d
-        spread[i] = max(_angle_deg(e.direction, d) for e in good)
+        spread[i] = max(float(angular_error_deg(e.direction, d)) for e in good)
         agree = float(np.clip(1.0 - spread[i] / 5.0, 0.0, 1.0))
         conf[i] = float(np.mean([e.confidence for e in good])) * agree * len(good) / len(ests)
         if spread[i] > 2.0:
