@@ -12,7 +12,7 @@ normalisation is per pixel, so cropping commutes with it).
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -109,19 +109,28 @@ def collate(samples: list[tuple[np.ndarray, ...]]) -> Batch:
 # ----------------------------------------------------------------------------- sources
 
 class SynthSource:
-    """Rendered stacks from a pool; ``refresh`` new ones replace the oldest per batch."""
+    """Rendered stacks from a pool; ``refresh`` new ones replace the oldest per batch.
+
+    ``max_size`` > ``options.size`` draws each object's size from that range: the same shapes
+    at more pixels are smoother per pixel, as real objects filmed at full resolution are (a
+    network trained only on small renders expects too much curvature per pixel).
+    """
 
     def __init__(self, seed: int, options: RenderOptions, pool: int = 48, refresh: int = 2,
-                 start: int = 0) -> None:
+                 start: int = 0, max_size: int | None = None) -> None:
         self.seed, self.options, self.refresh = seed, options, refresh
+        self.sizes = (options.size, max(options.size, max_size or options.size))
         self.counter = start  # index of the next object to render (for resuming)
         self.pool: list[Stack] = []
         while len(self.pool) < pool:
             self.pool.append(self._render())
 
     def _render(self) -> Stack:
-        stack = render_stack(np.random.default_rng([self.seed, self.counter]), self.options,
-                             name=f"train{self.counter}")
+        rng = np.random.default_rng([self.seed, self.counter])
+        options = self.options
+        if self.sizes[1] > self.sizes[0]:
+            options = replace(options, size=int(rng.integers(self.sizes[0], self.sizes[1] + 1)))
+        stack = render_stack(rng, options, name=f"train{self.counter}")
         self.counter += 1
         return stack
 

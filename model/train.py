@@ -127,6 +127,7 @@ class TrainConfig:
     data: str = "synth"  # "synth" or a Blobby/Sculpture root folder
     init: str | None = None  # start from these weights (fresh optimiser), e.g. the bundled model
     render_size: int = 64
+    render_size_max: int | None = None  # sizes drawn from [render_size, render_size_max]
     render_lights: int = 40
     pool: int = 48
     refresh: int = 2
@@ -187,7 +188,8 @@ class Trainer:
             options = RenderOptions(size=cfg.render_size, lights=cfg.render_lights)
             # Training objects start far from the validation seed space: seeds differ anyway.
             self.source = SynthSource(cfg.seed, options, cfg.pool, cfg.refresh,
-                                      start=self.step * cfg.refresh)
+                                      start=self.step * cfg.refresh,
+                                      max_size=cfg.render_size_max)
         else:
             self.source = BlobbySource(cfg.data)
         val_opts = RenderOptions(size=cfg.val_size, lights=cfg.val_lights)

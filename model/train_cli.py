@@ -61,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ablation: no selective update (all stage losses train all modules)")
     p.add_argument("--render-size", type=int, default=d.render_size,
                    help=f"synthetic object size in pixels (default {d.render_size})")
+    p.add_argument("--render-size-max", type=int, default=d.render_size_max,
+                   help="draw each synthetic object's size from [--render-size, this]: larger "
+                        "renders are smoother per pixel, like real full-resolution objects")
+    p.add_argument("--val-size", type=int, default=d.val_size,
+                   help=f"validation object size in pixels (default {d.val_size})")
     p.add_argument("--render-lights", type=int, default=d.render_lights,
                    help=f"lights rendered per synthetic object (default {d.render_lights})")
     p.add_argument("--pool", type=int, default=d.pool,
@@ -114,6 +119,9 @@ def config_from(args: dict, base: dict) -> TrainConfig:
         crop = max(p.crop for p in parse_curriculum(out.curriculum))
         if crop > out.render_size:
             raise InputError(f"crop {crop} exceeds --render-size {out.render_size}")
+        if out.render_size_max is not None and out.render_size_max < out.render_size:
+            raise InputError(f"--render-size-max {out.render_size_max} is below --render-size "
+                             f"{out.render_size}")
     elif not Path(out.data).is_dir():
         raise InputError("--data: not 'synth' and not a folder", out.data)
     return out

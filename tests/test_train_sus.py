@@ -172,3 +172,16 @@ def test_cli_starts_from_given_weights(tmp_path):
     trained = torch.load(out / "last.pth", weights_only=True)["state_dict"]
     want = start.state_dict()["regressor.est_normal.0.weight"].half().float()
     assert torch.allclose(trained["regressor.est_normal.0.weight"], want, atol=1e-6)
+
+
+def test_synth_source_draws_object_sizes_from_the_range():
+    from msfnet.model.data import SynthSource
+
+    opts = RenderOptions(size=24, lights=4)
+    src = SynthSource(3, opts, pool=6, refresh=1, max_size=40)
+    sizes = {s.shape[0] for s in src.pool}
+    assert all(24 <= v <= 40 for v in sizes) and len(sizes) > 1
+    again = SynthSource(3, opts, pool=6, refresh=1, max_size=40)  # deterministic per seed
+    assert [s.shape for s in again.pool] == [s.shape for s in src.pool]
+    fixed = SynthSource(3, opts, pool=3, refresh=1)
+    assert {s.shape[0] for s in fixed.pool} == {24}
