@@ -44,6 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fp16-weights", action="store_true",
                    help="store weights as float16 (half the file size; computed in float32, "
                    "verified against the network with fp16-rounded weights)")
+    p.add_argument("--staged", action="store_true",
+                   help="write the staged graph (cut at the three max-over-lights steps) that "
+                   "msf-run feeds a few lights at a time: several times less memory per pixel "
+                   "at high light counts, so bigger tiles and less halo work; same normals")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     return p
 
@@ -62,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         results = export_checkpoint(args.checkpoint, fp32_out, opset=args.opset,
                                     train_lights=args.train_lights, static=args.static,
                                     do_simplify=args.simplify, tolerance_deg=args.tolerance,
-                                    fp16_weights=args.fp16_weights)
+                                    fp16_weights=args.fp16_weights, staged=args.staged)
         if args.int8:  # the verified fp32 graph is the quantiser's input
             from .quantize import load_calibration_stacks, quantize_int8
 

@@ -82,6 +82,48 @@ def rendered_inputs(batch: int, lights: int, height: int, width: int,
     return images, dirs, masks
 
 
+def _torch_export_staged(model: torch.nn.Module, path: Path, opset: int) -> None:
+    """The staged graph (see ``staged.py``): each entry point with its own dynamic axes, so a
+    call can feed small placeholders to the entry points it does not use."""
+    from msfnet.runtime.staged import STAGE_INPUTS, STAGE_OUTPUTS
+
+    from .staged import StagedGraph
+
+    _, n, h, w = EXAMPLE_SHAPE
+    images, lights = (torch.from_numpy(a) for a in random_inputs(1, n, h, w))
+    # Tracing example: every light count > 1 and every size distinct, or the exporter
+    # specialises size-1 axes (measured: a placeholder-sized example broke the fusion reshape).
+    gen = torch.Generator().manual_seed(0)
+    example = {"images": images, "lights": lights}
+    for name, shape in (("feat1_in", (3, 96, 6, 5)), ("max1", (1, 96, 6, 5)),
+                        ("feat2_in", (2, 96, 5, 7)), ("max2", (1, 96, 5, 7)),
+                        ("max3", (1, 96, 6, 4))):
+        example[name] = torch.rand(shape, generator=gen)
+    feat = {0: "lights", 2: "half_height", 3: "half_width"}
+    pooled = {2: "half_height", 3: "half_width"}
+    dynamic = {
+        "images": {1: "lights1", 3: "height", 4: "width"}, "lights": {1: "lights1"},
+        "feat1": {0: "lights1", 2: "height_2", 3: "width_2"},
+        "feat1_in": {k: f"{v}_s2" for k, v in feat.items()},
+        "max1": {k: f"{v}_s2" for k, v in pooled.items()},
+        "feat2": {k: f"{v}_s2" for k, v in feat.items()},
+        "feat2_in": {k: f"{v}_s3" for k, v in feat.items()},
+        "max2": {k: f"{v}_s3" for k, v in pooled.items()},
+        "feat3": {k: f"{v}_s3" for k, v in feat.items()},
+        "max3": {2: "half_height_r", 3: "half_width_r"},
+        "normals": {2: "out_height", 3: "out_width"},
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        # eval() first: export restores the wrapper's mode afterwards, and a fresh module is in
+        # training mode, which would leave the network's BatchNorms training for verification
+        torch.onnx.export(StagedGraph(model).eval(), tuple(example[k] for k in STAGE_INPUTS),
+                          str(path),
+                          input_names=list(STAGE_INPUTS), output_names=list(STAGE_OUTPUTS),
+                          dynamic_axes=dynamic, opset_version=opset, do_constant_folding=True,
+                          dynamo=False)
+
+
 def _torch_export(model: torch.nn.Module, path: Path, opset: int,
                   static: StaticShape | None) -> None:
     if static is None:
@@ -102,18 +144,20 @@ def _torch_export(model: torch.nn.Module, path: Path, opset: int,
                           do_constant_folding=True, dynamo=False)
 
 
-def _finalise(path: Path, meta: dict[str, str], static: StaticShape | None) -> None:
+def _finalise(path: Path, meta: dict[str, str], static: StaticShape | None,
+              staged: bool = False) -> None:
     """Declare the output's axes plainly (the exporter names the 3 'Divnormals_dim_1') and
     attach the metadata the runtime reads."""
     proto = onnx.load(str(path))
-    out_dims = proto.graph.output[0].type.tensor_type.shape.dim
-    names = ["batch", 3, "height", "width"] if static is None else [
-        1, 3, static.height, static.width]
-    for dim, value in zip(out_dims, names, strict=True):
-        if isinstance(value, int):
-            dim.dim_value = value
-        else:
-            dim.dim_param = value
+    if not staged:
+        out_dims = proto.graph.output[0].type.tensor_type.shape.dim
+        names = ["batch", 3, "height", "width"] if static is None else [
+            1, 3, static.height, static.width]
+        for dim, value in zip(out_dims, names, strict=True):
+            if isinstance(value, int):
+                dim.dim_value = value
+            else:
+                dim.dim_param = value
     del proto.metadata_props[:]
     for key, value in meta.items():
         entry = proto.metadata_props.add()
@@ -167,10 +211,14 @@ def simplify(path: Path) -> None:
 
 
 def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]],
-           batch: int = 1, threads: int = 0) -> list[dict[str, float]]:
+           batch: int = 1, threads: int = 0, staged_chunk: int | None = None
+           ) -> list[dict[str, float]]:
     """ONNX Runtime vs PyTorch at each (N, H, W) on rendered objects: max/mean angular
-    difference in degrees over all pixels."""
+    difference in degrees over the objects' pixels. ``staged_chunk``: the file is a staged
+    export, run by the runtime's light-chunked loop with that many lights per call."""
     import onnxruntime as ort
+
+    from msfnet.runtime.staged import run_staged
 
     try:
         onnx.checker.check_model(str(path), full_check=True)
@@ -184,7 +232,12 @@ def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]
     for i, (n, h, w) in enumerate(checks):
         images, lights, masks = rendered_inputs(batch, n, h, w, seed=100 + i)
         try:
-            (onnx_out,) = session.run(["normals"], {"images": images, "lights": lights})
+            if staged_chunk:
+                onnx_out = np.concatenate([run_staged(session, images[b:b + 1],
+                                                      lights[b:b + 1], staged_chunk)
+                                           for b in range(batch)])
+            else:
+                (onnx_out,) = session.run(["normals"], {"images": images, "lights": lights})
         except Exception as exc:  # ORT raises its own Fail/InvalidArgument types
             raise InputError(f"verification failed: ONNX Runtime cannot run N={n} {w}x{h} "
                              f"({str(exc).splitlines()[0][:200]})") from exc
@@ -197,8 +250,11 @@ def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]
     return results
 
 
+STAGED_CHECK_CHUNK = 3  # verification chunk: uneven splits of every checked light count
+
+
 def default_checks(static: StaticShape | None) -> list[tuple[int, int, int]]:
-    """Two light counts unlike the tracing example, one of them at a non-square size."""
+    """Light counts unlike the tracing example, one of them at a non-square size."""
     if static is not None:
         return [(static.lights, static.height, static.width)]
     return [(3, 32, 32), (7, 28, 44), (32, 16, 24)]
@@ -207,14 +263,20 @@ def default_checks(static: StaticShape | None) -> list[tuple[int, int, int]]:
 def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int = DEFAULT_OPSET,
                       train_lights: int = 32, static: StaticShape | None = None,
                       do_simplify: bool = False, checks: list[tuple[int, int, int]] | None = None,
-                      tolerance_deg: float = TOLERANCE_DEG,
-                      fp16_weights: bool = False) -> list[dict[str, float]]:
+                      tolerance_deg: float = TOLERANCE_DEG, fp16_weights: bool = False,
+                      staged: bool = False) -> list[dict[str, float]]:
     """Export, verify and only then move the file into place; nothing is left on failure.
+
+    ``staged``: write the staged graph (``staged.py``) for light-chunked runs; verified through
+    the runtime's chunked loop against the monolithic PyTorch network.
 
     ``fp16_weights``: store weights in half precision (computed in float32); the reference for
     verification is then the network with its weights rounded to float16 likewise.
     """
     checkpoint, output = Path(checkpoint), Path(output)
+    if staged and static is not None:
+        raise InputError("--staged and --static do not combine (the staged graph's entry "
+                         "points need dynamic shapes)")
     model = load_model(checkpoint)
     if fp16_weights:
         with torch.no_grad():
@@ -224,7 +286,10 @@ def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int 
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = output.with_name(f".{output.name}.partial.onnx")
     try:
-        _torch_export(model, tmp, opset, static)
+        if staged:
+            _torch_export_staged(model, tmp, opset)
+        else:
+            _torch_export(model, tmp, opset, static)
         meta = {
             METADATA_KEYS["format"]: "msfnet-normals-v1",
             METADATA_KEYS["train_lights"]: str(train_lights),
@@ -235,13 +300,15 @@ def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int 
             METADATA_KEYS["static_shape"]: "" if static is None else
             f"{static.lights},{static.height},{static.width}",
             METADATA_KEYS["precision"]: "fp32 (fp16-stored weights)" if fp16_weights else "fp32",
+            METADATA_KEYS["graph"]: "staged" if staged else "monolithic",
         }
-        _finalise(tmp, meta, static)
+        _finalise(tmp, meta, static, staged)
         if do_simplify:
             simplify(tmp)
         if fp16_weights:
             store_weights_fp16(tmp)
-        results = verify(model, tmp, checks or default_checks(static))
+        results = verify(model, tmp, checks or default_checks(static),
+                         staged_chunk=STAGED_CHECK_CHUNK if staged else None)
         worst = max(r["max_deg"] for r in results)
         if not np.isfinite(worst) or worst > tolerance_deg:
             raise InputError(f"verification failed: ONNX Runtime differs from PyTorch by "

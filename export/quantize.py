@@ -92,6 +92,29 @@ def load_calibration_stacks(paths: Sequence[str | Path], max_lights: int = 96) -
     return stacks
 
 
+def _is_staged(model: onnx.ModelProto) -> bool:
+    return any(p.key == METADATA_KEYS["graph"] and p.value == "staged"
+               for p in model.metadata_props)
+
+
+def staged_samples(src: str | Path, samples: list[dict[str, np.ndarray]]
+                   ) -> list[dict[str, np.ndarray]]:
+    """Feeds for a staged graph: each entry point gets its real input, i.e. what the fp32
+    graph's earlier stages produce on the same tile (placeholders would calibrate nothing)."""
+    import onnxruntime as ort
+
+    from msfnet.runtime.staged import run_staged
+
+    session = ort.InferenceSession(str(src), providers=["CPUExecutionProvider"])
+    out = []
+    for feeds in samples:
+        keep: dict[str, np.ndarray] = {}
+        run_staged(session, feeds["images"], feeds["lights"], chunk=feeds["images"].shape[1],
+                   keep=keep)
+        out.append(keep)
+    return out
+
+
 class _Reader:
     """onnxruntime.quantization.CalibrationDataReader over precomputed samples."""
 
@@ -138,6 +161,8 @@ def quantize_int8(src: str | Path, dst: str | Path, stacks: Sequence[Stack], *,
     model, rewritten = rewrite_deconvs(onnx.load(str(src)), rewrite)
     samples = list(calibration_samples(stacks, tile=tile, lights=lights,
                                        tiles_per_stack=tiles_per_stack))
+    if _is_staged(model):
+        samples = staged_samples(src, samples)
 
     class Reader(_Reader, CalibrationDataReader):
         pass

@@ -42,7 +42,8 @@ def choose_plan(stack: Stack, model: ModelSession, tile: int | None = None,
     if tile is None:
         # the budget is for the whole process: the loaded stack already occupies part of it
         budget = (max_memory_mb or DEFAULT_MAX_MEMORY_MB) - stack.images.nbytes / 2**20
-        tile = tile_size_for_memory(budget, stack.num_lights)
+        tile = tile_size_for_memory(budget, stack.num_lights,
+                                    model.chunk if model.info.staged else None)
     return plan_tiles(stack.mask, tile)
 
 

@@ -16,6 +16,7 @@ METADATA_KEYS = {
     "input_multiple": "msfnet.input_multiple",
     "static_shape": "msfnet.static_shape",
     "precision": "msfnet.precision",
+    "graph": "msfnet.graph",  # "staged" for msf-export --staged, absent/"monolithic" otherwise
 }
 
 PREPROCESSING_SPEC = {
@@ -38,6 +39,7 @@ class ModelInfo:
     static_shape: tuple[int, int, int] | None  # (N, H, W) for fixed-shape exports
     precision: str
     metadata: dict[str, str]
+    staged: bool = False  # cut at the max-over-lights reductions (runtime/staged.py)
 
 
 def model_info_from_metadata(path: Path, meta: dict[str, str]) -> ModelInfo:
@@ -52,6 +54,11 @@ def model_info_from_metadata(path: Path, meta: dict[str, str]) -> ModelInfo:
         static = tuple(int(v) for v in static_text.split(",")) if static_text else None
     except ValueError as exc:
         raise InputError(f"malformed msfnet metadata ({exc})", path) from exc
+    graph = meta.get(METADATA_KEYS["graph"], "monolithic")
+    if graph not in ("monolithic", "staged"):
+        raise InputError(f"unknown msfnet.graph {graph!r} (this msfnet reads monolithic and "
+                         "staged exports; upgrade msfnet?)", path)
     return ModelInfo(path, train_lights, multiple, static,  # type: ignore[arg-type]
-                     meta.get(METADATA_KEYS["precision"], "fp32"), dict(meta))
+                     meta.get(METADATA_KEYS["precision"], "fp32"), dict(meta),
+                     staged=graph == "staged")
 

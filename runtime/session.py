@@ -14,6 +14,7 @@ import onnxruntime as ort
 
 from .errors import InputError
 from .model_info import ModelInfo, model_info_from_metadata
+from .staged import DEFAULT_CHUNK, STAGE_INPUTS, STAGE_OUTPUTS, run_staged
 
 PROVIDER_ALIASES = {
     "cpu": "CPUExecutionProvider",
@@ -39,9 +40,12 @@ class ModelSession:
     info: ModelInfo
     provider: str
     threads: int
+    chunk: int = DEFAULT_CHUNK  # lights per call, staged models only
 
     def run(self, images, lights):
         """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W)."""
+        if self.info.staged:
+            return run_staged(self.session, images, lights, self.chunk)
         return self.session.run(["normals"], {"images": images, "lights": lights})[0]
 
 
@@ -96,9 +100,12 @@ def create_session(path: str | Path, *, threads: int | None = None, provider: st
     info = model_info_from_metadata(path, meta)
     inputs = {i.name for i in sess.get_inputs()}
     outputs = {o.name for o in sess.get_outputs()}
-    if inputs != {"images", "lights"} or "normals" not in outputs:
-        raise InputError(f"not an msfnet model: inputs {sorted(inputs)}, outputs "
-                         f"{sorted(outputs)} (expected images, lights -> normals)", path)
+    want_in, want_out = ((set(STAGE_INPUTS), set(STAGE_OUTPUTS)) if info.staged
+                         else ({"images", "lights"}, {"normals"}))
+    if inputs != want_in or not want_out <= outputs:
+        raise InputError(f"not an msfnet {'staged ' if info.staged else ''}model: inputs "
+                         f"{sorted(inputs)}, outputs {sorted(outputs)} (expected "
+                         f"{', '.join(sorted(want_in))} -> {', '.join(sorted(want_out))})", path)
     return ModelSession(sess, info, prov, threads)
 
 

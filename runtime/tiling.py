@@ -18,6 +18,7 @@ import numpy as np
 from .errors import InputError
 from .flops import receptive_field
 from .preprocess import MULTIPLE, padded_size
+from .staged import STORED_BYTES_PER_PIXEL_LIGHT
 
 HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
 # ONNX Runtime working set per (network-input pixel x light), fp32 CPU provider, arena off (see
@@ -57,20 +58,25 @@ def _down(v: int) -> int:
     return v // MULTIPLE * MULTIPLE
 
 
-def tile_size_for_memory(max_memory_mb: float, lights: int) -> int:
+def bytes_per_pixel(lights: int, chunk: int | None = None) -> float:
+    """Working set per window pixel: all lights at once (monolithic graph), or, for a staged
+    graph run ``chunk`` lights at a time, the stored stage outputs plus one chunk's activations."""
+    if chunk is None:
+        return lights * BYTES_PER_PIXEL_LIGHT
+    return lights * STORED_BYTES_PER_PIXEL_LIGHT + min(chunk, lights) * BYTES_PER_PIXEL_LIGHT
+
+
+def tile_size_for_memory(max_memory_mb: float, lights: int, chunk: int | None = None) -> int:
     """Largest square window (multiple of 4) whose working set fits in ``max_memory_mb``."""
     budget = (max_memory_mb - BASE_MEMORY_MB) * 2**20
-    side = _down(int(math.sqrt(max(budget, 0) / (BYTES_PER_PIXEL_LIGHT * lights))))
+    per_pixel = bytes_per_pixel(lights, chunk)
+    side = _down(int(math.sqrt(max(budget, 0) / per_pixel)))
     smallest = 2 * HALO + MULTIPLE
     if side < smallest:
-        need = BASE_MEMORY_MB + smallest**2 * lights * BYTES_PER_PIXEL_LIGHT / 2**20
+        need = BASE_MEMORY_MB + smallest**2 * per_pixel / 2**20
         raise InputError(f"--max-memory {max_memory_mb:g} MB is too small for {lights} lights: "
                          f"the smallest tile ({smallest} px) needs about {need:.0f} MB")
     return side
-
-
-def estimated_memory_mb(tile: int, lights: int) -> float:
-    return BASE_MEMORY_MB + tile * tile * lights * BYTES_PER_PIXEL_LIGHT / 2**20
 
 
 def _axis_cores(lo: int, hi: int, core_max: int) -> list[tuple[int, int]]:
@@ -135,4 +141,4 @@ def plan_tiles(mask: np.ndarray, tile: int | None, halo: int = HALO,
 
 
 __all__ = ["BYTES_PER_PIXEL_LIGHT", "DEFAULT_MAX_MEMORY_MB", "HALO", "Tile", "TilePlan",
-           "estimated_memory_mb", "plan_tiles", "tile_size_for_memory"]
+           "bytes_per_pixel", "plan_tiles", "tile_size_for_memory"]

@@ -33,13 +33,14 @@ def sphere_stack(n: int = 8, h: int = 36, w: int = 44, seed: int = 0, name: str 
                  [f"{i + 1:03d}.png" for i in range(n)])
 
 
-def build_random_onnx(folder: Path, sensitive: bool = False) -> Path:
+def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = False) -> Path:
     """Random-weight MSF-Net (seed 0) exported to ONNX with msf-export's code path.
 
     PyTorch's default init shrinks activations layer by layer, so that model's output hardly
     depends on the images (8 vs 96 ball lights: 0.001 deg apart). ``sensitive`` re-initialises
     the convolutions with He-normal weights (gain for LeakyReLU 0.1), keeping the signal alive
     through all 17 layers: tests of spatial exactness (tiling) need that to be able to fail.
+    ``staged``: the same weights as a staged export (``msf-export --staged``).
     """
     torch = pytest.importorskip("torch")
     from msfnet.export.onnx_export import export_checkpoint
@@ -47,7 +48,7 @@ def build_random_onnx(folder: Path, sensitive: bool = False) -> Path:
     from msfnet.model.network import MSFNet
 
     stem = "sensitive" if sensitive else "rand"
-    onnx_path = folder / f"{stem}.onnx"
+    onnx_path = folder / f"{stem}{'_staged' if staged else ''}.onnx"
     if onnx_path.is_file():
         return onnx_path
     torch.manual_seed(0)
@@ -57,5 +58,5 @@ def build_random_onnx(folder: Path, sensitive: bool = False) -> Path:
             if isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
                 torch.nn.init.kaiming_normal_(module.weight, a=0.1, nonlinearity="leaky_relu")
     save_checkpoint(model, folder / f"{stem}.pth")
-    export_checkpoint(folder / f"{stem}.pth", onnx_path, checks=[(3, 8, 8)])
+    export_checkpoint(folder / f"{stem}.pth", onnx_path, checks=[(3, 8, 8)], staged=staged)
     return onnx_path

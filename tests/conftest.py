@@ -48,3 +48,11 @@ def sensitive_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.getbasetemp() / "runtime_model"
     folder.mkdir(exist_ok=True)
     return build_random_onnx(folder, sensitive=True)
+
+
+@pytest.fixture(scope="session")
+def staged_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``sensitive_onnx``'s weights as a staged export (msf-export --staged)."""
+    folder = tmp_path_factory.getbasetemp() / "runtime_model"
+    folder.mkdir(exist_ok=True)
+    return build_random_onnx(folder, sensitive=True, staged=True)
