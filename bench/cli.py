@@ -23,6 +23,7 @@ from tqdm import tqdm
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.flops import inference_flops
 from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.run import default_model_path
 
 from .peak import matmul_peak_gflops
 from .report import write_report
@@ -43,8 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
         "through msf-run. Reports median/p90 latency, peak RSS, GFLOP/s, fraction of the "
         "matmul peak measured in the same run, and angular deviation from PyTorch fp32.")
     p.add_argument("--checkpoint", type=Path, default=None,
-                   help="MSF-Net checkpoint (.pth); default: seeded random weights (accuracy "
-                   "figures then only measure numerical deviation, not normal quality)")
+                   help="MSF-Net checkpoint (.pth); default: the bundled trained model "
+                   "(msfnet/weights/msfnet_default.pth)")
+    p.add_argument("--random-weights", action="store_true",
+                   help="seeded random weights instead of a checkpoint (accuracy figures then "
+                   "only measure numerical deviation; int8 errors of a trained model differ)")
     p.add_argument("--stack", type=Path, default=DEFAULT_STACK,
                    help=f"real stack for the inputs and workload (d) (default {DEFAULT_STACK})")
     p.add_argument("--calib", type=Path, nargs="+", default=None,
@@ -94,25 +98,32 @@ def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str])
     from msfnet.model.checkpoint import save_checkpoint
     from msfnet.model.network import MSFNet
 
-    ckpt = args.checkpoint
-    if ckpt is None:
+    if args.random_weights and args.checkpoint is not None:
+        raise InputError("--random-weights and --checkpoint exclude each other")
+    ckpt = args.checkpoint or default_model_path().with_suffix(".pth")
+    if args.random_weights:
         torch.manual_seed(0)
         ckpt = workdir / "random_seed0.pth"
         save_checkpoint(MSFNet().eval(), ckpt)
     elif not ckpt.is_file():
         raise InputError("checkpoint not found", ckpt)
-    fp32 = workdir / "msfnet_fp32.onnx"
-    export_checkpoint(ckpt, fp32)
-    models = {"checkpoint": str(ckpt), "random_weights": args.checkpoint is None,
-              "fp32": str(fp32)}
+    models = {"checkpoint": str(ckpt), "random_weights": args.random_weights}
+    stacks = None
     if "ort-int8" in variants:
-        from msfnet.export.quantize import load_calibration_stacks, quantize_int8
+        from msfnet.export.quantize import load_calibration_stacks
 
-        calib = args.calib or [p for p in DEFAULT_CALIB if p.exists()]
-        stacks = load_calibration_stacks(calib)
-        int8 = workdir / "msfnet_int8.onnx"
-        models["int8_summary"] = quantize_int8(fp32, int8, stacks)
-        models["int8"] = str(int8)
+        stacks = load_calibration_stacks(args.calib or [p for p in DEFAULT_CALIB if p.exists()])
+    for key, staged in (("fp32", False), ("fp32_staged", True)):  # staged: workload (d) only
+        fp32 = workdir / f"msfnet_{key}.onnx"
+        export_checkpoint(ckpt, fp32, staged=staged)
+        models[key] = str(fp32)
+        if stacks is not None:
+            from msfnet.export.quantize import quantize_int8
+
+            key8 = key.replace("fp32", "int8")
+            int8 = workdir / f"msfnet_{key8}.onnx"
+            models[f"{key8}_summary"] = quantize_int8(fp32, int8, stacks)
+            models[key8] = str(int8)
     return models
 
 
@@ -230,9 +241,9 @@ def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
     max_lights = 8 if args.quick else None  # quick: a smoke test of the path, not a figure
     stack = load_stack(args.stack, max_lights=max_lights)
     runs = []
-    names = [("ort-fp32", models["fp32"])]
+    names = [("ort-fp32", models["fp32"]), ("ort-fp32-staged", models["fp32_staged"])]
     if "ort-int8" in variants:
-        names.append(("ort-int8", models["int8"]))
+        names += [("ort-int8", models["int8"]), ("ort-int8-staged", models["int8_staged"])]
     outs = {}
     for v, onnx in tqdm(names, desc="msf-bench (d)", unit="model"):
         outdir = args.report_dir / "e2e" / v
@@ -251,9 +262,9 @@ def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
                      "tiles": prof.get("tiles"), "stages": prof.get("stages"),
                      "inference_gflops_per_s": prof.get("inference_gflops_per_s"),
                      "mae_vs_gt_deg": _mae(normals, stack)})
-    if "ort-int8" in outs:
-        d = angular_error_deg(outs["ort-int8"], outs["ort-fp32"])[stack.mask]
-        runs[-1].update({"max_deg_vs_fp32": float(d.max()), "mean_deg_vs_fp32": float(d.mean())})
+    for run in runs[1:]:
+        d = angular_error_deg(outs[run["variant"]], outs["ort-fp32"])[stack.mask]
+        run.update({"max_deg_vs_fp32": float(d.max()), "mean_deg_vs_fp32": float(d.mean())})
     return runs
 
 
