@@ -128,6 +128,7 @@ class TrainConfig:
     init: str | None = None  # start from these weights (fresh optimiser), e.g. the bundled model
     render_size: int = 64
     render_size_max: int | None = None  # sizes drawn from [render_size, render_size_max]
+    render_max_depth: float = 1.2  # see RenderOptions.max_depth
     render_lights: int = 40
     pool: int = 48
     refresh: int = 2
@@ -185,7 +186,8 @@ class Trainer:
         if resume:
             self._load()
         if cfg.data == "synth":
-            options = RenderOptions(size=cfg.render_size, lights=cfg.render_lights)
+            options = RenderOptions(size=cfg.render_size, lights=cfg.render_lights,
+                                    max_depth=cfg.render_max_depth)
             # Training objects start far from the validation seed space: seeds differ anyway.
             self.source = SynthSource(cfg.seed, options, cfg.pool, cfg.refresh,
                                       start=self.step * cfg.refresh,

@@ -64,6 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--render-size-max", type=int, default=d.render_size_max,
                    help="draw each synthetic object's size from [--render-size, this]: larger "
                         "renders are smoother per pixel, like real full-resolution objects")
+    p.add_argument("--render-max-depth", type=float, default=d.render_max_depth,
+                   help="synthetic domes up to this height/radius (default "
+                        f"{d.render_max_depth}; 2 gives a slant histogram like DiLiGenT ball's, "
+                        "with 4x more pixels steeper than 66 deg)")
     p.add_argument("--val-size", type=int, default=d.val_size,
                    help=f"validation object size in pixels (default {d.val_size})")
     p.add_argument("--render-lights", type=int, default=d.render_lights,

@@ -31,6 +31,7 @@ class RenderOptions:
     max_materials: int = 3
     cast_shadows: bool = True
     noise: bool = True  # shot + read noise and quantisation to a random bit depth (8-16)
+    max_depth: float = 1.2  # domes up to this height / radius (steeper sides above 1)
 
 
 def cast_shadow_mask(height: np.ndarray, mask: np.ndarray, lights: np.ndarray) -> np.ndarray:
@@ -97,7 +98,7 @@ def render_stack(rng: np.random.Generator | int, options: RenderOptions = Render
         w = options.shape_weights
         w = None if w is None or len(w) != len(options.shapes) else np.asarray(w) / np.sum(w)
         shape = options.shapes[int(rng.choice(len(options.shapes), p=w))]
-    height, mask = make_shape(shape, options.size, rng)
+    height, mask = make_shape(shape, options.size, rng, options.max_depth)
     normals = normals_from_height(height, mask).astype(np.float32)
     mat = material_map(options.size, rng, options.max_materials, options.materials)
     n = options.lights

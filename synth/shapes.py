@@ -66,8 +66,12 @@ def silhouette(x: np.ndarray, y: np.ndarray, rng: np.random.Generator,
     return np.hypot(x - cx, y - cy) / radius, radius
 
 
-def make_shape(kind: str, size: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """(height (H, W) float64, mask (H, W) bool) for one random shape of ``kind``."""
+def make_shape(kind: str, size: int, rng: np.random.Generator,
+               max_depth: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
+    """(height (H, W) float64, mask (H, W) bool) for one random shape of ``kind``.
+
+    ``max_depth``: the dome's height over its radius is drawn from [0.5, max_depth]; above 1 the
+    sides get steeper than a sphere's, so more of the object is seen at grazing slant."""
     x, y = grid(size)
     if kind == "relief":
         # A full-frame sculpted surface (like a bas-relief or a cloth patch): no silhouette.
@@ -78,7 +82,7 @@ def make_shape(kind: str, size: int, rng: np.random.Generator) -> tuple[np.ndarr
     rho, radius = silhouette(x, y, rng, wobble)
     inside = rho < 1.0
     dome = np.sqrt(np.clip(1.0 - rho ** 2, 0.0, None))
-    depth = 1.0 if kind == "sphere" else rng.uniform(0.5, 1.2)
+    depth = 1.0 if kind == "sphere" else rng.uniform(0.5, max_depth)
     # Scale by the mean radius, not the local one: a theta-dependent height at the centre would
     # make a cone-like singular point there.
     z = depth * float(np.median(radius[inside])) * dome
