@@ -35,6 +35,9 @@ DEFAULT_CALIB = [DEFAULT_STACK, *(REPO.parent / "shared" / "data" / "psmImages" 
                                   for o in ("cat", "owl", "horse"))]
 
 
+MODEL_OF_VARIANT = {"ort-int8": "int8", "ort-fp32-staged": "fp32_staged"}
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="msf-bench",
@@ -212,7 +215,7 @@ def bench(args: argparse.Namespace) -> dict:
                 inputs[wl.key] = (path, feed["mask"])
             spec = {"variant": v, "threads": t, "warmup": warm, "repeats": reps,
                     "input": str(inputs[wl.key][0]), "checkpoint": models["checkpoint"],
-                    "onnx": models["int8" if v == "ort-int8" else "fp32"],
+                    "onnx": models[MODEL_OF_VARIANT.get(v, "fp32")],
                     "output": str(tmp / "out.npy"), "result": str(tmp / "result.json")}
             cell = run_cell_subprocess(spec, tmp)
             row = {"workload": wl.key, "label": wl.label(), "lights": wl.lights,

@@ -47,7 +47,8 @@ QUICK_WORKLOADS = (Workload("a", 16, 64), Workload("b", 8, 64))
 # variant -> what it runs; "precision" is what the variant asks for
 VARIANTS = {
     "ort-fp32": "ONNX Runtime CPU, fp32 model (untiled)",
-    "ort-int8": "ONNX Runtime CPU, int8 QDQ model (deconvs rewritten, calibrated on real stacks)",
+    "ort-fp32-staged": "ONNX Runtime CPU, staged fp32 model (msf-export --staged), 8 lights a call",
+    "ort-int8": "ONNX Runtime CPU, int8 QDQ model (extractor convs, calibrated on real stacks)",
     "ov-bf16": "OpenVINO CPU, fp32 model with INFERENCE_PRECISION_HINT=bf16",
     "torch-fp32": "PyTorch eager fp32, lights folded into the batch",
     "per-light": "PyTorch per-light loop (published style: recomputes stages)",
@@ -97,7 +98,7 @@ finally:
 def _runner(variant: str, spec: dict):
     """Build the variant once; return (callable(images, lights) -> normals (1,3,H,W), info)."""
     threads = int(spec["threads"])
-    if variant in ("ort-fp32", "ort-int8"):
+    if variant in ("ort-fp32", "ort-fp32-staged", "ort-int8"):
         from msfnet.runtime.session import create_session
 
         sess = create_session(spec["onnx"], threads=threads)
