@@ -16,9 +16,13 @@ from msfnet.runtime.staged import STAGE_INPUTS, STAGE_OUTPUTS
 from msfnet.runtime.tiling import plan_tiles, tile_size_for_memory
 
 
-def test_staged_model_declares_itself(staged_onnx) -> None:
+def test_staged_model_declares_itself(staged_onnx, sensitive_onnx) -> None:
     model = create_session(staged_onnx, threads=1)
     assert model.info.staged and model.info.metadata["msfnet.graph"] == "staged"
+    # arena on by default for staged graphs only (see create_session)
+    assert model.session.get_session_options().enable_cpu_mem_arena
+    mono = create_session(sensitive_onnx, threads=1)
+    assert not mono.info.staged and not mono.session.get_session_options().enable_cpu_mem_arena
     assert [i.name for i in model.session.get_inputs()] == list(STAGE_INPUTS)
     assert [o.name for o in model.session.get_outputs()] == list(STAGE_OUTPUTS)
 
