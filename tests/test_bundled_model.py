@@ -39,3 +39,17 @@ def test_demo_main_job_writes_outputs_and_metrics(tmp_path: Path, capsys) -> Non
     assert 0 <= metrics["mae_deg"] <= 180 and metrics["pixels"] > 1000
     normals = np.load(out / "normals.npy")
     assert normals.shape == (128, 128, 3)
+
+
+def test_bundled_model_beats_least_squares_on_held_out_synthetic_objects() -> None:
+    """The model card's claim on a small slice of its held-out set (seed 777: never trained on):
+    measured 4.24 vs 12.90 deg over 12 objects at 96 px."""
+    from msfnet.runtime.run import run_stack
+    from msfnet.synth.render import RenderOptions, render_set
+
+    model, ls = [], []
+    for stack in render_set(777, 4, RenderOptions(size=64, lights=24)):
+        model.append(run_stack(stack, write=False, threads=2).metrics["mae_deg"])
+        ls.append(run_stack(stack, method="l2", write=False).metrics["mae_deg"])
+    print(f"bundled {np.mean(model):.2f} deg vs least squares {np.mean(ls):.2f} deg")
+    assert np.mean(model) < 0.7 * np.mean(ls)
