@@ -116,7 +116,7 @@ def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str])
         from msfnet.export.quantize import load_calibration_stacks
 
         stacks = load_calibration_stacks(args.calib or [p for p in DEFAULT_CALIB if p.exists()])
-    for key, staged in (("fp32", False), ("fp32_staged", True)):  # staged: workload (d) only
+    for key, staged in (("fp32", False), ("fp32_staged", True)):
         fp32 = workdir / f"msfnet_{key}.onnx"
         export_checkpoint(ckpt, fp32, staged=staged)
         models[key] = str(fp32)

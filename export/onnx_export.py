@@ -85,7 +85,7 @@ def rendered_inputs(batch: int, lights: int, height: int, width: int,
 def _torch_export_staged(model: torch.nn.Module, path: Path, opset: int) -> None:
     """The staged graph (see ``staged.py``): each entry point with its own dynamic axes, so a
     call can feed small placeholders to the entry points it does not use."""
-    from msfnet.runtime.staged import STAGE_INPUTS, STAGE_OUTPUTS
+    from msfnet.runtime.staged import FEATURES, STAGE_INPUTS, STAGE_OUTPUTS
 
     from .staged import StagedGraph
 
@@ -95,9 +95,10 @@ def _torch_export_staged(model: torch.nn.Module, path: Path, opset: int) -> None
     # specialises size-1 axes (measured: a placeholder-sized example broke the fusion reshape).
     gen = torch.Generator().manual_seed(0)
     example = {"images": images, "lights": lights}
-    for name, shape in (("feat1_in", (3, 96, 6, 5)), ("max1", (1, 96, 6, 5)),
-                        ("feat2_in", (2, 96, 5, 7)), ("max2", (1, 96, 5, 7)),
-                        ("max3", (1, 96, 6, 4))):
+    c = FEATURES
+    for name, shape in (("feat1_in", (3, c, 6, 5)), ("max1", (1, c, 6, 5)),
+                        ("feat2_in", (2, c, 5, 7)), ("max2", (1, c, 5, 7)),
+                        ("max3", (1, c, 6, 4))):
         example[name] = torch.rand(shape, generator=gen)
     feat = {0: "lights", 2: "half_height", 3: "half_width"}
     pooled = {2: "half_height", 3: "half_width"}

@@ -128,7 +128,7 @@ class TrainConfig:
     init: str | None = None  # start from these weights (fresh optimiser), e.g. the bundled model
     render_size: int = 64
     render_size_max: int | None = None  # sizes drawn from [render_size, render_size_max]
-    render_max_depth: float = 1.2  # see RenderOptions.max_depth
+    render_max_depth: float = RenderOptions.max_depth
     render_lights: int = 40
     pool: int = 48
     refresh: int = 2

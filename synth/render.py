@@ -16,7 +16,7 @@ from msfnet.runtime.stack import Stack
 
 from .lights import rig_intensities, rig_lights
 from .materials import KINDS, material_map, shade
-from .shapes import SHAPES, make_shape, normals_from_height
+from .shapes import DEFAULT_MAX_DEPTH, SHAPES, make_shape, normals_from_height
 
 FULL_SCALE = 65535.0  # images are returned in 16-bit counts, as save_stack writes them
 
@@ -31,7 +31,7 @@ class RenderOptions:
     max_materials: int = 3
     cast_shadows: bool = True
     noise: bool = True  # shot + read noise and quantisation to a random bit depth (8-16)
-    max_depth: float = 1.2  # domes up to this height / radius (steeper sides above 1)
+    max_depth: float = DEFAULT_MAX_DEPTH  # domes up to this height / radius (steeper above 1)
 
 
 def cast_shadow_mask(height: np.ndarray, mask: np.ndarray, lights: np.ndarray) -> np.ndarray:

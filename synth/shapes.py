@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 SHAPES = ("sphere", "blob", "bumps", "creases", "sculpted", "relief")
+DEFAULT_MAX_DEPTH = 1.2  # dome height / radius drawn from [0.5, this] (see make_shape)
 
 
 def grid(size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -67,7 +68,7 @@ def silhouette(x: np.ndarray, y: np.ndarray, rng: np.random.Generator,
 
 
 def make_shape(kind: str, size: int, rng: np.random.Generator,
-               max_depth: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
+               max_depth: float = DEFAULT_MAX_DEPTH) -> tuple[np.ndarray, np.ndarray]:
     """(height (H, W) float64, mask (H, W) bool) for one random shape of ``kind``.
 
     ``max_depth``: the dome's height over its radius is drawn from [0.5, max_depth]; above 1 the
