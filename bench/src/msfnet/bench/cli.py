@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from msfnet.model.checkpoint import default_checkpoint_path
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.flops import inference_flops
 from msfnet.runtime.metrics import angular_error_deg
-from msfnet.runtime.run import default_model_path
 
 from .peak import matmul_peak_gflops
 from .report import write_report
@@ -103,7 +103,7 @@ def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str])
 
     if args.random_weights and args.checkpoint is not None:
         raise InputError("--random-weights and --checkpoint exclude each other")
-    ckpt = args.checkpoint or default_model_path().with_suffix(".pth")
+    ckpt = args.checkpoint or default_checkpoint_path()
     if args.random_weights:
         torch.manual_seed(0)
         ckpt = workdir / "random_seed0.pth"

@@ -20,6 +20,12 @@ from msfnet.runtime.errors import InputError
 from .network import MSFNet
 
 
+def default_checkpoint_path() -> Path:
+    """The bundled model's weights in the published format (kept beside this module in a
+    checkout; the edge wheel ships only the ONNX file)."""
+    return Path(__file__).resolve().parent / "weights" / "msfnet_default.pth"
+
+
 class CheckpointError(InputError):
     """A file that is not an MSF-Net checkpoint, or one that does not fit the network."""
 

@@ -74,12 +74,12 @@ def test_int8_of_the_trained_model_stays_within_half_a_degree(tmp_path, ball_dir
     from dataclasses import replace
 
     from msfnet.export.onnx_export import export_checkpoint
+    from msfnet.model.checkpoint import default_checkpoint_path
     from msfnet.runtime.infer import infer_normals
-    from msfnet.runtime.run import default_model_path
     from msfnet.runtime.session import create_session
     from msfnet.runtime.tiling import plan_tiles
 
-    export_checkpoint(default_model_path().with_suffix(".pth"), tmp_path / "fp32.onnx",
+    export_checkpoint(default_checkpoint_path(), tmp_path / "fp32.onnx",
                       checks=[(3, 8, 8)])
     stack = load_stack(ball_dir, max_lights=16)
     summary = quantize_int8(tmp_path / "fp32.onnx", tmp_path / "int8.onnx", [stack],

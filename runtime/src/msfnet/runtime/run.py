@@ -22,10 +22,8 @@ METHODS = ("msf", "l2")
 
 
 def default_model_path() -> Path:
-    """The bundled model shipped inside the package (msfnet/weights/msfnet_default.onnx)."""
-    import msfnet
-
-    return Path(msfnet.__file__).resolve().parent / "weights" / "msfnet_default.onnx"
+    """The bundled model, shipped with the runtime (msfnet/runtime/weights/msfnet_default.onnx)."""
+    return Path(__file__).resolve().parent / "weights" / "msfnet_default.onnx"
 
 
 @dataclass
