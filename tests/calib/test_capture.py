@@ -132,7 +132,8 @@ def test_serial_protocol_and_manual_prompt():
 
 def test_capture_cli_sim(tmp_path, capsys):
     out = tmp_path / "s"
-    assert capture_cli.main([str(out), "--camera", "sim", "--lights", "sim", "--count", "4"]) == 0
+    args = [str(out), "--camera", "sim", "--light-rig", "sim", "--count", "4"]
+    assert capture_cli.main(args) == 0
     assert (out / "004.png").is_file() and (out / "raw" / "ambient.png").is_file()
-    assert capture_cli.main([str(out), "--camera", "opencv", "--lights", "sim"]) == 2
+    assert capture_cli.main([str(out), "--camera", "opencv", "--light-rig", "sim"]) == 2
     assert "go together" in capsys.readouterr().err

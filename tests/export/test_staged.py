@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
+from msfnet.runtime.chunked import STAGE_INPUTS, STAGE_OUTPUTS
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.infer import choose_plan, infer_normals
 from msfnet.runtime.metrics import angular_error_deg
 from msfnet.runtime.session import create_session
-from msfnet.runtime.staged import STAGE_INPUTS, STAGE_OUTPUTS
 from msfnet.runtime.tiling import plan_tiles, tile_size_for_memory
 
 
@@ -34,7 +34,7 @@ def test_chunked_run_equals_monolithic(staged_onnx, sensitive_onnx, chunk) -> No
     only) would move them by degrees."""
     stack = sphere_stack(n=13, h=36, w=44, seed=4)
     mono = create_session(sensitive_onnx, threads=2)
-    staged = replace(create_session(staged_onnx, threads=2), chunk=chunk)
+    staged = replace(create_session(staged_onnx, threads=2), lights_per_call=chunk)
     plan = plan_tiles(stack.mask, None)
     want = infer_normals(mono, stack, plan).normals
     got = infer_normals(staged, stack, plan).normals

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.cli import main
+from msfnet.runtime.run_cli import main
 from msfnet.runtime.stack import save_stack
 
 
@@ -138,8 +138,16 @@ def test_outdir_refused_unless_overwrite(stack_dir: Path, tmp_path: Path, capfd)
     assert main(["--method", "l2", str(stack_dir), "-o", str(out)]) == 2
     _assert_one_line_error(capfd, ["out", "--overwrite"])
     assert (out / "keep.txt").read_text() == "old result"
+    # --overwrite never deletes what msfnet did not write
+    assert main(["--method", "l2", str(stack_dir), "-o", str(out), "--overwrite"]) == 2
+    _assert_one_line_error(capfd, ["out", "did not write", "keep.txt"])
+    assert (out / "keep.txt").read_text() == "old result"
+    # ... but replaces its own results
+    (out / "keep.txt").unlink()
+    assert main(["--method", "l2", str(stack_dir), "-o", str(out)]) == 0
+    first = (out / "normals.npy").stat().st_ino
     assert main(["--method", "l2", str(stack_dir), "-o", str(out), "--overwrite"]) == 0
-    assert not (out / "keep.txt").exists() and (out / "normals.png").is_file()
+    assert (out / "normals.npy").stat().st_ino != first and (out / "normals.png").is_file()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
 
 

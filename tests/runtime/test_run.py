@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.cli import main
-from msfnet.runtime.run import run_stack
+from msfnet.runtime.pipeline import Model
+from msfnet.runtime.run_cli import main
 
 
 def _check_outputs(out: Path, shape: tuple[int, int], with_gt: bool) -> dict:
@@ -66,8 +66,8 @@ def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path,
                                       tmp_path: Path) -> None:
     """All 96 lights, default 4096 MB budget; a fresh process so peak RSS is the run's own."""
     out = tmp_path / "full"
-    proc = subprocess.run([sys.executable, "-m", "msfnet.runtime.cli", "--onnx", str(random_onnx),
-                           str(ball_dir), "-o", str(out), "--threads", "2"],
+    proc = subprocess.run([sys.executable, "-m", "msfnet.runtime.run_cli", "--onnx",
+                           str(random_onnx), str(ball_dir), "-o", str(out), "--threads", "2"],
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr
     profile = _check_outputs(out, (512, 612), with_gt=True)
@@ -76,11 +76,14 @@ def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path,
     assert profile["peak_rss_mb"] < 4096  # --max-memory default
 
 
-def test_run_stack_api_on_stack_object(random_onnx: Path) -> None:
+def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
     stack = sphere_stack(n=6)
-    untiled = run_stack(stack, onnx=random_onnx, write=False, tile=0, threads=2)
-    assert untiled.outdir is None and untiled.files == []
+    untiled = Model(random_onnx, tile=0, threads=2)(stack)
     assert untiled.metrics is not None and untiled.plan is not None
-    assert len(untiled.plan.tiles) == 1 and untiled.profile["tiles"]["tile_px"] is None
-    l2 = run_stack(stack, method="l2", write=False)
-    assert l2.metrics is not None and l2.metrics["median_deg"] < 0.01
+    assert len(untiled.plan.tiles) == 1 and untiled.profile()["tiles"]["tile_px"] is None
+    l2 = Model.least_squares()(stack)
+    assert l2.metrics is not None and l2.metrics.median_deg < 0.01
+    assert not any(tmp_path.iterdir())  # nothing written until save()
+    files = l2.save(tmp_path / "l2")
+    assert {f.name for f in files} == {"normals.npy", "normals.png", "profile.json",
+                                       "metrics.json", "error.png"}

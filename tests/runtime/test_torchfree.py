@@ -26,10 +26,13 @@ except ImportError:
     pass
 
 import importlib
-for mod in ("cli", "evaluate", "flops", "infer", "least_squares", "outputs", "profile", "run",
-            "session", "tiling", "stack", "preprocess", "metrics", "imageio", "model_info"):
-    importlib.import_module(f"msfnet.runtime.{mod}")
-from msfnet.runtime.cli import main
+import pkgutil
+import msfnet.runtime
+for info in pkgutil.walk_packages(msfnet.runtime.__path__, "msfnet.runtime."):
+    importlib.import_module(info.name)  # every runtime module, present and future
+import msfnet
+msfnet.Model, msfnet.load_stack
+from msfnet.runtime.run_cli import main
 
 npz, onnx, out = sys.argv[1:4]
 assert main(["--onnx", onnx, npz, "-o", out + "/msf", "--tile", "48", "--threads", "1"]) == 0

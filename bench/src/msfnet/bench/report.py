@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from msfnet.runtime.imageio import write_atomic
+from msfnet.runtime.files import write_atomic
 
 FULL_IMAGE_NOTE = ("per-light loop on (d) extrapolated linearly in lights x pixels from its "
                    "measured (b) run (same threads), untiled full image")

@@ -89,7 +89,7 @@ import runpy, sys
 from msfnet.bench.workloads import _max_rss_mb
 out, sys.argv = sys.argv[1], ["msf-run", *sys.argv[2:]]
 try:
-    runpy.run_module("msfnet.runtime.cli", run_name="__main__")
+    runpy.run_module("msfnet.runtime.run_cli", run_name="__main__")
 finally:
     open(out, "w").write(str(_max_rss_mb()))
 """

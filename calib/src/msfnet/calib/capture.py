@@ -22,7 +22,8 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import read_image, read_mask, write_atomic, write_png
+from msfnet.runtime.files import write_atomic
+from msfnet.runtime.imageio import read_image, read_mask, write_png
 from msfnet.runtime.stack import read_vectors
 
 SESSION = "session.json"

@@ -8,10 +8,12 @@ from pathlib import Path
 
 from msfnet.runtime.errors import InputError
 
+from .cameras import Camera
 from .capture import capture_stack
+from .lights import Lights
 
 
-def add_device_arguments(p: argparse.ArgumentParser, lights_flag: str = "--lights",
+def add_device_arguments(p: argparse.ArgumentParser, lights_flag: str = "--light-rig",
                          camera_default: str | None = "opencv") -> None:
     """Camera, light-rig and session options, shared by msf-capture and ``msf-run --camera``.
 
@@ -57,10 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_device_arguments(p)
     p.add_argument("--mask", type=Path, help="object mask for the stack and exposure checks")
     p.add_argument("--overwrite", action="store_true", help="discard frames already captured")
+    p.add_argument("--run", nargs=argparse.REMAINDER, metavar="MSF_RUN_ARGS",
+                   help="after capturing, run msf-run on the stack; the rest of the command "
+                   "line goes to msf-run (e.g. --run --method l2 -o out/)")
     return p
 
 
-def _open(args: argparse.Namespace):
+def _open(args: argparse.Namespace) -> tuple[Camera, Lights]:
     if args.camera == "sim" or args.light_rig == "sim":
         if args.camera != "sim" or args.light_rig != "sim":
             raise InputError("--camera sim and --lights sim go together")
@@ -78,7 +83,7 @@ def _open(args: argparse.Namespace):
             raise InputError("--lights serial needs --port")
         from .lights import SerialLights
 
-        lights = SerialLights(args.port, args.baud, args.count, settle=args.settle)
+        lights: Lights = SerialLights(args.port, args.baud, args.count, settle=args.settle)
     else:
         if not args.count:
             raise InputError("--lights manual needs --count")
@@ -88,7 +93,7 @@ def _open(args: argparse.Namespace):
     if args.camera == "oak":
         from .cameras import OakCamera
 
-        cam = OakCamera(int(args.exposure or 10000), args.iso, args.wb_kelvin,
+        cam: Camera = OakCamera(int(args.exposure or 10000), args.iso, args.wb_kelvin,
                         int(args.focus if args.focus is not None else 120), args.oak_mode,
                         args.bayer, device_id=None if args.device == "0" else args.device)
     else:
@@ -110,8 +115,9 @@ def run_capture(args: argparse.Namespace, out_dir: Path, overwrite: bool = False
                              "or another folder)", out_dir)
         cam, lights = _open(args)
         dirs, ints = args.light_directions, args.light_intensities
-        if args.camera == "sim" and dirs is None:  # the simulated rig knows its true lights
-            dirs, ints = lights.rig.lights, lights.rig.intensities
+        rig = getattr(lights, "rig", None)
+        if rig is not None and dirs is None:  # the simulated rig knows its true lights
+            dirs, ints = rig.lights, rig.intensities
         return capture_stack(cam, lights, out_dir, light_directions=dirs,
                              light_intensities=ints, mask=args.mask,
                              ambient=not args.no_ambient,
@@ -130,6 +136,10 @@ def main(argv: list[str] | None = None) -> int:
         done = "stack" if (out / "light_directions.txt").exists() else \
             "images (no light directions yet: run msf-calib directions)"
         print(f"frames -> {out} ({done})")
+        if args.run is not None:
+            from msfnet.runtime.run_cli import main as run_main
+
+            return run_main([str(out), *args.run])
     except InputError as exc:
         print(f"msf-capture: error: {exc}", file=sys.stderr)
         return 2

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import list_images, read_image, read_mask, write_atomic, write_png
+from msfnet.runtime.files import write_atomic
+from msfnet.runtime.imageio import list_images, read_image, read_mask, write_png
 from msfnet.runtime.stack import read_vectors
 
 from .directions import Intrinsics, diagnostic_image, estimate_directions
@@ -88,6 +89,7 @@ def cmd_directions(args: argparse.Namespace) -> None:
         names = names or [p.name for p in paths]
         diag.append((imgs, circ))
     intr = _intrinsics(args, captures[0].shape[1:3])
+    names = names or []
     res = estimate_directions(captures, circles, intr, ambients, names=names)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)

@@ -218,7 +218,7 @@ def estimate_directions(captures: list[np.ndarray], circles: list[list[Circle]],
         d = (np.array([e.direction for e in good]) * wts[:, None]).sum(0)
         d /= np.linalg.norm(d)
         dirs[i] = d
-        spread[i] = max(float(angular_error_deg(e.direction, d)) for e in good)
+        spread[i] = max(float(angular_error_deg(np.asarray(e.direction), d)) for e in good)
         agree = float(np.clip(1.0 - spread[i] / 5.0, 0.0, 1.0))
         conf[i] = float(np.mean([e.confidence for e in good])) * agree * len(good) / len(ests)
         if spread[i] > 2.0:

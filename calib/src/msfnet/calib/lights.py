@@ -28,10 +28,20 @@ class Lights(Protocol):
     def close(self) -> None: ...
 
 
+class SerialPort(Protocol):
+    """What SerialLights needs of a port (a pyserial Serial, or a fake in tests)."""
+
+    def write(self, data: bytes) -> object: ...
+
+    def readline(self) -> bytes: ...
+
+    def close(self) -> None: ...
+
+
 class SerialLights:
     """An LED controller speaking the line protocol above (pyserial, imported lazily)."""
 
-    def __init__(self, port: str | object, baud: int = 115200, count: int | None = None,
+    def __init__(self, port: str | SerialPort, baud: int = 115200, count: int | None = None,
                  timeout: float = 2.0, settle: float = 0.05, level: int | None = None) -> None:
         if isinstance(port, str):
             try:
@@ -42,8 +52,8 @@ class SerialLights:
             try:
                 port = serial.Serial(port, baud, timeout=timeout)
             except Exception as exc:  # SerialException, OSError
-                raise InputError(f"cannot open serial port ({exc})", port) from exc
-        self.port = port
+                raise InputError(f"cannot open serial port ({exc})", str(port)) from exc
+        self.port: SerialPort = port  # type: ignore[assignment]
         self.settle = settle
         reply = self._command("PING")
         parts = reply.split()

@@ -106,15 +106,15 @@ def _refine_edge(grey: np.ndarray, c: Circle, rays: int = 180, band: float = 0.0
             strength.append(b)
     if len(px) < 12:
         return c
-    px, py, s = np.asarray(px), np.asarray(py), np.asarray(strength)
+    ax, ay, s = np.asarray(px), np.asarray(py), np.asarray(strength)
     keep = s >= np.percentile(s, 30)  # rays across weak or occluded edges are unreliable
-    fit = fit_circle(px[keep], py[keep])
+    fit = fit_circle(ax[keep], ay[keep])
     for _ in range(3):  # drop outliers (sphere stand, reflections of the rim)
-        d = np.abs(np.hypot(px - fit.cx, py - fit.cy) - fit.r)
+        d = np.abs(np.hypot(ax - fit.cx, ay - fit.cy) - fit.r)
         keep = d < max(1.0, 3 * 1.4826 * np.median(d[keep]))
         if keep.sum() < 12:
             break
-        fit = fit_circle(px[keep], py[keep])
+        fit = fit_circle(ax[keep], ay[keep])
     return fit
 
 

@@ -20,9 +20,9 @@ import torch
 
 import msfnet
 from msfnet.model.checkpoint import load_model, sha256_of
+from msfnet.runtime.contract import METADATA_KEYS, PREPROCESSING_SPEC
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.metrics import angular_error_deg
-from msfnet.runtime.model_info import METADATA_KEYS, PREPROCESSING_SPEC
 
 DEFAULT_OPSET = 17  # TorchScript exporter: GELU as Erf, runs on older runtimes (OpenVINO 2022)
 TOLERANCE_DEG = 0.01
@@ -85,7 +85,7 @@ def rendered_inputs(batch: int, lights: int, height: int, width: int,
 def _torch_export_staged(model: torch.nn.Module, path: Path, opset: int) -> None:
     """The staged graph (see ``staged.py``): each entry point with its own dynamic axes, so a
     call can feed small placeholders to the entry points it does not use."""
-    from msfnet.runtime.staged import FEATURES, STAGE_INPUTS, STAGE_OUTPUTS
+    from msfnet.runtime.chunked import FEATURES, STAGE_INPUTS, STAGE_OUTPUTS
 
     from .staged import StagedGraph
 
@@ -219,7 +219,7 @@ def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]
     export, run by the runtime's light-chunked loop with that many lights per call."""
     import onnxruntime as ort
 
-    from msfnet.runtime.staged import run_staged
+    from msfnet.runtime.chunked import run_staged
 
     try:
         onnx.checker.check_model(str(path), full_check=True)

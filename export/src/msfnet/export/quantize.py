@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import onnx
 
+from msfnet.runtime.contract import METADATA_KEYS
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.model_info import METADATA_KEYS
 from msfnet.runtime.preprocess import normalise
 from msfnet.runtime.stack import Stack, load_stack
 
@@ -116,7 +116,7 @@ def staged_samples(src: str | Path, samples: list[dict[str, np.ndarray]]
     graph's earlier stages produce on the same tile (placeholders would calibrate nothing)."""
     import onnxruntime as ort
 
-    from msfnet.runtime.staged import run_staged
+    from msfnet.runtime.chunked import run_staged
 
     session = ort.InferenceSession(str(src), providers=["CPUExecutionProvider"])
     out = []

@@ -16,11 +16,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from msfnet.runtime.contract import INPUT_MULTIPLE, TRAIN_LIGHTS, ModelInfo
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.infer import infer_normals
 from msfnet.runtime.metrics import normal_metrics
-from msfnet.runtime.model_info import ModelInfo
-from msfnet.runtime.preprocess import DEFAULT_TRAIN_LIGHTS, MULTIPLE
 from msfnet.runtime.stack import Stack, load_stack
 from msfnet.runtime.tiling import plan_tiles
 
@@ -33,14 +32,23 @@ def autocast(enabled: bool):
 
 
 class TorchModel:
-    """A torch MSFNet behind the ``run(images, lights)`` / ``info`` interface of ModelSession."""
+    """A torch MSFNet as a :class:`msfnet.runtime.estimators.NetworkEngine`, so the runtime's
+    tiling and normalisation run it exactly as they run an ONNX model."""
+
+    name = "torch"
+    chunk = None  # the whole light stack in one call
 
     def __init__(self, model: MSFNet, bf16: bool = False,
-                 train_lights: int = DEFAULT_TRAIN_LIGHTS) -> None:
+                 train_lights: int = TRAIN_LIGHTS) -> None:
         self.model = model.eval()
         self.bf16 = bf16
-        self.info = ModelInfo(Path("<torch model>"), train_lights, MULTIPLE, None,
-                              "bf16" if bf16 else "fp32", {})
+        self.threads: int | None = torch.get_num_threads()
+        self.info = ModelInfo(Path("<torch model>"), train_lights, INPUT_MULTIPLE, None,
+                              self.precision, {})
+
+    @property
+    def precision(self) -> str:
+        return "bf16" if self.bf16 else "fp32"
 
     @torch.no_grad()
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
@@ -86,8 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     took = time.perf_counter() - t0
     if stack.normals_gt is not None:
         m = normal_metrics(normals, stack.normals_gt, stack.mask)
-        print(f"{stack.name}: {stack.num_lights} lights, MAE {m['mae_deg']:.2f} deg, median "
-              f"{m['median_deg']:.2f}, err15 {m['err15']:.3f}, err30 {m['err30']:.3f} "
+        print(f"{stack.name}: {stack.num_lights} lights, MAE {m.mae_deg:.2f} deg, median "
+              f"{m.median_deg:.2f}, err15 {m.err15:.3f}, err30 {m.err30:.3f} "
               f"({took:.1f} s)")
     else:
         print(f"{stack.name}: predicted in {took:.1f} s (no ground truth)")

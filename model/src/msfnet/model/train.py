@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import write_atomic
+from msfnet.runtime.files import write_atomic
 from msfnet.runtime.least_squares import least_squares_normals
 from msfnet.runtime.metrics import normal_metrics
 from msfnet.synth.render import RenderOptions, render_set
@@ -197,7 +197,7 @@ class Trainer:
         val_opts = RenderOptions(size=cfg.val_size, lights=cfg.val_lights)
         self.val_set = list(render_set(cfg.val_seed, cfg.val_objects, val_opts))
         self.val_ls = float(np.mean([normal_metrics(least_squares_normals(s), s.normals_gt,
-                                                    s.mask)["mae_deg"] for s in self.val_set]))
+                                                    s.mask).mae_deg for s in self.val_set]))
 
     # -- state
     def _state_paths(self) -> tuple[Path, Path]:
@@ -246,7 +246,7 @@ class Trainer:
 
     def validate(self) -> float:
         maes = [normal_metrics(predict_normals(self.model, s, bf16=self.bf16), s.normals_gt,
-                               s.mask)["mae_deg"] for s in self.val_set]
+                               s.mask).mae_deg for s in self.val_set]
         return float(np.mean(maes))
 
     def log(self, row: dict) -> None:

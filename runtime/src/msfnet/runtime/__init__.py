@@ -1,15 +1,9 @@
-"""The torch-free edge runtime: stack I/O, normalisation, ONNX Runtime inference, outputs."""
+"""The torch-free edge runtime: stack -> normalise -> infer (tiled) -> metrics -> outputs.
 
-from .errors import InputError
-from .stack import Stack, load_stack, save_stack
-
-__all__ = ["InputError", "Stack", "load_stack", "run_stack", "save_stack"]
-
-
-def __getattr__(name: str):
-    # lazy: `run_stack` pulls in onnxruntime, which plain stack I/O users do not need
-    if name == "run_stack":
-        from .run import run_stack
-
-        return run_stack
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+Modules in data-flow order: ``stack`` (type, loaders, selection), ``preprocess`` (the network's
+normalisation), ``tiling`` + ``infer`` (memory-bounded windows), ``session`` / ``chunked`` (ONNX
+Runtime, plain and staged graphs), ``estimators`` (network and least squares behind one
+protocol), ``metrics``, ``pipeline`` (``Model`` and ``Result``), ``outputs`` (files);
+``contract`` holds what exporter and runtime agree on, ``files`` and ``cliutil`` what every
+command shares.
+"""

@@ -1,21 +1,19 @@
-"""The sample stack behind ``msf-run --demo``: rendered on the spot, so nothing large is shipped.
+"""The sample behind ``msf-run --demo``: a rendered 128 x 128, 32-light object with ground truth.
 
-A non-Lambertian synthetic object with ground truth (msfnet.synth, numpy only), so the demo can
-print the bundled model's error next to least squares on the same data.
+Shipped as a small file (rendered once by ``python -m msfnet.synth.demo``, which a test keeps in
+step with the renderer), so the runtime needs no renderer.
 """
 
 from __future__ import annotations
 
-from msfnet.synth.render import RenderOptions, render_stack
+from pathlib import Path
 
-from .stack import Stack
+from .stack import Stack, load_stack
 
-DEMO_SEED = 20261122
-DEMO_OPTIONS = RenderOptions(size=128, lights=32)
+DEMO_FILE = Path(__file__).resolve().parent / "data" / "demo_stack.npz"
 
 
 def demo_stack() -> Stack:
-    """A fixed 128 x 128, 32-light synthetic object (same every run)."""
-    stack = render_stack(DEMO_SEED, DEMO_OPTIONS, name="demo")
+    stack = load_stack(DEMO_FILE)
     stack.name = "demo"
     return stack

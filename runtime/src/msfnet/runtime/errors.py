@@ -1,7 +1,10 @@
-"""The one exception type for problems with user input (files, arguments, data).
+"""msfnet's two kinds of failure.
 
-Every CLI catches :class:`InputError` and prints ``msf-xxx: error: <message>`` on one line with a
-non-zero exit, so messages must name the offending file and say what is wrong with it.
+:class:`InputError`: a problem with what the user gave (a file, an option, the data in a stack).
+Every command prints it as one line ``<command>: error: <file>: <problem>`` and exits with 2, so
+its message must name the offending file or option and say what is wrong.
+:class:`MsfError`: msfnet itself could not do its job (an engine failed, a verification did not
+pass); printed as one line too, exit 1.
 """
 
 from __future__ import annotations
@@ -9,9 +12,21 @@ from __future__ import annotations
 from pathlib import Path
 
 
+class MsfError(Exception):
+    """msfnet could not complete an operation for a reason that is not the user's input."""
+
+
 class InputError(Exception):
     """A user-facing problem with an input file or argument."""
 
     def __init__(self, message: str, path: str | Path | None = None) -> None:
         self.path = None if path is None else Path(path)
+        self.message = message
         super().__init__(f"{path}: {message}" if path is not None else message)
+
+
+def first_line(exc: BaseException, limit: int = 200) -> str:
+    """The first line of an exception's text (libraries raise multi-line messages), or its
+    type name when it has none."""
+    text = str(exc).strip()
+    return text.splitlines()[0][:limit] if text else type(exc).__name__

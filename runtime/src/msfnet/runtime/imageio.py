@@ -6,9 +6,7 @@ read TGA; Pillow reads TGA. So: OpenCV first, Pillow for what OpenCV cannot deco
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -16,6 +14,11 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+from .files import write_atomic
+
+# Refuse images above this many pixels from the header, before decoding (a decompression bomb:
+# a few KB of PNG that decodes to tens of GB). 250 MP is ~10x a large industrial sensor.
+MAX_PIXELS = 250_000_000
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".jpg", ".jpeg", ".bmp", ".exr", ".pgm", ".ppm")
 
@@ -42,6 +45,7 @@ def read_image(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError("image file not found", path)
+    _check_header(path)
     img = None if path.suffix.lower() == ".tga" else _read_with_opencv(path)
     if img is None:
         img = _read_with_pillow(path)
@@ -50,6 +54,21 @@ def read_image(path: str | Path) -> np.ndarray:
     if img.ndim not in (2, 3) or img.size == 0 or (img.ndim == 3 and img.shape[2] != 3):
         raise InputError(f"unsupported image shape {img.shape}", path)
     return np.ascontiguousarray(img)
+
+
+def _check_header(path: Path) -> None:
+    """Read the size from the header (no decoding) and refuse absurd ones."""
+    try:
+        from PIL import Image
+
+        Image.MAX_IMAGE_PIXELS = None  # we apply our own limit below, with a clear message
+        with Image.open(path) as im:
+            w, h = im.size
+    except Exception:
+        return  # not a format Pillow knows: OpenCV will decode it (or report the problem)
+    if w * h > MAX_PIXELS:
+        raise InputError(f"image is {w}x{h} ({w * h / 1e6:.0f} MP), above the "
+                         f"{MAX_PIXELS / 1e6:.0f} MP limit: refusing to decode it", path)
 
 
 def _read_with_opencv(path: Path) -> np.ndarray | None:
@@ -87,19 +106,6 @@ def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndar
         raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but images are "
                          f"{shape[1]}x{shape[0]}", path)
     return mask
-
-
-def write_atomic(path: Path, write) -> None:
-    """Write a file through a temporary sibling and rename, so no half-written file is left."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_png(path: str | Path, img: np.ndarray) -> None:

@@ -9,15 +9,18 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, MsfError, first_line
 from .preprocess import network_lights, normalise
 from .profile import StageTimer
-from .session import ModelSession
 from .stack import Stack
 from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan, plan_tiles, tile_size_for_memory
+
+if TYPE_CHECKING:
+    from .estimators import NetworkEngine
 
 
 @dataclass
@@ -26,7 +29,7 @@ class InferenceResult:
     plan: TilePlan
 
 
-def choose_plan(stack: Stack, model: ModelSession, tile: int | None = None,
+def choose_plan(stack: Stack, model: NetworkEngine, tile: int | None = None,
                 max_memory_mb: float | None = None) -> TilePlan:
     """``tile``: window edge in px (0 = untiled); otherwise sized from ``max_memory_mb`` and N."""
     static = model.info.static_shape
@@ -42,12 +45,11 @@ def choose_plan(stack: Stack, model: ModelSession, tile: int | None = None,
     if tile is None:
         # the budget is for the whole process: the loaded stack already occupies part of it
         budget = (max_memory_mb or DEFAULT_MAX_MEMORY_MB) - stack.images.nbytes / 2**20
-        tile = tile_size_for_memory(budget, stack.num_lights,
-                                    model.chunk if model.info.staged else None)
+        tile = tile_size_for_memory(budget, stack.num_lights, model.chunk)
     return plan_tiles(stack.mask, tile)
 
 
-def infer_normals(model: ModelSession, stack: Stack, plan: TilePlan,
+def infer_normals(model: NetworkEngine, stack: Stack, plan: TilePlan,
                   timer: StageTimer | None = None, progress: bool = False) -> InferenceResult:
     """Run the plan's tiles through the model and stitch the cores into an (H, W, 3) map."""
     timer = timer or StageTimer()
@@ -76,11 +78,13 @@ def infer_normals(model: ModelSession, stack: Stack, plan: TilePlan,
         with timer("inference"):
             try:
                 y = model.run(x, lights)
-            except Exception as exc:  # ORT's own error types (e.g. allocation failure)
-                first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
-                raise InputError(f"ONNX Runtime failed on a {wx1 - wx0}x{wy1 - wy0} tile with "
-                                 f"{n} lights ({type(exc).__name__}: {first}); try a smaller "
-                                 "--tile or --max-memory", model.info.path) from exc
+            except MemoryError:
+                raise
+            except Exception as exc:  # engines' own error types (e.g. allocation failure)
+                raise MsfError(f"{model.info.path}: {model.name} failed on a "
+                               f"{wx1 - wx0}x{wy1 - wy0} tile with {n} lights "
+                               f"({type(exc).__name__}: {first_line(exc)}); try a smaller "
+                               "--tile or --max-memory") from exc
         with timer("postprocess"):
             cy0, cy1, cx0, cx1 = t.core
             out[cy0:cy1, cx0:cx1] = y[0, :, cy0 - wy0: cy1 - wy0, cx0 - wx0: cx1 - wx0]\

@@ -13,17 +13,46 @@ from .errors import InputError
 from .preprocess import network_lights
 from .stack import Stack
 
+# working set per (mask pixel x light): the float32 RGB gather, float64 grey and, when
+# trimming, ranks and weights
+BYTES_PER_PIXEL_LIGHT = 64
+MIN_ROWS = 8
+
 
 def least_squares_normals(stack: Stack, trim_shadows: float = 0.0,
-                          trim_highlights: float = 0.0) -> np.ndarray:
-    """(H, W, 3) float32 unit normals, zeros outside the mask (and where the fit is degenerate)."""
+                          trim_highlights: float = 0.0,
+                          max_memory_mb: float | None = None) -> np.ndarray:
+    """(H, W, 3) float32 unit normals, zeros outside the mask (and where the fit is degenerate).
+
+    ``max_memory_mb``: work in bands of image rows so the working set beside the loaded stack
+    stays within the budget (a 96-light full-frame stack otherwise needs several GB at once).
+    """
     if not (0 <= trim_shadows < 1 and 0 <= trim_highlights < 1):
         raise InputError("trim fractions must lie in [0, 1)")
+    h, w = stack.shape
+    n = stack.num_lights
+    rows = h
+    if max_memory_mb is not None:
+        budget = max(max_memory_mb * 2**20 - stack.images.nbytes, 0)
+        rows = max(MIN_ROWS, int(budget // max(w * n * BYTES_PER_PIXEL_LIGHT, 1)))
+    out = np.zeros((h, w, 3), np.float32)
+    for r0 in range(0, h, rows):
+        band = slice(r0, min(h, r0 + rows))
+        mask = stack.mask[band]
+        if mask.any():
+            unit = _solve(stack.images[:, band][:, mask, :], stack, trim_shadows,
+                          trim_highlights)
+            out[band][mask] = unit.T
+    return out
+
+
+def _solve(pixels: np.ndarray, stack: Stack, trim_shadows: float,
+           trim_highlights: float) -> np.ndarray:
+    """(3, P) unit normals of the gathered mask pixels (N, P, 3)."""
     lights = network_lights(stack.lights).astype(np.float64)  # (N, 3)
     n = lights.shape[0]
-    # only mask pixels: (N, P) grey values divided by the light intensity
-    grey = (stack.images[:, stack.mask, :] / stack.intensities[:, None, :]).mean(axis=2)
-    grey = grey.astype(np.float64)
+    # (N, P) grey values divided by the light intensity
+    grey = (pixels / stack.intensities[:, None, :]).mean(axis=2).astype(np.float64)
     lo = int(np.floor(trim_shadows * n))
     hi = n - int(np.floor(trim_highlights * n))
     if hi - lo < 3:
@@ -40,10 +69,7 @@ def least_squares_normals(stack: Stack, trim_shadows: float = 0.0,
         g[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
         g = g.T
     norm = np.linalg.norm(g, axis=0)
-    unit = np.where(norm > 1e-12, g / np.maximum(norm, 1e-12), 0.0)
-    out = np.zeros((*stack.shape, 3), np.float32)
-    out[stack.mask] = unit.T
-    return out
+    return np.where(norm > 1e-12, g / np.maximum(norm, 1e-12), 0.0)
 
 
 __all__ = ["least_squares_normals"]

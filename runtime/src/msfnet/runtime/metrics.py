@@ -1,8 +1,18 @@
-"""Angular-error metrics for normal maps: the one implementation every command and test uses."""
+"""Angular-error metrics for normal maps: the one implementation every command and test uses.
+
+A predicted pixel that is not a unit vector (zero, NaN, or a norm off by more than
+``UNIT_TOLERANCE``) is a failure: it scores 180 deg and is counted in ``invalid``. It never
+scores 0, so a black or blanked-out prediction cannot improve a score. Mask pixels without a
+valid ground-truth normal are left out of the score and counted in ``gt_missing``.
+"""
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
+
 import numpy as np
+
+UNIT_TOLERANCE = 0.05  # |n| outside [0.95, 1.05] is not a normal
 
 
 def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -17,22 +27,51 @@ def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(cross, dot))
 
 
-def normal_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    """MAE, median, err15/err30 (share of mask pixels under 15/30 deg) over the mask."""
-    err = angular_error_deg(pred[mask], gt[mask])
-    if err.size == 0:
-        raise ValueError("empty mask: no pixel to score")
-    return {
-        "mae_deg": float(err.mean()),
-        "median_deg": float(np.median(err)),
-        "err15": float(np.mean(err < 15.0)),
-        "err30": float(np.mean(err < 30.0)),
-        "pixels": int(err.size),
-    }
+def is_unit(v: np.ndarray, tolerance: float = UNIT_TOLERANCE) -> np.ndarray:
+    """Boolean per vector (last axis): finite and of length 1 within ``tolerance``."""
+    with np.errstate(invalid="ignore"):
+        norm = np.linalg.norm(np.asarray(v, np.float64), axis=-1)
+        return np.isfinite(norm) & (np.abs(norm - 1.0) <= tolerance)
+
+
+@dataclass(frozen=True)
+class NormalMetrics:
+    mae_deg: float  # mean angular error over the scored pixels
+    median_deg: float
+    err15: float  # share of scored pixels under 15 deg
+    err30: float
+    pixels: int  # scored pixels (mask pixels with a valid ground truth)
+    invalid: int = 0  # predictions that were not unit vectors (scored as 180 deg)
+    gt_missing: int = 0  # mask pixels without a valid ground-truth normal (not scored)
+
+    def as_dict(self) -> dict[str, float | int]:
+        return asdict(self)
 
 
 def error_map(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(H, W) angular error in degrees, 0 outside the mask."""
-    out = np.zeros(mask.shape, np.float64)
-    out[mask] = angular_error_deg(pred[mask], gt[mask])
+    """(H, W) angular error in degrees: 180 where the prediction is not a unit vector, NaN
+    where the pixel is not scored (outside the mask or no valid ground truth)."""
+    out = np.full(mask.shape, np.nan, np.float64)
+    scored = mask & is_unit(gt)
+    err = angular_error_deg(np.nan_to_num(pred[scored]), gt[scored])
+    err[~is_unit(pred[scored])] = 180.0
+    out[scored] = err
     return out
+
+
+def normal_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> NormalMetrics:
+    """MAE, median, err15/err30 over the mask (see the module docstring for failures)."""
+    scored = mask & is_unit(gt)
+    if not scored.any():
+        raise ValueError("no pixel to score: the mask is empty or has no valid ground truth")
+    valid = is_unit(pred[scored])
+    err = angular_error_deg(np.nan_to_num(pred[scored]), gt[scored])
+    err[~valid] = 180.0
+    return NormalMetrics(mae_deg=float(err.mean()), median_deg=float(np.median(err)),
+                         err15=float(np.mean(err < 15.0)), err30=float(np.mean(err < 30.0)),
+                         pixels=int(err.size), invalid=int((~valid).sum()),
+                         gt_missing=int(mask.sum() - scored.sum()))
+
+
+__all__ = ["UNIT_TOLERANCE", "NormalMetrics", "angular_error_deg", "error_map", "is_unit",
+           "normal_metrics"]

@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-DEFAULT_TRAIN_LIGHTS = 32
-MULTIPLE = 4  # the network halves H and W once and doubles back: inputs must be multiples of 4
+from .contract import INPUT_MULTIPLE, TRAIN_LIGHTS
 
 
 def normalise(images: np.ndarray, intensities: np.ndarray, mask: np.ndarray,
-              train_lights: int = DEFAULT_TRAIN_LIGHTS) -> np.ndarray:
+              train_lights: int = TRAIN_LIGHTS) -> np.ndarray:
     """(N, H, W, 3) raw images -> (N, 3, H, W) float32 network input."""
     n = images.shape[0]
     x = images.astype(np.float32) / intensities.astype(np.float32)[:, None, None, :]
@@ -28,7 +27,7 @@ def normalise(images: np.ndarray, intensities: np.ndarray, mask: np.ndarray,
     return np.ascontiguousarray(x.transpose(0, 3, 1, 2))
 
 
-def padded_size(size: int, multiple: int = MULTIPLE) -> int:
+def padded_size(size: int, multiple: int = INPUT_MULTIPLE) -> int:
     return -(-size // multiple) * multiple
 
 

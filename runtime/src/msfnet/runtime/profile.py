@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import resource
 import sys
 import time
 from collections.abc import Iterator
@@ -30,7 +29,19 @@ class StageTimer:
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far (ru_maxrss: KiB on Linux, bytes on macOS)."""
+    """Peak resident set size of this process so far, in MB (0 where the OS does not say).
+
+    POSIX: ru_maxrss (KiB on Linux, bytes on macOS); Windows: psutil's peak working set.
+    """
+    try:
+        import resource
+    except ImportError:  # Windows
+        try:
+            import psutil
+
+            return float(getattr(psutil.Process().memory_info(), "peak_wset", 0)) / 2**20
+        except ImportError:
+            return 0.0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024
 
@@ -43,6 +54,9 @@ class Profile:
 
     def add(self, timer: StageTimer) -> None:
         self.runs.append(dict(timer.seconds))
+
+    def median_s(self, stage: str) -> float:
+        return float(np.median([r.get(stage, 0.0) for r in self.runs])) if self.runs else 0.0
 
     def summary(self) -> dict[str, object]:
         stages: dict[str, dict[str, float]] = {}

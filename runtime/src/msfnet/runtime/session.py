@@ -10,11 +10,12 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import onnxruntime as ort
 
-from .errors import InputError
-from .model_info import ModelInfo, model_info_from_metadata
-from .staged import DEFAULT_CHUNK, STAGE_INPUTS, STAGE_OUTPUTS, run_staged
+from .chunked import DEFAULT_CHUNK, STAGE_INPUTS, STAGE_OUTPUTS, run_staged
+from .contract import ModelInfo, read_model_info
+from .errors import InputError, first_line
 
 PROVIDER_ALIASES = {
     "cpu": "CPUExecutionProvider",
@@ -36,16 +37,27 @@ GRAPH_OPT_LEVELS = {
 
 @dataclass
 class ModelSession:
+    """An msfnet model in ONNX Runtime (a :class:`~msfnet.runtime.estimators.NetworkEngine`)."""
+
     session: ort.InferenceSession
     info: ModelInfo
     provider: str
-    threads: int
-    chunk: int = DEFAULT_CHUNK  # lights per call, staged models only
+    threads: int | None
+    lights_per_call: int = DEFAULT_CHUNK  # staged models only
+    name: str = "onnxruntime"
 
-    def run(self, images, lights):
+    @property
+    def precision(self) -> str:
+        return self.info.precision
+
+    @property
+    def chunk(self) -> int | None:
+        return self.lights_per_call if self.info.staged else None
+
+    def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W)."""
         if self.info.staged:
-            return run_staged(self.session, images, lights, self.chunk)
+            return run_staged(self.session, images, lights, self.lights_per_call)
         return self.session.run(["normals"], {"images": images, "lights": lights})[0]
 
 
@@ -97,10 +109,9 @@ def create_session(path: str | Path, *, threads: int | None = None, provider: st
     try:
         sess = ort.InferenceSession(str(path), opts, providers=providers)
     except Exception as exc:  # ORT raises InvalidProtobuf, Fail, ... for bad files
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise InputError(f"cannot load ONNX model ({first[:200]})", path) from exc
+        raise InputError(f"cannot load ONNX model ({first_line(exc)})", path) from exc
     meta = dict(sess.get_modelmeta().custom_metadata_map)
-    info = model_info_from_metadata(path, meta)
+    info = read_model_info(path, meta)
     if arena is None and info.staged:  # the default depends on the graph: load it again
         return create_session(path, threads=threads, provider=provider, graph_opt=graph_opt,
                               arena=True)

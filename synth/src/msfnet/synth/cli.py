@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import write_atomic
+from msfnet.runtime.files import write_atomic
 from msfnet.runtime.stack import save_stack
 
 from .materials import KINDS

@@ -9,25 +9,16 @@ Writes results.json, results.md and <object>/<method>_error.png (+ normals png) 
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from .cliutil import make_parser, positive_float, positive_int, run_command
 from .errors import InputError
-from .metrics import error_map
-from .outputs import (
-    check_outdir,
-    commit_folder,
-    error_png,
-    normals_png,
-    staging_folder,
-    write_json,
-    write_rgb_png,
-)
-from .run import default_model_path, run_stack
-from .session import create_session
+from .files import check_output, json_text, staged_folder
+from .outputs import error_png, normals_png, write_rgb_png
+from .pipeline import Model
 from .stack import LIGHTS_NAMES, load_stack
 from .tiling import DEFAULT_MAX_MEMORY_MB
 
@@ -52,10 +43,15 @@ def find_objects(root: Path) -> list[tuple[Path, str | None]]:
             out.append((folder, parts[1] if len(parts) > 1 else None))
         if not out:
             raise InputError("objects.txt lists no objects", listing)
+        names = [f.name for f, _ in out]
+        dup = next((n for n in names if names.count(n) > 1), None)
+        if dup is not None:
+            raise InputError(f"object {dup!r} is listed twice (its results would clash)",
+                             listing)
         return out
     if any((root / n).is_file() for n in LIGHTS_NAMES):
         return [(root, None)]
-    found = [(d, None) for d in sorted(root.iterdir())
+    found: list[tuple[Path, str | None]] = [(d, None) for d in sorted(root.iterdir())
              if d.is_dir() and any((d / n).is_file() for n in LIGHTS_NAMES)]
     if not found:
         raise InputError("no object folders (with light_directions.txt or lights.txt) and no "
@@ -92,28 +88,22 @@ def mean_row(rows: list[dict], methods: list[str]) -> dict:
     return {"object": "**mean**", "lights": "", "results": res}
 
 
-def evaluate(root: Path, outdir: Path, *, onnx: Path | None, use_model: bool = True,
-             use_l2: bool = True, max_lights: int | None = None, threads: int | None = None,
-             provider: str | None = None, tile: int | None = None,
-             max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, overwrite: bool = False,
+def evaluate(root: Path, outdir: Path, *, model: Model | None, use_l2: bool = True,
+             max_lights: int | None = None, overwrite: bool = False,
              progress: bool = False) -> dict:
+    """Score ``model`` (and least squares) on every object; write the results folder."""
     objects = find_objects(root)
-    check_outdir(outdir, overwrite, [root])
-    methods: list[str] = []
-    session = None
-    if use_model:
-        model = onnx or default_model_path()
-        if not model.is_file():
-            raise InputError(f"no --onnx MODEL given and no bundled model at {model}; pass "
-                             "--onnx or --l2-only")
-        session = create_session(model, threads=threads, provider=provider)
-        methods.append("msf")
+    check_output(outdir, [root], overwrite=overwrite, folder=True)
+    runners: dict[str, Model] = {}
+    if model is not None:
+        runners["msf"] = model
     if use_l2:
-        methods.append("l2")
-    if not methods:
+        runners["l2"] = Model.least_squares(max_memory_mb=model.tiling.max_memory_mb
+                                            if model is not None else DEFAULT_MAX_MEMORY_MB)
+    if not runners:
         raise InputError("nothing to evaluate: both the model and l2 are switched off")
-    tmp = staging_folder(outdir)
-    try:
+    methods = list(runners)
+    with staged_folder(outdir, overwrite=overwrite) as tmp:
         rows = []
         for folder, select in objects:
             stack = load_stack(folder, select=select, max_lights=max_lights)
@@ -124,77 +114,77 @@ def evaluate(root: Path, outdir: Path, *, onnx: Path | None, use_model: bool = T
                 rows.append(row)
                 continue
             (tmp / folder.name).mkdir()
-            for m in methods:
-                res = run_stack(stack, method=m, session=session if m == "msf" else None,
-                                write=False, tile=tile, max_memory_mb=max_memory_mb,
-                                progress=progress)
-                assert res.metrics is not None
-                err = error_map(res.normals, stack.normals_gt, stack.mask)
-                write_rgb_png(tmp / folder.name / f"{m}_error.png", error_png(err, stack.mask))
+            for m, runner in runners.items():
+                res = runner(stack, progress=progress)
+                assert res.metrics is not None and res.error_deg is not None
+                write_rgb_png(tmp / folder.name / f"{m}_error.png",
+                              error_png(res.error_deg, stack.mask))
                 write_rgb_png(tmp / folder.name / f"{m}_normals.png",
                               normals_png(res.normals, stack.mask))
-                row["results"][m] = {**res.metrics,
-                                     "seconds": res.profile["stages"]["total"]["median_s"]}
+                row["results"][m] = {**res.metrics.as_dict(),
+                                     "seconds": res.timings.median_s("total")}
             rows.append(row)
             if progress:
                 print(f"{folder.name}: " + ", ".join(
                     f"{m} {row['results'][m]['mae_deg']:.2f} deg" for m in methods),
                     file=sys.stderr)
-        summary = {"root": str(root), "model": str(session.info.path) if session else None,
-                   "methods": methods, "objects": rows,
+        summary = {"root": str(root),
+                   "model": runners["msf"].describe().get("model") if "msf" in runners
+                   else None, "methods": methods, "objects": rows,
                    "mean": mean_row(rows, methods)["results"]}
         table = markdown_table([*rows, mean_row(rows, methods)], methods)
-        write_json(tmp / "results.json", summary)
+        (tmp / "results.json").write_text(json_text(summary))
         (tmp / "results.md").write_text(table + "\n")
-        commit_folder(tmp, outdir, overwrite)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     summary["table"] = table
     return summary
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog=PROG,
-        description="Score a model (ONNX via the runtime) and the least-squares baseline on "
-        "every object of a benchmark root (objects.txt, or every object folder). Prints a "
-        "per-object MAE / err15 / err30 table and writes results.json, results.md and "
-        "error maps to OUTDIR.")
+    p = make_parser(
+        PROG,
+        "Score a model (ONNX via the runtime) and the least-squares baseline on every object "
+        "of a benchmark root (objects.txt, or every object folder). Prints a per-object "
+        "MAE / err15 / err30 table and writes results.json, results.md and error maps.",
+        ("msf-eval ../shared/data/DiLiGenT/ballPNG",
+         "msf-eval benchmark/ --onnx my_model.onnx -o eval/mine"))
     p.add_argument("root", type=Path, metavar="ROOT", help="benchmark root or one object folder")
     p.add_argument("--onnx", type=Path, metavar="MODEL",
                    help="msfnet ONNX model (default: the bundled model)")
     p.add_argument("--l2-only", action="store_true", help="only the least-squares baseline")
     p.add_argument("--no-l2", action="store_true", help="skip the least-squares baseline")
-    p.add_argument("-o", "--outdir", type=Path, default=None,
+    p.add_argument("-o", "--output", "--outdir", dest="output", type=Path, default=None,
                    help="output folder (default ./msf-eval/<root name>/)")
-    p.add_argument("--max-lights", type=int, metavar="K", help="use K evenly spaced lights")
-    p.add_argument("--threads", type=int, metavar="T", help="ONNX Runtime threads")
+    p.add_argument("--max-lights", type=positive_int, metavar="K",
+                   help="use K evenly spaced lights")
+    p.add_argument("--threads", type=positive_int, metavar="T", help="inference threads")
     p.add_argument("--provider", default="cpu", metavar="P", help="execution provider")
     p.add_argument("--tile", type=int, metavar="S", help="tile edge in px (0 = untiled)")
-    p.add_argument("--max-memory", type=float, default=DEFAULT_MAX_MEMORY_MB, metavar="MB",
-                   help=f"memory budget in MB (default {DEFAULT_MAX_MEMORY_MB})")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing OUTDIR")
+    p.add_argument("--max-memory", type=positive_float, default=DEFAULT_MAX_MEMORY_MB,
+                   metavar="MB", help=f"memory budget in MB (default {DEFAULT_MAX_MEMORY_MB})")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    outdir = args.output or Path("msf-eval") / args.root.resolve().name
+    if args.l2_only and args.onnx is not None:
+        raise InputError("--l2-only and --onnx contradict each other")
+    check_output(outdir, [args.root, args.onnx], overwrite=args.overwrite, folder=True)
+    model = None if args.l2_only else Model(
+        args.onnx, threads=args.threads, provider=args.provider, tile=args.tile,
+        max_memory_mb=args.max_memory)
+    summary = evaluate(args.root, outdir, model=model, use_l2=not args.no_l2,
+                       max_lights=args.max_lights, overwrite=args.overwrite,
+                       progress=sys.stderr.isatty() and not args.quiet)
+    if not args.quiet:
+        print(summary["table"])
+        print(f"wrote {outdir}/ (results.json, results.md, error maps)")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    outdir = args.outdir or Path("msf-eval") / args.root.resolve().name
-    try:
-        if args.l2_only and args.onnx is not None:
-            raise InputError("--l2-only and --onnx contradict each other")
-        summary = evaluate(args.root, outdir, onnx=args.onnx, use_model=not args.l2_only,
-                           use_l2=not args.no_l2, max_lights=args.max_lights,
-                           threads=args.threads, provider=args.provider, tile=args.tile,
-                           max_memory_mb=args.max_memory, overwrite=args.overwrite,
-                           progress=sys.stderr.isatty())
-    except InputError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    print(summary["table"])
-    print(f"wrote {outdir}/ (results.json, results.md, error maps)")
-    return 0
+    return run_command(PROG, lambda: _run(args), debug=args.debug)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,108 @@
+"""The contract between an exported msfnet model and the runtime: shapes, constants, metadata.
+
+One place for what the exporter writes and the runtime checks: the input multiple, the light
+count the weights were trained with, the ONNX metadata keys and how they are read back.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import InputError
+
+FORMAT = "msfnet-normals-v1"
+INPUT_MULTIPLE = 4  # the network halves H and W once and doubles back: multiples of 4
+TRAIN_LIGHTS = 32  # light count of the published weights (sqrt(N / train_lights) scaling)
+GRAPHS = ("monolithic", "staged")  # staged: cut at the max-over-lights steps (--staged)
+
+METADATA_KEYS = {
+    "format": "msfnet.format",
+    "train_lights": "msfnet.train_lights",
+    "preprocessing": "msfnet.preprocessing",
+    "checkpoint_sha256": "msfnet.checkpoint_sha256",
+    "version": "msfnet.version",
+    "input_multiple": "msfnet.input_multiple",
+    "static_shape": "msfnet.static_shape",
+    "precision": "msfnet.precision",
+    "graph": "msfnet.graph",
+}
+
+PREPROCESSING_SPEC = {
+    "steps": [
+        "images / light_intensity (per light, per RGB channel)",
+        "per pixel and channel: divide the N values by their L2 norm over lights (+1e-10)",
+        "multiply by sqrt(N / train_lights)",
+        "multiply by the object mask; zero-pad H and W to multiples of 4 (bottom/right)",
+    ],
+    "layout": {"images": "float32 (B, N, 3, H, W) RGB", "lights": "float32 (B, N, 3) unit, "
+               "x right, y up, z to the camera", "normals": "float32 (B, 3, H, W) unit"},
+}
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What an msfnet model file declares about itself."""
+
+    path: Path
+    train_lights: int
+    input_multiple: int
+    static_shape: tuple[int, int, int] | None  # (N, H, W) for fixed-shape exports
+    precision: str
+    metadata: dict[str, str]
+    staged: bool = False  # cut at the max-over-lights reductions (runtime/chunked.py)
+
+
+def _positive(meta: Mapping[str, str], key: str, default: int, path: Path) -> int:
+    text = meta.get(METADATA_KEYS[key], str(default))
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise InputError(f"malformed {METADATA_KEYS[key]} metadata {text!r}", path) from exc
+    if value < 1:
+        raise InputError(f"{METADATA_KEYS[key]} metadata must be positive, got {value}", path)
+    return value
+
+
+def read_model_info(path: Path, meta: Mapping[str, str]) -> ModelInfo:
+    """Validate a model's metadata; raise InputError if it is not a (sane) msfnet model."""
+    if meta.get(METADATA_KEYS["format"]) != FORMAT:
+        raise InputError("not an msfnet model (missing msfnet.format metadata; export it with "
+                         "msf-export)", path)
+    train_lights = _positive(meta, "train_lights", TRAIN_LIGHTS, path)
+    multiple = _positive(meta, "input_multiple", INPUT_MULTIPLE, path)
+    static_text = meta.get(METADATA_KEYS["static_shape"], "")
+    try:
+        static = tuple(int(v) for v in static_text.split(",")) if static_text else None
+    except ValueError as exc:
+        raise InputError(f"malformed msfnet.static_shape metadata {static_text!r}", path) from exc
+    if static is not None and (len(static) != 3 or min(static) < 1):
+        raise InputError(f"malformed msfnet.static_shape metadata {static_text!r}", path)
+    graph = meta.get(METADATA_KEYS["graph"], "monolithic")
+    if graph not in GRAPHS:
+        raise InputError(f"unknown msfnet.graph {graph!r} (this msfnet reads "
+                         f"{' and '.join(GRAPHS)} exports; upgrade msfnet?)", path)
+    return ModelInfo(path, train_lights, multiple, static,  # type: ignore[arg-type]
+                     meta.get(METADATA_KEYS["precision"], "fp32"), dict(meta),
+                     staged=graph == "staged")
+
+
+def model_metadata(*, train_lights: int, checkpoint_sha256: str, version: str,
+                   static_shape: tuple[int, int, int] | None, precision: str,
+                   staged: bool) -> dict[str, str]:
+    """The metadata_props an export writes (the inverse of :func:`read_model_info`)."""
+    import json
+
+    return {
+        METADATA_KEYS["format"]: FORMAT,
+        METADATA_KEYS["train_lights"]: str(train_lights),
+        METADATA_KEYS["preprocessing"]: json.dumps(PREPROCESSING_SPEC),
+        METADATA_KEYS["checkpoint_sha256"]: checkpoint_sha256,
+        METADATA_KEYS["version"]: version,
+        METADATA_KEYS["input_multiple"]: str(INPUT_MULTIPLE),
+        METADATA_KEYS["static_shape"]: "" if static_shape is None else
+        ",".join(str(v) for v in static_shape),
+        METADATA_KEYS["precision"]: precision,
+        METADATA_KEYS["graph"]: "staged" if staged else "monolithic",
+    }

@@ -1,0 +1,105 @@
+"""Estimators: stack -> normals. One protocol, implemented by the network and least squares.
+
+"Which method" is chosen once, by constructing an estimator; nothing downstream branches on it.
+The network estimator runs any :class:`NetworkEngine` (ONNX Runtime plain or staged, OpenVINO,
+or a torch model from ``msfnet.model.predict``) through the same tiling and normalisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from .contract import ModelInfo
+from .flops import inference_flops
+from .infer import choose_plan, infer_normals
+from .least_squares import least_squares_normals
+from .profile import StageTimer
+from .stack import Stack
+from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
+
+
+@runtime_checkable
+class NetworkEngine(Protocol):
+    """Runs the network on one normalised window: images (1, N, 3, H, W), lights (1, N, 3)
+    -> normals (1, 3, H, W)."""
+
+    info: ModelInfo
+    name: str  # "onnxruntime", "openvino", "torch", ...
+    threads: int | None
+
+    @property
+    def precision(self) -> str: ...
+
+    @property
+    def chunk(self) -> int | None:
+        """Lights per call for staged graphs (sets the memory per pixel), None otherwise."""
+        ...
+
+    def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class TilingOptions:
+    tile: int | None = None  # window edge in px; 0 = untiled; None = sized from max_memory_mb
+    max_memory_mb: float = DEFAULT_MAX_MEMORY_MB  # peak memory target for the whole run
+
+
+@dataclass
+class Estimate:
+    normals: np.ndarray  # (H, W, 3) float32 unit normals, zeros outside the mask
+    plan: TilePlan | None  # tiles run (network estimators)
+    flops: float  # work done by the inference stage (0 when not counted)
+
+
+class Estimator(Protocol):
+    method: str  # "msf" (the network) or "l2" (least squares)
+
+    def describe(self) -> dict[str, object]:
+        """What ran, for the profile and the console (engine, precision, threads, ...)."""
+        ...
+
+    def estimate(self, stack: Stack, tiling: TilingOptions, timer: StageTimer,
+                 progress: bool = False) -> Estimate: ...
+
+
+class NetworkEstimator:
+    method = "msf"
+
+    def __init__(self, engine: NetworkEngine, reason: str = "") -> None:
+        self.engine = engine
+        self.reason = reason  # why this engine / precision was chosen (dispatch)
+
+    def describe(self) -> dict[str, object]:
+        e = self.engine
+        return {"method": self.method, "model": str(e.info.path), "engine": e.name,
+                "precision": e.precision, "graph": "staged" if e.info.staged else "monolithic",
+                "threads": e.threads, "choice": self.reason or None}
+
+    def estimate(self, stack: Stack, tiling: TilingOptions, timer: StageTimer,
+                 progress: bool = False) -> Estimate:
+        plan = choose_plan(stack, self.engine, tiling.tile, tiling.max_memory_mb)
+        normals = infer_normals(self.engine, stack, plan, timer, progress=progress).normals
+        return Estimate(normals, plan, inference_flops(stack.num_lights, plan.pixels))
+
+
+class LeastSquaresEstimator:
+    """Classical per-pixel least squares (Woodham 1980): no model, same loaders and outputs."""
+
+    method = "l2"
+
+    def describe(self) -> dict[str, object]:
+        return {"method": self.method, "model": None, "engine": "numpy", "precision": "fp64",
+                "threads": None, "choice": None}
+
+    def estimate(self, stack: Stack, tiling: TilingOptions, timer: StageTimer,
+                 progress: bool = False) -> Estimate:
+        with timer("inference"):
+            normals = least_squares_normals(stack, max_memory_mb=tiling.max_memory_mb)
+        return Estimate(normals, None, 0.0)
+
+
+__all__ = ["Estimate", "Estimator", "LeastSquaresEstimator", "NetworkEngine",
+           "NetworkEstimator", "TilingOptions"]

@@ -1,0 +1,21 @@
+"""The photometric stack: its type, loaders, image selection and the DiLiGenT-layout writer."""
+
+from .load import (
+    GT_NAMES,
+    INTENSITY_NAMES,
+    LIGHTS_NAMES,
+    MASK_NAMES,
+    LoadOptions,
+    load_folder,
+    load_npz,
+    load_stack,
+)
+from .readers import read_normals, read_vectors
+from .save import save_stack
+from .select import evenly_spaced, parse_select, selection
+from .types import Stack, light_condition, unit_lights
+
+__all__ = ["GT_NAMES", "INTENSITY_NAMES", "LIGHTS_NAMES", "MASK_NAMES", "LoadOptions", "Stack",
+           "evenly_spaced", "light_condition", "load_folder", "load_npz", "load_stack",
+           "parse_select", "read_normals", "read_vectors", "save_stack", "selection",
+           "unit_lights"]

@@ -1,0 +1,179 @@
+"""Loaders: a DiLiGenT-layout object folder, a folder of images with a lights file, an .npz.
+
+Each returns a validated :class:`Stack` with unit light directions; only the selected images
+are decoded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..imageio import list_images, read_image, read_mask
+from .readers import read_normals, read_vectors
+from .select import selection
+from .types import Stack, check_intensities, check_lights, unit_lights
+
+LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_directions.json")
+INTENSITY_NAMES = ("light_intensities.txt", "intensities.txt", "light_intensities.json")
+MASK_NAMES = ("mask.png", "mask.tif", "mask.tiff", "mask.tga", "mask.bmp")
+GT_NAMES = ("Normal_gt.mat", "Normal_gt.npy", "Normal_gt.png", "normal_gt.png", "normals_gt.png")
+
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """How to read a stack: files that override the stack's own, and which images to keep."""
+
+    lights: Path | None = None  # light directions file (txt/json)
+    intensities: Path | None = None  # light intensities file
+    mask: Path | None = None  # mask image (> 127 is object)
+    select: str | None = None  # 1-based image subset, e.g. "21-96"
+    max_lights: int | None = None  # keep this many, evenly spaced
+    threads: int = 4  # decoding threads
+
+    def inputs(self) -> list[Path]:
+        """The files these options read (never to be written over)."""
+        return [p for p in (self.lights, self.intensities, self.mask) if p is not None]
+
+
+def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
+    return next((folder / n for n in names if (folder / n).is_file()), None)
+
+
+def _read_images(paths: Sequence[Path], threads: int = 4) -> np.ndarray:
+    """Decode in parallel (OpenCV releases the GIL); sizes and bit depths must all agree."""
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        imgs = list(pool.map(read_image, paths))
+    first = imgs[0]
+    out = np.empty((len(imgs), first.shape[0], first.shape[1], 3), dtype=np.float32)
+    for i, (p, img) in enumerate(zip(paths, imgs, strict=True)):
+        if img.shape[:2] != first.shape[:2]:
+            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but {paths[0].name} is "
+                             f"{first.shape[1]}x{first.shape[0]}", p)
+        if img.dtype != first.dtype:
+            # an 8-bit image among 16-bit ones is 257x too dark: silently wrong normals
+            raise InputError(f"image is {img.dtype} but {paths[0].name} is {first.dtype}: "
+                             "one bit depth per stack", p)
+        out[i] = img[:, :, None] if img.ndim == 2 else img
+    return out
+
+
+def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
+                indices: Sequence[int] | None = None) -> Stack:
+    """A DiLiGenT-layout object folder, or any folder of images plus a lights file.
+
+    ``indices`` (0-based) picks the images to keep; only those are decoded.
+    """
+    if not folder.is_dir():
+        raise InputError("stack folder not found", folder)
+    names_file = folder / "filenames.txt"
+    if names_file.is_file():
+        names = [ln.strip() for ln in names_file.read_text().splitlines() if ln.strip()]
+        paths = [folder / n for n in names]
+    else:
+        paths = list_images(folder)
+    if not paths:
+        raise InputError("no images found (expected PNG/TIFF/TGA files or filenames.txt)", folder)
+    lights_path = options.lights or _first_existing(folder, LIGHTS_NAMES)
+    if lights_path is None:
+        raise InputError("no light directions: expected light_directions.txt or lights.txt "
+                         "(or pass --lights)", folder)
+    light_dirs = read_vectors(lights_path, "light directions")
+    if len(light_dirs) != len(paths):
+        raise InputError(f"{len(light_dirs)} light directions for {len(paths)} images in "
+                         f"{folder}", lights_path)
+    int_path = options.intensities or _first_existing(folder, INTENSITY_NAMES)
+    if int_path is not None:
+        ints = read_vectors(int_path, "light intensities")
+        if len(ints) != len(paths):
+            raise InputError(f"{len(ints)} light intensities for {len(paths)} images", int_path)
+        check_intensities(ints, int_path)
+    else:
+        ints = np.ones((len(paths), 3), np.float32)
+    if indices is not None:
+        keep = list(indices)
+        paths, light_dirs, ints = [paths[i] for i in keep], light_dirs[keep], ints[keep]
+    light_dirs = unit_lights(light_dirs, lights_path)
+    check_lights(light_dirs, lights_path)
+    images = _read_images(paths, options.threads)
+    hw = images.shape[1:3]
+    mask_path = options.mask or _first_existing(folder, MASK_NAMES) or next(
+        (p for p in sorted(folder.iterdir()) if "mask" in p.stem.lower() and p.is_file()), None)
+    mask_arr = read_mask(mask_path, hw) if mask_path else np.ones(hw, bool)
+    gt_path = _first_existing(folder, GT_NAMES)
+    gt = read_normals(gt_path) if gt_path else None
+    if gt is not None and gt.shape[:2] != hw:
+        raise InputError(f"ground truth is {gt.shape[1]}x{gt.shape[0]} but images are "
+                         f"{hw[1]}x{hw[0]}", gt_path)
+    return Stack(folder.name, images, light_dirs, ints, mask_arr, gt,
+                 [p.name for p in paths], folder).validate()
+
+
+def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
+    """An .npz with images (N,H,W,3) and lights (N,3); intensities, mask, normals optional."""
+    if not path.is_file():
+        raise InputError("stack file not found", path)
+    try:
+        data = np.load(path, allow_pickle=False)
+        files = set(data.files)
+        if not {"images", "lights"} <= files:
+            raise InputError("npz stack needs arrays 'images' and 'lights'", path)
+        images = np.asarray(data["images"], np.float32)
+        if images.ndim == 3:
+            images = np.repeat(images[..., None], 3, axis=3)
+        if images.ndim != 4:
+            raise InputError(f"npz images must be N x H x W (x 3), got {images.shape}", path)
+        n, h, w = images.shape[:3]
+        lights = np.asarray(data["lights"], np.float32)
+        ints = (np.asarray(data["intensities"], np.float32) if "intensities" in files
+                else np.ones((n, 3), np.float32))
+        mask = np.asarray(data["mask"]).astype(bool) if "mask" in files else np.ones((h, w), bool)
+        gt = np.asarray(data["normals"], np.float32) if "normals" in files else None
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"cannot read npz stack ({exc})", path) from exc
+    if options.lights is not None:
+        lights = read_vectors(options.lights, "light directions")
+    if options.intensities is not None:
+        ints = read_vectors(options.intensities, "light intensities")
+    if options.mask is not None:
+        mask = read_mask(options.mask, (h, w))
+    if len(lights) != n:
+        raise InputError(f"{n} images but {len(lights)} light directions",
+                         options.lights or path)
+    stack = Stack(path.stem, images, unit_lights(lights, options.lights or path), ints, mask,
+                  gt, [], path).validate()
+    return stack.subset(selection(n, options.select, options.max_lights)).validate()
+
+
+def _count_images(folder: Path) -> int:
+    """How many images a folder stack holds, without decoding any (0 if unknown)."""
+    if not folder.is_dir():
+        return 0
+    names_file = folder / "filenames.txt"
+    if names_file.is_file():
+        return sum(1 for ln in names_file.read_text().splitlines() if ln.strip())
+    return len(list_images(folder))
+
+
+def load_stack(path: str | Path, options: LoadOptions | None = None, **overrides: object
+               ) -> Stack:
+    """Load any supported stack with --select and --max-lights applied (only kept images are
+    decoded). Keyword overrides build the options: ``load_stack(p, select="21-96")``."""
+    opts = options or LoadOptions()
+    if overrides:
+        fields = {k: Path(str(v)) if k in ("lights", "intensities", "mask") and v is not None
+                  else v for k, v in overrides.items()}
+        opts = LoadOptions(**{**opts.__dict__, **fields})  # type: ignore[arg-type]
+    path = Path(path)
+    if path.suffix.lower() == ".npz":
+        return load_npz(path, opts)
+    count = _count_images(path)
+    return load_folder(path, opts,
+                       selection(count, opts.select, opts.max_lights) if count else None)

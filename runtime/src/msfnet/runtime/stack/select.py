@@ -1,0 +1,56 @@
+"""Choosing which images of a stack to use: ``--select`` specs and ``--max-lights``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+
+
+def parse_select(spec: str, n: int) -> list[int]:
+    """1-based image selection like ``21-96``, ``1,3,5-9`` or ``90-`` -> 0-based indices.
+
+    Ranges must run upwards and every index must exist; an index may not repeat (a repeated
+    image adds no information but skews the normalisation over lights).
+    """
+    out: list[int] = []
+    usage = f"--select {spec!r}: expected 1-based indices like 21-96 or 1,3,5-9"
+    for part in spec.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            if "-" in part or ":" in part:
+                a, b = part.replace(":", "-").split("-", 1)
+                lo, hi = int(a) if a.strip() else 1, int(b) if b.strip() else n
+                if hi < lo:
+                    raise InputError(f"--select {spec!r}: range {part} runs backwards")
+                out.extend(range(lo - 1, hi))
+            else:
+                out.append(int(part) - 1)
+        except ValueError as exc:
+            raise InputError(usage) from exc
+    if not out:
+        raise InputError(usage)
+    bad = [i + 1 for i in out if not 0 <= i < n]
+    if bad:
+        raise InputError(f"--select {spec!r}: index {bad[0]} is outside 1..{n}")
+    if len(set(out)) != len(out):
+        dup = next(i + 1 for i in out if out.count(i) > 1)
+        raise InputError(f"--select {spec!r}: image {dup} is selected more than once")
+    return out
+
+
+def evenly_spaced(n: int, k: int) -> list[int]:
+    """k indices spread evenly over n (for --max-lights)."""
+    return sorted({round(float(i)) for i in np.linspace(0, n - 1, k)})
+
+
+def selection(n: int, select: str | None, max_lights: int | None) -> list[int]:
+    """--select (1-based spec), then --max-lights evenly spread over what is left."""
+    keep = parse_select(select, n) if select else list(range(n))
+    if max_lights is not None and max_lights < len(keep):
+        if max_lights < 3:
+            raise InputError(f"--max-lights {max_lights}: at least 3 lights are needed")
+        keep = [keep[i] for i in evenly_spaced(len(keep), max_lights)]
+    return keep

@@ -1,0 +1,153 @@
+"""The photometric stack: the one type every loader returns and every consumer takes."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+# Light sets whose 3 x 3 moment matrix is worse conditioned than this cannot separate the normal's
+# components (e.g. all lights nearly parallel): least squares and the network both degrade.
+MAX_LIGHT_CONDITION = 1e4
+INTENSITY_RANGE = (1e-6, 1e6)  # relative to the median intensity
+
+
+@dataclass
+class Stack:
+    """N images of one static object, each lit by one distant light.
+
+    images:       (N, H, W, 3) float32 (or the stored integer type), linear RGB as stored
+                  (not yet divided by intensity)
+    lights:       (N, 3) float32 unit directions, camera frame: x right, y up, z to the camera
+    intensities:  (N, 3) float32 RGB light intensities (ones when unknown)
+    mask:         (H, W) bool object mask (all True when unknown)
+    normals_gt:   (H, W, 3) float32 ground-truth unit normals, or None
+    """
+
+    name: str
+    images: np.ndarray
+    lights: np.ndarray
+    intensities: np.ndarray
+    mask: np.ndarray
+    normals_gt: np.ndarray | None = None
+    filenames: list[str] = field(default_factory=list)
+    source: Path | None = None
+
+    @classmethod
+    def from_arrays(cls, images: np.ndarray, lights: np.ndarray, *,
+                    mask: np.ndarray | None = None, intensities: np.ndarray | None = None,
+                    normals_gt: np.ndarray | None = None, name: str = "stack") -> Stack:
+        """A validated stack from plain arrays: images (N, H, W, 3) or (N, H, W) grey, lights
+        (N, 3) any length; mask and intensities optional."""
+        images = np.asarray(images)
+        if images.ndim == 3:
+            images = np.repeat(images[..., None], 3, axis=3)
+        n, h, w = images.shape[:3]
+        stack = cls(name, images, unit_lights(np.asarray(lights, np.float32), name),
+                    np.ones((n, 3), np.float32) if intensities is None
+                    else np.asarray(intensities, np.float32),
+                    np.ones((h, w), bool) if mask is None else np.asarray(mask).astype(bool),
+                    None if normals_gt is None else np.asarray(normals_gt, np.float32))
+        return stack.validate()
+
+    @property
+    def num_lights(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.images.shape[1]), int(self.images.shape[2])
+
+    def subset(self, indices: Sequence[int]) -> Stack:
+        idx = list(indices)
+        names = [self.filenames[i] for i in idx] if self.filenames else []
+        return replace(self, images=self.images[idx], lights=self.lights[idx],
+                       intensities=self.intensities[idx], filenames=names)
+
+    def validate(self) -> Stack:
+        """Check shapes and values (no side effects); raise InputError naming the source."""
+        src = self.source if self.source is not None else self.name
+        if self.images.ndim != 4 or self.images.shape[3] != 3:
+            raise InputError(f"images must be N x H x W x 3, got {self.images.shape}", src)
+        n = self.images.shape[0]
+        if n < 3:
+            raise InputError(f"photometric stereo needs at least 3 lights, got {n}", src)
+        if self.lights.ndim != 2 or self.lights.shape[1] != 3:
+            raise InputError(f"light directions must have 3 numbers per row, got shape "
+                             f"{self.lights.shape}", src)
+        if self.lights.shape[0] != n:
+            raise InputError(f"{n} images but {self.lights.shape[0]} light directions", src)
+        if self.intensities.shape != (n, 3):
+            raise InputError(f"{n} images but light intensities of shape "
+                             f"{self.intensities.shape} (expected {n} x 3)", src)
+        check_lights(self.lights, src)
+        check_intensities(self.intensities, src)
+        if self.mask.shape != self.shape:
+            raise InputError(f"mask is {self.mask.shape} but images are {self.shape}", src)
+        if not self.mask.any():
+            raise InputError("mask is empty", src)
+        if self.normals_gt is not None and self.normals_gt.shape != (*self.shape, 3):
+            raise InputError(f"ground-truth normals are {self.normals_gt.shape}, images "
+                             f"{self.shape}", src)
+        if np.issubdtype(self.images.dtype, np.floating):
+            # one pass each over the (possibly large) stack; integer images cannot fail these
+            if not np.isfinite(self.images).all():
+                raise InputError("images contain NaN or infinite pixel values", src)
+            if (self.images < 0).any():
+                raise InputError("images contain negative pixel values (expected linear "
+                                 "intensities >= 0)", src)
+        return self
+
+
+def unit_lights(lights: np.ndarray, src: object = None) -> np.ndarray:
+    """Light directions scaled to unit length (float32); zero or non-finite rows refused."""
+    lights = np.asarray(lights, np.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise InputError(f"light directions must have 3 numbers per row, got shape "
+                         f"{lights.shape}", src)  # type: ignore[arg-type]
+    if not np.all(np.isfinite(lights)):
+        raise InputError("light directions contain NaN or infinite values", src)  # type: ignore[arg-type]
+    norms = np.linalg.norm(lights, axis=1)
+    if np.any(norms < 1e-6):
+        bad = np.flatnonzero(norms < 1e-6) + 1
+        raise InputError(f"zero-length light direction(s) at row(s) {bad.tolist()}", src)  # type: ignore[arg-type]
+    return (lights / norms[:, None]).astype(np.float32)
+
+
+def light_condition(lights: np.ndarray) -> float:
+    """Condition number of the light set's 3 x 3 moment matrix (1 = ideal, inf = rank < 3)."""
+    lights = np.asarray(lights, np.float64)
+    s = np.linalg.svd(lights, compute_uv=False)
+    return float(s[0] / s[-1]) if s[-1] > 1e-12 * max(s[0], 1e-300) else float("inf")
+
+
+def check_lights(lights: np.ndarray, src: object = None) -> None:
+    if not np.all(np.isfinite(lights)):
+        raise InputError("light directions contain NaN or infinite values", src)  # type: ignore[arg-type]
+    norms = np.linalg.norm(lights, axis=1)
+    if np.any(np.abs(norms - 1) > 1e-3):
+        raise InputError("light directions must be unit vectors (loaders normalise them)",
+                         src)  # type: ignore[arg-type]
+    cond = light_condition(lights)
+    if not cond < MAX_LIGHT_CONDITION:
+        what = "rank < 3" if not np.isfinite(cond) else f"condition number {cond:.3g}"
+        raise InputError(f"the light directions do not span 3-D ({what}; e.g. all lights "
+                         "equal or in one plane): normals cannot be recovered", src)  # type: ignore[arg-type]
+
+
+def check_intensities(intensities: np.ndarray, src: object = None) -> None:
+    if not np.all(np.isfinite(intensities)) or np.any(intensities <= 0):
+        bad = np.flatnonzero(~np.all(np.isfinite(intensities) & (intensities > 0), axis=1)) + 1
+        raise InputError(f"light intensities must be positive and finite; bad row(s) "
+                         f"{bad.tolist()}", src)  # type: ignore[arg-type]
+    ref = float(np.median(intensities))
+    lo, hi = INTENSITY_RANGE
+    ratio = intensities / ref
+    if np.any(ratio < lo) or np.any(ratio > hi):
+        bad = np.flatnonzero(np.any((ratio < lo) | (ratio > hi), axis=1)) + 1
+        raise InputError(f"light intensities span more than {hi / lo:.0e}x (row(s) "
+                         f"{bad.tolist()[:5]}): probably a unit or parsing error", src)  # type: ignore[arg-type]

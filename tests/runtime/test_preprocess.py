@@ -1,0 +1,50 @@
+"""The network's normalisation (the core contract with the exported model), tested directly."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from msfnet.runtime.contract import TRAIN_LIGHTS
+from msfnet.runtime.preprocess import normalise
+
+
+def test_normalise_follows_the_four_steps(rng: np.random.Generator) -> None:
+    n, h, w = 7, 5, 6
+    images = rng.uniform(0, 1000, (n, h, w, 3)).astype(np.float32)
+    ints = rng.uniform(0.5, 2.0, (n, 3)).astype(np.float32)
+    mask = rng.random((h, w)) > 0.3
+    x = normalise(images, ints, mask, TRAIN_LIGHTS)
+    assert x.shape == (n, 3, h, w) and x.dtype == np.float32
+    # by hand, in float64: divide by intensity, L2 over lights, sqrt(N / 32), mask
+    ref = images.astype(np.float64) / ints[:, None, None, :]
+    ref /= np.sqrt((ref**2).sum(axis=0, keepdims=True)) + 1e-10
+    ref *= np.sqrt(n / TRAIN_LIGHTS) * mask[None, :, :, None]
+    np.testing.assert_allclose(x, ref.transpose(0, 3, 1, 2), rtol=2e-6, atol=1e-7)
+    # per pixel and channel the N values have norm sqrt(N / 32) inside the mask, 0 outside
+    norms = np.linalg.norm(x, axis=0)  # (3, H, W)
+    np.testing.assert_allclose(norms[:, mask], np.sqrt(n / 32), rtol=1e-5)
+    assert np.all(norms[:, ~mask] == 0)
+
+
+def test_normalise_is_per_pixel_so_tiles_equal_crops(rng: np.random.Generator) -> None:
+    images = rng.uniform(0, 1, (4, 12, 10, 3)).astype(np.float32)
+    ints = np.ones((4, 3), np.float32)
+    mask = np.ones((12, 10), bool)
+    whole = normalise(images, ints, mask)
+    tile = normalise(images[:, 3:9, 2:7], ints, mask[3:9, 2:7])
+    np.testing.assert_array_equal(tile, whole[:, :, 3:9, 2:7])
+
+
+def test_normalise_is_invariant_to_exposure_and_light_brightness(rng: np.random.Generator
+                                                                 ) -> None:
+    images = rng.uniform(1, 100, (5, 4, 4, 3)).astype(np.float32)
+    ints = rng.uniform(0.5, 2.0, (5, 3)).astype(np.float32)
+    mask = np.ones((4, 4), bool)
+    base = normalise(images, ints, mask)
+    # a brighter exposure of the whole stack changes nothing; so does a light that is 3x
+    # brighter when its intensity says so
+    np.testing.assert_allclose(normalise(images * 7, ints, mask), base, rtol=1e-5)
+    brighter, ints3 = images.copy(), ints.copy()
+    brighter[2] *= 3
+    ints3[2] *= 3
+    np.testing.assert_allclose(normalise(brighter, ints3, mask), base, rtol=1e-5)
