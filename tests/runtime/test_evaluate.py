@@ -23,11 +23,11 @@ def bench_root(tmp_path: Path) -> Path:
 
 
 def test_find_objects(bench_root: Path, tmp_path: Path) -> None:
-    assert [(f.name, s) for f, s in find_objects(bench_root)] == [("objB", "4-9"),
-                                                                   ("objA", None)]
+    found = [(o.folder.name, o.select) for o in find_objects(bench_root)]
+    assert found == [("objB", "4-9"), ("objA", None)]
     (bench_root / "objects.txt").unlink()
-    assert [f.name for f, _ in find_objects(bench_root)] == ["objA", "objB"]
-    assert [f.name for f, _ in find_objects(bench_root / "objA")] == ["objA"]
+    assert [o.folder.name for o in find_objects(bench_root)] == ["objA", "objB"]
+    assert [o.folder.name for o in find_objects(bench_root / "objA")] == ["objA"]
 
 
 def test_msf_eval_table(random_onnx: Path, bench_root: Path, tmp_path: Path,
@@ -37,7 +37,7 @@ def test_msf_eval_table(random_onnx: Path, bench_root: Path, tmp_path: Path,
                  "--threads", "2"]) == 0
     res = json.loads((out / "results.json").read_text())
     assert res["methods"] == ["msf", "l2"]
-    rows = {r["object"]: r for r in res["objects"]}
+    rows = {r["object"]: r for r in res["results"]}
     assert rows["objB"]["lights"] == 6 and rows["objA"]["lights"] == 6
     # numbers equal a direct run of each method on the same stack
     stack_b = load_stack(bench_root / "objB", select="4-9")
@@ -48,11 +48,39 @@ def test_msf_eval_table(random_onnx: Path, bench_root: Path, tmp_path: Path,
     for obj in ("objA", "objB"):
         for m in ("msf", "l2"):
             assert (out / obj / f"{m}_error.png").is_file()
-            assert 0 <= rows[obj]["results"][m]["err30"] <= 1
+            assert (out / obj / f"{m}_normals.png").is_file()
+    assert rows["objB"]["results"]["msf"]["mae_deg"] > rows["objB"]["results"]["l2"]["mae_deg"]
     md = (out / "results.md").read_text()
-    assert md.startswith("| object | lights | MAE deg msf | MAE deg l2 |")
+    assert md.startswith("| object | lights | MAE msf | MAE l2 |")
     assert "**mean**" in md and md == capsys.readouterr().out.split("wrote")[0].rstrip() + "\n"
     # refuses to overwrite without --overwrite
     assert main([str(bench_root), "--l2-only", "-o", str(out)]) == 2
     assert main([str(bench_root), "--l2-only", "-o", str(out), "--overwrite"]) == 0
     assert json.loads((out / "results.json").read_text())["methods"] == ["l2"]
+
+
+def test_objects_without_ground_truth_get_the_detail_ratio(bench_root: Path,
+                                                           tmp_path: Path) -> None:
+    """No ground truth: the model's high-pass energy over least squares' (random weights
+    smooth everything away, so the ratio is far below 1)."""
+    import numpy as np
+
+    (bench_root / "objA" / "Normal_gt.mat").unlink()
+    out = tmp_path / "eval"
+    model = Model.least_squares()
+    from msfnet.runtime.eval_cli import evaluate
+
+    summary = evaluate(find_objects(bench_root / "objA"), out, model=model)
+    row = summary["results"][0]
+    assert row["note"] == "no ground truth"
+    assert row["detail_ratio"] == pytest.approx(1.0)  # least squares against itself
+    assert "detail msf / l2" in (out / "results.md").read_text()
+    assert np.isfinite(row["detail_ratio"])
+
+
+def test_diligent_protocol_selects_bear_21_96(tmp_path: Path) -> None:
+    root = tmp_path / "DiLiGenT"
+    save_stack(sphere_stack(n=24, name="bear"), root / "bearPNG")
+    save_stack(sphere_stack(n=5, name="ball"), root / "ballPNG")
+    objs = {o.folder.name: o.select for o in find_objects(root)}
+    assert objs == {"ballPNG": None, "bearPNG": "21-96"}

@@ -10,26 +10,38 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from .benchmarks import PROTOCOL_SELECT, PUBLISHED_MAE, PUBLISHED_METHODS
 from .cliutil import make_parser, positive_float, positive_int, run_command
+from .detail import detail_ratio
 from .errors import InputError
 from .files import check_output, json_text, staged_folder
 from .outputs import error_png, normals_png, write_rgb_png
 from .pipeline import Model
-from .stack import LIGHTS_NAMES, load_stack
+from .stack import LIGHTS_NAMES, LoadOptions, load_stack
 from .tiling import DEFAULT_MAX_MEMORY_MB
 
 PROG = "msf-eval"
 COLUMNS = ("mae_deg", "err15", "err30")
 
 
-def find_objects(root: Path) -> list[tuple[Path, str | None]]:
-    """(object folder, --select spec or None) in benchmark order."""
+@dataclass(frozen=True)
+class BenchObject:
+    folder: Path
+    select: str | None  # the benchmark's image selection (e.g. bear 21-96)
+
+
+def find_objects(root: Path) -> list[BenchObject]:
+    """The objects of a benchmark root in benchmark order: those listed in objects.txt (one
+    folder per line, optionally followed by an image selection), the root itself when it is a
+    stack, or every sub-folder holding a stack. Known benchmark objects get their protocol's
+    selection (DiLiGenT bear: 21-96) unless objects.txt says otherwise."""
     if not root.is_dir():
-        raise InputError("benchmark root not found", root)
+        raise InputError("benchmark root or object folder not found", root)
     listing = root / "objects.txt"
     if listing.is_file():
         out = []
@@ -40,18 +52,13 @@ def find_objects(root: Path) -> list[tuple[Path, str | None]]:
             folder = root / parts[0]
             if not folder.is_dir():
                 raise InputError(f"object folder {parts[0]!r} listed but not found", listing)
-            out.append((folder, parts[1] if len(parts) > 1 else None))
+            out.append(BenchObject(folder, parts[1] if len(parts) > 1 else None))
         if not out:
             raise InputError("objects.txt lists no objects", listing)
-        names = [f.name for f, _ in out]
-        dup = next((n for n in names if names.count(n) > 1), None)
-        if dup is not None:
-            raise InputError(f"object {dup!r} is listed twice (its results would clash)",
-                             listing)
         return out
-    if any((root / n).is_file() for n in LIGHTS_NAMES):
-        return [(root, None)]
-    found: list[tuple[Path, str | None]] = [(d, None) for d in sorted(root.iterdir())
+    if any((root / n).is_file() for n in LIGHTS_NAMES) or any(root.glob("*.[tT][gG][aA]")):
+        return [BenchObject(root, PROTOCOL_SELECT.get(root.name))]
+    found = [BenchObject(d, PROTOCOL_SELECT.get(d.name)) for d in sorted(root.iterdir())
              if d.is_dir() and any((d / n).is_file() for n in LIGHTS_NAMES)]
     if not found:
         raise InputError("no object folders (with light_directions.txt or lights.txt) and no "
@@ -59,23 +66,42 @@ def find_objects(root: Path) -> list[tuple[Path, str | None]]:
     return found
 
 
-def _fmt(v: float | None, pct: bool = False) -> str:
-    if v is None:
+def _check_unique(objects: list[BenchObject]) -> None:
+    names = [o.folder.name for o in objects]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise InputError(f"object {dup!r} appears twice (its results would clash)")
+
+
+def _fmt(v: object, pct: bool = False) -> str:
+    if not isinstance(v, (int, float)) or v != v:
         return "-"
     return f"{v * 100:.1f}" if pct else f"{v:.2f}"
 
 
 def markdown_table(rows: list[dict], methods: list[str]) -> str:
-    head = ["object", "lights"]
-    for col in COLUMNS:
-        label = {"mae_deg": "MAE deg", "err15": "<15° %", "err30": "<30° %"}[col]
-        head += [f"{label} {m}" for m in methods]
+    """Objects with ground truth: MAE per method beside the published figures, then err15/30."""
+    published = [p for p in PUBLISHED_METHODS
+                 if any(p in PUBLISHED_MAE.get(r["object"], {}) for r in rows)]
+    head = ["object", "lights"] + [f"MAE {m}" for m in methods] + published
+    head += [f"<15° % {m}" for m in methods] + [f"<30° % {m}" for m in methods]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
+        res = r["results"]
         cells = [r["object"], str(r["lights"])]
-        for col in COLUMNS:
-            cells += [_fmt(r["results"].get(m, {}).get(col), col != "mae_deg") for m in methods]
+        cells += [_fmt(res.get(m, {}).get("mae_deg")) for m in methods]
+        cells += [_fmt(PUBLISHED_MAE.get(r["object"], {}).get(p)) for p in published]
+        cells += [_fmt(res.get(m, {}).get("err15"), True) for m in methods]
+        cells += [_fmt(res.get(m, {}).get("err30"), True) for m in methods]
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def detail_table(rows: list[dict]) -> str:
+    """Objects without ground truth: the model's high-pass energy relative to least squares'."""
+    lines = ["| object | lights | detail msf / l2 |", "|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['object']} | {r['lights']} | {_fmt(r.get('detail_ratio'))} |")
     return "\n".join(lines)
 
 
@@ -88,12 +114,14 @@ def mean_row(rows: list[dict], methods: list[str]) -> dict:
     return {"object": "**mean**", "lights": "", "results": res}
 
 
-def evaluate(root: Path, outdir: Path, *, model: Model | None, use_l2: bool = True,
-             max_lights: int | None = None, overwrite: bool = False,
+def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
+             use_l2: bool = True, load: LoadOptions | None = None, overwrite: bool = False,
              progress: bool = False) -> dict:
     """Score ``model`` (and least squares) on every object; write the results folder."""
-    objects = find_objects(root)
-    check_output(outdir, [root], overwrite=overwrite, folder=True)
+    load = load or LoadOptions()
+    _check_unique(objects)
+    check_output(outdir, [o.folder for o in objects] + load.inputs(), overwrite=overwrite,
+                 folder=True)
     runners: dict[str, Model] = {}
     if model is not None:
         runners["msf"] = model
@@ -104,35 +132,48 @@ def evaluate(root: Path, outdir: Path, *, model: Model | None, use_l2: bool = Tr
         raise InputError("nothing to evaluate: both the model and l2 are switched off")
     methods = list(runners)
     with staged_folder(outdir, overwrite=overwrite) as tmp:
-        rows = []
-        for folder, select in objects:
-            stack = load_stack(folder, select=select, max_lights=max_lights)
-            row: dict = {"object": folder.name, "lights": stack.num_lights, "results": {},
-                         "select": select}
-            if stack.normals_gt is None:
-                row["note"] = "no ground truth"
-                rows.append(row)
-                continue
-            (tmp / folder.name).mkdir()
+        rows, detail_rows = [], []
+        for obj in objects:
+            opts = replace(load, select=load.select or obj.select)
+            stack = load_stack(obj.folder, opts)
+            row: dict = {"object": obj.folder.name, "lights": stack.num_lights, "results": {},
+                         "select": opts.select}
+            (tmp / obj.folder.name).mkdir()
+            outs = {}
             for m, runner in runners.items():
                 res = runner(stack, progress=progress)
-                assert res.metrics is not None and res.error_deg is not None
-                write_rgb_png(tmp / folder.name / f"{m}_error.png",
-                              error_png(res.error_deg, stack.mask))
-                write_rgb_png(tmp / folder.name / f"{m}_normals.png",
+                outs[m] = res.normals
+                write_rgb_png(tmp / obj.folder.name / f"{m}_normals.png",
                               normals_png(res.normals, stack.mask))
-                row["results"][m] = {**res.metrics.as_dict(),
-                                     "seconds": res.timings.median_s("total")}
-            rows.append(row)
+                seconds = res.timings.median_s("total")
+                if res.metrics is not None and res.error_deg is not None:
+                    write_rgb_png(tmp / obj.folder.name / f"{m}_error.png",
+                                  error_png(res.error_deg, stack.mask))
+                    row["results"][m] = {**res.metrics.as_dict(), "seconds": seconds}
+                else:
+                    row["results"][m] = {"seconds": seconds}
+            if stack.normals_gt is None:
+                row["note"] = "no ground truth"
+                if "msf" in outs and "l2" in outs:
+                    row["detail_ratio"] = detail_ratio(outs["msf"], outs["l2"], stack.mask)
+                detail_rows.append(row)
+            else:
+                row["published"] = PUBLISHED_MAE.get(obj.folder.name, {})
+                rows.append(row)
             if progress:
-                print(f"{folder.name}: " + ", ".join(
-                    f"{m} {row['results'][m]['mae_deg']:.2f} deg" for m in methods),
-                    file=sys.stderr)
-        summary = {"root": str(root),
+                print(f"{obj.folder.name}: " + ", ".join(
+                    f"{m} {v['mae_deg']:.2f} deg" for m, v in row["results"].items()
+                    if "mae_deg" in v), file=sys.stderr)
+        tables = []
+        if rows:
+            tables.append(markdown_table([*rows, mean_row(rows, methods)], methods))
+        if detail_rows:
+            tables.append(detail_table(detail_rows))
+        table = "\n\n".join(tables)
+        summary = {"objects": [str(o.folder) for o in objects],
                    "model": runners["msf"].describe().get("model") if "msf" in runners
-                   else None, "methods": methods, "objects": rows,
-                   "mean": mean_row(rows, methods)["results"]}
-        table = markdown_table([*rows, mean_row(rows, methods)], methods)
+                   else None, "methods": methods, "results": rows + detail_rows,
+                   "mean": mean_row(rows, methods)["results"] if rows else {}}
         (tmp / "results.json").write_text(json_text(summary))
         (tmp / "results.md").write_text(table + "\n")
     summary["table"] = table
@@ -143,11 +184,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = make_parser(
         PROG,
         "Score a model (ONNX via the runtime) and the least-squares baseline on every object "
-        "of a benchmark root (objects.txt, or every object folder). Prints a per-object "
-        "MAE / err15 / err30 table and writes results.json, results.md and error maps.",
-        ("msf-eval ../shared/data/DiLiGenT/ballPNG",
+        "of a benchmark root (objects.txt, or every object folder). Objects with ground truth: "
+        "MAE / err15 / err30 beside the published figures (DiLiGenT); without: the detail "
+        "ratio (high-pass energy of the model's normals over least squares'). Writes "
+        "results.json, results.md, normal and error maps.",
+        ("msf-eval ../shared/data/DiLiGenT      # ball, bear (21-96), harvest",
+         "msf-eval psmImages/cat psmImages/owl --lights psmImages/lights.txt   # detail only",
          "msf-eval benchmark/ --onnx my_model.onnx -o eval/mine"))
-    p.add_argument("root", type=Path, metavar="ROOT", help="benchmark root or one object folder")
+    p.add_argument("roots", type=Path, metavar="ROOT", nargs="+",
+                   help="benchmark root(s) or object folder(s)")
     p.add_argument("--onnx", type=Path, metavar="MODEL",
                    help="msfnet ONNX model (default: the bundled model)")
     p.add_argument("--l2-only", action="store_true", help="only the least-squares baseline")
@@ -156,6 +201,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (default ./msf-eval/<root name>/)")
     p.add_argument("--max-lights", type=positive_int, metavar="K",
                    help="use K evenly spaced lights")
+    p.add_argument("--lights", type=Path, help="light directions file shared by all objects "
+                   "(e.g. psmImages/lights.txt)")
+    p.add_argument("--select", metavar="SPEC", help="image subset for every object (default: "
+                   "the benchmark's protocol, e.g. DiLiGenT bear 21-96)")
     p.add_argument("--threads", type=positive_int, metavar="T", help="inference threads")
     p.add_argument("--provider", default="cpu", metavar="P", help="execution provider")
     p.add_argument("--tile", type=int, metavar="S", help="tile edge in px (0 = untiled)")
@@ -166,15 +215,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    outdir = args.output or Path("msf-eval") / args.root.resolve().name
+    name = args.roots[0].resolve().name if len(args.roots) == 1 else "objects"
+    outdir = args.output or Path("msf-eval") / name
     if args.l2_only and args.onnx is not None:
         raise InputError("--l2-only and --onnx contradict each other")
-    check_output(outdir, [args.root, args.onnx], overwrite=args.overwrite, folder=True)
+    objects = [o for root in args.roots for o in find_objects(root)]
+    _check_unique(objects)
+    load = LoadOptions(lights=args.lights, select=args.select, max_lights=args.max_lights)
+    check_output(outdir, [*args.roots, args.onnx, *load.inputs()], overwrite=args.overwrite,
+                 folder=True)
     model = None if args.l2_only else Model(
         args.onnx, threads=args.threads, provider=args.provider, tile=args.tile,
         max_memory_mb=args.max_memory)
-    summary = evaluate(args.root, outdir, model=model, use_l2=not args.no_l2,
-                       max_lights=args.max_lights, overwrite=args.overwrite,
+    summary = evaluate(objects, outdir, model=model, use_l2=not args.no_l2, load=load,
+                       overwrite=args.overwrite,
                        progress=sys.stderr.isatty() and not args.quiet)
     if not args.quiet:
         print(summary["table"])
