@@ -184,6 +184,21 @@ def height_picture(height: np.ndarray, mask: np.ndarray, *, units: str = "px") -
                            label=f"height toward camera ({units})")
 
 
+CURVATURE_CMAP = "RdBu_r"  # diverging: blue concave, white flat, red convex
+
+
+def curvature_colors(mean: np.ndarray, mask: np.ndarray, percentile: float = 99.0
+                     ) -> tuple[np.ndarray, float]:
+    """(H, W, 3) RGB in [0, 1] of a mean-curvature map on the diverging map centred on 0, and
+    the symmetric range r used (-r .. +r, the ``percentile`` of |H| in the mask)."""
+    from matplotlib import colormaps
+
+    valid = mask & np.isfinite(mean)
+    top = symmetric_range(mean[valid], percentile)
+    scaled = np.clip(np.nan_to_num(mean) / top, -1.0, 1.0) * 0.5 + 0.5
+    return colormaps[CURVATURE_CMAP](scaled)[..., :3], top
+
+
 def curvature_picture(mean: np.ndarray, mask: np.ndarray, *, percentile: float = 99.0
                       ) -> np.ndarray:
     """Mean curvature on a diverging map centred on 0 (red convex, blue concave), symmetric
@@ -191,8 +206,8 @@ def curvature_picture(mean: np.ndarray, mask: np.ndarray, *, percentile: float =
     valid = mask & np.isfinite(mean)
     if not valid.any():
         return _empty("mean curvature")
-    top = symmetric_range(mean[valid], percentile)
-    return _scalar_picture(mean, valid, cmap="RdBu_r", vmin=-top, vmax=top,
+    rgb, top = curvature_colors(mean, valid, percentile)
+    return _scalar_picture(mean, valid, cmap=CURVATURE_CMAP, vmin=-top, vmax=top, rgb=rgb,
                            title="mean curvature (red convex, blue concave)",
                            label="mean curvature (1/px)")
 
@@ -252,6 +267,7 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 __all__ = [
     "albedo_picture",
     "crop_box",
+    "curvature_colors",
     "curvature_picture",
     "error_picture",
     "error_range",
