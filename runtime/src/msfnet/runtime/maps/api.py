@@ -110,7 +110,7 @@ class InspectionMaps:
         if self.integration is not None:
             out["integration"] = {"method": self.integration.method,
                                   "iterations": self.integration.iterations,
-                                  "factorisations": self.integration.factorisations,
+                                  "multigrid_builds": self.integration.builds,
                                   "seconds": self.integration.seconds}
         if self.height is not None and np.isfinite(self.height).any():
             out["height_range"] = float(np.nanmax(self.height) - np.nanmin(self.height))
