@@ -27,18 +27,22 @@ HEIGHT, WIDTH = 512, 612
 
 
 def bench_object(h: int = HEIGHT, w: int = WIDTH) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(height (H, W) px, mask (H, W) bool, unit normals (H, W, 3)): an elliptical dome of
-    80 px with bumps, filling an ellipse with semi-axes 0.45 W and 0.45 H."""
+    """(height (H, W) px, mask (H, W) bool, unit normals (H, W, 3)): an elliptical dome
+    (80 px high at 612 px wide, scaled with the width) with bumps, filling an ellipse with
+    semi-axes 0.45 W and 0.45 H."""
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
     au, av = 0.45 * w, 0.45 * h
     u, v = (cols - w / 2) / au, (rows - h / 2) / av
     mask = u**2 + v**2 < 0.98  # off the vertical rim, where a dome's slope is unbounded
-    amp = 80.0
+    scale = w / WIDTH  # the same shape at any frame size
+    amp = 80.0 * scale
     root = np.sqrt(np.clip(1 - u**2 - v**2, 1e-3, None))
     z = amp * root
     d_col, d_row = -amp * u / (au * root), -amp * v / (av * root)
-    for r0, c0, a, s in ((200, 250, 20.0, 30.0), (300, 400, -15.0, 40.0), (150, 420, 10.0, 20.0)):
-        e = a * np.exp(-((rows - r0) ** 2 + (cols - c0) ** 2) / (2 * s * s))
+    for fr, fc, a, fs in ((0.39, 0.41, 20.0, 0.05), (0.59, 0.65, -15.0, 0.065),
+                          (0.29, 0.69, 10.0, 0.033)):
+        r0, c0, s = fr * h, fc * w, fs * w  # bumps placed and sized relative to the frame
+        e = a * scale * np.exp(-((rows - r0) ** 2 + (cols - c0) ** 2) / (2 * s * s))
         z += e
         d_col += -e * (cols - c0) / s**2
         d_row += -e * (rows - r0) / s**2
@@ -76,10 +80,11 @@ def time_call(fn, repeat: int) -> tuple[list[float], list[float], object]:
     return walls, cpus, out
 
 
-def run(methods: tuple[str, ...], repeat: int) -> dict[str, object]:
-    z, mask, n = bench_object()
+def run(methods: tuple[str, ...], repeat: int, size: tuple[int, int] = (HEIGHT, WIDTH)
+        ) -> dict[str, object]:
+    z, mask, n = bench_object(*size)
     results: dict[str, object] = {
-        "cpu": cpu_model(), "cores": usable_cores(), "frame": f"{WIDTH}x{HEIGHT}",
+        "cpu": cpu_model(), "cores": usable_cores(), "frame": f"{size[1]}x{size[0]}",
         "mask_pixels": int(mask.sum()), "load_average": os.getloadavg(), "methods": {}}
     table = results["methods"]
     assert isinstance(table, dict)
@@ -120,9 +125,11 @@ def main(argv: list[str] | None = None) -> int:
                                 f"{WIDTH}x{HEIGHT} masked object.")
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
     p.add_argument("--repeat", type=int, default=3, help="runs per method (median reported)")
+    p.add_argument("--size", type=int, nargs=2, default=(HEIGHT, WIDTH), metavar=("H", "W"),
+                   help=f"frame size (default {HEIGHT} {WIDTH})")
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = p.parse_args(argv)
-    results = run(tuple(args.methods), max(1, args.repeat))
+    results = run(tuple(args.methods), max(1, args.repeat), tuple(args.size))
     print(format_table(results))
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
