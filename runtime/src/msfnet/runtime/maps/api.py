@@ -228,7 +228,8 @@ def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray |
     if "mesh" in maps.options.maps and maps.height is not None:
         colors = None if maps.albedo is None else albedo_colors(maps.albedo, m)
         mesh = height_mesh(maps.height, m, normals=maps.normals, colors=colors,
-                           intrinsics=maps.options.intrinsics, depth=maps.depth,
+                           intrinsics=Intrinsics.coerce(maps.options.intrinsics),
+                           depth=maps.depth,
                            max_jump=maps.options.mesh_max_jump)
         jobs.append(("mesh.ply", lambda tmp, mesh=mesh: write_ply(tmp, mesh)))
     summary = maps.summary()

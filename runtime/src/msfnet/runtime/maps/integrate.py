@@ -220,30 +220,27 @@ def _side_weights(z: np.ndarray | None, valid: np.ndarray, k: float, scale: floa
     """
     out = []
     for axis in (1, 0):
+        # lo/hi: the first and second pixel of each neighbour pair along this axis
+        lo: tuple[slice, slice] = (slice(None), slice(None, -1))
+        hi: tuple[slice, slice] = (slice(None), slice(1, None))
+        if axis == 0:
+            lo, hi = lo[::-1], hi[::-1]  # type: ignore[assignment]
+        pair = valid[lo] & valid[hi]
+        has_f = np.zeros_like(valid)
+        has_b = np.zeros_like(valid)
+        has_f[lo] = pair
+        has_b[hi] = pair
+        both = has_f & has_b
         if z is None:
-            fwd_d = back_d = None
-        else:
-            d = np.diff(z * scale, axis=axis)  # NaN where an end is outside the mask
-            pad_f = [(0, 0), (0, 0)]
-            pad_b = [(0, 0), (0, 0)]
-            pad_f[axis] = (0, 1)
-            pad_b[axis] = (1, 0)
-            fwd_d = np.pad(d, pad_f, constant_values=np.nan)
-            back_d = np.pad(d, pad_b, constant_values=np.nan)
-        has = valid & np.roll(valid, -1, axis)
-        has_b = valid & np.roll(valid, 1, axis)
-        # np.roll wraps around: the last column/row has no forward neighbour, the first no back
-        edge = [slice(None), slice(None)]
-        edge[axis] = -1
-        has[tuple(edge)] = False
-        edge[axis] = 0
-        has_b[tuple(edge)] = False
-        both = has & has_b
-        if fwd_d is None:
             wf = np.where(both, 0.5, 1.0)
         else:
+            step = (z[hi] - z[lo]) * scale  # NaN where an end is outside the mask
+            fwd = np.full(valid.shape, np.nan)
+            back = np.full(valid.shape, np.nan)
+            fwd[lo] = step
+            back[hi] = step
             with np.errstate(invalid="ignore"):
-                wf = np.where(both, expit(k * (back_d**2 - fwd_d**2)), 1.0)
+                wf = np.where(both, expit(k * (back**2 - fwd**2)), 1.0)
         wb = np.where(both, 1.0 - wf, 1.0)
         out += [wf, wb]
     return out[0], out[1], out[2], out[3]

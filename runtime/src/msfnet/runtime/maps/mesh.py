@@ -67,9 +67,9 @@ def height_mesh(height: np.ndarray, mask: np.ndarray, *, normals: np.ndarray | N
     if intrinsics is not None:
         if depth is None or np.shape(depth) != m.shape:
             raise InputError("a perspective mesh needs the depth map beside the intrinsics")
-        d = np.asarray(depth, np.float64)[valid]
-        verts = np.stack([d * (cols - intrinsics.cx) / intrinsics.fx,
-                          -d * (rows - intrinsics.cy) / intrinsics.fy, -d], axis=1)
+        dist = np.asarray(depth, np.float64)[valid]
+        verts = np.stack([dist * (cols - intrinsics.cx) / intrinsics.fx,
+                          -dist * (rows - intrinsics.cy) / intrinsics.fy, -dist], axis=1)
     else:
         verts = np.stack([cols, -rows, z[valid]], axis=1).astype(np.float64)
     # corners of every 2 x 2 block: a top-left, b top-right, c bottom-left, d bottom-right
