@@ -68,6 +68,7 @@ SOLVE_ITER = 100  # CG steps allowed for a full solve (multigrid needs ~10 on a 
 INNER_ITER = 6  # CG steps per reweighting round (inexact: the weights move on anyway)
 REBUILD_RESIDUAL = 1e-2  # an inner solve left above this: rebuild the multigrid hierarchy
 COARSE_SIZE = 400  # unknowns on the coarsest multigrid level, solved by SuperLU
+RIDGE = 1e-10  # relative diagonal ridge of the normal equations (see _system)
 JACOBI_OMEGA = 2.0 / 3.0  # damping of the Jacobi smoother and of the prolongator smoothing
 CROP_MARGIN = 8  # px of background kept around the object (fc's zero-gradient apron)
 FOUR_NEIGHBOURS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
@@ -265,9 +266,13 @@ def _system(g: _Graph, alpha: np.ndarray, beta: np.ndarray, t_a: np.ndarray, t_b
     a = alpha + beta
     lap = (g.incidence.T @ sp.diags(a) @ g.incidence).tocsr()
     b = g.incidence.T @ (alpha * t_a + beta * t_b)
-    pin = np.zeros(g.pixels)
-    pin[g.pins] = max(float(a.mean()) if a.size else 1.0, 1e-12)
-    return (lap + sp.diags(pin)).tocsr(), b
+    scale = max(float(a.mean()) if a.size else 1.0, 1e-12)
+    # A faint ridge on the whole diagonal keeps the system (and every multigrid level) positive
+    # definite where the reweighting cuts a region loose from its pinned pixel; it moves heights
+    # by ~1e-6 of their range.
+    diag = np.full(g.pixels, RIDGE * scale)
+    diag[g.pins] += scale
+    return (lap + sp.diags(diag)).tocsr(), b
 
 
 class Multigrid:
