@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..imageio import write_atomic
+from ..stack import Stack
 from .albedo import DEFAULT_MIN_SHADING, albedo_map
 from .curvature import DEFAULT_SIGMA, curvature_maps
 from .integrate import DEFAULT_MIN_NZ, METHODS, Integration, Intrinsics, integrate_normals
@@ -153,7 +154,7 @@ def compute_maps(images: np.ndarray | None, lights: np.ndarray | None,
     return maps
 
 
-def stack_maps(stack: Any, normals: np.ndarray, options: MapOptions | None = None
+def stack_maps(stack: Stack, normals: np.ndarray, options: MapOptions | None = None
                ) -> InspectionMaps:
     """:func:`compute_maps` for a ``msfnet.runtime.stack.Stack`` and its estimated normals."""
     return compute_maps(stack.images, stack.lights, stack.intensities, stack.mask, normals,
@@ -181,7 +182,8 @@ def _bytes_writer(data: bytes) -> Any:
 def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray | None = None,
                error_deg: np.ndarray | None = None, profile: Mapping[str, object] | None = None,
                report: bool = True, title: str | None = None) -> list[Path]:
-    """Write the computed maps into ``folder``; returns the written paths.
+    """Write the computed maps into ``folder`` (created if needed; it may already hold the
+    run's normals.npy etc., which are left alone); returns the written paths.
 
     albedo.png (16-bit RGB, relative) + albedo.npy; height.npy (float32, NaN outside) +
     height.png (hill-shaded picture) [+ depth.npy with intrinsics]; curvature.npy (mean, 1/px)

@@ -16,9 +16,11 @@ H +- sqrt(H^2 - K), and Koenderink & van Doorn's shape index (Image and Vision C
 below ``flat`` the shape is undefined (planar) and S is NaN.
 
 Derivatives are central differences inside the mask, one-sided where a neighbour is outside,
-and 0 for a pixel with no neighbour along that axis. The normals are first smoothed with a
-Gaussian of ``sigma`` pixels restricted to the mask (normalised convolution), because
-differentiation amplifies estimation noise. Outside the valid mask every map is NaN.
+and 0 for a pixel with no neighbour along that axis. Pixels are treated as an orthographic grid
+(for a perspective camera: the image-plane approximation, fine for distant objects). The
+normals are first smoothed with a Gaussian of ``sigma`` pixels restricted to the mask
+(normalised convolution), because differentiation amplifies estimation noise. Outside the
+valid mask every map is NaN.
 """
 
 from __future__ import annotations
