@@ -12,8 +12,9 @@ point d * ((u - cx)/fx, (v - cy)/fy, 1) in the OpenCV frame (y down, z forward),
 depth along the optical axis. Writing the normal in that frame, m = (nx, -ny, -nz), and
 D = m . ((u - cx)/fx, (v - cy)/fy, 1), tangency of the surface gives the log-depth gradients
     d log(d)/du = -mx / (fx D),    d log(d)/dv = -my / (fy D),
-so the same integrators solve for log-depth (scale-free), as in the perspective formulations of
-Durou et al. and of BiNI. D < 0 on visible surfaces; it is clipped to at most -min_nz.
+so the same integrators solve for log-depth (scale-free), the perspective formulation surveyed
+by Queau, Durou & Aujol ("Normal integration: a survey", JMIV 60, 2018) and used by BiNI.
+D < 0 on visible surfaces; it is clipped to at most -min_nz.
 
 Methods
 - ``fc``: Frankot & Chellappa (IEEE TPAMI 10(4), 1988): project the gradient field on the
@@ -28,7 +29,8 @@ Methods
   assembled with scipy.sparse and solved by conjugate gradients preconditioned with a
   smoothed-aggregation multigrid V-cycle (:class:`Multigrid`; about 10 iterations, 3x faster
   than a sparse LU on 200k pixels). No equation crosses the mask border, so separate objects
-  never pull on each other.
+  never pull on each other. The confidence makes grazing normals (whose slopes are the least
+  reliable) count little: a steep feature one pixel wide is outvoted by its flat neighbours.
 - ``bini``: discontinuity-aware, after the idea of bilateral normal integration (X. Cao,
   H. Santo, B. Shi, F. Okura, Y. Matsushita, "Bilateral Normal Integration", ECCV 2022): the
   same one-sided equations, but the share of each side is re-estimated from the current surface,
