@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..imageio import write_atomic
+from ..files import write_atomic
 from ..stack import Stack
 from .albedo import DEFAULT_MIN_SHADING, albedo_map
 from .curvature import DEFAULT_SIGMA, curvature_maps

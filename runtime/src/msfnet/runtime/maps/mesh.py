@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..imageio import write_atomic
+from ..files import write_atomic
 from .integrate import Intrinsics
 
 
