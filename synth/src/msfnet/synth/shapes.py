@@ -190,21 +190,28 @@ def make_shape(kind: str, size: int, rng: np.random.Generator,
 RELIEF_KINDS = ("engraving", "scratches", "weave", "lettering")
 
 
-def _segment_profile(rows: np.ndarray, cols: np.ndarray, seg: np.ndarray, width: np.ndarray,
-                     chunk: int = 32) -> np.ndarray:
-    """max over segments of exp(-(d / w)^2), d = pixel distance to the segment, (H, W).
+def _segment_profile(size: int, seg: np.ndarray, width: np.ndarray,
+                     weight: np.ndarray | float = 1.0) -> np.ndarray:
+    """max over segments of weight * exp(-(d / w)^2), d = pixel distance to the segment, (H, W).
 
-    seg (K, 4) = (r0, c0, r1, c1) in pixels, width (K,) in pixels; chunked to bound memory."""
-    out = np.zeros(rows.shape)
-    p = np.stack([rows.ravel(), cols.ravel()], axis=1)[None]  # (1, P, 2)
-    for k in range(0, len(seg), chunk):
-        a, b = seg[k:k + chunk, None, :2], seg[k:k + chunk, None, 2:]
-        ab = b - a
-        t = np.clip(np.sum((p - a) * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=2), 1e-9),
-                    0.0, 1.0)
-        d2 = np.sum((p - a - t[..., None] * ab) ** 2, axis=2)  # (k, P)
-        prof = np.exp(-d2 / width[k:k + chunk, None] ** 2).max(axis=0)
-        out = np.maximum(out, prof.reshape(rows.shape))
+    seg (K, 4) = (r0, c0, r1, c1) in pixels, width (K,) in pixels. Each segment is evaluated
+    only in its own bounding box (plus 3 widths), where its profile is not negligible: strokes
+    are a few pixels long, so this is far cheaper than a (K, H, W) distance field."""
+    out = np.zeros((size, size))
+    weight = np.broadcast_to(np.asarray(weight, np.float64), (len(seg),))
+    for (r0, c0, r1, c1), w, a in zip(seg, width, weight, strict=True):
+        pad = 3.0 * w
+        rlo, rhi = max(int(min(r0, r1) - pad), 0), min(int(max(r0, r1) + pad) + 2, size)
+        clo, chi = max(int(min(c0, c1) - pad), 0), min(int(max(c0, c1) + pad) + 2, size)
+        if rlo >= rhi or clo >= chi:
+            continue  # entirely off the frame
+        rr, cc = np.meshgrid(np.arange(rlo, rhi, dtype=np.float64),
+                             np.arange(clo, chi, dtype=np.float64), indexing="ij")
+        dr, dc = r1 - r0, c1 - c0
+        t = np.clip(((rr - r0) * dr + (cc - c0) * dc) / max(dr * dr + dc * dc, 1e-9), 0.0, 1.0)
+        d2 = (rr - r0 - t * dr) ** 2 + (cc - c0 - t * dc) ** 2
+        win = out[rlo:rhi, clo:chi]
+        np.maximum(win, a * np.exp(-d2 / (w * w)), out=win)
     return out
 
 
@@ -217,18 +224,16 @@ def _polyline(rng: np.random.Generator, start: np.ndarray, heading: float, steps
     return np.concatenate([pts[:-1], pts[1:]], axis=1)
 
 
-def _engraving(rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    size = rows.shape[0]
+def _engraving(size: int, rng: np.random.Generator) -> np.ndarray:
     segs = [_polyline(rng, rng.uniform(0, size, 2), rng.uniform(0, 2 * np.pi),
                       int(rng.integers(6, 20)), rng.uniform(2.0, 6.0), rng.uniform(0.1, 0.5))
             for _ in range(int(rng.integers(2, 7)))]
     seg = np.concatenate(segs)
     width = np.full(len(seg), rng.uniform(0.6, 1.4))
-    return -rng.uniform(0.4, 1.5) * _segment_profile(rows, cols, seg, width)
+    return -rng.uniform(0.4, 1.5) * _segment_profile(size, seg, width)
 
 
-def _scratches(rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    size = rows.shape[0]
+def _scratches(size: int, rng: np.random.Generator) -> np.ndarray:
     k = int(rng.integers(10, 50))
     centre = rng.uniform(0, size, (k, 2))
     # Scratches share a dominant direction (wiping, brushing), with some scatter.
@@ -238,16 +243,12 @@ def _scratches(rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> 
     seg = np.concatenate([centre - d, centre + d], axis=1)
     depth = rng.uniform(0.2, 0.8, k)
     width = rng.uniform(0.4, 0.9, k)
-    # Different depths per scratch: profile of each weighted before the max, in one chunk loop.
-    out = np.zeros(rows.shape)
-    for i in range(k):
-        out = np.minimum(out, -depth[i] * _segment_profile(rows, cols, seg[i:i + 1],
-                                                            width[i:i + 1]))
-    return out
+    return -_segment_profile(size, seg, width, depth)
 
 
-def _weave(rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def _weave(size: int, rng: np.random.Generator) -> np.ndarray:
     """Plain weave: threads along u and v that pass over and under each other every period."""
+    rows, cols = np.mgrid[0:size, 0:size].astype(np.float64)
     period = rng.uniform(2.5, 6.0)  # thread spacing in pixels
     ang = rng.uniform(0, np.pi)
     u = (np.cos(ang) * cols + np.sin(ang) * rows) / period
@@ -258,10 +259,9 @@ def _weave(rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> np.n
     return rng.uniform(0.2, 0.7) * (over * warp + (1.0 - over) * weft)
 
 
-def _lettering(rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def _lettering(size: int, rng: np.random.Generator) -> np.ndarray:
     """Lines of glyph-like strokes (stamped or engraved text): 2-4 strokes per glyph cell, their
     ends on a 3 x 4 lattice in the cell, cells along a baseline."""
-    size = rows.shape[0]
     segs, widths = [], []
     for _ in range(int(rng.integers(1, 4))):
         height = rng.uniform(5.0, 12.0)  # glyph height in pixels
@@ -280,7 +280,7 @@ def _lettering(rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> 
                 p1 = cell + along * i1 * 0.3 * height + up * j1 * height / 3
                 segs.append(np.concatenate([p0, p1]))
                 widths.append(w)
-    prof = _segment_profile(rows, cols, np.asarray(segs), np.asarray(widths))
+    prof = _segment_profile(size, np.asarray(segs), np.asarray(widths))
     return rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 1.5) * prof
 
 
@@ -290,15 +290,13 @@ def fine_relief(size: int, rng: np.random.Generator,
 
     One to three of ``kinds`` are drawn; depths are 0.2-1.5 px and widths / periods 1-6 px, so
     the normals tilt by up to ~40 deg over 1-3 px."""
-    rows, cols = np.meshgrid(np.arange(size, dtype=np.float64), np.arange(size, dtype=np.float64),
-                             indexing="ij")
     makers = {"engraving": _engraving, "scratches": _scratches, "weave": _weave,
               "lettering": _lettering}
     picks = rng.choice(len(kinds), size=min(len(kinds), int(rng.integers(1, 4))), replace=False)
     x, y = grid(size)
     z = np.zeros((size, size))
     for i in picks:
-        part = makers[kinds[int(i)]](rows, cols, rng)
+        part = makers[kinds[int(i)]](size, rng)
         # Each kind covers a random smooth region (a label, a worn patch), not the whole object.
         region = fourier_noise(x, y, rng, 6, 0.5, 2.0) + rng.uniform(-0.2, 1.5)
         z += part / (1.0 + np.exp(-6.0 * region))
