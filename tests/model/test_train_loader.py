@@ -4,6 +4,7 @@ logging, the hard render preset, and a clean stop on SIGTERM that --resume conti
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import signal
 
@@ -12,7 +13,7 @@ import pytest
 import torch
 
 from msfnet.model import train as train_mod
-from msfnet.model.data import SourceSpec, StepPlan, StepStream, make_loader
+from msfnet.model.data import SourceSpec, StepPlan, StepStream, make_loader, worker_init
 from msfnet.model.train import TrainConfig, Trainer, default_workers, resolve_device
 from msfnet.model.train_cli import main as train_main
 from msfnet.runtime.errors import InputError
@@ -137,3 +138,18 @@ def test_in_process_path_is_unchanged_by_the_worker_option(tmp_path):
     ref = ref_src.batch(2, 4, 16, rng, noise=cfg.noise)
     assert (lights, crop) == (4, 16)
     torch.testing.assert_close(batch.images, ref.images, rtol=0, atol=0)
+
+
+def _signal_self_after_init() -> None:
+    worker_init(0)
+    os.kill(os.getpid(), signal.SIGTERM)
+    os.kill(os.getpid(), signal.SIGINT)
+
+
+def test_workers_leave_signals_to_the_main_process():
+    # `timeout` signals the whole process group: a worker dying of it would make torch raise in
+    # the main process mid-step (or mid-save) instead of the clean stop.
+    p = multiprocessing.get_context("fork").Process(target=_signal_self_after_init)
+    p.start()
+    p.join(30)
+    assert p.exitcode == 0

@@ -302,10 +302,16 @@ class StepStream(torch.utils.data.IterableDataset):
 
 
 def worker_init(_worker_id: int) -> None:
-    """Workers render with numpy on one thread each; Ctrl-C goes to the whole process group,
-    but only the main process should react (it saves last.pth and stops the workers)."""
+    """Workers render with numpy on one thread each, and ignore SIGINT and SIGTERM.
+
+    Ctrl-C, and `timeout` (which signals its whole process group), reach the workers too. A
+    worker killed by them makes torch raise "DataLoader worker killed" in the main process at
+    an arbitrary point, possibly while it saves. Only the main process should react: it
+    finishes the step, saves last.pth and shuts the workers down through the DataLoader (which
+    does not need signals); a worker whose parent has died exits by itself."""
     torch.set_num_threads(1)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def make_loader(spec: SourceSpec, plan: StepPlan, start: int, total: int, workers: int,
