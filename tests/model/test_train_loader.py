@@ -21,7 +21,7 @@ from msfnet.synth import RenderOptions
 
 torch.set_num_threads(2)
 
-TINY = ["--batch", "2", "--lights", "4", "--crop", "16", "--pool", "2", "--render-size", "24",
+TINY = ["--batch", "1", "--lights", "3", "--crop", "8", "--pool", "2", "--render-size", "24",
         "--val-objects", "1", "--val-size", "32", "--log-every", "1", "--no-progress",
         "--precision", "fp32", "--device", "cpu"]
 

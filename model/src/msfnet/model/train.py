@@ -20,6 +20,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -383,7 +384,7 @@ class Trainer:
             raise KeyboardInterrupt
         self.stop_signal = signum
 
-    def _install_handlers(self) -> dict[int, object]:
+    def _install_handlers(self) -> dict[int, Any]:
         """SIGTERM / SIGINT finish the current step, save last.pth and return (a GPU session
         cut into 10-minute chunks then resumes with --resume). Main thread only."""
         self.stop_signal = None
