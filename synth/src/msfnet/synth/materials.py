@@ -82,12 +82,12 @@ def random_material(rng: np.random.Generator, kinds: tuple[str, ...] = KINDS,
 
 def material_map(size: int, rng: np.random.Generator, max_materials: int = 3,
                  kinds: tuple[str, ...] = KINDS,
-                 weights: tuple[float, ...] | None = None) -> MaterialMap:
-    """Up to ``max_materials`` random materials of ``kinds`` (drawn with ``weights``, one per
-    kind; None = DEFAULT_WEIGHTS) blended over a size x size frame."""
+                 kind_weights: tuple[float, ...] | None = None) -> MaterialMap:
+    """Up to ``max_materials`` random materials of ``kinds`` (drawn with ``kind_weights``, one
+    per kind; None = DEFAULT_WEIGHTS) blended over a size x size frame."""
     x, y = grid(size)
     count = int(rng.integers(1, max_materials + 1))
-    mats = [random_material(rng, kinds, weights) for _ in range(count)]
+    mats = [random_material(rng, kinds, kind_weights) for _ in range(count)]
     if count == 1:
         weights = np.ones((1, size, size))
     else:
