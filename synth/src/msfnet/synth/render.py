@@ -66,7 +66,7 @@ class RenderOptions:
                    materials=ALL_KINDS,
                    # diffuse plastic metal dark rough paint
                    material_weights=(0.1, 0.3, 0.15, 0.1, 0.15, 0.2),
-                   max_depth=2.0, steep=0.35, fine_relief=0.5, interreflection=0.5,
+                   steep=0.35, fine_relief=0.5, interreflection=0.5,
                    very_dark=0.1, ring_rigs=0.25, bit_depths=(8, 8, 8, 10, 12, 16))
         return replace(base, **overrides)
 
