@@ -7,13 +7,20 @@ Sources hand out ``Stack`` objects (raw images + lights + intensities + mask + n
 - ``BlobbySource``: the public Blobby / Sculpture photometric-stereo training sets.
 Samples are normalised with ``msfnet.runtime.preprocess.normalise`` itself (crop first: the
 normalisation is per pixel, so cropping commutes with it).
+
+``StepStream`` moves all of this into DataLoader worker processes (for a GPU, which one process
+cannot keep fed): worker w of W renders its own objects and builds the batches of steps
+start + w, start + w + W, ..., which the DataLoader hands back round-robin, i.e. in step order.
 """
 
 from __future__ import annotations
 
+import signal
 from collections import OrderedDict
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
@@ -116,9 +123,11 @@ class SynthSource:
     network trained only on small renders expects too much curvature per pixel).
     """
 
-    def __init__(self, seed: int, options: RenderOptions, pool: int = 48, refresh: int = 2,
-                 start: int = 0, max_size: int | None = None) -> None:
-        self.seed, self.options, self.refresh = seed, options, refresh
+    def __init__(self, seed: int | Sequence[int], options: RenderOptions, pool: int = 48,
+                 refresh: int = 2, start: int = 0, max_size: int | None = None) -> None:
+        # A sequence seed gives each DataLoader worker its own stream of objects.
+        self.seed = [seed] if isinstance(seed, int) else list(seed)
+        self.options, self.refresh = options, refresh
         self.sizes = (options.size, max(options.size, max_size or options.size))
         self.counter = start  # index of the next object to render (for resuming)
         self.pool: list[Stack] = []
@@ -126,7 +135,7 @@ class SynthSource:
             self.pool.append(self._render())
 
     def _render(self) -> Stack:
-        rng = np.random.default_rng([self.seed, self.counter])
+        rng = np.random.default_rng([*self.seed, self.counter])
         options = self.options
         if self.sizes[1] > self.sizes[0]:
             options = replace(options, size=int(rng.integers(self.sizes[0], self.sizes[1] + 1)))
@@ -221,3 +230,100 @@ class BlobbySource:
         picks = rng.choice(len(self.pairs), size=size, replace=size > len(self.pairs))
         return collate([make_sample(self.get(int(i)), lights, crop, rng, **augment)
                         for i in picks])
+
+
+# ----------------------------------------------------------------------------- worker stream
+
+class Source(Protocol):
+    def batch(self, size: int, lights: int, crop: int, rng: np.random.Generator,
+              **augment: float) -> Batch: ...
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """How a worker builds its own source (picklable, unlike a filled pool)."""
+
+    data: str  # "synth" or a Blobby/Sculpture root
+    seed: int
+    options: RenderOptions
+    pool: int = 48
+    refresh: int = 2
+    max_size: int | None = None
+
+    def build(self, worker: int, workers: int, start_step: int) -> Source:
+        if self.data != "synth":
+            return BlobbySource(self.data)
+        # Tag 1 keeps worker streams apart from the in-process stream [seed, counter]; the
+        # start step makes a resumed run render new objects, as the in-process source does.
+        return SynthSource([self.seed, 1, worker, workers, start_step], self.options,
+                           self.pool, self.refresh, max_size=self.max_size)
+
+
+@dataclass(frozen=True)
+class StepPlan:
+    """What the batch of a given global step looks like (the curriculum, resolved per step)."""
+
+    seed: int
+    batch: int
+    steps_per_epoch: int
+    phases: tuple[tuple[int, int, int, int], ...]  # (epoch, lights_min, lights_max, crop)
+    noise: float = 0.01
+
+    def lights_and_crop(self, step: int, rng: np.random.Generator) -> tuple[int, int]:
+        epoch = step // self.steps_per_epoch
+        _e, lo, hi, crop = [p for p in self.phases if p[0] <= epoch][-1]
+        return int(rng.integers(lo, hi + 1)), crop
+
+
+class StepStream(torch.utils.data.IterableDataset):
+    """Batches of steps ``start .. total-1`` as dicts of tensors, built in DataLoader workers.
+
+    Worker w of W yields steps start + w, start + w + W, ... (the DataLoader takes one batch from
+    each worker in turn, so they arrive in step order). Each batch's light count, crops and
+    augmentation come from ``default_rng([seed, 2, step])``: with a given worker count, the same
+    command resumed at the same step gives the same batches."""
+
+    def __init__(self, spec: SourceSpec, plan: StepPlan, start: int, total: int) -> None:
+        super().__init__()
+        self.spec, self.plan, self.start, self.total = spec, plan, start, total
+
+    def __iter__(self) -> Iterator[dict]:
+        info = torch.utils.data.get_worker_info()
+        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        if self.start + worker >= self.total:
+            return
+        source = self.spec.build(worker, workers, self.start)
+        for step in range(self.start + worker, self.total, workers):
+            rng = np.random.default_rng([self.plan.seed, 2, step])
+            lights, crop = self.plan.lights_and_crop(step, rng)
+            b = source.batch(self.plan.batch, lights, crop, rng, noise=self.plan.noise)
+            yield {"images": b.images, "lights": b.lights, "normals": b.normals, "mask": b.mask,
+                   "step": step, "n_lights": lights, "crop": crop}
+
+
+def worker_init(_worker_id: int) -> None:
+    """Workers render with numpy on one thread each, and ignore SIGINT and SIGTERM.
+
+    Ctrl-C, and `timeout` (which signals its whole process group), reach the workers too. A
+    worker killed by them makes torch raise "DataLoader worker killed" in the main process at
+    an arbitrary point, possibly while it saves. Only the main process should react: it
+    finishes the step, saves last.pth and shuts the workers down through the DataLoader (which
+    does not need signals); a worker whose parent has died exits by itself."""
+    torch.set_num_threads(1)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def make_loader(spec: SourceSpec, plan: StepPlan, start: int, total: int, workers: int,
+                pin_memory: bool = False, prefetch: int = 4) -> torch.utils.data.DataLoader:
+    """A DataLoader over ``StepStream`` with ``workers`` persistent worker processes (>= 1)."""
+    if workers < 1:
+        raise ValueError("make_loader needs at least one worker (0 = the in-process source)")
+    return torch.utils.data.DataLoader(
+        StepStream(spec, plan, start, total), batch_size=None, num_workers=workers,
+        persistent_workers=True, pin_memory=pin_memory, prefetch_factor=prefetch,
+        worker_init_fn=worker_init)
+
+
+def batch_from_dict(d: dict) -> Batch:
+    return Batch(d["images"], d["lights"], d["normals"], d["mask"])

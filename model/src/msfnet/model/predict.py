@@ -26,8 +26,8 @@ from msfnet.runtime.tiling import plan_tiles
 from .network import MSFNet
 
 
-def autocast(enabled: bool):
-    return (torch.autocast("cpu", dtype=torch.bfloat16) if enabled
+def autocast(enabled: bool, device_type: str = "cpu"):
+    return (torch.autocast(device_type, dtype=torch.bfloat16) if enabled
             else contextlib.nullcontext())
 
 
@@ -52,9 +52,12 @@ class TorchModel:
 
     @torch.no_grad()
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
-        with autocast(self.bf16):
-            out = self.model(torch.from_numpy(images), torch.from_numpy(lights))
-        return out.float().numpy()
+        # Inputs go wherever the model lives (a GPU during GPU training's validation).
+        device = next(self.model.parameters()).device
+        with autocast(self.bf16, device.type):
+            out = self.model(torch.from_numpy(images).to(device),
+                             torch.from_numpy(lights).to(device))
+        return out.float().cpu().numpy()
 
 
 def predict_normals(model: MSFNet, stack: Stack, bf16: bool = False,

@@ -13,10 +13,14 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,7 +33,15 @@ from msfnet.runtime.metrics import normal_metrics
 from msfnet.synth.render import RenderOptions, render_set
 
 from .checkpoint import save_checkpoint
-from .data import BlobbySource, SynthSource
+from .data import (
+    Batch,
+    BlobbySource,
+    SourceSpec,
+    StepPlan,
+    SynthSource,
+    batch_from_dict,
+    make_loader,
+)
 from .network import MSFNet
 from .predict import autocast, predict_normals
 
@@ -129,6 +141,7 @@ class TrainConfig:
     render_size: int = 64
     render_size_max: int | None = None  # sizes drawn from [render_size, render_size_max]
     render_max_depth: float = RenderOptions.max_depth
+    render_preset: str = "default"  # "default" or "hard" (msfnet.synth RenderOptions.preset)
     render_lights: int = 40
     pool: int = 48
     refresh: int = 2
@@ -139,6 +152,8 @@ class TrainConfig:
     val_seed: int = 999_999
     ckpt_minutes: float = 10.0
     log_every: int = 10
+    device: str = "auto"  # auto | cpu | cuda
+    workers: int | None = None  # DataLoader worker processes; None = default_workers(device)
     extra: dict = field(default_factory=dict)
 
     def phase(self, epoch: int) -> Phase:
@@ -159,12 +174,51 @@ def bf16_available() -> bool:
         return False
 
 
+def resolve_device(name: str) -> torch.device:
+    """``auto`` = cuda when torch sees a GPU, else cpu; ``cuda`` without one is an error."""
+    if name not in ("auto", "cpu", "cuda"):
+        raise InputError(f"--device {name!r}: choose auto, cpu or cuda")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: torch sees no CUDA GPU (a CPU-only torch build, or "
+                         "no driver)")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.device(name)
+
+
+def cpu_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def default_workers(device: torch.device, cores: int | None = None) -> int:
+    """Render workers: none on the CPU (the cores train; today's in-process source), and on a
+    GPU all cores but two (the main process and the GPU feeder), at most 12."""
+    if device.type != "cuda":
+        return 0
+    return max(0, min((cpu_cores() if cores is None else cores) - 2, 12))
+
+
+def gpu_utilisation() -> float | None:
+    """GPU busy percentage over the driver's last sample window, if NVML can tell."""
+    try:
+        return float(torch.cuda.utilization())
+    except Exception:  # no pynvml / NVML: the data-wait fraction has to do
+        return None
+
+
 # ----------------------------------------------------------------------------- trainer
 
 class Trainer:
     def __init__(self, cfg: TrainConfig, resume: bool = False) -> None:
         self.cfg = cfg
         self.out = Path(cfg.out)
+        self.device = resolve_device(cfg.device)
+        self.workers = default_workers(self.device) if cfg.workers is None else cfg.workers
+        if self.workers < 0:
+            raise InputError("--workers must be >= 0")
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         self.model = MSFNet(mfe=cfg.mfe, mff=cfg.mff)
@@ -174,26 +228,40 @@ class Trainer:
             state = read_state_dict(cfg.init)
             check_state_dict(self.model, state, cfg.init)
             self.model.load_state_dict(state, strict=True)
-        if cfg.precision == "bf16" and not bf16_available():
-            raise InputError("--precision bf16: this CPU/torch cannot run bf16 autocast")
-        self.bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and bf16_available())
+        cuda = self.device.type == "cuda"
+        can_bf16 = torch.cuda.is_bf16_supported() if cuda else bf16_available()
+        if cfg.precision == "bf16" and not can_bf16:
+            raise InputError(f"--precision bf16: this {self.device.type.upper()}/torch cannot run "
+                             "bf16 autocast")
+        self.bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and can_bf16)
+        if cuda:
+            # Input shapes repeat (a few light counts x crop sizes): let cuDNN pick kernels;
+            # TF32 for whatever autocast leaves in fp32.
+            torch.backends.cudnn.benchmark = True
+            torch.backends.cuda.matmul.allow_tf32 = True
+            torch.backends.cudnn.allow_tf32 = True
+        self.model = self.model.to(self.device)
         if cfg.channels_last:
             self.model = self.model.to(memory_format=torch.channels_last)
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
         self.step = 0
         self.best = math.inf
         self.history: list[dict] = []
+        self.stop_signal: int | None = None  # set by SIGTERM / SIGINT during run()
         if resume:
             self._load()
-        if cfg.data == "synth":
-            options = RenderOptions(size=cfg.render_size, lights=cfg.render_lights,
-                                    max_depth=cfg.render_max_depth)
-            # Training objects start far from the validation seed space: seeds differ anyway.
-            self.source = SynthSource(cfg.seed, options, cfg.pool, cfg.refresh,
-                                      start=self.step * cfg.refresh,
-                                      max_size=cfg.render_size_max)
-        else:
-            self.source = BlobbySource(cfg.data)
+        self.render_options = RenderOptions.preset(
+            cfg.render_preset, size=cfg.render_size, lights=cfg.render_lights,
+            max_depth=cfg.render_max_depth)
+        self.source: SynthSource | BlobbySource | None = None
+        if self.workers == 0:  # today's in-process source; workers build their own
+            if cfg.data == "synth":
+                # Training objects start far from the validation seed space: seeds differ.
+                self.source = SynthSource(cfg.seed, self.render_options, cfg.pool, cfg.refresh,
+                                          start=self.step * cfg.refresh,
+                                          max_size=cfg.render_size_max)
+            else:
+                self.source = BlobbySource(cfg.data)
         val_opts = RenderOptions(size=cfg.val_size, lights=cfg.val_lights)
         self.val_set = list(render_set(cfg.val_seed, cfg.val_objects, val_opts))
         self.val_ls = float(np.mean([normal_metrics(least_squares_normals(s), s.normals_gt,
@@ -233,12 +301,45 @@ class Trainer:
     def lr_at(self, epoch: int) -> float:
         return self.cfg.lr * 0.5 ** (epoch // max(self.cfg.lr_step, 1))
 
+    # -- data
+    def _loader_batches(self, total: int):
+        spec = SourceSpec(self.cfg.data, self.cfg.seed, self.render_options, self.cfg.pool,
+                          self.cfg.refresh, self.cfg.render_size_max)
+        phases = tuple((p.epoch, p.lights_min, p.lights_max, p.crop)
+                       for p in parse_curriculum(self.cfg.curriculum))
+        plan = StepPlan(self.cfg.seed, self.cfg.batch, self.cfg.steps_per_epoch, phases,
+                        self.cfg.noise)
+        loader = make_loader(spec, plan, self.step, total, self.workers,
+                             pin_memory=self.device.type == "cuda")
+        for d in loader:
+            if d["step"] != self.step:  # the round-robin order is what makes this hold
+                raise RuntimeError(f"data loader sent step {d['step']}, expected {self.step}")
+            yield batch_from_dict(d), int(d["n_lights"]), int(d["crop"])
+
+    def _local_batches(self, total: int):
+        cfg, rng = self.cfg, np.random.default_rng([self.cfg.seed, self.step])
+        assert self.source is not None
+        while self.step < total:
+            phase = cfg.phase(self.epoch)
+            lights = int(rng.integers(phase.lights_min, phase.lights_max + 1))
+            yield self.source.batch(cfg.batch, lights, phase.crop, rng, noise=cfg.noise), \
+                lights, phase.crop
+
+    def to_device(self, batch: Batch) -> Batch:
+        nb = self.device.type == "cuda"  # from pinned memory, the copy overlaps compute
+        normals = batch.normals.to(self.device, non_blocking=nb)
+        if self.cfg.channels_last:
+            normals = normals.contiguous(memory_format=torch.channels_last)
+        return Batch(batch.images.to(self.device, non_blocking=nb),
+                     batch.lights.to(self.device, non_blocking=nb), normals,
+                     batch.mask.to(self.device, non_blocking=nb))
+
     # -- steps
     def train_step(self, batch) -> tuple[float, list[float]]:
         self.model.train()
         images, lights = batch.images, batch.lights
         self.opt.zero_grad(set_to_none=True)
-        with autocast(self.bf16):
+        with autocast(self.bf16, self.device.type):
             losses = stage_losses(self.model, images, lights, batch.normals, batch.mask)
         total = backward_losses(self.model, losses, sus=self.cfg.sus)
         self.opt.step()
@@ -277,6 +378,21 @@ class Trainer:
         write_atomic(self.out / "curve.png", lambda t: fig.savefig(t, dpi=100, format="png"))
         plt.close(fig)
 
+    # -- stopping on a signal
+    def _on_signal(self, signum: int, _frame: object) -> None:
+        if self.stop_signal is not None:  # a second signal: stop now, without saving
+            raise KeyboardInterrupt
+        self.stop_signal = signum
+
+    def _install_handlers(self) -> dict[int, Any]:
+        """SIGTERM / SIGINT finish the current step, save last.pth and return (a GPU session
+        cut into 10-minute chunks then resumes with --resume). Main thread only."""
+        self.stop_signal = None
+        if threading.current_thread() is not threading.main_thread():
+            return {}
+        return {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM,
+                                                                    signal.SIGINT)}
+
     def run(self, progress: bool = True) -> dict:
         from tqdm import tqdm
 
@@ -286,44 +402,89 @@ class Trainer:
                      lambda t: t.write_text(json.dumps(asdict(cfg), indent=1)))
         total = cfg.epochs * cfg.steps_per_epoch
         last_save = time.monotonic()
-        rng = np.random.default_rng([cfg.seed, self.step])
         bar = tqdm(total=total, initial=self.step, desc="train", unit="step", disable=not progress,
                    mininterval=5.0, dynamic_ncols=True)
-        run_loss, t_step = None, time.perf_counter()
-        while self.step < total:
-            epoch, phase = self.epoch, cfg.phase(self.epoch)
-            for g in self.opt.param_groups:
-                g["lr"] = self.lr_at(epoch)
-            lights = int(rng.integers(phase.lights_min, phase.lights_max + 1))
-            batch = self.source.batch(cfg.batch, lights, phase.crop, rng, noise=cfg.noise)
-            if cfg.channels_last:
-                batch.normals = batch.normals.contiguous(memory_format=torch.channels_last)
-            loss, parts = self.train_step(batch)
-            self.step += 1
-            run_loss = loss if run_loss is None else 0.95 * run_loss + 0.05 * loss
-            bar.update(1)
-            bar.set_postfix(loss=f"{run_loss:.4f}", ep=epoch, n=lights, crop=phase.crop)
-            if self.step % cfg.log_every == 0:
-                now = time.perf_counter()
-                self.log({"step": self.step, "epoch": epoch, "loss": loss, "stages": parts,
-                          "lights": lights, "crop": phase.crop, "lr": self.lr_at(epoch),
-                          "s_per_step": (now - t_step) / cfg.log_every, "time": time.time()})
-                t_step = now
-            if self.step % cfg.steps_per_epoch == 0 or self.step == total:
-                mae = self.validate()
-                self.log({"step": self.step, "epoch": epoch + 1, "val_mae": mae,
-                          "val_ls_mae": self.val_ls, "time": time.time()})
-                bar.write(f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least squares "
-                          f"{self.val_ls:.2f}), loss {run_loss:.4f}")
-                if mae < self.best:
-                    self.best = mae
-                    save_checkpoint(self.model, self.out / "best.pth", step=self.step,
-                                    val_mae=mae)
+        old_handlers = self._install_handlers()
+        batches = (self._loader_batches(total) if self.workers > 0 else
+                   self._local_batches(total))
+        run_loss = None
+        # Throughput: per log row and per epoch, wall time, time blocked on data, samples.
+        win = {"t": time.perf_counter(), "wait": 0.0, "n": 0}
+        ep = dict(win)
+        try:
+            while self.step < total and self.stop_signal is None:
+                epoch = self.epoch
+                for g in self.opt.param_groups:
+                    g["lr"] = self.lr_at(epoch)
+                t0 = time.perf_counter()
+                try:
+                    batch, lights, crop = next(batches)
+                except StopIteration:
+                    break
+                except Exception:
+                    if self.stop_signal is None:
+                        raise
+                    break  # workers killed along with us (a signal to the process group)
+                batch = self.to_device(batch)
+                waited = time.perf_counter() - t0
+                for acc in (win, ep):
+                    acc["wait"] += waited
+                    acc["n"] += cfg.batch
+                loss, parts = self.train_step(batch)
+                self.step += 1
+                run_loss = loss if run_loss is None else 0.95 * run_loss + 0.05 * loss
+                bar.update(1)
+                bar.set_postfix(loss=f"{run_loss:.4f}", ep=epoch, n=lights, crop=crop)
+                if self.step % cfg.log_every == 0:
+                    now = time.perf_counter()
+                    span = now - win["t"]
+                    row = {"step": self.step, "epoch": epoch, "loss": loss, "stages": parts,
+                           "lights": lights, "crop": crop, "lr": self.lr_at(epoch),
+                           "s_per_step": span / cfg.log_every,
+                           "samples_per_s": win["n"] / span, "data_wait": win["wait"] / span,
+                           "time": time.time()}
+                    if self.device.type == "cuda":
+                        row["gpu_util"] = gpu_utilisation()
+                    self.log(row)
+                    win = {"t": now, "wait": 0.0, "n": 0}
+                if self.step % cfg.steps_per_epoch == 0 or self.step == total:
+                    span = time.perf_counter() - ep["t"]
+                    mae = self.validate()
+                    speed = {"samples_per_s": ep["n"] / span, "data_wait": ep["wait"] / span}
+                    util = gpu_utilisation() if self.device.type == "cuda" else None
+                    if util is not None:
+                        speed["gpu_util"] = util
+                    self.log({"step": self.step, "epoch": epoch + 1, "val_mae": mae,
+                              "val_ls_mae": self.val_ls, **speed, "time": time.time()})
+                    gpu = f", GPU {util:.0f} %" if util is not None else ""
+                    bar.write(f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least squares "
+                              f"{self.val_ls:.2f}), loss {run_loss:.4f}, "
+                              f"{speed['samples_per_s']:.1f} samples/s, data wait "
+                              f"{100 * speed['data_wait']:.0f} %{gpu}")
+                    if mae < self.best:
+                        self.best = mae
+                        save_checkpoint(self.model, self.out / "best.pth", step=self.step,
+                                        val_mae=mae)
+                    self.save()
+                    self.plot()
+                    last_save = time.monotonic()
+                    ep = {"t": time.perf_counter(), "wait": 0.0, "n": 0}
+                elif time.monotonic() - last_save > cfg.ckpt_minutes * 60:
+                    self.save()
+                    last_save = time.monotonic()
+            if self.stop_signal is not None:
                 self.save()
-                self.plot()
-                last_save = time.monotonic()
-            elif time.monotonic() - last_save > cfg.ckpt_minutes * 60:
-                self.save()
-                last_save = time.monotonic()
-        bar.close()
-        return {"step": self.step, "best_val_mae": self.best, "val_ls_mae": self.val_ls}
+                name = signal.Signals(self.stop_signal).name
+                self.log({"step": self.step, "stopped": name, "time": time.time()})
+                bar.write(f"{name}: saved last.pth at step {self.step}; continue with --resume")
+        finally:
+            close = getattr(batches, "close", None)
+            if close is not None:
+                close()  # shuts the DataLoader's workers down
+            for sig, handler in old_handlers.items():
+                signal.signal(sig, handler)
+            bar.close()
+        result = {"step": self.step, "best_val_mae": self.best, "val_ls_mae": self.val_ls}
+        if self.stop_signal is not None:
+            result["stopped"] = self.stop_signal
+        return result

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from dataclasses import fields
 from pathlib import Path
 
 from msfnet.runtime.errors import InputError
+from msfnet.synth.render import PRESETS
 
 from .train import TrainConfig, Trainer, parse_curriculum
 
@@ -22,11 +24,15 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train MSF-Net with three stage losses (0.5:0.5:1) and the selective update "
                     "strategy. Writes OUT/last.pth (published {'state_dict': ...} format), "
                     "OUT/best.pth (best held-out synthetic MAE), OUT/last_state.pth (optimizer), "
-                    "OUT/log.jsonl, OUT/curve.png and OUT/config.json. Resume with --resume.")
+                    "OUT/log.jsonl, OUT/curve.png and OUT/config.json. Resume with --resume. "
+                    "SIGTERM / SIGINT (Ctrl-C) finish the step, save last.pth and exit with "
+                    "128 + the signal number (143 / 130), so time-boxed chunks can be chained: "
+                    "`timeout 600 msf-train ... --resume` repeated.")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/last.pth with OUT/config.json; options given "
-                        "explicitly (e.g. --epochs) override the stored ones")
+                        "explicitly (e.g. --epochs) override the stored ones. With nothing "
+                        "to resume in OUT yet, start there (so one command serves every chunk)")
     p.add_argument("--overwrite", action="store_true", help="start afresh in a non-empty OUT")
     p.add_argument("--data", default=d.data,
                    help="'synth' (built-in renderer, default) or a Blobby/Sculpture root folder")
@@ -46,9 +52,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr-step", type=int, default=d.lr_step,
                    help=f"halve the learning rate every this many epochs (default {d.lr_step})")
     p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--threads", type=int, default=d.threads, help=f"default {d.threads}")
+    p.add_argument("--threads", type=int, default=d.threads,
+                   help=f"torch threads of the training process (default {d.threads})")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device,
+                   help="auto (default): cuda when torch sees a GPU, else cpu")
+    p.add_argument("--workers", type=int, default=d.workers,
+                   help="processes rendering batches in parallel (DataLoader workers, each with "
+                        "its own object pool and seed stream); 0 = render in the training "
+                        "process. Default: 0 on the CPU, min(cores - 2, 12) with cuda")
     p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=d.precision,
-                   help="bf16 autocast when the CPU supports it (auto, default) or fp32")
+                   help="bf16 autocast where the device supports it natively (auto, default: "
+                        "GPUs with bf16, CPUs with AVX512-BF16/AMX) or fp32")
     p.add_argument("--no-channels-last", action="store_true", help="keep NCHW weights")
     p.add_argument("--no-mfe", action="store_true",
                    help="ablation: no multi-stage extraction (extractor1 -> max -> regressor)")
@@ -68,6 +82,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="synthetic domes up to this height/radius (default "
                         f"{d.render_max_depth}; 2 gives a slant histogram like DiLiGenT ball's, "
                         "with 4x more pixels steeper than 66 deg)")
+    p.add_argument("--render-preset", choices=PRESETS, default=d.render_preset,
+                   help="synthetic data: 'default' renderer or 'hard' (steep rims, folds and "
+                        "cups with inter-reflections, pixel-scale relief, rough / painted / "
+                        "very dark materials, LED rings, mostly 8-bit); validation stays on "
+                        "the default renderer so runs compare")
     p.add_argument("--val-size", type=int, default=d.val_size,
                    help=f"validation object size in pixels (default {d.val_size})")
     p.add_argument("--render-lights", type=int, default=d.render_lights,
@@ -119,6 +138,8 @@ def config_from(args: dict, base: dict) -> TrainConfig:
     parse_curriculum(out.curriculum)  # validate early
     if out.epochs < 1 or out.steps_per_epoch < 1 or out.batch < 1:
         raise InputError("--epochs, --steps-per-epoch and --batch must be >= 1")
+    if out.workers is not None and out.workers < 0:
+        raise InputError("--workers must be >= 0")
     if out.data == "synth":
         crop = max(p.crop for p in parse_curriculum(out.curriculum))
         if crop > out.render_size:
@@ -135,8 +156,19 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         out: Path = args.out
-        if args.resume:
-            stored = out / "config.json"
+        stored = out / "config.json"
+        resume = args.resume and (out / "last.pth").is_file() and (
+            out / "last_state.pth").is_file()
+        if args.resume and not resume:
+            # Nothing saved yet (first chunk, or killed before the first save): start here,
+            # from the stored settings if a config.json was written.
+            print(f"msf-train: nothing to resume in {out}: starting there", flush=True)
+            base = json.loads(stored.read_text()) if stored.is_file() else {}
+            explicit = _explicit(argv) if base else vars(args)
+            cfg = config_from(explicit, base)
+            for name in ("log.jsonl", "best.pth", "last.pth", "last_state.pth"):
+                (out / name).unlink(missing_ok=True)
+        elif resume:
             if not stored.is_file():
                 raise InputError("--resume: no config.json in the output folder", out)
             cfg = config_from(_explicit(argv), json.loads(stored.read_text()))
@@ -148,16 +180,23 @@ def main(argv: list[str] | None = None) -> int:
                 for name in ("log.jsonl", "last.pth", "last_state.pth", "best.pth"):
                     (out / name).unlink(missing_ok=True)
             cfg = config_from(vars(args), {})
-        trainer = Trainer(cfg, resume=args.resume)
-        print(f"msf-train: {'bf16 autocast' if trainer.bf16 else 'fp32'}, "
+        trainer = Trainer(cfg, resume=resume)
+        data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
+        print(f"msf-train: {trainer.device.type}, "
+              f"{'bf16 autocast' if trainer.bf16 else 'fp32'}, "
               f"{'channels_last' if cfg.channels_last else 'NCHW'}, {cfg.threads} threads, "
-              f"data {cfg.data}, curriculum {cfg.curriculum}, from step {trainer.step}; "
-              f"validation: {len(trainer.val_set)} objects, least squares MAE "
-              f"{trainer.val_ls:.2f} deg", flush=True)
+              f"{trainer.workers} data workers, data {data}, curriculum {cfg.curriculum}, "
+              f"from step {trainer.step}; validation: {len(trainer.val_set)} objects, "
+              f"least squares MAE {trainer.val_ls:.2f} deg", flush=True)
         result = trainer.run(progress=not args.no_progress)
     except InputError as exc:
         print(f"msf-train: error: {exc}", file=sys.stderr)
         return 2
+    if "stopped" in result:
+        sig = int(result["stopped"])
+        print(f"msf-train: stopped by {signal.Signals(sig).name} at step {result['step']}; "
+              "last.pth saved, continue with --resume")
+        return 128 + sig
     print(f"msf-train: done at step {result['step']}: best held-out MAE "
           f"{result['best_val_mae']:.2f} deg (least squares {result['val_ls_mae']:.2f})")
     return 0

@@ -11,9 +11,9 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import write_atomic
 from msfnet.runtime.stack import save_stack
 
-from .materials import KINDS
-from .render import RenderOptions, render_set
-from .shapes import SHAPES
+from .materials import ALL_KINDS
+from .render import PRESETS, RenderOptions, render_set
+from .shapes import ALL_SHAPES
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -28,10 +28,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lights", type=int, default=32, help="lights per object (default 32)")
     p.add_argument("--size", type=int, default=128, help="image side in pixels (default 128)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--shapes", default=",".join(SHAPES),
-                   help=f"comma list of shapes to cycle through (default all: {','.join(SHAPES)})")
-    p.add_argument("--materials", default=",".join(KINDS),
-                   help=f"comma list of material kinds to draw from (default {','.join(KINDS)})")
+    p.add_argument("--preset", choices=PRESETS, default="default",
+                   help="'default' (the renderer the README's held-out figures used) or 'hard': "
+                        "steep rims, folds and cups with inter-reflections, pixel-scale relief, "
+                        "rough / painted / very dark materials, LED rings, mostly 8-bit")
+    p.add_argument("--shapes", default=None,
+                   help="comma list of shapes to cycle through (default: the preset's; "
+                        f"choose from {','.join(ALL_SHAPES)})")
+    p.add_argument("--materials", default=None,
+                   help="comma list of material kinds to draw from (default: the preset's; "
+                        f"choose from {','.join(ALL_KINDS)})")
     p.add_argument("--no-shadows", action="store_true", help="no cast shadows")
     p.add_argument("--no-noise", action="store_true", help="no sensor noise or quantisation")
     p.add_argument("--bit-depth", type=int, choices=(8, 16), default=16,
@@ -57,10 +63,13 @@ def run(args: argparse.Namespace) -> list[str]:
     out: Path = args.outdir
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise InputError("output folder exists and is not empty (pass --overwrite)", out)
-    shapes = _names(args.shapes, SHAPES, "shapes")
-    options = RenderOptions(size=args.size, lights=args.lights,
-                            materials=_names(args.materials, KINDS, "materials"),
-                            cast_shadows=not args.no_shadows, noise=not args.no_noise)
+    base = RenderOptions.preset(args.preset)
+    shapes = base.shapes if args.shapes is None else _names(args.shapes, ALL_SHAPES, "shapes")
+    materials = base.materials if args.materials is None else _names(args.materials, ALL_KINDS,
+                                                                      "materials")
+    options = RenderOptions.preset(args.preset, size=args.size, lights=args.lights,
+                                   materials=materials, cast_shadows=not args.no_shadows,
+                                   noise=not args.no_noise)
     names = []
     t0 = time.perf_counter()
     for stack in tqdm(render_set(args.seed, args.objects, options, shapes=shapes),

@@ -40,6 +40,43 @@ def rig_lights(n: int, rng: np.random.Generator) -> np.ndarray:
     return cone_lights(n, rng, max_angle)
 
 
+def led_ring_lights(n: int, rng: np.random.Generator, angles_deg: tuple[float, ...] = (30.0,),
+                    jitter_deg: float = 1.0) -> np.ndarray:
+    """LED ring(s) around the lens: n lights split as evenly as possible over rings at the given
+    angles from the view axis (the first rings take the remainder), evenly spaced in azimuth
+    with a random rotation per ring and up to ``jitter_deg`` of mounting error. (n, 3) float32.
+
+    A ring "at 30 deg" means every LED is 30 deg off the camera axis (the object sees the ring
+    at 60 deg elevation above its base plane)."""
+    if n < 1 or not angles_deg:
+        raise ValueError("need n >= 1 and at least one ring angle")
+    per = np.full(len(angles_deg), n // len(angles_deg))
+    per[: n % len(angles_deg)] += 1
+    polar, azim = [], []
+    for count, angle in zip(per, angles_deg, strict=True):
+        if count == 0:
+            continue
+        az = np.arange(count) * (2 * np.pi / count) + rng.uniform(0, 2 * np.pi)
+        polar.append(angle + rng.uniform(-jitter_deg, jitter_deg, count))
+        azim.append(az + np.radians(rng.uniform(-jitter_deg, jitter_deg, count)))
+    th, ph = np.radians(np.concatenate(polar)), np.concatenate(azim)
+    return np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)],
+                    axis=1).astype(np.float32)
+
+
+def ring_rig(n: int, rng: np.random.Generator) -> np.ndarray:
+    """A random LED-ring rig with n lights: one ring (15-55 deg) or two (10-30 and 35-60 deg);
+    more rings when n > 32, so no ring holds more than 16 LEDs (rings sold carry 8-16)."""
+    rings = 1 if rng.random() < 0.5 else 2
+    rings = max(rings, int(np.ceil(n / 16)))
+    if rings == 1:
+        angles = (rng.uniform(15.0, 55.0),)
+    else:
+        angles = tuple(np.sort(rng.uniform(10.0, 60.0, rings))) if rings > 2 else \
+            (rng.uniform(10.0, 30.0), rng.uniform(35.0, 60.0))
+    return led_ring_lights(n, rng, angles)
+
+
 def rig_intensities(n: int, rng: np.random.Generator) -> np.ndarray:
     """Per-light RGB intensities: a rig-wide colour cast plus per-LED brightness scatter."""
     cast = np.exp(rng.normal(0, 0.25, 3))
