@@ -110,9 +110,22 @@ def export_staged_proto(model: torch.nn.Module, opset: int) -> onnx.ModelProto:
     }
     # eval() first: export restores the wrapper's mode afterwards, and a fresh module is in
     # training mode, which would leave the network's BatchNorms training for verification
-    return _export_bytes(StagedGraph(model).eval(), tuple(example[k] for k in STAGE_INPUTS),
-                         input_names=list(STAGE_INPUTS), output_names=list(STAGE_OUTPUTS),
-                         dynamic_axes=dynamic, opset_version=opset)
+    proto = _export_bytes(StagedGraph(model).eval(), tuple(example[k] for k in STAGE_INPUTS),
+                          input_names=list(STAGE_INPUTS), output_names=list(STAGE_OUTPUTS),
+                          dynamic_axes=dynamic, opset_version=opset)
+    _declare_dims(proto, "normals", [1, 3, "out_height", "out_width"])
+    return proto
+
+
+def _declare_dims(proto: onnx.ModelProto, output: str, dims: list[int | str]) -> None:
+    """Name an output's axes plainly: the exporter calls fixed ones 'Divnormals_dim_1', which
+    onnxslim then resolves to numbers (and --simplify refused the changed axes)."""
+    value = next(o for o in proto.graph.output if o.name == output)
+    for dim, want in zip(value.type.tensor_type.shape.dim, dims, strict=True):
+        if isinstance(want, int):
+            dim.dim_value = want
+        else:
+            dim.dim_param = want
 
 
 def export_proto(model: torch.nn.Module, opset: int, static: StaticShape | None
@@ -131,15 +144,8 @@ def export_proto(model: torch.nn.Module, opset: int, static: StaticShape | None
     images, lights = (torch.from_numpy(a) for a in random_inputs(b, n, h, w))
     proto = _export_bytes(model, (images, lights), input_names=["images", "lights"],
                           output_names=["normals"], dynamic_axes=dynamic, opset_version=opset)
-    # Declare the output's axes plainly (the exporter names the 3 'Divnormals_dim_1')
-    out_dims = proto.graph.output[0].type.tensor_type.shape.dim
-    names = ["batch", 3, "height", "width"] if static is None else [
-        1, 3, static.height, static.width]
-    for dim, value in zip(out_dims, names, strict=True):
-        if isinstance(value, int):
-            dim.dim_value = value
-        else:
-            dim.dim_param = value
+    _declare_dims(proto, "normals", ["batch", 3, "height", "width"] if static is None
+                  else [1, 3, static.height, static.width])
     return proto
 
 
