@@ -83,6 +83,19 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
 
     monkeypatch.setattr(output_mod.OutputSlot, "write", counting_write)
     out = tmp_path / "out" / "model.onnx"
+    temp_dirs: list[str] = []
+    if variant.needs_calibration:  # ORT's own temporary files must land in the work folder
+        import tempfile
+
+        import onnxruntime.quantization as ortq
+
+        real_quantize = ortq.quantize_static
+
+        def spy(*args: object, **kwargs: object) -> None:
+            temp_dirs.append(tempfile.gettempdir())
+            real_quantize(*args, **kwargs)
+
+        monkeypatch.setattr(ortq, "quantize_static", spy)
     options = ExportOptions(static=STATIC if variant.needs_shape else None)
     result = export_variant(ckpt, variant, out, calib=[calib_npz], options=options)
 
@@ -111,6 +124,8 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
         assert result.reference_rows and max(r.max_deg for r in result.reference_rows) < 0.01
         q = result.notes["quantization"]
         assert isinstance(q, dict) and q["deconvs_rewritten"] == 3
+        assert len(temp_dirs) == 1 and Path(temp_dirs[0]).parent.parent == out.parent
+        assert Path(temp_dirs[0]).parent.name.startswith(output_mod.TEMP_PREFIX)
         ops = {n.op_type for n in onnx.load(str(out)).graph.node}
         assert "QuantizeLinear" in ops and "ConvTranspose" not in ops
     if variant.precision == "fp16-weights":

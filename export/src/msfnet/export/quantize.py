@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import logging
+import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -206,6 +207,10 @@ def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Pat
     root = logging.getLogger()
     level = root.level
     root.setLevel(logging.ERROR)  # ORT's "consider pre-processing" advice is not for our users
+    # ORT makes its own temporary folders ("ort.quant.*", augmented model, calibration data):
+    # inside scratch they go with the caller's work folder, even after a SIGKILL
+    old_tempdir = tempfile.tempdir
+    tempfile.tempdir = str(scratch)
     try:
         quantize_static(str(src), str(dst), Reader(samples),
                         quant_format=QuantFormat.QDQ, per_channel=True,
@@ -216,6 +221,7 @@ def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Pat
                         else {})
         qmodel = onnx.load(str(dst))
     finally:
+        tempfile.tempdir = old_tempdir
         root.setLevel(level)
     summary: dict[str, object] = {
         "calibration_samples": len(samples), "calibration_stacks": [s.name for s in stacks],
