@@ -28,7 +28,7 @@ from msfnet.runtime.stack import Stack
 from .onnx_export import STAGED_CHECK_CHUNK, default_checks
 from .output import OutputSlot
 from .passes import PASSES, PassContext
-from .variants import FP32_RULE, ExportOptions, ExportResult, Variant
+from .variants import FP32_RULE, ExportOptions, ExportResult, Variant, VerificationRow
 from .verify import (
     compare,
     file_runner,
@@ -102,7 +102,7 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
         ctx = PassContext(model, variant, options, checkpoint, slot, stacks)
         proto = None
         reference: bytes | None = None
-        reference_rows: list = []
+        reference_rows: list[VerificationRow] = []
         for name in variant.effective_passes(options.simplify):
             step = PASSES[name]
             if step.lossy and reference is None:
