@@ -16,11 +16,13 @@ from __future__ import annotations
 import io
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
 import torch
 
+from msfnet.model.network import MSFNet
 from msfnet.runtime.errors import InputError
 
 from .variants import DEFAULT_OPSET, TOLERANCE_DEG, ExportOptions, StaticShape, variant_for
@@ -65,18 +67,19 @@ def rendered_inputs(batch: int, lights: int, height: int, width: int,
     return images, dirs, masks
 
 
-def _export_bytes(module: torch.nn.Module, args: tuple[torch.Tensor, ...], **kwargs: object
+def _export_bytes(module: torch.nn.Module, args: tuple[torch.Tensor, ...], **kwargs: Any
                   ) -> onnx.ModelProto:
     """TorchScript export (dynamo=False: opset 17 and lower, GELU as Erf) into memory."""
     buffer = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # TorchScript exporter deprecation chatter
-        torch.onnx.export(module, args, buffer, do_constant_folding=True, dynamo=False,
-                          **kwargs)  # type: ignore[arg-type]
+        # torch accepts a BytesIO here (its annotation says path only)
+        torch.onnx.export(module, args, buffer,  # type: ignore[arg-type]
+                          do_constant_folding=True, dynamo=False, **kwargs)
     return onnx.load_from_string(buffer.getvalue())
 
 
-def export_staged_proto(model: torch.nn.Module, opset: int) -> onnx.ModelProto:
+def export_staged_proto(model: MSFNet, opset: int) -> onnx.ModelProto:
     """The staged graph (see ``staged.py``): each entry point with its own dynamic axes, so a
     call can feed small placeholders to the entry points it does not use."""
     from msfnet.runtime.staged import FEATURES, STAGE_INPUTS, STAGE_OUTPUTS

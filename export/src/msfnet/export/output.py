@@ -15,9 +15,10 @@ import shutil
 import signal
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import FrameType, TracebackType
+from typing import Any
 
 from msfnet.runtime.errors import InputError
 
@@ -51,10 +52,11 @@ def signals_raise() -> Iterator[None]:
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         raise Interrupted(signum)
 
-    wanted = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: on_signal}
+    wanted: dict[signal.Signals, Callable[[int, FrameType | None], object]] = {
+        signal.SIGINT: signal.default_int_handler, signal.SIGTERM: on_signal}
     if hasattr(signal, "SIGHUP"):
         wanted[signal.SIGHUP] = on_signal
-    previous = {}
+    previous: dict[signal.Signals, Any] = {}
     try:
         for sig, handler in wanted.items():
             if signal.getsignal(sig) is signal.SIG_IGN:
@@ -66,7 +68,7 @@ def signals_raise() -> Iterator[None]:
         yield
     finally:
         for sig, handler in previous.items():
-            signal.signal(sig, handler)
+            signal.signal(sig, handler)  # type: ignore[arg-type]
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -102,7 +104,7 @@ def check_target(target: Path, *, overwrite: bool, inputs: Sequence[Path]) -> No
 
 def remove_stale(folder: Path) -> list[Path]:
     """Remove work folders of exports that no longer run (their lock is free); return them."""
-    removed = []
+    removed: list[Path] = []
     try:
         entries = [p for p in folder.iterdir() if p.name.startswith(TEMP_PREFIX)]
     except OSError:

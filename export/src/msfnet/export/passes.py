@@ -12,10 +12,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import onnx
-import torch
 
 import msfnet
 from msfnet.model.checkpoint import sha256_of
+from msfnet.model.network import MSFNet
 from msfnet.runtime.model_info import METADATA_KEYS, PREPROCESSING_SPEC
 from msfnet.runtime.stack import Stack
 
@@ -38,7 +38,7 @@ class PassContext:
     """What the passes share: the torch network (already fp16-rounded for fp16 variants), the
     request, calibration stacks, the output slot (for scratch files) and notes for the result."""
 
-    model: torch.nn.Module
+    model: MSFNet
     variant: Variant
     options: ExportOptions
     checkpoint: Path

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from msfnet.model.checkpoint import load_model
+from msfnet.model.network import MSFNet
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.stack import Stack
 
@@ -65,7 +66,7 @@ def sniff_checkpoint(path: Path) -> None:
                      "legacy pickle format)", path)
 
 
-def load_network(checkpoint: Path, fp16_weights: bool) -> torch.nn.Module:
+def load_network(checkpoint: Path, fp16_weights: bool) -> MSFNet:
     """The checkpoint's network (weights_only loading); for fp16 variants with its weights
     rounded to float16 and back, the reference the fp16-stored file must match exactly."""
     sniff_checkpoint(checkpoint)
