@@ -1,40 +1,124 @@
-"""msf-export: MSF-Net checkpoint (.pth) -> verified ONNX model with a dynamic light count."""
+"""msf-export: MSF-Net checkpoint (.pth) -> verified ONNX model with a dynamic light count.
+
+Errors are one line on stderr, ``msf-export: error: <file or option>: <problem>``: exit 2 for
+bad arguments or input (and failed verification), 130 for Ctrl-C, 128 + n for signal n, 1 for
+an internal error. A traceback is shown only with ``--debug``.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
+import re
 import sys
+import traceback
 from pathlib import Path
+from typing import NoReturn
 
-from msfnet.runtime.errors import InputError
+from .variants import (
+    DEFAULT_OPSET,
+    INT8_MEAN_LIMIT_DEG,
+    MAX_OPSET,
+    MIN_OPSET,
+    TOLERANCE_DEG,
+    VARIANT_NAMES,
+    VARIANTS,
+    ExportOptions,
+    StaticShape,
+    Variant,
+    get_variant,
+)
 
-from .onnx_export import DEFAULT_OPSET, TOLERANCE_DEG, StaticShape, export_checkpoint
+PROG = "msf-export"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``msf-export: error: --opset: ...`` (no usage block)."""
+
+    def error(self, message: str) -> NoReturn:
+        message = re.sub(r"^argument ([^:]+): ", r"\1: ", message)
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _opset(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if not MIN_OPSET <= value <= MAX_OPSET:
+        raise argparse.ArgumentTypeError(f"{value} is outside the supported opsets "
+                                         f"{MIN_OPSET}-{MAX_OPSET}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be positive, got {value}")
+    return value
+
+
+def _degrees(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of degrees, got {text}")
+    return value
+
+
+def _static(text: str) -> StaticShape:
+    try:
+        return StaticShape.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _table() -> str:
+    rows = [f"  {v.name:<12} {v.summary}\n  {'':<12} passes: {' -> '.join(v.passes)}\n"
+            f"  {'':<12} verified: {v.rule.describe()}" for v in VARIANTS]
+    return "variants:\n" + "\n".join(rows)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="msf-export",
+    p = _Parser(
+        prog=PROG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Export an MSF-Net PyTorch checkpoint ({'state_dict': ...} or a bare "
-        "state_dict, legacy or zip format) to ONNX, then verify ONNX Runtime against PyTorch. "
-        "Inputs: images float32 (B,N,3,H,W), lights float32 (B,N,3); output normals float32 "
-        "(B,3,H,W). N, H, W are dynamic unless --static; H and W must be multiples of 4.",
+        "state_dict, legacy or zip format) to ONNX, then verify the written file with ONNX "
+        "Runtime. Inputs: images float32 (B,N,3,H,W), lights float32 (B,N,3); output normals "
+        "float32 (B,3,H,W). N, H, W are dynamic unless --static; H and W must be multiples "
+        "of 4. The file appears only after it passed verification.",
+        epilog=_table() + "\n\nThe flags --static, --staged, --fp16-weights and --int8 pick "
+        "the same rows (e.g. --staged --int8 = staged-int8).",
     )
-    p.add_argument("checkpoint", type=Path, help="PyTorch checkpoint (.pth/.pth.tar)")
+    p.add_argument("checkpoint", type=Path, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)")
     p.add_argument("-o", "--output", type=Path, default=None,
                    help="output .onnx (default: the checkpoint's name with .onnx)")
-    p.add_argument("--opset", type=int, default=DEFAULT_OPSET,
-                   help=f"ONNX opset (default {DEFAULT_OPSET}: GELU as Erf, widest runtime "
-                   "support)")
-    p.add_argument("--train-lights", type=int, default=32,
+    p.add_argument("--variant", choices=VARIANT_NAMES, default=None,
+                   help="the export variant (default fp32, or what the flags below pick); "
+                   "see --list-variants")
+    p.add_argument("--list-variants", action="store_true",
+                   help="print the variants table (passes, verification rule) and exit")
+    p.add_argument("--opset", type=_opset, default=DEFAULT_OPSET,
+                   help=f"ONNX opset, {MIN_OPSET}-{MAX_OPSET} (default {DEFAULT_OPSET}: GELU as "
+                   "Erf, widest runtime support; int8 needs 13 or higher)")
+    p.add_argument("--train-lights", type=_positive_int, default=32,
                    help="light count the model was trained with; stored in the metadata and "
                    "used by the runtime's sqrt(N / train_lights) scaling (default 32)")
-    p.add_argument("--static", type=StaticShape.parse, default=None, metavar="N,H,W",
-                   help="export fixed shapes (batch 1) for NPUs / OpenVINO / OAK compilers")
+    p.add_argument("--static", type=_static, default=None, metavar="N,H,W",
+                   help="export fixed shapes (batch 1) for NPUs / OpenVINO / OAK compilers; "
+                   "H and W multiples of 4")
     p.add_argument("--simplify", action="store_true",
                    help="simplify the graph with onnxslim (dynamic axes are kept)")
-    p.add_argument("--tolerance", type=float, default=TOLERANCE_DEG,
-                   help=f"max allowed ONNX Runtime vs PyTorch angle in degrees "
-                   f"(default {TOLERANCE_DEG})")
+    p.add_argument("--tolerance", type=_degrees, default=None, metavar="DEG",
+                   help=f"verification limit in degrees (default: the variant's own, "
+                   f"{TOLERANCE_DEG} max vs PyTorch for fp32/fp16, {INT8_MEAN_LIMIT_DEG} mean "
+                   "vs the fp32 graph for int8)")
     p.add_argument("--int8", action="store_true",
                    help="write a static int8 QDQ model (transposed convs rewritten as conv + "
                    "depth-to-space, per-channel weights), calibrated on --calib stacks")
@@ -49,42 +133,78 @@ def build_parser() -> argparse.ArgumentParser:
                    "msf-run feeds a few lights at a time: several times less memory per pixel "
                    "at high light counts, so bigger tiles and less halo work; same normals")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
     return p
 
 
+def resolve_variant(args: argparse.Namespace) -> Variant:
+    """--variant, or the row the flags pick; a flag given with --variant must agree with it
+    (--static then only supplies the static rows' shape)."""
+    from msfnet.runtime.errors import InputError
+
+    from .variants import variant_for
+
+    if args.variant is None:
+        return variant_for(static=args.static is not None, staged=args.staged,
+                           fp16_weights=args.fp16_weights, int8=args.int8)
+    chosen = get_variant(args.variant)
+    for flag, given, fits in (("--staged", args.staged, chosen.graph == "staged"),
+                              ("--fp16-weights", args.fp16_weights,
+                               chosen.precision == "fp16-weights"),
+                              ("--int8", args.int8, chosen.precision == "int8")):
+        if given and not fits:
+            raise InputError(f"{flag} contradicts --variant {chosen.name}")
+    return chosen
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.list_variants:
+        print(_table())
+        return 0
+    if args.checkpoint is None:
+        parser.error("the following arguments are required: checkpoint")
+    from .output import Interrupted, signals_raise
+
     output = args.output or args.checkpoint.with_suffix(".onnx")
     try:
-        if output.exists() and not args.overwrite:
-            raise InputError("output exists; pass --overwrite to replace it", output)
-        if args.train_lights < 1:
-            raise InputError(f"--train-lights must be positive, got {args.train_lights}")
-        if args.int8 and not args.calib:
-            raise InputError("--int8 needs --calib STACK [STACK ...] (real stacks to calibrate on)")
-        fp32_out = output.with_name(f".{output.stem}.fp32.onnx") if args.int8 else output
-        results = export_checkpoint(args.checkpoint, fp32_out, opset=args.opset,
-                                    train_lights=args.train_lights, static=args.static,
-                                    do_simplify=args.simplify, tolerance_deg=args.tolerance,
-                                    fp16_weights=args.fp16_weights, staged=args.staged)
-        if args.int8:  # the verified fp32 graph is the quantiser's input
-            from .quantize import load_calibration_stacks, quantize_int8
+        with signals_raise():
+            return _export(args, output)
+    except Interrupted as exc:
+        print(f"{PROG}: interrupted by {exc}; nothing written", file=sys.stderr)
+        return 128 + exc.signum
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; nothing written", file=sys.stderr)
+        return 130
 
-            try:
-                summary = quantize_int8(fp32_out, output, load_calibration_stacks(args.calib))
-            finally:
-                fp32_out.unlink(missing_ok=True)
-            print(f"int8: {summary['deconvs_rewritten']} transposed convs rewritten, calibrated "
-                  f"on {summary['calibration_samples']} tiles of "
-                  f"{', '.join(summary['calibration_stacks'])}")
+
+def _export(args: argparse.Namespace, output: Path) -> int:
+    from msfnet.runtime.errors import InputError
+
+    try:
+        variant = resolve_variant(args)
+        from .variants import export_variant
+
+        options = ExportOptions(opset=args.opset, train_lights=args.train_lights,
+                                static=args.static, simplify=args.simplify,
+                                tolerance_deg=args.tolerance)
+        result = export_variant(args.checkpoint, variant, output, calib=args.calib,
+                                options=options, overwrite=args.overwrite)
     except InputError as exc:
-        print(f"msf-export: error: {exc}", file=sys.stderr)
+        if args.debug:
+            traceback.print_exc()
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
-    for r in results:
-        print(f"verified N={r['lights']:>3} {r['width']}x{r['height']}: max "
-              f"{r['max_deg']:.2e} deg, mean {r['mean_deg']:.2e} deg over {r['pixels']} object px "
-              "of a rendered stack (ONNX Runtime vs PyTorch)")
-    print(f"wrote {output}")
+    except Exception as exc:
+        if args.debug:
+            raise
+        first = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else ""
+        print(f"{PROG}: error: internal error: {type(exc).__name__}: {first} (run again with "
+              "--debug for the traceback)", file=sys.stderr)
+        return 1
+    for line in result.lines():
+        print(line)
     return 0
 
 

@@ -1,49 +1,34 @@
-"""Checkpoint -> ONNX with a dynamic light count, metadata, and self-verification.
+"""Checkpoint -> ONNX model in memory: torch export, metadata, fp16 storage, simplification.
 
 The ONNX contract (also in the README):
   inputs   images  float32 (B, N, 3, H, W)  normalised as msfnet.runtime.preprocess.normalise
            lights  float32 (B, N, 3)        unit directions, x right, y up, z to the camera
   output   normals float32 (B, 3, H, W)     unit normals, same frame
   N, H, W (and B) are dynamic unless exported --static; H and W must be multiples of 4.
+
+Every function here works on an ``onnx.ModelProto`` in memory; only ``variants.export_variant``
+writes a file (once, after all passes) and verifies that file. ``export_checkpoint`` and
+``verify`` are the older entry points, kept as thin wrappers.
 """
 
 from __future__ import annotations
 
-import json
+import io
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
 import torch
 
-import msfnet
-from msfnet.model.checkpoint import load_model, sha256_of
-from msfnet.runtime.contract import METADATA_KEYS, PREPROCESSING_SPEC
+from msfnet.model.network import MSFNet
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.metrics import angular_error_deg
 
-DEFAULT_OPSET = 17  # TorchScript exporter: GELU as Erf, runs on older runtimes (OpenVINO 2022)
-TOLERANCE_DEG = 0.01
+from .variants import DEFAULT_OPSET, TOLERANCE_DEG, ExportOptions, StaticShape, variant_for
+
 EXAMPLE_SHAPE = (2, 4, 24, 20)  # B, N, H, W of the tracing example: differs from every check
-
-
-@dataclass(frozen=True)
-class StaticShape:
-    lights: int
-    height: int
-    width: int
-
-    @classmethod
-    def parse(cls, text: str) -> StaticShape:
-        try:
-            n, h, w = (int(v) for v in text.split(","))
-        except ValueError as exc:
-            raise InputError(f"--static {text!r}: expected N,H,W such as 32,128,128") from exc
-        if n < 1 or h < 4 or w < 4 or h % 4 or w % 4:
-            raise InputError(f"--static {text!r}: need N >= 1 and H, W positive multiples of 4")
-        return cls(n, h, w)
+STAGED_CHECK_CHUNK = 3  # verification chunk: uneven splits of every checked light count
 
 
 def random_inputs(batch: int, lights: int, height: int, width: int,
@@ -82,7 +67,19 @@ def rendered_inputs(batch: int, lights: int, height: int, width: int,
     return images, dirs, masks
 
 
-def _torch_export_staged(model: torch.nn.Module, path: Path, opset: int) -> None:
+def _export_bytes(module: torch.nn.Module, args: tuple[torch.Tensor, ...], **kwargs: Any
+                  ) -> onnx.ModelProto:
+    """TorchScript export (dynamo=False: opset 17 and lower, GELU as Erf) into memory."""
+    buffer = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # TorchScript exporter deprecation chatter
+        # torch accepts a BytesIO here (its annotation says path only)
+        torch.onnx.export(module, args, buffer,  # type: ignore[arg-type]
+                          do_constant_folding=True, dynamo=False, **kwargs)
+    return onnx.load_from_string(buffer.getvalue())
+
+
+def export_staged_proto(model: MSFNet, opset: int) -> onnx.ModelProto:
     """The staged graph (see ``staged.py``): each entry point with its own dynamic axes, so a
     call can feed small placeholders to the entry points it does not use."""
     from msfnet.runtime.chunked import FEATURES, STAGE_INPUTS, STAGE_OUTPUTS
@@ -114,19 +111,29 @@ def _torch_export_staged(model: torch.nn.Module, path: Path, opset: int) -> None
         "max3": {2: "half_height_r", 3: "half_width_r"},
         "normals": {2: "out_height", 3: "out_width"},
     }
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        # eval() first: export restores the wrapper's mode afterwards, and a fresh module is in
-        # training mode, which would leave the network's BatchNorms training for verification
-        torch.onnx.export(StagedGraph(model).eval(), tuple(example[k] for k in STAGE_INPUTS),
-                          str(path),
+    # eval() first: export restores the wrapper's mode afterwards, and a fresh module is in
+    # training mode, which would leave the network's BatchNorms training for verification
+    proto = _export_bytes(StagedGraph(model).eval(), tuple(example[k] for k in STAGE_INPUTS),
                           input_names=list(STAGE_INPUTS), output_names=list(STAGE_OUTPUTS),
-                          dynamic_axes=dynamic, opset_version=opset, do_constant_folding=True,
-                          dynamo=False)
+                          dynamic_axes=dynamic, opset_version=opset)
+    _declare_dims(proto, "normals", [1, 3, "out_height", "out_width"])
+    return proto
 
 
-def _torch_export(model: torch.nn.Module, path: Path, opset: int,
-                  static: StaticShape | None) -> None:
+def _declare_dims(proto: onnx.ModelProto, output: str, dims: list[int | str]) -> None:
+    """Name an output's axes plainly: the exporter calls fixed ones 'Divnormals_dim_1', which
+    onnxslim then resolves to numbers (and --simplify refused the changed axes)."""
+    value = next(o for o in proto.graph.output if o.name == output)
+    for dim, want in zip(value.type.tensor_type.shape.dim, dims, strict=True):
+        if isinstance(want, int):
+            dim.dim_value = want
+        else:
+            dim.dim_param = want
+
+
+def export_proto(model: torch.nn.Module, opset: int, static: StaticShape | None
+                 ) -> onnx.ModelProto:
+    """The monolithic graph: dynamic B, N, H, W, or fixed shapes (batch 1) for ``static``."""
     if static is None:
         b, n, h, w = EXAMPLE_SHAPE
         dynamic = {
@@ -138,45 +145,39 @@ def _torch_export(model: torch.nn.Module, path: Path, opset: int,
         b, n, h, w = 1, static.lights, static.height, static.width
         dynamic = None
     images, lights = (torch.from_numpy(a) for a in random_inputs(b, n, h, w))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # TorchScript exporter deprecation chatter
-        torch.onnx.export(model, (images, lights), str(path), input_names=["images", "lights"],
-                          output_names=["normals"], dynamic_axes=dynamic, opset_version=opset,
-                          do_constant_folding=True, dynamo=False)
+    proto = _export_bytes(model, (images, lights), input_names=["images", "lights"],
+                          output_names=["normals"], dynamic_axes=dynamic, opset_version=opset)
+    _declare_dims(proto, "normals", ["batch", 3, "height", "width"] if static is None
+                  else [1, 3, static.height, static.width])
+    return proto
 
 
-def _finalise(path: Path, meta: dict[str, str], static: StaticShape | None,
-              staged: bool = False) -> None:
-    """Declare the output's axes plainly (the exporter names the 3 'Divnormals_dim_1') and
-    attach the metadata the runtime reads."""
-    proto = onnx.load(str(path))
-    if not staged:
-        out_dims = proto.graph.output[0].type.tensor_type.shape.dim
-        names = ["batch", 3, "height", "width"] if static is None else [
-            1, 3, static.height, static.width]
-        for dim, value in zip(out_dims, names, strict=True):
-            if isinstance(value, int):
-                dim.dim_value = value
-            else:
-                dim.dim_param = value
+def _torch_export(model: torch.nn.Module, path: Path, opset: int,
+                  static: StaticShape | None) -> None:
+    """Unverified monolithic export straight to ``path`` (tests and experiments only)."""
+    onnx.save(export_proto(model, opset, static), str(path))
+
+
+def set_metadata(proto: onnx.ModelProto, values: dict[str, str], *, replace_all: bool = False,
+                 ) -> None:
+    """Update (or with ``replace_all`` replace) metadata_props in place, keys kept in order."""
+    current = {} if replace_all else {p.key: p.value for p in proto.metadata_props}
+    current.update(values)
     del proto.metadata_props[:]
-    for key, value in meta.items():
+    for key, value in current.items():
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
-    proto.doc_string = "MSF-Net photometric stereo (msfnet): images + lights -> unit normals"
-    onnx.save(proto, str(path))
 
 
-def store_weights_fp16(path: Path) -> None:
+def store_weights_fp16(proto: onnx.ModelProto) -> onnx.ModelProto:
     """Store float32 weights as float16 (half the file), each followed by a Cast back to float32.
 
     ONNX Runtime folds the Casts when it loads the model, so it computes in float32 exactly as a
-    float32 file holding the fp16-rounded weights would. Pair it with a checkpoint whose weights
-    are fp16-rounded (``save_checkpoint(..., fp16=True)``) and parity is exact.
+    float32 file holding the fp16-rounded weights would. Pair it with a network whose weights
+    are fp16-rounded (the verification reference of the fp16 variants) and parity is exact.
     """
     from onnx import TensorProto, helper, numpy_helper
 
-    proto = onnx.load(str(path))
     casts = []
     for init in proto.graph.initializer:
         if init.data_type != TensorProto.FLOAT or int(np.prod(init.dims)) < 16:
@@ -189,7 +190,7 @@ def store_weights_fp16(path: Path) -> None:
     nodes = [*casts, *proto.graph.node]
     del proto.graph.node[:]
     proto.graph.node.extend(nodes)
-    onnx.save(proto, str(path))
+    return proto
 
 
 def _dims(proto: onnx.ModelProto) -> dict[str, list[str | int]]:
@@ -197,68 +198,45 @@ def _dims(proto: onnx.ModelProto) -> dict[str, list[str | int]]:
             for v in [*proto.graph.input, *proto.graph.output]}
 
 
-def simplify(path: Path) -> None:
-    """Simplify the graph in place with onnxslim; refuse if any declared axis changed."""
+def simplify(proto: onnx.ModelProto) -> onnx.ModelProto:
+    """Simplify the graph with onnxslim; refuse if any declared axis changed."""
     try:
         import onnxslim
     except ImportError as exc:
         raise InputError("--simplify needs the onnxslim package: pip install onnxslim") from exc
-    proto = onnx.load(str(path))
     simplified = onnxslim.slim(proto)
     if _dims(simplified) != _dims(proto):
         raise InputError(f"simplification changed the input/output axes {_dims(proto)} -> "
-                         f"{_dims(simplified)}", path)
-    onnx.save(simplified, str(path))
+                         f"{_dims(simplified)}")
+    return simplified
 
 
-def verify(model: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]],
+def default_checks(static: StaticShape | None) -> list[tuple[int, int, int]]:
+    """Light counts unlike the tracing example, two of them at non-square sizes."""
+    if static is not None:
+        return [(static.lights, static.height, static.width)]
+    return [(3, 32, 32), (7, 28, 44), (32, 16, 24)]
+
+
+def verify(model: torch.nn.Module, path: str | Path, checks: list[tuple[int, int, int]],
            batch: int = 1, threads: int = 0, staged_chunk: int | None = None
            ) -> list[dict[str, float]]:
-    """ONNX Runtime vs PyTorch at each (N, H, W) on rendered objects: max/mean angular
-    difference in degrees over the objects' pixels. ``staged_chunk``: the file is a staged
-    export, run by the runtime's light-chunked loop with that many lights per call."""
+    """ONNX Runtime (the file at ``path``) vs PyTorch at each (N, H, W) on rendered objects:
+    max/mean angle in degrees over the objects' pixels, as dicts. ``staged_chunk``: the file is
+    a staged export, run by the runtime's light-chunked loop with that many lights per call.
+    Measures only; the pass/fail rules live in ``variants`` / ``verify``."""
     import onnxruntime as ort
 
-    from msfnet.runtime.chunked import run_staged
+    from .verify import compare, rendered_cases, session_runner, torch_runner
 
-    try:
-        onnx.checker.check_model(str(path), full_check=True)
-    except onnx.checker.ValidationError as exc:
-        raise InputError(f"exported graph fails onnx.checker: {str(exc).splitlines()[0]}") from exc
     opts = ort.SessionOptions()
     if threads:
         opts.intra_op_num_threads = threads
     session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    results = []
-    for i, (n, h, w) in enumerate(checks):
-        images, lights, masks = rendered_inputs(batch, n, h, w, seed=100 + i)
-        try:
-            if staged_chunk:
-                onnx_out = np.concatenate([run_staged(session, images[b:b + 1],
-                                                      lights[b:b + 1], staged_chunk)
-                                           for b in range(batch)])
-            else:
-                (onnx_out,) = session.run(["normals"], {"images": images, "lights": lights})
-        except Exception as exc:  # ORT raises its own Fail/InvalidArgument types
-            raise InputError(f"verification failed: ONNX Runtime cannot run N={n} {w}x{h} "
-                             f"({str(exc).splitlines()[0][:200]})") from exc
-        with torch.no_grad():
-            torch_out = model(torch.from_numpy(images), torch.from_numpy(lights)).numpy()
-        diff = angular_error_deg(onnx_out.transpose(0, 2, 3, 1),
-                                 torch_out.transpose(0, 2, 3, 1))[masks]
-        results.append({"lights": n, "height": h, "width": w, "pixels": int(diff.size),
-                        "max_deg": float(diff.max()), "mean_deg": float(diff.mean())})
-    return results
-
-
-STAGED_CHECK_CHUNK = 3  # verification chunk: uneven splits of every checked light count
-
-
-def default_checks(static: StaticShape | None) -> list[tuple[int, int, int]]:
-    """Light counts unlike the tracing example, one of them at a non-square size."""
-    if static is not None:
-        return [(static.lights, static.height, static.width)]
-    return [(3, 32, 32), (7, 28, 44), (32, 16, 24)]
+    rows = compare(session_runner(session, staged_chunk), torch_runner(model),
+                   rendered_cases(checks, batch=batch))
+    return [{"lights": r.lights, "height": r.size[0], "width": r.size[1], "pixels": r.pixels,
+             "max_deg": r.max_deg, "mean_deg": r.mean_deg} for r in rows]
 
 
 def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int = DEFAULT_OPSET,
@@ -266,55 +244,20 @@ def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int 
                       do_simplify: bool = False, checks: list[tuple[int, int, int]] | None = None,
                       tolerance_deg: float = TOLERANCE_DEG, fp16_weights: bool = False,
                       staged: bool = False) -> list[dict[str, float]]:
-    """Export, verify and only then move the file into place; nothing is left on failure.
+    """The older entry point: the fp32 / fp16 / static / staged variant picked by flags,
+    replacing ``output`` if it exists; returns the verification rows as dicts."""
+    from .variants import export_variant
 
-    ``staged``: write the staged graph (``staged.py``) for light-chunked runs; verified through
-    the runtime's chunked loop against the monolithic PyTorch network.
+    variant = variant_for(static=static is not None, staged=staged, fp16_weights=fp16_weights)
+    options = ExportOptions(opset=opset, train_lights=train_lights, static=static,
+                            simplify=do_simplify, tolerance_deg=tolerance_deg,
+                            checks=tuple(checks) if checks else None)
+    result = export_variant(checkpoint, variant, output, options=options, overwrite=True)
+    return [{"lights": r.lights, "height": r.size[0], "width": r.size[1], "pixels": r.pixels,
+             "max_deg": r.max_deg, "mean_deg": r.mean_deg} for r in result.rows]
 
-    ``fp16_weights``: store weights in half precision (computed in float32); the reference for
-    verification is then the network with its weights rounded to float16 likewise.
-    """
-    checkpoint, output = Path(checkpoint), Path(output)
-    if staged and static is not None:
-        raise InputError("--staged and --static do not combine (the staged graph's entry "
-                         "points need dynamic shapes)")
-    model = load_model(checkpoint)
-    if fp16_weights:
-        with torch.no_grad():
-            for tensor in model.state_dict().values():
-                if tensor.is_floating_point():
-                    tensor.copy_(tensor.half().float())
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.partial.onnx")
-    try:
-        if staged:
-            _torch_export_staged(model, tmp, opset)
-        else:
-            _torch_export(model, tmp, opset, static)
-        meta = {
-            METADATA_KEYS["format"]: "msfnet-normals-v1",
-            METADATA_KEYS["train_lights"]: str(train_lights),
-            METADATA_KEYS["preprocessing"]: json.dumps(PREPROCESSING_SPEC),
-            METADATA_KEYS["checkpoint_sha256"]: sha256_of(checkpoint),
-            METADATA_KEYS["version"]: msfnet.__version__,
-            METADATA_KEYS["input_multiple"]: "4",
-            METADATA_KEYS["static_shape"]: "" if static is None else
-            f"{static.lights},{static.height},{static.width}",
-            METADATA_KEYS["precision"]: "fp32 (fp16-stored weights)" if fp16_weights else "fp32",
-            METADATA_KEYS["graph"]: "staged" if staged else "monolithic",
-        }
-        _finalise(tmp, meta, static, staged)
-        if do_simplify:
-            simplify(tmp)
-        if fp16_weights:
-            store_weights_fp16(tmp)
-        results = verify(model, tmp, checks or default_checks(static),
-                         staged_chunk=STAGED_CHECK_CHUNK if staged else None)
-        worst = max(r["max_deg"] for r in results)
-        if not np.isfinite(worst) or worst > tolerance_deg:
-            raise InputError(f"verification failed: ONNX Runtime differs from PyTorch by "
-                             f"{worst:.4g} deg (> {tolerance_deg} deg)", output)
-        tmp.replace(output)
-        return results
-    finally:
-        tmp.unlink(missing_ok=True)
+
+__all__ = ["DEFAULT_OPSET", "EXAMPLE_SHAPE", "STAGED_CHECK_CHUNK", "TOLERANCE_DEG",
+           "StaticShape", "default_checks", "export_checkpoint", "export_proto",
+           "export_staged_proto", "random_inputs", "rendered_inputs", "set_metadata",
+           "simplify", "store_weights_fp16", "verify"]

@@ -64,6 +64,28 @@ def tile_origins(mask: np.ndarray, tile: int, count: int, seed: int = 0) -> list
     return out
 
 
+def calibration_tiles(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
+                      lights: int = CALIB_LIGHTS, tiles_per_stack: int = CALIB_TILES_PER_STACK,
+                      train_lights: int = 32, seed: int = 0
+                      ) -> Iterator[tuple[dict[str, np.ndarray], np.ndarray, str]]:
+    """(feeds, mask (t, t), stack name) per tile; see ``calibration_samples``."""
+    for si, stack in enumerate(stacks):
+        counts = sorted({min(k, stack.num_lights) for k in (lights, 32, 8)})
+        for ti, (y0, x0) in enumerate(tile_origins(stack.mask, tile, tiles_per_stack, seed + si)):
+            n = counts[ti % len(counts)]
+            idx = evenly(stack.num_lights, n)
+            crop = (slice(y0, y0 + tile), slice(x0, x0 + tile))
+            mask = stack.mask[crop]
+            x = normalise(stack.images[idx][:, crop[0], crop[1]], stack.intensities[idx],
+                          mask, train_lights)
+            pad_h, pad_w = tile - x.shape[2], tile - x.shape[3]
+            if pad_h or pad_w:
+                x = np.pad(x, ((0, 0), (0, 0), (0, pad_h), (0, pad_w)))
+                mask = np.pad(mask, ((0, pad_h), (0, pad_w)))
+            yield ({"images": x[None].astype(np.float32),
+                    "lights": stack.lights[idx][None].astype(np.float32)}, mask, stack.name)
+
+
 def calibration_samples(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
                         lights: int = CALIB_LIGHTS, tiles_per_stack: int = CALIB_TILES_PER_STACK,
                         train_lights: int = 32,
@@ -75,19 +97,10 @@ def calibration_samples(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
     stack's count) so the calibrated ranges
     cover the sqrt(N / 32) scaling the runtime applies.
     """
-    for si, stack in enumerate(stacks):
-        counts = sorted({min(k, stack.num_lights) for k in (lights, 32, 8)})
-        for ti, (y0, x0) in enumerate(tile_origins(stack.mask, tile, tiles_per_stack, seed + si)):
-            n = counts[ti % len(counts)]
-            idx = evenly(stack.num_lights, n)
-            crop = (slice(y0, y0 + tile), slice(x0, x0 + tile))
-            x = normalise(stack.images[idx][:, crop[0], crop[1]], stack.intensities[idx],
-                          stack.mask[crop], train_lights)
-            pad_h, pad_w = tile - x.shape[2], tile - x.shape[3]
-            if pad_h or pad_w:
-                x = np.pad(x, ((0, 0), (0, 0), (0, pad_h), (0, pad_w)))
-            yield {"images": x[None].astype(np.float32),
-                   "lights": stack.lights[idx][None].astype(np.float32)}
+    for feeds, _mask, _name in calibration_tiles(stacks, tile=tile, lights=lights,
+                                                 tiles_per_stack=tiles_per_stack,
+                                                 train_lights=train_lights, seed=seed):
+        yield feeds
 
 
 def load_calibration_stacks(paths: Sequence[str | Path], max_lights: int = 96) -> list[Stack]:
@@ -110,15 +123,17 @@ def _is_staged(model: onnx.ModelProto) -> bool:
                for p in model.metadata_props)
 
 
-def staged_samples(src: str | Path, samples: list[dict[str, np.ndarray]]
+def staged_samples(src: str | Path | bytes, samples: list[dict[str, np.ndarray]]
                    ) -> list[dict[str, np.ndarray]]:
     """Feeds for a staged graph: each entry point gets its real input, i.e. what the fp32
-    graph's earlier stages produce on the same tile (placeholders would calibrate nothing)."""
+    graph (a file or its serialised bytes) produces in its earlier stages on the same tile
+    (placeholders would calibrate nothing)."""
     import onnxruntime as ort
 
     from msfnet.runtime.chunked import run_staged
 
-    session = ort.InferenceSession(str(src), providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(src if isinstance(src, bytes) else str(src),
+                                   providers=["CPUExecutionProvider"])
     out = []
     for feeds in samples:
         keep: dict[str, np.ndarray] = {}
@@ -150,16 +165,19 @@ def fp32_conv_names(model: onnx.ModelProto) -> list[str]:
     return [*keep, convs[0]] if convs and convs[0] not in keep else keep
 
 
-def quantize_int8(src: str | Path, dst: str | Path, stacks: Sequence[Stack], *,
-                  method: str = "minmax", tile: int = CALIB_TILE, lights: int = CALIB_LIGHTS,
-                  tiles_per_stack: int = CALIB_TILES_PER_STACK,
-                  reduce_range: bool = False, rewrite: str = "phases") -> dict[str, object]:
-    """fp32 msfnet ONNX -> int8 QDQ ONNX at ``dst``; returns a summary dict.
+CALIBRATION_METHODS = ("minmax", "percentile", "entropy")
+
+
+def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Path, *,
+                   method: str = "minmax", tile: int = CALIB_TILE, lights: int = CALIB_LIGHTS,
+                   tiles_per_stack: int = CALIB_TILES_PER_STACK, train_lights: int = 32,
+                   reduce_range: bool = False) -> tuple[onnx.ModelProto, dict[str, object]]:
+    """An fp32 msfnet graph whose transposed convs are already rewritten (``rewrite.py``) ->
+    int8 QDQ graph, and a summary. onnxruntime's quantiser works on files: they go to
+    ``scratch`` (a private folder the caller removes). Metadata: precision int8-qdq plus the
+    summary under msfnet.quantization.
 
     method: 'minmax' (default; robust for this ReLU-like network) or 'percentile' / 'entropy'.
-    rewrite: how transposed convs become convs ('phases', default, or 'conv3x3', see
-    rewrite.py). Same accuracy; 'phases' does no zero-tap work: int8 on workload (b) 1.56x fp32
-    against 1.28x for 'conv3x3' (same run, bundled model, 2 threads).
     """
     from onnxruntime.quantization import (
         CalibrationDataReader,
@@ -173,42 +191,68 @@ def quantize_int8(src: str | Path, dst: str | Path, stacks: Sequence[Stack], *,
                "entropy": CalibrationMethod.Entropy}
     if method not in methods:
         raise InputError(f"calibration method {method!r}: expected one of {', '.join(methods)}")
-    model, rewritten = rewrite_deconvs(onnx.load(str(src)), rewrite)
+    if any(n.op_type == "ConvTranspose" for n in model.graph.node):
+        raise ValueError("rewrite the transposed convolutions first (rewrite.rewrite_deconvs)")
     samples = list(calibration_samples(stacks, tile=tile, lights=lights,
-                                       tiles_per_stack=tiles_per_stack))
+                                       tiles_per_stack=tiles_per_stack,
+                                       train_lights=train_lights))
     if _is_staged(model):
-        samples = staged_samples(src, samples)
+        samples = staged_samples(model.SerializeToString(), samples)
 
     class Reader(_Reader, CalibrationDataReader):
         pass
 
+    src, dst = scratch / "fp32.onnx", scratch / "int8.onnx"
+    onnx.save(model, str(src))
     root = logging.getLogger()
     level = root.level
     root.setLevel(logging.ERROR)  # ORT's "consider pre-processing" advice is not for our users
+    # ORT makes its own temporary folders ("ort.quant.*", augmented model, calibration data):
+    # inside scratch they go with the caller's work folder, even after a SIGKILL
+    old_tempdir = tempfile.tempdir
+    tempfile.tempdir = str(scratch)
     try:
-        with tempfile.TemporaryDirectory(prefix="msfnet-quant-") as tmp:
-            rw = Path(tmp) / "rewritten.onnx"
-            onnx.save(model, str(rw))
-            quantize_static(str(rw), str(Path(tmp) / "int8.onnx"), Reader(samples),
-                            quant_format=QuantFormat.QDQ, per_channel=True,
-                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                            op_types_to_quantize=QUANT_OPS, calibrate_method=methods[method],
-                            nodes_to_exclude=fp32_conv_names(model), reduce_range=reduce_range,
-                            extra_options={"CalibPercentile": 99.999} if method == "percentile"
-                            else {})
-            qmodel = onnx.load(str(Path(tmp) / "int8.onnx"))
+        quantize_static(str(src), str(dst), Reader(samples),
+                        quant_format=QuantFormat.QDQ, per_channel=True,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                        op_types_to_quantize=QUANT_OPS, calibrate_method=methods[method],
+                        nodes_to_exclude=fp32_conv_names(model), reduce_range=reduce_range,
+                        extra_options={"CalibPercentile": 99.999} if method == "percentile"
+                        else {})
+        qmodel = onnx.load(str(dst))
     finally:
+        tempfile.tempdir = old_tempdir
         root.setLevel(level)
-    summary = {"deconvs_rewritten": rewritten, "calibration_samples": len(samples),
-               "calibration_stacks": [s.name for s in stacks], "method": method,
-               "tile": tile, "lights": lights, "reduce_range": reduce_range, "rewrite": rewrite,
-               "fp32_convs": fp32_conv_names(model)}
-    _set_meta(qmodel, {METADATA_KEYS["precision"]: "int8-qdq",
-                       "msfnet.quantization": json.dumps(summary)})
-    dst = Path(dst)
-    partial = dst.with_name(f".{dst.name}.partial")
-    onnx.save(qmodel, str(partial))
-    partial.replace(dst)  # atomic: no half-written model on failure
+    summary: dict[str, object] = {
+        "calibration_samples": len(samples), "calibration_stacks": [s.name for s in stacks],
+        "method": method, "tile": tile, "lights": lights, "reduce_range": reduce_range,
+        "fp32_convs": fp32_conv_names(model)}
+    return qmodel, summary
+
+
+def quantize_int8(src: str | Path, dst: str | Path, stacks: Sequence[Stack], *,
+                  method: str = "minmax", tile: int = CALIB_TILE, lights: int = CALIB_LIGHTS,
+                  tiles_per_stack: int = CALIB_TILES_PER_STACK,
+                  reduce_range: bool = False, rewrite: str = "phases") -> dict[str, object]:
+    """fp32 msfnet ONNX file -> int8 QDQ ONNX file at ``dst`` (replaced atomically, NOT
+    verified: ``variants.export_variant(..., "int8", ...)`` is the verified route); returns a
+    summary dict.
+
+    rewrite: how transposed convs become convs ('phases', default, or 'conv3x3', see
+    rewrite.py). Same accuracy; 'phases' does no zero-tap work: int8 on workload (b) 1.56x fp32
+    against 1.28x for 'conv3x3' (same run, bundled model, 2 threads).
+    """
+    from .output import OutputSlot
+
+    model, rewritten = rewrite_deconvs(onnx.load(str(src)), rewrite)
+    with OutputSlot(dst, overwrite=True, inputs=[Path(src)]) as slot:
+        qmodel, summary = quantize_model(model, stacks, slot.scratch, method=method, tile=tile,
+                                         lights=lights, tiles_per_stack=tiles_per_stack,
+                                         reduce_range=reduce_range)
+        summary = {"deconvs_rewritten": rewritten, **summary, "rewrite": rewrite}
+        _set_meta(qmodel, {METADATA_KEYS["precision"]: "int8-qdq",
+                           "msfnet.quantization": json.dumps(summary)})
+        slot.commit(slot.write(qmodel.SerializeToString()))
     return summary
 
 

@@ -15,6 +15,8 @@ those layers, a price int8 repays several times).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import onnx
 from onnx import helper, numpy_helper
@@ -60,7 +62,7 @@ def deconv_weight_as_phases(weight: np.ndarray) -> list[np.ndarray]:
             for a in range(2) for b in range(2)]
 
 
-def _attrs(node: onnx.NodeProto) -> dict[str, object]:
+def _attrs(node: onnx.NodeProto) -> dict[str, Any]:
     return {a.name: helper.get_attribute_value(a) for a in node.attribute}
 
 

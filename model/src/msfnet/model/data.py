@@ -148,7 +148,8 @@ class SynthSource:
         for _ in range(self.refresh):
             self.pool[self.counter % len(self.pool)] = self._render()
         picks = rng.choice(len(self.pool), size=size, replace=size > len(self.pool))
-        return collate([make_sample(self.pool[i], lights, crop, rng, **augment) for i in picks])
+        return collate([make_sample(self.pool[i], lights, crop, rng, **augment)  # type: ignore[arg-type]
+                        for i in picks])
 
 
 def _read_light_list(path: Path) -> tuple[list[str], np.ndarray]:
@@ -228,7 +229,8 @@ class BlobbySource:
     def batch(self, size: int, lights: int, crop: int, rng: np.random.Generator,
               **augment: float) -> Batch:
         picks = rng.choice(len(self.pairs), size=size, replace=size > len(self.pairs))
-        return collate([make_sample(self.get(int(i)), lights, crop, rng, **augment)
+        return collate([make_sample(self.get(int(i)), lights, crop, rng,
+                                    **augment)  # type: ignore[arg-type]
                         for i in picks])
 
 

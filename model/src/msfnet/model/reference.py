@@ -19,9 +19,10 @@ def _light_input(images: Tensor, lights: Tensor, i: int) -> Tensor:
 
 
 def _running_max(feats) -> Tensor:
-    out = None
+    out: Tensor | None = None
     for f in feats:
         out = f if out is None else torch.maximum(out, f)
+    assert out is not None, "no lights"
     return out
 
 

@@ -30,6 +30,7 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import write_atomic
 from msfnet.runtime.least_squares import least_squares_normals
 from msfnet.runtime.metrics import normal_metrics
+from msfnet.runtime.stack import Stack
 from msfnet.synth.render import RenderOptions, render_set
 
 from .checkpoint import save_checkpoint
@@ -211,6 +212,12 @@ def gpu_utilisation() -> float | None:
 
 # ----------------------------------------------------------------------------- trainer
 
+def _gt(stack: Stack) -> np.ndarray:
+    """Validation objects are rendered: they always carry ground truth."""
+    assert stack.normals_gt is not None
+    return stack.normals_gt
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig, resume: bool = False) -> None:
         self.cfg = cfg
@@ -242,7 +249,7 @@ class Trainer:
             torch.backends.cudnn.allow_tf32 = True
         self.model = self.model.to(self.device)
         if cfg.channels_last:
-            self.model = self.model.to(memory_format=torch.channels_last)
+            self.model = self.model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
         self.step = 0
         self.best = math.inf
@@ -264,7 +271,7 @@ class Trainer:
                 self.source = BlobbySource(cfg.data)
         val_opts = RenderOptions(size=cfg.val_size, lights=cfg.val_lights)
         self.val_set = list(render_set(cfg.val_seed, cfg.val_objects, val_opts))
-        self.val_ls = float(np.mean([normal_metrics(least_squares_normals(s), s.normals_gt,
+        self.val_ls = float(np.mean([normal_metrics(least_squares_normals(s), _gt(s),
                                                     s.mask).mae_deg for s in self.val_set]))
 
     # -- state
@@ -346,7 +353,7 @@ class Trainer:
         return float(total), [float(x.detach()) for x in losses]
 
     def validate(self) -> float:
-        maes = [normal_metrics(predict_normals(self.model, s, bf16=self.bf16), s.normals_gt,
+        maes = [normal_metrics(predict_normals(self.model, s, bf16=self.bf16), _gt(s),
                                s.mask).mae_deg for s in self.val_set]
         return float(np.mean(maes))
 

@@ -1,0 +1,138 @@
+"""The passes a variant applies, in order, to one in-memory ``onnx.ModelProto``.
+
+Each pass takes the model so far (None before the first) and the export's context, and returns
+the next model. None of them writes the output: ``pipeline.run_export`` does that once.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import onnx
+
+import msfnet
+from msfnet.model.checkpoint import sha256_of
+from msfnet.model.network import MSFNet
+from msfnet.runtime.contract import METADATA_KEYS, PREPROCESSING_SPEC
+from msfnet.runtime.stack import Stack
+
+from .onnx_export import (
+    export_proto,
+    export_staged_proto,
+    set_metadata,
+    simplify,
+    store_weights_fp16,
+)
+from .output import OutputSlot
+from .variants import ExportOptions, Variant
+
+PRECISION_LABELS = {"fp32": "fp32", "fp16-weights": "fp32 (fp16-stored weights)",
+                    "int8": "int8-qdq"}
+
+
+@dataclass
+class PassContext:
+    """What the passes share: the torch network (already fp16-rounded for fp16 variants), the
+    request, calibration stacks, the output slot (for scratch files) and notes for the result."""
+
+    model: MSFNet
+    variant: Variant
+    options: ExportOptions
+    checkpoint: Path
+    slot: OutputSlot
+    stacks: list[Stack] = field(default_factory=list)
+    notes: dict[str, object] = field(default_factory=dict)
+
+
+PassFn = Callable[[onnx.ModelProto | None, PassContext], onnx.ModelProto]
+
+
+@dataclass(frozen=True)
+class Pass:
+    """``lossy``: changes the numbers beyond float32 rounding; the pipeline verifies the model
+    as it stands before the first lossy pass against PyTorch, and uses it as the reference."""
+
+    name: str
+    run: PassFn
+    lossy: bool = False
+
+
+def _torch_export(_: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
+    return export_proto(ctx.model, ctx.options.opset, ctx.options.static)
+
+
+def _torch_export_staged(_: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
+    return export_staged_proto(ctx.model, ctx.options.opset)
+
+
+def _metadata(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
+    """The keys the runtime reads (runtime.contract), plus the variant's name."""
+    assert proto is not None
+    static = ctx.options.static
+    set_metadata(proto, {
+        METADATA_KEYS["format"]: "msfnet-normals-v1",
+        METADATA_KEYS["train_lights"]: str(ctx.options.train_lights),
+        METADATA_KEYS["preprocessing"]: json.dumps(PREPROCESSING_SPEC),
+        METADATA_KEYS["checkpoint_sha256"]: sha256_of(ctx.checkpoint),
+        METADATA_KEYS["version"]: msfnet.__version__,
+        METADATA_KEYS["input_multiple"]: "4",
+        METADATA_KEYS["static_shape"]: "" if static is None else str(static),
+        METADATA_KEYS["precision"]: PRECISION_LABELS[ctx.variant.precision],
+        METADATA_KEYS["graph"]: "staged" if ctx.variant.graph == "staged" else "monolithic",
+        "msfnet.variant": ctx.variant.name,
+    }, replace_all=True)
+    proto.doc_string = "MSF-Net photometric stereo (msfnet): images + lights -> unit normals"
+    return proto
+
+
+def _simplify(proto: onnx.ModelProto | None, _: PassContext) -> onnx.ModelProto:
+    assert proto is not None
+    return simplify(proto)
+
+
+def _fp16_storage(proto: onnx.ModelProto | None, _: PassContext) -> onnx.ModelProto:
+    assert proto is not None
+    return store_weights_fp16(proto)
+
+
+def _rewrite_deconvs(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
+    """ConvTranspose -> four 2x2 phase convs + DepthToSpace (exact in fp32), so they quantise."""
+    from .rewrite import rewrite_deconvs
+
+    assert proto is not None
+    rewritten, count = rewrite_deconvs(proto, "phases")
+    ctx.notes["deconvs_rewritten"] = count
+    return rewritten
+
+
+def _quantise_int8(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
+    from .quantize import quantize_model
+
+    assert proto is not None
+    o = ctx.options
+    qmodel, summary = quantize_model(proto, ctx.stacks, ctx.slot.scratch, tile=o.calib_tile,
+                                     lights=o.calib_lights,
+                                     tiles_per_stack=o.calib_tiles_per_stack,
+                                     train_lights=o.train_lights)
+    summary = {"deconvs_rewritten": ctx.notes.get("deconvs_rewritten", 0), **summary,
+               "rewrite": "phases"}
+    ctx.notes["quantization"] = summary
+    set_metadata(qmodel, {METADATA_KEYS["precision"]: PRECISION_LABELS["int8"],
+                          "msfnet.quantization": json.dumps(summary)})
+    return qmodel
+
+
+PASSES: dict[str, Pass] = {p.name: p for p in (
+    Pass("torch-export", _torch_export),
+    Pass("torch-export-staged", _torch_export_staged),
+    Pass("metadata", _metadata),
+    Pass("simplify", _simplify),
+    Pass("fp16-storage", _fp16_storage),
+    Pass("rewrite-deconvs", _rewrite_deconvs),
+    Pass("quantise-int8", _quantise_int8, lossy=True),
+)}
+
+__all__ = ["PASSES", "Pass", "PassContext"]

@@ -1,0 +1,144 @@
+"""``run_export``: the passes of one variant, one write, verification of the written file, rename.
+
+Order of events (see ``variants.export_variant`` for the public entry point):
+1. the output slot: target checked (not an input, writable, not existing unless --overwrite)
+   and a locked work folder made beside it, before any slow work;
+2. checkpoint and calibration stacks loaded (bad input fails here, still before the export);
+3. the variant's passes on the in-memory model; before the first lossy pass (int8) the model
+   so far is checked against PyTorch and becomes the reference;
+4. one write of the final bytes into the work folder;
+5. that file loaded by ONNX Runtime through the runtime's loader and compared with the
+   variant's reference (unit normals required too);
+6. only then one atomic rename onto the target. Any failure or interruption before that
+   removes the work folder and leaves the target as it was.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+
+from msfnet.model.checkpoint import load_model
+from msfnet.model.network import MSFNet
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.stack import Stack
+
+from .onnx_export import STAGED_CHECK_CHUNK, default_checks
+from .output import OutputSlot
+from .passes import PASSES, PassContext
+from .variants import FP32_RULE, ExportOptions, ExportResult, Variant, VerificationRow
+from .verify import (
+    compare,
+    file_runner,
+    judge,
+    proto_runner,
+    rendered_cases,
+    tile_cases,
+    torch_runner,
+)
+
+# zip (torch >= 1.6), or a pickle stream (legacy torch.save starts with a pickled magic number)
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+_PICKLE_PROTOCOLS = range(2, 6)
+
+
+def sniff_checkpoint(path: Path) -> None:
+    """Refuse a file that is neither of torch.save's two formats before torch reads it (torch's
+    weights-only loader reports random bytes as 'unsupported pickled objects')."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except FileNotFoundError:
+        raise InputError("checkpoint file not found", path) from None
+    except IsADirectoryError:
+        raise InputError("is a folder, not a PyTorch checkpoint file", path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read the checkpoint ({exc.strerror or exc})", path) from exc
+    if not head:
+        raise InputError("empty file, not a PyTorch checkpoint", path)
+    if head in _ZIP_MAGIC or (head[0] == 0x80 and len(head) > 1
+                              and head[1] in _PICKLE_PROTOCOLS):
+        return
+    raise InputError("not a PyTorch checkpoint (neither torch.save's zip format nor its "
+                     "legacy pickle format)", path)
+
+
+def load_network(checkpoint: Path, fp16_weights: bool) -> MSFNet:
+    """The checkpoint's network (weights_only loading); for fp16 variants with its weights
+    rounded to float16 and back, the reference the fp16-stored file must match exactly."""
+    sniff_checkpoint(checkpoint)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch's pickle-protocol chatter; errors still raise
+        model = load_model(checkpoint)
+    if fp16_weights:
+        with torch.no_grad():
+            for tensor in model.state_dict().values():
+                if tensor.is_floating_point():
+                    tensor.copy_(tensor.half().float())
+    return model
+
+
+def load_stacks(calib: Sequence[str | Path | Stack]) -> list[Stack]:
+    from .quantize import load_calibration_stacks
+
+    paths = [c for c in calib if not isinstance(c, Stack)]
+    loaded = iter(load_calibration_stacks(paths) if paths else [])
+    return [c if isinstance(c, Stack) else next(loaded) for c in calib]
+
+
+def run_export(checkpoint: Path, variant: Variant, output: Path, *,
+               calib: Sequence[str | Path | Stack], options: ExportOptions, overwrite: bool,
+               log: Callable[[str], None]) -> ExportResult:
+    calib = list(calib) if variant.needs_calibration else []
+    inputs = [checkpoint, *(Path(c) for c in calib if not isinstance(c, Stack))]
+    staged_chunk = STAGED_CHECK_CHUNK if variant.graph == "staged" else None
+    checks = list(options.checks or default_checks(options.static))
+    threads = options.threads
+    with OutputSlot(output, overwrite=overwrite, inputs=inputs) as slot:
+        model = load_network(checkpoint, variant.precision == "fp16-weights")
+        stacks = load_stacks(calib)
+        ctx = PassContext(model, variant, options, checkpoint, slot, stacks)
+        proto = None
+        reference: bytes | None = None
+        reference_rows: list[VerificationRow] = []
+        for name in variant.effective_passes(options.simplify):
+            step = PASSES[name]
+            if step.lossy and reference is None:
+                assert proto is not None, f"lossy pass {name} cannot come first"
+                reference = proto.SerializeToString()
+                log("checking the fp32 graph against PyTorch (the reference for "
+                    f"{variant.name})")
+                reference_rows = compare(proto_runner(reference, staged_chunk, threads),
+                                         torch_runner(model), rendered_cases(checks))
+                judge(reference_rows, FP32_RULE, FP32_RULE.limit_deg,
+                      f"the fp32 graph (reference for {variant.name})", checkpoint)
+            log(f"pass: {name}")
+            proto = step.run(proto, ctx)
+        assert proto is not None
+        written = slot.write(proto.SerializeToString())
+        del proto
+        size = written.stat().st_size
+        log(f"verifying the written file ({variant.rule.describe()})")
+        candidate = file_runner(written, staged_chunk, threads)
+        if variant.rule.reference == "fp32-graph":
+            assert reference is not None
+            o = options
+            rows = compare(candidate, proto_runner(reference, staged_chunk, threads),
+                           tile_cases(stacks, tile=o.calib_tile, lights=o.calib_lights,
+                                      tiles_per_stack=o.calib_tiles_per_stack,
+                                      train_lights=o.train_lights))
+        else:
+            rows = compare(candidate, torch_runner(model), rendered_cases(checks))
+        limit = (options.tolerance_deg if options.tolerance_deg is not None
+                 else variant.rule.limit_deg)
+        judge(rows, variant.rule, limit, source=checkpoint)
+        slot.commit(written)
+    return ExportResult(path=output, variant=variant.name, rule=variant.rule, limit_deg=limit,
+                        rows=tuple(rows), reference_rows=tuple(reference_rows),
+                        size_bytes=size, notes=dict(ctx.notes))
+
+
+__all__ = ["load_network", "run_export", "sniff_checkpoint"]
