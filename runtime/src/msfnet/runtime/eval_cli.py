@@ -162,6 +162,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-memory", type=positive_float, default=DEFAULT_MAX_MEMORY_MB,
                    metavar="MB", help=f"memory budget in MB (default {DEFAULT_MAX_MEMORY_MB})")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.add_argument("--json", action="store_true",
+                   help="print results.json's content on stdout instead of the table")
     return p
 
 
@@ -175,8 +177,11 @@ def _run(args: argparse.Namespace) -> int:
         max_memory_mb=args.max_memory)
     summary = evaluate(args.root, outdir, model=model, use_l2=not args.no_l2,
                        max_lights=args.max_lights, overwrite=args.overwrite,
-                       progress=sys.stderr.isatty() and not args.quiet)
-    if not args.quiet:
+                       progress=sys.stderr.isatty() and not args.quiet and not args.json)
+    if args.json:
+        print(json_text({**{k: v for k, v in summary.items() if k != "table"},
+                         "output": str(outdir)}), end="")
+    elif not args.quiet:
         print(summary["table"])
         print(f"wrote {outdir}/ (results.json, results.md, error maps)")
     return 0
