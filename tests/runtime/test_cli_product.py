@@ -42,6 +42,12 @@ def test_auto_mask_roi_and_downscale_flags(tmp_path: Path) -> None:
     profile = json.loads((out / "profile.json").read_text())
     assert profile["input"] == {"roi": [4, 2, 56, 44], "downscale": 2, "linearise": None,
                                 "auto_mask": True}
+    # the same in a batch (two stacks)
+    other = save_stack(replace(sphere_stack(n=8, h=48, w=64, seed=3),
+                               mask=np.ones(stack.shape, bool)), tmp_path / "cam2")
+    assert run_main(["--method", "l2", str(folder), str(other), "-o", str(tmp_path / "b"),
+                     "--auto-mask", "-q"]) == 0
+    assert read_mask(tmp_path / "b" / "cam2" / "mask.png").sum() < 0.6 * 48 * 64
     # without --auto-mask no mask.png is written
     assert run_main(["--method", "l2", str(folder), "-o", str(tmp_path / "o2"), "-q"]) == 0
     assert not (tmp_path / "o2" / "mask.png").exists()

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -116,7 +118,7 @@ def _light_rig(args: argparse.Namespace) -> str:
     return str(args.light_rig)
 
 
-def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, object]]:
+def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
     """The devices, and what a simulated rig knows (true lights, mask, normals) as defaults."""
     rig_name = _light_rig(args)
     if args.camera == "sim" or rig_name == "sim":
@@ -165,8 +167,8 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, object]]:
     return cam, lights, {}
 
 
-def _capture_options(args: argparse.Namespace, known: dict[str, object], log,
-                     overwrite: bool) -> dict[str, object]:
+def _capture_options(args: argparse.Namespace, known: dict[str, Any], log: Callable[[str], None],
+                     overwrite: bool) -> dict[str, Any]:
     """capture_stack's keyword options: the user's files first, then what the rig knows."""
     dirs = args.light_directions
     given_dirs = dirs is not None
@@ -199,7 +201,7 @@ def run_capture(args: argparse.Namespace, out_dir: Path, overwrite: bool = False
                 dev.close()
 
 
-def _logger(args: argparse.Namespace):
+def _logger(args: argparse.Namespace) -> Callable[[str], None]:
     def log(msg: str) -> None:
         if not args.quiet or msg.startswith("warning"):
             print(msg, file=sys.stderr if msg.startswith("warning") else sys.stdout)

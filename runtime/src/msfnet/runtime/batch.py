@@ -280,6 +280,9 @@ def run_batch(model: Model, items: Sequence[BatchItem | Stack], load: LoadOption
             if runs:  # the profile shows what the stack cost, decoding included
                 runs[-1]["load"] = decode_s
                 runs[-1]["total"] = runs[-1].get("total", 0.0) + decode_s
+            # what model(path, load) records itself (auto-mask -> mask.png on save)
+            result.extra["input"] = (item.options(load) if isinstance(item, BatchItem)
+                                     else load).describe()
             result.extra["batch"] = {"decode_s": decode_s, "wait_s": wait_s,
                                      "prefetched": prefetch and i > 0}
             out = out_for(name)

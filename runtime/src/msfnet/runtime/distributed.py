@@ -95,6 +95,7 @@ class StackWorker:
         runs = result.timings.runs
         runs[-1]["load"] = decode_s
         runs[-1]["total"] = runs[-1].get("total", 0.0) + decode_s
+        result.extra["input"] = load.describe()  # as model(path, load) records it
         result.extra["batch"] = {"decode_s": decode_s, "worker": self.where}
         return {"name": name, "result": result.without_images(), "decode_s": decode_s,
                 "compute_s": compute_s, "where": self.where}

@@ -146,7 +146,7 @@ def print_result(result: Result, outdir: Path, files: list[Path],
     print(f"{result.stack.name}: {p['lights']} lights, {p['width']}x{p['height']}, "
           f"{p['mask_pixels']} mask px, {p['method']} ({p['engine']} {p['precision']})")
     tiles = p.get("tiles")
-    if tiles:
+    if isinstance(tiles, dict):
         size = tiles["tile_px"] or "untiled"
         print(f"tiles: {tiles['run']} run, {tiles['skipped']} skipped (tile {size}, halo "
               f"{tiles['halo_px']} px, {tiles['overhead_vs_image']:.2f} x image area computed)")
