@@ -188,8 +188,9 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
     finished stack is kept. ``strict`` turns exposure warnings into errors. Without light
     directions the images are still written (e.g. a chrome-sphere capture for ``msf-calib
     directions``); the folder is then not yet a stack. ``linearisation``: the camera's
-    encoding, undone when the stack is built (recorded in session.json). ``progress``: a
-    bar (None: only on a terminal). ``normals_gt``: known normals (simulated scenes).
+    encoding, undone when the stack is built (recorded in session.json). ``progress``:
+    False hides the bar; otherwise it shows on a terminal only. ``normals_gt``: known
+    normals (simulated scenes).
     """
     out = Path(out_dir)
     raw = out / "raw"
@@ -221,13 +222,16 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
         text = json.dumps(session, indent=1, sort_keys=True)
         write_atomic(sess_path, lambda t: t.write_text(text))
 
-    if len(pending) < len(todo):
+    if not pending:  # every frame is on disk but the stack was never built (killed then)
+        log(f"all {len(todo)} frames already in {raw}; building the stack")
+    elif len(pending) < len(todo):
         log(f"resuming: {len(todo) - len(pending)} of {len(todo)} frames already in {raw}")
     save_session()  # from here on the folder is msf-capture's (check_folder)
     problems = []
     try:
+        # disable=None: a bar on a terminal, nothing in a log file
         for name, i in tqdm(pending, desc="capture", unit="frame",
-                            disable=None if progress is None else not progress):
+                            disable=True if progress is False else None):
             if i is None:
                 lights.off()
             else:

@@ -240,15 +240,16 @@ def run_batch(model: Model, items: Sequence[BatchItem | Stack], load: LoadOption
     ``out_for(name)`` (None: keep nothing) and the summary into ``summary_dir``.
 
     A stack that fails (bad input) is recorded in the summary and the batch goes on.
-    ``progress``: a tqdm bar over the stacks (None: only on a terminal).
+    ``progress``: False hides the bar over the stacks; otherwise it shows on a terminal only.
     """
     from tqdm import tqdm
 
     summary = BatchSummary("local", model.describe(), prefetch=prefetch)
     budget = model.tiling
     start = time.perf_counter()
-    bar = tqdm(total=len(items), unit="stack", desc="batch", disable=None if progress is None
-               else not progress, leave=False)
+    # disable=None: a bar on a terminal, nothing in a log file
+    bar = tqdm(total=len(items), unit="stack", desc="batch", leave=False,
+               disable=True if progress is False else None)
     try:
         for i, future in _prefetched(items, load, prefetch):
             item = items[i]

@@ -151,7 +151,7 @@ def run_batch_ray(spec: ModelSpec, items: Sequence[BatchItem], load: LoadOptions
         for actor in actors:
             submit(actor)
         bar = tqdm(total=len(items), unit="stack", desc="ray batch", leave=False,
-                   disable=None if progress is None else not progress)
+                   disable=True if progress is False else None)
         try:
             while in_flight:
                 done, _ = ray.wait(list(in_flight), num_returns=1)
