@@ -154,3 +154,6 @@ def test_ray_missing_gives_a_clear_error(tmp_path: Path, monkeypatch: pytest.Mon
     stacks = _stacks(tmp_path / "in", 2)
     assert main(["--method", "l2", *map(str, stacks), "--ray", "-o", str(tmp_path / "o")]) == 2
     assert "pip install 'msfnet[ray]'" in capsys.readouterr().err
+    # "--ray A B" would make A the cluster address: caught before anything runs
+    assert main(["--method", "l2", "--ray", *map(str, stacks)]) == 2
+    assert "put --ray after the stacks" in capsys.readouterr().err

@@ -245,6 +245,10 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.ray and Path(args.ray).exists():
+        # argparse gives --ray's optional ADDRESS the first stack of "--ray A B"
+        raise InputError(f"--ray took the stack {args.ray!r} for a cluster address: put --ray "
+                         "after the stacks (or write --ray=ADDRESS)")
     if bool(args.stacks) == args.demo:
         raise InputError("give STACK folder(s) or .npz, or --demo, not both or neither")
     load = load_options(args)
