@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.eval_cli import find_objects, main
+from msfnet.runtime.benchmarks import find_objects
+from msfnet.runtime.eval_cli import main
 from msfnet.runtime.pipeline import Model
 from msfnet.runtime.stack import load_stack, save_stack
 

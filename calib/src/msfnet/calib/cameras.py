@@ -16,6 +16,8 @@ from msfnet.runtime.errors import InputError
 
 
 class Camera(Protocol):
+    """``frame_shape`` (H, W), where a back-end can tell before capturing, is optional."""
+
     white_level: float
 
     def capture(self) -> np.ndarray: ...
@@ -204,6 +206,12 @@ class SimulatedCamera:
     def __init__(self, rig) -> None:
         self.rig = rig
         self.white_level = 255.0 if rig.bit_depth == 8 else 65535.0
+
+    @property
+    def frame_shape(self) -> tuple[int, int]:
+        """(H, W) of every frame, known before capturing (lets a mask be checked first)."""
+        cam = self.rig.scene.camera
+        return cam.height, cam.width
 
     def capture(self) -> np.ndarray:
         from msfnet.synth.spheres import expose, render

@@ -3,30 +3,70 @@
 Layout of ``out_dir``::
 
     raw/ambient.png, raw/001.png ...   frames as captured (written atomically, never modified)
-    session.json                       camera/light settings and per-frame exposure checks
+    session.json                       camera/light settings, linearisation, exposure checks
     001.png ... filenames.txt          the finished stack (ambient subtracted), DiLiGenT layout,
     light_directions.txt ...           plus lights, intensities and mask when known
 
 Re-running with the same ``out_dir`` skips every frame already in ``raw/``: an interrupted
-session (Ctrl-C, cable pulled, power cut) loses at most the frame being written.
+session (Ctrl-C, cable pulled, power cut) loses at most the frame being written. A finished
+stack is kept as it is (only light files, mask or linearisation given anew are updated).
+Everything given is checked before the first frame: a bad lights file or mask must not cost a
+capture session.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import re
 import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
 
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import write_atomic
-from msfnet.runtime.imageio import read_image, read_mask, write_png
-from msfnet.runtime.stack import read_vectors
+from msfnet.runtime.imageio import list_images, read_image, read_mask, write_png
+from msfnet.runtime.stack import read_vectors, unit_lights
+from msfnet.runtime.stack.transforms import linearise, white_level
+from msfnet.runtime.stack.types import check_intensities, check_lights
+
+if TYPE_CHECKING:
+    from msfnet.runtime.pipeline import Model, Result
+    from msfnet.runtime.stack import LoadOptions
 
 SESSION = "session.json"
+Log = Callable[[str], object]
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """How the camera encodes values; the stack is written linear (16-bit) when not None."""
+
+    srgb: bool = False
+    gamma: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.srgb and self.gamma is not None:
+            raise InputError("--srgb and --gamma both linearise: give one of them")
+        if self.gamma is not None and not self.gamma > 0:
+            raise InputError(f"--gamma {self.gamma}: must be a positive number")
+
+    @property
+    def active(self) -> bool:
+        return self.srgb or self.gamma is not None
+
+    def record(self) -> dict[str, object] | None:
+        """What session.json says (None: frames stored as the camera delivered them)."""
+        if self.srgb:
+            return {"kind": "srgb"}
+        if self.gamma is not None:
+            return {"kind": "gamma", "gamma": self.gamma}
+        return None
 
 
 def exposure_check(frame: np.ndarray, white_level: float, mask: np.ndarray | None = None,
@@ -50,23 +90,85 @@ def _to_uint(frame: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(frame), 0, 65535).astype(np.uint16)
 
 
-def _write_rows(path: Path, rows: np.ndarray) -> None:
-    text = "".join(" ".join(f"{v:.8f}" for v in r) + "\n" for r in rows)
-    write_atomic(path, lambda tmp: tmp.write_text(text))
+def _rows_text(rows: np.ndarray) -> str:
+    return "".join(" ".join(f"{v:.8f}" for v in r) + "\n" for r in rows)
 
 
 def _load_session(path: Path, count: int, overwrite: bool) -> dict:
-    if not path.is_file():
+    if not path.is_file() or overwrite:
         return {"count": count, "frames": {}}
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(f"session file is corrupt ({exc}); delete it to start over", path) \
             from exc
-    if data.get("count") != count and not overwrite:
+    if data.get("count") != count:
         raise InputError(f"existing session has {data.get('count')} lights, this one {count} "
                          "(use another folder or --overwrite)", path)
     return data
+
+
+def check_folder(out: Path, overwrite: bool) -> None:
+    """Refuse a folder holding images msf-capture did not take (no session.json): its files
+    could be mistaken for frames or written over."""
+    if overwrite or not out.is_dir() or (out / SESSION).is_file():
+        return
+    raw = out / "raw"
+    theirs = list_images(out) + (list_images(raw) if raw.is_dir() else [])
+    if theirs or (out / "filenames.txt").exists():
+        example = theirs[0].name if theirs else "filenames.txt"
+        raise InputError(f"the folder holds images msf-capture did not take (e.g. {example}, "
+                         "and no session.json): use another folder, or --overwrite to capture "
+                         "into it anyway", out)
+
+
+def check_vectors(value: np.ndarray | str | Path | None, count: int, what: str
+                  ) -> np.ndarray | None:
+    """Light directions or intensities for ``count`` lights, validated (and directions made
+    unit length), or None."""
+    if value is None:
+        return None
+    src = Path(value) if isinstance(value, (str, Path)) else None
+    rows = read_vectors(src, what) if src is not None else np.asarray(value, np.float32)
+    if rows.ndim != 2 or rows.shape[1] != 3:
+        raise InputError(f"{what} must have 3 numbers per row, got shape {rows.shape}", src)
+    if len(rows) != count:
+        raise InputError(f"{len(rows)} {what} for {count} lights: the file does not belong "
+                         "to this rig", src)
+    if what == "light directions":
+        rows = unit_lights(rows, src)
+        check_lights(rows, src)
+    else:
+        check_intensities(rows, src)
+    return rows
+
+
+def check_mask(mask: np.ndarray | str | Path | None, shape: tuple[int, int] | None
+               ) -> np.ndarray | None:
+    """The object mask, readable, not empty and (when the frame size is known) of that size."""
+    if mask is None:
+        return None
+    src = Path(mask) if isinstance(mask, (str, Path)) else None
+    arr = read_mask(src) if src is not None else np.asarray(mask, bool)
+    if not arr.any():
+        raise InputError("the mask is empty (no pixel > 127)", src)
+    if shape is not None and arr.shape != tuple(shape):
+        raise InputError(f"mask is {arr.shape[1]}x{arr.shape[0]} but the camera delivers "
+                         f"{shape[1]}x{shape[0]} frames", src)
+    return arr
+
+
+def _frame_shape(camera: Any, raw: Path) -> tuple[int, int] | None:
+    """The frame size before capturing: from the camera when it can tell, else from a frame
+    already on disk (a resumed session)."""
+    shape = getattr(camera, "frame_shape", None)
+    if shape:
+        return int(shape[0]), int(shape[1])
+    if raw.is_dir():
+        frames = sorted(raw.glob("[0-9][0-9][0-9].png"))
+        if frames:
+            return tuple(read_image(frames[0]).shape[:2])  # type: ignore[return-value]
+    return None
 
 
 def capture_stack(camera, lights, out_dir: str | Path, *,
@@ -75,61 +177,82 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
                   mask: np.ndarray | str | Path | None = None, ambient: bool = True,
                   subtract_ambient: bool = True, overwrite: bool = False,
                   max_saturated: float = 0.01, min_level: float = 0.1, strict: bool = False,
-                  progress: bool = True, log=print) -> Path:
+                  progress: bool | None = None, log: Log = print,
+                  linearisation: Linearisation | None = None,
+                  normals_gt: np.ndarray | None = None) -> Path:
     """Capture one frame per light (plus an ambient frame) into ``out_dir``; return it.
 
-    camera: ``.capture() -> (H, W, 3) uint8/uint16``, ``.white_level``, ``.info()``;
-    lights: ``.count``, ``.on(i)`` (0-based, only that light), ``.off()``.
-    Frames already in ``out_dir/raw`` are kept and skipped (resume). ``strict`` turns exposure
-    warnings into errors. Without light directions the images are still written (e.g. a
-    chrome-sphere capture for ``msf-calib directions``); the folder is then not yet a stack.
+    camera: ``.capture() -> (H, W, 3) uint8/uint16``, ``.white_level``, ``.info()``, and
+    optionally ``.frame_shape`` (H, W); lights: ``.count``, ``.on(i)`` (0-based, only that
+    light), ``.off()``. Frames already in ``out_dir/raw`` are kept and skipped (resume); a
+    finished stack is kept. ``strict`` turns exposure warnings into errors. Without light
+    directions the images are still written (e.g. a chrome-sphere capture for ``msf-calib
+    directions``); the folder is then not yet a stack. ``linearisation``: the camera's
+    encoding, undone when the stack is built (recorded in session.json). ``progress``:
+    False hides the bar; otherwise it shows on a terminal only. ``normals_gt``: known
+    normals (simulated scenes).
     """
     out = Path(out_dir)
     raw = out / "raw"
     n = int(lights.count)
     if n < 1:
         raise InputError("the light back-end reports no lights")
+    lin = linearisation or Linearisation()
+    # everything given is checked before the first frame
+    check_folder(out, overwrite)
+    dirs = check_vectors(light_directions, n, "light directions")
+    ints = check_vectors(light_intensities, n, "light intensities")
+    mask_arr = check_mask(mask, _frame_shape(camera, raw))
     if overwrite and raw.is_dir():
         for p in raw.glob("*.png"):
             p.unlink()
-    raw.mkdir(parents=True, exist_ok=True)
     sess_path = out / SESSION
     session = _load_session(sess_path, n, overwrite)
+    todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
+    pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
+    if not pending and _finished(out, n) and sess_path.is_file():
+        log(f"stack complete: all {n} frames are already in {raw}; nothing to capture "
+            "(kept as it is; --overwrite captures again)")
+        return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt,
+                            log=log)
+    raw.mkdir(parents=True, exist_ok=True)
     session.update(count=n, camera=camera.info(), white_level=camera.white_level)
-    mask_arr = None
-    if mask is not None:
-        mask_arr = read_mask(mask) if isinstance(mask, (str, Path)) else np.asarray(mask, bool)
 
     def save_session() -> None:
         text = json.dumps(session, indent=1, sort_keys=True)
         write_atomic(sess_path, lambda t: t.write_text(text))
 
-    todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
-    pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
-    if len(pending) < len(todo):
+    if not pending:  # every frame is on disk but the stack was never built (killed then)
+        log(f"all {len(todo)} frames already in {raw}; building the stack")
+    elif len(pending) < len(todo):
         log(f"resuming: {len(todo) - len(pending)} of {len(todo)} frames already in {raw}")
+    save_session()  # from here on the folder is msf-capture's (check_folder)
     problems = []
     try:
-        for name, i in tqdm(pending, desc="capture", unit="frame", disable=not progress):
+        # disable=None: a bar on a terminal, nothing in a log file
+        for name, i in tqdm(pending, desc="capture", unit="frame",
+                            disable=True if progress is False else None):
             if i is None:
                 lights.off()
             else:
                 lights.on(i)
-            fname = name
             frame = _to_uint(np.asarray(camera.capture()))
-            write_png(raw / fname, frame)  # atomic: a crash never leaves half a frame
+            if mask_arr is not None and mask_arr.shape != frame.shape[:2]:
+                raise InputError(f"mask is {mask_arr.shape[1]}x{mask_arr.shape[0]} but the "
+                                 f"camera delivers {frame.shape[1]}x{frame.shape[0]} frames")
+            write_png(raw / name, frame)  # atomic: a crash never leaves half a frame
             if i is not None:
                 chk = exposure_check(frame, camera.white_level, mask_arr, max_saturated,
                                      min_level)
                 chk["time"] = time.time()
-                session["frames"][fname] = chk
+                session["frames"][name] = chk
                 msg = []
                 if chk["too_bright"]:
                     msg.append(f"{chk['saturated']:.1%} saturated")
                 if chk["too_dark"]:
                     msg.append(f"under-exposed (brightest 0.5% at {chk['p99_5']:.0%} of range)")
                 if msg:
-                    problems.append(f"{fname}: " + ", ".join(msg))
+                    problems.append(f"{name}: " + ", ".join(msg))
                     log(f"warning: {problems[-1]}")
             save_session()
     finally:
@@ -138,45 +261,155 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
             lights.off()
     if strict and problems:
         raise InputError("exposure problems: " + "; ".join(problems), out)
-    return finish_stack(out, light_directions, light_intensities, mask_arr, subtract_ambient)
+    return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt, log=log)
 
 
-def finish_stack(out: Path, light_directions=None, light_intensities=None,
-                 mask: np.ndarray | None = None, subtract_ambient: bool = True) -> Path:
-    """Build the DiLiGenT-layout stack in ``out`` from ``out/raw`` (idempotent)."""
+def _finished(out: Path, n: int) -> bool:
+    return (out / "filenames.txt").is_file() and all((out / _name(i)).is_file()
+                                                     for i in range(n))
+
+
+def _write_if_changed(path: Path, text: str, log: Log) -> None:
+    if path.is_file() and path.read_text() == text:
+        return
+    if path.is_file():
+        log(f"updated {path.name}")
+    write_atomic(path, lambda t: t.write_text(text))
+
+
+def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = None,
+                 light_intensities: np.ndarray | str | Path | None = None,
+                 mask: np.ndarray | None = None, subtract_ambient: bool = True,
+                 linearisation: Linearisation | None = None,
+                 normals_gt: np.ndarray | None = None, log: Log = print) -> Path:
+    """Build the DiLiGenT-layout stack in ``out`` from ``out/raw``.
+
+    Images are (re)built only when missing or when the linearisation changed (the raw frames
+    are the record); light files, mask and ground truth are written when given and different.
+    """
     raw = out / "raw"
-    session = json.loads((out / SESSION).read_text())
+    sess_path = out / SESSION
+    session = json.loads(sess_path.read_text())
     n = int(session["count"])
+    lin = linearisation or Linearisation()
     names = [_name(i) for i in range(n)]
     missing = [nm for nm in names if not (raw / nm).is_file()]
     if missing:
         raise InputError(f"session incomplete: {len(missing)} frame(s) missing, e.g. "
                          f"{missing[0]}; run the capture again to resume", raw)
-    amb_path = raw / "ambient.png"
-    amb = read_image(amb_path).astype(np.int64) if subtract_ambient and amb_path.is_file() \
-        else None
-    shape = None
-    for nm in names:
-        img = read_image(raw / nm)
-        shape = img.shape[:2]
-        if amb is not None:
-            # Keep the camera's units; a 16-bit container holds the difference exactly.
-            img = np.clip(img.astype(np.int64) - amb, 0, 65535).astype(np.uint16)
-        write_png(out / nm, img)
-    write_atomic(out / "filenames.txt", lambda t: t.write_text("\n".join(names) + "\n"))
+    recorded = session.get("linearisation")
+    if _finished(out, n) and recorded == lin.record() and \
+            session.get("ambient_subtracted", subtract_ambient) == subtract_ambient:
+        shape = read_image(out / names[0]).shape[:2]
+    else:
+        if _finished(out, n):
+            log("rebuilding the stack images from raw/ (linearisation or ambient changed)")
+        shape = _build_images(out, names, subtract_ambient, lin)
+        session.update(linearisation=lin.record(), ambient_subtracted=subtract_ambient,
+                       stack_white_level=65535.0 if lin.active else session.get("white_level"))
+        text = json.dumps(session, indent=1, sort_keys=True)
+        write_atomic(sess_path, lambda t: t.write_text(text))
+    _write_if_changed(out / "filenames.txt", "\n".join(names) + "\n", log)
     for arr, fname, what in ((light_directions, "light_directions.txt", "light directions"),
                              (light_intensities, "light_intensities.txt", "light intensities")):
-        if arr is None:
-            continue
-        rows = read_vectors(Path(arr), what) if isinstance(arr, (str, Path)) else np.asarray(arr)
-        if len(rows) != n:
-            raise InputError(f"{len(rows)} {what} for {n} captured frames")
-        _write_rows(out / fname, rows)
+        rows = check_vectors(arr, n, what)
+        if rows is not None:
+            _write_if_changed(out / fname, _rows_text(rows), log)
     if mask is not None:
         if mask.shape != shape:
             raise InputError(f"mask is {mask.shape} but frames are {shape}")
-        write_png(out / "mask.png", mask.astype(np.uint8) * 255)
+        old = out / "mask.png"
+        if not (old.is_file() and np.array_equal(read_mask(old), mask)):
+            if old.is_file():
+                log("updated mask.png")
+            write_png(old, mask.astype(np.uint8) * 255)
+    if normals_gt is not None:
+        gt = np.asarray(normals_gt, np.float32)
+        old = out / "Normal_gt.npy"
+        if not (old.is_file() and np.array_equal(np.load(old), gt)):
+            write_atomic(old, lambda t: np.save(t, gt))
     return out
 
 
-__all__ = ["capture_stack", "exposure_check", "finish_stack"]
+def _build_images(out: Path, names: list[str], subtract_ambient: bool,
+                  lin: Linearisation) -> tuple[int, int]:
+    raw = out / "raw"
+    amb_path = raw / "ambient.png"
+    amb = read_image(amb_path) if subtract_ambient and amb_path.is_file() else None
+    shape: tuple[int, int] = (0, 0)
+    for nm in names:
+        img = read_image(raw / nm)
+        shape = img.shape[:2]  # type: ignore[assignment]
+        if lin.active:
+            # linearise first: the ambient light adds in linear units, not encoded ones
+            white = white_level(img.dtype)
+            val = linearise(img, white, lin.srgb, lin.gamma) / white
+            if amb is not None:
+                val = val - linearise(amb, white, lin.srgb, lin.gamma) / white
+            # 16 bits: an 8-bit encoded frame spreads over far more than 256 linear levels
+            img = np.clip(np.rint(val * 65535.0), 0, 65535).astype(np.uint16)
+        elif amb is not None:
+            # Keep the camera's units; a 16-bit container holds the difference exactly.
+            img = np.clip(img.astype(np.int64) - amb, 0, 65535).astype(np.uint16)
+        write_png(out / nm, img)
+    return shape
+
+
+@dataclass
+class LoopStep:
+    """One pass of :func:`capture_loop`."""
+
+    index: int  # 1, 2, ...
+    stack: Path  # the captured stack folder
+    output: Path | None = None  # where the model's results went
+    result: Result | None = None
+
+
+_NUMBERED = re.compile(r"^\d{3,}$")
+
+
+def next_take(root: Path) -> Path:
+    """``root/001``, ``root/002``, ...: an unfinished last take is resumed, otherwise the
+    number after the highest."""
+    taken = sorted((int(p.name), p) for p in root.iterdir()
+                   if p.is_dir() and _NUMBERED.match(p.name)) if root.is_dir() else []
+    if taken:
+        last = taken[-1][1]
+        sess = last / SESSION
+        if sess.is_file():
+            count = int(json.loads(sess.read_text()).get("count", 0))
+            if not _finished(last, count):
+                return last
+        return root / f"{taken[-1][0] + 1:03d}"
+    return root / "001"
+
+
+def capture_loop(camera, lights, root: str | Path, *, iterations: int | None = None,
+                 model: Model | None = None, load: LoadOptions | None = None,
+                 out_root: Path | None = None, interval: float = 0.0,
+                 **capture: Any) -> Iterator[LoopStep]:
+    """Capture stack after stack into ``root/001``, ``root/002``, ... (``iterations`` times,
+    or until the caller stops iterating / Ctrl-C) and, with a ``model`` (loaded once), run
+    each: results in ``out_root/NNN`` (default ``root/NNN-normals``). Yields each step.
+    ``capture``: keyword options of :func:`capture_stack`."""
+    root = Path(root)
+    done = 0
+    while iterations is None or done < iterations:
+        if done and interval > 0:
+            time.sleep(interval)
+        folder = next_take(root)
+        stack = capture_stack(camera, lights, folder, **capture)
+        step = LoopStep(int(folder.name), stack)
+        if model is not None:
+            out = (out_root / folder.name) if out_root is not None else \
+                root / f"{folder.name}-normals"
+            step.result = model(stack, load)
+            step.result.save(out, inputs=tuple(load.inputs()) if load else ())
+            step.output = out
+        done += 1
+        yield step
+
+
+__all__ = ["SESSION", "Linearisation", "LoopStep", "capture_loop", "capture_stack",
+           "check_folder", "check_mask", "check_vectors", "exposure_check", "finish_stack",
+           "next_take"]

@@ -4,26 +4,48 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
+
+from msfnet.runtime.cliutil import (
+    make_parser,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    run_command,
+)
 from msfnet.runtime.errors import InputError
 
 from .cameras import Camera
-from .capture import capture_stack
+from .capture import Linearisation, capture_loop, capture_stack, check_folder
 from .lights import Lights
+
+PROG = "msf-capture"
+EXAMPLES = (
+    "msf-capture calib/ --camera sim --sim-scene chrome       # no hardware: a chrome sphere",
+    "msf-calib directions calib/ -o lights.txt                # ... calibrated",
+    "msf-capture obj/ --camera sim --light-directions lights.txt --run   # ... an object, run",
+    "msf-capture -o obj/ --camera oak --light-rig serial --port /dev/ttyUSB0 "
+    "--light-directions lights.txt --mask mask.png",
+    "msf-capture obj/ --camera opencv --device 0 --exposure -6 --count 12 --srgb",
+    "msf-capture takes/ --camera sim --loop 5 --run --method l2   # takes/001, 002, ... + runs",
+)
 
 
 def add_device_arguments(p: argparse.ArgumentParser, lights_flag: str = "--light-rig",
                          camera_default: str | None = "opencv") -> None:
-    """Camera, light-rig and session options, shared by msf-capture and ``msf-run --camera``.
+    """Camera, light-rig and session options.
 
-    ``lights_flag`` names the light back-end option (msf-run already uses --lights for files).
-    The caller adds --mask and --overwrite, whose meaning it owns.
+    ``lights_flag`` names the light back-end option (msf-run uses --lights for files). The
+    caller adds --mask and --overwrite, whose meaning it owns.
     """
     g = p.add_argument_group("capture devices")
     g.add_argument("--camera", choices=("oak", "opencv", "sim"), default=camera_default,
-                   help="camera back-end" + (f" (default {camera_default})" if camera_default
-                                             else ": capture the stack first, then run"))
+                   help="camera back-end" + (f" (default {camera_default}); sim: a rendered "
+                                             "sphere, no hardware" if camera_default else ""))
     g.add_argument("--device", default="0", help="OpenCV device index or URL; OAK device id")
     g.add_argument("--exposure", type=float, help="OpenCV: exposure (driver units); "
                    "OAK: microseconds (default 10000)")
@@ -34,42 +56,75 @@ def add_device_arguments(p: argparse.ArgumentParser, lights_flag: str = "--light
     g.add_argument("--oak-mode", choices=("raw", "isp"), default="raw",
                    help="raw: linear Bayer demosaiced on host (default); isp: tone-mapped RGB")
     g.add_argument("--bayer", default="RGGB", help="OAK raw Bayer pattern (default RGGB)")
-    g.add_argument("--average", type=int, default=1, help="OpenCV: frames averaged per light")
+    g.add_argument("--average", type=positive_int, default=1,
+                   help="OpenCV: frames averaged per light")
     g.add_argument(lights_flag, dest="light_rig", choices=("serial", "manual", "sim"),
-                   default="manual", help="light back-end (default manual: operator prompt)")
+                   default=None, help="light back-end (default: sim with --camera sim, "
+                   "otherwise manual: an operator prompt per light)")
     g.add_argument("--port", help="serial port of the LED controller, e.g. /dev/ttyUSB0")
-    g.add_argument("--baud", type=int, default=115200)
-    g.add_argument("--count", type=int, help="number of lights (manual; checks serial)")
+    g.add_argument("--baud", type=positive_int, default=115200)
+    g.add_argument("--count", type=positive_int,
+                   help="number of lights (manual; checks serial; sim default 12)")
     g.add_argument("--settle", type=float, default=0.05, help="seconds after switching a light")
-    g.add_argument("--sim-scene", choices=("chrome", "matte"), default="matte")
+    g.add_argument("--sim-scene", choices=("chrome", "matte"), default="matte",
+                   help="simulated scene: a chrome sphere (light calibration) or a matte one")
     g.add_argument("--light-directions", type=Path, help="light_directions.txt to put in the "
-                   "stack (from msf-calib directions)")
+                   "stack (from msf-calib directions); checked before capturing")
     g.add_argument("--light-intensities", type=Path, help="light_intensities.txt for the stack")
     g.add_argument("--no-ambient", action="store_true", help="skip the ambient (dark) frame")
     g.add_argument("--keep-ambient", action="store_true",
                    help="do not subtract the ambient frame from the stack images")
     g.add_argument("--strict", action="store_true", help="fail on saturated/under-exposed frames")
+    lin = g.add_mutually_exclusive_group()
+    lin.add_argument("--srgb", action="store_true",
+                     help="the camera delivers sRGB-encoded frames (webcams, OAK isp): the "
+                     "stack is written linear, 16-bit; recorded in session.json")
+    lin.add_argument("--gamma", type=positive_float, metavar="G",
+                     help="the camera's frames are power-law encoded: linear = value ** G")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="msf-capture", description=__doc__ + " Frames are written "
-                                "to OUT_DIR/raw as they arrive; run the same command again to "
-                                "resume an interrupted session.")
-    p.add_argument("out_dir", type=Path, help="session / stack folder")
+    p = make_parser(
+        PROG,
+        "Capture a photometric stack: one frame per light plus an ambient frame, each written "
+        "to OUT/raw as it arrives (run the same command again to resume an interrupted "
+        "session), then the DiLiGenT-layout stack in OUT that msf-run reads.", EXAMPLES)
+    p.add_argument("out_dir", type=Path, nargs="?", metavar="OUT",
+                   help="session / stack folder (or -o OUT)")
+    p.add_argument("-o", "--output", type=Path, metavar="OUT",
+                   help="session / stack folder (same as the positional OUT)")
     add_device_arguments(p)
-    p.add_argument("--mask", type=Path, help="object mask for the stack and exposure checks")
-    p.add_argument("--overwrite", action="store_true", help="discard frames already captured")
+    p.add_argument("--mask", type=Path, help="object mask for the stack and exposure checks "
+                   "(checked before capturing; the simulated camera writes its own)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="discard frames already captured, or capture into a folder holding "
+                   "other images")
+    p.add_argument("--loop", nargs="?", type=nonnegative_int, const=0, default=None,
+                   metavar="K", help="capture stack after stack into OUT/001, OUT/002, ... "
+                   "(K takes; none or 0: until Ctrl-C); with --run each is run as soon as "
+                   "it is captured, with the model loaded once (results in OUT/NNN-normals, "
+                   "or -o of msf-run's options as their parent)")
+    p.add_argument("--interval", type=float, default=0.0, metavar="S",
+                   help="--loop: seconds to wait between takes (to move the object)")
     p.add_argument("--run", nargs=argparse.REMAINDER, metavar="MSF_RUN_ARGS",
                    help="after capturing, run msf-run on the stack; the rest of the command "
                    "line goes to msf-run (e.g. --run --method l2 -o out/)")
     return p
 
 
-def _open(args: argparse.Namespace) -> tuple[Camera, Lights]:
-    if args.camera == "sim" or args.light_rig == "sim":
-        if args.camera != "sim" or args.light_rig != "sim":
-            raise InputError("--camera sim and --lights sim go together")
-        from msfnet.synth.spheres import mirror_scene, ring_lights
+def _light_rig(args: argparse.Namespace) -> str:
+    if args.light_rig is None:
+        return "sim" if args.camera == "sim" else "manual"
+    return str(args.light_rig)
+
+
+def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
+    """The devices, and what a simulated rig knows (true lights, mask, normals) as defaults."""
+    rig_name = _light_rig(args)
+    if args.camera == "sim" or rig_name == "sim":
+        if args.camera != "sim" or rig_name != "sim":
+            raise InputError("--camera sim and --light-rig sim go together")
+        from msfnet.synth.spheres import mirror_scene, ring_lights, sphere_masks, sphere_normals
 
         from .cameras import SimulatedCamera
         from .lights import SimulatedLights, SimulatedRig
@@ -77,16 +132,22 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights]:
         kind = "mirror" if args.sim_scene == "chrome" else "matte"
         rig = SimulatedRig(mirror_scene(160, 128, 56, kind=kind), ring_lights(args.count or 12),
                            gain=0.8 if kind == "matte" else 0.02)
-        return SimulatedCamera(rig), SimulatedLights(rig)
-    if args.light_rig == "serial":
+        known = {"light_directions": rig.lights, "light_intensities": rig.intensities,
+                 "mask": np.any(sphere_masks(rig.scene), axis=0),
+                 "normals_gt": sphere_normals(rig.scene),
+                 # a mirror sphere is dark but for a highlight of a few pixels: the
+                 # under-exposure check (99.5th percentile) would fire on every frame
+                 "min_level": 0.0 if kind == "mirror" else 0.1}
+        return SimulatedCamera(rig), SimulatedLights(rig), known
+    if rig_name == "serial":
         if not args.port:
-            raise InputError("--lights serial needs --port")
+            raise InputError("--light-rig serial needs --port")
         from .lights import SerialLights
 
         lights: Lights = SerialLights(args.port, args.baud, args.count, settle=args.settle)
     else:
         if not args.count:
-            raise InputError("--lights manual needs --count")
+            raise InputError("--light-rig manual needs --count")
         from .lights import ManualLights
 
         lights = ManualLights(args.count)
@@ -94,60 +155,128 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights]:
         from .cameras import OakCamera
 
         cam: Camera = OakCamera(int(args.exposure or 10000), args.iso, args.wb_kelvin,
-                        int(args.focus if args.focus is not None else 120), args.oak_mode,
-                        args.bayer, device_id=None if args.device == "0" else args.device)
+                                int(args.focus if args.focus is not None else 120),
+                                args.oak_mode, args.bayer,
+                                device_id=None if args.device == "0" else args.device)
     else:
         from .cameras import OpenCVCamera
 
         dev = int(args.device) if args.device.isdigit() else args.device
         cam = OpenCVCamera(dev, exposure=args.exposure, gain=args.gain,
                            wb_kelvin=args.wb_kelvin, focus=args.focus, average=args.average)
-    return cam, lights
+    return cam, lights, {}
+
+
+def _capture_options(args: argparse.Namespace, known: dict[str, Any], log: Callable[[str], None],
+                     overwrite: bool) -> dict[str, Any]:
+    """capture_stack's keyword options: the user's files first, then what the rig knows."""
+    dirs = args.light_directions
+    given_dirs = dirs is not None
+    return {
+        "light_directions": dirs if given_dirs else known.get("light_directions"),
+        # the rig's intensities belong to its true directions only
+        "light_intensities": args.light_intensities if args.light_intensities is not None
+        else (None if given_dirs else known.get("light_intensities")),
+        "mask": args.mask if args.mask is not None else known.get("mask"),
+        "normals_gt": known.get("normals_gt"), "min_level": known.get("min_level", 0.1),
+        "ambient": not args.no_ambient, "subtract_ambient": not args.keep_ambient,
+        "overwrite": overwrite, "strict": args.strict, "log": log,
+        "linearisation": Linearisation(args.srgb, args.gamma),
+        "progress": None if not args.quiet else False,
+    }
 
 
 def run_capture(args: argparse.Namespace, out_dir: Path, overwrite: bool = False) -> Path:
     """Open the devices named by ``args``, capture (or resume) a session into ``out_dir``."""
     cam = lights = None
+    log = _logger(args)
     try:
-        if (out_dir / "filenames.txt").exists() and not overwrite and \
-                not (out_dir / "session.json").exists():
-            raise InputError("folder holds a stack not made by msf-capture (use --overwrite "
-                             "or another folder)", out_dir)
-        cam, lights = _open(args)
-        dirs, ints = args.light_directions, args.light_intensities
-        rig = getattr(lights, "rig", None)
-        if rig is not None and dirs is None:  # the simulated rig knows its true lights
-            dirs, ints = rig.lights, rig.intensities
-        return capture_stack(cam, lights, out_dir, light_directions=dirs,
-                             light_intensities=ints, mask=args.mask,
-                             ambient=not args.no_ambient,
-                             subtract_ambient=not args.keep_ambient,
-                             overwrite=overwrite, strict=args.strict)
+        check_folder(out_dir, overwrite)  # before opening devices (an OAK takes seconds)
+        cam, lights, known = _open(args)
+        return capture_stack(cam, lights, out_dir, **_capture_options(args, known, log,
+                                                                       overwrite))
     finally:
         for dev in (lights, cam):
             if dev is not None:
                 dev.close()
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def _logger(args: argparse.Namespace) -> Callable[[str], None]:
+    def log(msg: str) -> None:
+        if not args.quiet or msg.startswith("warning"):
+            print(msg, file=sys.stderr if msg.startswith("warning") else sys.stdout)
+
+    return log
+
+
+def _run_loop(args: argparse.Namespace, root: Path) -> int:
+    model = load = out_root = None
+    if args.run is not None:
+        from msfnet.runtime.run_cli import build_parser as run_parser
+        from msfnet.runtime.run_cli import load_options, open_model
+
+        run_args = run_parser().parse_args(args.run)
+        if run_args.stacks or run_args.demo:
+            raise InputError("--loop --run: the stacks are the captured takes; give msf-run "
+                             "options only")
+        model, load, out_root = open_model(run_args), load_options(run_args), run_args.output
+    log = _logger(args)
+    cam = lights = None
     try:
-        out = run_capture(args, args.out_dir, args.overwrite)
+        cam, lights, known = _open(args)
+        opts = _capture_options(args, known, log, overwrite=False)
+        steps = capture_loop(cam, lights, root, iterations=args.loop or None, model=model,
+                             load=load, out_root=out_root, interval=args.interval, **opts)
+        for step in steps:
+            done = "stack" if (step.stack / "light_directions.txt").exists() else \
+                "images (no light directions yet)"
+            line = f"take {step.index:03d}: {step.stack} ({done})"
+            if step.result is not None:
+                m = step.result.metrics
+                line += f"; normals -> {step.output}" + (f" (MAE {m.mae_deg:.2f} deg)" if m
+                                                        else "")
+            if not args.quiet:
+                print(line, flush=True)
+    except KeyboardInterrupt:
+        print(f"{PROG}: loop stopped; finished takes are kept, an unfinished one is resumed "
+              "by the next run", file=sys.stderr)
+        return 130
+    finally:
+        for dev in (lights, cam):
+            if dev is not None:
+                dev.close()
+    return 0
+
+
+def _main(args: argparse.Namespace) -> int:
+    if args.out_dir is not None and args.output is not None and args.out_dir != args.output:
+        raise InputError("give the output folder once: OUT or -o OUT")
+    out = args.output or args.out_dir
+    if out is None:
+        raise InputError("no output folder: give OUT (or -o OUT)")
+    if args.loop is not None:
+        if args.overwrite:
+            raise InputError("--loop never overwrites: each take goes to a new folder")
+        return _run_loop(args, out)
+    try:
+        out = run_capture(args, out, args.overwrite)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    if not args.quiet:
         done = "stack" if (out / "light_directions.txt").exists() else \
             "images (no light directions yet: run msf-calib directions)"
         print(f"frames -> {out} ({done})")
-        if args.run is not None:
-            from msfnet.runtime.run_cli import main as run_main
+    if args.run is not None:
+        from msfnet.runtime.run_cli import main as run_main
 
-            return run_main([str(out), *args.run])
-    except InputError as exc:
-        print(f"msf-capture: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("msf-capture: interrupted; run the same command again to resume",
-              file=sys.stderr)
-        return 130
+        return run_main([str(out), *args.run])
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_command(PROG, lambda: _main(args), debug=args.debug)
 
 
 if __name__ == "__main__":

@@ -10,67 +10,29 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from .benchmarks import PROTOCOL_SELECT, PUBLISHED_MAE, PUBLISHED_METHODS
+from .benchmarks import (
+    PUBLISHED_MAE,
+    PUBLISHED_METHODS,
+    BenchObject,
+    check_unique,
+    find_objects,
+)
 from .cliutil import make_parser, positive_float, positive_int, run_command
 from .detail import detail_ratio
 from .errors import InputError
 from .files import check_output, json_text, staged_folder
 from .outputs import error_png, normals_png, write_rgb_png
 from .pipeline import Model
-from .stack import LIGHTS_NAMES, LoadOptions, load_stack
+from .stack import LoadOptions, load_stack
 from .tiling import DEFAULT_MAX_MEMORY_MB
 
 PROG = "msf-eval"
 COLUMNS = ("mae_deg", "err15", "err30")
-
-
-@dataclass(frozen=True)
-class BenchObject:
-    folder: Path
-    select: str | None  # the benchmark's image selection (e.g. bear 21-96)
-
-
-def find_objects(root: Path) -> list[BenchObject]:
-    """The objects of a benchmark root in benchmark order: those listed in objects.txt (one
-    folder per line, optionally followed by an image selection), the root itself when it is a
-    stack, or every sub-folder holding a stack. Known benchmark objects get their protocol's
-    selection (DiLiGenT bear: 21-96) unless objects.txt says otherwise."""
-    if not root.is_dir():
-        raise InputError("benchmark root or object folder not found", root)
-    listing = root / "objects.txt"
-    if listing.is_file():
-        out = []
-        for line in listing.read_text().splitlines():
-            parts = line.split("#", 1)[0].split()
-            if not parts:
-                continue
-            folder = root / parts[0]
-            if not folder.is_dir():
-                raise InputError(f"object folder {parts[0]!r} listed but not found", listing)
-            out.append(BenchObject(folder, parts[1] if len(parts) > 1 else None))
-        if not out:
-            raise InputError("objects.txt lists no objects", listing)
-        return out
-    if any((root / n).is_file() for n in LIGHTS_NAMES) or any(root.glob("*.[tT][gG][aA]")):
-        return [BenchObject(root, PROTOCOL_SELECT.get(root.name))]
-    found = [BenchObject(d, PROTOCOL_SELECT.get(d.name)) for d in sorted(root.iterdir())
-             if d.is_dir() and any((d / n).is_file() for n in LIGHTS_NAMES)]
-    if not found:
-        raise InputError("no object folders (with light_directions.txt or lights.txt) and no "
-                         "objects.txt", root)
-    return found
-
-
-def _check_unique(objects: list[BenchObject]) -> None:
-    names = [o.folder.name for o in objects]
-    dup = next((n for n in names if names.count(n) > 1), None)
-    if dup is not None:
-        raise InputError(f"object {dup!r} appears twice (its results would clash)")
 
 
 def _fmt(v: object, pct: bool = False) -> str:
@@ -119,7 +81,7 @@ def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
              progress: bool = False) -> dict:
     """Score ``model`` (and least squares) on every object; write the results folder."""
     load = load or LoadOptions()
-    _check_unique(objects)
+    check_unique(objects)
     check_output(outdir, [o.folder for o in objects] + load.inputs(), overwrite=overwrite,
                  folder=True)
     runners: dict[str, Model] = {}
@@ -211,6 +173,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-memory", type=positive_float, default=DEFAULT_MAX_MEMORY_MB,
                    metavar="MB", help=f"memory budget in MB (default {DEFAULT_MAX_MEMORY_MB})")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.add_argument("--json", action="store_true",
+                   help="print results.json's content on stdout instead of the table")
     return p
 
 
@@ -220,7 +184,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.l2_only and args.onnx is not None:
         raise InputError("--l2-only and --onnx contradict each other")
     objects = [o for root in args.roots for o in find_objects(root)]
-    _check_unique(objects)
+    check_unique(objects)
     load = LoadOptions(lights=args.lights, select=args.select, max_lights=args.max_lights)
     check_output(outdir, [*args.roots, args.onnx, *load.inputs()], overwrite=args.overwrite,
                  folder=True)
@@ -229,8 +193,11 @@ def _run(args: argparse.Namespace) -> int:
         max_memory_mb=args.max_memory)
     summary = evaluate(objects, outdir, model=model, use_l2=not args.no_l2, load=load,
                        overwrite=args.overwrite,
-                       progress=sys.stderr.isatty() and not args.quiet)
-    if not args.quiet:
+                       progress=sys.stderr.isatty() and not args.quiet and not args.json)
+    if args.json:
+        print(json_text({**{k: v for k, v in summary.items() if k != "table"},
+                         "output": str(outdir)}), end="")
+    elif not args.quiet:
         print(summary["table"])
         print(f"wrote {outdir}/ (results.json, results.md, error maps)")
     return 0

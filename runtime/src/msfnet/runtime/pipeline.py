@@ -1,18 +1,26 @@
 """The Python API: ``Model`` (load once, run many stacks) and ``Result`` (arrays, no files).
 
-    from msfnet import Model, load_stack
-    model = Model()                        # the bundled network; Model.least_squares() for L2
-    result = model(load_stack("bearPNG", select="21-96"))
-    result.normals, result.metrics         # (H, W, 3) float32; NormalMetrics with ground truth
-    result.save("out/bear")                # the same files as msf-run writes
+Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any stack folder)::
 
-The data flows stack -> estimator (normalise -> infer, tiled) -> metrics -> Result; nothing is
-written until ``Result.save``.
+    from msfnet import Model, load_stack
+
+    model = Model()                          # the bundled network, loaded once
+    stack = load_stack("obj/", max_lights=8) # DiLiGenT-layout folder, images + lights, .npz
+    result = model(stack)                    # arrays only: nothing is written
+    print(result.normals.shape)              # (H, W, 3) float32 unit normals, x right, y up
+    print(result.metrics)                    # MAE / median / err15 / err30 with ground truth
+    result.save("out/obj")                   # the files msf-run writes (normals.npy/.png, ...)
+
+    baseline = Model.least_squares()         # classical least squares, same API
+    l2 = baseline.predict(stack.images, stack.lights, mask=stack.mask)  # plain numpy arrays
+
+``Model("x.onnx", threads=2)`` loads another msfnet export. The data flows stack -> estimator
+(normalise -> infer, tiled) -> metrics -> Result; nothing is written until ``Result.save``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +35,7 @@ from .estimators import (
 )
 from .metrics import NormalMetrics, error_map, normal_metrics
 from .profile import Profile, StageTimer
-from .stack import LoadOptions, Stack, load_stack
+from .stack import LoadOptions, Stack, load_stack, prepare_stack
 from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
 
 WEIGHTS = Path(__file__).resolve().parent / "weights"
@@ -66,24 +74,47 @@ class Result:
                              "overhead_vs_image": p.pixels / float(h * w)}
         return {**self.timings.summary(), **info, **self.extra}
 
-    def save(self, folder: str | Path, *, overwrite: bool = False,
-             inputs: tuple[Path, ...] = ()) -> list[Path]:
-        """Write normals.npy/png, profile.json and, with ground truth, metrics.json and
-        error.png into ``folder``, all at once or not at all."""
-        from .files import check_output
-        from .outputs import write_result
+    @property
+    def auto_mask(self) -> bool:
+        """Whether the mask was computed from the images (``--auto-mask``)."""
+        info = self.extra.get("input")
+        return isinstance(info, dict) and bool(info.get("auto_mask"))
 
+    def save(self, folder: str | Path, *, overwrite: bool = False,
+             inputs: tuple[Path, ...] = (), write_mask: bool | None = None) -> list[Path]:
+        """Write normals.npy/png, profile.json and, with ground truth, metrics.json and
+        error.png into ``folder``, all at once or not at all; mask.png too when the mask was
+        computed (``write_mask``: None = only then). Returns the files written."""
+        from .files import check_output, staged_folder
+        from .outputs import fill_result_folder, write_rgb_png
+
+        folder = Path(folder)
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
         check_output(folder, src, overwrite=overwrite, folder=True)
-        return write_result(self, Path(folder), overwrite=overwrite)
+        with staged_folder(folder, overwrite=overwrite) as tmp:
+            fill_result_folder(tmp, self)
+            if self.auto_mask if write_mask is None else write_mask:
+                # an automatic mask is a result the user should be able to inspect and reuse
+                write_rgb_png(tmp / "mask.png", self.stack.mask.astype(np.uint8) * 255)
+            names = sorted(p.name for p in tmp.iterdir())
+        return [folder / n for n in names]
+
+    def without_images(self) -> Result:
+        """A copy whose stack no longer holds the images (N x H x W x 0: shape and light count
+        kept), to keep or ship many results (a batch, a Ray task) without their inputs."""
+        n, h, w = self.stack.images.shape[:3]
+        stack = replace(self.stack, images=np.empty((n, h, w, 0), np.float32))
+        return replace(self, stack=stack)
 
 
 class Model:
     """A loaded estimator with its run options: create once, call on many stacks.
 
     ``Model()`` is the bundled network; ``Model("x.onnx", threads=2)`` another msfnet ONNX
-    export; ``Model.least_squares()`` classical least squares. ``engine`` / ``precision``
-    pick the execution engine (default: chosen for this CPU).
+    export (loaded once, here); ``Model.least_squares()`` classical least squares.
+    ``engine`` / ``precision`` pick the execution engine (default: chosen for this CPU).
+    Calling it (``model(stack)``, :meth:`predict`) returns a :class:`Result` and writes
+    nothing; a model may be called any number of times.
     """
 
     def __init__(self, model: str | Path | NetworkEngine | None = None, *,
@@ -110,6 +141,7 @@ class Model:
 
     @classmethod
     def least_squares(cls, *, max_memory_mb: float = DEFAULT_MAX_MEMORY_MB) -> Model:
+        """Per-pixel least squares (Woodham 1980): no network, the same inputs and outputs."""
         return cls(method="l2", max_memory_mb=max_memory_mb)
 
     @property
@@ -119,11 +151,20 @@ class Model:
     def describe(self) -> dict[str, object]:
         return self.estimator.describe()
 
+    def __repr__(self) -> str:
+        d = self.describe()
+        what = "least squares" if self.method == "l2" else f"{d.get('model')}"
+        return (f"Model({what}, engine={d.get('engine')}, precision={d.get('precision')}, "
+                f"threads={d.get('threads')})")
+
     def __call__(self, stack: Stack | str | Path, load: LoadOptions | None = None, *,
                  repeat: int = 1, progress: bool = False) -> Result:
         """Normals (+ metrics with ground truth) for a Stack or a stack path; writes nothing.
 
-        ``repeat``: run load -> metrics that many times for the latency profile.
+        ``load``: how to read a path (selection, files, ROI, downscale, linearisation,
+        auto-mask); on a Stack already in memory its selection and real-camera options are
+        applied to a copy. ``repeat``: run load -> metrics that many times for the latency
+        profile.
         """
         if repeat < 1:
             raise InputError(f"--repeat must be at least 1, got {repeat}")
@@ -134,8 +175,11 @@ class Model:
             timer = StageTimer()
             with timer("total"):
                 with timer("load"):
-                    loaded = (stack.validate() if isinstance(stack, Stack)
-                              else load_stack(stack, load))
+                    if isinstance(stack, Stack):
+                        loaded = prepare_stack(stack, load) if load is not None \
+                            else stack.validate()
+                    else:
+                        loaded = load_stack(stack, load)
                 est = self.estimator.estimate(loaded, self.tiling, timer, progress)
                 metrics = err = None
                 with timer("postprocess"):
@@ -144,7 +188,11 @@ class Model:
                         err = error_map(est.normals, loaded.normals_gt, loaded.mask)
             prof.add(timer)
             prof.flops = est.flops
-            result = Result(loaded, est.normals, self.describe(), prof, metrics, err, est.plan)
+            extra: dict[str, object] = {}
+            if load is not None:
+                extra["input"] = load.describe()
+            result = Result(loaded, est.normals, self.describe(), prof, metrics, err, est.plan,
+                            extra=extra)
         assert result is not None
         return result
 
@@ -153,7 +201,7 @@ class Model:
                 normals_gt: np.ndarray | None = None) -> Result:
         """Run on numpy arrays: images (N, H, W, 3) or (N, H, W) linear values, lights (N, 3)
         directions (x right, y up, z to the camera); mask (H, W) and intensities (N, 3)
-        optional."""
+        optional. Writes nothing."""
         return self(Stack.from_arrays(images, lights, mask=mask, intensities=intensities,
                                       normals_gt=normals_gt, name="array"))
 

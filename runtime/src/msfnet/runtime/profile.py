@@ -31,19 +31,26 @@ class StageTimer:
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far, in MB (0 where the OS does not say).
 
-    POSIX: ru_maxrss (KiB on Linux, bytes on macOS); Windows: psutil's peak working set.
+    POSIX (Linux, macOS, BSD): ``resource.getrusage`` (ru_maxrss is KiB on Linux, bytes on
+    macOS). Windows has no ``resource``: psutil's peak working set. Anywhere else psutil's
+    current RSS, a lower bound of the peak, is better than nothing.
     """
     try:
         import resource
-    except ImportError:  # Windows
-        try:
-            import psutil
-
-            return float(getattr(psutil.Process().memory_info(), "peak_wset", 0)) / 2**20
-        except ImportError:
-            return 0.0
+    except ImportError:
+        return _psutil_peak_mb()
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / 2**20 if sys.platform == "darwin" else peak / 1024
+
+
+def _psutil_peak_mb() -> float:
+    try:
+        import psutil
+    except ImportError:  # a dependency, but keep the profile working without it
+        return 0.0
+    info = psutil.Process().memory_info()
+    # peak_wset exists on Windows only; rss (current) elsewhere
+    return float(getattr(info, "peak_wset", 0) or info.rss) / 2**20
 
 
 @dataclass

@@ -6,10 +6,14 @@ import argparse
 import sys
 from pathlib import Path
 
+from tqdm import tqdm
+
+from .batch import SUMMARY_FILES, BatchItem, StackRow, expand_stacks, run_batch
 from .cliutil import make_parser, positive_float, positive_int, run_command
 from .errors import InputError
 from .files import check_output, json_text, numbered_folder
-from .stack import LoadOptions, Stack
+from .pipeline import Model, Result
+from .stack import LoadOptions, Stack, parse_roi
 from .tiling import DEFAULT_MAX_MEMORY_MB, HALO
 
 PROG = "msf-run"
@@ -19,6 +23,10 @@ EXAMPLES = (
     "msf-run bearPNG --select 21-96 -o out/bear       # skip images, choose the folder",
     "msf-run obj/ --method l2                         # classical least squares, no model",
     "msf-run obj/ --onnx my_model.onnx --threads 2 --json",
+    "msf-run ballPNG harvestPNG bearPNG -o out/       # a batch: model loaded once",
+    "msf-run DiLiGenT/ -o out/dili                    # every stack in a folder (or objects.txt)",
+    "msf-run DiLiGenT/ --ray ray://head:10001         # the batch on a Ray cluster",
+    "msf-run capture/ --srgb --auto-mask --roi 400,300,800,600 --downscale 2",
 )
 
 
@@ -27,11 +35,13 @@ def build_parser() -> argparse.ArgumentParser:
         PROG,
         "Estimate per-pixel surface normals from a photometric stack with MSF-Net (ONNX, tiled "
         "to a memory budget) or classical least squares. STACK is a DiLiGenT-layout folder, a "
-        "folder of images with a lights file (txt/json), or an .npz. Writes normals.npy, "
-        "normals.png, profile.json and, with ground truth, metrics.json and error.png.",
+        "folder of images with a lights file (txt/json), an .npz, or a folder of such stacks "
+        "(sub-folders, or an objects.txt as msf-eval reads). Writes normals.npy, normals.png, "
+        "profile.json and, with ground truth, metrics.json and error.png; for several stacks "
+        "one folder each plus summary.json and summary.md.",
         EXAMPLES)
     p.add_argument("stacks", type=Path, metavar="STACK", nargs="*",
-                   help="stack folder(s) or .npz (omit with --demo)")
+                   help="stack folder(s), .npz, or folders of stacks (omit with --demo)")
     p.add_argument("--demo", action="store_true",
                    help="run on the bundled 32-light synthetic sample with ground truth and "
                    "compare with least squares")
@@ -41,7 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="msf: the network (default); l2: per-pixel least squares, no model")
     p.add_argument("-o", "--output", "--outdir", dest="output", type=Path, default=None,
                    help="output folder (default: a fresh ./msf-out/<stack name>[-N]/); with "
-                   "several stacks, the parent of one folder per stack; an existing non-empty "
+                   "several stacks, the parent of one folder per stack and the summary "
+                   "(default ./msf-out/<folder name or 'batch'>[-N]/); an existing non-empty "
                    "folder is refused unless --overwrite")
     p.add_argument("--lights", type=Path, help="light directions file (txt or json), overrides "
                    "the stack's")
@@ -52,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-lights", type=positive_int, metavar="K",
                    help="use K evenly spaced lights")
     p.add_argument("--threads", type=positive_int, metavar="T",
-                   help="inference threads (default: all available cores)")
+                   help="inference threads (default: all available cores; 1 per Ray worker)")
     p.add_argument("--provider", default="cpu", metavar="P",
                    help="ONNX Runtime execution provider: cpu (default), cuda, ... when "
                    "installed")
@@ -63,21 +74,66 @@ def build_parser() -> argparse.ArgumentParser:
                    metavar="MB", help="peak memory target in MB (loaded stack + working set), "
                    f"least squares included (default {DEFAULT_MAX_MEMORY_MB})")
     p.add_argument("--repeat", type=positive_int, default=1, metavar="K",
-                   help="run K times; the profile reports median and p90 per stage")
+                   help="run K times; the profile reports median and p90 per stage (one "
+                   "stack only)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output folder (only one msfnet wrote)")
     p.add_argument("--json", action="store_true",
-                   help="print a machine-readable summary on stdout (one JSON object per stack)")
+                   help="print a machine-readable summary on stdout (one JSON object per "
+                   "stack, then the batch summary for several)")
+    cam = p.add_argument_group(
+        "real-camera inputs (applied while loading: ROI -> downscale -> linearise -> "
+        "auto-mask)")
+    cam.add_argument("--roi", type=parse_roi, metavar="X,Y,W,H",
+                     help="crop images, mask and ground truth to this rectangle (pixels of "
+                     "the stored images, origin top-left)")
+    cam.add_argument("--downscale", type=positive_int, default=1, metavar="K",
+                     help="average each K x K block (integer K; mask: majority of the block)")
+    lin = cam.add_mutually_exclusive_group()
+    lin.add_argument("--srgb", action="store_true",
+                     help="images are sRGB-encoded (8-bit camera output): linearise them")
+    lin.add_argument("--gamma", type=positive_float, metavar="G",
+                     help="images are power-law encoded: linear = (value / white) ** G")
+    cam.add_argument("--white-level", type=positive_float, metavar="V",
+                     help="full-scale value for linearising (default 255 / 65535 by bit "
+                     "depth; needed for floating-point images above 1)")
+    cam.add_argument("--auto-mask", action="store_true",
+                     help="compute the object mask from the stack (object on a dark "
+                     "background); written beside the outputs as mask.png")
+    bat = p.add_argument_group("batches")
+    bat.add_argument("--no-prefetch", action="store_true",
+                     help="decode each stack only when its turn comes (default: the next "
+                     "stack is decoded while the current one runs)")
+    bat.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+                     help="run the stacks on Ray (pip install 'msfnet[ray]'): no ADDRESS = "
+                     "$RAY_ADDRESS or a local instance, 'auto' = the running cluster, "
+                     "ray://head:10001 = a remote one; stack paths must be visible to the "
+                     "workers")
+    bat.add_argument("--workers", type=positive_int, metavar="K",
+                     help="Ray workers (default: the cluster's CPUs / --threads, at most one "
+                     "per stack)")
     return p
 
 
-def _output_for(args: argparse.Namespace, name: str, many: bool) -> Path:
-    if args.output is None:
-        return numbered_folder(Path("msf-out") / name)
-    return args.output / name if many else args.output
+def load_options(args: argparse.Namespace) -> LoadOptions:
+    return LoadOptions(args.lights, args.intensities, args.mask, args.select, args.max_lights,
+                       roi=args.roi, downscale=args.downscale, srgb=args.srgb,
+                       gamma=args.gamma, white_level=args.white_level,
+                       auto_mask=args.auto_mask)
 
 
-def _print_result(result, outdir: Path, files: list[Path], args) -> None:
+def open_model(args: argparse.Namespace) -> Model:
+    """The estimator msf-run's options describe, loaded once."""
+    from .pipeline import Model
+
+    if args.method == "l2" and args.onnx is not None:
+        raise InputError("--method l2 needs no model; drop --onnx")
+    return Model(args.onnx, method=args.method, threads=args.threads, provider=args.provider,
+                 tile=args.tile, max_memory_mb=args.max_memory)
+
+
+def print_result(result: Result, outdir: Path, files: list[Path],
+                 args: argparse.Namespace) -> None:
     p = result.profile()
     if args.json:
         print(json_text({"stack": p["stack"], "output": str(outdir),
@@ -90,7 +146,7 @@ def _print_result(result, outdir: Path, files: list[Path], args) -> None:
     print(f"{result.stack.name}: {p['lights']} lights, {p['width']}x{p['height']}, "
           f"{p['mask_pixels']} mask px, {p['method']} ({p['engine']} {p['precision']})")
     tiles = p.get("tiles")
-    if tiles:
+    if isinstance(tiles, dict):
         size = tiles["tile_px"] or "untiled"
         print(f"tiles: {tiles['run']} run, {tiles['skipped']} skipped (tile {size}, halo "
               f"{tiles['halo_px']} px, {tiles['overhead_vs_image']:.2f} x image area computed)")
@@ -103,46 +159,109 @@ def _print_result(result, outdir: Path, files: list[Path], args) -> None:
     print(f"wrote {outdir}/ ({', '.join(f.name for f in files)})")
 
 
-def _run(args: argparse.Namespace) -> int:
-    from .pipeline import Model
+def _run_single(args: argparse.Namespace, src: Path | Stack, load: LoadOptions) -> int:
+    name = src.name if isinstance(src, Stack) else src.stem
+    out = args.output if args.output is not None else numbered_folder(Path("msf-out") / name)
+    inputs = [*load.inputs(), args.onnx] + ([src] if isinstance(src, Path) else [])
+    check_output(out, inputs, overwrite=args.overwrite, folder=True)  # before any work
+    model = open_model(args)
+    progress = sys.stderr.isatty() and not args.quiet and not args.json
+    result = model(src, load, repeat=args.repeat, progress=progress)
+    files = result.save(out, overwrite=args.overwrite, inputs=tuple(load.inputs()))
+    print_result(result, out, files, args)
+    if args.demo and args.method != "l2" and not args.json and not args.quiet:
+        l2 = Model.least_squares()(result.stack)
+        assert l2.metrics is not None
+        print(f"least squares on the same stack: MAE {l2.metrics.mae_deg:.3f} deg, median "
+              f"{l2.metrics.median_deg:.3f} deg, err15 {l2.metrics.err15 * 100:.1f} %")
+    return 0
 
-    if args.method == "l2" and args.onnx is not None:
-        raise InputError("--method l2 needs no model; drop --onnx")
+
+def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptions) -> int:
+    if args.repeat != 1:
+        raise InputError("--repeat profiles one stack; give a single STACK")
+    if args.output is not None:
+        root = args.output
+    else:
+        one_folder = len(args.stacks) == 1 and args.stacks[0].is_dir()
+        root = numbered_folder(Path("msf-out") / (args.stacks[0].name if one_folder
+                                                  else "batch"))
+    # every output location is checked before any work
+    inputs = [*load.inputs(), args.onnx]
+    for item in items:
+        check_output(root / item.name, [*inputs, item.path], overwrite=args.overwrite,
+                     folder=True)
+        item.options(load)  # a --select clashing with objects.txt fails now, not midway
+    for name in SUMMARY_FILES:
+        check_output(root / name, [*inputs, *(i.path for i in items)],
+                     overwrite=args.overwrite)
+    root.mkdir(parents=True, exist_ok=True)
+    show = not args.quiet and not args.json
+
+    def report(row: StackRow, result: Result | None) -> None:
+        if row.error is not None:
+            tqdm.write(f"{PROG}: error: {row.error}", file=sys.stderr)
+        elif args.json and result is not None:
+            files = sorted(p.name for p in Path(row.output or ".").iterdir()
+                           if not p.name.startswith("."))
+            print_result(result, Path(row.output or "."), [Path(f) for f in files], args)
+        elif show:
+            mae = row.metrics.get("mae_deg") if row.metrics else None
+            score = "" if mae is None else f", MAE {mae:.2f} deg"
+            tqdm.write(f"{row.name}: {row.lights} lights, {row.width}x{row.height}{score}; "
+                       f"decode {row.decode_s:.2f} s (waited {row.wait_s:.2f}), infer "
+                       f"{row.compute_s:.2f} s -> {row.output}/")
+
+    progress = None if show else False
+    if args.ray is not None:
+        from .distributed import ModelSpec, run_batch_ray
+
+        if args.method == "l2" and args.onnx is not None:
+            raise InputError("--method l2 needs no model; drop --onnx")
+        spec = ModelSpec.from_args(args.onnx, method=args.method, threads=args.threads or 1,
+                                   provider=args.provider, tile=args.tile,
+                                   max_memory_mb=args.max_memory)
+        summary = run_batch_ray(spec, items, load, lambda n: root / n, address=args.ray or None,
+                                workers=args.workers, overwrite=args.overwrite,
+                                summary_dir=root, on_result=report, progress=progress,
+                                inputs=tuple(load.inputs()))
+    else:
+        if args.workers is not None:
+            raise InputError("--workers is for --ray")
+        summary = run_batch(open_model(args), items, load, lambda n: root / n,
+                            overwrite=args.overwrite, prefetch=not args.no_prefetch,
+                            summary_dir=root, on_result=report, progress=progress,
+                            inputs=tuple(load.inputs()))
+    if args.json:
+        print(json_text({"summary": summary.as_dict(), "output": str(root)}), end="")
+    elif not args.quiet:
+        print(summary.text())
+        print(f"wrote {root}/ (one folder per stack, summary.json, summary.md)")
+    if summary.failed:
+        print(f"{PROG}: error: {len(summary.failed)} of {len(summary.rows)} stack(s) failed "
+              "(see above and summary.md)", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.ray and Path(args.ray).exists():
+        # argparse gives --ray's optional ADDRESS the first stack of "--ray A B"
+        raise InputError(f"--ray took the stack {args.ray!r} for a cluster address: put --ray "
+                         "after the stacks (or write --ray=ADDRESS)")
     if bool(args.stacks) == args.demo:
         raise InputError("give STACK folder(s) or .npz, or --demo, not both or neither")
-    load = LoadOptions(args.lights, args.intensities, args.mask, args.select, args.max_lights)
-    many = len(args.stacks) > 1
-    sources: list[Path | Stack]
+    load = load_options(args)
     if args.demo:
         from .demo import demo_stack
 
-        sources = [demo_stack()]
-    else:
-        sources = list(args.stacks)
-        names = [s.stem for s in args.stacks]
-        if len(set(names)) != len(names):
-            raise InputError("two stacks share a name; their output folders would clash")
-    # every output location is checked before any work
-    plans = []
-    for src in sources:
-        name = src.name if isinstance(src, Stack) else src.stem
-        out = _output_for(args, name, many)
-        inputs = [*load.inputs(), args.onnx] + ([src] if isinstance(src, Path) else [])
-        check_output(out, inputs, overwrite=args.overwrite, folder=True)
-        plans.append((src, out))
-    model = Model(args.onnx, method=args.method, threads=args.threads, provider=args.provider,
-                  tile=args.tile, max_memory_mb=args.max_memory)
-    progress = sys.stderr.isatty() and not args.quiet and not args.json
-    for src, out in plans:
-        result = model(src, load, repeat=args.repeat, progress=progress)
-        files = result.save(out, overwrite=args.overwrite, inputs=tuple(load.inputs()))
-        _print_result(result, out, files, args)
-        if args.demo and args.method != "l2" and not args.json and not args.quiet:
-            l2 = Model.least_squares()(result.stack)
-            assert l2.metrics is not None
-            print(f"least squares on the same stack: MAE {l2.metrics.mae_deg:.3f} deg, median "
-                  f"{l2.metrics.median_deg:.3f} deg, err15 {l2.metrics.err15 * 100:.1f} %")
-    return 0
+        if args.ray is not None:
+            raise InputError("--demo runs here; --ray is for stacks on disk")
+        return _run_single(args, demo_stack(), load)
+    items = expand_stacks(args.stacks)
+    if len(items) == 1 and args.ray is None and items[0].path == args.stacks[0]:
+        return _run_single(args, args.stacks[0], load)
+    return _run_batch(args, items, load)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -154,4 +273,4 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["build_parser", "main"]
+__all__ = ["build_parser", "load_options", "main", "open_model", "print_result"]

@@ -1,14 +1,15 @@
 """Loaders: a DiLiGenT-layout object folder, a folder of images with a lights file, an .npz.
 
 Each returns a validated :class:`Stack` with unit light directions; only the selected images
-are decoded.
+are decoded. Real-camera options (:mod:`.transforms`) are applied while loading, in the order
+ROI -> downscale -> linearise -> auto-mask; images, mask and ground truth stay aligned.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from ..errors import InputError
 from ..imageio import list_images, read_image, read_mask
 from .readers import read_normals, read_vectors
 from .select import selection
+from .transforms import Roi, Transforms, auto_mask
 from .types import Stack, check_intensities, check_lights, unit_lights
 
 LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_directions.json")
@@ -35,32 +37,100 @@ class LoadOptions:
     select: str | None = None  # 1-based image subset, e.g. "21-96"
     max_lights: int | None = None  # keep this many, evenly spaced
     threads: int = 4  # decoding threads
+    # real-camera inputs, applied in this order while loading (see .transforms)
+    roi: Roi | None = None  # x, y, w, h in pixels of the stored images
+    downscale: int = 1  # integer factor, area averaging
+    srgb: bool = False  # undo the sRGB encoding (8-bit camera JPEG/PNG output)
+    gamma: float | None = None  # undo a plain power-law encoding: linear = value ** gamma
+    white_level: float | None = None  # full scale; default 255 / 65535 / 1.0 by image type
+    auto_mask: bool = False  # mask from the stack itself (Otsu + morphology)
+
+    def __post_init__(self) -> None:
+        self.transforms()  # refuse contradictory options before any decoding
+        if self.auto_mask and self.mask is not None:
+            raise InputError("--auto-mask and --mask both give the mask: choose one")
+        if self.white_level is not None and not self.white_level > 0:
+            raise InputError(f"white level {self.white_level}: must be positive")
 
     def inputs(self) -> list[Path]:
         """The files these options read (never to be written over)."""
         return [p for p in (self.lights, self.intensities, self.mask) if p is not None]
+
+    def transforms(self) -> Transforms:
+        return Transforms(self.roi, self.downscale, self.srgb, self.gamma, self.white_level)
+
+    def describe(self) -> dict[str, object]:
+        """The real-camera options in effect, for profile.json."""
+        return {**self.transforms().describe(), "auto_mask": self.auto_mask}
 
 
 def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
     return next((folder / n for n in names if (folder / n).is_file()), None)
 
 
-def _read_images(paths: Sequence[Path], threads: int = 4) -> np.ndarray:
-    """Decode in parallel (OpenCV releases the GIL); sizes and bit depths must all agree."""
+def _read_images(paths: Sequence[Path], threads: int = 4,
+                 transforms: Transforms | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+    """Decode in parallel (OpenCV releases the GIL), each image reduced by ``transforms`` in
+    its thread; sizes and bit depths must all agree. Returns the images and the stored size."""
+    transforms = transforms or Transforms()
+
+    def read(path: Path) -> tuple[np.ndarray, np.dtype, tuple[int, int]]:
+        img = read_image(path)
+        if img.ndim == 2:
+            img = img[:, :, None]
+        _check_float_scale(img, transforms, path)
+        return transforms.image(img, path), img.dtype, img.shape[:2]
+
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        imgs = list(pool.map(read_image, paths))
-    first = imgs[0]
+        imgs = list(pool.map(read, paths))
+    first, dtype0, shape0 = imgs[0]
     out = np.empty((len(imgs), first.shape[0], first.shape[1], 3), dtype=np.float32)
-    for i, (p, img) in enumerate(zip(paths, imgs, strict=True)):
-        if img.shape[:2] != first.shape[:2]:
-            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but {paths[0].name} is "
-                             f"{first.shape[1]}x{first.shape[0]}", p)
-        if img.dtype != first.dtype:
+    for i, (p, (img, dtype, shape)) in enumerate(zip(paths, imgs, strict=True)):
+        if shape != shape0:
+            raise InputError(f"image is {shape[1]}x{shape[0]} but {paths[0].name} is "
+                             f"{shape0[1]}x{shape0[0]}", p)
+        if dtype != dtype0:
             # an 8-bit image among 16-bit ones is 257x too dark: silently wrong normals
-            raise InputError(f"image is {img.dtype} but {paths[0].name} is {first.dtype}: "
+            raise InputError(f"image is {dtype} but {paths[0].name} is {dtype0}: "
                              "one bit depth per stack", p)
-        out[i] = img[:, :, None] if img.ndim == 2 else img
-    return out
+        out[i] = img
+    return out, shape0
+
+
+def _check_float_scale(img: np.ndarray, transforms: Transforms, src: object) -> None:
+    """Linearising needs the full-scale value; float images carry none."""
+    linear = not (transforms.srgb or transforms.gamma is not None)
+    if linear or transforms.white is not None or not np.issubdtype(img.dtype, np.floating):
+        return
+    if float(np.max(img)) > 1.0:
+        raise InputError("floating-point images with values above 1: give the full-scale "
+                         "value (--white-level) to linearise them", src)  # type: ignore[arg-type]
+
+
+def _finish(stack: Stack, options: LoadOptions) -> Stack:
+    """The stack-wide last step: the automatic mask."""
+    if options.auto_mask:
+        stack = replace(stack, mask=auto_mask(stack.images))  # never alter a caller's stack
+    return stack.validate()
+
+
+def prepare_stack(stack: Stack, options: LoadOptions) -> Stack:
+    """Apply the loading options to a stack already in memory: selection, ROI, downscale,
+    linearisation, auto-mask (what :func:`load_stack` does while decoding). Lights, mask and
+    intensity files in ``options`` are for loaders and are refused here."""
+    if options.inputs():
+        raise InputError("lights, intensities and mask files apply when a stack is loaded "
+                         "from disk; this stack is already in memory")
+    keep = selection(stack.num_lights, options.select, options.max_lights)
+    if keep != list(range(stack.num_lights)):
+        stack = stack.subset(keep)
+    t = options.transforms()
+    if t.active:
+        _check_float_scale(stack.images, t, stack.source or stack.name)
+        images = np.stack([t.image(img, stack.source or stack.name) for img in stack.images])
+        gt = None if stack.normals_gt is None else t.normals(stack.normals_gt)
+        stack = replace(stack, images=images, mask=t.mask(stack.mask), normals_gt=gt)
+    return _finish(stack, options)
 
 
 def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
@@ -100,18 +170,22 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
         paths, light_dirs, ints = [paths[i] for i in keep], light_dirs[keep], ints[keep]
     light_dirs = unit_lights(light_dirs, lights_path)
     check_lights(light_dirs, lights_path)
-    images = _read_images(paths, options.threads)
-    hw = images.shape[1:3]
-    mask_path = options.mask or _first_existing(folder, MASK_NAMES) or next(
-        (p for p in sorted(folder.iterdir()) if "mask" in p.stem.lower() and p.is_file()), None)
-    mask_arr = read_mask(mask_path, hw) if mask_path else np.ones(hw, bool)
+    t = options.transforms()
+    images, hw = _read_images(paths, options.threads, t)
+    mask_path = None if options.auto_mask else options.mask or _first_existing(
+        folder, MASK_NAMES) or next((p for p in sorted(folder.iterdir())
+                                     if "mask" in p.stem.lower() and p.is_file()), None)
+    mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3],
+                                                                         bool)
     gt_path = _first_existing(folder, GT_NAMES)
     gt = read_normals(gt_path) if gt_path else None
-    if gt is not None and gt.shape[:2] != hw:
-        raise InputError(f"ground truth is {gt.shape[1]}x{gt.shape[0]} but images are "
-                         f"{hw[1]}x{hw[0]}", gt_path)
-    return Stack(folder.name, images, light_dirs, ints, mask_arr, gt,
-                 [p.name for p in paths], folder).validate()
+    if gt is not None:
+        if gt.shape[:2] != hw:
+            raise InputError(f"ground truth is {gt.shape[1]}x{gt.shape[0]} but images are "
+                             f"{hw[1]}x{hw[0]}", gt_path)
+        gt = t.normals(gt)
+    return _finish(Stack(folder.name, images, light_dirs, ints, mask_arr, gt,
+                         [p.name for p in paths], folder), options)
 
 
 def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
@@ -149,7 +223,8 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
                          options.lights or path)
     stack = Stack(path.stem, images, unit_lights(lights, options.lights or path), ints, mask,
                   gt, [], path).validate()
-    return stack.subset(selection(n, options.select, options.max_lights)).validate()
+    # the files are read: the rest is what prepare_stack does to any in-memory stack
+    return prepare_stack(stack, replace(options, lights=None, intensities=None, mask=None))
 
 
 def _count_images(folder: Path) -> int:

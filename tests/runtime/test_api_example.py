@@ -1,0 +1,69 @@
+"""The Python API as the README shows it: the snippet below is the README's, run verbatim."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _runtime_helpers import sphere_stack
+
+from msfnet import Model
+from msfnet.runtime.stack import save_stack
+
+# Keep in step with README.md ("Python API") and the msfnet.runtime.pipeline docstring.
+README_EXAMPLE = '''
+from msfnet import Model, load_stack
+
+model = Model()                          # the bundled network, loaded once
+stack = load_stack("obj/", max_lights=8) # DiLiGenT-layout folder, images + lights, .npz
+result = model(stack)                    # arrays only: nothing is written
+print(result.normals.shape)              # (H, W, 3) float32 unit normals, x right, y up
+print(result.metrics)                    # MAE / median / err15 / err30 with ground truth
+result.save("out/obj")                   # the files msf-run writes (normals.npy/.png, ...)
+
+baseline = Model.least_squares()         # classical least squares, same API
+l2 = baseline.predict(stack.images, stack.lights, mask=stack.mask)  # plain numpy arrays
+'''
+
+
+def _files(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def test_readme_example_runs_verbatim(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    import msfnet.runtime.pipeline as pipeline
+
+    assert README_EXAMPLE.strip() in (pipeline.__doc__ or "").replace("\n    ", "\n"), \
+        "the pipeline docstring shows another example"
+    save_stack(sphere_stack(n=10, h=36, w=44), tmp_path / "obj")
+    monkeypatch.chdir(tmp_path)
+    before = _files(tmp_path)
+    scope: dict[str, object] = {}
+    exec(compile(README_EXAMPLE, "README example", "exec"), scope)
+    printed = capsys.readouterr().out
+    assert "(36, 44, 3)" in printed and "mae_deg=" in printed
+    written = _files(tmp_path) - before
+    assert {"out", "out/obj", "out/obj/normals.npy", "out/obj/metrics.json"} <= written
+    assert all(w.startswith("out") for w in written)  # nothing else, nothing in obj/
+    result, l2 = scope["result"], scope["l2"]
+    normals = np.load(tmp_path / "out/obj/normals.npy")
+    np.testing.assert_array_equal(normals, result.normals)  # type: ignore[attr-defined]
+    assert l2.metrics is None and l2.normals.shape == (36, 44, 3)  # type: ignore[attr-defined]
+
+
+def test_two_calls_in_a_row_agree_and_write_nothing(random_onnx: Path, tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    stack = sphere_stack(n=6, h=28, w=32)
+    model = Model(random_onnx, threads=1)
+    first, second = model(stack), model(stack)
+    np.testing.assert_array_equal(first.normals, second.normals)
+    assert first.metrics == second.metrics and first is not second
+    again = model.predict(stack.images, stack.lights, mask=stack.mask,
+                          intensities=stack.intensities)
+    np.testing.assert_array_equal(again.normals, first.normals)
+    assert os.listdir(tmp_path) == []  # no output folder, no cache, nothing
+    assert "threads=1" in repr(model)

@@ -1,0 +1,159 @@
+"""msf-run on several stacks: one model load, background decoding, summary; the same on Ray."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _runtime_helpers import sphere_stack
+
+from msfnet.runtime.batch import BatchItem, expand_stacks, run_batch
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.pipeline import Model
+from msfnet.runtime.run_cli import main
+from msfnet.runtime.stack import LoadOptions, save_stack
+
+
+def _stacks(root: Path, count: int = 3) -> list[Path]:
+    """Small spheres of different sizes and light counts (a batch is rarely uniform)."""
+    return [save_stack(sphere_stack(n=5 + i, h=28 + 4 * i, w=32, seed=i), root / f"s{i}")
+            for i in range(count)]
+
+
+def test_batch_equals_single_runs_and_writes_a_summary(random_onnx: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    stacks = _stacks(tmp_path / "in")
+    common = ["--onnx", str(random_onnx), "--threads", "1"]
+    for s in stacks:
+        assert main([*common, str(s), "-o", str(tmp_path / "single" / s.name)]) == 0
+    capsys.readouterr()
+    assert main([*common, *map(str, stacks), "-o", str(tmp_path / "batch")]) == 0
+    printed = capsys.readouterr().out
+    for s in stacks:
+        np.testing.assert_array_equal(np.load(tmp_path / "batch" / s.name / "normals.npy"),
+                                      np.load(tmp_path / "single" / s.name / "normals.npy"))
+    summary = json.loads((tmp_path / "batch" / "summary.json").read_text())
+    assert [r["name"] for r in summary["stacks"]] == ["s0", "s1", "s2"]
+    totals = summary["totals"]
+    assert totals["failed"] == 0 and totals["wall_s"] > 0
+    assert totals["serial_s"] == pytest.approx(totals["decode_s"] + totals["compute_s"]
+                                               + totals["save_s"])
+    assert "| s1 | 6 | 32x32 |" in (tmp_path / "batch" / "summary.md").read_text()
+    assert "stages run one after another" in printed and "decoding hidden" in printed
+    profile = json.loads((tmp_path / "batch" / "s2" / "profile.json").read_text())
+    assert profile["batch"]["prefetched"] is True and profile["stages"]["load"]["median_s"] > 0
+
+
+def test_folder_of_stacks_and_objects_txt(tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    stacks = _stacks(tmp_path / "set")
+    (tmp_path / "set" / "notes").mkdir()  # not a stack: ignored
+    assert [i.name for i in expand_stacks([tmp_path / "set"])] == ["s0", "s1", "s2"]
+    (tmp_path / "set" / "objects.txt").write_text("s2 1-4\n# comment\ns0\n")
+    items = expand_stacks([tmp_path / "set"])
+    assert items == [BatchItem(stacks[2], "1-4"), BatchItem(stacks[0], None)]
+    assert main(["--method", "l2", str(tmp_path / "set"), "-o", str(tmp_path / "out"),
+                 "--json"]) == 0
+    lines = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert [(r["name"], r["lights"]) for r in summary["stacks"]] == [("s2", 4), ("s0", 5)]
+    assert '"summary"' in lines
+    with pytest.raises(InputError, match="give one of them"):
+        items[0].options(LoadOptions(select="1-3"))
+    with pytest.raises(InputError, match="named 's0'"):
+        expand_stacks([stacks[0], stacks[0]])
+
+
+def test_a_bad_stack_is_reported_and_the_batch_goes_on(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    good = _stacks(tmp_path / "in", 2)
+    bad = tmp_path / "in" / "broken"
+    save_stack(sphere_stack(n=4, seed=9), bad)
+    (bad / "002.png").write_bytes(b"not a png")
+    assert main(["--method", "l2", str(good[0]), str(bad), str(good[1]),
+                 "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "002.png" in err and "1 of 3 stack(s) failed" in err
+    assert (tmp_path / "out" / "s1" / "normals.npy").is_file()
+    assert not (tmp_path / "out" / "broken").exists()
+    rows = json.loads((tmp_path / "out" / "summary.json").read_text())["stacks"]
+    assert [r["error"] is None for r in rows] == [True, False, True]
+
+
+def test_prefetch_decodes_the_next_stack_during_inference(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A slow estimator and a slow decoder: with prefetch, decoding hides under inference."""
+    import time
+
+    import msfnet.runtime.stack as stack_module
+
+    stacks = [sphere_stack(n=4, seed=i, name=f"m{i}") for i in range(3)]
+    model = Model.least_squares()
+    estimate, prepare = model.estimator.estimate, stack_module.prepare_stack
+
+    def slow_estimate(*a: object, **k: object) -> object:
+        time.sleep(0.3)
+        return estimate(*a, **k)  # type: ignore[arg-type]
+
+    def slow_prepare(*a: object, **k: object) -> object:
+        time.sleep(0.2)
+        return prepare(*a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(model.estimator, "estimate", slow_estimate)
+    monkeypatch.setattr(stack_module, "prepare_stack", slow_prepare)
+    on = run_batch(model, stacks, LoadOptions(), lambda n: None, progress=False)
+    off = run_batch(model, stacks, LoadOptions(), lambda n: None, prefetch=False,
+                    progress=False)
+    print(on.totals_line())
+    print(off.totals_line())
+    # stacks 2 and 3 were decoded while 1 and 2 ran: ~0.4 s hidden, none without prefetch
+    assert on.hidden_s > 0.3 and off.hidden_s < 0.1
+    assert on.wall_s < off.wall_s - 0.25
+
+
+@pytest.mark.slow
+def test_ray_batch_equals_single_runs(random_onnx: Path, tmp_path: Path) -> None:
+    ray = pytest.importorskip("ray")
+    stacks = _stacks(tmp_path / "in")
+    common = ["--onnx", str(random_onnx), "--threads", "1"]
+    for s in stacks:
+        assert main([*common, str(s), "-o", str(tmp_path / "single" / s.name)]) == 0
+    ray.init(num_cpus=2, include_dashboard=False)
+    try:
+        assert main([*common, *map(str, stacks), "--ray", "-o", str(tmp_path / "ray")]) == 0
+        assert ray.is_initialized()  # the caller's session is left running
+    finally:
+        ray.shutdown()
+    for s in stacks:
+        got = np.load(tmp_path / "ray" / s.name / "normals.npy")
+        want = np.load(tmp_path / "single" / s.name / "normals.npy")
+        np.testing.assert_allclose(got, want, atol=1e-6, rtol=0)
+    summary = json.loads((tmp_path / "ray" / "summary.json").read_text())
+    assert summary["mode"] == "ray" and summary["workers"] == 2
+    assert [r["name"] for r in summary["stacks"]] == ["s0", "s1", "s2"]
+    assert all(r["worker"] for r in summary["stacks"])
+    assert summary["model"]["model"] == str(random_onnx)
+
+
+def test_ray_missing_gives_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_ray(name: str, *args: object, **kwargs: object) -> object:
+        if name == "ray" or name.startswith("ray."):
+            raise ImportError("No module named 'ray'")
+        return real_import(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(builtins, "__import__", no_ray)
+    stacks = _stacks(tmp_path / "in", 2)
+    assert main(["--method", "l2", *map(str, stacks), "--ray", "-o", str(tmp_path / "o")]) == 2
+    assert "pip install 'msfnet[ray]'" in capsys.readouterr().err
+    # "--ray A B" would make A the cluster address: caught before anything runs
+    assert main(["--method", "l2", "--ray", *map(str, stacks)]) == 2
+    assert "put --ray after the stacks" in capsys.readouterr().err
