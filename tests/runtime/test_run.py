@@ -85,5 +85,35 @@ def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
     assert l2.metrics is not None and l2.metrics.median_deg < 0.01
     assert not any(tmp_path.iterdir())  # nothing written until save()
     files = l2.save(tmp_path / "l2")
-    assert {f.name for f in files} == {"normals.npy", "normals.png", "profile.json",
-                                       "metrics.json", "error.png"}
+    assert {f.name for f in files} == {
+        "normals.npy", "normals.png", "normals_view.png", "profile.json", "metrics.json",
+        "error.png", "albedo.png", "albedo.npy", "height.npy", "height.png", "curvature.npy",
+        "curvature.png", "shape_index.npy", "mesh.ply", "maps.json", "report.html"}
+    assert l2.maps is not None and l2.maps.height is not None
+    height = np.load(tmp_path / "l2" / "height.npy")
+    assert np.isnan(height[~stack.mask]).all() and np.isfinite(height[stack.mask]).all()
+    # a sphere bulges towards the camera: the centre is higher than the rim
+    h, w = stack.shape
+    rim = height[stack.mask].min()
+    assert height[h // 2, w // 2] - rim > 0.3 * 0.45 * min(h, w)
+    assert "data:image/png;base64," in (tmp_path / "l2" / "report.html").read_text()
+
+
+def test_normals_only_without_maps(tmp_path: Path) -> None:
+    stack = sphere_stack(n=6)
+    res = Model.least_squares(maps=None)(stack)
+    assert res.maps is None
+    names = {f.name for f in res.save(tmp_path / "o")}
+    assert "height.npy" not in names and "normals.npy" in names
+    assert main(["--method", "l2", str(_npz(stack, tmp_path)), "-o", str(tmp_path / "cli"),
+                 "--maps", "height", "--integration", "fc", "--no-report"]) == 0
+    written = {p.name for p in (tmp_path / "cli").iterdir()}
+    assert {"height.npy", "height.png"} <= written
+    assert not {"albedo.png", "curvature.npy", "mesh.ply", "report.html"} & written
+
+
+def _npz(stack, tmp_path: Path) -> Path:
+    path = tmp_path / "sphere.npz"
+    np.savez(path, images=stack.images, lights=stack.lights, intensities=stack.intensities,
+             mask=stack.mask, normals=stack.normals_gt)
+    return path

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from .batch import BatchItem, BatchSummary, OnResult, StackRow, row_for
 from .errors import InputError
+from .maps import MapOptions
 from .stack import LoadOptions, load_stack
 
 if TYPE_CHECKING:
@@ -49,6 +50,7 @@ class ModelSpec:
     provider: str | None = None
     tile: int | None = None
     max_memory_mb: float | None = None
+    maps: MapOptions | None = None  # inspection maps computed by the worker
 
     @classmethod
     def from_args(cls, onnx: Path | None, **options: Any) -> ModelSpec:
@@ -66,7 +68,8 @@ class ModelSpec:
             path = folder / Path(self.onnx_name or "model.onnx").name
             path.write_bytes(self.onnx_bytes)
         return Model(path, method=self.method, threads=self.threads, provider=self.provider,
-                     tile=self.tile, max_memory_mb=self.max_memory_mb or DEFAULT_MAX_MEMORY_MB)
+                     tile=self.tile, max_memory_mb=self.max_memory_mb or DEFAULT_MAX_MEMORY_MB,
+                     maps=self.maps)
 
 
 class StackWorker:

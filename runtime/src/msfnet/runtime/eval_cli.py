@@ -89,7 +89,8 @@ def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
         runners["msf"] = model
     if use_l2:
         runners["l2"] = Model.least_squares(max_memory_mb=model.tiling.max_memory_mb
-                                            if model is not None else DEFAULT_MAX_MEMORY_MB)
+                                            if model is not None else DEFAULT_MAX_MEMORY_MB,
+                                            maps=None)  # scoring needs normals only
     if not runners:
         raise InputError("nothing to evaluate: both the model and l2 are switched off")
     methods = list(runners)
@@ -190,7 +191,7 @@ def _run(args: argparse.Namespace) -> int:
                  folder=True)
     model = None if args.l2_only else Model(
         args.onnx, threads=args.threads, provider=args.provider, tile=args.tile,
-        max_memory_mb=args.max_memory)
+        max_memory_mb=args.max_memory, maps=None)
     summary = evaluate(objects, outdir, model=model, use_l2=not args.no_l2, load=load,
                        overwrite=args.overwrite,
                        progress=sys.stderr.isatty() and not args.quiet and not args.json)

@@ -48,16 +48,30 @@ def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
         raise InputError("cannot write image", path)
 
 
-def fill_result_folder(folder: Path, result: Result) -> None:
-    """Write a result's files into an (empty, staging) folder."""
+def fill_result_folder(folder: Path, result: Result, report: bool = True) -> None:
+    """Write a result's files into an (empty, staging) folder: the normals as data and as a
+    picture with a colour-convention sphere, metrics and an error picture with a colour bar
+    (automatic range) when there is ground truth, the profile, and the inspection maps with
+    report.html when they were computed."""
+    from .maps import pictures, write_maps
+
     mask = result.stack.mask
+    profile = result.profile()
     np.save(folder / "normals.npy", np.ascontiguousarray(result.normals, np.float32))
     write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
+    (folder / "normals_view.png").write_bytes(
+        pictures.png_bytes(pictures.normals_picture(result.normals, mask)))
     if result.metrics is not None and result.error_deg is not None:
+        vmax = pictures.error_range(result.error_deg, mask)
         (folder / "metrics.json").write_text(json_text(
-            {**result.metrics.as_dict(), "error_png_max_deg": ERROR_PNG_MAX_DEG}))
-        write_rgb_png(folder / "error.png", error_png(result.error_deg, mask))
-    (folder / "profile.json").write_text(json_text(result.profile()))
+            {**result.metrics.as_dict(), "error_png_max_deg": vmax}))
+        (folder / "error.png").write_bytes(
+            pictures.png_bytes(pictures.error_picture(result.error_deg, mask, vmax=vmax)))
+    (folder / "profile.json").write_text(json_text(profile))
+    if result.maps is not None:
+        images = result.stack.images if result.stack.images.shape[-1] == 3 else None
+        write_maps(folder, result.maps, images=images, error_deg=result.error_deg,
+                   profile=profile, report=report, title=f"msfnet: {result.stack.name}")
 
 
 def write_result(result: Result, outdir: Path, overwrite: bool = False) -> list[Path]:

@@ -33,12 +33,14 @@ from .estimators import (
     NetworkEstimator,
     TilingOptions,
 )
+from .maps import InspectionMaps, MapOptions, stack_maps
 from .metrics import NormalMetrics, error_map, normal_metrics
 from .profile import Profile, StageTimer
 from .stack import LoadOptions, Stack, load_stack, prepare_stack
 from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
 
 WEIGHTS = Path(__file__).resolve().parent / "weights"
+DEFAULT_MAPS = MapOptions()  # albedo, height (Poisson), curvature, mesh
 
 
 def default_model_path() -> Path:
@@ -57,7 +59,7 @@ class Result:
     metrics: NormalMetrics | None = None  # with ground truth
     error_deg: np.ndarray | None = None  # (H, W) angular error, NaN where not scored
     plan: TilePlan | None = None
-    maps: object | None = None  # inspection maps (albedo, height, curvature) when computed
+    maps: InspectionMaps | None = None  # albedo, height, curvature, ... (Model(maps=...))
     extra: dict[str, object] = field(default_factory=dict)
 
     def profile(self) -> dict[str, object]:
@@ -81,7 +83,8 @@ class Result:
         return isinstance(info, dict) and bool(info.get("auto_mask"))
 
     def save(self, folder: str | Path, *, overwrite: bool = False,
-             inputs: tuple[Path, ...] = (), write_mask: bool | None = None) -> list[Path]:
+             inputs: tuple[Path, ...] = (), write_mask: bool | None = None,
+             report: bool = True) -> list[Path]:
         """Write normals.npy/png, profile.json and, with ground truth, metrics.json and
         error.png into ``folder``, all at once or not at all; mask.png too when the mask was
         computed (``write_mask``: None = only then). Returns the files written."""
@@ -92,7 +95,7 @@ class Result:
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
         check_output(folder, src, overwrite=overwrite, folder=True)
         with staged_folder(folder, overwrite=overwrite) as tmp:
-            fill_result_folder(tmp, self)
+            fill_result_folder(tmp, self, report=report)
             if self.auto_mask if write_mask is None else write_mask:
                 # an automatic mask is a result the user should be able to inspect and reuse
                 write_rgb_png(tmp / "mask.png", self.stack.mask.astype(np.uint8) * 255)
@@ -121,8 +124,10 @@ class Model:
                  method: str = "msf", engine: str | None = None,
                  precision: str | None = None, threads: int | None = None,
                  provider: str | None = None, tile: int | None = None,
-                 max_memory_mb: float = DEFAULT_MAX_MEMORY_MB) -> None:
+                 max_memory_mb: float = DEFAULT_MAX_MEMORY_MB,
+                 maps: MapOptions | None = DEFAULT_MAPS) -> None:
         self.tiling = TilingOptions(tile, max_memory_mb)
+        self.maps = maps  # inspection maps computed after the normals (None: normals only)
         self.estimator: Estimator
         if method == "l2":
             if model is not None:
@@ -140,9 +145,10 @@ class Model:
             self.estimator = _open_network(path, engine, precision, threads, provider)
 
     @classmethod
-    def least_squares(cls, *, max_memory_mb: float = DEFAULT_MAX_MEMORY_MB) -> Model:
+    def least_squares(cls, *, max_memory_mb: float = DEFAULT_MAX_MEMORY_MB,
+                      maps: MapOptions | None = DEFAULT_MAPS) -> Model:
         """Per-pixel least squares (Woodham 1980): no network, the same inputs and outputs."""
-        return cls(method="l2", max_memory_mb=max_memory_mb)
+        return cls(method="l2", max_memory_mb=max_memory_mb, maps=maps)
 
     @property
     def method(self) -> str:
@@ -186,13 +192,17 @@ class Model:
                     if loaded.normals_gt is not None:
                         metrics = normal_metrics(est.normals, loaded.normals_gt, loaded.mask)
                         err = error_map(est.normals, loaded.normals_gt, loaded.mask)
+                maps = None
+                if self.maps is not None:
+                    with timer("maps"):
+                        maps = stack_maps(loaded, est.normals, self.maps)
             prof.add(timer)
             prof.flops = est.flops
             extra: dict[str, object] = {}
             if load is not None:
                 extra["input"] = load.describe()
             result = Result(loaded, est.normals, self.describe(), prof, metrics, err, est.plan,
-                            extra=extra)
+                            maps, extra=extra)
         assert result is not None
         return result
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-STAGES = ("load", "preprocess", "inference", "postprocess", "total")
+STAGES = ("load", "preprocess", "inference", "postprocess", "maps", "total")
 
 
 class StageTimer:

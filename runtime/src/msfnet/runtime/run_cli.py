@@ -12,6 +12,8 @@ from .batch import SUMMARY_FILES, BatchItem, StackRow, expand_stacks, run_batch
 from .cliutil import make_parser, positive_float, positive_int, run_command
 from .errors import InputError
 from .files import check_output, json_text, numbered_folder
+from .maps import MAP_NAMES, MapOptions
+from .maps.integrate import METHODS as INTEGRATION_METHODS
 from .pipeline import Model, Result
 from .stack import LoadOptions, Stack, parse_roi
 from .tiling import DEFAULT_MAX_MEMORY_MB, HALO
@@ -100,6 +102,20 @@ def build_parser() -> argparse.ArgumentParser:
     cam.add_argument("--auto-mask", action="store_true",
                      help="compute the object mask from the stack (object on a dark "
                      "background); written beside the outputs as mask.png")
+    insp = p.add_argument_group(
+        "inspection maps (written by default: albedo, height, curvature, mesh, report.html)")
+    insp.add_argument("--no-maps", action="store_true", help="write the normals only")
+    insp.add_argument("--maps", type=parse_maps, metavar="LIST",
+                      help=f"which maps, comma-separated from {','.join(MAP_NAMES)} "
+                      "(default: all)")
+    insp.add_argument("--integration", choices=INTEGRATION_METHODS, default="poisson",
+                      help="normal integration for the height map: poisson (masked least "
+                      "squares, default), bini (keeps depth discontinuities sharp, slower), "
+                      "fc (Frankot-Chellappa FFT, full frame)")
+    insp.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
+                      help="perspective camera (pixels) for the height map; default "
+                      "orthographic")
+    insp.add_argument("--no-report", action="store_true", help="no report.html")
     bat = p.add_argument_group("batches")
     bat.add_argument("--no-prefetch", action="store_true",
                      help="decode each stack only when its turn comes (default: the next "
@@ -129,7 +145,27 @@ def open_model(args: argparse.Namespace) -> Model:
     if args.method == "l2" and args.onnx is not None:
         raise InputError("--method l2 needs no model; drop --onnx")
     return Model(args.onnx, method=args.method, threads=args.threads, provider=args.provider,
-                 tile=args.tile, max_memory_mb=args.max_memory)
+                 tile=args.tile, max_memory_mb=args.max_memory, maps=map_options(args))
+
+
+def parse_maps(text: str) -> tuple[str, ...]:
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in MAP_NAMES]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"expected names from {','.join(MAP_NAMES)}, got "
+                                         f"{text!r}")
+    return names
+
+
+def map_options(args: argparse.Namespace) -> MapOptions | None:
+    """The inspection maps msf-run's options ask for (None: normals only)."""
+    if args.no_maps:
+        return None
+    intr = tuple(args.intrinsics) if args.intrinsics else None
+    if intr is not None and not (intr[0] > 0 and intr[1] > 0):
+        raise InputError(f"--intrinsics: focal lengths must be positive, got {intr[0]:g}, "
+                         f"{intr[1]:g}")
+    return MapOptions(maps=args.maps or MAP_NAMES, method=args.integration, intrinsics=intr)
 
 
 def print_result(result: Result, outdir: Path, files: list[Path],
@@ -167,7 +203,8 @@ def _run_single(args: argparse.Namespace, src: Path | Stack, load: LoadOptions) 
     model = open_model(args)
     progress = sys.stderr.isatty() and not args.quiet and not args.json
     result = model(src, load, repeat=args.repeat, progress=progress)
-    files = result.save(out, overwrite=args.overwrite, inputs=tuple(load.inputs()))
+    files = result.save(out, overwrite=args.overwrite, inputs=tuple(load.inputs()),
+                        report=not args.no_report)
     print_result(result, out, files, args)
     if args.demo and args.method != "l2" and not args.json and not args.quiet:
         l2 = Model.least_squares()(result.stack)
@@ -220,7 +257,7 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
             raise InputError("--method l2 needs no model; drop --onnx")
         spec = ModelSpec.from_args(args.onnx, method=args.method, threads=args.threads or 1,
                                    provider=args.provider, tile=args.tile,
-                                   max_memory_mb=args.max_memory)
+                                   max_memory_mb=args.max_memory, maps=map_options(args))
         summary = run_batch_ray(spec, items, load, lambda n: root / n, address=args.ray or None,
                                 workers=args.workers, overwrite=args.overwrite,
                                 summary_dir=root, on_result=report, progress=progress,

@@ -131,7 +131,9 @@ def error_picture(err_deg: np.ndarray, mask: np.ndarray, *, vmax: float | None =
     if not mask.any():
         return _empty("angular error")
     top = error_range(err_deg, mask) if vmax is None else float(vmax)
-    vals = err_deg[mask]
+    vals = err_deg[mask & np.isfinite(err_deg)]  # pixels without ground truth are not scored
+    if not vals.size:
+        return _empty("angular error")
     title = f"angular error: mean {vals.mean():.2f}°, median {np.median(vals):.2f}°"
     return _scalar_picture(err_deg, mask, cmap="inferno", vmin=0.0, vmax=top, title=title,
                            label="angular error (deg)")
