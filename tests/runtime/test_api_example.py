@@ -1,4 +1,4 @@
-"""The Python API as the README shows it: the snippet below is the README's, run verbatim."""
+"""The Python API as the README shows it: the README's snippet, run verbatim."""
 
 from __future__ import annotations
 
@@ -12,20 +12,17 @@ from _runtime_helpers import sphere_stack
 from msfnet import Model
 from msfnet.runtime.stack import save_stack
 
-# Keep in step with README.md ("Python API") and the msfnet.runtime.pipeline docstring.
-README_EXAMPLE = '''
-from msfnet import Model, load_stack
+REPO = Path(__file__).resolve().parents[2]
 
-model = Model()                          # the bundled network, loaded once
-stack = load_stack("obj/", max_lights=8) # DiLiGenT-layout folder, images + lights, .npz
-result = model(stack)                    # arrays only: nothing is written
-print(result.normals.shape)              # (H, W, 3) float32 unit normals, x right, y up
-print(result.metrics)                    # MAE / median / err15 / err30 with ground truth
-result.save("out/obj")                   # the files msf-run writes (normals.npy/.png, ...)
 
-baseline = Model.least_squares()         # classical least squares, same API
-l2 = baseline.predict(stack.images, stack.lights, mask=stack.mask)  # plain numpy arrays
-'''
+def readme_example() -> str:
+    """The code block after the ``<!-- api-example -->`` marker in README.md."""
+    text = (REPO / "README.md").read_text()
+    after = text.split("<!-- api-example -->", 1)[1]
+    return after.split("```python", 1)[1].split("```", 1)[0]
+
+
+README_EXAMPLE = readme_example()
 
 
 def _files(root: Path) -> set[str]:
