@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, first_line
 from ..imageio import list_images, read_image, read_mask
-from .readers import read_normals, read_vectors
+from .readers import read_normals, read_vectors, unit_normals
 from .select import selection
 from .types import Stack, check_intensities, check_lights, unit_lights
 
@@ -114,41 +114,77 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
                  [p.name for p in paths], folder).validate()
 
 
+def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
+    arr = np.asarray(data[key])
+    if arr.dtype.kind not in "biuf":  # complex, strings, objects: not pixel values
+        raise InputError(f"npz array {key!r} has dtype {arr.dtype}; expected numbers", path)
+    return arr
+
+
 def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
     """An .npz with images (N,H,W,3) and lights (N,3); intensities, mask, normals optional."""
-    if not path.is_file():
+    if not path.exists():
         raise InputError("stack file not found", path)
+    if not path.is_file():
+        raise InputError("not a regular file (expected an .npz stack)", path)
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04":  # np.load would try unpickling anything else
+        raise InputError("not an .npz file (no zip header); expected arrays 'images' and "
+                         "'lights' saved with numpy.savez", path)
     try:
         data = np.load(path, allow_pickle=False)
         files = set(data.files)
         if not {"images", "lights"} <= files:
-            raise InputError("npz stack needs arrays 'images' and 'lights'", path)
-        images = np.asarray(data["images"], np.float32)
+            raise InputError("npz stack needs arrays 'images' and 'lights' (it has "
+                             f"{', '.join(sorted(files)) or 'none'})", path)
+        images = _npz_array(data, "images", path)
+        if images.ndim == 4 and images.shape[3] == 1:
+            images = images[..., 0]
         if images.ndim == 3:
             images = np.repeat(images[..., None], 3, axis=3)
-        if images.ndim != 4:
+        if images.ndim != 4 or images.shape[3] != 3 or 0 in images.shape:
             raise InputError(f"npz images must be N x H x W (x 3), got {images.shape}", path)
         n, h, w = images.shape[:3]
-        lights = np.asarray(data["lights"], np.float32)
-        ints = (np.asarray(data["intensities"], np.float32) if "intensities" in files
+        lights = _npz_array(data, "lights", path)
+        ints = (_npz_array(data, "intensities", path) if "intensities" in files
                 else np.ones((n, 3), np.float32))
-        mask = np.asarray(data["mask"]).astype(bool) if "mask" in files else np.ones((h, w), bool)
-        gt = np.asarray(data["normals"], np.float32) if "normals" in files else None
+        mask = _npz_array(data, "mask", path) if "mask" in files else np.ones((h, w), bool)
+        gt = _npz_array(data, "normals", path) if "normals" in files else None
+        # float64 values beyond float32's range would become inf below: refuse them here
+        for key, arr in (("images", images), ("lights", lights), ("intensities", ints)):
+            if arr.dtype.kind == "f" and np.nanmax(np.abs(arr), initial=0) > np.finfo(
+                    np.float32).max:
+                raise InputError(f"npz {key} hold values beyond the float32 range", path)
+        images = images.astype(np.float32)
     except InputError:
         raise
-    except Exception as exc:
-        raise InputError(f"cannot read npz stack ({exc})", path) from exc
+    except Exception as exc:  # zip errors, bad headers, truncated members
+        raise InputError(f"cannot read npz stack ({first_line(exc)})", path) from exc
     if options.lights is not None:
         lights = read_vectors(options.lights, "light directions")
     if options.intensities is not None:
         ints = read_vectors(options.intensities, "light intensities")
+    lights_src = options.lights or path
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise InputError(f"light directions must have 3 numbers per row, got shape "
+                         f"{lights.shape}", lights_src)
+    if len(lights) != n:
+        raise InputError(f"{n} images but {len(lights)} light directions", lights_src)
+    ints = np.asarray(ints, np.float32)
+    if ints.shape != (n, 3):
+        raise InputError(f"{n} images but light intensities of shape {ints.shape} (expected "
+                         f"{n} x 3)", options.intensities or path)
     if options.mask is not None:
         mask = read_mask(options.mask, (h, w))
-    if len(lights) != n:
-        raise InputError(f"{n} images but {len(lights)} light directions",
-                         options.lights or path)
-    stack = Stack(path.stem, images, unit_lights(lights, options.lights or path), ints, mask,
-                  gt, [], path).validate()
+    elif mask.shape != (h, w):
+        raise InputError(f"npz mask is {mask.shape} but images are {(h, w)}", path)
+    if gt is not None:
+        if gt.shape != (h, w, 3):
+            raise InputError(f"npz normals are {gt.shape}, expected {(h, w, 3)}", path)
+        gt = unit_normals(gt)
+    stack = Stack(path.stem, images, unit_lights(lights, lights_src), ints,
+                  np.asarray(mask).astype(bool), gt, [], path).validate()
     return stack.subset(selection(n, options.select, options.max_lights)).validate()
 
 
