@@ -156,7 +156,10 @@ def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
         if debug:
             raise
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        return fail(f"error: {where}{exc.strerror or first_line(exc)}", 2)
+        if exc.strerror:
+            return fail(f"error: {where}{exc.strerror}", 2)
+        # no errno: e.g. numpy's short write "4752 requested and 1968 written"
+        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", 2)
     except MsfError as exc:
         if debug:
             raise

@@ -153,9 +153,10 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         gt = _npz_array(data, "normals", path) if "normals" in files else None
         # float64 values beyond float32's range would become inf below: refuse them here
         for key, arr in (("images", images), ("lights", lights), ("intensities", ints)):
-            if arr.dtype.kind == "f" and np.nanmax(np.abs(arr), initial=0) > np.finfo(
-                    np.float32).max:
-                raise InputError(f"npz {key} hold values beyond the float32 range", path)
+            if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:
+                big = np.abs(arr[np.isfinite(arr)], dtype=np.float64)
+                if big.size and big.max() > np.finfo(np.float32).max:
+                    raise InputError(f"npz {key} hold values beyond the float32 range", path)
         images = images.astype(np.float32)
     except InputError:
         raise
