@@ -6,6 +6,7 @@ from .load import (
     LIGHTS_NAMES,
     MASK_NAMES,
     LoadOptions,
+    check_stack_size,
     load_folder,
     load_npz,
     load_stack,
@@ -16,6 +17,6 @@ from .select import evenly_spaced, parse_select, selection
 from .types import Stack, light_condition, unit_lights
 
 __all__ = ["GT_NAMES", "INTENSITY_NAMES", "LIGHTS_NAMES", "MASK_NAMES", "LoadOptions", "Stack",
-           "evenly_spaced", "light_condition", "load_folder", "load_npz", "load_stack",
-           "parse_select", "read_normals", "read_vectors", "save_stack", "selection",
-           "unit_lights"]
+           "check_stack_size", "evenly_spaced", "light_condition", "load_folder", "load_npz",
+           "load_stack", "parse_select", "read_normals", "read_vectors", "save_stack",
+           "selection", "unit_lights"]

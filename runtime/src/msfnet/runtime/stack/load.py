@@ -35,6 +35,8 @@ class LoadOptions:
     select: str | None = None  # 1-based image subset, e.g. "21-96"
     max_lights: int | None = None  # keep this many, evenly spaced
     threads: int = 4  # decoding threads
+    # refuse, before decoding, a stack whose float32 images alone exceed this (--max-memory)
+    max_memory_mb: float | None = None
 
     def inputs(self) -> list[Path]:
         """The files these options read (never to be written over)."""
@@ -45,11 +47,26 @@ def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
     return next((folder / n for n in names if (folder / n).is_file()), None)
 
 
-def _read_images(paths: Sequence[Path], threads: int = 4) -> np.ndarray:
+def check_stack_size(n: int, h: int, w: int, max_memory_mb: float | None,
+                     src: object = None) -> None:
+    """The loaded stack is float32 N x H x W x 3: refuse it up front if that alone is over the
+    memory budget (a 96-image full-resolution stack otherwise fills the memory while decoding,
+    before any later check can speak)."""
+    need = n * h * w * 3 * 4 / 2**20
+    if max_memory_mb is not None and need > max_memory_mb:
+        raise InputError(f"{n} images of {w}x{h} take {need:.0f} MB loaded, above --max-memory "
+                         f"{max_memory_mb:g} MB (use --select/--max-lights or a larger budget)",
+                         src)  # type: ignore[arg-type]
+
+
+def _read_images(paths: Sequence[Path], threads: int = 4,
+                 max_memory_mb: float | None = None) -> np.ndarray:
     """Decode in parallel (OpenCV releases the GIL); sizes and bit depths must all agree."""
+    first = read_image(paths[0])
+    check_stack_size(len(paths), first.shape[0], first.shape[1], max_memory_mb,
+                     paths[0].parent)
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        imgs = list(pool.map(read_image, paths))
-    first = imgs[0]
+        imgs = [first, *pool.map(read_image, paths[1:])]
     out = np.empty((len(imgs), first.shape[0], first.shape[1], 3), dtype=np.float32)
     for i, (p, img) in enumerate(zip(paths, imgs, strict=True)):
         if img.shape[:2] != first.shape[:2]:
@@ -100,7 +117,7 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
         paths, light_dirs, ints = [paths[i] for i in keep], light_dirs[keep], ints[keep]
     light_dirs = unit_lights(light_dirs, lights_path)
     check_lights(light_dirs, lights_path)
-    images = _read_images(paths, options.threads)
+    images = _read_images(paths, options.threads, options.max_memory_mb)
     hw = images.shape[1:3]
     mask_path = options.mask or _first_existing(folder, MASK_NAMES) or next(
         (p for p in sorted(folder.iterdir()) if "mask" in p.stem.lower() and p.is_file()), None)
@@ -121,6 +138,15 @@ def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
     return arr
 
 
+def _npz_shape(data: np.lib.npyio.NpzFile, key: str) -> tuple[int, ...]:
+    """An array's shape from its .npy header, without reading (or inflating) the data."""
+    with data.zip.open(f"{key}.npy") as f:
+        version = np.lib.format.read_magic(f)
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
+        return tuple(read(f)[0])
+
+
 def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
     """An .npz with images (N,H,W,3) and lights (N,3); intensities, mask, normals optional."""
     if not path.exists():
@@ -138,6 +164,9 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         if not {"images", "lights"} <= files:
             raise InputError("npz stack needs arrays 'images' and 'lights' (it has "
                              f"{', '.join(sorted(files)) or 'none'})", path)
+        shape = _npz_shape(data, "images")
+        if len(shape) in (3, 4):  # before reading it: a zip may inflate to any size
+            check_stack_size(*shape[:3], options.max_memory_mb, path)
         images = _npz_array(data, "images", path)
         if images.ndim == 4 and images.shape[3] == 1:
             images = images[..., 0]
