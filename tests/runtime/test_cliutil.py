@@ -113,6 +113,27 @@ def test_debug_shows_the_traceback(case: str) -> None:
         run_command("msf-x", _raise(exc), debug=True)
 
 
+def test_closed_stdout_pipe_exits_quietly() -> None:
+    """`msf-run --json | head -c 10`: the reader goes away; no traceback, no error line."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from msfnet.runtime.cliutil import run_command\n"
+            "def body():\n"
+            "    for _ in range(100000):\n"
+            "        print('x' * 100)\n"
+            "    return 0\n"
+            "sys.exit(run_command('msf-x', body))\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.read(10)
+    proc.stdout.close()  # like `head` exiting
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == 141 and err == "", err
+
+
 def test_library_warnings_only_with_debug(capfd) -> None:
     def noisy() -> int:
         warnings.warn("numpy says: invalid value encountered", RuntimeWarning, stacklevel=1)

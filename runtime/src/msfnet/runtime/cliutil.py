@@ -9,7 +9,9 @@ RuntimeWarnings and the like are noise on a user's terminal and would break the 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import os
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -152,6 +154,15 @@ def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
         if debug:
             raise
         return fail("error: out of memory; lower --max-memory (or --tile)", 2)
+    except BrokenPipeError as exc:
+        if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
+            return fail(f"error: {exc.filename}: {exc.strerror}", 2)
+        # stdout's reader went away (msf-run --json | head): exit quietly like other tools,
+        # and keep Python from complaining again when it flushes stdout at exit
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE
     except OSError as exc:  # disk full, permission denied, ... on an output
         if debug:
             raise
