@@ -140,6 +140,7 @@ def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
 
 def _npz_shape(data: np.lib.npyio.NpzFile, key: str) -> tuple[int, ...]:
     """An array's shape from its .npy header, without reading (or inflating) the data."""
+    assert data.zip is not None  # np.load of a zip file
     with data.zip.open(f"{key}.npy") as f:
         version = np.lib.format.read_magic(f)
         read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
@@ -166,7 +167,7 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
                              f"{', '.join(sorted(files)) or 'none'})", path)
         shape = _npz_shape(data, "images")
         if len(shape) in (3, 4):  # before reading it: a zip may inflate to any size
-            check_stack_size(*shape[:3], options.max_memory_mb, path)
+            check_stack_size(shape[0], shape[1], shape[2], options.max_memory_mb, path)
         images = _npz_array(data, "images", path)
         if images.ndim == 4 and images.shape[3] == 1:
             images = images[..., 0]
