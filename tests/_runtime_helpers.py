@@ -60,3 +60,45 @@ def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = Fals
     save_checkpoint(model, folder / f"{stem}.pth")
     export_checkpoint(folder / f"{stem}.pth", onnx_path, checks=[(3, 8, 8)], staged=staged)
     return onnx_path
+
+
+def tiny_msfnet_onnx(path: Path, **metadata: str) -> Path:
+    """A cheap model that honours the msfnet contract (inputs images (B,N,3,H,W) and lights
+    (B,N,3), output unit normals (B,3,H,W), msfnet metadata) without being the network: the
+    per-channel mean over lights, normalised. For tests of the runtime's handling of inputs, not
+    of accuracy. ``metadata`` overrides entries (e.g. ``{"msfnet.train_lights": "0"}``)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper
+
+    from msfnet.runtime.contract import model_metadata
+
+    nodes = [
+        helper.make_node("ReduceMean", ["images"], ["mean"], axes=[1], keepdims=0),
+        helper.make_node("ReduceSum", ["lights"], ["lsum"], keepdims=0),
+        helper.make_node("Mul", ["lsum", "zero"], ["lzero"]),  # uses lights, adds nothing
+        helper.make_node("Add", ["mean", "lzero"], ["m"]),
+        helper.make_node("Mul", ["m", "m"], ["sq"]),
+        helper.make_node("ReduceSum", ["sq", "axis1"], ["ss"], keepdims=1),
+        helper.make_node("Sqrt", ["ss"], ["norm"]),
+        helper.make_node("Add", ["norm", "eps"], ["den"]),
+        helper.make_node("Div", ["m", "den"], ["normals"]),
+    ]
+    inits = [helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0]),
+             helper.make_tensor("eps", TensorProto.FLOAT, [], [1e-12]),
+             helper.make_tensor("axis1", TensorProto.INT64, [1], [1])]
+    graph = helper.make_graph(
+        nodes, "tiny_msfnet",
+        [helper.make_tensor_value_info("images", TensorProto.FLOAT, ["B", "N", 3, "H", "W"]),
+         helper.make_tensor_value_info("lights", TensorProto.FLOAT, ["B", "N", 3])],
+        [helper.make_tensor_value_info("normals", TensorProto.FLOAT, ["B", 3, "H", "W"])],
+        inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    meta = model_metadata(train_lights=32, checkpoint_sha256="0" * 64, version="test",
+                          static_shape=None, precision="fp32", staged=False)
+    meta.update(metadata)
+    for key, value in meta.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.save(model, str(path))
+    return path

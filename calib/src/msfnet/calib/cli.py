@@ -1,23 +1,41 @@
-"""``msf-calib``: light directions from mirror spheres, light intensities from a matte target."""
+"""``msf-calib``: light directions from mirror spheres, light intensities from a matte target.
+
+Every output of a run (the lights file, ``<output>_confidence.txt``, the diagnostic images)
+appears together or not at all, never replaces a file without ``--overwrite`` and never
+replaces or lands inside an input.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
+import cv2
 import numpy as np
 
+from msfnet.runtime.cliutil import (
+    add_common_flags,
+    finite_float,
+    int_range,
+    make_parser,
+    positive_float,
+    run_command,
+)
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import write_atomic
-from msfnet.runtime.imageio import list_images, read_image, read_mask, write_png
+from msfnet.runtime.files import check_output, staged_files, vectors_text
+from msfnet.runtime.imageio import list_images, read_image, read_mask
 from msfnet.runtime.stack import read_vectors
 
 from .directions import Intrinsics, diagnostic_image, estimate_directions
 from .intensities import estimate_intensities, target_normals
 from .sphere import fit_circles_from_images, fit_circles_from_mask
 
+PROG = "msf-calib"
 EXCLUDE = ("mask", "normal", "albedo", "ambient", "dark", "diagnostic")
+MAX_SPHERES = 16
+IMAGE_OUT = (".png", ".tif", ".tiff", ".bmp", ".jpg")  # what the diagnostic may be saved as
 
 
 def _named(folder: Path, words: tuple[str, ...]) -> Path | None:
@@ -25,6 +43,10 @@ def _named(folder: Path, words: tuple[str, ...]) -> Path | None:
                   any(w in p.stem.lower() for w in words) and p.suffix.lower() in
                   (".png", ".tif", ".tiff", ".tga", ".bmp"))
     return hits[0] if hits else None
+
+
+def _as_rgb(img: np.ndarray) -> np.ndarray:
+    return np.repeat(img[:, :, None], 3, axis=2) if img.ndim == 2 else img
 
 
 def load_capture(folder: Path, ambient: Path | None, no_ambient: bool
@@ -35,21 +57,46 @@ def load_capture(folder: Path, ambient: Path | None, no_ambient: bool
     if not paths:
         raise InputError("no images found (PNG, TIFF or TGA)", folder)
     imgs = [read_image(p) for p in paths]
+    first = imgs[0]
     for p, im in zip(paths, imgs, strict=True):
-        if im.shape[:2] != imgs[0].shape[:2]:
+        if im.shape[:2] != first.shape[:2]:
             raise InputError(f"image size {im.shape[1]}x{im.shape[0]} differs from "
                              f"{paths[0].name}", p)
+        if im.dtype != first.dtype:
+            # the white level (saturation test) comes from the bit depth: one per capture
+            raise InputError(f"image is {im.dtype} but {paths[0].name} is {first.dtype}: one "
+                             "bit depth per capture", p)
+    if len({im.ndim for im in imgs}) > 1:  # grey and colour frames mixed: compare as colour
+        imgs = [_as_rgb(im) for im in imgs]
     amb_path = None if no_ambient else (ambient or _named(folder, ("ambient", "dark")))
     amb = read_image(amb_path) if amb_path else None
-    if amb is not None and amb.shape[:2] != imgs[0].shape[:2]:
-        raise InputError("ambient frame size differs from the images", amb_path)
+    if amb is not None and amb_path is not None:
+        if amb.shape[:2] != first.shape[:2]:
+            raise InputError("ambient frame size differs from the images", amb_path)
+        if amb.dtype != first.dtype:
+            raise InputError(f"ambient frame is {amb.dtype} but the images are {first.dtype}",
+                             amb_path)
+        if amb.ndim != imgs[0].ndim:
+            amb = _as_rgb(amb)
+            imgs = [_as_rgb(im) for im in imgs]
     return np.stack(imgs), paths, amb
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Option values argparse types cannot judge alone, checked before any image is read."""
+    if args.intrinsics:
+        fx, fy = args.intrinsics[:2]
+        if not (fx > 0 and fy > 0):
+            # fx = 0 made every view ray NaN and LAPACK spin forever (issue #13)
+            raise InputError(f"--intrinsics: FX and FY must be positive focal lengths in "
+                             f"pixels, got {fx:g} {fy:g}")
+        if args.focal:
+            raise InputError("--focal and --intrinsics contradict each other; give one")
 
 
 def _intrinsics(args: argparse.Namespace, shape: tuple[int, int]) -> Intrinsics | None:
     if args.intrinsics:
-        fx, fy, cx, cy = args.intrinsics
-        return Intrinsics(fx, fy, cx, cy)
+        return Intrinsics(*args.intrinsics)
     if args.focal:
         return Intrinsics(args.focal, args.focal, (shape[1] - 1) / 2, (shape[0] - 1) / 2)
     return None
@@ -62,27 +109,79 @@ def _circles(folder: Path, imgs: np.ndarray, mask: Path | None, spheres: int):
     return fit_circles_from_images(imgs, spheres), None
 
 
-def _refuse_clobber(path: Path, overwrite: bool) -> None:
-    if path.exists() and not overwrite:
-        raise InputError("output exists (pass --overwrite to replace it)", path)
+def _diagnostic_paths(args: argparse.Namespace, out: Path, captures: int) -> list[Path]:
+    if args.no_diagnostic:
+        return []
+    if args.diagnostic:
+        base = Path(args.diagnostic)
+        if base.suffix.lower() not in IMAGE_OUT:
+            raise InputError(f"--diagnostic: the name must end in {', '.join(IMAGE_OUT)}", base)
+        if captures == 1:
+            return [base]
+        return [base.with_name(f"{base.stem}_{k + 1}{base.suffix or '.png'}")
+                for k in range(captures)]
+    suffixes = [""] if captures == 1 else [f"_{k + 1}" for k in range(captures)]
+    return [out.with_name(f"{out.stem}_diagnostic{s}.png") for s in suffixes]
 
 
-def _write_rows(path: Path, rows: np.ndarray) -> None:
-    text = "".join(" ".join(f"{v:.8f}" for v in r) + "\n" for r in rows)
-    write_atomic(path, lambda tmp: tmp.write_text(text))
+def _check_outputs(outputs: list[Path], inputs: list[Path | None], overwrite: bool) -> None:
+    """Before any work: every output is new (or --overwrite), none is an input or lies inside
+    an input folder, and no two outputs are the same file."""
+    seen: dict[Path, Path] = {}
+    for path in outputs:
+        key = path.resolve()
+        if key in seen:
+            raise InputError(f"two outputs of this run are the same file ({seen[key]}); choose "
+                             "another --diagnostic or -o", path)
+        seen[key] = path
+        check_output(path, inputs, overwrite=overwrite)
 
 
-def cmd_directions(args: argparse.Namespace) -> None:
+def _commit(writers: list[tuple[Path, Callable[[Path], None]]], overwrite: bool) -> None:
+    """Write every output or none (staged, renamed together)."""
+    with staged_files([p for p, _ in writers], overwrite=overwrite) as temps:
+        for tmp, (_, write) in zip(temps, writers, strict=True):
+            write(tmp)
+
+
+def _text_writer(text: str) -> Callable[[Path], None]:
+    def write(tmp: Path) -> None:
+        tmp.write_text(text)
+
+    return write
+
+
+def _png_writer(rgb: np.ndarray, target: Path) -> Callable[[Path], None]:
+    def write(tmp: Path) -> None:
+        # the staging name ends in the target's suffix, so OpenCV picks the encoder from it
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[:, :, ::-1])):
+            raise InputError("cannot write the diagnostic image", target)
+
+    return write
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(text)
+
+
+def cmd_directions(args: argparse.Namespace) -> int:
+    _check_options(args)
     out = Path(args.output)
-    _refuse_clobber(out, args.overwrite)
+    folders = [Path(f) for f in args.images_dir]
+    diag_paths = _diagnostic_paths(args, out, len(folders))
+    conf_path = out.with_name(out.stem + "_confidence.txt")
+    inputs: list[Path | None] = [*folders, args.mask, args.ambient]
+    _check_outputs([out, conf_path, *diag_paths], inputs, args.overwrite)
     captures, circles, names, diag = [], [], None, []
     ambients = []
-    for k, folder in enumerate(map(Path, args.images_dir)):
+    for k, folder in enumerate(folders):
         imgs, paths, amb = load_capture(folder, args.ambient, args.no_ambient)
         circ, mpath = _circles(folder, imgs, args.mask, args.spheres)
         how = f"mask {mpath.name}" if mpath else "fitted from the images (no mask)"
         for c in circ:
-            print(f"capture {k + 1}: sphere at ({c.cx:.2f}, {c.cy:.2f}) r={c.r:.2f} px, {how}")
+            _say(args, f"capture {k + 1}: sphere at ({c.cx:.2f}, {c.cy:.2f}) r={c.r:.2f} px, "
+                 f"{how}")
         captures.append(imgs)
         circles.append(circ)
         ambients.append(amb)
@@ -93,32 +192,40 @@ def cmd_directions(args: argparse.Namespace) -> None:
     res = estimate_directions(captures, circles, intr, ambients, names=names)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
-    _write_rows(out, res.directions)
-    print(f"{len(res.directions)} light directions -> {out} (x right, y up, z to camera)")
+    writers: list[tuple[Path, Callable[[Path], None]]] = [
+        (out, _text_writer(vectors_text(res.directions))),
+        (conf_path, _text_writer("".join(f"{c:.4f} {s:.3f}\n" for c, s in zip(
+            res.confidence, res.spread_deg, strict=True))))]
+    for k, ((imgs, circ), dpath) in enumerate(zip(diag, diag_paths, strict=False)):
+        writers.append((dpath, _png_writer(diagnostic_image(imgs, circ, res.estimates,
+                                                            capture=k), dpath)))
+    _commit(writers, args.overwrite)
+    _say(args, f"{len(res.directions)} light directions -> {out} (x right, y up, z to camera)")
     for i, (d, c) in enumerate(zip(res.directions, res.confidence, strict=True)):
-        print(f"  {names[i]:>20s}: {d[0]:+.4f} {d[1]:+.4f} {d[2]:+.4f}  confidence {c:.2f}")
-    conf_path = out.with_name(out.stem + "_confidence.txt")
-    write_atomic(conf_path, lambda t: t.write_text(
-        "".join(f"{c:.4f} {s:.3f}\n" for c, s in zip(res.confidence, res.spread_deg,
-                                                    strict=True))))
-    if not args.no_diagnostic:
-        for k, (imgs, circ) in enumerate(diag):
-            suffix = "" if len(diag) == 1 else f"_{k + 1}"
-            dpath = Path(args.diagnostic) if args.diagnostic and len(diag) == 1 else \
-                out.with_name(out.stem + f"_diagnostic{suffix}.png")
-            write_png(dpath, diagnostic_image(imgs, circ, res.estimates, capture=k))
-            print(f"diagnostic image -> {dpath}")
+        _say(args, f"  {names[i]:>20s}: {d[0]:+.4f} {d[1]:+.4f} {d[2]:+.4f}  confidence {c:.2f}")
+    _say(args, f"confidence -> {conf_path}")
+    for dpath in diag_paths:
+        _say(args, f"diagnostic image -> {dpath}")
+    return 0
 
 
-def cmd_intensities(args: argparse.Namespace) -> None:
+def cmd_intensities(args: argparse.Namespace) -> int:
+    _check_options(args)
     out = Path(args.output)
-    _refuse_clobber(out, args.overwrite)
     folder = Path(args.images_dir)
+    lights_path = Path(args.lights)
+    _check_outputs([out], [folder, lights_path, args.mask, args.ambient], args.overwrite)
+    normal = np.asarray(args.normal, np.float64)
+    if args.target == "plane" and not (np.linalg.norm(normal) > 0 and normal[2] > 0):
+        raise InputError(f"--normal {' '.join(f'{v:g}' for v in normal)}: the plane normal must "
+                         "be non-zero and face the camera (z > 0)")
     imgs, paths, amb = load_capture(folder, args.ambient, args.no_ambient)
-    lights = read_vectors(Path(args.lights), "light directions").astype(np.float64)
+    lights = read_vectors(lights_path, "light directions").astype(np.float64)
     if len(lights) != len(imgs):
         raise InputError(f"{len(lights)} light directions for {len(imgs)} images in {folder}",
-                         args.lights)
+                         lights_path)
+    if np.any(np.linalg.norm(lights, axis=1) < 1e-6):
+        raise InputError("zero-length light direction", lights_path)
     mask_path = args.mask or _named(folder, ("mask",))
     mask = read_mask(mask_path, imgs.shape[1:3]) if mask_path else None
     intr = _intrinsics(args, imgs.shape[1:3])
@@ -128,52 +235,64 @@ def cmd_intensities(args: argparse.Namespace) -> None:
         normals, valid = target_normals(imgs.shape[1:3], circle=circ, mask=mask,
                                         intrinsics=intr)
     else:
-        normals, valid = target_normals(imgs.shape[1:3], plane_normal=np.asarray(args.normal),
-                                        mask=mask)
+        normals, valid = target_normals(imgs.shape[1:3], plane_normal=normal, mask=mask)
     ints, warnings = estimate_intensities(imgs, lights, normals, valid, amb,
                                           names=[p.name for p in paths])
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
-    _write_rows(out, ints)
-    print(f"{len(ints)} RGB light intensities (mean 1) -> {out}"
-          + ("" if amb is not None else " (no ambient frame subtracted)"))
+    _commit([(out, _text_writer(vectors_text(ints)))], args.overwrite)
+    _say(args, f"{len(ints)} RGB light intensities (mean 1) -> {out}"
+         + ("" if amb is not None else " (no ambient frame subtracted)"))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="msf-calib", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
+    p = make_parser(
+        PROG, "Light directions from mirror-sphere images; RGB light intensities from a matte "
+        "white target. All outputs of a run are written together or not at all.",
+        ("msf-calib directions chrome/ -o light_directions.txt",
+         "msf-calib intensities white/ --lights light_directions.txt -o light_intensities.txt"),
+        common=False)
+    sub = p.add_subparsers(dest="command", required=True, metavar="{directions,intensities}")
 
     def common(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("-o", "--output", required=True, help="output text file")
+        add_common_flags(sp)
+        sp.add_argument("-o", "--output", type=Path, required=True, help="output text file")
         sp.add_argument("--mask", type=Path, help="target mask image (default: a file in the "
                         "folder with 'mask' in its name; else the sphere is fitted from images)")
         sp.add_argument("--ambient", type=Path, help="dark/ambient frame to subtract (default: a "
                         "file with 'ambient' or 'dark' in its name)")
         sp.add_argument("--no-ambient", action="store_true", help="do not subtract any frame")
-        sp.add_argument("--focal", type=float, help="perspective: focal length in pixels, "
-                        "principal point at the image centre (default: orthographic)")
-        sp.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
-                        help="perspective: full pinhole intrinsics in pixels")
-        sp.add_argument("--overwrite", action="store_true", help="replace existing output")
+        sp.add_argument("--focal", type=positive_float, help="perspective: focal length in "
+                        "pixels, principal point at the image centre (default: orthographic)")
+        sp.add_argument("--intrinsics", type=finite_float, nargs=4,
+                        metavar=("FX", "FY", "CX", "CY"),
+                        help="perspective: full pinhole intrinsics in pixels (FX, FY > 0)")
+        sp.add_argument("--overwrite", action="store_true",
+                        help="replace existing outputs (lights, confidence, diagnostic files)")
 
     d = sub.add_parser("directions", help="light directions from mirror-sphere images",
                        description="One x y z row per image (natural file order), DiLiGenT "
-                       "frame. Several folders = several captures of the same lights, averaged. "
-                       "Several blobs in the mask = several spheres, averaged.")
-    d.add_argument("images_dir", nargs="+", help="folder(s) of mirror-sphere images")
-    d.add_argument("--spheres", type=int, default=1, help="spheres to find when there is no "
-                   "mask (default 1)")
-    d.add_argument("--diagnostic", help="diagnostic PNG path (default <output>_diagnostic.png)")
+                       "frame, plus <output>_confidence.txt and a diagnostic image. Several "
+                       "folders = several captures of the same lights, averaged. Several blobs "
+                       "in the mask = several spheres, averaged.")
+    d.add_argument("images_dir", nargs="+", type=Path, help="folder(s) of mirror-sphere images")
+    d.add_argument("--spheres", type=int_range(1, MAX_SPHERES), default=1,
+                   help="spheres to find when there is no mask (default 1)")
+    d.add_argument("--diagnostic", type=Path, help="diagnostic PNG path (default "
+                   "<output>_diagnostic.png; with several captures, _1, _2, ... are appended)")
     d.add_argument("--no-diagnostic", action="store_true")
     common(d)
     d.set_defaults(func=cmd_directions)
 
     i = sub.add_parser("intensities", help="RGB light intensities from a matte white target",
                        description="One r g b row per image, scaled to mean 1.")
-    i.add_argument("images_dir", help="folder of images of a matte white sphere or plane")
-    i.add_argument("--lights", required=True, help="light_directions.txt for these images")
+    i.add_argument("images_dir", type=Path,
+                   help="folder of images of a matte white sphere or plane")
+    i.add_argument("--lights", type=Path, required=True,
+                   help="light_directions.txt for these images")
     i.add_argument("--target", choices=("sphere", "plane"), default="sphere")
-    i.add_argument("--normal", type=float, nargs=3, default=(0.0, 0.0, 1.0),
+    i.add_argument("--normal", type=finite_float, nargs=3, default=(0.0, 0.0, 1.0),
                    metavar=("X", "Y", "Z"), help="plane normal (default 0 0 1, facing camera)")
     common(i)
     i.set_defaults(func=cmd_intensities)
@@ -182,12 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        args.func(args)
-    except InputError as exc:
-        print(f"msf-calib: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    return run_command(PROG, lambda: args.func(args), debug=args.debug)
 
 
 if __name__ == "__main__":

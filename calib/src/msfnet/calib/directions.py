@@ -19,7 +19,7 @@ import numpy as np
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.metrics import angular_error_deg
 
-from .sphere import Circle
+from .sphere import Circle, finite_lstsq
 
 
 @dataclass(frozen=True)
@@ -30,6 +30,12 @@ class Intrinsics:
     fy: float
     cx: float
     cy: float
+
+    def __post_init__(self) -> None:
+        values = (self.fx, self.fy, self.cx, self.cy)
+        if not (all(np.isfinite(values)) and self.fx > 0 and self.fy > 0):
+            raise InputError(f"intrinsics need finite values and positive focal lengths, got "
+                             f"fx={self.fx:g} fy={self.fy:g} cx={self.cx:g} cy={self.cy:g}")
 
     def rays(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Unit rays from the camera through pixels (camera looks down -z)."""
@@ -78,7 +84,7 @@ def sphere_geometry(circle: Circle, x: np.ndarray, y: np.ndarray,
     # centre direction c. Fit c/cos(alpha) linearly from rays through the circle's outline.
     th = np.linspace(0, 2 * np.pi, 90, endpoint=False)
     edge = intrinsics.rays(circle.cx + circle.r * np.cos(th), circle.cy + circle.r * np.sin(th))
-    cvec = np.linalg.lstsq(edge, np.ones(len(th)), rcond=None)[0]
+    cvec = finite_lstsq(edge, np.ones(len(th)), "the sphere's outline rays")
     cos_a = 1.0 / np.linalg.norm(cvec)
     c = cvec * cos_a
     dist = 1.0 / np.sqrt(max(1.0 - cos_a * cos_a, 1e-12))  # sphere radius 1

@@ -24,19 +24,29 @@ class Circle:
         return (x - self.cx) ** 2 + (y - self.cy) ** 2 <= (self.r * shrink) ** 2
 
 
+def finite_lstsq(a: np.ndarray, b: np.ndarray, what: str) -> np.ndarray:
+    """``lstsq`` that refuses NaN/inf first: LAPACK's SVD can loop forever on them, ignoring
+    Ctrl-C (``--intrinsics 0 0 0 0`` hung msf-calib at 100 % CPU)."""
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise InputError(f"non-finite values in {what} (check the intrinsics, mask and images)")
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
 def fit_circle(x: np.ndarray, y: np.ndarray, iterations: int = 10) -> Circle:
     """Algebraic (Kasa) fit refined by Gauss-Newton on the geometric distance."""
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
+    if len(x) < 3:
+        raise InputError(f"a circle needs at least 3 edge points, got {len(x)}")
     a = np.c_[x, y, np.ones_like(x)]
-    sol = np.linalg.lstsq(a, x * x + y * y, rcond=None)[0]
+    sol = finite_lstsq(a, x * x + y * y, "the circle fit")
     cx, cy = sol[0] / 2, sol[1] / 2
     r = np.sqrt(max(sol[2] + cx * cx + cy * cy, 1e-12))
     for _ in range(iterations):
         dx, dy = x - cx, y - cy
         d = np.hypot(dx, dy) + 1e-12
         jac = np.c_[-dx / d, -dy / d, -np.ones_like(d)]
-        step = np.linalg.lstsq(jac, -(d - r), rcond=None)[0]
+        step = finite_lstsq(jac, -(d - r), "the circle fit")
         cx, cy, r = cx + step[0], cy + step[1], r + step[2]
         if np.abs(step).max() < 1e-6:
             break

@@ -4,59 +4,83 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import signal
 import sys
 from dataclasses import fields
 from pathlib import Path
 
+from msfnet.runtime.cliutil import (
+    int_range,
+    make_parser,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    run_command,
+)
 from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import STAGING_TAG, check_not_input
 from msfnet.synth.render import PRESETS
 
 from .train import TrainConfig, Trainer, parse_curriculum
 
 DEFAULTS = TrainConfig(out="")
+PROG = "msf-train"
+MAX_SIZE = 4096
+MAX_LIGHTS = 1024
+# What msf-train writes into OUT: --overwrite deletes these and nothing else.
+TRAIN_FILES = ("config.json", "log.jsonl", "last.pth", "last_state.pth", "best.pth", "curve.png",
+               ".last_state.pth.tmp")
 
 
 def build_parser() -> argparse.ArgumentParser:
     d = DEFAULTS
-    p = argparse.ArgumentParser(
-        prog="msf-train",
-        description="Train MSF-Net with three stage losses (0.5:0.5:1) and the selective update "
-                    "strategy. Writes OUT/last.pth (published {'state_dict': ...} format), "
-                    "OUT/best.pth (best held-out synthetic MAE), OUT/last_state.pth (optimizer), "
-                    "OUT/log.jsonl, OUT/curve.png and OUT/config.json. Resume with --resume. "
-                    "SIGTERM / SIGINT (Ctrl-C) finish the step, save last.pth and exit with "
-                    "128 + the signal number (143 / 130), so time-boxed chunks can be chained: "
-                    "`timeout 600 msf-train ... --resume` repeated.")
+    p = make_parser(
+        PROG,
+        "Train MSF-Net with three stage losses (0.5:0.5:1) and the selective update "
+        "strategy. Writes OUT/last.pth (published {'state_dict': ...} format), "
+        "OUT/best.pth (best held-out synthetic MAE), OUT/last_state.pth (optimizer), "
+        "OUT/log.jsonl, OUT/curve.png and OUT/config.json. Resume with --resume. "
+        "SIGTERM / SIGINT (Ctrl-C) finish the step, save last.pth and exit with "
+        "128 + the signal number (143 / 130), so time-boxed chunks can be chained: "
+        "`timeout 600 msf-train ... --resume` repeated.",
+        ("msf-train --out runs/a --epochs 2 --steps-per-epoch 50",
+         "msf-train --out runs/a --resume --epochs 4",
+         "msf-train --out runs/gpu --device cuda --render-preset hard --resume   # chunks"))
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/last.pth with OUT/config.json; options given "
                         "explicitly (e.g. --epochs) override the stored ones. With nothing "
                         "to resume in OUT yet, start there (so one command serves every chunk)")
-    p.add_argument("--overwrite", action="store_true", help="start afresh in a non-empty OUT")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start afresh in an OUT of an earlier msf-train run (only its files are "
+                   "deleted)")
     p.add_argument("--data", default=d.data,
                    help="'synth' (built-in renderer, default) or a Blobby/Sculpture root folder")
-    p.add_argument("--epochs", type=int, default=d.epochs, help=f"default {d.epochs}")
-    p.add_argument("--steps-per-epoch", type=int, default=d.steps_per_epoch,
+    p.add_argument("--epochs", type=positive_int, default=d.epochs, help=f"default {d.epochs}")
+    p.add_argument("--steps-per-epoch", type=positive_int, default=d.steps_per_epoch,
                    help=f"default {d.steps_per_epoch}")
-    p.add_argument("--batch", type=int, default=d.batch, help=f"default {d.batch}")
+    p.add_argument("--batch", type=positive_int, default=d.batch, help=f"default {d.batch}")
     p.add_argument("--curriculum", default=d.curriculum,
                    help="EPOCH:LMIN-LMAX:CROP[,...]: from EPOCH on, each batch uses a random "
                         "light count in [LMIN, LMAX] and CROPxCROP crops "
                         f"(default {d.curriculum!r}; one phase = fixed setting)")
-    p.add_argument("--lights", type=int, default=None,
+    p.add_argument("--lights", type=int_range(1, MAX_LIGHTS), default=None,
                    help="shortcut: a fixed light count for every batch (curriculum with one "
                         "phase; the paper used 32)")
-    p.add_argument("--crop", type=int, default=None, help="shortcut: fixed crop size")
-    p.add_argument("--lr", type=float, default=d.lr, help=f"Adam learning rate (default {d.lr})")
-    p.add_argument("--lr-step", type=int, default=d.lr_step,
+    p.add_argument("--crop", type=int_range(8, MAX_SIZE), default=None,
+                   help="shortcut: fixed crop size")
+    p.add_argument("--lr", type=positive_float, default=d.lr,
+                   help=f"Adam learning rate (default {d.lr})")
+    p.add_argument("--lr-step", type=positive_int, default=d.lr_step,
                    help=f"halve the learning rate every this many epochs (default {d.lr_step})")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--threads", type=int, default=d.threads,
+    p.add_argument("--seed", type=nonnegative_int, default=d.seed)
+    p.add_argument("--threads", type=int_range(1, 1024), default=d.threads,
                    help=f"torch threads of the training process (default {d.threads})")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device,
                    help="auto (default): cuda when torch sees a GPU, else cpu")
-    p.add_argument("--workers", type=int, default=d.workers,
+    p.add_argument("--workers", type=nonnegative_int, default=d.workers,
                    help="processes rendering batches in parallel (DataLoader workers, each with "
                         "its own object pool and seed stream); 0 = render in the training "
                         "process. Default: 0 on the CPU, min(cores - 2, 12) with cuda")
@@ -73,12 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ablation: no fusion module (a stage sees concat(raw, max))")
     p.add_argument("--no-sus", action="store_true",
                    help="ablation: no selective update (all stage losses train all modules)")
-    p.add_argument("--render-size", type=int, default=d.render_size,
+    p.add_argument("--render-size", type=int_range(8, MAX_SIZE), default=d.render_size,
                    help=f"synthetic object size in pixels (default {d.render_size})")
-    p.add_argument("--render-size-max", type=int, default=d.render_size_max,
+    p.add_argument("--render-size-max", type=int_range(8, MAX_SIZE), default=d.render_size_max,
                    help="draw each synthetic object's size from [--render-size, this]: larger "
                         "renders are smoother per pixel, like real full-resolution objects")
-    p.add_argument("--render-max-depth", type=float, default=d.render_max_depth,
+    p.add_argument("--render-max-depth", type=positive_float, default=d.render_max_depth,
                    help="synthetic domes up to this height/radius (default "
                         f"{d.render_max_depth}; 2 gives a slant histogram like DiLiGenT ball's, "
                         "with 4x more pixels steeper than 66 deg)")
@@ -87,22 +111,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "cups with inter-reflections, pixel-scale relief, rough / painted / "
                         "very dark materials, LED rings, mostly 8-bit); validation stays on "
                         "the default renderer so runs compare")
-    p.add_argument("--val-size", type=int, default=d.val_size,
+    p.add_argument("--val-size", type=int_range(8, MAX_SIZE), default=d.val_size,
                    help=f"validation object size in pixels (default {d.val_size})")
-    p.add_argument("--render-lights", type=int, default=d.render_lights,
+    p.add_argument("--render-lights", type=int_range(3, MAX_LIGHTS), default=d.render_lights,
                    help=f"lights rendered per synthetic object (default {d.render_lights})")
-    p.add_argument("--pool", type=int, default=d.pool,
+    p.add_argument("--pool", type=positive_int, default=d.pool,
                    help=f"synthetic objects kept in memory (default {d.pool})")
-    p.add_argument("--refresh", type=int, default=d.refresh,
+    p.add_argument("--refresh", type=nonnegative_int, default=d.refresh,
                    help=f"new synthetic objects rendered per batch (default {d.refresh})")
-    p.add_argument("--noise", type=float, default=d.noise,
+    p.add_argument("--noise", type=nonnegative_float, default=d.noise,
                    help="max extra Gaussian noise, fraction of the crop's 95th percentile "
                         f"(default {d.noise})")
-    p.add_argument("--val-objects", type=int, default=d.val_objects,
+    p.add_argument("--val-objects", type=positive_int, default=d.val_objects,
                    help=f"held-out synthetic validation objects (default {d.val_objects})")
-    p.add_argument("--ckpt-minutes", type=float, default=d.ckpt_minutes,
+    p.add_argument("--ckpt-minutes", type=positive_float, default=d.ckpt_minutes,
                    help=f"save last.pth at least this often (default {d.ckpt_minutes})")
-    p.add_argument("--log-every", type=int, default=d.log_every,
+    p.add_argument("--log-every", type=positive_int, default=d.log_every,
                    help=f"append a log.jsonl row every this many steps (default {d.log_every})")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -152,46 +176,83 @@ def config_from(args: dict, base: dict) -> TrainConfig:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def _stored_config(out: Path) -> dict:
+    """OUT/config.json of the run to resume, refused in one line if missing or damaged."""
+    stored = out / "config.json"
+    if not stored.is_file():
+        raise InputError("--resume: no config.json in the output folder", out)
     try:
-        out: Path = args.out
-        stored = out / "config.json"
-        resume = args.resume and (out / "last.pth").is_file() and (
-            out / "last_state.pth").is_file()
-        if args.resume and not resume:
-            # Nothing saved yet (first chunk, or killed before the first save): start here,
-            # from the stored settings if a config.json was written.
-            print(f"msf-train: nothing to resume in {out}: starting there", flush=True)
-            base = json.loads(stored.read_text()) if stored.is_file() else {}
-            explicit = _explicit(argv) if base else vars(args)
-            cfg = config_from(explicit, base)
-            for name in ("log.jsonl", "best.pth", "last.pth", "last_state.pth"):
-                (out / name).unlink(missing_ok=True)
-        elif resume:
-            if not stored.is_file():
-                raise InputError("--resume: no config.json in the output folder", out)
-            cfg = config_from(_explicit(argv), json.loads(stored.read_text()))
+        data = json.loads(stored.read_text())
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise InputError(f"--resume: config.json is damaged ({exc})", stored) from exc
+    known = {f.name for f in fields(TrainConfig)}
+    if not isinstance(data, dict) or not set(data) <= known:
+        unknown = sorted(set(data) - known) if isinstance(data, dict) else []
+        raise InputError("--resume: config.json is not an msf-train configuration"
+                         + (f" (unknown keys {unknown[:3]})" if unknown else ""), stored)
+    return data
+
+
+def _ours(name: str) -> bool:
+    return name in TRAIN_FILES or STAGING_TAG in name
+
+
+def _prepare_out(args: argparse.Namespace) -> None:
+    """OUT is never an input nor holds one; an existing OUT is continued (--resume) or, with
+    --overwrite, cleared of msf-train's own files only."""
+    out: Path = args.out
+    inputs = [args.init] + ([args.data] if args.data != "synth" else [])
+    check_not_input(out, inputs, folder=True)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out)
+    if args.resume and args.overwrite:
+        raise InputError("--resume and --overwrite contradict each other")
+    if args.resume or not out.exists() or not any(out.iterdir()):
+        return
+    if not args.overwrite:
+        raise InputError("output folder is not empty (use --resume to continue or "
+                         "--overwrite to start afresh)", out)
+    foreign = sorted(p.name for p in out.iterdir() if not _ours(p.name))
+    if foreign:
+        raise InputError(f"--overwrite: the folder holds files msf-train did not write (e.g. "
+                         f"{foreign[0]}); refusing to delete them", out)
+    for p in out.iterdir():
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
         else:
-            if out.exists() and any(out.iterdir()) and not args.overwrite:
-                raise InputError("output folder is not empty (use --resume to continue or "
-                                 "--overwrite to start afresh)", out)
-            if args.overwrite:
-                for name in ("log.jsonl", "last.pth", "last_state.pth", "best.pth"):
-                    (out / name).unlink(missing_ok=True)
-            cfg = config_from(vars(args), {})
-        trainer = Trainer(cfg, resume=resume)
-        data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
-        print(f"msf-train: {trainer.device.type}, "
-              f"{'bf16 autocast' if trainer.bf16 else 'fp32'}, "
-              f"{'channels_last' if cfg.channels_last else 'NCHW'}, {cfg.threads} threads, "
-              f"{trainer.workers} data workers, data {data}, curriculum {cfg.curriculum}, "
-              f"from step {trainer.step}; validation: {len(trainer.val_set)} objects, "
-              f"least squares MAE {trainer.val_ls:.2f} deg", flush=True)
-        result = trainer.run(progress=not args.no_progress)
-    except InputError as exc:
-        print(f"msf-train: error: {exc}", file=sys.stderr)
-        return 2
+            p.unlink()
+
+
+def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+    out: Path = args.out
+    _prepare_out(args)
+    resume = args.resume and (out / "last.pth").is_file() and (out / "last_state.pth").is_file()
+    if args.resume and not resume:
+        # Nothing saved yet (first chunk, or killed before the first save): start here, from
+        # the stored settings if a config.json was written; but never in someone else's folder.
+        foreign = sorted(p.name for p in out.iterdir() if not _ours(p.name)) \
+            if out.is_dir() else []
+        if foreign:
+            raise InputError(f"--resume: no msf-train run here (no config.json / last.pth) but "
+                             f"other files (e.g. {foreign[0]})", out)
+        print(f"msf-train: nothing to resume in {out}: starting there", flush=True)
+        base = _stored_config(out) if (out / "config.json").is_file() else {}
+        cfg = config_from(_explicit(argv) if base else vars(args), base)
+        for name in ("log.jsonl", "best.pth", "last.pth", "last_state.pth"):
+            (out / name).unlink(missing_ok=True)
+    elif resume:
+        cfg = config_from(_explicit(argv), _stored_config(out))
+    else:
+        cfg = config_from(vars(args), {})
+    trainer = Trainer(cfg, resume=resume)
+    data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
+    print(f"msf-train: {trainer.device.type}, "
+          f"{'bf16 autocast' if trainer.bf16 else 'fp32'}, "
+          f"{'channels_last' if cfg.channels_last else 'NCHW'}, {cfg.threads} threads, "
+          f"{trainer.workers} data workers, data {data}, curriculum {cfg.curriculum}, "
+          f"from step {trainer.step}; validation: {len(trainer.val_set)} objects, "
+          f"least squares MAE {trainer.val_ls:.2f} deg", flush=True)
+    result = trainer.run(progress=not args.no_progress)
     if "stopped" in result:
         sig = int(result["stopped"])
         print(f"msf-train: stopped by {signal.Signals(sig).name} at step {result['step']}; "
@@ -200,6 +261,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"msf-train: done at step {result['step']}: best held-out MAE "
           f"{result['best_val_mae']:.2f} deg (least squares {result['val_ls_mae']:.2f})")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_command(PROG, lambda: _run(args, argv), debug=args.debug)
 
 
 if __name__ == "__main__":

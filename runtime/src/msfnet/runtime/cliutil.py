@@ -2,24 +2,28 @@
 
 :func:`run_command` is the only place where exceptions become exit codes: InputError -> one
 line, exit 2; Ctrl-C -> one line, exit 130; SIGTERM -> exit 143; anything unexpected -> one line
-and exit 1. Tracebacks reach the user only with ``--debug``.
+and exit 1. Tracebacks reach the user only with ``--debug``; so do library warnings (numpy's
+RuntimeWarnings and the like are noise on a user's terminal and would break the one-line rule).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import os
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 
-from .errors import InputError, MsfError, first_line
-from .files import Terminated, install_signal_handlers
+from .errors import InputError, MsfError, first_line, one_line
+from .files import Terminated, forget_written, install_signal_handlers, written_outputs
 
 
 def _number(text: str, kind: type) -> float:
     try:
         value = kind(text)
-    except ValueError as exc:
+    except (ValueError, OverflowError) as exc:
         what = "an integer" if kind is int else "a number"
         raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from exc
     if not math.isfinite(value):
@@ -48,8 +52,26 @@ def positive_float(text: str) -> float:
     return value
 
 
+def nonnegative_float(text: str) -> float:
+    value = _number(text, float)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
+    return value
+
+
 def finite_float(text: str) -> float:
     return _number(text, float)
+
+
+def float_range(lo: float, hi: float) -> Callable[[str], float]:
+    def parse(text: str) -> float:
+        value = _number(text, float)
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must lie in {lo:g}..{hi:g}, got {text!r}")
+        return value
+
+    parse.__name__ = f"number {lo:g}..{hi:g}"
+    return parse
 
 
 def int_range(lo: int, hi: int) -> Callable[[str], int]:
@@ -71,8 +93,13 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def make_parser(prog: str, description: str, examples: Sequence[str] = ()) -> Parser:
-    """A parser with the flags every command has: --version, -q/-v, --debug."""
+def make_parser(prog: str, description: str, examples: Sequence[str] = (), *,
+                common: bool = True) -> Parser:
+    """A parser with the flags every command has: --version, -q/-v, --debug.
+
+    ``common=False``: only --version here; a command with sub-commands gives each of them the
+    other flags with :func:`add_common_flags`, so they can follow the sub-command's name.
+    """
     from msfnet import __version__
 
     epilog = None
@@ -81,52 +108,84 @@ def make_parser(prog: str, description: str, examples: Sequence[str] = ()) -> Pa
     p = Parser(prog=prog, description=description, epilog=epilog,
                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    if common:
+        add_common_flags(p)
+    return p
+
+
+def add_common_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="print errors only")
     p.add_argument("-v", "--verbose", action="store_true", help="print more detail")
     p.add_argument("--debug", action="store_true",
                    help="show Python tracebacks instead of one-line errors")
-    return p
+
+
+def _left_behind() -> str:
+    done = written_outputs()
+    if not done:
+        return "nothing was written"
+    return (f"{len(done)} output(s) were complete and are kept (last: {done[-1]}); nothing "
+            "else was written")
 
 
 def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
     """Run a command's body and turn every failure into one line and an exit code."""
     install_signal_handlers()
+    forget_written()
+
+    def fail(message: str, code: int) -> int:
+        print(f"{prog}: {one_line(message)}", file=sys.stderr)
+        return code
+
     try:
-        return body()
+        with warnings.catch_warnings():
+            if not debug:
+                warnings.simplefilter("ignore")
+            return body()
     except InputError as exc:
         if debug:
             raise
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        return 2
+        return fail(f"error: {exc}", 2)
     except KeyboardInterrupt:
-        print(f"{prog}: interrupted; nothing was written", file=sys.stderr)
-        return 130
+        return fail(f"interrupted; {_left_behind()}", 130)
     except Terminated as exc:
-        print(f"{prog}: terminated (signal {exc.signum}); nothing was written", file=sys.stderr)
-        return 128 + exc.signum
+        return fail(f"terminated (signal {exc.signum}); {_left_behind()}", 128 + exc.signum)
     except MemoryError:
         if debug:
             raise
-        print(f"{prog}: error: out of memory; lower --max-memory (or --tile)", file=sys.stderr)
-        return 2
+        return fail("error: out of memory; lower --max-memory (or --tile)", 2)
+    except BrokenPipeError as exc:
+        if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
+            return fail(f"error: {exc.filename}: {exc.strerror}", 2)
+        # stdout's reader went away (msf-run --json | head): exit quietly like other tools,
+        # and keep Python from complaining again when it flushes stdout at exit
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE
     except OSError as exc:  # disk full, permission denied, ... on an output
         if debug:
             raise
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"{prog}: error: {where}{exc.strerror or first_line(exc)}", file=sys.stderr)
-        return 2
+        if exc.strerror:
+            return fail(f"error: {where}{exc.strerror}", 2)
+        # no errno: e.g. numpy's short write "4752 requested and 1968 written"
+        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", 2)
     except MsfError as exc:
         if debug:
             raise
-        print(f"{prog}: error: {first_line(exc, 500)}", file=sys.stderr)
-        return 1
+        return fail(f"error: {first_line(exc, 500)}", 1)
+    except RecursionError as exc:  # e.g. absurdly nested JSON given as input
+        if debug:
+            raise
+        return fail(f"error: input too deeply nested ({first_line(exc)})", 2)
     except Exception as exc:
         if debug:
             raise
-        print(f"{prog}: internal error: {type(exc).__name__}: {first_line(exc)} (run with "
-              "--debug for the traceback; please report it)", file=sys.stderr)
-        return 1
+        return fail(f"internal error: {type(exc).__name__}: {first_line(exc)} (run with "
+                    "--debug for the traceback; please report it)", 1)
 
 
-__all__ = ["Parser", "finite_float", "int_range", "make_parser", "nonnegative_int",
-           "positive_float", "positive_int", "run_command"]
+__all__ = ["Parser", "add_common_flags", "finite_float", "float_range", "int_range",
+           "make_parser", "nonnegative_float", "nonnegative_int", "positive_float",
+           "positive_int", "run_command"]

@@ -54,14 +54,22 @@ class ModelInfo:
     staged: bool = False  # cut at the max-over-lights reductions (runtime/chunked.py)
 
 
-def _positive(meta: Mapping[str, str], key: str, default: int, path: Path) -> int:
+MAX_TRAIN_LIGHTS = 10_000  # far beyond any rig; a bigger value is a corrupt or crafted file
+MAX_STATIC_SIDE = 16_384  # px; a static window beyond this would not fit in memory anyway
+
+
+def _positive(meta: Mapping[str, str], key: str, default: int, path: Path,
+              top: int | None = None) -> int:
     text = meta.get(METADATA_KEYS[key], str(default))
     try:
         value = int(text)
     except ValueError as exc:
-        raise InputError(f"malformed {METADATA_KEYS[key]} metadata {text!r}", path) from exc
+        raise InputError(f"malformed {METADATA_KEYS[key]} metadata {text[:40]!r}", path) from exc
     if value < 1:
         raise InputError(f"{METADATA_KEYS[key]} metadata must be positive, got {value}", path)
+    if top is not None and value > top:
+        raise InputError(f"{METADATA_KEYS[key]} metadata {value} is beyond any msfnet export "
+                         f"(at most {top})", path)
     return value
 
 
@@ -70,15 +78,21 @@ def read_model_info(path: Path, meta: Mapping[str, str]) -> ModelInfo:
     if meta.get(METADATA_KEYS["format"]) != FORMAT:
         raise InputError("not an msfnet model (missing msfnet.format metadata; export it with "
                          "msf-export)", path)
-    train_lights = _positive(meta, "train_lights", TRAIN_LIGHTS, path)
+    train_lights = _positive(meta, "train_lights", TRAIN_LIGHTS, path, MAX_TRAIN_LIGHTS)
     multiple = _positive(meta, "input_multiple", INPUT_MULTIPLE, path)
+    if INPUT_MULTIPLE % multiple:  # the runtime pads inputs to multiples of INPUT_MULTIPLE
+        raise InputError(f"model needs inputs padded to multiples of {multiple}; this runtime "
+                         f"pads to {INPUT_MULTIPLE}", path)
     static_text = meta.get(METADATA_KEYS["static_shape"], "")
     try:
         static = tuple(int(v) for v in static_text.split(",")) if static_text else None
     except ValueError as exc:
         raise InputError(f"malformed msfnet.static_shape metadata {static_text!r}", path) from exc
-    if static is not None and (len(static) != 3 or min(static) < 1):
-        raise InputError(f"malformed msfnet.static_shape metadata {static_text!r}", path)
+    if static is not None and (len(static) != 3 or min(static) < 1
+                               or max(static[1:]) > MAX_STATIC_SIDE
+                               or static[1] % INPUT_MULTIPLE or static[2] % INPUT_MULTIPLE):
+        raise InputError(f"malformed msfnet.static_shape metadata {static_text[:40]!r} (expected "
+                         f"N,H,W with H and W multiples of {INPUT_MULTIPLE})", path)
     graph = meta.get(METADATA_KEYS["graph"], "monolithic")
     if graph not in GRAPHS:
         raise InputError(f"unknown msfnet.graph {graph!r} (this msfnet reads "

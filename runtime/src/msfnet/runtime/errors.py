@@ -30,3 +30,9 @@ def first_line(exc: BaseException, limit: int = 200) -> str:
     type name when it has none."""
     text = str(exc).strip()
     return text.splitlines()[0][:limit] if text else type(exc).__name__
+
+
+def one_line(text: str) -> str:
+    """Messages are printed as one line: newlines (from a library's text, or a file name with a
+    newline in it) become spaces."""
+    return " ".join(str(text).split("\n")).replace("\r", " ")

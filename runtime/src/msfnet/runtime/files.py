@@ -7,7 +7,12 @@ Rules every command follows (issue #13):
 - files are written to a temporary sibling and renamed into place; folders are staged beside
   the target and renamed as a whole; on SIGINT/SIGTERM the staging is removed, and staging left
   by a killed process (``kill -9``) is removed by the next run writing to the same place;
+- several output files of one command appear together or not at all (:func:`staged_files`);
 - output locations are checked before any long computation (:func:`check_output`);
+- commits hold a lock on the output's parent folder and defer Ctrl-C/SIGTERM, so two commands
+  writing to the same place never mix their files (the second one is told, or replaces the first
+  with ``overwrite``), and a signal never lands between removing an old output and renaming the
+  new one into place;
 - files get the user's normal permissions (umask), like any other tool's output.
 """
 
@@ -19,6 +24,7 @@ import os
 import shutil
 import signal
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -29,6 +35,20 @@ from .errors import InputError
 
 MANIFEST = ".msfnet-output.json"
 STAGING_TAG = ".msf-partial-"  # ".<name>.msf-partial-<pid>-<random>" beside the target
+_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+# Outputs this process has put in place, so an interrupted command can say truthfully what it
+# left behind (a multi-stack msf-run interrupted on its second stack has written the first).
+_written: list[Path] = []
+
+
+def written_outputs() -> list[Path]:
+    """Outputs committed by this process since the last :func:`forget_written`."""
+    return list(_written)
+
+
+def forget_written() -> None:
+    _written.clear()
 
 
 class Terminated(BaseException):
@@ -59,6 +79,75 @@ def _umask() -> int:
     return mask
 
 
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold Ctrl-C/SIGTERM/SIGHUP until the block is done, then act on the first one.
+
+    A renaming sequence interrupted half-way could leave an old output moved aside and the new
+    one not yet in place. Swapping the Python-level handlers (not the thread mask) also covers
+    signals the kernel delivers to a native worker thread (ONNX Runtime's, for instance).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield  # handlers can only be changed (and only run) in the main thread
+        return
+    pending: list[int] = []
+    old = {sig: signal.signal(sig, lambda signum, frame: pending.append(signum))
+           for sig in _SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        if pending:
+            handler = old[pending[0]]
+            if callable(handler):
+                handler(pending[0], None)
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), pending[0])
+
+
+@contextmanager
+def _commit_lock(folders: Iterable[Path]) -> Iterator[None]:
+    """Exclusive advisory locks on the given folders (the outputs' parents) while committing.
+
+    flock on the folder itself, so no lock file is ever left behind; without fcntl (Windows)
+    commits are not serialised.
+    """
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    fds: list[int] = []
+    try:
+        for folder in sorted({_resolved(f) for f in folders}):  # one order: no deadlock
+            fd = os.open(folder, os.O_RDONLY)
+            fds.append(fd)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        for fd in fds:
+            os.close(fd)  # closing releases the lock
+
+
+def _make_parents(path: Path) -> list[Path]:
+    """Create the missing folders above ``path``; return them, deepest first, so a failed
+    command can remove what it created (an error leaves nothing behind, not even folders)."""
+    missing = []
+    parent = path.parent
+    while not parent.exists():
+        missing.append(parent)
+        parent = parent.parent
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def _remove_empty(folders: Iterable[Path]) -> None:
+    for folder in folders:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
 def _resolved(path: Path) -> Path:
     return Path(os.path.realpath(path))
 
@@ -75,20 +164,7 @@ def check_output(target: str | Path, inputs: Iterable[str | Path | None] = (), *
     Returns the target as given. Raises InputError naming the path.
     """
     target = Path(target)
-    real = _resolved(target)
-    for item in inputs:
-        if item is None:
-            continue
-        src = _resolved(Path(item))
-        if real == src:
-            raise InputError("the output would replace an input; choose another output path",
-                             target)
-        if _is_within(src, real):
-            raise InputError(f"the output {'folder ' if folder else ''}contains the input "
-                             f"{item}; choose another output path", target)
-        if src.is_dir() and _is_within(real, src):
-            raise InputError(f"the output lies inside the input folder {item}; inputs are "
-                             "never written to: choose another output path", target)
+    real = check_not_input(target, inputs, folder=folder)
     # the nearest existing ancestor must be a writable folder
     parent = real.parent
     while not parent.exists():
@@ -112,11 +188,35 @@ def check_output(target: str | Path, inputs: Iterable[str | Path | None] = (), *
                 raise InputError("output path is a folder", target)
             if not overwrite:
                 raise InputError("output exists; pass --overwrite to replace it", target)
-        if not os.access(target if folder else real.parent, os.W_OK):
-            raise InputError("output is not writable", target)
+        # replacing means renaming in the parent folder (and, for a folder, reading it)
+        if not os.access(real.parent, os.W_OK):
+            raise InputError(f"cannot replace the output: {real.parent} is not writable",
+                             target)
     elif not os.access(parent, os.W_OK):
         raise InputError(f"cannot write here: {parent} is not writable", target)
     return target
+
+
+def check_not_input(target: str | Path, inputs: Iterable[str | Path | None] = (), *,
+                    folder: bool = False) -> Path:
+    """Refuse an output that is, contains or lies inside an input (symlinks resolved).
+    Returns the resolved target."""
+    target = Path(target)
+    real = _resolved(target)
+    for item in inputs:
+        if item is None:
+            continue
+        src = _resolved(Path(item))
+        if real == src:
+            raise InputError("the output would replace an input; choose another output path",
+                             target)
+        if _is_within(src, real):
+            raise InputError(f"the output {'folder ' if folder else ''}contains the input "
+                             f"{item}; choose another output path", target)
+        if src.is_dir() and _is_within(real, src):
+            raise InputError(f"the output lies inside the input folder {item}; inputs are "
+                             "never written to: choose another output path", target)
+    return real
 
 
 def foreign_files(folder: Path) -> list[str]:
@@ -162,26 +262,41 @@ def _staging_name(target: Path) -> str:
     return f".{target.name}{STAGING_TAG}{os.getpid()}-"
 
 
-def write_atomic(path: str | Path, write: Callable[[Path], object]) -> Path:
-    """Write one file through a temporary sibling and a rename: never a half-written file."""
+def write_atomic(path: str | Path, write: Callable[[Path], object], *,
+                 overwrite: bool = True) -> Path:
+    """Write one file through a temporary sibling and a rename: never a half-written file.
+
+    ``overwrite=False``: refuse (InputError) if the file exists when it is about to be put in
+    place, e.g. written meanwhile by another command (commands check before any work with
+    :func:`check_output`; this closes the window between that check and the end).
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    created = _make_parents(path)
     remove_stale_staging(path)
     fd, tmp_name = tempfile.mkstemp(prefix=_staging_name(path), suffix=path.suffix,
                                     dir=path.parent)
     os.close(fd)
     tmp = Path(tmp_name)
+    done = False
     try:
         write(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes files 0600; outputs follow the umask
-        os.replace(tmp, path)
+        with _signals_deferred(), _commit_lock([path.parent]):
+            if not overwrite and (path.exists() or path.is_symlink()):
+                raise InputError("output appeared while running (another command wrote it?); "
+                                 "pass --overwrite to replace it", path)
+            os.replace(tmp, path)
+            _written.append(path)
+        done = True
     finally:
         tmp.unlink(missing_ok=True)
+        if not done:
+            _remove_empty(created)
     return path
 
 
-def write_text(path: str | Path, text: str) -> Path:
-    return write_atomic(path, lambda t: t.write_text(text))
+def write_text(path: str | Path, text: str, *, overwrite: bool = True) -> Path:
+    return write_atomic(path, lambda t: t.write_text(text), overwrite=overwrite)
 
 
 def to_jsonable(value: object) -> object:
@@ -203,8 +318,8 @@ def json_text(data: object) -> str:
     return json.dumps(to_jsonable(data), indent=2, allow_nan=False) + "\n"
 
 
-def write_json(path: str | Path, data: object) -> Path:
-    return write_text(path, json_text(data))
+def write_json(path: str | Path, data: object, *, overwrite: bool = True) -> Path:
+    return write_text(path, json_text(data), overwrite=overwrite)
 
 
 def vectors_text(rows: np.ndarray | Sequence[Sequence[float]], fmt: str = "{:.8f}") -> str:
@@ -213,8 +328,8 @@ def vectors_text(rows: np.ndarray | Sequence[Sequence[float]], fmt: str = "{:.8f
 
 
 def write_vectors(path: str | Path, rows: np.ndarray | Sequence[Sequence[float]],
-                  fmt: str = "{:.8f}") -> Path:
-    return write_text(path, vectors_text(rows, fmt))
+                  fmt: str = "{:.8f}", *, overwrite: bool = True) -> Path:
+    return write_text(path, vectors_text(rows, fmt), overwrite=overwrite)
 
 
 @contextmanager
@@ -226,38 +341,124 @@ def staged_folder(outdir: str | Path, *, overwrite: bool = False) -> Iterator[Pa
     the files is added, so a later ``--overwrite`` knows the folder is msfnet's own.
     """
     outdir = Path(outdir)
-    outdir.parent.mkdir(parents=True, exist_ok=True)
+    created = _make_parents(outdir)
     remove_stale_staging(outdir)
     tmp = Path(tempfile.mkdtemp(prefix=_staging_name(outdir), dir=outdir.parent))
-    tmp.chmod(0o777 & ~_umask())
+    done = False
     try:
+        tmp.chmod(0o777 & ~_umask())
         yield tmp
         names = sorted(p.name for p in tmp.iterdir())
         (tmp / MANIFEST).write_text(json.dumps({"files": names}) + "\n")
         (tmp / MANIFEST).chmod(0o666 & ~_umask())
-        _commit(tmp, outdir, overwrite)
+        with _signals_deferred(), _commit_lock([outdir.parent]):
+            _commit(tmp, outdir, overwrite)
+            _written.append(outdir)
+        done = True
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+        if not done:
+            _remove_empty(created)
 
 
 def _commit(tmp: Path, outdir: Path, overwrite: bool) -> None:
-    """Put the finished staging folder in place; an old msfnet folder goes only afterwards."""
+    """Put the finished staging folder in place; an old msfnet folder goes only afterwards.
+
+    Runs under the parent folder's lock: whatever is at ``outdir`` now is what gets checked.
+    """
     old = None
-    if outdir.exists():
-        if outdir.is_dir() and any(outdir.iterdir()):
+    if outdir.exists() or outdir.is_symlink():
+        if not outdir.is_dir():
+            raise InputError("output appeared while running and is not a folder", outdir)
+        if any(outdir.iterdir()):
             if not overwrite:
-                raise InputError("output folder appeared while running; pass --overwrite",
-                                 outdir)
+                raise InputError("output folder appeared while running (another command wrote "
+                                 "it?); pass --overwrite to replace it", outdir)
             foreign = foreign_files(outdir)
             if foreign:
                 raise InputError(f"--overwrite: the folder holds files msfnet did not write "
                                  f"(e.g. {foreign[0]}); refusing to delete them", outdir)
-        old = outdir.with_name(f"{_staging_name(outdir)}old")
-        os.replace(outdir, old)
-    os.replace(tmp, outdir)
-    if old is not None and old.exists():
-        shutil.rmtree(old, ignore_errors=True)
+        old = Path(tempfile.mkdtemp(prefix=_staging_name(outdir), dir=outdir.parent))
+        os.replace(outdir, old / "old")
+    try:
+        os.replace(tmp, outdir)
+    except BaseException:
+        if old is not None:  # put the previous output back
+            os.replace(old / "old", outdir)
+        raise
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+@contextmanager
+def staged_files(targets: Sequence[str | Path], *, overwrite: bool = False
+                 ) -> Iterator[list[Path]]:
+    """Several output files that appear together or not at all (msf-calib's lights file, its
+    confidence file and diagnostic images).
+
+    Yields one temporary path per target (a sibling, same suffix); fill them all. On success
+    they are renamed into place under the parents' locks with signals deferred; if one rename
+    fails the ones already done are rolled back (earlier versions restored). On any failure no
+    target is touched and the temporaries and any folders created for them are removed.
+    ``overwrite=False`` refuses targets that appeared meanwhile.
+    """
+    paths = [Path(t) for t in targets]
+    if len({_resolved(p) for p in paths}) != len(paths):
+        raise InputError("two outputs of this command are the same file: "
+                         f"{', '.join(str(p) for p in paths)}")
+    created: list[Path] = []
+    temps: list[Path] = []
+    done = False
+    try:
+        for path in paths:
+            created += _make_parents(path)
+            remove_stale_staging(path)
+            fd, name = tempfile.mkstemp(prefix=_staging_name(path), suffix=path.suffix,
+                                        dir=path.parent)
+            os.close(fd)
+            temps.append(Path(name))
+        yield list(temps)
+        for tmp in temps:
+            os.chmod(tmp, 0o666 & ~_umask())
+        with _signals_deferred(), _commit_lock([p.parent for p in paths]):
+            _commit_files(list(zip(temps, paths, strict=True)), overwrite)
+            _written.extend(paths)
+        done = True
+    finally:
+        for tmp in temps:
+            tmp.unlink(missing_ok=True)
+        if not done:
+            _remove_empty(created)
+
+
+def _commit_files(pairs: list[tuple[Path, Path]], overwrite: bool) -> None:
+    for _, path in pairs:
+        if path.is_dir():
+            raise InputError("output path is a folder", path)
+        if not overwrite and (path.exists() or path.is_symlink()):
+            raise InputError("output appeared while running (another command wrote it?); "
+                             "pass --overwrite to replace it", path)
+    backups: list[tuple[Path, Path | None]] = []  # (target, its previous version moved aside)
+    try:
+        for tmp, path in pairs:
+            backup = None
+            if path.exists() or path.is_symlink():
+                backup = path.with_name(f"{_staging_name(path)}old{path.suffix}")
+                os.replace(path, backup)
+            backups.append((path, backup))
+            os.replace(tmp, path)
+    except BaseException:
+        for path, backup in reversed(backups):
+            if backup is not None:
+                os.replace(backup, path)
+            else:
+                path.unlink(missing_ok=True)
+        raise
+    for _, backup in backups:
+        if backup is not None:
+            backup.unlink(missing_ok=True)
 
 
 def numbered_folder(base: str | Path) -> Path:
@@ -272,6 +473,7 @@ def numbered_folder(base: str | Path) -> Path:
     return base.with_name(f"{base.name}-{i}")
 
 
-__all__ = ["MANIFEST", "Terminated", "check_output", "install_signal_handlers", "json_text",
-           "numbered_folder", "remove_stale_staging", "staged_folder", "to_jsonable",
-           "vectors_text", "write_atomic", "write_json", "write_text", "write_vectors"]
+__all__ = ["MANIFEST", "Terminated", "check_not_input", "check_output", "forget_written",
+           "install_signal_handlers", "json_text", "numbered_folder", "remove_stale_staging",
+           "staged_files", "staged_folder", "to_jsonable", "vectors_text", "write_atomic",
+           "write_json", "write_text", "write_vectors", "written_outputs"]

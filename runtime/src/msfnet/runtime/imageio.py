@@ -6,6 +6,7 @@ read TGA; Pillow reads TGA. So: OpenCV first, Pillow for what OpenCV cannot deco
 
 from __future__ import annotations
 
+import contextlib
 import re
 from collections.abc import Iterable
 from pathlib import Path
@@ -13,12 +14,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, first_line
 from .files import write_atomic
 
 # Refuse images above this many pixels from the header, before decoding (a decompression bomb:
 # a few KB of PNG that decodes to tens of GB). 250 MP is ~10x a large industrial sensor.
 MAX_PIXELS = 250_000_000
+
+# OpenCV logs decoder failures on stderr ("[ERROR:0@0.2] global grfmt_tiff.cpp ..."); msfnet
+# reports a bad file itself, in one line.
+with contextlib.suppress(AttributeError):  # older OpenCV has no logging module
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
+# What a complete file ends with. An interrupted copy is the commonest broken image; libjpeg
+# decodes a cut JPEG into grey rows with a warning on stderr, so catch it before decoding.
+_PNG_END = b"IEND\xaeB`\x82"
+_JPEG_END = b"\xff\xd9"
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".tga", ".jpg", ".jpeg", ".bmp", ".exr", ".pgm", ".ppm")
 
@@ -43,8 +54,10 @@ def list_images(folder: Path, exclude: Iterable[str] = ("mask", "normal", "albed
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image as H x W x 3 (RGB) or H x W, in its stored dtype (uint8/uint16/float32)."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise InputError("image file not found", path)
+    if not path.is_file():
+        raise InputError("not a regular file (expected an image)", path)
     _check_header(path)
     img = None if path.suffix.lower() == ".tga" else _read_with_opencv(path)
     if img is None:
@@ -56,8 +69,23 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def _check_complete(path: Path) -> None:
+    """Refuse PNG and JPEG files that stop before their end marker (truncated copies)."""
+    with open(path, "rb") as f:
+        head = f.read(8)
+        f.seek(0, 2)
+        size = f.tell()
+        f.seek(max(0, size - 64))
+        tail = f.read()
+    if head.startswith(b"\x89PNG") and _PNG_END not in tail:
+        raise InputError("truncated PNG (the file stops before its end marker)", path)
+    if head.startswith(b"\xff\xd8") and _JPEG_END not in tail:
+        raise InputError("truncated JPEG (the file stops before its end marker)", path)
+
+
 def _check_header(path: Path) -> None:
     """Read the size from the header (no decoding) and refuse absurd ones."""
+    _check_complete(path)
     try:
         from PIL import Image
 
@@ -88,7 +116,8 @@ def _read_with_pillow(path: Path) -> np.ndarray:
                 im = im.convert("RGB")
             return np.asarray(im)
     except Exception as exc:  # Pillow raises many types for corrupt files
-        raise InputError(f"cannot decode image ({type(exc).__name__}: {exc})", path) from exc
+        raise InputError(f"cannot decode image ({type(exc).__name__}: {first_line(exc)})",
+                         path) from exc
 
 
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:

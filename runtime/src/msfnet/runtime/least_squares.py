@@ -30,11 +30,9 @@ def least_squares_normals(stack: Stack, trim_shadows: float = 0.0,
     if not (0 <= trim_shadows < 1 and 0 <= trim_highlights < 1):
         raise InputError("trim fractions must lie in [0, 1)")
     h, w = stack.shape
-    n = stack.num_lights
     rows = h
     if max_memory_mb is not None:
-        budget = max(max_memory_mb * 2**20 - stack.images.nbytes, 0)
-        rows = max(MIN_ROWS, int(budget // max(w * n * BYTES_PER_PIXEL_LIGHT, 1)))
+        rows = rows_for_memory(max_memory_mb, stack)
     out = np.zeros((h, w, 3), np.float32)
     for r0 in range(0, h, rows):
         band = slice(r0, min(h, r0 + rows))
@@ -44,6 +42,24 @@ def least_squares_normals(stack: Stack, trim_shadows: float = 0.0,
                           trim_highlights)
             out[band][mask] = unit.T
     return out
+
+
+def rows_for_memory(max_memory_mb: float, stack: Stack) -> int:
+    """Image rows per band so that the loaded stack plus the band's working set fit in
+    ``max_memory_mb``; InputError (quoting the budget as given) when not even MIN_ROWS fit."""
+    if not (np.isfinite(max_memory_mb) and max_memory_mb > 0):
+        raise InputError(f"--max-memory must be a positive number of MB, got {max_memory_mb}")
+    h, w = stack.shape
+    per_row = w * stack.num_lights * BYTES_PER_PIXEL_LIGHT
+    stack_mb = stack.images.nbytes / 2**20
+    budget = max_memory_mb * 2**20 - stack.images.nbytes
+    rows = int(budget // per_row) if budget > 0 else 0
+    if rows < min(MIN_ROWS, h):
+        need = stack_mb + min(MIN_ROWS, h) * per_row / 2**20
+        raise InputError(f"--max-memory {max_memory_mb:g} MB is too small for least squares on "
+                         f"this stack: it takes {stack_mb:.1f} MB loaded and at least "
+                         f"{need:.1f} MB in all")
+    return min(rows, h)
 
 
 def _solve(pixels: np.ndarray, stack: Stack, trim_shadows: float,

@@ -7,27 +7,43 @@ import sys
 import time
 from pathlib import Path
 
+from msfnet.runtime.cliutil import (
+    int_range,
+    make_parser,
+    nonnegative_int,
+    positive_int,
+    run_command,
+)
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import write_atomic
+from msfnet.runtime.files import check_output, staged_folder
 from msfnet.runtime.stack import save_stack
 
 from .materials import ALL_KINDS
 from .render import PRESETS, RenderOptions, render_set
 from .shapes import ALL_SHAPES
 
+PROG = "msf-synth"
+MAX_SIZE = 4096  # px; one 4096^2 object with 32 lights is already 6 GB of float32 images
+MAX_LIGHTS = 1024
+
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="msf-synth",
-        description="Render synthetic photometric stacks (random shapes, spatially varying "
-                    "non-Lambertian materials, cast shadows, real-rig-like lights, sensor noise) "
-                    "with ground-truth normals, as DiLiGenT-layout folders plus objects.txt. "
-                    "Deterministic: the same --seed gives the same objects.")
+    p = make_parser(
+        PROG,
+        "Render synthetic photometric stacks (random shapes, spatially varying non-Lambertian "
+        "materials, cast shadows, real-rig-like lights, sensor noise) with ground-truth "
+        "normals, as DiLiGenT-layout folders plus objects.txt. Deterministic: the same --seed "
+        "gives the same objects. The whole root is written at once or not at all.",
+        ("msf-synth synth8/                       # 8 objects, 32 lights, 128 px",
+         "msf-synth big/ --objects 2 --size 256 --lights 96 --seed 3"))
     p.add_argument("outdir", type=Path, help="output benchmark root (one folder per object)")
-    p.add_argument("--objects", type=int, default=8, help="number of objects (default 8)")
-    p.add_argument("--lights", type=int, default=32, help="lights per object (default 32)")
-    p.add_argument("--size", type=int, default=128, help="image side in pixels (default 128)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--objects", type=positive_int, default=8,
+                   help="number of objects (default 8)")
+    p.add_argument("--lights", type=int_range(3, MAX_LIGHTS), default=32,
+                   help="lights per object (default 32)")
+    p.add_argument("--size", type=int_range(8, MAX_SIZE), default=128,
+                   help="image side in pixels (default 128)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default 0)")
     p.add_argument("--preset", choices=PRESETS, default="default",
                    help="'default' (the renderer the README's held-out figures used) or 'hard': "
                         "steep rims, folds and cups with inter-reflections, pixel-scale relief, "
@@ -42,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-noise", action="store_true", help="no sensor noise or quantisation")
     p.add_argument("--bit-depth", type=int, choices=(8, 16), default=16,
                    help="PNG bit depth (default 16)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing non-empty outdir")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output root (only one msf-synth wrote)")
     return p
 
 
@@ -58,11 +75,7 @@ def _names(spec: str, allowed: tuple[str, ...], what: str) -> tuple[str, ...]:
 def run(args: argparse.Namespace) -> list[str]:
     from tqdm import tqdm
 
-    if args.objects < 1 or args.lights < 3 or args.size < 8:
-        raise InputError("need --objects >= 1, --lights >= 3 and --size >= 8")
     out: Path = args.outdir
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
-        raise InputError("output folder exists and is not empty (pass --overwrite)", out)
     base = RenderOptions.preset(args.preset)
     shapes = base.shapes if args.shapes is None else _names(args.shapes, ALL_SHAPES, "shapes")
     materials = base.materials if args.materials is None else _names(args.materials, ALL_KINDS,
@@ -70,28 +83,33 @@ def run(args: argparse.Namespace) -> list[str]:
     options = RenderOptions.preset(args.preset, size=args.size, lights=args.lights,
                                    materials=materials, cast_shadows=not args.no_shadows,
                                    noise=not args.no_noise)
+    check_output(out, overwrite=args.overwrite, folder=True)
     names = []
     t0 = time.perf_counter()
-    for stack in tqdm(render_set(args.seed, args.objects, options, shapes=shapes),
-                      total=args.objects, desc="render", unit="obj"):
-        if args.bit_depth == 8:
-            stack.images = stack.images / 257.0
-        save_stack(stack, out / stack.name, bit_depth=args.bit_depth)
-        names.append(stack.name)
-    write_atomic(out / "objects.txt", lambda t: t.write_text("\n".join(names) + "\n"))
-    print(f"msf-synth: wrote {len(names)} objects ({args.lights} lights, {args.size}x{args.size}) "
-          f"to {out} in {time.perf_counter() - t0:.1f} s")
+    quiet = getattr(args, "quiet", False)
+    with staged_folder(out, overwrite=args.overwrite) as tmp:
+        for stack in tqdm(render_set(args.seed, args.objects, options, shapes=shapes),
+                          total=args.objects, desc="render", unit="obj",
+                          disable=quiet or not sys.stderr.isatty()):
+            if args.bit_depth == 8:
+                stack.images = stack.images / 257.0
+            save_stack(stack, tmp / stack.name, bit_depth=args.bit_depth)
+            names.append(stack.name)
+        (tmp / "objects.txt").write_text("\n".join(names) + "\n")
+    if not quiet:
+        print(f"msf-synth: wrote {len(names)} objects ({args.lights} lights, {args.size}x"
+              f"{args.size}) to {out} in {time.perf_counter() - t0:.1f} s")
     return names
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
+
+    def body() -> int:
         run(args)
-    except InputError as exc:
-        print(f"msf-synth: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+        return 0
+
+    return run_command(PROG, body, debug=args.debug)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ from .load import (
     LIGHTS_NAMES,
     MASK_NAMES,
     LoadOptions,
+    check_stack_size,
     load_folder,
     load_npz,
     load_stack,
@@ -18,6 +19,6 @@ from .transforms import auto_mask, parse_roi
 from .types import Stack, light_condition, unit_lights
 
 __all__ = ["GT_NAMES", "INTENSITY_NAMES", "LIGHTS_NAMES", "MASK_NAMES", "LoadOptions", "Stack",
-           "auto_mask", "evenly_spaced", "light_condition", "load_folder", "load_npz",
-           "load_stack", "parse_roi", "parse_select", "prepare_stack", "read_normals",
-           "read_vectors", "save_stack", "selection", "unit_lights"]
+           "auto_mask", "check_stack_size", "evenly_spaced", "light_condition", "load_folder",
+           "load_npz", "load_stack", "parse_roi", "parse_select", "prepare_stack",
+           "read_normals", "read_vectors", "save_stack", "selection", "unit_lights"]

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, first_line
 from ..imageio import list_images, read_image, read_mask
-from .readers import read_normals, read_vectors
+from .readers import read_normals, read_vectors, unit_normals
 from .select import selection
 from .transforms import Roi, Transforms, auto_mask
 from .types import Stack, check_intensities, check_lights, unit_lights
@@ -44,6 +44,8 @@ class LoadOptions:
     gamma: float | None = None  # undo a plain power-law encoding: linear = value ** gamma
     white_level: float | None = None  # full scale; default 255 / 65535 / 1.0 by image type
     auto_mask: bool = False  # mask from the stack itself (Otsu + morphology)
+    # refuse, before decoding, a stack whose float32 images alone exceed this (--max-memory)
+    max_memory_mb: float | None = None
 
     def __post_init__(self) -> None:
         self.transforms()  # refuse contradictory options before any decoding
@@ -68,8 +70,21 @@ def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
     return next((folder / n for n in names if (folder / n).is_file()), None)
 
 
+def check_stack_size(n: int, h: int, w: int, max_memory_mb: float | None,
+                     src: object = None) -> None:
+    """The loaded stack is float32 N x H x W x 3: refuse it up front if that alone is over the
+    memory budget (a 96-image full-resolution stack otherwise fills the memory while decoding,
+    before any later check can speak)."""
+    need = n * h * w * 3 * 4 / 2**20
+    if max_memory_mb is not None and need > max_memory_mb:
+        raise InputError(f"{n} images of {w}x{h} take {need:.0f} MB loaded, above --max-memory "
+                         f"{max_memory_mb:g} MB (use --select/--max-lights or a larger budget)",
+                         src)  # type: ignore[arg-type]
+
+
 def _read_images(paths: Sequence[Path], threads: int = 4,
-                 transforms: Transforms | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+                 transforms: Transforms | None = None,
+                 max_memory_mb: float | None = None) -> tuple[np.ndarray, tuple[int, int]]:
     """Decode in parallel (OpenCV releases the GIL), each image reduced by ``transforms`` in
     its thread; sizes and bit depths must all agree. Returns the images and the stored size."""
     transforms = transforms or Transforms()
@@ -81,8 +96,11 @@ def _read_images(paths: Sequence[Path], threads: int = 4,
         _check_float_scale(img, transforms, path)
         return transforms.image(img, path), img.dtype, img.shape[:2]
 
+    head = read(paths[0])
+    check_stack_size(len(paths), head[0].shape[0], head[0].shape[1], max_memory_mb,
+                     paths[0].parent)
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        imgs = list(pool.map(read, paths))
+        imgs = [head, *pool.map(read, paths[1:])]
     first, dtype0, shape0 = imgs[0]
     out = np.empty((len(imgs), first.shape[0], first.shape[1], 3), dtype=np.float32)
     for i, (p, (img, dtype, shape)) in enumerate(zip(paths, imgs, strict=True)):
@@ -171,7 +189,7 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
     light_dirs = unit_lights(light_dirs, lights_path)
     check_lights(light_dirs, lights_path)
     t = options.transforms()
-    images, hw = _read_images(paths, options.threads, t)
+    images, hw = _read_images(paths, options.threads, t, options.max_memory_mb)
     mask_path = None if options.auto_mask else options.mask or _first_existing(
         folder, MASK_NAMES) or next((p for p in sorted(folder.iterdir())
                                      if "mask" in p.stem.lower() and p.is_file()), None)
@@ -188,41 +206,91 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
                          [p.name for p in paths], folder), options)
 
 
+def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
+    arr = np.asarray(data[key])
+    if arr.dtype.kind not in "biuf":  # complex, strings, objects: not pixel values
+        raise InputError(f"npz array {key!r} has dtype {arr.dtype}; expected numbers", path)
+    return arr
+
+
+def _npz_shape(data: np.lib.npyio.NpzFile, key: str) -> tuple[int, ...]:
+    """An array's shape from its .npy header, without reading (or inflating) the data."""
+    assert data.zip is not None  # np.load of a zip file
+    with data.zip.open(f"{key}.npy") as f:
+        version = np.lib.format.read_magic(f)
+        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                else np.lib.format.read_array_header_2_0)
+        return tuple(read(f)[0])
+
+
 def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
     """An .npz with images (N,H,W,3) and lights (N,3); intensities, mask, normals optional."""
-    if not path.is_file():
+    if not path.exists():
         raise InputError("stack file not found", path)
+    if not path.is_file():
+        raise InputError("not a regular file (expected an .npz stack)", path)
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != b"PK\x03\x04":  # np.load would try unpickling anything else
+        raise InputError("not an .npz file (no zip header); expected arrays 'images' and "
+                         "'lights' saved with numpy.savez", path)
     try:
         data = np.load(path, allow_pickle=False)
         files = set(data.files)
         if not {"images", "lights"} <= files:
-            raise InputError("npz stack needs arrays 'images' and 'lights'", path)
-        images = np.asarray(data["images"], np.float32)
+            raise InputError("npz stack needs arrays 'images' and 'lights' (it has "
+                             f"{', '.join(sorted(files)) or 'none'})", path)
+        shape = _npz_shape(data, "images")
+        if len(shape) in (3, 4):  # before reading it: a zip may inflate to any size
+            check_stack_size(shape[0], shape[1], shape[2], options.max_memory_mb, path)
+        images = _npz_array(data, "images", path)
+        if images.ndim == 4 and images.shape[3] == 1:
+            images = images[..., 0]
         if images.ndim == 3:
             images = np.repeat(images[..., None], 3, axis=3)
-        if images.ndim != 4:
+        if images.ndim != 4 or images.shape[3] != 3 or 0 in images.shape:
             raise InputError(f"npz images must be N x H x W (x 3), got {images.shape}", path)
         n, h, w = images.shape[:3]
-        lights = np.asarray(data["lights"], np.float32)
-        ints = (np.asarray(data["intensities"], np.float32) if "intensities" in files
+        lights = _npz_array(data, "lights", path)
+        ints = (_npz_array(data, "intensities", path) if "intensities" in files
                 else np.ones((n, 3), np.float32))
-        mask = np.asarray(data["mask"]).astype(bool) if "mask" in files else np.ones((h, w), bool)
-        gt = np.asarray(data["normals"], np.float32) if "normals" in files else None
+        mask = _npz_array(data, "mask", path) if "mask" in files else np.ones((h, w), bool)
+        gt = _npz_array(data, "normals", path) if "normals" in files else None
+        # float64 values beyond float32's range would become inf below: refuse them here
+        for key, arr in (("images", images), ("lights", lights), ("intensities", ints)):
+            if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:
+                big = np.abs(arr[np.isfinite(arr)], dtype=np.float64)
+                if big.size and big.max() > np.finfo(np.float32).max:
+                    raise InputError(f"npz {key} hold values beyond the float32 range", path)
+        images = images.astype(np.float32)
     except InputError:
         raise
-    except Exception as exc:
-        raise InputError(f"cannot read npz stack ({exc})", path) from exc
+    except Exception as exc:  # zip errors, bad headers, truncated members
+        raise InputError(f"cannot read npz stack ({first_line(exc)})", path) from exc
     if options.lights is not None:
         lights = read_vectors(options.lights, "light directions")
     if options.intensities is not None:
         ints = read_vectors(options.intensities, "light intensities")
+    lights_src = options.lights or path
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise InputError(f"light directions must have 3 numbers per row, got shape "
+                         f"{lights.shape}", lights_src)
+    if len(lights) != n:
+        raise InputError(f"{n} images but {len(lights)} light directions", lights_src)
+    ints = np.asarray(ints, np.float32)
+    if ints.shape != (n, 3):
+        raise InputError(f"{n} images but light intensities of shape {ints.shape} (expected "
+                         f"{n} x 3)", options.intensities or path)
     if options.mask is not None:
         mask = read_mask(options.mask, (h, w))
-    if len(lights) != n:
-        raise InputError(f"{n} images but {len(lights)} light directions",
-                         options.lights or path)
-    stack = Stack(path.stem, images, unit_lights(lights, options.lights or path), ints, mask,
-                  gt, [], path).validate()
+    elif mask.shape != (h, w):
+        raise InputError(f"npz mask is {mask.shape} but images are {(h, w)}", path)
+    if gt is not None:
+        if gt.shape != (h, w, 3):
+            raise InputError(f"npz normals are {gt.shape}, expected {(h, w, 3)}", path)
+        gt = unit_normals(gt)
+    stack = Stack(path.stem, images, unit_lights(lights, lights_src), ints,
+                  np.asarray(mask).astype(bool), gt, [], path).validate()
     # the files are read: the rest is what prepare_stack does to any in-memory stack
     return prepare_stack(stack, replace(options, lights=None, intensities=None, mask=None))
 

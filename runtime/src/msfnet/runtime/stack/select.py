@@ -25,19 +25,27 @@ def parse_select(spec: str, n: int) -> list[int]:
                 lo, hi = int(a) if a.strip() else 1, int(b) if b.strip() else n
                 if hi < lo:
                     raise InputError(f"--select {spec!r}: range {part} runs backwards")
+                # check the ends before expanding: "1-999999999999" must not fill the memory
+                for end in (lo, hi):
+                    if not 1 <= end <= n:
+                        raise InputError(f"--select {spec!r}: index {end} is outside 1..{n}")
                 out.extend(range(lo - 1, hi))
             else:
                 out.append(int(part) - 1)
         except ValueError as exc:
             raise InputError(usage) from exc
+        if len(out) > n:  # more picks than images: some image repeats
+            break
     if not out:
         raise InputError(usage)
     bad = [i + 1 for i in out if not 0 <= i < n]
     if bad:
         raise InputError(f"--select {spec!r}: index {bad[0]} is outside 1..{n}")
-    if len(set(out)) != len(out):
-        dup = next(i + 1 for i in out if out.count(i) > 1)
-        raise InputError(f"--select {spec!r}: image {dup} is selected more than once")
+    seen: set[int] = set()
+    for i in out:
+        if i in seen:
+            raise InputError(f"--select {spec!r}: image {i + 1} is selected more than once")
+        seen.add(i)
     return out
 
 

@@ -14,6 +14,12 @@ from ..errors import InputError
 # components (e.g. all lights nearly parallel): least squares and the network both degrade.
 MAX_LIGHT_CONDITION = 1e4
 INTENSITY_RANGE = (1e-6, 1e6)  # relative to the median intensity
+# The brightest image value divided by its light's intensity must lie in this range: above it,
+# squares summed over the lights overflow float32 in the network's normalisation (inf -> NaN
+# normals); below it, the normalisation's +1e-10 dominates and the network sees a dimmed input.
+# Pixel values and intensities each pass their own checks and still break it together
+# (intensities of 1e-40: every one equal, so none is out of line with the others).
+SIGNAL_RANGE = (1e-6, 1e15)
 
 
 @dataclass
@@ -46,6 +52,8 @@ class Stack:
         images = np.asarray(images)
         if images.ndim == 3:
             images = np.repeat(images[..., None], 3, axis=3)
+        if images.ndim != 4:
+            raise InputError(f"images must be N x H x W (x 3), got shape {images.shape}", name)
         n, h, w = images.shape[:3]
         stack = cls(name, images, unit_lights(np.asarray(lights, np.float32), name),
                     np.ones((n, 3), np.float32) if intensities is None
@@ -93,14 +101,45 @@ class Stack:
         if self.normals_gt is not None and self.normals_gt.shape != (*self.shape, 3):
             raise InputError(f"ground-truth normals are {self.normals_gt.shape}, images "
                              f"{self.shape}", src)
-        if np.issubdtype(self.images.dtype, np.floating):
-            # one pass each over the (possibly large) stack; integer images cannot fail these
-            if not np.isfinite(self.images).all():
-                raise InputError("images contain NaN or infinite pixel values", src)
-            if (self.images < 0).any():
-                raise InputError("images contain negative pixel values (expected linear "
-                                 "intensities >= 0)", src)
+        if self.mask.dtype != np.bool_:
+            raise InputError(f"mask must be boolean, got {self.mask.dtype}", src)
+        self._check_pixels(src)
+        if self.normals_gt is not None:
+            gt = self.normals_gt
+            unit = np.isfinite(gt).all(axis=-1) & (np.abs(np.linalg.norm(
+                np.nan_to_num(gt), axis=-1) - 1) < 0.05)
+            if not (unit & self.mask).any():
+                raise InputError("the ground-truth normals hold no unit vector inside the mask "
+                                 "(all zero, or not normals): nothing to score against", src)
         return self
+
+    def _check_pixels(self, src: object) -> None:
+        """Values the estimators cannot use: NaN/inf, negatives, a stack that is black inside
+        the mask (every normal would be a guess) or outside SIGNAL_RANGE. One light at a time,
+        so the check needs no stack-sized temporary."""
+        kind = self.images.dtype.kind
+        if kind not in "biuf":
+            raise InputError(f"images have dtype {self.images.dtype}; expected numbers",
+                             src)  # type: ignore[arg-type]
+        peak = np.zeros(self.num_lights)
+        for i, img in enumerate(self.images):
+            if kind == "f" and not np.isfinite(img).all():
+                raise InputError(f"images contain NaN or infinite pixel values (image {i + 1})",
+                                 src)  # type: ignore[arg-type]
+            if kind in "fi" and img.min() < 0:
+                raise InputError(f"images contain negative pixel values (image {i + 1}; "
+                                 "expected linear intensities >= 0)", src)  # type: ignore[arg-type]
+            peak[i] = float(img[self.mask].max())
+        if not peak.any():
+            raise InputError("every image is black (zero) inside the mask: nothing to estimate "
+                             "normals from", src)  # type: ignore[arg-type]
+        ratio = peak[:, None] / self.intensities.astype(np.float64)  # (N, 3)
+        top = float(ratio.max())
+        lo, hi = SIGNAL_RANGE
+        if not lo <= top <= hi:
+            raise InputError(f"brightest pixel / light intensity is {top:.3g}, outside "
+                             f"{lo:g}..{hi:g}: rescale the images or check the intensities' "
+                             "units", src)  # type: ignore[arg-type]
 
 
 def unit_lights(lights: np.ndarray, src: object = None) -> np.ndarray:

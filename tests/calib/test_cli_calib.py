@@ -1,0 +1,240 @@
+"""msf-calib on careless and hostile input: all outputs or none, never over existing files or
+inputs without --overwrite, one-line errors, no hang.
+
+A small synthetic mirror-sphere capture (6 lights, 96 x 80 px) stands in for a real one.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msfnet.calib import cli
+from msfnet.runtime.files import STAGING_TAG
+from msfnet.runtime.imageio import write_png
+from msfnet.runtime.stack import read_vectors
+from msfnet.synth import spheres as S
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    lights = S.ring_lights(6, (15, 55), seed=3)
+    scene = S.mirror_scene(96, 80, 30)
+    scene.ss = 1
+    folder = tmp_path_factory.mktemp("capture") / "chrome"
+    folder.mkdir()
+    for i, light in enumerate(lights):
+        write_png(folder / f"{i + 1:02d}.png",
+                  S.expose(S.render(scene, light), 1.0, 8, 1.0, np.random.default_rng(i)))
+    write_png(folder / "mask.png", S.sphere_masks(scene)[0].astype(np.uint8) * 255)
+    return folder
+
+
+@pytest.fixture
+def chrome(capture: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(capture, tmp_path / "chrome"))
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def _one_line(capfd, words: list[str]) -> str:
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("msf-calib") and "error:" in err[0], err
+    for word in words:
+        assert word in err[0], (word, err[0])
+    return err[0]
+
+
+def test_directions_writes_all_three_outputs(chrome: Path, tmp_path: Path, capfd) -> None:
+    out = tmp_path / "res" / "l.txt"
+    assert cli.main(["directions", str(chrome), "-o", str(out), "-q"]) == 0
+    assert capfd.readouterr().out == ""  # -q
+    assert read_vectors(out, "l").shape == (6, 3)
+    assert len((tmp_path / "res" / "l_confidence.txt").read_text().splitlines()) == 6
+    assert (tmp_path / "res" / "l_diagnostic.png").stat().st_size > 0
+    for p in (tmp_path / "res").iterdir():  # umask permissions, not mkstemp's 0600
+        assert p.stat().st_mode & 0o077 != 0, p
+
+
+# name: (prepare(tmp, chrome) -> extra argv, words) -- every case: exit 2, one line,
+# nothing created and nothing changed
+REFUSED: dict[str, tuple[Callable[[Path, Path], list[str]], list[str]]] = {
+    "confidence file exists": (lambda t, c: _existing(t / "l_confidence.txt"),
+                               ["l_confidence.txt", "--overwrite"]),
+    "diagnostic exists": (lambda t, c: _existing(t / "l_diagnostic.png"),
+                          ["l_diagnostic.png", "--overwrite"]),
+    "--diagnostic target exists": (lambda t, c: ["--diagnostic", _make(t / "mine.png")[0]],
+                                   ["mine.png", "--overwrite"]),
+    "lights file exists": (lambda t, c: _existing(t / "l.txt"), ["l.txt", "--overwrite"]),
+    "--diagnostic is an input image": (lambda t, c: ["--diagnostic", str(c / "01.png"),
+                                                     "--overwrite"], ["input"]),
+    "--diagnostic is the mask": (lambda t, c: ["--diagnostic", str(c / "mask.png"),
+                                               "--overwrite"], ["input"]),
+    "--diagnostic is the lights file": (lambda t, c: ["-o", str(t / "d.png"), "--diagnostic",
+                                                      str(t / "d.png")], ["same file"]),
+    "--diagnostic not an image name": (lambda t, c: ["--diagnostic", str(t / "d.txt")],
+                                       [".png"]),
+    "--diagnostic under a file": (lambda t, c: ["--diagnostic",
+                                                str(Path(_make(t / "f")[0]) / "d.png")],
+                                  ["is a file, not a folder"]),
+    "--intrinsics 0 0 0 0": (lambda t, c: ["--intrinsics", "0", "0", "0", "0"], ["positive"]),
+    "--focal with --intrinsics": (lambda t, c: ["--focal", "100", "--intrinsics", "100", "100",
+                                                "40", "40"], ["contradict"]),
+    "8-bit and 16-bit frames": (lambda t, c: _sixteen_bit(c / "03.png"), ["03.png", "uint16"]),
+    "ambient of another size": (lambda t, c: _ambient(c, (10, 10)), ["ambient"]),
+    "no sphere in the mask": (lambda t, c: _empty_mask(c), ["no sphere"]),
+}
+
+
+def _make(path: Path) -> list[str]:
+    path.write_text("the user's file")
+    return [str(path)]
+
+
+def _existing(path: Path) -> list[str]:
+    """A file of the user's where msf-calib would write one of its outputs (no extra args)."""
+    _make(path)
+    return []
+
+
+def _sixteen_bit(path: Path) -> list[str]:
+    from msfnet.runtime.imageio import read_image
+
+    write_png(path, read_image(path).astype(np.uint16) * 257)
+    return []
+
+
+def _ambient(folder: Path, shape: tuple[int, int]) -> list[str]:
+    write_png(folder / "ambient.png", np.zeros((*shape, 3), np.uint8))
+    return []
+
+
+def _empty_mask(folder: Path) -> list[str]:
+    write_png(folder / "mask.png", np.zeros((80, 96), np.uint8))
+    return []
+
+
+@pytest.mark.parametrize("case", sorted(REFUSED))
+def test_directions_refused(case: str, chrome: Path, tmp_path: Path, capfd) -> None:
+    prepare, words = REFUSED[case]
+    extra = prepare(tmp_path, chrome)
+    before = _files(tmp_path)
+    out = [] if "-o" in extra else ["-o", str(tmp_path / "l.txt")]
+    assert cli.main(["directions", str(chrome), *out, *extra]) == 2
+    _one_line(capfd, words)
+    assert _files(tmp_path) == before
+    assert not [p for p in tmp_path.rglob("*") if STAGING_TAG in p.name]
+
+
+@pytest.mark.parametrize("target", ["01.png", "sub/l.txt"])
+def test_output_never_replaces_or_lands_in_an_input(target: str, chrome: Path, capfd) -> None:
+    before = _files(chrome.parent)
+    assert cli.main(["directions", str(chrome), "-o", str(chrome / target), "--overwrite"]) == 2
+    _one_line(capfd, ["input"])
+    assert _files(chrome.parent) == before
+
+
+def test_unwritable_diagnostic_leaves_no_lights_file(chrome: Path, tmp_path: Path,
+                                                     monkeypatch, capfd) -> None:
+    """The diagnostic image fails to encode after the lights were computed: no output at all
+    (the lights file used to be written first and left behind)."""
+    monkeypatch.setattr(cli.cv2, "imwrite", lambda *a, **k: False)
+    out = tmp_path / "res" / "l.txt"
+    assert cli.main(["directions", str(chrome), "-o", str(out), "-q"]) == 2
+    _one_line(capfd, ["diagnostic"])
+    assert not (tmp_path / "res").exists()
+
+
+def test_overwrite_replaces_every_output_together(chrome: Path, tmp_path: Path) -> None:
+    out = tmp_path / "l.txt"
+    for name in ("l.txt", "l_confidence.txt", "l_diagnostic.png"):
+        (tmp_path / name).write_text("old")
+    assert cli.main(["directions", str(chrome), "-o", str(out), "--overwrite", "-q"]) == 0
+    assert all((tmp_path / n).read_bytes() != b"old" for n in ("l.txt", "l_confidence.txt",
+                                                                "l_diagnostic.png"))
+    assert read_vectors(out, "l").shape == (6, 3)
+
+
+def test_several_captures_name_their_diagnostics(chrome: Path, tmp_path: Path) -> None:
+    second = Path(shutil.copytree(chrome, tmp_path / "chrome2"))
+    diag = tmp_path / "d" / "diag.png"
+    assert cli.main(["directions", str(chrome), str(second), "-o", str(tmp_path / "l.txt"),
+                     "--diagnostic", str(diag), "-q"]) == 0
+    assert sorted(p.name for p in diag.parent.iterdir()) == ["diag_1.png", "diag_2.png"]
+
+
+def test_ctrl_c_writes_nothing(chrome: Path, tmp_path: Path, monkeypatch, capfd) -> None:
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "estimate_directions", interrupted)
+    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "l.txt")]) == 130
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err == ["msf-calib: interrupted; nothing was written"], err
+    assert not (tmp_path / "l.txt").exists()
+
+
+def test_intrinsics_zero_does_not_hang(chrome: Path, tmp_path: Path) -> None:
+    """Issue 13: a subprocess with a timeout, so the old hang fails instead of blocking."""
+    proc = subprocess.run([sys.executable, "-m", "msfnet.calib.cli", "directions", str(chrome),
+                           "-o", str(tmp_path / "l.txt"), "--intrinsics", "0", "0", "0", "0"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert not (tmp_path / "l.txt").exists()
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
+def test_library_rejects_broken_intrinsics_and_nan_fits() -> None:
+    from msfnet.calib.directions import Intrinsics, sphere_geometry
+    from msfnet.calib.sphere import Circle, fit_circle
+    from msfnet.runtime.errors import InputError
+
+    with pytest.raises(InputError, match="positive focal"):
+        Intrinsics(0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(InputError, match="non-finite"):
+        fit_circle(np.array([0.0, 1.0, np.nan, 2.0]), np.array([0.0, 1.0, 2.0, 0.0]))
+    with pytest.raises(InputError, match="non-finite"):
+        sphere_geometry(Circle(40.0, 40.0, np.inf), np.array([40.0]), np.array([40.0]),
+                        Intrinsics(100.0, 100.0, 40.0, 40.0))
+
+
+# ---------------------------------------------------------------------------- intensities
+
+def _intensity_args(chrome: Path, tmp_path: Path, *extra: str) -> list[str]:
+    lights = tmp_path / "dirs.txt"
+    if not lights.exists():
+        lights.write_text("".join(f"{a} {b} {c}\n" for a, b, c in S.ring_lights(6, (15, 55),
+                                                                                seed=3)))
+    return ["intensities", str(chrome), "--lights", str(lights), *extra]
+
+
+INTENSITY_REFUSED: dict[str, tuple[list[str], list[str]]] = {
+    "plane normal zero": (["--target", "plane", "--normal", "0", "0", "0"], ["--normal"]),
+    "plane facing away": (["--target", "plane", "--normal", "0", "0", "-1"], ["face the camera"]),
+    "output is the lights file": (["-o", "{lights}", "--overwrite"], ["input"]),
+    "output exists": (["-o", "{existing}"], ["--overwrite"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(INTENSITY_REFUSED))
+def test_intensities_refused(case: str, chrome: Path, tmp_path: Path, capfd) -> None:
+    extra, words = INTENSITY_REFUSED[case]
+    argv = _intensity_args(chrome, tmp_path)
+    (tmp_path / "existing.txt").write_text("keep")
+    subst = {"{lights}": str(tmp_path / "dirs.txt"), "{existing}": str(tmp_path / "existing.txt")}
+    extra = [subst.get(a, a) for a in extra]
+    if "-o" not in extra:
+        extra += ["-o", str(tmp_path / "ints.txt")]
+    before = _files(tmp_path)
+    assert cli.main([*argv, *extra]) == 2
+    _one_line(capfd, words)
+    assert _files(tmp_path) == before

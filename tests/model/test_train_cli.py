@@ -1,0 +1,114 @@
+"""msf-train on careless input: --out never an input nor holding one, --overwrite deletes only
+msf-train's own files, a damaged config.json is one line; all before any training."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+
+from msfnet.model.train_cli import main as train_main
+
+
+def _foreign(t: Path) -> Path:
+    (t / "notes.txt").write_text("mine")
+    return t
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def _ckpt(t: Path) -> Path:
+    path = t / "weights.pth"
+    path.write_bytes(b"pretend checkpoint")
+    return path
+
+
+def _data(t: Path) -> Path:
+    folder = t / "blobby"
+    folder.mkdir()
+    (folder / "list.txt").write_text("x\n")
+    return folder
+
+
+def _old_run(t: Path, *extra: str) -> Path:
+    out = t / "run"
+    out.mkdir()
+    for name in ("config.json", "last.pth", "log.jsonl", *extra):
+        (out / name).write_text("{}" if name.endswith(".json") else "x")
+    return out
+
+
+# name: (build(tmp) -> argv, words in the error)
+REFUSED: dict[str, tuple[Callable[[Path], list[str]], list[str]]] = {
+    "--out is the --init checkpoint": (lambda t: ["--out", str(_ckpt(t)), "--init",
+                                                  str(t / "weights.pth"), "--overwrite"],
+                                       ["replace an input"]),
+    "--out holds the --init checkpoint": (lambda t: ["--out", str(t), "--init", str(_ckpt(t)),
+                                                     "--overwrite"], ["contains the input"]),
+    "--out holds the --data folder": (lambda t: ["--out", str(t), "--data", str(_data(t)),
+                                                 "--overwrite"], ["contains the input"]),
+    "--out inside the --data folder": (lambda t: ["--out", str(_data(t) / "run"), "--data",
+                                                  str(t / "blobby")], ["inside the input"]),
+    "--out is a file": (lambda t: ["--out", str(_ckpt(t))], ["not a folder"]),
+    "--overwrite over a foreign file": (lambda t: ["--out", str(_old_run(t, "thesis.tex")),
+                                                   "--overwrite"], ["thesis.tex", "did not"]),
+    "non-empty without --overwrite": (lambda t: ["--out", str(_old_run(t))], ["--resume"]),
+    "--resume and --overwrite": (lambda t: ["--out", str(_old_run(t)), "--resume",
+                                            "--overwrite"], ["contradict"]),
+    "--resume in a folder of other files": (lambda t: ["--out", str(_foreign(t)), "--resume"],
+                                             ["no msf-train run", "notes.txt"]),
+    "--resume with binary config.json": (lambda t: ["--out", str(_damaged(t, b"\xff\xfe\x00")),
+                                                    "--resume"], ["damaged"]),
+    "--resume with a list as config": (lambda t: ["--out", str(_damaged(t, b"[1, 2]")),
+                                                  "--resume"], ["not an msf-train"]),
+    "--resume with unknown keys": (lambda t: ["--out", str(_damaged(t, b'{"epochz": 3}')),
+                                              "--resume"], ["epochz"]),
+    "--data neither synth nor a folder": (lambda t: ["--out", str(t / "r"), "--data",
+                                                     str(t / "nowhere")], ["--data"]),
+}
+
+
+def _damaged(t: Path, content: bytes) -> Path:
+    out = t / "run"
+    out.mkdir()
+    (out / "config.json").write_bytes(content)
+    return out
+
+
+@pytest.mark.parametrize("case", sorted(REFUSED))
+def test_train_refuses_before_training(case: str, tmp_path: Path, capfd) -> None:
+    build, words = REFUSED[case]
+    argv = build(tmp_path)
+    before = _files(tmp_path)
+    assert train_main([*argv, "--no-progress"]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-train: error: "), err
+    for word in words:
+        assert word in err[0], (word, err[0])
+    assert _files(tmp_path) == before
+
+
+def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> None:
+    """--overwrite over an earlier run clears its files (and nothing else) before training."""
+    from msfnet.model import train_cli
+
+    out = _old_run(tmp_path, "best.pth", "curve.png", ".last.pth.msf-partial-1-x.pth")
+    started = []
+
+    class Stop(Exception):
+        pass
+
+    def trainer(cfg, resume):  # stop where training would start
+        started.append(sorted(p.name for p in out.iterdir()))
+        raise Stop
+
+    monkeypatch.setattr(train_cli, "Trainer", trainer)
+    with pytest.raises(Stop):
+        train_cli._run(train_cli.build_parser().parse_args(["--out", str(out), "--overwrite"]),
+                       None)
+    assert started == [[]]

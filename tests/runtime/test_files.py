@@ -1,0 +1,322 @@
+"""The write rules every command shares (runtime/files.py), case by case.
+
+Never over an input, never over existing data without --overwrite (and then only over msfnet's
+own folders), all or nothing (staging removed on errors and signals, stale staging of killed
+runs removed), concurrent commits never mix, umask permissions.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from msfnet.runtime import files
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import (
+    MANIFEST,
+    STAGING_TAG,
+    check_output,
+    remove_stale_staging,
+    staged_files,
+    staged_folder,
+    write_atomic,
+    write_text,
+    written_outputs,
+)
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.rglob("*") if STAGING_TAG in p.name)
+
+
+def _msfnet_folder(path: Path, names: tuple[str, ...] = ("a.txt",)) -> Path:
+    with staged_folder(path, overwrite=True) as tmp:
+        for n in names:
+            (tmp / n).write_text(n)
+    return path
+
+
+# ---------------------------------------------------------------------------- check_output
+
+def _tree(tmp: Path) -> dict[str, Path]:
+    stack = tmp / "data" / "stack"
+    stack.mkdir(parents=True)
+    (stack / "001.png").write_bytes(b"x")
+    lights = tmp / "data" / "lights.txt"
+    lights.write_text("0 0 1\n")
+    (tmp / "a_file").write_text("not a folder")
+    (tmp / "a_dir").mkdir()
+    (tmp / "link_to_stack").symlink_to(stack)
+    (tmp / "link_to_lights").symlink_to(lights)
+    return {"stack": stack, "lights": lights}
+
+
+# name: (target relative to tmp, folder output?, --overwrite?, words of the refusal)
+REFUSED: dict[str, tuple[str, bool, bool, str]] = {
+    "output is the input file": ("data/lights.txt", False, True, "replace an input"),
+    "output is the input folder": ("data/stack", True, True, "replace an input"),
+    "output folder contains the input (parent)": ("data", True, True, "contains the input"),
+    "output inside the input folder": ("data/stack/res", True, False, "inside the input"),
+    "file output inside the input folder": ("data/stack/l.txt", False, False, "inside the input"),
+    "symlink to the input file": ("link_to_lights", False, True, "replace an input"),
+    "inside the input through a symlink": ("link_to_stack/res", True, False, "inside the input"),
+    "parent path is a file": ("a_file/out", True, False, "is a file, not a folder"),
+    "deeper under a file": ("a_file/x/y/out.txt", False, False, "is a file, not a folder"),
+    "file output exists": ("a_file", False, False, "--overwrite"),
+    "folder output is an existing file": ("a_file", True, True, "not a folder"),
+    "file output is an existing folder": ("a_dir", False, True, "is a folder"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(REFUSED))
+def test_check_output_refuses(case: str, tmp_path: Path) -> None:
+    inputs = _tree(tmp_path)
+    target, folder, overwrite, words = REFUSED[case]
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    with pytest.raises(InputError, match=words):
+        check_output(tmp_path / target, inputs.values(), overwrite=overwrite, folder=folder)
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+def test_check_output_folder_rules(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    check_output(out, folder=True)  # new
+    out.mkdir()
+    check_output(out, folder=True)  # empty: fine without --overwrite
+    (out / "mine.txt").write_text("the user's")
+    with pytest.raises(InputError, match="--overwrite"):
+        check_output(out, folder=True)
+    with pytest.raises(InputError, match=r"did not write.*mine\.txt"):
+        check_output(out, folder=True, overwrite=True)
+    (out / "mine.txt").unlink()
+    _msfnet_folder(out)
+    check_output(out, folder=True, overwrite=True)  # msfnet's own: may be replaced
+    (out / "added.txt").write_text("by hand")  # ... until someone adds a file to it
+    with pytest.raises(InputError, match=r"added\.txt"):
+        check_output(out, folder=True, overwrite=True)
+
+
+def test_check_output_unwritable_parent_before_any_work(tmp_path: Path, monkeypatch) -> None:
+    """A read-only destination is reported by the check, not after the computation (root can
+    write anywhere, so the permission answer is simulated)."""
+    real_access = os.access
+    monkeypatch.setattr(files.os, "access", lambda p, mode: False if Path(p) == tmp_path
+                        else real_access(p, mode))
+    with pytest.raises(InputError, match="not writable"):
+        check_output(tmp_path / "out", folder=True)
+
+
+# ---------------------------------------------------------------------------- permissions
+
+def _write_each(kind: str, target: Path) -> list[Path]:
+    """Write with one helper; return the paths whose mode to check."""
+    if kind == "write_text":
+        write_text(target, "x")
+        return [target]
+    if kind == "write_atomic":
+        write_atomic(target, lambda t: t.write_bytes(b"x"))
+        return [target]
+    if kind == "staged_files":
+        with staged_files([target, target.with_name("b.txt")]) as temps:
+            for t in temps:
+                t.write_text("x")
+        return [target, target.with_name("b.txt")]
+    with staged_folder(target) as tmp:
+        (tmp / "f.txt").write_text("x")
+    return [target, target / "f.txt", target / MANIFEST]
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+@pytest.mark.parametrize("kind", ["write_text", "write_atomic", "staged_files", "staged_folder"])
+def test_outputs_follow_the_umask(kind: str, umask: int, tmp_path: Path) -> None:
+    old = os.umask(umask)
+    try:
+        paths = _write_each(kind, tmp_path / "out" / "a.txt")
+    finally:
+        os.umask(old)
+    for p in paths:
+        want = (0o777 if p.is_dir() else 0o666) & ~umask
+        assert p.stat().st_mode & 0o777 == want, (p, oct(p.stat().st_mode))
+    assert not _leftovers(tmp_path)
+
+
+# ---------------------------------------------------------------------------- all or nothing
+
+class Boom(Exception):
+    pass
+
+
+def _fail(_: Path) -> None:
+    raise Boom
+
+
+FAILING_WRITES: dict[str, Callable[[Path], None]] = {
+    "write_atomic": lambda p: write_atomic(p / "new" / "deeper" / "a.txt", _fail),
+    "staged_folder": lambda p: _staged_folder_failing(p / "new" / "deeper" / "out"),
+    "staged_files (second file fails)": lambda p: _staged_files_failing(p / "new" / "d" / "a.txt"),
+}
+
+
+def _staged_folder_failing(out: Path) -> None:
+    with staged_folder(out) as tmp:
+        (tmp / "half.npy").write_bytes(b"half")
+        raise Boom
+
+
+def _staged_files_failing(first: Path) -> None:
+    with staged_files([first, first.parent / "b.png"]) as temps:
+        temps[0].write_text("complete")
+        raise Boom
+
+
+@pytest.mark.parametrize("case", sorted(FAILING_WRITES))
+def test_failed_write_leaves_nothing(case: str, tmp_path: Path) -> None:
+    """Not the output, not a staging file, not even the folders created for it."""
+    with pytest.raises(Boom):
+        FAILING_WRITES[case](tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_staged_files_keeps_old_versions_on_failure(tmp_path: Path) -> None:
+    a, b = tmp_path / "l.txt", tmp_path / "l_confidence.txt"
+    a.write_text("old a")
+    b.write_text("old b")
+    with pytest.raises(Boom), staged_files([a, b], overwrite=True) as temps:
+        temps[0].write_text("new a")
+        raise Boom
+    assert (a.read_text(), b.read_text()) == ("old a", "old b")
+    assert not _leftovers(tmp_path)
+
+
+def test_staged_files_rolls_back_a_failed_rename(tmp_path: Path, monkeypatch) -> None:
+    """The second rename fails (disk trouble): the first target gets its old version back."""
+    a, b = tmp_path / "l.txt", tmp_path / "d.png"
+    a.write_text("old a")
+    real_replace = os.replace
+    calls: list[tuple[str, str]] = []
+
+    def replace(src, dst):  # moves: a aside, new a in place, then fail on b's rename
+        calls.append((str(src), str(dst)))
+        if Path(dst) == b:
+            raise OSError(28, "No space left on device", str(b))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(files.os, "replace", replace)
+    with pytest.raises(OSError), staged_files([a, b], overwrite=True) as temps:
+        temps[0].write_text("new a")
+        temps[1].write_text("new b")
+    assert a.read_text() == "old a" and not b.exists()
+    assert not _leftovers(tmp_path)
+
+
+def test_staged_files_refuses_existing_and_duplicate_targets(tmp_path: Path) -> None:
+    a = tmp_path / "a.txt"
+    with pytest.raises(InputError, match="same file"), staged_files([a, tmp_path / "." / "a.txt"]):
+        pass
+    a.write_text("user data")
+    with pytest.raises(InputError, match="appeared while running"), \
+            staged_files([tmp_path / "b.txt", a]) as temps:
+        for t in temps:
+            t.write_text("new")
+    assert a.read_text() == "user data" and not (tmp_path / "b.txt").exists()
+    assert not _leftovers(tmp_path)
+
+
+# ---------------------------------------------------------------------------- concurrency
+
+def test_concurrent_folder_writers_never_mix(tmp_path: Path) -> None:
+    """Both passed the up-front check, both staged; the first commit wins and the second is
+    told, its staging removed: never a folder with files of both."""
+    out = tmp_path / "out"
+    first = staged_folder(out)
+    second = staged_folder(out)
+    tmp1, tmp2 = first.__enter__(), second.__enter__()
+    (tmp1 / "normals.npy").write_text("run 1")
+    (tmp1 / "only_in_1.txt").write_text("run 1")
+    (tmp2 / "normals.npy").write_text("run 2")
+    first.__exit__(None, None, None)
+    with pytest.raises(InputError, match=r"appeared while running.*--overwrite"):
+        second.__exit__(None, None, None)
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "normals.npy", "only_in_1.txt"]
+    assert (out / "normals.npy").read_text() == "run 1"
+    assert not _leftovers(tmp_path)
+
+
+def test_concurrent_overwriters_replace_whole_folders(tmp_path: Path) -> None:
+    out = _msfnet_folder(tmp_path / "out", ("old.txt",))
+    first, second = staged_folder(out, overwrite=True), staged_folder(out, overwrite=True)
+    tmp1, tmp2 = first.__enter__(), second.__enter__()
+    (tmp1 / "only_in_1.txt").write_text("1")
+    (tmp2 / "only_in_2.txt").write_text("2")
+    first.__exit__(None, None, None)
+    second.__exit__(None, None, None)
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "only_in_2.txt"]
+    assert json.loads((out / MANIFEST).read_text())["files"] == ["only_in_2.txt"]
+    assert not _leftovers(tmp_path)
+
+
+def test_write_atomic_without_overwrite_refuses_a_file_that_appeared(tmp_path: Path) -> None:
+    path = tmp_path / "l.txt"
+
+    def meanwhile(tmp: Path) -> None:
+        tmp.write_text("ours")
+        path.write_text("another command's")  # appears while we are writing
+
+    with pytest.raises(InputError, match="appeared while running"):
+        write_atomic(path, meanwhile, overwrite=False)
+    assert path.read_text() == "another command's" and not _leftovers(tmp_path)
+
+
+def test_signal_during_commit_is_deferred(tmp_path: Path, monkeypatch) -> None:
+    """Ctrl-C arriving between moving the old output aside and renaming the new one in used
+    to leave no output at all; now the commit completes, then the interrupt is raised."""
+    out = _msfnet_folder(tmp_path / "out", ("old.txt",))
+    real_replace = os.replace
+
+    def replace(src, dst):
+        result = real_replace(src, dst)
+        if Path(src) == out:  # the old folder was just moved aside
+            os.kill(os.getpid(), signal.SIGINT)
+        return result
+
+    monkeypatch.setattr(files.os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt), staged_folder(out, overwrite=True) as tmp:
+        (tmp / "new.txt").write_text("complete")
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "new.txt"]
+    assert not _leftovers(tmp_path)
+    assert written_outputs()[-1] == out  # so the CLI can say it was written
+
+
+# ---------------------------------------------------------------------------- stale staging
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_stale_staging_of_killed_runs_is_removed(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    dead = _dead_pid()
+    stale_dir = tmp_path / f".out{STAGING_TAG}{dead}-abc"
+    stale_dir.mkdir()
+    (stale_dir / "normals.npy").write_bytes(b"half")
+    stale_file = tmp_path / f".out{STAGING_TAG}{dead}-old"
+    stale_file.write_text("x")
+    live = tmp_path / f".out{STAGING_TAG}{os.getppid()}-xyz"  # a running process's staging
+    live.mkdir()
+    unrelated = tmp_path / f".other{STAGING_TAG}{dead}-abc"
+    unrelated.mkdir()
+    with staged_folder(out) as tmp:
+        (tmp / "a").write_text("a")
+    assert not stale_dir.exists() and not stale_file.exists()
+    assert live.exists() and unrelated.exists()  # never someone else's work in progress
+    remove_stale_staging(tmp_path / "other")
+    assert not unrelated.exists()

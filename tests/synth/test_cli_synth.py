@@ -1,0 +1,75 @@
+"""msf-synth on careless input: the root appears whole or not at all, --overwrite replaces only
+an msf-synth root, errors and Ctrl-C are one line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from msfnet.runtime.files import MANIFEST, STAGING_TAG
+from msfnet.synth import cli
+from msfnet.synth.cli import main
+
+SMALL = ["--objects", "2", "--lights", "4", "--size", "16", "--no-shadows"]
+
+
+def _one_line(capfd, words: list[str]) -> None:
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-synth: "), err
+    for word in words:
+        assert word in err[0], (word, err)
+
+
+def test_root_is_written_whole_and_replaced_only_with_overwrite(tmp_path: Path, capfd) -> None:
+    out = tmp_path / "syn"
+    assert main([str(out), *SMALL, "-q"]) == 0
+    names = (out / "objects.txt").read_text().split()
+    assert sorted(p.name for p in out.iterdir()) == sorted([MANIFEST, "objects.txt", *names])
+    assert main([str(out), *SMALL]) == 2
+    _one_line(capfd, ["--overwrite"])
+    assert main([str(out), *SMALL, "--seed", "5", "--overwrite", "-q"]) == 0
+    assert (out / "objects.txt").read_text().split() != [] and not _staging(tmp_path)
+
+
+def _staging(root: Path) -> list[Path]:
+    return [p for p in root.rglob("*") if STAGING_TAG in p.name]
+
+
+def test_overwrite_never_deletes_a_foreign_folder(tmp_path: Path, capfd) -> None:
+    out = tmp_path / "mydata"
+    out.mkdir()
+    (out / "precious.png").write_bytes(b"the user's capture")
+    assert main([str(out), *SMALL, "--overwrite"]) == 2
+    _one_line(capfd, ["precious.png", "did not write"])
+    assert (out / "precious.png").read_bytes() == b"the user's capture"
+
+
+@pytest.mark.parametrize("failure", [KeyboardInterrupt, OSError])
+def test_interrupted_render_leaves_nothing(failure: type[BaseException], tmp_path: Path,
+                                          monkeypatch, capfd) -> None:
+    """Ctrl-C or a full disk on the second object: no root with one object in it."""
+    real = cli.save_stack
+    calls = []
+
+    def second_fails(stack, folder, bit_depth=16):
+        calls.append(folder)
+        if len(calls) == 2:
+            raise failure(28, "No space left on device") if failure is OSError else failure()
+        return real(stack, folder, bit_depth=bit_depth)
+
+    monkeypatch.setattr(cli, "save_stack", second_fails)
+    out = tmp_path / "new" / "syn"
+    assert main([str(out), *SMALL]) == (130 if failure is KeyboardInterrupt else 2)
+    _one_line(capfd, ["interrupted" if failure is KeyboardInterrupt else "No space"])
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("argv", "words"), [
+    (["--shapes", "cube"], ["--shapes", "cube"]),
+    (["--materials", ""], ["--materials"]),
+])
+def test_bad_names(argv: list[str], words: list[str], tmp_path: Path, capfd) -> None:
+    assert main([str(tmp_path / "x"), *argv]) == 2
+    _one_line(capfd, words)
+    assert list(tmp_path.iterdir()) == []
