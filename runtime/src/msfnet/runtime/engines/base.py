@@ -29,11 +29,20 @@ ENGINE_MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
 
 @runtime_checkable
 class Engine(Protocol):
-    name: str  # one of ENGINES
-    precision: str  # what it computes in: fp32, bf16 or int8 (the effective one, not the wish)
-    info: ModelInfo
-    threads: int
-    chunk: int  # lights per call through a staged graph
+    @property
+    def name(self) -> str: ...  # one of ENGINES
+
+    @property
+    def precision(self) -> str: ...  # fp32, bf16 or int8: the effective one, not the wish
+
+    @property
+    def info(self) -> ModelInfo: ...
+
+    @property
+    def threads(self) -> int: ...
+
+    @property
+    def chunk(self) -> int: ...  # lights per call through a staged graph
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray: ...
 
