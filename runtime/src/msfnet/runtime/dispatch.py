@@ -22,20 +22,23 @@ AVX-512 bf16/VNNI, 2 cores shared with other jobs, onnxruntime 1.32, openvino 20
 model, DiLiGenT ballPNG 128x128 crop centred on the ball, mean / max deg vs ORT fp32 over the
 mask, and speed as the same-run ratio to ORT fp32 (noisy: the cores were shared):
 
-    path (model)                     32 lights           96 lights           speed vs ORT fp32
-                                     mean / max deg      mean / max deg      32 / 96 lights
-    ORT fp32 staged                  0.001 / 0.006       0.001 / 0.005       1.34 / 0.71
-    ORT int8 (QDQ)                   0.319 / 4.18        0.442 / 5.98        1.94 / 0.76
-    ORT int8 staged                  0.319 / 4.18        0.442 / 5.98        1.79 / 0.87
-    OpenVINO fp32                    0.000 / 0.000       0.000 / 0.000       1.27 / 1.25
-    OpenVINO bf16          default   0.087 / 0.309       0.080 / 0.294       6.39 / 7.39
-    OpenVINO bf16 staged   default   0.079 / 0.320       0.075 / 0.291       3.81 / 4.64
-    OpenVINO int8 (QDQ)    opt-in    0.561 / 5.07        0.678 / 5.44        2.65 / 3.42
-    OpenVINO int8 staged             0.320 / 4.20        0.442 / 5.98        2.13 / 2.23
+    path (model)                   32 lights        96 lights        x ORT fp32, same run:
+                                   mean / max deg   mean / max deg   32 lights A, B; 96 A
+    ORT fp32 staged                0.001 / 0.006    0.001 / 0.005    1.34, 1.07;  0.71
+    ORT int8 (QDQ)                 0.319 / 4.18     0.442 / 5.98     1.94, 1.98;  0.76
+    ORT int8 staged                0.319 / 4.18     0.442 / 5.98     1.79, 2.05;  0.87
+    OpenVINO fp32                  0.000 / 0.000    0.000 / 0.000    1.27, 2.38;  1.25
+    OpenVINO bf16        default   0.087 / 0.309    0.080 / 0.294    6.39, 9.34;  7.39
+    OpenVINO bf16 staged default   0.079 / 0.320    0.075 / 0.291    3.81, 9.63;  4.64
+    OpenVINO int8 (QDQ)  opt-in    0.561 / 5.07     0.678 / 5.44     2.65, 6.55;  3.42
+    OpenVINO int8 staged           0.320 / 4.20     0.442 / 5.98     2.13, 6.12;  2.23
 
-(speed: one timed run after a warm-up per path at load average 6-12 on 2 cores, ORT fp32
-9.1 s at 32 lights and 35 s at 96; the 96-light ORT ratios below 1 are that noise, not a
-finding.) So on bf16 hardware OpenVINO bf16 is both the fastest path and 4-5x closer to fp32
+Speed is noisy here (load average 6-12 on the 2 cores): run A timed each path once after a
+warm-up (ORT fp32 9.1 s at 32 lights, 35 s at 96; the 96-light ORT ratios below 1 are that
+noise, not a finding), run B took the median of 3 (ORT fp32 31 s at 32 lights). In a separate
+interleaved run OpenVINO bf16 plain beat staged by 1.5-2x (chunks of 8, 16 or 32 lights alike):
+staged graphs save memory, not time, on this engine.
+So on bf16 hardware OpenVINO bf16 is both the fastest path and 4-5x closer to fp32
 than int8. OpenVINO's int8 on the plain QDQ graph exceeds the bound and is never chosen by
 default; on the staged graph it matches ORT's int8. (A guess, not verified: its low-precision
 passes carry int8 through the max over lights into the fusion convolutions that the export
