@@ -139,3 +139,10 @@ def test_open_engine_needs_a_model() -> None:
         open_engine(dispatch.EngineChoice("onnxruntime", "fp32", "test"))
     with pytest.raises(InputError, match="unknown engine"):
         open_engine(dispatch.EngineChoice("tvm", "fp32", "test", Path("m.onnx")))
+
+
+def test_engine_override_reason_points_at_the_faster_path() -> None:
+    assert "--engine openvino" in choose_engine(FP32, AMX, BOTH, "onnxruntime").reason
+    over = choose_engine(INT8, AMX, BOTH, "openvino").reason  # opt-in path above the bound
+    assert "above the 0.5 deg bound" in over
+    assert "above" not in choose_engine(INT8_STAGED, AMX, BOTH, "openvino").reason

@@ -184,8 +184,13 @@ def choose_engine(model: str | Path | ModelInfo, cpu: CpuInfo, installed: Iterab
                     f"({'AMX' if cpu.amx_bf16 else 'avx512_bf16'}); measured within "
                     f"{m.worst_mean:.2f} deg mean of fp32 on DiLiGenT ball crops")
     if want_engine is not None:
-        return pick(want_engine, "fp32", f"{what}, --engine given"
-                    + ("" if cpu.has_bf16 else "; no native bf16 on this CPU"))
+        if not cpu.has_bf16:
+            note = "; no native bf16 on this CPU"
+        elif want_engine == "onnxruntime":
+            note = "; bf16 on this CPU would need --engine openvino"
+        else:
+            note = ""
+        return pick(want_engine, "fp32", f"{what}, --engine given{note}")
     if not cpu.has_bf16:
         why = "no native bf16 on this CPU"
     elif "openvino" not in have:
