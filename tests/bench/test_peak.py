@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -44,3 +46,28 @@ def test_ort_peaks_are_measured_at_a_timeable_size() -> None:
 def test_openvino_peak_runs() -> None:
     p = ov_matmul_peak("fp32", threads=1, min_seconds=0.005, max_size=256, repeats=2)
     assert p["engine"] == "openvino" and p["size"] == 256 and p["gflops"] > 0.1
+
+
+def test_merged_peak_is_the_best_measurement() -> None:
+    from msfnet.bench.peak import merge_peaks
+
+    before = [{"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 40.0},
+              {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 900.0}]
+    after = [{"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 290.0},
+             {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 150.0}]
+    merged = {(p["engine"], p["dtype"]): p for p in merge_peaks(before, after)}
+    assert merged[("onnxruntime", "fp32")]["gflops"] == 290.0
+    assert merged[("openvino", "bf16")]["gflops"] == 900.0
+    assert merged[("openvino", "bf16")]["runs"] == [900.0, 150.0]
+
+
+def test_growth_stops_at_a_slow_small_size_and_keeps_the_fastest_size() -> None:
+    from msfnet.bench.peak import _grow_and_time
+
+    def slow(n: int):  # every call "takes" long: the first size is the last
+        return lambda: time.sleep(0.02)
+
+    n, times, per_size = _grow_and_time(slow, min_seconds=0.01, max_size=4096, repeats=2)
+    assert n == 256 and len(times) == 2 and list(per_size) == [256]
+    n, _, per_size = _grow_and_time(lambda n: (lambda: None), 1.0, 2048, 2)
+    assert list(per_size) == [1024, 2048] and n in per_size

@@ -229,7 +229,7 @@ def markdown(result: dict, has_plot: bool) -> str:
           if feats else []),
         *([f"- openvino {m['openvino']}"] if m.get("openvino") else []),
         f"- matmul peaks measured in this run, each engine's own kernels (GFLOP/s; int8: "
-        f"GOP/s): {peaks}",
+        f"GOP/s; the fastest call of two measurements, before and after the cells): {peaks}",
         *[f"- dispatch on this machine, {k} model: {v}" for k, v in
           (result.get("dispatch") or {}).items()],
         f"- weights: {weights}",
