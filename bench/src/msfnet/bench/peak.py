@@ -49,7 +49,7 @@ def _grow_and_time(make: Callable[[int], Callable[[], object]], min_seconds: flo
         if last:
             break
         n = min(max_size, n * 2)
-    best_n = max(per_size, key=lambda k: k ** 3 / min(per_size[k]))
+    best_n = max(per_size, key=lambda k: k ** 3 / max(min(per_size[k]), 1e-9))
     return best_n, per_size[best_n], {k: min(v) for k, v in per_size.items()}
 
 
@@ -59,9 +59,10 @@ def _result(engine: str, dtype: str, threads: int, n: int, times: list[float],
     machine other jobs only ever slow a call down (the median is kept as ``median_gflops``)."""
     ops = 2.0 * n ** 3  # multiply-adds count 2 (int8: operations, reported as "gflops" too)
     return {"engine": engine, "dtype": dtype, "threads": threads, "size": n,
-            "gflops": ops / min(times) / 1e9,
+            "gflops": ops / max(min(times), 1e-9) / 1e9,
             "median_gflops": ops / statistics.median(times) / 1e9,
-            "by_size": {str(k): 2.0 * k ** 3 / t / 1e9 for k, t in sorted(per_size.items())}}
+            "by_size": {str(k): 2.0 * k ** 3 / max(t, 1e-9) / 1e9
+                        for k, t in sorted(per_size.items())}}
 
 
 def matmul_peak_gflops(dtype: str = "fp32", threads: int = 2, min_seconds: float = MIN_SECONDS,
