@@ -242,7 +242,11 @@ def markdown(result: dict, has_plot: bool) -> str:
         "- the machine is shared and noisy: compare ratios within this run, not across runs",
         "- `~` marks a per-light ratio extrapolated from the measured (b) per-light run "
         "(linear in lights x pixels)", "",
-        *[f"- note: {n}" for n in result.get("notes", [])], "",
+        *[f"- note: {n}" for n in result.get("notes", [])],
+        *(["- note: a row above 100 % of its own peak ran faster than its engine's MatMul kernel "
+           "does at that precision (convolution kernels can beat a plain f32-in/f32-out MatMul, "
+           "e.g. OpenVINO bf16's): the peak is a reference, not a ceiling"]
+          if any((r.get("fraction_own_peak") or 0) > 1 for r in result["rows"]) else []), "",
         "## Targets", "", *targets(result), "",
         "## Workloads (a)-(c)", "", table(result), "",
         "## Workload (d): full stack end to end through msf-run (fresh process: load -> "
