@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,8 @@ import pytest
 from _runtime_helpers import build_random_onnx
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+# $MSFNET_DATA, else ../shared/data beside the checkout (as in CI)
+SHARED_DATA = Path(os.environ.get("MSFNET_DATA") or REPO.parent / "shared" / "data")
 BALL = SHARED_DATA / "DiLiGenT" / "ballPNG"
 PSM = SHARED_DATA / "psmImages"
 

@@ -56,3 +56,43 @@ def test_report_ratios_and_files(tmp_path):
     md = (tmp_path / "REPORT.md").read_text()
     assert "4.00x fp32 ORT" in md and "**met**" in md
     assert "| (b) fp32 ORT" not in files["table"]
+
+
+def test_each_variant_is_compared_with_its_own_precisions_peak(tmp_path):
+    rows = [_row("b", "ort-fp32", 2, 2.0, 32, 16384), _row("b", "ort-int8", 2, 1.0, 32, 16384),
+            _row("b", "ov-bf16", 2, 0.25, 32, 16384), _row("b", "torch-fp32", 2, 4.0, 32, 16384)]
+    peaks = [{"engine": "torch", "dtype": "fp32", "threads": 2, "gflops": 1.0},
+             {"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 2.0},
+             {"engine": "onnxruntime", "dtype": "int8", "threads": 2, "gflops": 20.0},
+             {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 8.0}]
+    features = {"avx2": True, "avx512f": True, "avx512_vnni": True, "avx_vnni": True,
+                "avx512_bf16": True, "amx_bf16": True, "amx_int8": True, "source": "py-cpuinfo"}
+    result = {"date": "d", "quick": True, "elapsed_s": 1.0, "rows": rows, "peaks": peaks,
+              "machine": {"cpu": "Xeon", "cores": 2, "isa_flags": ["amx_bf16"],
+                          "cpu_features": features, "platform": "p", "python": "3",
+                          "onnxruntime": "1", "openvino": "2026.4"},
+              "models": {"random_weights": True, "checkpoint": "c"}, "variants": {},
+              "dispatch": {"fp32": "openvino bf16: fp32 model; CPU has native bf16 (AMX)"}}
+    write_report(result, tmp_path)
+    data = {r["variant"]: r for r in json.loads((tmp_path / "report.json").read_text())["rows"]}
+    # gflops_per_s is 1/median: 0.5, 1, 4, 0.25 GFLOP/s
+    assert data["ort-fp32"]["fraction_own_peak"] == 0.25  # 0.5 / ORT fp32 2.0
+    assert data["ort-int8"]["fraction_own_peak"] == 0.05  # 1 / ORT int8 20
+    assert data["ov-bf16"]["fraction_own_peak"] == 0.5  # 4 / OpenVINO bf16 8
+    assert data["torch-fp32"]["fraction_own_peak"] == 0.25  # 0.25 / torch fp32 1
+    # '% fp32 peak' is against ORT's own fp32 GEMM, not torch's
+    assert data["ov-bf16"]["fraction_fp32_peak"] == 2.0
+    md = (tmp_path / "REPORT.md").read_text()
+    assert "amx_bf16 yes" in md and "avx512_bf16 yes" in md and "openvino 2026.4" in md
+    assert "dispatch on this machine, fp32 model: openvino bf16" in md
+    assert "ov-bf16 on (b), 2 threads: 8.00x fp32 ORT, 50 % of OpenVINO's bf16" in md
+
+
+def test_openvino_bf16_variants_are_scheduled_on_every_workload():
+    variants = ["ort-fp32", "ov-bf16", "ov-bf16-staged", "torch-fp32", "per-light"]
+    keys = {(wl.key, v, t) for wl, v, t, _, _ in schedule(False, variants, [2, 1])}
+    for wl in WORKLOADS:
+        for v in ("ov-bf16", "ov-bf16-staged"):
+            assert (wl.key, v, 2) in keys
+    assert ("c", "per-light", 2) not in keys  # extrapolated, too slow to run
+    assert ("b", "ov-bf16-staged", 1) not in keys  # 1 thread on big inputs: shipped ORT only

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import subprocess
 import sys
@@ -21,21 +20,33 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.model.checkpoint import default_checkpoint_path
+from msfnet.runtime.cpu import detect_cpu
+from msfnet.runtime.dispatch import choose_engine
+from msfnet.runtime.engines import installed_engines
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.flops import inference_flops
 from msfnet.runtime.metrics import angular_error_deg
 
-from .peak import matmul_peak_gflops
+from .data import ENV_VAR, data_root
+from .peak import engine_peaks, merge_peaks
 from .report import write_report
-from .workloads import QUICK_WORKLOADS, VARIANTS, WORKLOADS, Workload, make_input, time_msf_run
+from .workloads import (
+    BF16_VARIANTS,
+    OPENVINO_VARIANTS,
+    QUICK_WORKLOADS,
+    VARIANTS,
+    WORKLOADS,
+    Workload,
+    make_input,
+    time_msf_run,
+)
 
-REPO = Path(__file__).resolve().parents[1]
-DEFAULT_STACK = REPO.parent / "shared" / "data" / "DiLiGenT" / "ballPNG"
-DEFAULT_CALIB = [DEFAULT_STACK, *(REPO.parent / "shared" / "data" / "psmImages" / o
-                                  for o in ("cat", "owl", "horse"))]
+# relative to the data root (--data, $MSFNET_DATA, ./shared/data or ../shared/data)
+STACK_IN_DATA = Path("DiLiGenT") / "ballPNG"
+CALIB_IN_DATA = [STACK_IN_DATA, *(Path("psmImages") / o for o in ("cat", "owl", "horse"))]
 
-
-MODEL_OF_VARIANT = {"ort-int8": "int8", "ort-fp32-staged": "fp32_staged"}
+MODEL_OF_VARIANT = {"ort-int8": "int8", "ort-fp32-staged": "fp32_staged",
+                    "ov-bf16-staged": "fp32_staged"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,11 +63,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--random-weights", action="store_true",
                    help="seeded random weights instead of a checkpoint (accuracy figures then "
                    "only measure numerical deviation; int8 errors of a trained model differ)")
-    p.add_argument("--stack", type=Path, default=DEFAULT_STACK,
-                   help=f"real stack for the inputs and workload (d) (default {DEFAULT_STACK})")
+    p.add_argument("--data", type=Path, default=None,
+                   help=f"data root holding DiLiGenT/ballPNG and psmImages/ (default: "
+                   f"${ENV_VAR}, else ./shared/data or ../shared/data from the current folder)")
+    p.add_argument("--stack", type=Path, default=None,
+                   help=f"real stack for the inputs and workload (d) (default DATA/"
+                   f"{STACK_IN_DATA.as_posix()})")
     p.add_argument("--calib", type=Path, nargs="+", default=None,
-                   help="stacks to calibrate int8 on (default: the stack + psmImages cat/owl/"
-                   "horse when present)")
+                   help="stacks to calibrate int8 on (default: the stack + DATA/psmImages cat/"
+                   "owl/horse when present)")
     p.add_argument("--report-dir", type=Path, default=Path("msf-bench-out"),
                    help="where REPORT.md, report.json, latency.png and the models go "
                    "(default ./msf-bench-out)")
@@ -73,24 +88,56 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def machine_description() -> dict[str, object]:
-    cpu = platform.processor() or ""
-    flags: list[str] = []
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        for line in text.splitlines():
-            if line.startswith("model name") and not cpu.strip():
-                cpu = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                have = set(line.split(":", 1)[1].split())
-                flags = sorted(f for f in have if f.startswith(("avx", "amx", "fma")))
-                break
-    except OSError:
-        pass
-
+    """CPU model and the features that decide engines and precisions (runtime/cpu.py)."""
     import onnxruntime
-    return {"cpu": cpu, "cores": os.cpu_count(), "isa_flags": flags,
-            "python": platform.python_version(), "onnxruntime": onnxruntime.__version__,
-            "platform": platform.platform()}
+
+    cpu = detect_cpu()
+    flags = sorted(f for f in cpu.all_flags if f.startswith(("avx", "amx", "fma")))
+    out: dict[str, object] = {
+        "cpu": cpu.model, "vendor": cpu.vendor, "cores": cpu.cores, "isa_flags": flags,
+        "cpu_features": cpu.as_dict(), "python": platform.python_version(),
+        "onnxruntime": onnxruntime.__version__, "platform": platform.platform()}
+    try:
+        import openvino
+
+        out["openvino"] = openvino.__version__
+    except ImportError:
+        out["openvino"] = None
+    return out
+
+
+def dispatch_choices(models: dict) -> dict[str, str]:
+    """What msfnet.runtime.dispatch picks on this machine for each exported model."""
+    out = {}
+    for key in ("fp32", "fp32_staged", "int8", "int8_staged"):
+        if key in models:
+            try:
+                out[key] = choose_engine(models[key], detect_cpu(), installed_engines()).reason
+            except InputError as exc:
+                out[key] = f"error: {exc}"
+    return out
+
+
+def resolve_paths(args: argparse.Namespace) -> None:
+    """Fill --stack / --calib from the data root; InputError with what was tried."""
+    root = None
+    if args.stack is None or args.calib is None:
+        try:
+            root = data_root(args.data)
+        except InputError:
+            if args.stack is None:
+                raise
+    if args.stack is None:
+        assert root is not None
+        args.stack = root / STACK_IN_DATA
+    if args.calib is None:
+        calib = [args.stack]
+        if root is not None:
+            calib += [root / p for p in CALIB_IN_DATA[1:] if (root / p).exists()]
+        args.calib = calib
+    if not args.stack.is_dir():
+        raise InputError(f"stack folder not found (set --data or ${ENV_VAR}, or --stack)",
+                         args.stack)
 
 
 def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str]) -> dict:
@@ -115,7 +162,7 @@ def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str])
     if "ort-int8" in variants:
         from msfnet.export.quantize import load_calibration_stacks
 
-        stacks = load_calibration_stacks(args.calib or [p for p in DEFAULT_CALIB if p.exists()])
+        stacks = load_calibration_stacks(args.calib or [args.stack])
     for key, staged in (("fp32", False), ("fp32_staged", True)):
         fp32 = workdir / f"msfnet_{key}.onnx"
         export_checkpoint(ckpt, fp32, staged=staged)
@@ -149,7 +196,7 @@ def schedule(quick: bool, variants: list[str], threads: list[int]):
                 heavy = wl.key != "a"
                 if t != max(threads) and heavy and v not in ("ort-fp32", "ort-int8"):
                     continue  # 1 thread on big inputs: the two shipped ORT variants only
-                if wl.key == "c" and (t != max(threads) or v in ("per-light", "ov-bf16")):
+                if wl.key == "c" and (t != max(threads) or v == "per-light"):
                     continue  # per-light on (c) is extrapolated from (b) (linear in N)
                 if v == "torch-fp32" and t != max(threads) and heavy:
                     continue
@@ -182,25 +229,33 @@ def bench(args: argparse.Namespace) -> dict:
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
-    if "ov-bf16" in variants:
-        try:
-            import openvino  # noqa: F401
-        except ImportError:
-            print("msf-bench: openvino not installed: skipping ov-bf16", file=sys.stderr)
-            variants.remove("ov-bf16")
+    notes: list[str] = []
+    engines = installed_engines()
+    for v in [v for v in variants if v in OPENVINO_VARIANTS]:
+        if "openvino" not in engines:
+            notes.append(f"{v} skipped: openvino not installed (pip install 'msfnet[openvino]')")
+            variants.remove(v)
+        elif v in BF16_VARIANTS and not detect_cpu().has_bf16:
+            notes.append(f"{v} skipped: this CPU has no native bf16 (OpenVINO would run fp32)")
+            variants.remove(v)
+    for n in notes:
+        print(f"msf-bench: {n}", file=sys.stderr)
     threads = sorted({int(t) for t in args.threads.split(",")}, reverse=True)
-    if not args.stack.is_dir():
-        raise InputError("stack folder not found", args.stack)
+    resolve_paths(args)
     workdir = args.report_dir / "models"
     workdir.mkdir(parents=True, exist_ok=True)
     started = time.time()
     result: dict = {"date": time.strftime("%Y-%m-%d %H:%M %Z"), "machine": machine_description(),
-                    "quick": args.quick, "variants": {v: VARIANTS[v] for v in variants}}
+                    "quick": args.quick, "variants": {v: VARIANTS[v] for v in variants},
+                    "notes": notes, "data": {"stack": str(args.stack),
+                                             "calib": [str(p) for p in args.calib]}}
     print("msf-bench: exporting models ...", file=sys.stderr)
     models = prepare_models(args, workdir, variants)
     result["models"] = models
-    print("msf-bench: measuring matmul peaks ...", file=sys.stderr)
-    result["peaks"] = [matmul_peak_gflops(d, t) for t in threads for d in ("fp32", "bf16")]
+    result["dispatch"] = dispatch_choices(models)
+    print("msf-bench: measuring matmul peaks (torch, ONNX Runtime, OpenVINO) ...",
+          file=sys.stderr)
+    peaks_before = engine_peaks(threads, engines)
     rows = []
     with tempfile.TemporaryDirectory(prefix="msf-bench-") as tmpname:
         tmp = Path(tmpname)
@@ -230,6 +285,8 @@ def bench(args: argparse.Namespace) -> dict:
                 row["gflops_per_s"] = wl.flops / cell["median_s"] / 1e9
             rows.append(row)
     result["rows"] = rows
+    print("msf-bench: measuring matmul peaks again ...", file=sys.stderr)
+    result["peaks"] = merge_peaks(peaks_before, engine_peaks(threads, engines))
     if not args.no_e2e:
         result["e2e"] = end_to_end(args, models, variants, threads)
     result["elapsed_s"] = time.time() - started

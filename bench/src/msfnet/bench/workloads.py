@@ -49,10 +49,26 @@ VARIANTS = {
     "ort-fp32": "ONNX Runtime CPU, fp32 model (untiled)",
     "ort-fp32-staged": "ONNX Runtime CPU, staged fp32 model (msf-export --staged), 8 lights a call",
     "ort-int8": "ONNX Runtime CPU, int8 QDQ model (extractor convs, calibrated on real stacks)",
-    "ov-bf16": "OpenVINO CPU, fp32 model with INFERENCE_PRECISION_HINT=bf16",
+    "ov-bf16": "OpenVINO CPU, fp32 model with INFERENCE_PRECISION_HINT=bf16 (native bf16 only)",
+    "ov-bf16-staged": "OpenVINO CPU, staged fp32 model in bf16, four sub-models, 8 lights a call",
     "torch-fp32": "PyTorch eager fp32, lights folded into the batch",
     "per-light": "PyTorch per-light loop (published style: recomputes stages)",
 }
+# variant -> (engine, precision) of the matmul peak it is compared with ("share of its own peak")
+VARIANT_PEAK = {
+    "ort-fp32": ("onnxruntime", "fp32"), "ort-fp32-staged": ("onnxruntime", "fp32"),
+    "ort-int8": ("onnxruntime", "int8"), "ov-bf16": ("openvino", "bf16"),
+    "ov-bf16-staged": ("openvino", "bf16"), "torch-fp32": ("torch", "fp32"),
+    "per-light": ("torch", "fp32"),
+}
+# variant -> (engine, precision) it asks msfnet.runtime.dispatch.open_engine for
+ENGINE_OF_VARIANT = {
+    "ort-fp32": ("onnxruntime", "fp32"), "ort-fp32-staged": ("onnxruntime", "fp32"),
+    "ort-int8": ("onnxruntime", "int8"), "ov-bf16": ("openvino", "bf16"),
+    "ov-bf16-staged": ("openvino", "bf16"),
+}
+OPENVINO_VARIANTS = tuple(v for v, (e, _) in ENGINE_OF_VARIANT.items() if e == "openvino")
+BF16_VARIANTS = tuple(v for v, (_, p) in ENGINE_OF_VARIANT.items() if p == "bf16")
 
 
 def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
@@ -98,26 +114,14 @@ finally:
 def _runner(variant: str, spec: dict):
     """Build the variant once; return (callable(images, lights) -> normals (1,3,H,W), info)."""
     threads = int(spec["threads"])
-    if variant in ("ort-fp32", "ort-fp32-staged", "ort-int8"):
-        from msfnet.runtime.session import create_session
+    if variant in ENGINE_OF_VARIANT:
+        # through the runtime's own engines: the bench times what msf-run would run
+        from msfnet.runtime.dispatch import EngineChoice, open_engine
 
-        sess = create_session(spec["onnx"], threads=threads)
-        return sess.run, {"precision": sess.info.precision}
-    if variant == "ov-bf16":
-        import openvino as ov
-
-        core = ov.Core()
-        compiled = core.compile_model(spec["onnx"], "CPU", {
-            "INFERENCE_NUM_THREADS": threads, "INFERENCE_PRECISION_HINT": "bf16",
-            "PERFORMANCE_HINT": "LATENCY"})
-        effective = str(compiled.get_property("INFERENCE_PRECISION_HINT"))
-        request = compiled.create_infer_request()
-
-        def run_ov(images, lights):
-            return request.infer({"images": images, "lights": lights})[0]
-
-        caps = core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
-        return run_ov, {"precision": effective, "cpu_capabilities": list(caps)}
+        engine_key, precision = ENGINE_OF_VARIANT[variant]
+        engine = open_engine(EngineChoice(engine_key, precision, "msf-bench", Path(spec["onnx"])),
+                             threads)
+        return engine.run, {"precision": engine.precision, "engine": engine.describe()}
     import torch
 
     from msfnet.model.checkpoint import load_model
@@ -194,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["QUICK_WORKLOADS", "VARIANTS", "WORKLOADS", "Workload", "asdict", "make_input",
+__all__ = ["BF16_VARIANTS", "ENGINE_OF_VARIANT", "OPENVINO_VARIANTS", "QUICK_WORKLOADS",
+           "VARIANTS", "VARIANT_PEAK", "WORKLOADS", "Workload", "asdict", "make_input",
            "run_cell", "time_msf_run"]
 
 if __name__ == "__main__":

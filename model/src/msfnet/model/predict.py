@@ -32,7 +32,7 @@ def autocast(enabled: bool, device_type: str = "cpu"):
 
 
 class TorchModel:
-    """A torch MSFNet as a :class:`msfnet.runtime.estimators.NetworkEngine`, so the runtime's
+    """A torch MSFNet as a :class:`msfnet.runtime.engines.base.Engine`, so the runtime's
     tiling and normalisation run it exactly as they run an ONNX model."""
 
     name = "torch"
@@ -49,6 +49,9 @@ class TorchModel:
     @property
     def precision(self) -> str:
         return "bf16" if self.bf16 else "fp32"
+
+    def describe(self) -> dict[str, object]:
+        return {"engine": self.name, "precision": self.precision, "threads": self.threads}
 
     @torch.no_grad()
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:

@@ -1,44 +1,25 @@
 """Estimators: stack -> normals. One protocol, implemented by the network and least squares.
 
 "Which method" is chosen once, by constructing an estimator; nothing downstream branches on it.
-The network estimator runs any :class:`NetworkEngine` (ONNX Runtime plain or staged, OpenVINO,
-or a torch model from ``msfnet.model.predict``) through the same tiling and normalisation.
+The network estimator runs any :class:`~msfnet.runtime.engines.base.Engine` (ONNX Runtime plain
+or staged, OpenVINO, or a torch model from ``msfnet.model.predict``) through the same tiling and
+normalisation.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol
 
 import numpy as np
 
-from .contract import ModelInfo
+from .engines.base import Engine
 from .flops import inference_flops
 from .infer import choose_plan, infer_normals
 from .least_squares import least_squares_normals
 from .profile import StageTimer
 from .stack import Stack
 from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
-
-
-@runtime_checkable
-class NetworkEngine(Protocol):
-    """Runs the network on one normalised window: images (1, N, 3, H, W), lights (1, N, 3)
-    -> normals (1, 3, H, W)."""
-
-    info: ModelInfo
-    name: str  # "onnxruntime", "openvino", "torch", ...
-    threads: int | None
-
-    @property
-    def precision(self) -> str: ...
-
-    @property
-    def chunk(self) -> int | None:
-        """Lights per call for staged graphs (sets the memory per pixel), None otherwise."""
-        ...
-
-    def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -68,15 +49,15 @@ class Estimator(Protocol):
 class NetworkEstimator:
     method = "msf"
 
-    def __init__(self, engine: NetworkEngine, reason: str = "") -> None:
+    def __init__(self, engine: Engine, reason: str = "") -> None:
         self.engine = engine
         self.reason = reason  # why this engine / precision was chosen (dispatch)
 
     def describe(self) -> dict[str, object]:
         e = self.engine
-        return {"method": self.method, "model": str(e.info.path), "engine": e.name,
-                "precision": e.precision, "graph": "staged" if e.info.staged else "monolithic",
-                "threads": e.threads, "choice": self.reason or None}
+        return {"method": self.method, "model": str(e.info.path), **e.describe(),
+                "graph": "staged" if e.info.staged else "monolithic",
+                "choice": self.reason or None}
 
     def estimate(self, stack: Stack, tiling: TilingOptions, timer: StageTimer,
                  progress: bool = False) -> Estimate:
@@ -101,5 +82,11 @@ class LeastSquaresEstimator:
         return Estimate(normals, None, 0.0)
 
 
-__all__ = ["Estimate", "Estimator", "LeastSquaresEstimator", "NetworkEngine",
-           "NetworkEstimator", "TilingOptions"]
+__all__ = [
+    "Engine",
+    "Estimate",
+    "Estimator",
+    "LeastSquaresEstimator",
+    "NetworkEstimator",
+    "TilingOptions",
+]

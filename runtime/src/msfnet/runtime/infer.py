@@ -20,7 +20,7 @@ from .stack import Stack
 from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan, plan_tiles, tile_size_for_memory
 
 if TYPE_CHECKING:
-    from .estimators import NetworkEngine
+    from .engines.base import Engine
 
 
 @dataclass
@@ -29,7 +29,7 @@ class InferenceResult:
     plan: TilePlan
 
 
-def choose_plan(stack: Stack, model: NetworkEngine, tile: int | None = None,
+def choose_plan(stack: Stack, model: Engine, tile: int | None = None,
                 max_memory_mb: float | None = None) -> TilePlan:
     """``tile``: window edge in px (0 = untiled); otherwise sized from ``max_memory_mb`` and N."""
     static = model.info.static_shape
@@ -49,7 +49,7 @@ def choose_plan(stack: Stack, model: NetworkEngine, tile: int | None = None,
     return plan_tiles(stack.mask, tile)
 
 
-def infer_normals(model: NetworkEngine, stack: Stack, plan: TilePlan,
+def infer_normals(model: Engine, stack: Stack, plan: TilePlan,
                   timer: StageTimer | None = None, progress: bool = False) -> InferenceResult:
     """Run the plan's tiles through the model and stitch the cores into an (H, W, 3) map."""
     timer = timer or StageTimer()

@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .engines.base import Engine
 from .errors import InputError
 from .estimators import (
     Estimator,
     LeastSquaresEstimator,
-    NetworkEngine,
     NetworkEstimator,
     TilingOptions,
 )
@@ -120,7 +120,7 @@ class Model:
     nothing; a model may be called any number of times.
     """
 
-    def __init__(self, model: str | Path | NetworkEngine | None = None, *,
+    def __init__(self, model: str | Path | Engine | None = None, *,
                  method: str = "msf", engine: str | None = None,
                  precision: str | None = None, threads: int | None = None,
                  provider: str | None = None, tile: int | None = None,
@@ -218,14 +218,15 @@ class Model:
 
 def _open_network(path: Path, engine: str | None, precision: str | None,
                   threads: int | None, provider: str | None) -> NetworkEstimator:
-    from .session import create_session
+    """Pick the engine and precision for this CPU and model (or honour the overrides)."""
+    from .cpu import detect_cpu
+    from .dispatch import choose_engine, open_engine
+    from .engines import installed_engines
 
-    if engine not in (None, "onnxruntime", "ort"):
-        raise InputError(f"--engine {engine!r}: this build runs onnxruntime")
-    if precision not in (None, "fp32"):
-        raise InputError(f"--precision {precision!r}: this build runs the model's own precision")
-    session = create_session(path, threads=threads, provider=provider)
-    return NetworkEstimator(session, "onnxruntime: the model's own precision")
+    if provider not in (None, "cpu") and engine is None:
+        engine = "onnxruntime"  # execution providers are ONNX Runtime's
+    choice = choose_engine(path, detect_cpu(), installed_engines(), engine, precision)
+    return NetworkEstimator(open_engine(choice, threads, provider=provider), choice.reason)
 
 
 __all__ = ["Model", "Result", "default_model_path"]

@@ -66,6 +66,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="use K evenly spaced lights")
     p.add_argument("--threads", type=positive_int, metavar="T",
                    help="inference threads (default: all available cores; 1 per Ray worker)")
+    p.add_argument("--engine", choices=("onnxruntime", "openvino"), default=None,
+                   help="inference engine (default: chosen for this CPU and the installed "
+                   "engines; the choice and its reason are printed and kept in profile.json)")
+    p.add_argument("--precision", choices=("fp32", "bf16", "int8"), default=None,
+                   help="compute precision (default: the fastest one measured within 0.5 deg "
+                   "of fp32 on real data for this CPU; bf16 needs OpenVINO and a CPU with "
+                   "native bf16)")
     p.add_argument("--provider", default="cpu", metavar="P",
                    help="ONNX Runtime execution provider: cpu (default), cuda, ... when "
                    "installed")
@@ -144,8 +151,12 @@ def open_model(args: argparse.Namespace) -> Model:
 
     if args.method == "l2" and args.onnx is not None:
         raise InputError("--method l2 needs no model; drop --onnx")
-    return Model(args.onnx, method=args.method, threads=args.threads, provider=args.provider,
-                 tile=args.tile, max_memory_mb=args.max_memory, maps=map_options(args))
+    if args.method == "l2" and (args.engine or args.precision):
+        raise InputError("--engine / --precision choose how the network runs; --method l2 "
+                         "has no network")
+    return Model(args.onnx, method=args.method, engine=args.engine, precision=args.precision,
+                 threads=args.threads, provider=args.provider, tile=args.tile,
+                 max_memory_mb=args.max_memory, maps=map_options(args))
 
 
 def parse_maps(text: str) -> tuple[str, ...]:
@@ -181,6 +192,8 @@ def print_result(result: Result, outdir: Path, files: list[Path],
         return
     print(f"{result.stack.name}: {p['lights']} lights, {p['width']}x{p['height']}, "
           f"{p['mask_pixels']} mask px, {p['method']} ({p['engine']} {p['precision']})")
+    if p.get("choice"):
+        print(f"engine choice: {p['choice']}")
     tiles = p.get("tiles")
     if isinstance(tiles, dict):
         size = tiles["tile_px"] or "untiled"

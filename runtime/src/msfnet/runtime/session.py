@@ -41,7 +41,7 @@ GRAPH_OPT_LEVELS = {
 
 @dataclass
 class ModelSession:
-    """An msfnet model in ONNX Runtime (a :class:`~msfnet.runtime.estimators.NetworkEngine`)."""
+    """An msfnet model in ONNX Runtime (an :class:`~msfnet.runtime.engines.base.Engine`)."""
 
     session: ort.InferenceSession
     info: ModelInfo
@@ -57,6 +57,10 @@ class ModelSession:
     @property
     def chunk(self) -> int | None:
         return self.lights_per_call if self.info.staged else None
+
+    def describe(self) -> dict[str, object]:
+        return {"engine": self.name, "precision": self.precision, "provider": self.provider,
+                "threads": self.threads, "chunk": self.chunk}
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W)."""

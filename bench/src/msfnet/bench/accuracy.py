@@ -1,0 +1,153 @@
+"""Accuracy of every engine / precision path against ONNX Runtime fp32, on real ball crops.
+
+This is the measurement behind dispatch.py's defaults (a precision is a default only within
+0.5 deg mean of fp32 on real data). Run it again after changing a model or an engine:
+
+    python -m msfnet.bench.accuracy [--data DIR] [--models DIR] [--lights 32,96] [--size 128]
+
+``--models`` holds the exports besides the bundled fp32 model: fp32_staged.onnx, int8.onnx,
+int8_staged.onnx (``msf-export --staged`` / ``--int8`` of the bundled checkpoint); paths whose
+file is missing are left out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msfnet.runtime.dispatch import open_engine
+from msfnet.runtime.engines import installed_engines
+from msfnet.runtime.metrics import angular_error_deg
+
+from .data import data_root
+from .workloads import Workload, make_input
+
+
+@dataclass(frozen=True)
+class EnginePath:
+    """One engine / precision / model combination."""
+
+    engine: str
+    precision: str
+    model: str  # key: fp32, fp32_staged, int8, int8_staged
+
+    @property
+    def label(self) -> str:
+        staged = " staged" if self.model.endswith("staged") else ""
+        return f"{self.engine} {self.precision}{staged}"
+
+
+PATHS = (
+    EnginePath("onnxruntime", "fp32", "fp32_staged"),
+    EnginePath("onnxruntime", "int8", "int8"),
+    EnginePath("onnxruntime", "int8", "int8_staged"),
+    EnginePath("openvino", "fp32", "fp32"),
+    EnginePath("openvino", "bf16", "fp32"),
+    EnginePath("openvino", "bf16", "fp32_staged"),
+    EnginePath("openvino", "int8", "int8"),
+    EnginePath("openvino", "int8", "int8_staged"),
+)
+
+
+def deviation_deg(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(mean, max) angle in degrees between two (1, 3, H, W) normal maps over the mask."""
+    d = angular_error_deg(out[0].transpose(1, 2, 0), ref[0].transpose(1, 2, 0))[mask]
+    return float(d.mean()), float(d.max())
+
+
+def _timed(engine, images: np.ndarray, lights: np.ndarray, repeats: int
+           ) -> tuple[np.ndarray, float]:
+    out = engine.run(images, lights)  # warm-up (arena growth, lazy compilation)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = engine.run(images, lights)
+        times.append(time.perf_counter() - t0)
+    return out, statistics.median(times) if times else float("nan")
+
+
+def measure(stack_dir: Path, models: dict[str, Path], lights: tuple[int, ...] = (32, 96),
+            size: int = 128, threads: int = 2, repeats: int = 1,
+            paths: tuple[EnginePath, ...] = PATHS) -> list[dict[str, object]]:
+    """Rows of (lights, path, mean/max deg vs ORT fp32, median s, x ORT fp32)."""
+    from msfnet.runtime.dispatch import EngineChoice
+
+    have = installed_engines()
+    rows: list[dict[str, object]] = []
+    for n in lights:
+        feed = make_input(stack_dir, Workload("acc", n, size))
+        images, lights_, mask = feed["images"], feed["lights"], feed["mask"]
+        ref_engine = open_engine(EngineChoice("onnxruntime", "fp32", "reference",
+                                              models["fp32"]), threads)
+        ref, ref_s = _timed(ref_engine, images, lights_, repeats)
+        del ref_engine
+        rows.append({"lights": n, "size": size, "path": "onnxruntime fp32", "mean_deg": 0.0,
+                     "max_deg": 0.0, "median_s": ref_s, "x_ort_fp32": 1.0})
+        for p in paths:
+            model = models.get(p.model)
+            if p.engine not in have or model is None or not Path(model).is_file():
+                continue
+            engine = open_engine(EngineChoice(p.engine, p.precision, "measurement", model),
+                                 threads)
+            out, secs = _timed(engine, images, lights_, repeats)
+            mean, mx = deviation_deg(out, ref, mask)
+            rows.append({"lights": n, "size": size, "path": p.label, "mean_deg": mean,
+                         "max_deg": mx, "median_s": secs, "x_ort_fp32": ref_s / secs,
+                         "effective_precision": engine.precision})
+            print(f"{n} lights {p.label}: {mean:.3f} / {mx:.3f} deg, {secs:.2f} s",
+                  file=sys.stderr)
+    return rows
+
+
+def table(rows: list[dict[str, object]]) -> str:
+    lines = ["| lights | engine precision | mean deg vs ORT fp32 | max deg | median s | "
+             "x ORT fp32 |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['lights']} | {r['path']} | {r['mean_deg']:.3f} | {r['max_deg']:.3f}"
+                     f" | {r['median_s']:.2f} | {r['x_ort_fp32']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from msfnet.runtime.errors import InputError
+    from msfnet.runtime.pipeline import default_model_path
+
+    p = argparse.ArgumentParser(prog="python -m msfnet.bench.accuracy", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=None,
+                   help="data root holding DiLiGenT/ballPNG (default: $MSFNET_DATA, "
+                   "./shared/data or ../shared/data)")
+    p.add_argument("--models", type=Path, default=None,
+                   help="folder with fp32_staged.onnx, int8.onnx, int8_staged.onnx")
+    p.add_argument("--lights", default="32,96")
+    p.add_argument("--size", type=int, default=128)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=1)
+    args = p.parse_args(argv)
+    try:
+        stack = data_root(args.data) / "DiLiGenT" / "ballPNG"
+        if not stack.is_dir():
+            raise InputError("ballPNG not found under the data root", stack)
+        models = {"fp32": default_model_path()}
+        if args.models is not None:
+            models.update({k: args.models / f"{k}.onnx"
+                           for k in ("fp32_staged", "int8", "int8_staged")})
+        rows = measure(stack, models, tuple(int(v) for v in args.lights.split(",")),
+                       args.size, args.threads, args.repeats)
+    except InputError as exc:
+        print(f"msf-bench accuracy: error: {exc}", file=sys.stderr)
+        return 2
+    print(table(rows))
+    return 0
+
+
+__all__ = ["PATHS", "EnginePath", "deviation_deg", "measure", "table"]
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,225 @@
+"""Which engine and precision run a model on this CPU: ``choose_engine`` decides, ``open_engine``
+loads.
+
+``choose_engine`` is a pure function of the CPU's features (cpu.CpuInfo), the installed engines
+and the model's metadata (fp32 / int8, monolithic / staged), so every rule below is tested on
+faked CPUs. Rules, in order:
+
+1. ``--engine`` / ``--precision`` override. An override that cannot be honoured is an error,
+   never a silent substitute: bf16 needs OpenVINO (ONNX Runtime's CPU provider has no bf16 path
+   on x86) and a CPU with native bf16; int8 needs an int8 export; an int8 export runs only int8.
+2. int8 models run int8. Default engine: ONNX Runtime (its QLinearConv kernels use VNNI / AMX
+   where present; without them int8 is emulated with AVX2 and still measured 1.56x fp32 on
+   Zen 3). OpenVINO runs them on request (``--engine openvino``).
+3. fp32 models: bf16 through OpenVINO when the CPU has native bf16 (avx512_bf16 or AMX) and
+   OpenVINO is installed; plain and staged graphs alike.
+4. Otherwise fp32 through ONNX Runtime.
+
+A precision is a *default* only within ACCURACY_BOUND_DEG (0.5 deg) mean of ONNX Runtime fp32
+on real data (MEASURED, checked by ``default_allowed``); a path above it runs only on request.
+Measured with ``python -m msfnet.bench.accuracy`` on the AMX machine (Intel Xeon, AMX bf16/int8,
+AVX-512 bf16/VNNI, 2 cores shared with other jobs, onnxruntime 1.32, openvino 2026.4), bundled
+model, DiLiGenT ballPNG 128x128 crop centred on the ball, mean / max deg vs ORT fp32 over the
+mask, and speed as the same-run ratio to ORT fp32 (noisy: the cores were shared):
+
+    path (model)                   32 lights        96 lights        x ORT fp32, same run:
+                                   mean / max deg   mean / max deg   32 lights A, B; 96 A
+    ORT fp32 staged                0.001 / 0.006    0.001 / 0.005    1.34, 1.07;  0.71
+    ORT int8 (QDQ)                 0.319 / 4.18     0.442 / 5.98     1.94, 1.98;  0.76
+    ORT int8 staged                0.319 / 4.18     0.442 / 5.98     1.79, 2.05;  0.87
+    OpenVINO fp32                  0.000 / 0.000    0.000 / 0.000    1.27, 2.38;  1.25
+    OpenVINO bf16        default   0.087 / 0.309    0.080 / 0.294    6.39, 9.34;  7.39
+    OpenVINO bf16 staged default   0.079 / 0.320    0.075 / 0.291    3.81, 9.63;  4.64
+    OpenVINO int8 (QDQ)  opt-in    0.561 / 5.07     0.678 / 5.44     2.65, 6.55;  3.42
+    OpenVINO int8 staged           0.320 / 4.20     0.442 / 5.98     2.13, 6.12;  2.23
+
+Speed is noisy here (load average 6-12 on the 2 cores): run A timed each path once after a
+warm-up (ORT fp32 9.1 s at 32 lights, 35 s at 96; the 96-light ORT ratios below 1 are that
+noise, not a finding), run B took the median of 3 (ORT fp32 31 s at 32 lights). In a separate
+interleaved run OpenVINO bf16 plain beat staged by 1.5-2x (chunks of 8, 16 or 32 lights alike):
+staged graphs save memory, not time, on this engine.
+So on bf16 hardware OpenVINO bf16 is both the fastest path and 4-5x closer to fp32
+than int8. OpenVINO's int8 on the plain QDQ graph exceeds the bound and is never chosen by
+default; on the staged graph it matches ORT's int8. (A guess, not verified: its low-precision
+passes carry int8 through the max over lights into the fusion convolutions that the export
+keeps fp32; in the staged graph each stage's input is an fp32 graph input.) The field notes
+measured OpenVINO bf16 at 3.31x ORT fp32 (0.087 deg mean) on Zen 5 (avx512_bf16, no AMX).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from .contract import ModelInfo
+from .cpu import CpuInfo
+from .engines.base import (
+    ENGINES,
+    Engine,
+    engine_name,
+    model_precision,
+    precision_name,
+    read_model_file,
+)
+from .errors import InputError
+
+ACCURACY_BOUND_DEG = 0.5
+
+
+@dataclass(frozen=True)
+class Measured:
+    """Deviation from ORT fp32 on ball crops: light count -> (mean deg, max deg)."""
+
+    deg: dict[int, tuple[float, float]]
+
+    @property
+    def worst_mean(self) -> float:
+        return max(mean for mean, _ in self.deg.values())
+
+
+# (engine, precision, staged) -> measurement (the table in the module docstring)
+MEASURED: dict[tuple[str, str, bool], Measured] = {
+    ("onnxruntime", "int8", False): Measured({32: (0.319, 4.178), 96: (0.442, 5.980)}),
+    ("onnxruntime", "int8", True): Measured({32: (0.319, 4.178), 96: (0.442, 5.980)}),
+    ("openvino", "bf16", False): Measured({32: (0.087, 0.309), 96: (0.080, 0.294)}),
+    ("openvino", "bf16", True): Measured({32: (0.079, 0.320), 96: (0.075, 0.291)}),
+    ("openvino", "int8", False): Measured({32: (0.561, 5.069), 96: (0.678, 5.437)}),
+    ("openvino", "int8", True): Measured({32: (0.320, 4.198), 96: (0.442, 5.980)}),
+}
+
+
+def default_allowed(engine: str, precision: str, staged: bool) -> bool:
+    """Whether this path may be chosen without being asked for: fp32 always; a reduced precision
+    only when measured within ACCURACY_BOUND_DEG mean of fp32 at every light count measured."""
+    if precision == "fp32":
+        return True
+    m = MEASURED.get((engine, precision, staged))
+    return m is not None and m.worst_mean <= ACCURACY_BOUND_DEG
+
+
+@dataclass(frozen=True)
+class EngineChoice:
+    engine: str  # onnxruntime | openvino
+    precision: str  # fp32 | bf16 | int8
+    reason: str  # one line for logs and profile.json: why this engine and precision
+    model: Path | None = None  # the model to open (None when decided from a ModelInfo alone)
+
+
+def _bound_note(engine: str, precision: str, staged: bool) -> str:
+    """A warning for the reason string when a path runs that is no default for accuracy."""
+    m = MEASURED.get((engine, precision, staged))
+    if m is None or m.worst_mean <= ACCURACY_BOUND_DEG:
+        return ""
+    return (f"; note: measured {m.worst_mean:.2f} deg mean from fp32 on DiLiGenT ball crops, "
+            f"above the {ACCURACY_BOUND_DEG} deg bound for defaults")
+
+
+def _install_hint(engine: str) -> str:
+    return ("pip install 'msfnet[openvino]'" if engine == "openvino"
+            else "pip install onnxruntime")
+
+
+def choose_engine(model: str | Path | ModelInfo, cpu: CpuInfo, installed: Iterable[str],
+                  requested_engine: str | None = None,
+                  requested_precision: str | None = None) -> EngineChoice:
+    """Pick the engine and precision for ``model`` on ``cpu`` (rules in the module docstring).
+
+    ``model``: an msfnet ONNX path (its metadata is read) or its ModelInfo. ``installed``: engine
+    names importable here (engines.installed_engines()). Raises InputError for overrides that
+    cannot be honoured.
+    """
+    info = model if isinstance(model, ModelInfo) else read_model_file(model)
+    have = {engine_name(e) for e in installed}
+    want_engine = engine_name(requested_engine) if requested_engine else None
+    want_prec = precision_name(requested_precision) if requested_precision else None
+    own = model_precision(info)
+    graph = "staged " if info.staged else ""
+    what = f"{own} {graph}model"
+
+    if want_engine is not None and want_engine not in have:
+        raise InputError(f"--engine {want_engine}: not installed ({_install_hint(want_engine)})")
+
+    def pick(engine: str, precision: str, why: str) -> EngineChoice:
+        return EngineChoice(engine, precision, f"{engine} {precision}: {why}", info.path)
+
+    # int8 exports: quantised weights and activations, nothing else to choose but the engine
+    if own == "int8":
+        if want_prec not in (None, "int8"):
+            raise InputError(f"--precision {want_prec}: this is an int8 model; export an fp32 "
+                             "model (msf-export without --int8) for fp32 or bf16", info.path)
+        hw = ("VNNI/AMX int8 dot products" if cpu.has_vnni
+              else "no VNNI/AMX: int8 emulated with AVX2, still faster than fp32")
+        if want_engine is not None:
+            return pick(want_engine, "int8", f"{what}, --engine given ({hw})"
+                        + _bound_note(want_engine, "int8", info.staged))
+        engine = "onnxruntime" if "onnxruntime" in have else "openvino"
+        return pick(engine, "int8", f"{what} ({hw})" + _bound_note(engine, "int8", info.staged))
+
+    # fp32 exports
+    if want_prec == "int8":
+        raise InputError("--precision int8 needs an int8 export (msf-export --int8); this model "
+                         "is fp32", info.path)
+    if want_prec == "bf16":
+        if want_engine == "onnxruntime":
+            raise InputError("--precision bf16: ONNX Runtime's CPU provider has no bf16 path; "
+                             "use --engine openvino")
+        if "openvino" not in have:
+            raise InputError(f"--precision bf16 runs on OpenVINO, which is not installed "
+                             f"({_install_hint('openvino')})")
+        if not cpu.has_bf16:
+            raise InputError(f"--precision bf16: this CPU ({cpu.model}) has no native bf16 "
+                             "(avx512_bf16 or AMX); bf16 would be emulated, slower than fp32")
+        return pick("openvino", "bf16", f"{what}, --precision bf16 given"
+                    + _bound_note("openvino", "bf16", info.staged))
+    if want_prec == "fp32":
+        engine = want_engine or "onnxruntime"
+        return pick(engine, "fp32", f"{what}, --precision fp32 given")
+
+    # no precision asked for: the fastest default within the accuracy bound
+    bf16_ok = default_allowed("openvino", "bf16", info.staged)
+    if want_engine in (None, "openvino") and "openvino" in have and cpu.has_bf16 and bf16_ok:
+        m = MEASURED[("openvino", "bf16", info.staged)]
+        return pick("openvino", "bf16", f"{what}; CPU has native bf16 "
+                    f"({'AMX' if cpu.amx_bf16 else 'avx512_bf16'}); measured within "
+                    f"{m.worst_mean:.2f} deg mean of fp32 on DiLiGenT ball crops")
+    if want_engine is not None:
+        if not cpu.has_bf16:
+            note = "; no native bf16 on this CPU"
+        elif want_engine == "onnxruntime":
+            note = "; bf16 on this CPU would need --engine openvino"
+        else:
+            note = ""
+        return pick(want_engine, "fp32", f"{what}, --engine given{note}")
+    if not cpu.has_bf16:
+        why = "no native bf16 on this CPU"
+    elif "openvino" not in have:
+        why = f"CPU has native bf16 but OpenVINO is not installed ({_install_hint('openvino')})"
+    else:
+        why = "OpenVINO bf16 not measured within the accuracy bound for this graph"
+    return pick("onnxruntime", "fp32", f"{what}; {why}")
+
+
+def open_engine(choice: EngineChoice, threads: int | None = None, *, chunk: int | None = None,
+                provider: str | None = None, model: str | Path | None = None) -> Engine:
+    """Load the chosen engine. ``threads``: None = the cores this process may use. ``provider``
+    (ONNX Runtime only): e.g. 'cuda'. ``model`` overrides ``choice.model``."""
+    path = model if model is not None else choice.model
+    if path is None:
+        raise InputError("open_engine: no model path (give model=... or choose from a path)")
+    if choice.engine == "onnxruntime":
+        from .engines.onnxruntime import open_onnxruntime
+
+        return open_onnxruntime(path, threads=threads, precision=choice.precision,
+                                provider=provider, chunk=chunk)
+    if choice.engine == "openvino":
+        if provider not in (None, "cpu"):
+            raise InputError(f"--provider {provider}: ONNX Runtime only (OpenVINO runs on CPU)")
+        from .engines.openvino import open_openvino
+
+        return open_openvino(path, threads=threads, precision=choice.precision, chunk=chunk)
+    raise InputError(f"unknown engine {choice.engine!r} (known: {', '.join(ENGINES)})")
+
+
+__all__ = ["ACCURACY_BOUND_DEG", "MEASURED", "EngineChoice", "Measured", "choose_engine",
+           "default_allowed", "open_engine"]

@@ -1,0 +1,133 @@
+"""What every engine offers, and the pieces the engines share (model metadata, staged loop).
+
+An engine runs an msfnet ONNX file: ``run(images (1, N, 3, H, W), lights (1, N, 3)) -> normals
+(1, 3, H, W)``, all float32, and describes itself with ``name``, ``precision``, ``info``
+(ModelInfo: the file's metadata), ``threads`` and ``chunk`` (lights per call, staged graphs), so
+``infer.choose_plan`` / ``infer.infer_normals`` take any engine where they took a ModelSession.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..chunked import run_staged
+from ..contract import ModelInfo, read_model_info
+from ..errors import InputError
+
+ENGINES = ("onnxruntime", "openvino")
+ENGINE_ALIASES = {"onnxruntime": "onnxruntime", "ort": "onnxruntime",
+                  "openvino": "openvino", "ov": "openvino"}
+PRECISIONS = ("fp32", "bf16", "int8")
+# the Python module that has to be importable for each engine
+ENGINE_MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
+
+
+@runtime_checkable
+class Engine(Protocol):
+    @property
+    def name(self) -> str: ...  # one of ENGINES
+
+    @property
+    def precision(self) -> str: ...  # fp32, bf16 or int8: the effective one, not the wish
+
+    @property
+    def info(self) -> ModelInfo: ...
+
+    @property
+    def threads(self) -> int | None: ...
+
+    @property
+    def chunk(self) -> int | None: ...  # lights per call through a staged graph, else None
+
+    def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray: ...
+
+    def describe(self) -> dict[str, object]: ...
+
+
+def engine_name(name: str) -> str:
+    """'ort' / 'ov' / full names -> the canonical engine name; InputError if unknown."""
+    canonical = ENGINE_ALIASES.get(name.strip().lower())
+    if canonical is None:
+        raise InputError(f"--engine {name!r}: expected one of {', '.join(ENGINES)} "
+                         "(or ort, ov)")
+    return canonical
+
+
+def precision_name(name: str) -> str:
+    p = name.strip().lower()
+    p = {"float32": "fp32", "f32": "fp32", "bfloat16": "bf16", "i8": "int8"}.get(p, p)
+    if p not in PRECISIONS:
+        raise InputError(f"--precision {name!r}: expected one of {', '.join(PRECISIONS)}")
+    return p
+
+
+def installed_engines() -> set[str]:
+    """Engines whose Python package is importable here (checked without importing it)."""
+    found = set()
+    for engine, module in ENGINE_MODULES.items():
+        try:
+            if importlib.util.find_spec(module) is not None:
+                found.add(engine)
+        except (ImportError, ValueError):  # a broken install or an import hook saying no
+            pass
+    return found
+
+
+def model_precision(info: ModelInfo) -> str:
+    """'int8' for quantised exports (metadata 'int8-qdq'), 'fp32' otherwise (incl. fp16-stored
+    weights, which are computed in fp32)."""
+    return "int8" if info.precision.strip().lower().startswith("int8") else "fp32"
+
+
+def read_model_file(path: str | Path) -> ModelInfo:
+    """The msfnet metadata of an ONNX file, without building an optimised session (~50 ms).
+
+    ONNX Runtime is part of the base install, and OpenVINO does not expose ONNX metadata_props,
+    so every engine reads the metadata this way. InputError if missing, corrupt or not msfnet.
+    """
+    import onnxruntime as ort
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("ONNX model not found", path)
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
+    opts.log_severity_level = 3
+    try:
+        sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # InvalidProtobuf, Fail, ... for files that are not ONNX
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"cannot load ONNX model ({first[:200]})", path) from exc
+    return read_model_info(path, dict(sess.get_modelmeta().custom_metadata_map))
+
+
+RunOutput = Callable[[str, Mapping[str, np.ndarray]], np.ndarray]
+
+
+class SubgraphSession:
+    """A 'compute this output from these feeds' callable, seen through the one method of an
+    ONNX Runtime session that ``staged.run_staged`` calls, so every engine shares that
+    light-chunked loop instead of a copy of it. The feeds include placeholders for inputs the
+    output does not need; the callable ignores what it does not use."""
+
+    def __init__(self, run_output: RunOutput) -> None:
+        self._run_output = run_output
+
+    def run(self, output_names: list[str], feeds: Mapping[str, np.ndarray]) -> list[np.ndarray]:
+        return [self._run_output(name, feeds) for name in output_names]
+
+
+def run_staged_with(run_output: RunOutput, images: np.ndarray, lights: np.ndarray,
+                    chunk: int) -> np.ndarray:
+    """``staged.run_staged`` with any engine's sub-graph runner."""
+    return run_staged(SubgraphSession(run_output), images, lights, chunk)
+
+
+__all__ = ["ENGINES", "PRECISIONS", "Engine", "SubgraphSession", "engine_name",
+           "installed_engines", "model_precision", "precision_name", "read_model_file",
+           "run_staged_with"]

@@ -1,0 +1,160 @@
+"""The OpenVINO engine: the same msfnet ONNX file, compiled by OpenVINO's CPU plugin.
+
+Why it is here: on CPUs with native bf16 (AVX-512 bf16 or AMX), ``INFERENCE_PRECISION_HINT=bf16``
+runs the fp32 model's convolutions in bf16 (see dispatch.py for the measured speed and
+accuracy); ONNX Runtime's CPU provider has no such path on x86. OpenVINO reads the ONNX file
+directly, with the dynamic N, H, W kept (one compile serves every tile size: compiling for a
+static shape measured no faster here). Staged exports are compiled as four sub-models, one per
+entry point, and run through the same light-chunked loop as ONNX Runtime (chunked.run_staged).
+
+``openvino`` is an optional dependency (``pip install 'msfnet[openvino]'``), imported only when
+an engine is opened.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..chunked import DEFAULT_CHUNK, STAGE_OUTPUTS
+from ..contract import ModelInfo
+from ..errors import InputError
+from ..session import default_threads
+from .base import model_precision, read_model_file, run_staged_with
+
+# OpenVINO's names for the compute precisions
+_HINTS = {"fp32": "f32", "bf16": "bf16"}
+INSTALL_HINT = "pip install 'msfnet[openvino]' (or: pip install openvino)"
+
+
+def import_openvino() -> Any:
+    try:
+        import openvino
+    except ImportError as exc:
+        raise InputError(f"the OpenVINO engine needs the openvino package: {INSTALL_HINT}") \
+            from exc
+    return openvino
+
+
+def _effective(compiled: Any) -> str:
+    """The precision OpenVINO actually chose (it falls back to f32 where bf16 is emulated)."""
+    text = str(compiled.get_property("INFERENCE_PRECISION_HINT")).lower()
+    return "bf16" if "bf16" in text or "bfloat16" in text else "fp32"
+
+
+class OpenVinoEngine:
+    name = "openvino"
+
+    def __init__(self, compiled: dict[str, Any], info: ModelInfo, precision: str,
+                 threads: int, chunk: int = DEFAULT_CHUNK, device: str = "CPU",
+                 version: str = "") -> None:
+        # output name -> (infer request, names of the inputs it needs)
+        self._requests = {out: (c.create_infer_request(), [i.get_any_name() for i in c.inputs])
+                          for out, c in compiled.items()}
+        self.info = info
+        self.precision = precision
+        self.threads = threads
+        self.lights_per_call = chunk
+        self.device = device
+        self.version = version
+
+    def _run_output(self, output: str, feeds: Any) -> np.ndarray:
+        request, names = self._requests[output]
+        # outputs are copied out of the request (share_outputs defaults to False), so a result
+        # survives the next call
+        return request.infer({n: feeds[n] for n in names})[0]
+
+    @property
+    def chunk(self) -> int | None:
+        return self.lights_per_call if self.info.staged else None
+
+    def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        if self.info.staged:
+            return run_staged_with(self._run_output, images, lights, self.lights_per_call)
+        return self._run_output("normals", {"images": images, "lights": lights})
+
+    def describe(self) -> dict[str, object]:
+        return {"engine": self.name, "precision": self.precision, "device": self.device,
+                "threads": self.threads, "openvino": self.version,
+                "graph": "staged" if self.info.staged else "monolithic",
+                "chunk": self.chunk if self.info.staged else None}
+
+    def __repr__(self) -> str:
+        return f"OpenVinoEngine({self.info.path.name}, {self.precision}, threads={self.threads})"
+
+
+def _sub_model(ov: Any, core: Any, path: Path, output: str) -> Any:
+    """The part of a staged graph that computes ``output``, with only the inputs it uses (so a
+    call computes one stage, and no placeholders are fed)."""
+    model = core.read_model(str(path))
+    result = next(r for r in model.get_results() if r.input_value(0).get_any_name() == output)
+    # the parameters this output depends on: walk the graph upwards from the result
+    needed, stack, seen = [], [result], set()
+    while stack:
+        node = stack.pop()
+        # get_name() is unique per node; id() of the short-lived Python wrappers is not
+        if node.get_name() in seen:
+            continue
+        seen.add(node.get_name())
+        if node.get_type_name() == "Parameter":
+            needed.append(node)
+        stack.extend(v.get_node() for v in node.input_values())
+    order = {p.get_friendly_name(): k for k, p in enumerate(model.get_parameters())}
+    needed.sort(key=lambda p: order[p.get_friendly_name()])
+    return ov.Model([result], needed, output)
+
+
+def open_openvino(path: str | Path, *, threads: int | None = None, precision: str | None = None,
+                  chunk: int | None = None, device: str = "CPU",
+                  config: dict[str, Any] | None = None) -> OpenVinoEngine:
+    """Compile ``path`` with OpenVINO. ``precision``: fp32 or bf16 for fp32 models (default
+    fp32), int8 (the default) for int8 QDQ models, whose non-quantised layers then run fp32.
+
+    Raises InputError when openvino is missing, the file is not an msfnet model, or bf16 is
+    asked for on a CPU where OpenVINO does not run bf16 natively.
+    """
+    ov = import_openvino()
+    info = read_model_file(path)
+    own = model_precision(info)
+    precision = precision or own
+    if own == "int8" and precision != "int8":
+        raise InputError(f"this is an int8 model; precision {precision} needs an fp32 export",
+                         info.path)
+    if own == "fp32" and precision == "int8":
+        raise InputError("int8 needs an int8 export (msf-export --int8); this model is fp32",
+                         info.path)
+    threads = threads or default_threads()
+    if threads < 1:
+        raise InputError(f"--threads must be positive, got {threads}")
+    props: dict[str, Any] = {
+        "INFERENCE_PRECISION_HINT": _HINTS["fp32" if precision == "int8" else precision],
+        "INFERENCE_NUM_THREADS": threads,
+        "PERFORMANCE_HINT": "LATENCY",
+        "NUM_STREAMS": 1,  # one request at a time: all threads on it
+        **(config or {}),
+    }
+    core = ov.Core()
+    try:
+        if info.staged:
+            compiled = {out: core.compile_model(_sub_model(ov, core, info.path, out), device,
+                                                props) for out in STAGE_OUTPUTS}
+        else:
+            compiled = {"normals": core.compile_model(str(info.path), device, props)}
+    except InputError:
+        raise
+    except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+        raise InputError(f"OpenVINO cannot compile this model for {device} "
+                         f"({type(exc).__name__}: {first})", info.path) from exc
+    effective = _effective(next(iter(compiled.values())))
+    if precision == "bf16" and effective != "bf16":
+        raise InputError("OpenVINO runs bf16 only on CPUs with native bf16 (AVX-512 bf16 or "
+                         f"AMX); here it would compute {effective}: use --precision fp32")
+    version = getattr(ov, "__version__", "") or str(ov.get_version())
+    return OpenVinoEngine(compiled, info, precision if precision == "int8" else effective,
+                          threads, chunk or DEFAULT_CHUNK, device, version)
+
+
+__all__ = ["INSTALL_HINT", "OpenVinoEngine", "import_openvino", "open_openvino"]

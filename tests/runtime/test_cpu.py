@@ -1,0 +1,73 @@
+"""CPU feature detection (runtime/cpu.py): flag spellings, fallbacks, caching."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from msfnet.runtime import cpu as cpu_mod
+from msfnet.runtime.cpu import CpuInfo, detect_cpu
+
+ZEN3 = ["fpu", "sse4_2", "avx", "avx2", "fma", "f16c"]
+ZEN5 = [*ZEN3, "avx512f", "avx512bw", "avx512vnni", "avx512_bf16"]  # py-cpuinfo mixes spellings
+SAPPHIRE = [*ZEN3, "avx512f", "avx512_vnni", "avx512_bf16", "avx_vnni", "amx_bf16", "amx_int8",
+            "amx_tile"]
+
+
+@pytest.mark.parametrize(("flags", "bf16", "vnni", "amx"), [
+    (ZEN3, False, False, False),
+    (ZEN5, True, True, False),
+    (SAPPHIRE, True, True, True),
+    (["avx2", "avx_vnni"], False, True, False),  # Alder Lake-like: VNNI without AVX-512
+    ([], False, False, False),
+])
+def test_derived_features(flags: list[str], bf16: bool, vnni: bool, amx: bool) -> None:
+    info = CpuInfo.from_flags(flags)
+    assert (info.has_bf16, info.has_vnni, info.has_amx) == (bf16, vnni, amx)
+    assert info.avx2 == ("avx2" in flags)
+
+
+def test_both_spellings_are_one_feature() -> None:
+    a = CpuInfo.from_flags(["AVX512VNNI", "avx512bf16"])
+    b = CpuInfo.from_flags(["avx512_vnni", "avx512_bf16"])
+    assert a.avx512_vnni and a.avx512_bf16 and a == b
+    # avx_vnni (VEX) and avx512_vnni (EVEX) are different features
+    assert not CpuInfo.from_flags(["avx_vnni"]).avx512_vnni
+
+
+def test_proc_cpuinfo_fallback_parses_first_processor(tmp_path: Path) -> None:
+    text = ("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R45\n"
+            "flags\t\t: fpu avx2 avx512f avx512_vnni avx512_bf16\n\n"
+            "processor\t: 1\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R45\n"
+            "flags\t\t: fpu avx2\n")
+    (tmp_path / "cpuinfo").write_text(text)
+    info = cpu_mod._from_proc_cpuinfo(tmp_path / "cpuinfo")
+    assert (info.model, info.vendor, info.source) == ("AMD EPYC 9R45", "AuthenticAMD",
+                                                      "/proc/cpuinfo")
+    assert info.has_bf16 and info.has_vnni and not info.has_amx
+
+
+def test_detect_falls_back_when_py_cpuinfo_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    def broken() -> CpuInfo:
+        raise RuntimeError("no cpuid here")
+
+    monkeypatch.setattr(cpu_mod, "_from_py_cpuinfo", broken)
+    detect_cpu.cache_clear()
+    try:
+        info = detect_cpu()
+        expected = "/proc/cpuinfo" if Path("/proc/cpuinfo").is_file() else "none"
+        assert info.source == expected and info.cores >= 1
+    finally:
+        detect_cpu.cache_clear()
+
+
+def test_detect_is_cached_and_agrees_with_the_kernel() -> None:
+    info = detect_cpu()
+    assert detect_cpu() is info
+    assert info.cores >= 1 and info.model
+    assert info.summary().startswith(info.model)
+    if sys.platform.startswith("linux") and Path("/proc/cpuinfo").is_file():
+        # two independent readings of the same CPU must agree on every feature that matters
+        assert cpu_mod._from_proc_cpuinfo().features() == info.features()
