@@ -21,7 +21,6 @@ def _run(argv: list[str]) -> int:
         return int(exc.code or 0)
 
 
-@pytest.mark.xfail(strict=True, reason=PENDING, raises=Exception)
 @pytest.mark.parametrize("content", [b"\xff\xfe\x00 not text", b"[1, 2]", b'"a string"'],
                          ids=["binary", "list", "string"])
 def test_corrupt_session_json_is_one_line(content: bytes, tmp_path: Path, capfd) -> None:
@@ -35,7 +34,6 @@ def test_corrupt_session_json_is_one_line(content: bytes, tmp_path: Path, capfd)
     assert sorted(p.name for p in out.iterdir()) == ["session.json"]
 
 
-@pytest.mark.xfail(strict=True, reason=PENDING)
 @pytest.mark.parametrize("option", [["--settle", "nan"], ["--settle", "-1"],
                                     ["--count", "0"], ["--average", "0"],
                                     ["--exposure", "inf"]])

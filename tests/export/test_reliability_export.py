@@ -49,7 +49,6 @@ def test_train_lights_zero_is_one_line(ckpt: Path, tmp_path: Path, capfd) -> Non
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.xfail(strict=True, reason=PENDING, raises=Exception)
 def test_static_foo_is_one_line(ckpt: Path, tmp_path: Path, capfd) -> None:
     """StaticShape.parse raises InputError inside argparse: a traceback today."""
     _one_line_exit_2(capfd, _run([str(ckpt), "-o", str(tmp_path / "m.onnx"), "--static",

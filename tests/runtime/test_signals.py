@@ -32,8 +32,8 @@ import msfnet.runtime.outputs as outputs
 phase, marker = sys.argv[1], Path(sys.argv[2])
 fill = outputs.fill_result_folder
 
-def staged_then_wait(folder, result):
-    fill(folder, result)  # every file is in the staging folder; not yet renamed into place
+def staged_then_wait(folder, result, **kwargs):
+    fill(folder, result, **kwargs)  # every file is staged, not yet renamed into place
     marker.write_text(str(folder))
     if phase == "write":
         time.sleep(120)
@@ -153,8 +153,9 @@ def test_two_writers_to_the_same_output(stack_dir: Path, tmp_path: Path) -> None
     assert len(loser) == 1 and "appeared while running" in loser[0], loser
     assert "--overwrite" in loser[0]
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted([MANIFEST, "error.png", "metrics.json", "normals.npy",
-                            "normals.png", "profile.json"])
+    # one complete result folder (every file of one run), never a mix
+    assert {MANIFEST, "error.png", "metrics.json", "normals.npy", "normals.png",
+            "profile.json", "height.npy", "report.html"} <= set(names)
     assert json.loads((out / MANIFEST).read_text())["files"] == sorted(set(names) - {MANIFEST})
     assert not _staging(tmp_path)
 

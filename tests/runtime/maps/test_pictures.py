@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import cv2
@@ -62,7 +63,18 @@ def test_pictures_draw_with_colour_bars(surfaces) -> None:
     png = pictures.png_bytes(curv_img)
     decoded = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)[..., ::-1]
     assert np.array_equal(decoded, curv_img)
-    assert "matplotlib.pyplot" not in sys.modules, "pictures must not touch pyplot's state"
+
+
+
+def test_pictures_never_import_pyplot() -> None:
+    """Drawing must not touch pyplot's global state (a fresh interpreter: other tests may have
+    imported pyplot into this one)."""
+    code = ("import sys, numpy as np\n"
+            "from msfnet.runtime.maps import pictures\n"
+            "m = np.ones((8, 8), bool)\n"
+            "pictures.error_picture(np.zeros((8, 8)), m)\n"
+            "assert 'matplotlib.pyplot' not in sys.modules\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
 def test_degenerate_inputs_still_give_readable_pictures() -> None:

@@ -94,14 +94,23 @@ def _rows_text(rows: np.ndarray) -> str:
     return "".join(" ".join(f"{v:.8f}" for v in r) + "\n" for r in rows)
 
 
+def read_session(path: Path) -> dict:
+    """session.json as a dict; a damaged or foreign file is refused in one line."""
+    try:
+        data = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise InputError(f"session file is damaged ({type(exc).__name__}); delete it to start "
+                         "over", path) from exc
+    if not isinstance(data, dict) or not isinstance(data.get("count", 0), int):
+        raise InputError("session file is not an msf-capture session; delete it to start over",
+                         path)
+    return data
+
+
 def _load_session(path: Path, count: int, overwrite: bool) -> dict:
     if not path.is_file() or overwrite:
         return {"count": count, "frames": {}}
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(f"session file is corrupt ({exc}); delete it to start over", path) \
-            from exc
+    data = read_session(path)
     if data.get("count") != count:
         raise InputError(f"existing session has {data.get('count')} lights, this one {count} "
                          "(use another folder or --overwrite)", path)
@@ -289,7 +298,7 @@ def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = N
     """
     raw = out / "raw"
     sess_path = out / SESSION
-    session = json.loads(sess_path.read_text())
+    session = read_session(sess_path)
     n = int(session["count"])
     lin = linearisation or Linearisation()
     names = [_name(i) for i in range(n)]
@@ -377,7 +386,7 @@ def next_take(root: Path) -> Path:
         last = taken[-1][1]
         sess = last / SESSION
         if sess.is_file():
-            count = int(json.loads(sess.read_text()).get("count", 0))
+            count = int(read_session(sess).get("count", 0))
             if not _finished(last, count):
                 return last
         return root / f"{taken[-1][0] + 1:03d}"

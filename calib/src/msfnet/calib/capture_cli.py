@@ -12,6 +12,7 @@ import numpy as np
 
 from msfnet.runtime.cliutil import (
     make_parser,
+    nonnegative_float,
     nonnegative_int,
     positive_float,
     positive_int,
@@ -47,7 +48,7 @@ def add_device_arguments(p: argparse.ArgumentParser, lights_flag: str = "--light
                    help="camera back-end" + (f" (default {camera_default}); sim: a rendered "
                                              "sphere, no hardware" if camera_default else ""))
     g.add_argument("--device", default="0", help="OpenCV device index or URL; OAK device id")
-    g.add_argument("--exposure", type=float, help="OpenCV: exposure (driver units); "
+    g.add_argument("--exposure", type=positive_float, help="OpenCV: exposure (driver units); "
                    "OAK: microseconds (default 10000)")
     g.add_argument("--iso", type=int, default=100, help="OAK ISO (default 100)")
     g.add_argument("--gain", type=float, help="OpenCV gain")
@@ -65,7 +66,8 @@ def add_device_arguments(p: argparse.ArgumentParser, lights_flag: str = "--light
     g.add_argument("--baud", type=positive_int, default=115200)
     g.add_argument("--count", type=positive_int,
                    help="number of lights (manual; checks serial; sim default 12)")
-    g.add_argument("--settle", type=float, default=0.05, help="seconds after switching a light")
+    g.add_argument("--settle", type=nonnegative_float, default=0.05,
+                   help="seconds after switching a light")
     g.add_argument("--sim-scene", choices=("chrome", "matte"), default="matte",
                    help="simulated scene: a chrome sphere (light calibration) or a matte one")
     g.add_argument("--light-directions", type=Path, help="light_directions.txt to put in the "

@@ -64,7 +64,7 @@ def check_unique(objects: list[BenchObject]) -> None:
     names = [o.folder.name for o in objects]
     dup = next((n for n in names if names.count(n) > 1), None)
     if dup is not None:
-        raise InputError(f"object {dup!r} appears twice (its results would clash)")
+        raise InputError(f"object {dup!r} is listed twice (its results would clash)")
 
 
 

@@ -17,7 +17,13 @@ import warnings
 from collections.abc import Callable, Sequence
 
 from .errors import InputError, MsfError, first_line, one_line
-from .files import Terminated, forget_written, install_signal_handlers, written_outputs
+from .files import (
+    Terminated,
+    forget_written,
+    install_signal_handlers,
+    restore_signal_handlers,
+    written_outputs,
+)
 
 
 def _number(text: str, kind: type) -> float:
@@ -130,8 +136,16 @@ def _left_behind() -> str:
 
 def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
     """Run a command's body and turn every failure into one line and an exit code."""
-    install_signal_handlers()
+    previous = install_signal_handlers()
     forget_written()
+    try:
+        return _run_body(prog, body, debug)
+    finally:
+        # in-process callers (tests, the Python API) get their own handlers back
+        restore_signal_handlers(previous)
+
+
+def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
 
     def fail(message: str, code: int) -> int:
         print(f"{prog}: {one_line(message)}", file=sys.stderr)

@@ -205,6 +205,8 @@ def open_engine(choice: EngineChoice, threads: int | None = None, *, chunk: int 
     """Load the chosen engine. ``threads``: None = the cores this process may use. ``provider``
     (ONNX Runtime only): e.g. 'cuda'. ``model`` overrides ``choice.model``."""
     path = model if model is not None else choice.model
+    if threads is not None and not 1 <= threads <= 1024:
+        raise InputError(f"--threads {threads}: expected 1..1024")
     if path is None:
         raise InputError("open_engine: no model path (give model=... or choose from a path)")
     if choice.engine == "onnxruntime":

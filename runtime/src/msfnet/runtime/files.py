@@ -63,14 +63,26 @@ def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated(signum)
 
 
-def install_signal_handlers() -> None:
-    """Turn SIGTERM (and SIGHUP) into an exception, so staged outputs are removed on a kill."""
+def install_signal_handlers() -> dict[int, object]:
+    """Turn SIGTERM (and SIGHUP) into an exception, so staged outputs are removed on a kill.
+
+    Returns the previous handlers (for :func:`restore_signal_handlers`). A signal the caller
+    ignores (``nohup``) stays ignored."""
+    previous: dict[int, object] = {}
     for name in ("SIGTERM", "SIGHUP"):
         sig = getattr(signal, name, None)
-        if sig is not None:
-            # outside the main thread this raises ValueError: keep the default behaviour there
-            with contextlib.suppress(ValueError):
-                signal.signal(sig, _raise_terminated)
+        if sig is None or signal.getsignal(sig) is signal.SIG_IGN:
+            continue
+        # outside the main thread this raises ValueError: keep the default behaviour there
+        with contextlib.suppress(ValueError):
+            previous[sig] = signal.signal(sig, _raise_terminated)
+    return previous
+
+
+def restore_signal_handlers(previous: dict[int, object]) -> None:
+    for sig, handler in previous.items():
+        with contextlib.suppress(ValueError, TypeError):
+            signal.signal(sig, handler)  # type: ignore[arg-type]
 
 
 def _umask() -> int:
@@ -286,7 +298,8 @@ def write_atomic(path: str | Path, write: Callable[[Path], object], *,
                 raise InputError("output appeared while running (another command wrote it?); "
                                  "pass --overwrite to replace it", path)
             os.replace(tmp, path)
-            _written.append(path)
+            if not any(STAGING_TAG in part for part in path.parts):
+                _written.append(path)  # a file inside a staging folder is not an output yet
         done = True
     finally:
         tmp.unlink(missing_ok=True)

@@ -125,15 +125,19 @@ def create_session(path: str | Path, *, threads: int | None = None, provider: st
     if arena is None and info.staged:  # the default depends on the graph: load it again
         return create_session(path, threads=threads, provider=provider, graph_opt=graph_opt,
                               arena=True)
-    inputs = {i.name for i in sess.get_inputs()}
-    outputs = {o.name for o in sess.get_outputs()}
+    check_io(path, info, {i.name for i in sess.get_inputs()},
+             {o.name for o in sess.get_outputs()})
+    return ModelSession(sess, info, prov, threads)
+
+
+def check_io(path: Path, info: ModelInfo, inputs: set[str], outputs: set[str]) -> None:
+    """The graph's inputs and outputs are msfnet's (plain or staged); InputError otherwise."""
     want_in, want_out = ((set(STAGE_INPUTS), set(STAGE_OUTPUTS)) if info.staged
                          else ({"images", "lights"}, {"normals"}))
     if inputs != want_in or not want_out <= outputs:
         raise InputError(f"not an msfnet {'staged ' if info.staged else ''}model: inputs "
                          f"{sorted(inputs)}, outputs {sorted(outputs)} (expected "
                          f"{', '.join(sorted(want_in))} -> {', '.join(sorted(want_out))})", path)
-    return ModelSession(sess, info, prov, threads)
 
 
 __all__ = ["GRAPH_OPT_LEVELS", "ModelSession", "create_session", "default_threads",

@@ -18,6 +18,7 @@ import numpy as np
 from ..chunked import run_staged
 from ..contract import ModelInfo, read_model_info
 from ..errors import InputError
+from ..session import check_io
 
 ENGINES = ("onnxruntime", "openvino")
 ENGINE_ALIASES = {"onnxruntime": "onnxruntime", "ort": "onnxruntime",
@@ -93,6 +94,8 @@ def read_model_file(path: str | Path) -> ModelInfo:
     import onnxruntime as ort
 
     path = Path(path)
+    if path.is_dir():
+        raise InputError("the model is a folder, not a file", path)
     if not path.is_file():
         raise InputError("ONNX model not found", path)
     opts = ort.SessionOptions()
@@ -103,7 +106,10 @@ def read_model_file(path: str | Path) -> ModelInfo:
     except Exception as exc:  # InvalidProtobuf, Fail, ... for files that are not ONNX
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"cannot load ONNX model ({first[:200]})", path) from exc
-    return read_model_info(path, dict(sess.get_modelmeta().custom_metadata_map))
+    info = read_model_info(path, dict(sess.get_modelmeta().custom_metadata_map))
+    check_io(path, info, {i.name for i in sess.get_inputs()},
+             {o.name for o in sess.get_outputs()})
+    return info
 
 
 RunOutput = Callable[[str, Mapping[str, np.ndarray]], np.ndarray]

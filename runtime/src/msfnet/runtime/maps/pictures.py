@@ -184,9 +184,13 @@ def height_picture(height: np.ndarray, mask: np.ndarray, *, units: str = "px") -
         hi = lo + 1.0  # a flat (or one-pixel) object: any range shows it in one colour
     filled = np.where(valid, height, lo)
     rs, cs = crop_box(valid)
-    shade = LightSource(azdeg=315, altdeg=45).shade(
-        filled[rs, cs], cmap=colormaps["viridis"], norm=Normalize(lo, hi), blend_mode="soft",
-        vert_exag=1.0)[..., :3]
+    crop = filled[rs, cs]
+    if min(crop.shape) < 2:  # hill shading needs a slope: one row or column is just coloured
+        shade = colormaps["viridis"](Normalize(lo, hi)(crop))[..., :3]
+    else:
+        shade = LightSource(azdeg=315, altdeg=45).shade(
+            crop, cmap=colormaps["viridis"], norm=Normalize(lo, hi), blend_mode="soft",
+            vert_exag=1.0)[..., :3]
     full = np.zeros((*height.shape, 3))
     full[rs, cs] = shade
     return _scalar_picture(height, valid, cmap="viridis", vmin=lo, vmax=hi, rgb=full,
