@@ -84,8 +84,6 @@ def test_npz_bomb_is_refused_from_the_header(tmp_path: Path) -> None:
         load_stack(path, LoadOptions(max_memory_mb=1024))
 
 
-@pytest.mark.xfail(strict=True, reason="run_cli builds LoadOptions without max_memory_mb: one "
-                   "argument (max_memory_mb=args.max_memory) in run_cli.py/eval_cli.py")
 def test_msf_run_passes_its_budget_to_the_loader(tmp_path: Path, monkeypatch, capfd) -> None:
     from msfnet.runtime.run_cli import main
 

@@ -20,6 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.model.checkpoint import default_checkpoint_path
+from msfnet.runtime.cliutil import make_parser, positive_float, positive_int
 from msfnet.runtime.cpu import detect_cpu
 from msfnet.runtime.dispatch import choose_engine
 from msfnet.runtime.engines import installed_engines
@@ -49,14 +50,21 @@ MODEL_OF_VARIANT = {"ort-int8": "int8", "ort-fp32-staged": "fp32_staged",
                     "ov-bf16-staged": "fp32_staged"}
 
 
+def thread_counts(text: str) -> list[int]:
+    """``2,1`` -> [2, 1]; each a positive integer."""
+    return [positive_int(t) for t in text.split(",") if t.strip()] or [positive_int(text)]
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="msf-bench",
-        description="Benchmark MSF-Net on this CPU: ONNX Runtime fp32 / int8, OpenVINO bf16 "
+    p = make_parser(
+        "msf-bench",
+        "Benchmark MSF-Net on this CPU: ONNX Runtime fp32 / int8, OpenVINO bf16 "
         "(if installed), PyTorch eager and the published per-light loop, on workloads (a) 16 "
         "lights 64x64, (b) 32 lights 128x128, (c) 96 lights 128x128 and (d) a full stack "
         "through msf-run. Reports median/p90 latency, peak RSS, GFLOP/s, fraction of the "
-        "matmul peak measured in the same run, and angular deviation from PyTorch fp32.")
+        "matmul peak measured in the same run, and angular deviation from PyTorch fp32.",
+        ("msf-bench --quick --report-dir /tmp/msf-bench-quick",
+         "msf-bench --report-dir bench/full --overwrite"))
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="MSF-Net checkpoint (.pth); default: the bundled trained model "
                    "(msfnet/weights/msfnet_default.pth)")
@@ -79,8 +87,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="smoke test: tiny workloads, one timed run each (about 1-2 minutes)")
     p.add_argument("--variants", default=",".join(VARIANTS),
                    help=f"comma list from {', '.join(VARIANTS)} (default: all available)")
-    p.add_argument("--threads", default="2,1", help="thread counts (default 2,1)")
-    p.add_argument("--max-memory", type=float, default=4096,
+    p.add_argument("--threads", type=thread_counts, default=[2, 1],
+                   help="thread counts, comma-separated (default 2,1)")
+    p.add_argument("--max-memory", type=positive_float, default=4096,
                    help="msf-run --max-memory for workload (d), MB (default 4096, msf-run's own)")
     p.add_argument("--no-e2e", action="store_true", help="skip workload (d)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing report")
@@ -240,7 +249,7 @@ def bench(args: argparse.Namespace) -> dict:
             variants.remove(v)
     for n in notes:
         print(f"msf-bench: {n}", file=sys.stderr)
-    threads = sorted({int(t) for t in args.threads.split(",")}, reverse=True)
+    threads = sorted(set(args.threads), reverse=True)
     resolve_paths(args)
     workdir = args.report_dir / "models"
     workdir.mkdir(parents=True, exist_ok=True)

@@ -96,6 +96,11 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_table() + "\n\nThe flags --static, --staged, --fp16-weights and --int8 pick "
         "the same rows (e.g. --staged --int8 = staged-int8).",
     )
+    from msfnet import __version__
+
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    p.add_argument("-q", "--quiet", action="store_true", help="print errors only")
+    p.add_argument("-v", "--verbose", action="store_true", help="print more detail")
     p.add_argument("checkpoint", type=Path, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)")
     p.add_argument("-o", "--output", type=Path, default=None,
                    help="output .onnx (default: the checkpoint's name with .onnx)")

@@ -44,8 +44,8 @@ def choose_plan(stack: Stack, model: Engine, tile: int | None = None,
         return plan_tiles(stack.mask, None)
     if tile is None:
         # the budget is for the whole process: the loaded stack already occupies part of it
-        budget = (max_memory_mb or DEFAULT_MAX_MEMORY_MB) - stack.images.nbytes / 2**20
-        tile = tile_size_for_memory(budget, stack.num_lights, model.chunk)
+        tile = tile_size_for_memory(max_memory_mb or DEFAULT_MAX_MEMORY_MB, stack.num_lights,
+                                    model.chunk, stack_mb=stack.images.nbytes / 2**20)
     return plan_tiles(stack.mask, tile)
 
 

@@ -142,7 +142,7 @@ def load_options(args: argparse.Namespace) -> LoadOptions:
     return LoadOptions(args.lights, args.intensities, args.mask, args.select, args.max_lights,
                        roi=args.roi, downscale=args.downscale, srgb=args.srgb,
                        gamma=args.gamma, white_level=args.white_level,
-                       auto_mask=args.auto_mask)
+                       auto_mask=args.auto_mask, max_memory_mb=args.max_memory)
 
 
 def open_model(args: argparse.Namespace) -> Model:

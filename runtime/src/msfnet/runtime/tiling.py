@@ -67,16 +67,19 @@ def bytes_per_pixel(lights: int, chunk: int | None = None) -> float:
     return lights * STORED_BYTES_PER_PIXEL_LIGHT + min(chunk, lights) * BYTES_PER_PIXEL_LIGHT
 
 
-def tile_size_for_memory(max_memory_mb: float, lights: int, chunk: int | None = None) -> int:
-    """Largest square window (multiple of 4) whose working set fits in ``max_memory_mb``."""
-    budget = (max_memory_mb - BASE_MEMORY_MB) * 2**20
+def tile_size_for_memory(max_memory_mb: float, lights: int, chunk: int | None = None,
+                         stack_mb: float = 0.0) -> int:
+    """Largest square window (multiple of 4) whose working set fits in ``max_memory_mb`` (the
+    user's budget for the whole run) beside the loaded stack's ``stack_mb``."""
+    budget = (max_memory_mb - stack_mb - BASE_MEMORY_MB) * 2**20
     per_pixel = bytes_per_pixel(lights, chunk)
     side = _down(int(math.sqrt(max(budget, 0) / per_pixel)))
     smallest = 2 * HALO + MULTIPLE
     if side < smallest:
-        need = BASE_MEMORY_MB + smallest**2 * per_pixel / 2**20
+        need = BASE_MEMORY_MB + stack_mb + smallest**2 * per_pixel / 2**20
         raise InputError(f"--max-memory {max_memory_mb:g} MB is too small for {lights} lights: "
-                         f"the smallest tile ({smallest} px) needs about {need:.0f} MB")
+                         f"the loaded stack and the smallest tile ({smallest} px) need about "
+                         f"{need:.0f} MB")
     return side
 
 

@@ -77,7 +77,7 @@ def check_stack_size(n: int, h: int, w: int, max_memory_mb: float | None,
     before any later check can speak)."""
     need = n * h * w * 3 * 4 / 2**20
     if max_memory_mb is not None and need > max_memory_mb:
-        raise InputError(f"{n} images of {w}x{h} take {need:.0f} MB loaded, above --max-memory "
+        raise InputError(f"{n} images of {w}x{h} take {need:.3g} MB loaded, above --max-memory "
                          f"{max_memory_mb:g} MB (use --select/--max-lights or a larger budget)",
                          src)  # type: ignore[arg-type]
 
