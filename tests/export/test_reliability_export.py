@@ -17,8 +17,6 @@ torch = pytest.importorskip("torch")
 
 from msfnet.export.cli import main  # noqa: E402
 
-PENDING = "msf-export is not on run_command/check_output yet (issue 13, export engineer)"
-
 
 @pytest.fixture(scope="module")
 def ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -55,14 +53,13 @@ def test_static_foo_is_one_line(ckpt: Path, tmp_path: Path, capfd) -> None:
                                   "foo"]))
 
 
-@pytest.mark.xfail(strict=True, reason=PENDING)
 def test_ctrl_c_is_one_line_exit_130(ckpt: Path, tmp_path: Path, monkeypatch, capfd) -> None:
-    import msfnet.export.cli as export_cli
+    import msfnet.export.variants as variants
 
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(export_cli, "export_checkpoint", interrupted)
+    monkeypatch.setattr(variants, "export_variant", interrupted)
     try:
         code = _run([str(ckpt), "-o", str(tmp_path / "m.onnx")])
     except KeyboardInterrupt:  # would stop pytest itself
@@ -73,7 +70,6 @@ def test_ctrl_c_is_one_line_exit_130(ckpt: Path, tmp_path: Path, monkeypatch, ca
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=PENDING)
 def test_output_over_its_own_checkpoint_is_refused(ckpt: Path, tmp_path: Path, capfd) -> None:
     """`msf-export x.pth -o x.pth --overwrite` replaced the checkpoint with the ONNX file."""
     own = tmp_path / "x.pth"
@@ -84,7 +80,6 @@ def test_output_over_its_own_checkpoint_is_refused(ckpt: Path, tmp_path: Path, c
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=PENDING, raises=Exception)
 @pytest.mark.parametrize("option", [["--opset", "99"], ["--tolerance", "nan"],
                                     ["--tolerance", "-1"]])
 def test_numeric_options_are_validated_up_front(option: list[str], ckpt: Path, tmp_path: Path,
@@ -97,7 +92,6 @@ def test_numeric_options_are_validated_up_front(option: list[str], ckpt: Path, t
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=PENDING)
 def test_sigterm_during_export_leaves_no_partial_file(ckpt: Path, tmp_path: Path) -> None:
     out = tmp_path / "m.onnx"
     proc = subprocess.Popen([sys.executable, "-m", "msfnet.export.cli", str(ckpt), "-o",

@@ -225,14 +225,14 @@ def _model(exports: dict[str, Path], key: str) -> Path:
     folder = exports["_folder"]
     if key == "fp32_staged":
         export_checkpoint(default_checkpoint_path(), folder / "fp32_staged.onnx", staged=True)
-    else:  # int8 / int8_staged: the msf-export --int8 recipe, calibrated on real stacks
-        from msfnet.export.quantize import load_calibration_stacks, quantize_int8
+    else:  # int8 / int8_staged: msf-export's verified int8 rows, calibrated on real stacks
+        from msfnet.export.variants import export_variant
 
         root = _data_root()
         calib = [root / "DiLiGenT" / "ballPNG",
                  *(p for p in (root / "psmImages" / o for o in ("cat", "owl")) if p.is_dir())]
-        quantize_int8(_model(exports, key.replace("int8", "fp32")), folder / f"{key}.onnx",
-                      load_calibration_stacks(calib))
+        variant = "staged-int8" if key == "int8_staged" else "int8"
+        export_variant(default_checkpoint_path(), variant, folder / f"{key}.onnx", calib=calib)
     exports[key] = folder / f"{key}.onnx"
     return exports[key]
 
