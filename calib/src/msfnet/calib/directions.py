@@ -16,31 +16,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from msfnet.runtime.camera import Intrinsics
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.metrics import angular_error_deg
 
 from .sphere import Circle, finite_lstsq
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels (for --focal / --intrinsics); None means orthographic."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def __post_init__(self) -> None:
-        values = (self.fx, self.fy, self.cx, self.cy)
-        if not (all(np.isfinite(values)) and self.fx > 0 and self.fy > 0):
-            raise InputError(f"intrinsics need finite values and positive focal lengths, got "
-                             f"fx={self.fx:g} fy={self.fy:g} cx={self.cx:g} cy={self.cy:g}")
-
-    def rays(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Unit rays from the camera through pixels (camera looks down -z)."""
-        d = np.stack([(x - self.cx) / self.fx, -(y - self.cy) / self.fy, -np.ones_like(x)], -1)
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
 @dataclass

@@ -191,10 +191,7 @@ def check_output(target: str | Path, inputs: Iterable[str | Path | None] = (), *
                 if not overwrite:
                     raise InputError("output folder exists and is not empty; pass --overwrite "
                                      "to replace it", target)
-                foreign = foreign_files(target)
-                if foreign:
-                    raise InputError(f"--overwrite: the folder holds files msfnet did not write "
-                                     f"(e.g. {foreign[0]}); refusing to delete them", target)
+                refuse_foreign(target)
         else:
             if target.is_dir():
                 raise InputError("output path is a folder", target)
@@ -229,6 +226,14 @@ def check_not_input(target: str | Path, inputs: Iterable[str | Path | None] = ()
             raise InputError(f"the output lies inside the input folder {item}; inputs are "
                              "never written to: choose another output path", target)
     return real
+
+
+def refuse_foreign(folder: Path) -> None:
+    """--overwrite replaces a folder only if msfnet wrote everything in it."""
+    foreign = foreign_files(folder)
+    if foreign:
+        raise InputError(f"--overwrite: the folder holds files msfnet did not write (e.g. "
+                         f"{foreign[0]}); refusing to delete them", folder)
 
 
 def foreign_files(folder: Path) -> list[str]:
@@ -388,10 +393,7 @@ def _commit(tmp: Path, outdir: Path, overwrite: bool) -> None:
             if not overwrite:
                 raise InputError("output folder appeared while running (another command wrote "
                                  "it?); pass --overwrite to replace it", outdir)
-            foreign = foreign_files(outdir)
-            if foreign:
-                raise InputError(f"--overwrite: the folder holds files msfnet did not write "
-                                 f"(e.g. {foreign[0]}); refusing to delete them", outdir)
+            refuse_foreign(outdir)
         old = Path(tempfile.mkdtemp(prefix=_staging_name(outdir), dir=outdir.parent))
         os.replace(outdir, old / "old")
     try:

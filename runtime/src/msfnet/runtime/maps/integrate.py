@@ -60,6 +60,7 @@ import scipy.sparse.linalg as sla
 from scipy import ndimage
 from scipy.special import expit
 
+from ..camera import Intrinsics
 from ..errors import InputError
 from .validate import check_normals
 
@@ -74,32 +75,6 @@ RIDGE = 1e-10  # relative diagonal ridge of the normal equations (see _system)
 JACOBI_OMEGA = 2.0 / 3.0  # damping of the Jacobi smoother and of the prolongator smoothing
 CROP_MARGIN = 8  # px of background kept around the object (fc's zero-gradient apron)
 FOUR_NEIGHBOURS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels (row/column coordinates of the stored image)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    @classmethod
-    def coerce(cls, value: Intrinsics | tuple[float, float, float, float] | None
-               ) -> Intrinsics | None:
-        """None, an Intrinsics or a (fx, fy, cx, cy) sequence -> Intrinsics or None."""
-        if value is None or isinstance(value, Intrinsics):
-            out = value
-        else:
-            vals = [float(v) for v in value]
-            if len(vals) != 4:
-                raise InputError(f"intrinsics must be (fx, fy, cx, cy), got {len(vals)} values")
-            out = cls(*vals)
-        if out is not None and not (np.isfinite([out.fx, out.fy, out.cx, out.cy]).all()
-                                    and out.fx > 0 and out.fy > 0):
-            raise InputError(f"intrinsics need finite values and fx, fy > 0, got {out}")
-        return out
 
 
 @dataclass(frozen=True)
