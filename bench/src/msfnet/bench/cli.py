@@ -80,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--calib", type=Path, nargs="+", default=None,
                    help="stacks to calibrate int8 on (default: the stack + DATA/psmImages cat/"
                    "owl/horse when present)")
-    p.add_argument("--report-dir", type=Path, default=Path("msf-bench-out"),
+    p.add_argument("-o", "--output", "--report-dir", dest="report_dir", type=Path,
+                   default=Path("msf-bench-out"),
                    help="where REPORT.md, report.json, latency.png and the models go "
                    "(default ./msf-bench-out)")
     p.add_argument("--quick", action="store_true",

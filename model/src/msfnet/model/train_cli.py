@@ -48,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
         ("msf-train --out runs/a --epochs 2 --steps-per-epoch 50",
          "msf-train --out runs/a --resume --epochs 4",
          "msf-train --out runs/gpu --device cuda --render-preset hard --resume   # chunks"))
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("-o", "--output", "--out", dest="out", type=Path, required=True,
+                   help="output (run) folder")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/last.pth with OUT/config.json; options given "
                         "explicitly (e.g. --epochs) override the stored ones. With nothing "
