@@ -77,7 +77,8 @@ def check_stack_size(n: int, h: int, w: int, max_memory_mb: float | None,
     before any later check can speak)."""
     need = n * h * w * 3 * 4 / 2**20
     if max_memory_mb is not None and need > max_memory_mb:
-        raise InputError(f"{n} images of {w}x{h} take {need:.3g} MB loaded, above --max-memory "
+        size = f"{need:.0f}" if need >= 1 else f"{need:.2g}"  # "1536", "2", "0.14"
+        raise InputError(f"{n} images of {w}x{h} take {size} MB loaded, above --max-memory "
                          f"{max_memory_mb:g} MB (use --select/--max-lights or a larger budget)",
                          src)  # type: ignore[arg-type]
 
