@@ -45,8 +45,7 @@ def choose_plan(stack: Stack, model: Engine, tile: int | None = None,
     if tile is None:
         # the budget is for the whole process: the loaded stack already occupies part of it
         tile = tile_size_for_memory(max_memory_mb or DEFAULT_MAX_MEMORY_MB, stack.num_lights,
-                                    model.chunk, stack_mb=stack.images.nbytes / 2**20,
-                                    memory_factor=getattr(model, "memory_factor", 1.0))
+                                    model.chunk, stack_mb=stack.images.nbytes / 2**20)
     return plan_tiles(stack.mask, tile)
 
 

@@ -46,10 +46,6 @@ def _effective(compiled: Any) -> str:
 
 class OpenVinoEngine:
     name = "openvino"
-    # Working set relative to ONNX Runtime fp32 (what tiling's constants describe): the full
-    # DiLiGenT ball at 96 lights under the default 4096 MB budget peaked at 4,265 MB with tiles
-    # sized for ORT (AMX CPU, bf16); 1.25 leaves room for it.
-    memory_factor = 1.25
 
     def __init__(self, compiled: dict[str, Any], info: ModelInfo, precision: str,
                  threads: int, chunk: int = DEFAULT_CHUNK, device: str = "CPU",
