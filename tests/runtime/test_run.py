@@ -66,10 +66,8 @@ def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path,
                                       tmp_path: Path) -> None:
     """All 96 lights, default 4096 MB budget; a fresh process so peak RSS is the run's own."""
     out = tmp_path / "full"
-    # The budget model describes ONNX Runtime's working set (OpenVINO's is not modelled yet)
     proc = subprocess.run([sys.executable, "-m", "msfnet.runtime.run_cli", "--onnx",
-                           str(random_onnx), str(ball_dir), "-o", str(out), "--threads", "2",
-                           "--engine", "onnxruntime"],
+                           str(random_onnx), str(ball_dir), "-o", str(out), "--threads", "2"],
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr
     profile = _check_outputs(out, (512, 612), with_gt=True)

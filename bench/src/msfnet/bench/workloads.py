@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import statistics
 import sys
 import time
@@ -88,15 +87,10 @@ def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
 
 
 def _max_rss_mb() -> float:
-    """Peak RSS of this process. VmHWM, not ru_maxrss: Linux carries ru_maxrss across execve,
-    so a worker started by a big parent would report the parent's peak."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    """Peak RSS of this process (VmHWM on Linux: see msfnet.runtime.profile.peak_rss_mb)."""
+    from msfnet.runtime.profile import peak_rss_mb
+
+    return peak_rss_mb()
 
 
 # Runs msf-run's main in this process, then records VmHWM (see _max_rss_mb) for the parent.

