@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.model.checkpoint import default_checkpoint_path
-from msfnet.runtime.cliutil import make_parser, positive_float, positive_int
+from msfnet.runtime.cliutil import make_parser, positive_float, positive_int, run_command
 from msfnet.runtime.cpu import detect_cpu
 from msfnet.runtime.dispatch import choose_engine
 from msfnet.runtime.engines import installed_engines
@@ -344,21 +344,22 @@ def _mae(normals: np.ndarray, stack) -> float | None:
     return float(angular_error_deg(normals, stack.normals_gt)[stack.mask].mean())
 
 
+def _run(args: argparse.Namespace) -> int:
+    report = args.report_dir / "REPORT.md"
+    if report.exists() and not args.overwrite:
+        raise InputError("report exists; pass --overwrite to replace it", report)
+    result = bench(args)
+    files = write_report(result, args.report_dir)
+    if not args.quiet:
+        print(files["table"])
+        for f in files["paths"]:
+            print(f"wrote {f}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        report = args.report_dir / "REPORT.md"
-        if report.exists() and not args.overwrite:
-            raise InputError("report exists; pass --overwrite to replace it", report)
-        result = bench(args)
-        files = write_report(result, args.report_dir)
-    except InputError as exc:
-        print(f"msf-bench: error: {exc}", file=sys.stderr)
-        return 2
-    print(files["table"])
-    for f in files["paths"]:
-        print(f"wrote {f}")
-    return 0
+    return run_command("msf-bench", lambda: _run(args), debug=args.debug)
 
 
 __all__ = ["Workload", "build_parser", "inference_flops", "main", "schedule"]
