@@ -74,10 +74,14 @@ def fill_result_folder(folder: Path, result: Result, report: bool = True) -> Non
                    profile=profile, report=report, title=f"msfnet: {result.stack.name}")
 
 
-def write_result(result: Result, outdir: Path, overwrite: bool = False) -> list[Path]:
-    """Write every result file, or none of them. Returns the final paths."""
+def write_result(result: Result, outdir: Path, *, overwrite: bool = False, report: bool = True,
+                 write_mask: bool = False) -> list[Path]:
+    """Write every result file (``write_mask``: mask.png too), or none of them. Returns the
+    final paths."""
     with staged_folder(outdir, overwrite=overwrite) as tmp:
-        fill_result_folder(tmp, result)
+        fill_result_folder(tmp, result, report=report)
+        if write_mask:
+            write_rgb_png(tmp / "mask.png", result.stack.mask.astype(np.uint8) * 255)
         names = sorted(p.name for p in tmp.iterdir())
     return [outdir / n for n in names]
 

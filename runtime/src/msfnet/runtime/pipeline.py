@@ -88,19 +88,15 @@ class Result:
         """Write normals.npy/png, profile.json and, with ground truth, metrics.json and
         error.png into ``folder``, all at once or not at all; mask.png too when the mask was
         computed (``write_mask``: None = only then). Returns the files written."""
-        from .files import check_output, staged_folder
-        from .outputs import fill_result_folder, write_rgb_png
+        from .files import check_output
+        from .outputs import write_result
 
         folder = Path(folder)
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
         check_output(folder, src, overwrite=overwrite, folder=True)
-        with staged_folder(folder, overwrite=overwrite) as tmp:
-            fill_result_folder(tmp, self, report=report)
-            if self.auto_mask if write_mask is None else write_mask:
-                # an automatic mask is a result the user should be able to inspect and reuse
-                write_rgb_png(tmp / "mask.png", self.stack.mask.astype(np.uint8) * 255)
-            names = sorted(p.name for p in tmp.iterdir())
-        return [folder / n for n in names]
+        # an automatic mask is a result the user should be able to inspect and reuse
+        return write_result(self, folder, overwrite=overwrite, report=report,
+                            write_mask=self.auto_mask if write_mask is None else write_mask)
 
     def without_images(self) -> Result:
         """A copy whose stack no longer holds the images (N x H x W x 0: shape and light count
