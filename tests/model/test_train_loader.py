@@ -153,3 +153,46 @@ def test_workers_leave_signals_to_the_main_process():
     p.start()
     p.join(30)
     assert p.exitcode == 0
+
+
+def _ignore_term_and_sleep(ready) -> None:
+    worker_init(0)
+    ready.set()
+    import time
+
+    time.sleep(60)
+
+
+def test_stuck_workers_that_ignore_sigterm_are_killed():
+    # A worker ignoring SIGTERM survives terminate(); left alone it keeps the run from exiting
+    # (seen on a GPU run: over 100 s after the save, until the outer timeout's SIGKILL).
+    ctx = multiprocessing.get_context("fork")
+    ready = ctx.Event()
+    p = ctx.Process(target=_ignore_term_and_sleep, args=(ready,), daemon=True)
+    p.start()
+    try:
+        assert ready.wait(30)
+        p.terminate()
+        p.join(0.5)
+        assert p.is_alive()  # terminate() alone does not stop it
+        assert train_mod.stop_workers(timeout=0.2) >= 1
+        assert not p.is_alive() and p.exitcode == -signal.SIGKILL
+    finally:
+        if p.is_alive():
+            p.kill()
+
+
+def test_snapshots_are_kept_every_k_epochs(tmp_path):
+    out = tmp_path / "run"
+    assert train_main(["--out", str(out), "--epochs", "4", "--steps-per-epoch", "1",
+                       "--snapshot-every", "2", *TINY]) == 0
+    assert sorted(p.name for p in out.glob("snap_*.pth")) == ["snap_0000002.pth",
+                                                              "snap_0000004.pth"]
+    snap = torch.load(out / "snap_0000004.pth", weights_only=True)
+    last = torch.load(out / "last.pth", weights_only=True)
+    assert snap["step"] == 4 and all(torch.equal(snap["state_dict"][k], v)
+                                     for k, v in last["state_dict"].items())
+    # --overwrite counts snapshots as msf-train's own files
+    assert train_main(["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch",
+                       "1", *TINY]) == 0
+    assert not list(out.glob("snap_*.pth"))

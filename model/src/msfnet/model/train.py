@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing
 import os
 import signal
 import threading
@@ -152,6 +153,7 @@ class TrainConfig:
     val_lights: int = 32
     val_seed: int = 999_999
     ckpt_minutes: float = 10.0
+    snapshot_every: int = 0  # keep snap_<step>.pth every this many epochs (0: none)
     log_every: int = 10
     device: str = "auto"  # auto | cpu | cuda
     workers: int | None = None  # DataLoader worker processes; None = default_workers(device)
@@ -202,6 +204,24 @@ def default_workers(device: torch.device, cores: int | None = None) -> int:
     return max(0, min((cpu_cores() if cores is None else cores) - 2, 12))
 
 
+def stop_workers(timeout: float = 10.0) -> int:
+    """Stop the child processes still alive (DataLoader workers) after ``timeout`` seconds;
+    returns how many had to be killed.
+
+    Workers ignore SIGTERM (``data.worker_init``), so the terminate() that torch's and
+    multiprocessing's shutdown fall back on cannot stop one that is stuck: on a GPU run with
+    13 workers, one kept the process alive for over 100 s after it had saved. SIGKILL can."""
+    deadline = time.monotonic() + timeout
+    killed = 0
+    for child in multiprocessing.active_children():
+        child.join(max(0.0, deadline - time.monotonic()))
+        if child.is_alive():
+            child.kill()
+            child.join(2.0)
+            killed += 1
+    return killed
+
+
 def gpu_utilisation() -> float | None:
     """GPU busy percentage over the driver's last sample window, if NVML can tell."""
     try:
@@ -211,6 +231,10 @@ def gpu_utilisation() -> float | None:
 
 
 # ----------------------------------------------------------------------------- trainer
+
+def snapshot_name(step: int) -> str:
+    return f"snap_{step:07d}.pth"
+
 
 def _gt(stack: Stack) -> np.ndarray:
     """Validation objects are rendered: they always carry ground truth."""
@@ -468,6 +492,11 @@ class Trainer:
                               f"{self.val_ls:.2f}), loss {run_loss:.4f}, "
                               f"{speed['samples_per_s']:.1f} samples/s, data wait "
                               f"{100 * speed['data_wait']:.0f} %{gpu}")
+                    if cfg.snapshot_every and (epoch + 1) % cfg.snapshot_every == 0:
+                        # Synthetic validation does not rank real objects reliably: keep
+                        # snapshots to select on real validation objects afterwards.
+                        save_checkpoint(self.model, self.out / snapshot_name(self.step),
+                                        step=self.step, val_mae=mae)
                     if mae < self.best:
                         self.best = mae
                         save_checkpoint(self.model, self.out / "best.pth", step=self.step,
@@ -488,6 +517,8 @@ class Trainer:
             close = getattr(batches, "close", None)
             if close is not None:
                 close()  # shuts the DataLoader's workers down
+            if self.workers > 0:
+                stop_workers()
             for sig, handler in old_handlers.items():
                 signal.signal(sig, handler)
             bar.close()

@@ -127,6 +127,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"held-out synthetic validation objects (default {d.val_objects})")
     p.add_argument("--ckpt-minutes", type=positive_float, default=d.ckpt_minutes,
                    help=f"save last.pth at least this often (default {d.ckpt_minutes})")
+    p.add_argument("--snapshot-every", type=nonnegative_int, default=d.snapshot_every,
+                   metavar="EPOCHS",
+                   help="also keep snap_<step>.pth every this many epochs, to select a model "
+                        "on real objects later (default 0: only last.pth and best.pth)")
     p.add_argument("--log-every", type=positive_int, default=d.log_every,
                    help=f"append a log.jsonl row every this many steps (default {d.log_every})")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -195,7 +199,8 @@ def _stored_config(out: Path) -> dict:
 
 
 def _ours(name: str) -> bool:
-    return name in TRAIN_FILES or STAGING_TAG in name
+    return name in TRAIN_FILES or STAGING_TAG in name or \
+        (name.startswith("snap_") and name.endswith(".pth"))
 
 
 def _prepare_out(args: argparse.Namespace) -> None:
