@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from msfnet.runtime.pipeline import Model, default_model_path
-from msfnet.runtime.stack import LoadOptions, load_stack
 from msfnet.runtime.run_cli import main as run_main
 from msfnet.runtime.session import create_session
+from msfnet.runtime.stack import LoadOptions, load_stack
 
 
 def test_bundled_model_is_an_msfnet_model_with_dynamic_lights() -> None:
