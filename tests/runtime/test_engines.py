@@ -69,8 +69,8 @@ def test_ort_engine_is_the_model_session() -> None:
     engine = open_onnxruntime(path, threads=2)
     assert isinstance(engine, Engine) and isinstance(engine, OrtEngine)
     assert (engine.name, engine.precision, engine.threads) == ("onnxruntime", "fp32", 2)
-    assert engine.describe()["graph"] == "monolithic"
-    stack = sphere_stack(n=6, h=24, w=28, seed=3)
+    assert engine.describe()["graph"] == "staged"  # the bundled model runs light-chunked
+    stack = sphere_stack(n=11, h=24, w=28, seed=3)  # more lights than one chunk
     plan = plan_tiles(stack.mask, None)
     want = infer_normals(create_session(path, threads=2), stack, plan).normals
     got = infer_normals(engine, stack, plan).normals
@@ -120,7 +120,7 @@ def test_ort_refuses_a_precision_it_cannot_run() -> None:
 
 def test_model_info_is_read_without_a_session(tmp_path: Path) -> None:
     info = read_model_file(default_model_path())
-    assert info.precision.startswith("fp32") and not info.staged
+    assert info.precision.startswith("fp32") and info.staged
     with pytest.raises(InputError, match="not found"):
         read_model_file(tmp_path / "missing.onnx")
 
