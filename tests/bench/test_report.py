@@ -44,9 +44,11 @@ def test_report_ratios_and_files(tmp_path):
                           "python": "3", "onnxruntime": "1"},
               "peaks": [{"dtype": "fp32", "threads": 2, "gflops": 2.0}],
               "models": {"random_weights": True, "checkpoint": "c"}, "variants": {},
-              "e2e": [{"variant": "ort-int8", "threads": 2, "lights": 32, "height": 128,
+              "e2e": [{"variant": "default", "threads": 2, "lights": 32, "height": 128,
                        "width": 256, "median_s": 1.0, "peak_rss_mb": 500.0,
-                       "mean_deg_vs_fp32": 0.2, "max_deg_vs_fp32": 1.0}]}
+                       "mean_deg_vs_fp32": 0.2, "max_deg_vs_fp32": 1.0,
+                       "engine": "onnxruntime", "precision": "int8", "graph": "monolithic",
+                       "command": "msf-run STACK", "choice": "onnxruntime int8: why"}]}
     files = write_report(result, tmp_path)
     data = json.loads((tmp_path / "report.json").read_text())
     int8 = next(r for r in data["rows"] if r["variant"] == "ort-int8")
@@ -54,7 +56,12 @@ def test_report_ratios_and_files(tmp_path):
     assert int8["x_vs_per_light"] == 16.0
     assert data["e2e"][0]["x_vs_per_light"] == 16.0  # 8 s * 2 (pixels) / 1 s
     md = (tmp_path / "REPORT.md").read_text()
-    assert "4.00x fp32 ORT" in md and "**met**" in md
+    # (d) default: 16x the per-light loop at 500 MiB -> the 60x half fails
+    assert "16.0x the per-light loop" in md and "target >= 60x and <= 1536 MiB **not met**" in md
+    # the default path (int8 here) on (b): 4x ORT fp32 within 0.5 deg on a non-bf16 CPU
+    assert "(ort-int8, what msf-run picks here), 2 threads: 4.00x ORT fp32" in md
+    assert "target >= 1.5x within 0.5 deg on a non-bf16 CPU **met**" in md
+    assert "msf-run's engine choice: onnxruntime int8: why" in md
     assert "| (b) fp32 ORT" not in files["table"]
 
 
@@ -85,7 +92,9 @@ def test_each_variant_is_compared_with_its_own_precisions_peak(tmp_path):
     md = (tmp_path / "REPORT.md").read_text()
     assert "amx_bf16 yes" in md and "avx512_bf16 yes" in md and "openvino 2026.4" in md
     assert "dispatch on this machine, fp32 model: openvino bf16" in md
-    assert "ov-bf16 on (b), 2 threads: 8.00x fp32 ORT, 50 % of OpenVINO's bf16" in md
+    # the fastest (b) variant against its own precision's peak
+    assert "fastest variant on (b), ov-bf16: 50 % of the same-run openvino bf16 matmul peak: " \
+        "target >= 80 % **not met**" in md
 
 
 def test_openvino_bf16_variants_are_scheduled_on_every_workload():

@@ -90,8 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"comma list from {', '.join(VARIANTS)} (default: all available)")
     p.add_argument("--threads", type=thread_counts, default=[2, 1],
                    help="thread counts, comma-separated (default 2,1)")
-    p.add_argument("--max-memory", type=positive_float, default=4096,
-                   help="msf-run --max-memory for workload (d), MB (default 4096, msf-run's own)")
+    p.add_argument("--max-memory", type=positive_float, default=None,
+                   help="msf-run --max-memory for workload (d), MB (default: msf-run's own)")
     p.add_argument("--no-e2e", action="store_true", help="skip workload (d)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing report")
     return p
@@ -305,36 +305,47 @@ def bench(args: argparse.Namespace) -> dict:
 
 def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
                threads: list[int]) -> list[dict]:
-    """Workload (d): msf-run on the whole stack in a fresh process, fp32 and int8."""
+    """Workload (d): msf-run on the whole stack in a fresh process, normals only.
+
+    First the default command (bundled model, no engine or precision flag: what dispatch picks
+    on this CPU), then each export pinned to an engine, so rows say what they measure."""
     from msfnet.runtime.stack import load_stack
 
     max_lights = 8 if args.quick else None  # quick: a smoke test of the path, not a figure
     stack = load_stack(args.stack, max_lights=max_lights)
-    runs = []
-    names = [("ort-fp32", models["fp32"]), ("ort-fp32-staged", models["fp32_staged"])]
+    ort = ["--engine", "onnxruntime"]
+    budget = args.max_memory  # None: msf-run's own default, as a user runs it
+    names: list[tuple[str, Path | None, list[str]]] = [
+        ("default", None, []),
+        ("ort-fp32", Path(models["fp32"]), ort),
+        ("ort-fp32-staged", Path(models["fp32_staged"]), ort)]
+    if "ov-bf16" in variants:
+        names.append(("ov-bf16", Path(models["fp32"]),
+                      ["--engine", "openvino", "--precision", "bf16"]))
     if "ort-int8" in variants:
-        names += [("ort-int8", models["int8"]), ("ort-int8-staged", models["int8_staged"])]
-    outs = {}
-    for v, onnx in tqdm(names, desc="msf-bench (d)", unit="model"):
+        names += [("ort-int8", Path(models["int8"]), ort),
+                  ("ort-int8-staged", Path(models["int8_staged"]), ort)]
+    runs, outs = [], {}
+    for v, onnx, extra in tqdm(names, desc="msf-bench (d)", unit="run"):
         outdir = args.report_dir / "e2e" / v
-        repeats = 1  # one full-stack run per model keeps the full mode within ~15 min
-        walls = [time_msf_run(args.stack, Path(onnx), outdir, max(threads), args.max_memory,
-                              max_lights) for _ in range(repeats)]
+        # one full-stack run per row keeps the full mode within ~15 min
+        w = time_msf_run(args.stack, onnx, outdir, max(threads), budget, max_lights, extra)
         normals = np.load(outdir / "normals.npy")
         outs[v] = normals
-        prof = walls[-1]["profile"]
+        prof = w["profile"]
         runs.append({"variant": v, "threads": max(threads), "lights": stack.num_lights,
                      "height": stack.shape[0], "width": stack.shape[1],
-                     "walls_s": [w["wall_s"] for w in walls],
-                     "median_s": float(np.median([w["wall_s"] for w in walls])),
-                     "peak_rss_mb": max(w["peak_rss_mb"] for w in walls),
-                     "command": walls[-1]["command"],
+                     "walls_s": [w["wall_s"]], "median_s": w["wall_s"],
+                     "peak_rss_mb": w["peak_rss_mb"], "command": w["command"],
+                     "engine": prof.get("engine"), "precision": prof.get("precision"),
+                     "graph": prof.get("graph"), "choice": prof.get("choice"),
                      "tiles": prof.get("tiles"), "stages": prof.get("stages"),
                      "inference_gflops_per_s": prof.get("inference_gflops_per_s"),
                      "mae_vs_gt_deg": _mae(normals, stack)})
-    for run in runs[1:]:
-        d = angular_error_deg(outs[run["variant"]], outs["ort-fp32"])[stack.mask]
-        run.update({"max_deg_vs_fp32": float(d.max()), "mean_deg_vs_fp32": float(d.mean())})
+    for run in runs:
+        if run["variant"] != "ort-fp32":
+            d = angular_error_deg(outs[run["variant"]], outs["ort-fp32"])[stack.mask]
+            run.update({"max_deg_vs_fp32": float(d.max()), "mean_deg_vs_fp32": float(d.mean())})
     return runs
 
 

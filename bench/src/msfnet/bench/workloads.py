@@ -13,6 +13,7 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -154,16 +155,22 @@ def run_cell(spec: dict) -> dict:
             "peak_rss_mb": _max_rss_mb(), **info}
 
 
-def time_msf_run(stack_dir: Path, onnx: Path, outdir: Path, threads: int,
-                 max_memory_mb: float, max_lights: int | None = None) -> dict:
-    """One end-to-end ``msf-run`` in a fresh process (load -> normals on disk)."""
+def time_msf_run(stack_dir: Path, onnx: Path | None, outdir: Path, threads: int,
+                 max_memory_mb: float | None, max_lights: int | None = None,
+                 extra: Sequence[str] = ()) -> dict:
+    """One end-to-end ``msf-run`` in a fresh process (load -> normals on disk).
+
+    ``onnx`` None runs the bundled model and ``max_memory_mb`` None msf-run's own budget: the
+    command a user types. ``extra``: more msf-run options (e.g. ``--engine onnxruntime``)."""
     import subprocess
 
     rss_file = outdir.parent / f".{outdir.name}.rss"
     rss_file.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-c", _E2E_WRAPPER, str(rss_file), str(stack_dir), "--onnx", str(onnx),
-           "-o", str(outdir), "--overwrite", "--threads", str(threads),
-           "--max-memory", str(max_memory_mb)]
+    cmd = [sys.executable, "-c", _E2E_WRAPPER, str(rss_file), str(stack_dir),
+           *(["--onnx", str(onnx)] if onnx is not None else []),
+           "-o", str(outdir), "--overwrite", "--threads", str(threads), "--no-maps",
+           *(["--max-memory", str(max_memory_mb)] if max_memory_mb is not None else []),
+           *extra]
     if max_lights:
         cmd += ["--max-lights", str(max_lights)]
     t0 = time.perf_counter()
