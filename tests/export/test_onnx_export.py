@@ -48,7 +48,7 @@ def published_ckpt(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def exported(published_ckpt: Path, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("onnx") / "model.onnx"
-    assert export_main([str(published_ckpt), "-o", str(out)]) == 0
+    assert export_main([str(published_ckpt), "-o", str(out), "--plain"]) == 0
     return out
 
 
@@ -135,7 +135,7 @@ def test_static_export_runs_at_its_shape(published_ckpt: Path, tmp_path: Path) -
 def test_simplified_export_keeps_dynamic_axes(published_ckpt: Path, tmp_path: Path) -> None:
     pytest.importorskip("onnxslim")
     out = tmp_path / "slim.onnx"
-    assert export_main([str(published_ckpt), "-o", str(out), "--simplify"]) == 0
+    assert export_main([str(published_ckpt), "-o", str(out), "--plain", "--simplify"]) == 0
     net = load_model(published_ckpt)
     assert max(r["max_deg"] for r in verify(net, out, [(9, 20, 12)])) < 0.01
 
@@ -230,7 +230,7 @@ def test_fp16_weight_storage_halves_the_file_and_keeps_parity(published_ckpt: Pa
     half_ckpt = save_checkpoint(load_model(published_ckpt), tmp_path / "half.pth", fp16=True)
     assert half_ckpt.stat().st_size < 0.6 * published_ckpt.stat().st_size
     out = tmp_path / "half.onnx"
-    assert export_main([str(half_ckpt), "-o", str(out), "--fp16-weights"]) == 0
+    assert export_main([str(half_ckpt), "-o", str(out), "--plain", "--fp16-weights"]) == 0
     assert out.stat().st_size < 0.55 * exported.stat().st_size
     rounded = load_model(half_ckpt)  # fp16 tensors cast back to float32 on load
     assert max(r["max_deg"] for r in verify(rounded, out, [(5, 16, 20)])) < 0.01

@@ -165,8 +165,8 @@ def test_ctrl_c_during_the_export_is_one_line_and_leaves_nothing(he_ckpt: Path, 
         assert [p for p in (tmp_path / "new").iterdir() if p.name.startswith(TEMP_PREFIX)]
         raise KeyboardInterrupt
 
-    monkeypatch.setitem(PASSES, "torch-export",
-                        replace(PASSES["torch-export"], run=interrupted))
+    for name in ("torch-export", "torch-export-staged"):  # whichever graph the default is
+        monkeypatch.setitem(PASSES, name, replace(PASSES[name], run=interrupted))
     out = tmp_path / "new" / "m.onnx"
     assert export_main([str(he_ckpt), "-o", str(out)]) == 130
     err = capsys.readouterr().err.strip()
@@ -181,7 +181,8 @@ def test_internal_errors_are_one_line_unless_debug(he_ckpt: Path, tmp_path: Path
     def broken(*_a: object) -> None:
         raise ZeroDivisionError("boom")
 
-    monkeypatch.setitem(PASSES, "torch-export", replace(PASSES["torch-export"], run=broken))
+    for name in ("torch-export", "torch-export-staged"):
+        monkeypatch.setitem(PASSES, name, replace(PASSES[name], run=broken))
     args = [str(he_ckpt), "-o", str(tmp_path / "m.onnx")]
     assert export_main(args) == 1
     _one_line_error(capsys, "internal error: ZeroDivisionError: boom", "--debug")

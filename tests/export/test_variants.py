@@ -47,9 +47,14 @@ def test_table_rows_are_consistent() -> None:
         assert (v.rule.reference == "pytorch-fp16-weights") == ("fp16-storage" in v.passes)
         assert v.slow == v.needs_calibration, v.name
         # the older flags pick exactly this row
-        assert variant_for(static=v.graph == "static", staged=v.graph == "staged",
+        assert variant_for(static=v.graph == "static", plain=v.graph == "dynamic",
                            fp16_weights=v.precision == "fp16-weights",
                            int8=v.precision == "int8") is v
+    # no graph flag: the staged graph (msf-run's lean path); --staged is accepted as before
+    assert variant_for().name == "staged" and variant_for(staged=True).name == "staged"
+    assert variant_for(int8=True).name == "staged-int8"
+    with pytest.raises(InputError, match="contradict"):
+        variant_for(staged=True, plain=True)
     defaults = ExportOptions()  # duplicated to keep the table free of heavy imports
     assert (defaults.calib_tile, defaults.calib_lights, defaults.calib_tiles_per_stack) == (
         quantize.CALIB_TILE, quantize.CALIB_LIGHTS, quantize.CALIB_TILES_PER_STACK)

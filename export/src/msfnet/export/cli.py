@@ -92,9 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
         "state_dict, legacy or zip format) to ONNX, then verify the written file with ONNX "
         "Runtime. Inputs: images float32 (B,N,3,H,W), lights float32 (B,N,3); output normals "
         "float32 (B,3,H,W). N, H, W are dynamic unless --static; H and W must be multiples "
-        "of 4. The file appears only after it passed verification.",
-        epilog=_table() + "\n\nThe flags --static, --staged, --fp16-weights and --int8 pick "
-        "the same rows (e.g. --staged --int8 = staged-int8).",
+        "of 4. By default the staged graph (cut at the max-over-lights steps), which msf-run "
+        "feeds a few lights at a time: far less memory at many lights; --plain writes one "
+        "graph for other runtimes. The file appears only after it passed verification.",
+        epilog=_table() + "\n\nThe flags --static, --plain, --fp16-weights and --int8 pick "
+        "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = int8).",
     )
     from msfnet import __version__
 
@@ -105,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, default=None,
                    help="output .onnx (default: the checkpoint's name with .onnx)")
     p.add_argument("--variant", choices=VARIANT_NAMES, default=None,
-                   help="the export variant (default fp32, or what the flags below pick); "
+                   help="the export variant (default staged, or what the flags below pick); "
                    "see --list-variants")
     p.add_argument("--list-variants", action="store_true",
                    help="print the variants table (passes, verification rule) and exit")
@@ -133,10 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fp16-weights", action="store_true",
                    help="store weights as float16 (half the file size; computed in float32, "
                    "verified against the network with fp16-rounded weights)")
+    p.add_argument("--plain", action="store_true",
+                   help="write one graph (all lights at once) for runtimes other than msf-run: "
+                   "ONNX Runtime, OpenVINO, TensorRT; msf-run runs it too, with more memory")
     p.add_argument("--staged", action="store_true",
-                   help="write the staged graph (cut at the three max-over-lights steps) that "
-                   "msf-run feeds a few lights at a time: several times less memory per pixel "
-                   "at high light counts, so bigger tiles and less halo work; same normals")
+                   help="the staged graph (the default; kept for older command lines): cut at "
+                   "the three max-over-lights steps, msf-run feeds a few lights at a time, "
+                   "several times less memory per pixel at high light counts; same normals")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     return p
@@ -151,9 +156,10 @@ def resolve_variant(args: argparse.Namespace) -> Variant:
 
     if args.variant is None:
         return variant_for(static=args.static is not None, staged=args.staged,
-                           fp16_weights=args.fp16_weights, int8=args.int8)
+                           plain=args.plain, fp16_weights=args.fp16_weights, int8=args.int8)
     chosen = get_variant(args.variant)
     for flag, given, fits in (("--staged", args.staged, chosen.graph == "staged"),
+                              ("--plain", args.plain, chosen.graph == "dynamic"),
                               ("--fp16-weights", args.fp16_weights,
                                chosen.precision == "fp16-weights"),
                               ("--int8", args.int8, chosen.precision == "int8")):

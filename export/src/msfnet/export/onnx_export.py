@@ -248,7 +248,8 @@ def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int 
     replacing ``output`` if it exists; returns the verification rows as dicts."""
     from .variants import export_variant
 
-    variant = variant_for(static=static is not None, staged=staged, fp16_weights=fp16_weights)
+    variant = variant_for(static=static is not None, staged=staged, plain=not staged,
+                          fp16_weights=fp16_weights)
     options = ExportOptions(opset=opset, train_lights=train_lights, static=static,
                             simplify=do_simplify, tolerance_deg=tolerance_deg,
                             checks=tuple(checks) if checks else None)
