@@ -26,7 +26,8 @@ from .cliutil import make_parser, positive_float, positive_int, run_command
 from .detail import detail_ratio
 from .errors import InputError
 from .files import check_output, json_text, staged_folder
-from .outputs import error_png, normals_png, write_rgb_png
+from .maps import pictures
+from .outputs import normals_png, write_rgb_png
 from .pipeline import Model
 from .stack import LoadOptions, load_stack
 from .tiling import DEFAULT_MAX_MEMORY_MB
@@ -102,7 +103,7 @@ def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
             row: dict = {"object": obj.folder.name, "lights": stack.num_lights, "results": {},
                          "select": opts.select}
             (tmp / obj.folder.name).mkdir()
-            outs = {}
+            outs, errors = {}, {}
             for m, runner in runners.items():
                 res = runner(stack, progress=progress)
                 outs[m] = res.normals
@@ -110,11 +111,16 @@ def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
                               normals_png(res.normals, stack.mask))
                 seconds = res.timings.median_s("total")
                 if res.metrics is not None and res.error_deg is not None:
-                    write_rgb_png(tmp / obj.folder.name / f"{m}_error.png",
-                                  error_png(res.error_deg, stack.mask))
+                    errors[m] = res.error_deg
                     row["results"][m] = {**res.metrics.as_dict(), "seconds": seconds}
                 else:
                     row["results"][m] = {"seconds": seconds}
+            # one colour range for every method of an object, so the pictures compare
+            vmax = max((pictures.error_range(e, stack.mask) for e in errors.values()),
+                       default=None)
+            for m, err in errors.items():
+                (tmp / obj.folder.name / f"{m}_error.png").write_bytes(pictures.png_bytes(
+                    pictures.error_picture(err, stack.mask, vmax=vmax)))
             if stack.normals_gt is None:
                 row["note"] = "no ground truth"
                 if "msf" in outs and "l2" in outs:

@@ -2,8 +2,8 @@
 
 normals.npy: H x W x 3 float32, camera frame, zeros outside the mask; normals.png: 16-bit RGB,
 (n + 1) / 2, zeros outside the mask; with ground truth, metrics.json (NormalMetrics) and
-error.png (angular error colour map, 0..ERROR_PNG_MAX_DEG, black where not scored). Written all
-together through :func:`msfnet.runtime.files.staged_folder`.
+error.png (angular error picture with a colour bar, automatic range, blank where not scored).
+Written all together through :func:`msfnet.runtime.files.staged_folder`.
 """
 
 from __future__ import annotations
@@ -20,8 +20,6 @@ from .files import json_text, staged_folder
 if TYPE_CHECKING:
     from .pipeline import Result
 
-ERROR_PNG_MAX_DEG = 45.0
-
 
 def normals_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(H, W, 3) unit normals -> 16-bit RGB (n + 1) / 2, zeros outside the mask."""
@@ -29,16 +27,6 @@ def normals_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     img = np.rint((n + 1.0) * 0.5 * 65535.0).astype(np.uint16)
     img[~mask] = 0
     return img
-
-
-def error_png(err_deg: np.ndarray, mask: np.ndarray, max_deg: float = ERROR_PNG_MAX_DEG
-              ) -> np.ndarray:
-    """(H, W) angular error -> 8-bit RGB colour map (jet, 0..max_deg), black where not scored."""
-    scored = mask & np.isfinite(err_deg)
-    scaled = np.clip(np.nan_to_num(err_deg) / max_deg * 255.0, 0, 255).astype(np.uint8)
-    bgr = cv2.applyColorMap(scaled, cv2.COLORMAP_JET)
-    bgr[~scored] = 0
-    return bgr[:, :, ::-1]
 
 
 def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
@@ -86,5 +74,5 @@ def write_result(result: Result, outdir: Path, *, overwrite: bool = False, repor
     return [outdir / n for n in names]
 
 
-__all__ = ["ERROR_PNG_MAX_DEG", "error_png", "fill_result_folder", "normals_png",
+__all__ = ["fill_result_folder", "normals_png",
            "write_result", "write_rgb_png"]
