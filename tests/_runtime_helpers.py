@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,23 @@ def sphere_stack(n: int = 8, h: int = 36, w: int = 44, seed: int = 0, name: str 
     return Stack(name, images.astype(np.float32), lights.astype(np.float32),
                  ints.astype(np.float32), mask, normals.astype(np.float32),
                  [f"{i + 1:03d}.png" for i in range(n)])
+
+
+def png_stack(folder: Path, bit_depth: int, n: int = 8, h: int = 36, w: int = 44,
+              seed: int = 0) -> Path:
+    """:func:`sphere_stack` written as 8- or 16-bit PNGs (DiLiGenT layout, ground truth
+    included): a stack on disk whose values are integers, 8-bit ones scaled to 0..255."""
+    from msfnet.runtime.stack import save_stack
+
+    stack = sphere_stack(n, h, w, seed)
+    if bit_depth == 8:
+        stack = replace(stack, images=stack.images * np.float32(255 / 65535))
+    return save_stack(stack, folder, bit_depth=bit_depth)
+
+
+def as_float32(stack: Stack) -> Stack:
+    """The same stack with float32 images: what the loaders held before integer stacks."""
+    return replace(stack, images=stack.images.astype(np.float32))
 
 
 def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = False) -> Path:

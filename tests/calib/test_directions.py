@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from msfnet.calib import cli
-from msfnet.calib.directions import Intrinsics, estimate_directions
+from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions
 from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 from msfnet.runtime.imageio import list_images, read_image, read_mask
 from msfnet.runtime.stack import read_vectors
@@ -44,6 +44,23 @@ def test_orthographic_saturated_with_bloom():
           f"max {err.max():.3f} deg")
     assert err.max() < 0.5
     assert res.warnings == [] and np.all(res.confidence > 0.5)
+
+
+def test_integer_capture_equals_its_float_copy():
+    """Sphere fit, directions and the diagnostic picture read an 8-bit capture one light at a
+    time as float64 (no float64 copy of the stack): the numbers of the float copy."""
+    lights = S.ring_lights(6, (10, 60), seed=3)
+    scene = S.mirror_scene(190, 180, 80)
+    imgs = render_stack(scene, lights, gain=1.0, bloom=0.3)
+    assert imgs.dtype == np.uint8
+    floats = imgs.astype(np.float64)
+    assert fit_circles_from_images(imgs) == fit_circles_from_images(floats)
+    circles = fit_circles_from_mask(S.sphere_masks(scene)[0])
+    got = estimate_directions([imgs], [circles])
+    want = estimate_directions([floats], [circles], white_level=255.0)
+    np.testing.assert_array_equal(got.directions, want.directions)
+    np.testing.assert_array_equal(diagnostic_image(imgs, circles, got.estimates),
+                                  diagnostic_image(floats, circles, want.estimates))
 
 
 def test_perspective_unsaturated():

@@ -60,3 +60,20 @@ def test_plane_of_known_normal(rng):
     # Per-channel albedo stays in (it is the target's colour): compare per-channel ratios.
     ratio = est / truth
     assert np.allclose(ratio / ratio[0], 1, atol=1e-6)
+
+
+def test_integer_images_equal_their_float_copy(rng):
+    """One light at a time in float64 (no float64 copy of the stack), colour or grey: the
+    intensities of the float copy."""
+    lights = S.ring_lights(6, (10, 50), seed=2)
+    scene = S.mirror_scene(150, 140, 60, kind="matte")
+    imgs = np.stack([S.expose(S.render(scene, l_, e), 0.5, 16, 2.0, np.random.default_rng(i))
+                     for i, (l_, e) in enumerate(zip(lights, _truth(6, rng), strict=True))])
+    assert imgs.dtype == np.uint16
+    mask = S.sphere_masks(scene)[0]
+    normals, valid = target_normals(mask.shape, circle=fit_circles_from_mask(mask)[0])
+    for stack in (imgs, imgs[..., 1]):  # RGB, grey
+        got, _ = estimate_intensities(stack, lights, normals, valid)
+        want, _ = estimate_intensities(stack.astype(np.float64), lights, normals, valid,
+                                       white_level=65535.0)
+        np.testing.assert_array_equal(got, want)

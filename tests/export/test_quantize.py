@@ -7,9 +7,15 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
+from _runtime_helpers import as_float32
 
 from msfnet.export.onnx_export import _torch_export
-from msfnet.export.quantize import calibration_samples, quantize_int8, tile_origins
+from msfnet.export.quantize import (
+    calibration_samples,
+    calibration_tiles,
+    quantize_int8,
+    tile_origins,
+)
 from msfnet.model.network import MSFNet
 from msfnet.runtime.metrics import angular_error_deg
 from msfnet.runtime.stack import load_stack
@@ -21,6 +27,18 @@ def test_tile_origins_are_aligned_and_inside(rng):
     for y0, x0 in tile_origins(mask, 16, 5):
         assert y0 % 4 == 0 and x0 % 4 == 0
         assert 0 <= y0 <= 50 - 16 and 0 <= x0 <= 70 - 16
+
+
+def test_calibration_tiles_of_a_16bit_stack_equal_the_float32_ones(ball_dir):
+    """int8 calibration reads real (16-bit) stacks: only each crop is gathered and cast."""
+    held = load_stack(ball_dir, max_lights=40)
+    assert held.images.dtype == np.uint16
+    pairs = zip(calibration_tiles([held], tiles_per_stack=3),
+                calibration_tiles([as_float32(held)], tiles_per_stack=3), strict=True)
+    for (got, mask, _), (want, want_mask, _) in pairs:
+        np.testing.assert_array_equal(mask, want_mask)
+        for key in ("images", "lights"):
+            np.testing.assert_array_equal(got[key], want[key])
 
 
 @pytest.fixture(scope="module")

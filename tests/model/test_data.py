@@ -1,13 +1,16 @@
-"""The Blobby / Sculpture loader, on a tiny generated fake of that layout."""
+"""The Blobby / Sculpture loader, on a tiny generated fake of that layout; samples of integer
+stacks."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from _runtime_helpers import as_float32, png_stack
 
-from msfnet.model.data import BlobbySource, find_blobby_samples, load_blobby_sample
+from msfnet.model.data import BlobbySource, find_blobby_samples, load_blobby_sample, make_sample
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.imageio import write_png
+from msfnet.runtime.stack import load_stack
 from msfnet.synth.shapes import sphere_normals
 
 
@@ -39,6 +42,7 @@ def test_blobby_layout_is_found_and_loaded(tmp_path):
     assert len(pairs) == 4
     s = load_blobby_sample(*pairs[1])
     assert s.images.shape == (5, 16, 16, 3) and s.name == "blob01/blob01_gold"
+    assert s.images.dtype == np.uint8  # held as decoded; make_sample casts each crop
     np.testing.assert_array_equal(s.mask, mask)
     assert np.degrees(np.arccos(np.clip(np.sum(s.normals_gt[mask] * normals[mask], 1),
                                         -1, 1))).max() < 1.0  # 8-bit encoding
@@ -55,3 +59,15 @@ def test_blobby_errors_name_the_file(tmp_path):
     lst.write_text("l_000.png 0 0\n")
     with pytest.raises(InputError, match=r"s_m\.txt"):
         load_blobby_sample(*find_blobby_samples(tmp_path)[0])
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_samples_of_an_integer_stack_equal_the_float32_ones(tmp_path, bits):
+    """make_sample casts the crop before noise, jitter and normalisation: an integer stack
+    gives the float32 copy's training sample."""
+    held = load_stack(png_stack(tmp_path / "s", bits, n=10, h=40, w=48))
+    assert held.images.dtype == (np.uint8 if bits == 8 else np.uint16)
+    got = make_sample(held, 6, 32, np.random.default_rng(3))
+    want = make_sample(as_float32(held), 6, 32, np.random.default_rng(3))
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)

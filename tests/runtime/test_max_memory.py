@@ -55,16 +55,17 @@ def test_least_squares_refuses_nonsense_budgets(value: float) -> None:
 
 
 def test_folder_loader_refuses_before_decoding(tmp_path: Path, monkeypatch) -> None:
-    folder = save_stack(sphere_stack(n=8, h=120, w=160), tmp_path / "s")  # 1.8 MB as float32
+    folder = save_stack(sphere_stack(n=8, h=120, w=160), tmp_path / "s")  # 0.88 MB as uint16
     import msfnet.runtime.stack.load as load
 
     decoded: list[Path] = []
     real = load.read_image
     monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
-    with pytest.raises(InputError, match=r"8 images of 160x120 take 2 MB.*--max-memory 1 MB"):
-        load_stack(folder, LoadOptions(max_memory_mb=1.0))
+    with pytest.raises(InputError,
+                       match=r"8 images of 160x120 take 0.88 MB.*--max-memory 0.5 MB"):
+        load_stack(folder, LoadOptions(max_memory_mb=0.5))
     assert len(decoded) == 1  # only the first, for its size
-    assert load_stack(folder, LoadOptions(max_memory_mb=1.0, select="1-3")).num_lights == 3
+    assert load_stack(folder, LoadOptions(max_memory_mb=0.5, select="1-3")).num_lights == 3
 
 
 def test_npz_bomb_is_refused_from_the_header(tmp_path: Path) -> None:
@@ -94,5 +95,5 @@ def test_msf_run_passes_its_budget_to_the_loader(tmp_path: Path, monkeypatch, ca
     real = load.read_image
     monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
     assert main(["--method", "l2", str(folder), "-o", str(tmp_path / "o"), "--max-memory",
-                 "1"]) == 2
+                 "0.5"]) == 2  # the 16-bit stack takes 0.88 MB
     assert len(decoded) == 1, "every image was decoded before the budget was checked"

@@ -48,3 +48,20 @@ def test_normalise_is_invariant_to_exposure_and_light_brightness(rng: np.random.
     brighter[2] *= 3
     ints3[2] *= 3
     np.testing.assert_allclose(normalise(brighter, ints3, mask), base, rtol=1e-5)
+
+
+def test_integer_tiles_give_the_float32_input_bit_for_bit(rng: np.random.Generator) -> None:
+    """A stack held as uint8/uint16 is cast per tile: the same network input as its float32
+    copy, even at full scale over 96 lights, where uint16 squares summed would overflow."""
+    ints = rng.uniform(0.5, 2.0, (96, 3)).astype(np.float32)
+    mask = rng.random((6, 7)) > 0.2
+    mask[0, 0] = True
+    for dtype in (np.uint8, np.uint16):
+        top = np.iinfo(dtype).max
+        images = rng.integers(0, top + 1, (96, 6, 7, 3)).astype(dtype)
+        images[:, 0, 0] = top  # 96 x 65535^2 = 4e11: beyond even uint32
+        x = normalise(images, ints, mask)
+        assert x.dtype == np.float32 and np.isfinite(x).all()
+        np.testing.assert_array_equal(x, normalise(images.astype(np.float32), ints, mask))
+        np.testing.assert_allclose(np.linalg.norm(x[:, :, 0, 0], axis=0), np.sqrt(96 / 32),
+                                   rtol=1e-5)

@@ -23,7 +23,7 @@ def test_diligent_folder(ball_dir: Path) -> None:
     assert s.filenames[0] == "021.png"
     assert int(s.mask.sum()) == 15791  # RGB mask, > 127
     assert s.normals_gt is not None and s.normals_gt.shape == (512, 612, 3)
-    assert s.images.max() == 65535.0  # 16 bits kept, not reduced to 8
+    assert s.images.dtype == np.uint16 and s.images.max() == 65535  # 16 bits, as decoded
     np.testing.assert_allclose(np.linalg.norm(s.lights, axis=1), 1.0, atol=1e-6)
 
 
@@ -42,7 +42,7 @@ def test_generic_folder_with_lights_json(tmp_path: Path) -> None:
     np.testing.assert_allclose(s.lights, ref.lights, atol=1e-6)
     np.testing.assert_array_equal(s.mask, ref.mask)
     np.testing.assert_array_equal(s.intensities, 1.0)  # no intensities file
-    assert s.images.dtype == np.float32 and s.images.max() <= 255
+    assert s.images.dtype == np.uint8  # held as decoded (no value-changing option)
     np.testing.assert_array_equal(s.images[2], np.clip(ref.images[2] / 256, 0, 255)
                                   .astype(np.uint8))
 

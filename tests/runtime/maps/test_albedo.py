@@ -67,3 +67,16 @@ def test_albedo_bad_input(surfaces) -> None:
         albedo_map(images, lights, ints, mask, bad)
     empty = albedo_map(images, lights, ints, np.zeros_like(mask), normals)
     assert not empty.any()
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_integer_images_give_the_float32_albedo(surfaces, dtype: type) -> None:
+    """Each chunk of an integer stack is cast to float64 before any arithmetic, and the default
+    clipping level comes from its maximum as stored: the float32 copy's albedo exactly."""
+    images, lights, ints, mask, normals, _ = _render(
+        surfaces, full_scale=200.0 if dtype == np.uint8 else 40000.0)
+    held = np.rint(images).astype(dtype)
+    est = albedo_map(held, lights, ints, mask, normals)
+    np.testing.assert_array_equal(est, albedo_map(held.astype(np.float32), lights, ints, mask,
+                                                  normals))
+    assert est[mask].min() > 0

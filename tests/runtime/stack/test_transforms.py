@@ -20,7 +20,13 @@ from msfnet.runtime.stack import (
     prepare_stack,
     save_stack,
 )
-from msfnet.runtime.stack.transforms import area_downscale, otsu_threshold, srgb_to_linear
+from msfnet.runtime.stack.transforms import (
+    Transforms,
+    area_downscale,
+    auto_mask,
+    otsu_threshold,
+    srgb_to_linear,
+)
 from msfnet.synth import RenderOptions, render_stack
 
 
@@ -67,7 +73,9 @@ def test_gamma_16bit_render_linearised_gives_the_linear_render(tmp_path: Path) -
     assert wrong.metrics is not None and wrong.metrics.median_deg > 2
 
 
-def test_auto_mask_matches_a_rendered_object_on_a_dark_background(tmp_path: Path) -> None:
+def _object_on_dark_backdrop(folder: Path) -> tuple[Path, np.ndarray]:
+    """A rendered object on a dark noisy backdrop saved as 16-bit PNGs (mask.png all ones),
+    and its true mask."""
     rng = np.random.default_rng(5)
     stack = render_stack(7, RenderOptions(size=96, lights=16, noise=False), shape="blob")
     # a dark, noisy, unevenly lit backdrop (0.2-0.6 % of full scale, where the object's
@@ -78,14 +86,39 @@ def test_auto_mask_matches_a_rendered_object_on_a_dark_background(tmp_path: Path
     images = np.where(stack.mask[None, :, :, None], stack.images,
                       backdrop[None, :, :, None] + noise)
     images = np.clip(images, 0, 65535).astype(np.float32)
-    folder = _saved(replace(stack, images=images, mask=np.ones((h, w), bool)), tmp_path / "o")
+    return _saved(replace(stack, images=images, mask=np.ones((h, w), bool)), folder), stack.mask
+
+
+def test_auto_mask_matches_a_rendered_object_on_a_dark_background(tmp_path: Path) -> None:
+    folder, truth = _object_on_dark_backdrop(tmp_path / "o")
     got = load_stack(folder, auto_mask=True).mask
-    truth = stack.mask
     iou = (got & truth).sum() / (got | truth).sum()
     print(f"auto-mask IoU {iou:.4f} ({truth.sum()} true px)")
     assert iou > 0.95
     # the folder's own mask.png (all ones here) is what a plain load reads
     assert load_stack(folder).mask.all()
+
+
+def test_auto_mask_of_a_16bit_stack_equals_its_float32_copy(tmp_path: Path) -> None:
+    folder, _ = _object_on_dark_backdrop(tmp_path / "o")
+    held = load_stack(folder, auto_mask=True)
+    assert held.images.dtype == np.uint16
+    np.testing.assert_array_equal(auto_mask(held.images.astype(np.float32)), held.mask)
+    np.testing.assert_array_equal(auto_mask(held.images), held.mask)
+
+
+def test_transforms_keep_the_type_only_when_no_value_changes() -> None:
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 65536, (20, 24, 3)).astype(np.uint16)
+    crop = Transforms(roi=(2, 3, 16, 12)).image(img)
+    assert crop.dtype == np.uint16
+    np.testing.assert_array_equal(crop, img[3:15, 2:18])
+    for t in (Transforms(downscale=2), Transforms(gamma=2.2), Transforms(srgb=True)):
+        out = t.image(img)
+        assert out.dtype == np.float32
+        white = Transforms(t.roi, t.downscale, t.srgb, t.gamma, 65535.0)
+        np.testing.assert_array_equal(out, white.image(img.astype(np.float32)))
+    assert Transforms().image(img.astype(np.float64)).dtype == np.float32
 
 
 def test_otsu_splits_two_populations() -> None:

@@ -220,7 +220,7 @@ def diagnostic_image(images: np.ndarray, circles: list[Circle],
                      estimates: list[list[LightEstimate]], capture: int = 0) -> np.ndarray:
     """8-bit RGB: brightest-over-lights image, sphere outlines, numbered highlight marks
     (green = confident, orange = doubtful, red = rim-clipped or low confidence)."""
-    g = _grey(np.asarray(images, np.float64).max(axis=0))
+    g = _grey(np.max(images, axis=0))  # the max is exact as stored: no float64 stack
     lo, hi = np.percentile(g, [1, 99.9])
     base = np.clip((g - lo) / max(hi - lo, 1e-9), 0, 1) ** 0.5 * 255
     up = 2 if max(g.shape) < 800 else 1

@@ -40,15 +40,13 @@ def estimate_intensities(images: np.ndarray, lights: np.ndarray, normals: np.nda
                          white_level: float | None = None, min_shading: float = 0.15,
                          names: list[str] | None = None) -> tuple[np.ndarray, list[str]]:
     """(N, 3) relative RGB intensities, mean 1, plus warnings."""
-    imgs = np.asarray(images, np.float64)
-    if imgs.ndim == 3:
-        imgs = np.repeat(imgs[..., None], 3, axis=3)
+    imgs = np.asarray(images)  # as stored: cast to float64 one light at a time below
     n = len(imgs)
     if len(lights) != n:
         raise InputError(f"{len(lights)} light directions for {n} images")
     if white_level is None:
         white_level = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(
-            np.asarray(images).dtype, float(imgs.max()))
+            imgs.dtype, float(np.max(imgs)))
     names = names or [f"image {i + 1}" for i in range(n)]
     amb = None if ambient is None else np.asarray(ambient, np.float64)
     if amb is not None and amb.ndim == 2:
@@ -56,7 +54,9 @@ def estimate_intensities(images: np.ndarray, lights: np.ndarray, normals: np.nda
     out = np.zeros((n, 3))
     warnings = []
     for i in range(n):
-        img = imgs[i]
+        img = np.asarray(imgs[i], np.float64)
+        if img.ndim == 2:  # grey: the same value in every channel
+            img = np.repeat(img[..., None], 3, axis=2)
         unsat = np.all(img < 0.99 * white_level, axis=-1)
         if amb is not None:
             img = img - amb

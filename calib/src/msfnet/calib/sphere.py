@@ -134,9 +134,12 @@ def fit_circles_from_images(images: np.ndarray, count: int = 1) -> list[Circle]:
     Hough circles on the log-stretched mean image give a first guess; each is refined on the
     strongest radial edge. Less reliable than a mask: check the diagnostic image.
     """
-    arr = np.asarray(images, np.float64)
-    grey = arr.mean(axis=-1) if arr.ndim == 4 else arr
-    mean = _stretch(grey.mean(axis=0))
+    imgs = np.asarray(images)
+    total = np.zeros(imgs.shape[1:3])
+    for img in imgs:  # float64 one light at a time, not a float64 copy of the stack
+        a = np.asarray(img, np.float64)
+        total += a.mean(axis=-1) if a.ndim == 3 else a
+    mean = _stretch(total / len(imgs))
     h, w = mean.shape
     blurred = cv2.GaussianBlur(mean, (0, 0), 2.0)
     found = None

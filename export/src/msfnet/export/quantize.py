@@ -76,7 +76,8 @@ def calibration_tiles(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
             idx = evenly(stack.num_lights, n)
             crop = (slice(y0, y0 + tile), slice(x0, x0 + tile))
             mask = stack.mask[crop]
-            x = normalise(stack.images[idx][:, crop[0], crop[1]], stack.intensities[idx],
+            # only the crop is gathered (and cast to float in normalise), not all N images
+            x = normalise(stack.images[idx, crop[0], crop[1]], stack.intensities[idx],
                           mask, train_lights)
             pad_h, pad_w = tile - x.shape[2], tile - x.shape[3]
             if pad_h or pad_w:

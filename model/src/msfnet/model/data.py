@@ -28,7 +28,7 @@ import torch
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.imageio import read_image
 from msfnet.runtime.preprocess import normalise
-from msfnet.runtime.stack import Stack, read_normals
+from msfnet.runtime.stack import Stack, as_held, read_normals
 from msfnet.synth.render import RenderOptions, render_stack
 
 
@@ -195,7 +195,7 @@ def load_blobby_sample(normal_png: Path, image_list: Path) -> Stack:
     names, dirs = _read_light_list(image_list)
     imgs = []
     for name in names:
-        img = read_image(image_list.parent / name).astype(np.float32)
+        img = read_image(image_list.parent / name)  # as stored: make_sample casts the crop
         if img.ndim == 2:
             img = np.repeat(img[..., None], 3, axis=2)
         if img.shape[:2] != normals.shape[:2]:
@@ -203,8 +203,8 @@ def load_blobby_sample(normal_png: Path, image_list: Path) -> Stack:
                              f"{normals.shape[1]}x{normals.shape[0]}", image_list.parent / name)
         imgs.append(img)
     mask = np.linalg.norm(normals, axis=2) > 0.5
-    return Stack(f"{normal_png.parent.name}/{image_list.parent.name}", np.stack(imgs), dirs,
-                 np.ones((len(names), 3), np.float32), mask, normals, names,
+    return Stack(f"{normal_png.parent.name}/{image_list.parent.name}", as_held(np.stack(imgs)),
+                 dirs, np.ones((len(names), 3), np.float32), mask, normals, names,
                  image_list.parent).validate()
 
 

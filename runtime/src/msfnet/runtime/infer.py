@@ -44,6 +44,7 @@ def choose_plan(stack: Stack, model: Engine, tile: int | None = None,
         return plan_tiles(stack.mask, None)
     if tile is None:
         # the budget is for the whole process: the loaded stack already occupies part of it
+        # (its bytes as held: 2 a value for a 16-bit stack, 4 for float32)
         tile = tile_size_for_memory(max_memory_mb or DEFAULT_MAX_MEMORY_MB, stack.num_lights,
                                     model.chunk, stack_mb=stack.images.nbytes / 2**20)
     return plan_tiles(stack.mask, tile)

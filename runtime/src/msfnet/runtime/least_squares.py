@@ -13,7 +13,8 @@ from .errors import InputError
 from .preprocess import network_lights
 from .stack import Stack
 
-# working set per (mask pixel x light): the float32 RGB gather, float64 grey and, when
+# working set per (mask pixel x light): the RGB gather (as held: 12 B float32, 6 B uint16; an
+# integer one's float32 copy lives only while grey is computed), float64 grey and, when
 # trimming, ranks and weights
 BYTES_PER_PIXEL_LIGHT = 64
 MIN_ROWS = 8
@@ -62,13 +63,21 @@ def rows_for_memory(max_memory_mb: float, stack: Stack) -> int:
     return min(rows, h)
 
 
+def _grey(pixels: np.ndarray, intensities: np.ndarray) -> np.ndarray:
+    """(N, P) float64 grey values of gathered (N, P, 3) pixels divided by the light intensity.
+    Integer pixels are cast first (exact in float32: the numbers a float32 stack gives, and no
+    integer arithmetic); the copy lives only here."""
+    if pixels.dtype.kind != "f":
+        pixels = pixels.astype(np.float32)
+    return (pixels / intensities[:, None, :]).mean(axis=2).astype(np.float64)
+
+
 def _solve(pixels: np.ndarray, stack: Stack, trim_shadows: float,
            trim_highlights: float) -> np.ndarray:
     """(3, P) unit normals of the gathered mask pixels (N, P, 3)."""
     lights = network_lights(stack.lights).astype(np.float64)  # (N, 3)
     n = lights.shape[0]
-    # (N, P) grey values divided by the light intensity
-    grey = (pixels / stack.intensities[:, None, :]).mean(axis=2).astype(np.float64)
+    grey = _grey(pixels, stack.intensities)  # (N, P)
     lo = int(np.floor(trim_shadows * n))
     hi = n - int(np.floor(trim_highlights * n))
     if hi - lo < 3:

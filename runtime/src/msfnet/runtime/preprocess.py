@@ -17,9 +17,13 @@ from .contract import INPUT_MULTIPLE, TRAIN_LIGHTS
 
 def normalise(images: np.ndarray, intensities: np.ndarray, mask: np.ndarray,
               train_lights: int = TRAIN_LIGHTS) -> np.ndarray:
-    """(N, H, W, 3) raw images -> (N, 3, H, W) float32 network input."""
+    """(N, H, W, 3) raw images (float, or a stack's uint8/uint16) -> (N, 3, H, W) float32
+    network input."""
     n = images.shape[0]
-    x = images.astype(np.float32) / intensities.astype(np.float32)[:, None, None, :]
+    # cast first, once per tile: integer values are exact in float32 (so a uint16 stack gives
+    # the numbers its float32 copy would) and must never meet the squares below (overflow)
+    x = images.astype(np.float32)
+    x /= intensities.astype(np.float32)[:, None, None, :]
     norm = np.sqrt(np.einsum("nhwc,nhwc->hwc", x, x, dtype=np.float64)).astype(np.float32)
     scale = np.float32(np.sqrt(n / train_lights))
     x *= (scale / (norm + np.float32(1e-10)))[None]

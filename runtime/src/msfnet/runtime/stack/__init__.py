@@ -16,9 +16,10 @@ from .readers import read_normals, read_vectors
 from .save import save_stack
 from .select import evenly_spaced, parse_select, selection
 from .transforms import auto_mask, parse_roi
-from .types import Stack, light_condition, unit_lights
+from .types import Stack, as_held, held_dtype, light_condition, unit_lights
 
 __all__ = ["GT_NAMES", "INTENSITY_NAMES", "LIGHTS_NAMES", "MASK_NAMES", "LoadOptions", "Stack",
-           "auto_mask", "check_stack_size", "evenly_spaced", "light_condition", "load_folder",
-           "load_npz", "load_stack", "parse_roi", "parse_select", "prepare_stack",
-           "read_normals", "read_vectors", "save_stack", "selection", "unit_lights"]
+           "as_held", "auto_mask", "check_stack_size", "evenly_spaced", "held_dtype",
+           "light_condition", "load_folder", "load_npz", "load_stack", "parse_roi",
+           "parse_select", "prepare_stack", "read_normals", "read_vectors", "save_stack",
+           "selection", "unit_lights"]

@@ -19,7 +19,7 @@ from ..imageio import list_images, read_image, read_mask
 from .readers import read_normals, read_vectors, unit_normals
 from .select import selection
 from .transforms import Roi, Transforms, auto_mask
-from .types import Stack, check_intensities, check_lights, unit_lights
+from .types import Stack, as_held, check_intensities, check_lights, held_dtype, unit_lights
 
 LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_directions.json")
 INTENSITY_NAMES = ("light_intensities.txt", "intensities.txt", "light_intensities.json")
@@ -44,7 +44,7 @@ class LoadOptions:
     gamma: float | None = None  # undo a plain power-law encoding: linear = value ** gamma
     white_level: float | None = None  # full scale; default 255 / 65535 / 1.0 by image type
     auto_mask: bool = False  # mask from the stack itself (Otsu + morphology)
-    # refuse, before decoding, a stack whose float32 images alone exceed this (--max-memory)
+    # refuse, before decoding, a stack whose images alone (as held) exceed this (--max-memory)
     max_memory_mb: float | None = None
 
     def __post_init__(self) -> None:
@@ -71,11 +71,12 @@ def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
 
 
 def check_stack_size(n: int, h: int, w: int, max_memory_mb: float | None,
-                     src: object = None) -> None:
-    """The loaded stack is float32 N x H x W x 3: refuse it up front if that alone is over the
-    memory budget (a 96-image full-resolution stack otherwise fills the memory while decoding,
-    before any later check can speak)."""
-    need = n * h * w * 3 * 4 / 2**20
+                     src: object = None, dtype: np.dtype | type = np.float32) -> None:
+    """The loaded stack is N x H x W x 3 values of ``dtype`` (as held: see
+    :func:`~.types.held_dtype`): refuse it up front if that alone is over the memory budget (a
+    96-image full-resolution stack otherwise fills the memory while decoding, before any later
+    check can speak)."""
+    need = n * h * w * 3 * np.dtype(dtype).itemsize / 2**20
     if max_memory_mb is not None and need > max_memory_mb:
         size = f"{need:.0f}" if need >= 1 else f"{need:.2g}"  # "1536", "2", "0.14"
         raise InputError(f"{n} images of {w}x{h} take {size} MB loaded, above --max-memory "
@@ -87,7 +88,11 @@ def _read_images(paths: Sequence[Path], threads: int = 4,
                  transforms: Transforms | None = None,
                  max_memory_mb: float | None = None) -> tuple[np.ndarray, tuple[int, int]]:
     """Decode in parallel (OpenCV releases the GIL), each image reduced by ``transforms`` in
-    its thread; sizes and bit depths must all agree. Returns the images and the stored size."""
+    its thread and copied straight into the stack, so no second stack-sized array is ever
+    held; sizes and bit depths must all agree. Returns the images and the stored size.
+
+    The stack takes the type of the first image as transformed: uint8/uint16 when no value
+    changes, else float32 (see ``Transforms.image``)."""
     transforms = transforms or Transforms()
 
     def read(path: Path) -> tuple[np.ndarray, np.dtype, tuple[int, int]]:
@@ -97,22 +102,26 @@ def _read_images(paths: Sequence[Path], threads: int = 4,
         _check_float_scale(img, transforms, path)
         return transforms.image(img, path), img.dtype, img.shape[:2]
 
-    head = read(paths[0])
-    check_stack_size(len(paths), head[0].shape[0], head[0].shape[1], max_memory_mb,
-                     paths[0].parent)
-    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-        imgs = [head, *pool.map(read, paths[1:])]
-    first, dtype0, shape0 = imgs[0]
-    out = np.empty((len(imgs), first.shape[0], first.shape[1], 3), dtype=np.float32)
-    for i, (p, (img, dtype, shape)) in enumerate(zip(paths, imgs, strict=True)):
+    first, dtype0, shape0 = read(paths[0])
+    check_stack_size(len(paths), first.shape[0], first.shape[1], max_memory_mb,
+                     paths[0].parent, first.dtype)
+    out = np.empty((len(paths), first.shape[0], first.shape[1], 3), dtype=first.dtype)
+    out[0] = first
+
+    def read_into(i: int) -> None:
+        img, dtype, shape = read(paths[i])
         if shape != shape0:
             raise InputError(f"image is {shape[1]}x{shape[0]} but {paths[0].name} is "
-                             f"{shape0[1]}x{shape0[0]}", p)
+                             f"{shape0[1]}x{shape0[0]}", paths[i])
         if dtype != dtype0:
             # an 8-bit image among 16-bit ones is 257x too dark: silently wrong normals
             raise InputError(f"image is {dtype} but {paths[0].name} is {dtype0}: "
-                             "one bit depth per stack", p)
-        out[i] = img
+                             "one bit depth per stack", paths[i])
+        out[i] = img  # grey (H, W, 1) broadcasts to RGB
+
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        for _ in pool.map(read_into, range(1, len(paths))):  # raises the first error in order
+            pass
     return out, shape0
 
 
@@ -214,14 +223,16 @@ def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
     return arr
 
 
-def _npz_shape(data: np.lib.npyio.NpzFile, key: str) -> tuple[int, ...]:
-    """An array's shape from its .npy header, without reading (or inflating) the data."""
+def _npz_header(data: np.lib.npyio.NpzFile, key: str) -> tuple[tuple[int, ...], np.dtype]:
+    """An array's shape and type from its .npy header, without reading (or inflating) the
+    data."""
     assert data.zip is not None  # np.load of a zip file
     with data.zip.open(f"{key}.npy") as f:
         version = np.lib.format.read_magic(f)
         read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                 else np.lib.format.read_array_header_2_0)
-        return tuple(read(f)[0])
+        shape, _, dtype = read(f)
+        return tuple(shape), np.dtype(dtype)
 
 
 def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
@@ -241,9 +252,10 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         if not {"images", "lights"} <= files:
             raise InputError("npz stack needs arrays 'images' and 'lights' (it has "
                              f"{', '.join(sorted(files)) or 'none'})", path)
-        shape = _npz_shape(data, "images")
+        shape, dtype = _npz_header(data, "images")
         if len(shape) in (3, 4):  # before reading it: a zip may inflate to any size
-            check_stack_size(shape[0], shape[1], shape[2], options.max_memory_mb, path)
+            check_stack_size(shape[0], shape[1], shape[2], options.max_memory_mb, path,
+                             held_dtype(dtype))
         images = _npz_array(data, "images", path)
         if images.ndim == 4 and images.shape[3] == 1:
             images = images[..., 0]
@@ -263,7 +275,7 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
                 big = np.abs(arr[np.isfinite(arr)], dtype=np.float64)
                 if big.size and big.max() > np.finfo(np.float32).max:
                     raise InputError(f"npz {key} hold values beyond the float32 range", path)
-        images = images.astype(np.float32)
+        images = as_held(images)  # uint8/uint16 kept: values exact, 2-4x smaller than float32
     except InputError:
         raise
     except Exception as exc:  # zip errors, bad headers, truncated members

@@ -20,7 +20,10 @@ def save_stack(stack: Stack, folder: str | Path, bit_depth: int = 16) -> Path:
     names = stack.filenames or [f"{i + 1:03d}.png" for i in range(stack.num_lights)]
     names = [Path(n).with_suffix(".png").name for n in names]
     for name, img in zip(names, stack.images, strict=True):
-        write_png(folder / name, np.clip(np.rint(img), 0, top).astype(dtype))
+        if img.dtype != dtype:  # floats rounded, then clipped; values are never rescaled
+            vals = np.rint(img) if img.dtype.kind == "f" else img.astype(np.int64)
+            img = np.clip(vals, 0, top).astype(dtype)
+        write_png(folder / name, img)
     write_text(folder / "filenames.txt", "\n".join(names) + "\n")
     write_vectors(folder / "light_directions.txt", stack.lights)
     write_vectors(folder / "light_intensities.txt", stack.intensities)

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from .types import as_held
 
 Roi = tuple[int, int, int, int]  # x, y, width, height in pixels of the stored images
 
@@ -185,6 +186,8 @@ def auto_mask(images: np.ndarray, *, min_share: float = 0.1) -> np.ndarray:
     ``min_share`` of the largest one's area.
     """
     peak = images.max(axis=(0, 3)) if images.ndim == 4 else images.max(axis=0)
+    if peak.dtype.kind != "f":  # integer stacks: the float32 values a float32 stack would give
+        peak = peak.astype(np.float32)
     floor = max(float(peak.max()), 1e-30) * 1e-4  # 80 dB below the brightest pixel
     level = np.log(np.maximum(peak, floor))
     mask = (level > valley_threshold(level)).astype(np.uint8)
@@ -221,13 +224,21 @@ class Transforms:
 
     @property
     def active(self) -> bool:
-        return (self.roi is not None or self.downscale > 1 or self.srgb
-                or self.gamma is not None)
+        return self.roi is not None or self.changes_values
+
+    @property
+    def changes_values(self) -> bool:
+        """Whether pixel values change (block means, linearisation), not only which are kept."""
+        return self.downscale > 1 or self.srgb or self.gamma is not None
 
     def image(self, img: np.ndarray, src: object = None) -> np.ndarray:
-        """One decoded (H, W[, 3]) image -> float32 after ROI, downscale, linearisation."""
+        """One decoded (H, W[, 3]) image after ROI, downscale, linearisation: uint8/uint16 kept
+        as stored when no value changes (a crop), else float32 (block means and linear values
+        are fractions; see :func:`~.types.held_dtype` for the other types)."""
         if self.roi is not None:
             check_roi(self.roi, img.shape[:2], src)
+        if not self.changes_values:
+            return as_held(crop(img, self.roi))
         white = self.white or white_level(img.dtype)
         out = area_downscale(crop(img, self.roi), self.downscale)
         return linearise(out, white, self.srgb, self.gamma)

@@ -20,14 +20,33 @@ INTENSITY_RANGE = (1e-6, 1e6)  # relative to the median intensity
 # Pixel values and intensities each pass their own checks and still break it together
 # (intensities of 1e-40: every one equal, so none is out of line with the others).
 SIGNAL_RANGE = (1e-6, 1e15)
+# Integer images a stack keeps as decoded: 1 or 2 bytes a value instead of float32's 4 (a
+# 96-light 16-bit DiLiGenT ball holds 172 MB instead of 344). Their values are exact in float32,
+# so consumers cast a tile or a light at a time and get the numbers a float32 stack gives.
+INTEGER_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
+
+
+def held_dtype(dtype: np.dtype | type) -> np.dtype:
+    """The type a stack holds images stored as ``dtype`` in: uint8 and uint16 as they are,
+    anything else (float16/64, other integers, bool) as float32."""
+    dtype = np.dtype(dtype)
+    return dtype if dtype in INTEGER_DTYPES else np.dtype(np.float32)
+
+
+def as_held(images: np.ndarray) -> np.ndarray:
+    """``images`` in their :func:`held_dtype` (no copy when already so)."""
+    return images.astype(held_dtype(images.dtype), copy=False)
 
 
 @dataclass
 class Stack:
     """N images of one static object, each lit by one distant light.
 
-    images:       (N, H, W, 3) float32 (or the stored integer type), linear RGB as stored
-                  (not yet divided by intensity)
+    images:       (N, H, W, 3) linear RGB as stored (not yet divided by intensity): uint8 or
+                  uint16 as stored when loading changed no value (ROI and selection only),
+                  else float32 (see :func:`held_dtype`; loaders and ``from_arrays`` give no
+                  other type). Consumers cast to float a tile or a light at a time, never the
+                  integers themselves into arithmetic (a uint16 square overflows).
     lights:       (N, 3) float32 unit directions, camera frame: x right, y up, z to the camera
     intensities:  (N, 3) float32 RGB light intensities (ones when unknown)
     mask:         (H, W) bool object mask (all True when unknown)
@@ -48,8 +67,9 @@ class Stack:
                     mask: np.ndarray | None = None, intensities: np.ndarray | None = None,
                     normals_gt: np.ndarray | None = None, name: str = "stack") -> Stack:
         """A validated stack from plain arrays: images (N, H, W, 3) or (N, H, W) grey, lights
-        (N, 3) any length; mask and intensities optional."""
-        images = np.asarray(images)
+        (N, 3) any length; mask and intensities optional. uint8/uint16 images are kept as
+        they are, any other type becomes float32."""
+        images = as_held(np.asarray(images))
         if images.ndim == 3:
             images = np.repeat(images[..., None], 3, axis=3)
         if images.ndim != 4:
@@ -116,7 +136,8 @@ class Stack:
     def _check_pixels(self, src: object) -> None:
         """Values the estimators cannot use: NaN/inf, negatives, a stack that is black inside
         the mask (every normal would be a guess) or outside SIGNAL_RANGE. One light at a time,
-        so the check needs no stack-sized temporary."""
+        so the check needs no stack-sized temporary. Unsigned images can hold neither NaN nor
+        negatives, and their maximum is taken in their own type (a max cannot overflow)."""
         kind = self.images.dtype.kind
         if kind not in "biuf":
             raise InputError(f"images have dtype {self.images.dtype}; expected numbers",

@@ -1,0 +1,169 @@
+"""Loaders hold images in the type they were stored in (uint8 / uint16) unless a value changes
+(downscale, linearisation: float32); floats and other types become float32. --max-memory counts
+the type actually held."""
+
+from __future__ import annotations
+
+import tracemalloc
+import zipfile
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from _runtime_helpers import as_float32, png_stack, sphere_stack
+
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.imageio import read_image
+from msfnet.runtime.stack import (
+    LoadOptions,
+    Stack,
+    check_stack_size,
+    held_dtype,
+    load_stack,
+    prepare_stack,
+    save_stack,
+)
+
+
+@pytest.mark.parametrize(("bits", "dtype"), [(8, np.uint8), (16, np.uint16)])
+def test_png_stack_is_held_as_decoded(tmp_path: Path, bits: int, dtype: type) -> None:
+    folder = png_stack(tmp_path / "s", bits, n=6)
+    s = load_stack(folder)
+    assert s.images.dtype == dtype
+    assert s.images.nbytes == 6 * 36 * 44 * 3 * np.dtype(dtype).itemsize
+    for name, img in zip(s.filenames, s.images, strict=True):
+        np.testing.assert_array_equal(img, read_image(folder / name))
+    assert int(s.images.max()) > (150 if bits == 8 else 30000)  # most of the range is used
+
+
+def test_roi_alone_keeps_the_integer_type(tmp_path: Path) -> None:
+    folder = png_stack(tmp_path / "s", 16, n=5)
+    full = load_stack(folder)
+    crop = load_stack(folder, roi=(4, 2, 30, 28))
+    assert crop.images.dtype == np.uint16 and crop.shape == (28, 30)
+    np.testing.assert_array_equal(crop.images, full.images[:, 2:30, 4:34])
+    in_memory = prepare_stack(full, LoadOptions(roi=(4, 2, 30, 28)))
+    assert in_memory.images.dtype == np.uint16
+    np.testing.assert_array_equal(in_memory.images, crop.images)
+
+
+@pytest.mark.parametrize("options", [dict(downscale=2), dict(srgb=True), dict(gamma=2.2),
+                                     dict(roi=(0, 0, 40, 30), downscale=2)])
+def test_value_transforms_give_float32(tmp_path: Path, options: dict) -> None:
+    """Block means and linear values are fractions: those stacks stay float32, computed from
+    the stored integers exactly as before."""
+    folder = png_stack(tmp_path / "s", 8, n=5)
+    s = load_stack(folder, **options)
+    assert s.images.dtype == np.float32
+    from_float = prepare_stack(as_float32(load_stack(folder)), LoadOptions(**options,
+                                                                           white_level=255.0))
+    np.testing.assert_array_equal(s.images, from_float.images)
+
+
+def test_grey_pngs_become_rgb_of_their_type(tmp_path: Path) -> None:
+    ref = sphere_stack(n=4)
+    folder = tmp_path / "g"
+    folder.mkdir()
+    for i, img in enumerate(ref.images):
+        cv2.imwrite(str(folder / f"{i:02d}.png"), np.rint(img[..., 0]).astype(np.uint16))
+    np.savetxt(folder / "light_directions.txt", ref.lights)
+    s = load_stack(folder)
+    assert s.images.dtype == np.uint16 and s.images.shape == (4, 36, 44, 3)
+    np.testing.assert_array_equal(s.images[..., 0], s.images[..., 2])
+    np.testing.assert_array_equal(s.images[1, ..., 1], np.rint(ref.images[1, ..., 0]))
+
+
+def test_float_tiff_stays_float32(tmp_path: Path) -> None:
+    ref = sphere_stack(n=4)
+    folder = tmp_path / "f"
+    folder.mkdir()
+    for i, img in enumerate(ref.images):
+        assert cv2.imwrite(str(folder / f"{i:02d}.tiff"), (img / 65535)[:, :, ::-1])
+    np.savetxt(folder / "light_directions.txt", ref.lights)
+    s = load_stack(folder)
+    assert s.images.dtype == np.float32
+    np.testing.assert_array_equal(s.images, ref.images / np.float32(65535))
+
+
+@pytest.mark.parametrize(("stored", "held"), [
+    (np.uint8, np.uint8), (np.uint16, np.uint16), (np.float32, np.float32),
+    (np.float64, np.float32), (np.int32, np.float32), (np.float16, np.float32),
+])
+def test_npz_keeps_uint8_and_uint16(tmp_path: Path, stored: type, held: type) -> None:
+    ref = sphere_stack(n=5)
+    images = np.rint(ref.images * np.float32(255 / 65535) if stored == np.uint8
+                     else ref.images / 64 if stored == np.float16 else ref.images)
+    path = tmp_path / "s.npz"
+    np.savez(path, images=images.astype(stored), lights=ref.lights, mask=ref.mask)
+    s = load_stack(path)
+    assert s.images.dtype == held == held_dtype(stored)
+    np.testing.assert_array_equal(s.images, images.astype(stored).astype(held))
+
+
+def test_from_arrays_holds_the_same_types() -> None:
+    ref = sphere_stack(n=5)
+    ints = np.rint(ref.images).astype(np.uint16)
+    assert Stack.from_arrays(ints, ref.lights).images.dtype == np.uint16
+    assert Stack.from_arrays(ints[..., 0], ref.lights).images.dtype == np.uint16  # grey
+    as64 = Stack.from_arrays(ints.astype(np.float64), ref.lights).images
+    assert as64.dtype == np.float32
+    np.testing.assert_array_equal(as64, ints)
+    assert Stack.from_arrays(ints.astype(np.int32), ref.lights).images.dtype == np.float32
+
+
+@pytest.mark.parametrize(("bits", "options", "said", "mb"), [
+    (16, {}, "0.88", 0.879),  # 8 x 120 x 160 x 3 values of 2 bytes
+    (8, {}, "0.44", 0.439),
+    (8, {"gamma": 2.2}, "2", 1.758),  # linearised: float32
+    (16, {"downscale": 2}, "0.44", 0.439),  # float32, a quarter of the pixels
+])
+def test_max_memory_counts_the_type_held(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                         bits: int, options: dict, said: str,
+                                         mb: float) -> None:
+    folder = png_stack(tmp_path / "s", bits, n=8, h=120, w=160)
+    import msfnet.runtime.stack.load as load
+
+    decoded: list[Path] = []
+    real = load.read_image
+    monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
+    with pytest.raises(InputError, match=rf"take {said} MB loaded, above --max-memory 0.1 MB"):
+        load_stack(folder, LoadOptions(max_memory_mb=0.1, **options))
+    assert len(decoded) == 1  # refused after the first image, before decoding the rest
+    s = load_stack(folder, LoadOptions(max_memory_mb=mb * 1.01, **options))
+    assert s.images.nbytes / 2**20 == pytest.approx(mb, abs=0.001)
+
+
+def test_npz_header_is_counted_in_its_held_type(tmp_path: Path) -> None:
+    """A 16-bit bomb is refused from the header at 2 bytes a value, without inflating it."""
+    path = tmp_path / "bomb16.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        with z.open("images.npy", "w", force_zip64=True) as f:
+            np.lib.format.write_array_header_1_0(
+                f, {"descr": "<u2", "fortran_order": False, "shape": (32, 2048, 2048, 3)})
+            f.write(bytes(2**20))
+        with z.open("lights.npy", "w") as f:
+            np.save(f, np.eye(3, dtype=np.float32))
+    with pytest.raises(InputError, match="take 768 MB loaded"):
+        load_stack(path, LoadOptions(max_memory_mb=512))
+    with pytest.raises(InputError, match="take 1536 MB loaded"):
+        check_stack_size(32, 2048, 2048, 512, path)  # the float32 default
+    with pytest.raises(InputError, match="take 384 MB loaded"):
+        check_stack_size(32, 2048, 2048, 256, path, np.uint8)
+
+
+def test_decoding_holds_one_stack_not_two(tmp_path: Path) -> None:
+    """Each image is copied into the stack as it is decoded: no list of decoded images beside
+    the stack (which doubled the peak), and no float32 copy (which tripled it)."""
+    no_gt = replace(sphere_stack(n=24, h=120, w=160), normals_gt=None)  # images only
+    folder = save_stack(no_gt, tmp_path / "s")
+    tracemalloc.start()
+    try:
+        s = load_stack(folder, threads=1)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert s.images.dtype == np.uint16
+    print(f"load peak {peak / 2**20:.2f} MB for a {s.images.nbytes / 2**20:.2f} MB stack")
+    assert peak < 1.3 * s.images.nbytes
