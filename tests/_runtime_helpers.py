@@ -120,3 +120,19 @@ def tiny_msfnet_onnx(path: Path, **metadata: str) -> Path:
         entry.key, entry.value = key, value
     onnx.save(model, str(path))
     return path
+
+
+def write_npz_bomb(path: Path, descr: str, shape: tuple[int, ...], zeros_mb: int = 1) -> Path:
+    """An .npz whose images header claims ``shape`` of ``descr`` (e.g. '<f4') but holds only
+    ``zeros_mb`` MB of zeros: a loader must refuse it from the header, without inflating it."""
+    import zipfile
+
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        with z.open("images.npy", "w", force_zip64=True) as f:
+            np.lib.format.write_array_header_1_0(
+                f, {"descr": descr, "fortran_order": False, "shape": shape})
+            for _ in range(zeros_mb):
+                f.write(bytes(2**20))
+        with z.open("lights.npy", "w") as f:
+            np.save(f, np.eye(3, dtype=np.float32))
+    return path

@@ -5,12 +5,11 @@ value."""
 from __future__ import annotations
 
 import tracemalloc
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
-from _runtime_helpers import sphere_stack
+from _runtime_helpers import sphere_stack, write_npz_bomb
 
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.least_squares import least_squares_normals, rows_for_memory
@@ -70,16 +69,8 @@ def test_folder_loader_refuses_before_decoding(tmp_path: Path, monkeypatch) -> N
 
 def test_npz_bomb_is_refused_from_the_header(tmp_path: Path) -> None:
     """A few KB of zip that would inflate to 2 GB is refused without inflating it."""
-    path = tmp_path / "bomb.npz"
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
-        with z.open("images.npy", "w", force_zip64=True) as f:
-            np.lib.format.write_array_header_1_0(
-                f, {"descr": "<f4", "fortran_order": False, "shape": (32, 2048, 2048, 3)})
-            block = bytes(2**20)
-            for _ in range(4):  # the header claims 1.5 GB; only 4 MB of zeros follow
-                f.write(block)
-        with z.open("lights.npy", "w") as f:
-            np.save(f, np.eye(3, dtype=np.float32))
+    # the header claims 1.5 GB; only 4 MB of zeros follow
+    path = write_npz_bomb(tmp_path / "bomb.npz", "<f4", (32, 2048, 2048, 3), zeros_mb=4)
     assert path.stat().st_size < 200_000
     with pytest.raises(InputError, match="take 1536 MB loaded"):
         load_stack(path, LoadOptions(max_memory_mb=1024))

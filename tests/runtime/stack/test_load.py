@@ -5,14 +5,13 @@ the type actually held."""
 from __future__ import annotations
 
 import tracemalloc
-import zipfile
 from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from _runtime_helpers import as_float32, png_stack, sphere_stack
+from _runtime_helpers import as_float32, png_stack, sphere_stack, write_npz_bomb
 
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.imageio import read_image
@@ -137,14 +136,7 @@ def test_max_memory_counts_the_type_held(tmp_path: Path, monkeypatch: pytest.Mon
 
 def test_npz_header_is_counted_in_its_held_type(tmp_path: Path) -> None:
     """A 16-bit bomb is refused from the header at 2 bytes a value, without inflating it."""
-    path = tmp_path / "bomb16.npz"
-    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
-        with z.open("images.npy", "w", force_zip64=True) as f:
-            np.lib.format.write_array_header_1_0(
-                f, {"descr": "<u2", "fortran_order": False, "shape": (32, 2048, 2048, 3)})
-            f.write(bytes(2**20))
-        with z.open("lights.npy", "w") as f:
-            np.save(f, np.eye(3, dtype=np.float32))
+    path = write_npz_bomb(tmp_path / "bomb16.npz", "<u2", (32, 2048, 2048, 3))
     with pytest.raises(InputError, match="take 768 MB loaded"):
         load_stack(path, LoadOptions(max_memory_mb=512))
     with pytest.raises(InputError, match="take 1536 MB loaded"):
