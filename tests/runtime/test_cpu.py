@@ -54,6 +54,7 @@ def test_detect_falls_back_when_py_cpuinfo_fails(monkeypatch: pytest.MonkeyPatch
         raise RuntimeError("no cpuid here")
 
     monkeypatch.setattr(cpu_mod, "_from_py_cpuinfo", broken)
+    monkeypatch.setattr(cpu_mod, "cache_path", lambda: None)  # no answer kept from earlier
     detect_cpu.cache_clear()
     try:
         info = detect_cpu()
@@ -71,3 +72,35 @@ def test_detect_is_cached_and_agrees_with_the_kernel() -> None:
     if sys.platform.startswith("linux") and Path("/proc/cpuinfo").is_file():
         # two independent readings of the same CPU must agree on every feature that matters
         assert cpu_mod._from_proc_cpuinfo().features() == info.features()
+
+
+def test_the_probe_is_kept_per_boot_and_a_damaged_copy_is_ignored(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    if cpu_mod.cache_path() is None:
+        pytest.skip("no boot id on this platform: nothing is kept")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    probes: list[int] = []
+    fake = CpuInfo.from_flags(["avx2", "avx512_bf16", "amx_bf16"], model="Fake Xeon",
+                              vendor="GenuineIntel", source="py-cpuinfo")
+
+    def probe() -> CpuInfo:
+        probes.append(1)
+        return fake
+
+    monkeypatch.setattr(cpu_mod, "_from_py_cpuinfo", probe)
+    try:
+        for _ in range(2):  # two "processes": the second reads the kept answer
+            detect_cpu.cache_clear()
+            info = detect_cpu()
+            assert (info.model, info.features(), info.source) == (
+                "Fake Xeon", ["avx2", "avx512_bf16", "amx_bf16"], "py-cpuinfo")
+        assert len(probes) == 1
+        path = cpu_mod.cache_path()
+        assert path is not None and path.parent == tmp_path / "msfnet"
+        for damage in ("{not json", '{"flags": [], "model": "x", "vendor": "y"}', "[1, 2]"):
+            path.write_text(damage)
+            detect_cpu.cache_clear()
+            assert detect_cpu().model == "Fake Xeon"  # probed again and rewritten
+        assert len(probes) == 4
+    finally:
+        detect_cpu.cache_clear()

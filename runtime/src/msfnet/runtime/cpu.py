@@ -3,11 +3,16 @@
 Read at run time (the same wheel runs on AVX2-only, AVX-512 + VNNI/bf16 and AMX machines) with
 py-cpuinfo; if that fails (odd platform, sandbox without subprocesses), /proc/cpuinfo on Linux,
 and otherwise a CpuInfo without features, which simply selects the fp32 path everywhere.
+
+py-cpuinfo probes the CPU in a subprocess, about 1.1 s: a third of a full-object msf-run. Its
+answer is kept per boot (``~/.cache/msfnet/cpu-<boot id>.json``; the CPU cannot change without
+a reboot, and every new machine or session boots afresh), so later runs skip the probe.
 """
 
 from __future__ import annotations
 
 import functools
+import json
 import os
 import platform
 from collections.abc import Iterable
@@ -109,12 +114,54 @@ def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
                               source="/proc/cpuinfo")
 
 
+def cache_path() -> Path | None:
+    """Where this boot's py-cpuinfo answer is kept; None where no boot id is known."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return None
+    if not boot or not all(c.isalnum() or c == "-" for c in boot):
+        return None
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "msfnet" / f"cpu-{boot}.json"
+
+
+def _read_cache(path: Path) -> CpuInfo | None:
+    try:
+        data = json.loads(path.read_text())
+        flags, model, vendor = data["flags"], data["model"], data["vendor"]
+    except (OSError, ValueError, KeyError, TypeError):  # absent or damaged: probe again
+        return None
+    if not (isinstance(flags, list) and flags and all(isinstance(f, str) for f in flags)
+            and isinstance(model, str) and isinstance(vendor, str)):
+        return None
+    return CpuInfo.from_flags(flags, model=model, vendor=vendor, cores=usable_cores(),
+                              source="py-cpuinfo")
+
+
+def _write_cache(path: Path, info: CpuInfo) -> None:
+    from .files import write_json
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_json(path, {"flags": sorted(info.all_flags), "model": info.model,
+                          "vendor": info.vendor})
+    except OSError:  # a read-only home only costs the probe next time
+        pass
+
+
 @functools.lru_cache(maxsize=1)
 def detect_cpu() -> CpuInfo:
-    """This machine's CpuInfo, computed once per process (py-cpuinfo takes ~1 s)."""
+    """This machine's CpuInfo, computed once per process and kept per boot on disk."""
+    cache = cache_path()
+    cached = _read_cache(cache) if cache is not None else None
+    if cached is not None:
+        return cached
     try:
         info = _from_py_cpuinfo()
         if info.all_flags:
+            if cache is not None:
+                _write_cache(cache, info)
             return info
     except Exception:  # any failure there (import, subprocess, parsing): use the fallback
         pass
@@ -125,4 +172,4 @@ def detect_cpu() -> CpuInfo:
                        vendor="unknown", cores=usable_cores())
 
 
-__all__ = ["FEATURES", "CpuInfo", "detect_cpu", "usable_cores"]
+__all__ = ["FEATURES", "CpuInfo", "cache_path", "detect_cpu", "usable_cores"]
