@@ -32,6 +32,13 @@ def psm_dir() -> Path:
     return _require(PSM)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _private_cache_home(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Tests keep the CPU probe (msfnet.runtime.cpu) in a folder of their own, not the user's
+    ~/.cache."""
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)

@@ -194,8 +194,8 @@ def test_cli_int8_prints_int8_rows_never_fp32_ones(calib_npz: Path, tmp_path: Pa
     from msfnet.model.checkpoint import default_checkpoint_path
 
     out = tmp_path / "q.onnx"
-    assert export_main([str(default_checkpoint_path()), "-o", str(out), "--int8", "--calib",
-                        str(calib_npz)]) == 0
+    assert export_main([str(default_checkpoint_path()), "-o", str(out), "--plain", "--int8",
+                        "--calib", str(calib_npz)]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     verified = [ln for ln in lines if ln.startswith("verified")]
     assert verified and all(ln.startswith("verified int8") for ln in verified), lines

@@ -175,6 +175,8 @@ def test_stuck_workers_that_ignore_sigterm_are_killed():
         p.terminate()
         p.join(0.5)
         assert p.is_alive()  # terminate() alone does not stop it
+        assert train_mod.stop_workers(timeout=0.2, spare={p}) == 0  # a caller's own child
+        assert p.is_alive()
         assert train_mod.stop_workers(timeout=0.2) >= 1
         assert not p.is_alive() and p.exitcode == -signal.SIGKILL
     finally:
@@ -192,7 +194,11 @@ def test_snapshots_are_kept_every_k_epochs(tmp_path):
     last = torch.load(out / "last.pth", weights_only=True)
     assert snap["step"] == 4 and all(torch.equal(snap["state_dict"][k], v)
                                      for k, v in last["state_dict"].items())
-    # --overwrite counts snapshots as msf-train's own files
+    # --overwrite counts snapshots as msf-train's own files, and only those it names
+    (out / "snap_final.pth").write_bytes(b"the user's")
+    assert train_main(["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch",
+                       "1", *TINY]) == 2
+    (out / "snap_final.pth").unlink()
     assert train_main(["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch",
                        "1", *TINY]) == 0
     assert not list(out.glob("snap_*.pth"))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -104,3 +105,35 @@ def test_the_probe_is_kept_per_boot_and_a_damaged_copy_is_ignored(
         assert len(probes) == 4
     finally:
         detect_cpu.cache_clear()
+
+
+def test_no_home_and_odd_cache_files_only_cost_the_probe(monkeypatch: pytest.MonkeyPatch,
+                                                        tmp_path: Path) -> None:
+    if cpu_mod.cache_path() is None:
+        pytest.skip("no boot id on this platform: nothing is kept")
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+
+    def no_home() -> Path:
+        raise RuntimeError("Could not determine home directory")
+
+    monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    assert cpu_mod.cache_path() is None  # and detection still works, without a cache
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/dir")  # ignored: not absolute
+    assert cpu_mod.cache_path() is None
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    path = cpu_mod.cache_path()
+    assert path is not None
+    path.parent.mkdir(parents=True)
+    os.mkfifo(path)  # a pipe where the file should be: never waited on
+    assert cpu_mod._read_cache(path) is None
+    path.unlink()
+    target = tmp_path / "elsewhere.json"
+    target.write_text('{"flags": ["amx_bf16"], "model": "x", "vendor": "y"}')
+    path.symlink_to(target)  # a link is not followed
+    assert cpu_mod._read_cache(path) is None
+    path.unlink()
+    (path.parent / "cpu-old-boot.json").write_text("{}")
+    cpu_mod._write_cache(path, CpuInfo.from_flags(["avx2"], model="m", vendor="v"))
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # earlier boots removed
+    info = cpu_mod._read_cache(path)
+    assert info is not None and info.features() == ["avx2"]

@@ -5,9 +5,11 @@ This is the measurement behind dispatch.py's defaults (a precision is a default 
 
     python -m msfnet.bench.accuracy [--data DIR] [--models DIR] [--lights 32,96] [--size 128]
 
-``--models`` holds the exports besides the bundled fp32 model: fp32_staged.onnx, int8.onnx,
-int8_staged.onnx (``msf-export --staged`` / ``--int8`` of the bundled checkpoint); paths whose
-file is missing are left out.
+``--models`` holds exports of the bundled checkpoint: fp32.onnx (``msf-export --plain``: the
+plain graph, also the reference), fp32_staged.onnx (``msf-export``), int8.onnx (``--plain
+--int8``), int8_staged.onnx (``--int8``). Without fp32.onnx the bundled model is the reference
+only if it is a plain graph (it is staged since 2026-11-22); paths whose file is missing are
+left out.
 """
 
 from __future__ import annotations
@@ -124,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="data root holding DiLiGenT/ballPNG (default: $MSFNET_DATA, "
                    "./shared/data or ../shared/data)")
     p.add_argument("--models", type=Path, default=None,
-                   help="folder with fp32_staged.onnx, int8.onnx, int8_staged.onnx")
+                   help="folder with fp32.onnx, fp32_staged.onnx, int8.onnx, int8_staged.onnx")
     p.add_argument("--lights", default="32,96")
     p.add_argument("--size", type=int, default=128)
     p.add_argument("--threads", type=int, default=2)
@@ -138,6 +140,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.models is not None:
             models.update({k: args.models / f"{k}.onnx"
                            for k in ("fp32_staged", "int8", "int8_staged")})
+            if (args.models / "fp32.onnx").is_file():
+                models["fp32"] = args.models / "fp32.onnx"
+        from msfnet.runtime.engines.base import read_model_file
+
+        if read_model_file(models["fp32"]).staged:  # its rows would be filed as plain-graph ones
+            raise InputError("the plain-graph reference is a staged model: put a plain export "
+                             "(msf-export --plain) in --models as fp32.onnx", models["fp32"])
         rows = measure(stack, models, tuple(int(v) for v in args.lights.split(",")),
                        args.size, args.threads, args.repeats)
     except InputError as exc:

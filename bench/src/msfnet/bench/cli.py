@@ -315,8 +315,14 @@ def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
     stack = load_stack(args.stack, max_lights=max_lights)
     ort = ["--engine", "onnxruntime"]
     budget = args.max_memory  # None: msf-run's own default, as a user runs it
+    # The default row runs the bundled ONNX; for other weights (--checkpoint, --random-weights)
+    # it runs their staged export, so every row computes the same network.
+    from msfnet.model.checkpoint import default_checkpoint_path
+
+    bundled = not models.get("random_weights") and Path(models["checkpoint"]).resolve() == \
+        default_checkpoint_path().resolve()
     names: list[tuple[str, Path | None, list[str]]] = [
-        ("default", None, []),
+        ("default", None if bundled else Path(models["fp32_staged"]), []),
         ("ort-fp32", Path(models["fp32"]), ort),
         ("ort-fp32-staged", Path(models["fp32_staged"]), ort)]
     if "ov-bf16" in variants:

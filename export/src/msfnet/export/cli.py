@@ -159,7 +159,7 @@ def resolve_variant(args: argparse.Namespace) -> Variant:
                            plain=args.plain, fp16_weights=args.fp16_weights, int8=args.int8)
     chosen = get_variant(args.variant)
     for flag, given, fits in (("--staged", args.staged, chosen.graph == "staged"),
-                              ("--plain", args.plain, chosen.graph == "dynamic"),
+                              ("--plain", args.plain, chosen.graph != "staged"),
                               ("--fp16-weights", args.fp16_weights,
                                chosen.precision == "fp16-weights"),
                               ("--int8", args.int8, chosen.precision == "int8")):

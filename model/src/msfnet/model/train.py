@@ -15,10 +15,11 @@ import json
 import math
 import multiprocessing
 import os
+import re
 import signal
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -204,7 +205,7 @@ def default_workers(device: torch.device, cores: int | None = None) -> int:
     return max(0, min((cpu_cores() if cores is None else cores) - 2, 12))
 
 
-def stop_workers(timeout: float = 10.0) -> int:
+def stop_workers(timeout: float = 10.0, spare: Collection[object] = ()) -> int:
     """Stop the child processes still alive (DataLoader workers) after ``timeout`` seconds;
     returns how many had to be killed.
 
@@ -214,6 +215,8 @@ def stop_workers(timeout: float = 10.0) -> int:
     deadline = time.monotonic() + timeout
     killed = 0
     for child in multiprocessing.active_children():
+        if child in spare:
+            continue
         child.join(max(0.0, deadline - time.monotonic()))
         if child.is_alive():
             child.kill()
@@ -231,6 +234,9 @@ def gpu_utilisation() -> float | None:
 
 
 # ----------------------------------------------------------------------------- trainer
+
+SNAPSHOT = re.compile(r"snap_\d{7}\.pth")  # what --snapshot-every writes, and nothing else
+
 
 def snapshot_name(step: int) -> str:
     return f"snap_{step:07d}.pth"
@@ -436,6 +442,7 @@ class Trainer:
         bar = tqdm(total=total, initial=self.step, desc="train", unit="step", disable=not progress,
                    mininterval=5.0, dynamic_ncols=True)
         old_handlers = self._install_handlers()
+        before = set(multiprocessing.active_children())  # not ours to stop afterwards
         batches = (self._loader_batches(total) if self.workers > 0 else
                    self._local_batches(total))
         run_loss = None
@@ -518,7 +525,7 @@ class Trainer:
             if close is not None:
                 close()  # shuts the DataLoader's workers down
             if self.workers > 0:
-                stop_workers()
+                stop_workers(spare=before)
             for sig, handler in old_handlers.items():
                 signal.signal(sig, handler)
             bar.close()

@@ -23,7 +23,7 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import STAGING_TAG, check_not_input
 from msfnet.synth.render import PRESETS
 
-from .train import TrainConfig, Trainer, parse_curriculum
+from .train import SNAPSHOT, TrainConfig, Trainer, parse_curriculum
 
 DEFAULTS = TrainConfig(out="")
 PROG = "msf-train"
@@ -199,8 +199,7 @@ def _stored_config(out: Path) -> dict:
 
 
 def _ours(name: str) -> bool:
-    return name in TRAIN_FILES or STAGING_TAG in name or \
-        (name.startswith("snap_") and name.endswith(".pth"))
+    return name in TRAIN_FILES or STAGING_TAG in name or SNAPSHOT.fullmatch(name) is not None
 
 
 def _prepare_out(args: argparse.Namespace) -> None:
@@ -246,6 +245,9 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         cfg = config_from(_explicit(argv) if base else vars(args), base)
         for name in ("log.jsonl", "best.pth", "last.pth", "last_state.pth"):
             (out / name).unlink(missing_ok=True)
+        for snap in out.glob("snap_*.pth"):  # from the run that never saved a last.pth
+            if SNAPSHOT.fullmatch(snap.name):
+                snap.unlink()
     elif resume:
         cfg = config_from(_explicit(argv), _stored_config(out))
     else:

@@ -4,7 +4,7 @@ Read at run time (the same wheel runs on AVX2-only, AVX-512 + VNNI/bf16 and AMX 
 py-cpuinfo; if that fails (odd platform, sandbox without subprocesses), /proc/cpuinfo on Linux,
 and otherwise a CpuInfo without features, which simply selects the fp32 path everywhere.
 
-py-cpuinfo probes the CPU in a subprocess, about 1.1 s: a third of a full-object msf-run. Its
+py-cpuinfo probes the CPU in a subprocess, about 1.1 s: a fifth of a full-object msf-run. Its
 answer is kept per boot (``~/.cache/msfnet/cpu-<boot id>.json``; the CPU cannot change without
 a reboot, and every new machine or session boots afresh), so later runs skip the probe.
 """
@@ -15,6 +15,8 @@ import functools
 import json
 import os
 import platform
+import stat
+import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -114,24 +116,40 @@ def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
                               source="/proc/cpuinfo")
 
 
+CACHE_MAX_BYTES = 1 << 16
+
+
 def cache_path() -> Path | None:
-    """Where this boot's py-cpuinfo answer is kept; None where no boot id is known."""
+    """Where this boot's py-cpuinfo answer is kept; None where no boot id or no home is known."""
     try:
         boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
-    except OSError:
+        xdg = os.environ.get("XDG_CACHE_HOME", "")
+        base = Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache"
+    except (OSError, RuntimeError):  # no boot id; no home (container with an unknown uid)
         return None
     if not boot or not all(c.isalnum() or c == "-" for c in boot):
         return None
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return base / "msfnet" / f"cpu-{boot}.json"
 
 
 def _read_cache(path: Path) -> CpuInfo | None:
+    """The kept answer, if it is a small regular file holding one (never follows a link or
+    waits on a pipe); anything else means: probe again."""
     try:
-        data = json.loads(path.read_text())
-        flags, model, vendor = data["flags"], data["model"], data["vendor"]
-    except (OSError, ValueError, KeyError, TypeError):  # absent or damaged: probe again
+        flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+        fd = os.open(path, flags)
+    except OSError:
         return None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > CACHE_MAX_BYTES:
+            return None
+        data = json.loads(os.read(fd, CACHE_MAX_BYTES).decode())
+        flags, model, vendor = data["flags"], data["model"], data["vendor"]
+    except (OSError, ValueError, KeyError, TypeError):  # damaged: probe again
+        return None
+    finally:
+        os.close(fd)
     if not (isinstance(flags, list) and flags and all(isinstance(f, str) for f in flags)
             and isinstance(model, str) and isinstance(vendor, str)):
         return None
@@ -140,12 +158,24 @@ def _read_cache(path: Path) -> CpuInfo | None:
 
 
 def _write_cache(path: Path, info: CpuInfo) -> None:
-    from .files import write_json
-
+    """Temporary file + rename (concurrent writers each put a whole file in place); the files
+    of earlier boots are removed. Not through files.write_json: that one records command
+    outputs, and this is none."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        write_json(path, {"flags": sorted(info.all_flags), "model": info.model,
-                          "vendor": info.vendor})
+        for old in path.parent.glob("cpu-*.json"):
+            if old != path:
+                old.unlink(missing_ok=True)
+        text = json.dumps({"flags": sorted(info.all_flags), "model": info.model,
+                           "vendor": info.vendor})
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".cpu-", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
     except OSError:  # a read-only home only costs the probe next time
         pass
 
