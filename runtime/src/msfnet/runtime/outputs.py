@@ -47,19 +47,22 @@ def fill_result_folder(folder: Path, result: Result, report: bool = True) -> Non
     profile = result.profile()
     np.save(folder / "normals.npy", np.ascontiguousarray(result.normals, np.float32))
     write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
-    (folder / "normals_view.png").write_bytes(
-        pictures.png_bytes(pictures.normals_picture(result.normals, mask)))
+    rendered = {"normals": pictures.png_bytes(pictures.normals_picture(result.normals, mask))}
+    (folder / "normals_view.png").write_bytes(rendered["normals"])
     if result.metrics is not None and result.error_deg is not None:
         vmax = pictures.error_range(result.error_deg, mask)
         (folder / "metrics.json").write_text(json_text(
             {**result.metrics.as_dict(), "error_png_max_deg": vmax}))
-        (folder / "error.png").write_bytes(
-            pictures.png_bytes(pictures.error_picture(result.error_deg, mask, vmax=vmax)))
+        rendered["error"] = pictures.png_bytes(
+            pictures.error_picture(result.error_deg, mask, vmax=vmax))
+        (folder / "error.png").write_bytes(rendered["error"])
     (folder / "profile.json").write_text(json_text(profile))
     if result.maps is not None:
         images = result.stack.images if result.stack.images.shape[-1] == 3 else None
+        # the report shows the same two pictures: drawn once (a map's mask equals the stack's)
         write_maps(folder, result.maps, images=images, error_deg=result.error_deg,
-                   profile=profile, report=report, title=f"msfnet: {result.stack.name}")
+                   profile=profile, report=report, title=f"msfnet: {result.stack.name}",
+                   rendered=rendered)
 
 
 def write_result(result: Result, outdir: Path, *, overwrite: bool = False, report: bool = True,

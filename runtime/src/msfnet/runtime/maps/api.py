@@ -181,7 +181,8 @@ def _bytes_writer(data: bytes) -> Any:
 
 def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray | None = None,
                error_deg: np.ndarray | None = None, profile: Mapping[str, object] | None = None,
-               report: bool = True, title: str | None = None) -> list[Path]:
+               report: bool = True, title: str | None = None,
+               rendered: Mapping[str, bytes] | None = None) -> list[Path]:
     """Write the computed maps into ``folder`` (created if needed; it may already hold the
     run's normals.npy etc., which are left alone); returns the written paths.
 
@@ -190,6 +191,8 @@ def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray |
     + curvature.png + shape_index.npy; mesh.ply; maps.json (options, units, timings) and, with
     ``report``, report.html (inputs from ``images``, normals, maps, ``error_deg`` (H, W) in
     degrees, and the latency table from ``profile``, a profile.json summary).
+    ``rendered``: pictures the caller already drew ("normals", "error" PNG bytes), reused
+    instead of drawn twice (matplotlib figures are most of the time spent here).
     Everything is rendered in memory first, then each file is written through
     ``imageio.write_atomic``: a failure while drawing writes nothing, and no file is ever left
     half-written.
@@ -205,7 +208,9 @@ def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray |
     if images is not None:
         figures.append(("wide: inputs: maximum over all images and a few of them",
                         pictures.png_bytes(pictures.inputs_picture(images, m))))
-    figures.append(("normals", pictures.png_bytes(pictures.normals_picture(maps.normals, m))))
+    done = dict(rendered or {})
+    figures.append(("normals", done.get("normals") or
+                    pictures.png_bytes(pictures.normals_picture(maps.normals, m))))
     if maps.albedo is not None:
         jobs.append(("albedo.png", _bytes_writer(pictures.png_bytes(albedo_png(maps.albedo, m)))))
         jobs.append(("albedo.npy", _npy_writer(maps.albedo)))
@@ -225,7 +230,7 @@ def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray |
             jobs.append(("shape_index.npy", _npy_writer(maps.shape_index)))
         figures.append(("mean curvature", png))
     if error_deg is not None:
-        figures.append(("angular error vs ground truth",
+        figures.append(("angular error vs ground truth", done.get("error") or
                         pictures.png_bytes(pictures.error_picture(error_deg, m))))
     if "mesh" in maps.options.maps and maps.height is not None:
         colors = None if maps.albedo is None else albedo_colors(maps.albedo, m)
