@@ -33,8 +33,10 @@ def run_staged(session, images: np.ndarray, lights: np.ndarray, chunk: int = DEF
                keep: dict[str, np.ndarray] | None = None) -> np.ndarray:
     """images (1, N, 3, H, W), lights (1, N, 3) -> normals (1, 3, H, W), ``chunk`` lights a call.
 
-    ``session``: an onnxruntime.InferenceSession of a staged export. ``keep``: if given, filled
-    with the real input of every entry point (all lights), as int8 calibration needs them.
+    ``session``: an onnxruntime.InferenceSession of a staged export, or any object with its
+    ``run``; a stage output it returns only has to stay valid until the next call (it is copied
+    at once). ``keep``: if given, filled with the real input of every entry point (all lights),
+    as int8 calibration needs them.
     """
     if images.shape[0] != 1:
         raise ValueError("staged inference runs one stack at a time (batch 1)")
