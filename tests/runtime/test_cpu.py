@@ -133,7 +133,11 @@ def test_no_home_and_odd_cache_files_only_cost_the_probe(monkeypatch: pytest.Mon
     assert cpu_mod._read_cache(path) is None
     path.unlink()
     (path.parent / "cpu-old-boot.json").write_text("{}")
+    from msfnet.runtime import files
+
+    files.forget_written()
     cpu_mod._write_cache(path, CpuInfo.from_flags(["avx2"], model="m", vendor="v"))
     assert [p.name for p in path.parent.iterdir()] == [path.name]  # earlier boots removed
+    assert files.written_outputs() == []  # a cache, never reported as a command's output
     info = cpu_mod._read_cache(path)
     assert info is not None and info.features() == ["avx2"]

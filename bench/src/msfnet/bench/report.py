@@ -7,7 +7,7 @@ from pathlib import Path
 
 from msfnet.runtime.files import write_atomic
 
-from .workloads import VARIANT_PEAK
+from .workloads import ENGINE_OF_VARIANT, VARIANT_PEAK
 
 FULL_IMAGE_NOTE = ("per-light loop on (d) extrapolated linearly in lights x pixels from its "
                    "measured (b) run (same threads), untiled full image")
@@ -135,11 +135,8 @@ def add_e2e_ratios(result: dict) -> None:
 
 
 # (engine, precision, graph) of a run -> the (a)-(c) variant that times the same path
-PATH_VARIANT = {("onnxruntime", "fp32", "monolithic"): "ort-fp32",
-                ("onnxruntime", "fp32", "staged"): "ort-fp32-staged",
-                ("onnxruntime", "int8", "monolithic"): "ort-int8",
-                ("openvino", "bf16", "monolithic"): "ov-bf16",
-                ("openvino", "bf16", "staged"): "ov-bf16-staged"}
+PATH_VARIANT = {(engine, precision, "staged" if v.endswith("-staged") else "monolithic"): v
+                for v, (engine, precision) in ENGINE_OF_VARIANT.items()}
 FULL_STACK_X, FULL_STACK_MIB = 60.0, 1536.0  # issue #12: >= 60x per-light, <= 1.5 GiB
 
 

@@ -16,7 +16,6 @@ import json
 import os
 import platform
 import stat
-import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -158,24 +157,16 @@ def _read_cache(path: Path) -> CpuInfo | None:
 
 
 def _write_cache(path: Path, info: CpuInfo) -> None:
-    """Temporary file + rename (concurrent writers each put a whole file in place); the files
-    of earlier boots are removed. Not through files.write_json: that one records command
-    outputs, and this is none."""
+    """Through the one atomic writer (concurrent writers each put a whole file in place), as no
+    command output; the files of earlier boots are removed."""
+    from .files import write_json
+
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
         for old in path.parent.glob("cpu-*.json"):
             if old != path:
                 old.unlink(missing_ok=True)
-        text = json.dumps({"flags": sorted(info.all_flags), "model": info.model,
-                           "vendor": info.vendor})
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".cpu-", suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w") as f:
-                f.write(text)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_json(path, {"flags": sorted(info.all_flags), "model": info.model,
+                          "vendor": info.vendor}, output=False)
     except OSError:  # a read-only home only costs the probe next time
         pass
 

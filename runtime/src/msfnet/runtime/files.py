@@ -280,12 +280,14 @@ def _staging_name(target: Path) -> str:
 
 
 def write_atomic(path: str | Path, write: Callable[[Path], object], *,
-                 overwrite: bool = True) -> Path:
+                 overwrite: bool = True, output: bool = True) -> Path:
     """Write one file through a temporary sibling and a rename: never a half-written file.
 
     ``overwrite=False``: refuse (InputError) if the file exists when it is about to be put in
     place, e.g. written meanwhile by another command (commands check before any work with
     :func:`check_output`; this closes the window between that check and the end).
+    ``output=False``: a file that is no result of the command (a cache), so it is not listed
+    among the outputs an interrupted command reports as kept.
     """
     path = Path(path)
     created = _make_parents(path)
@@ -303,7 +305,7 @@ def write_atomic(path: str | Path, write: Callable[[Path], object], *,
                 raise InputError("output appeared while running (another command wrote it?); "
                                  "pass --overwrite to replace it", path)
             os.replace(tmp, path)
-            if not any(STAGING_TAG in part for part in path.parts):
+            if output and not any(STAGING_TAG in part for part in path.parts):
                 _written.append(path)  # a file inside a staging folder is not an output yet
         done = True
     finally:
@@ -313,8 +315,9 @@ def write_atomic(path: str | Path, write: Callable[[Path], object], *,
     return path
 
 
-def write_text(path: str | Path, text: str, *, overwrite: bool = True) -> Path:
-    return write_atomic(path, lambda t: t.write_text(text), overwrite=overwrite)
+def write_text(path: str | Path, text: str, *, overwrite: bool = True,
+               output: bool = True) -> Path:
+    return write_atomic(path, lambda t: t.write_text(text), overwrite=overwrite, output=output)
 
 
 def to_jsonable(value: object) -> object:
@@ -336,8 +339,9 @@ def json_text(data: object) -> str:
     return json.dumps(to_jsonable(data), indent=2, allow_nan=False) + "\n"
 
 
-def write_json(path: str | Path, data: object, *, overwrite: bool = True) -> Path:
-    return write_text(path, json_text(data), overwrite=overwrite)
+def write_json(path: str | Path, data: object, *, overwrite: bool = True,
+               output: bool = True) -> Path:
+    return write_text(path, json_text(data), overwrite=overwrite, output=output)
 
 
 def vectors_text(rows: np.ndarray | Sequence[Sequence[float]], fmt: str = "{:.8f}") -> str:

@@ -65,8 +65,7 @@ class OpenVinoEngine:
         # The final normals are copied out of the request, so a result survives the next call.
         # The stage outputs are not: the light-chunked loop (chunked.run_staged) copies each one
         # into its feature buffer at once, and a second copy of ~100 MB per stage cost ~0.1 s.
-        share = output in STAGE_OUTPUTS and output != "normals"
-        return request.infer({n: feeds[n] for n in names}, share_outputs=share)[0]
+        return request.infer({n: feeds[n] for n in names}, share_outputs=output != "normals")[0]
 
     @property
     def chunk(self) -> int | None:
