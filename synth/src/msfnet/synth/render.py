@@ -7,10 +7,12 @@ not depend on how many objects are rendered.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from msfnet.runtime.stack import Stack
@@ -125,73 +127,126 @@ def cast_shadow_mask(height: np.ndarray, mask: np.ndarray, lights: np.ndarray) -
     return lit
 
 
-def concavity(height: np.ndarray, mask: np.ndarray, radius: float = 0.3,
-              directions: int = 8, distances: int = 6) -> np.ndarray:
-    """(H, W) float32 in [0, 1): the cosine-weighted share of each pixel's hemisphere that the
-    surrounding surface covers, by horizon search within ``radius`` grid units.
+def _gather_offsets(radius_px: float, rng: np.random.Generator, inner_px: int = 4,
+                    rings: int = 10, per_ring: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel offsets (K, 2) as (row, col) and the image area (px^2) each stands for.
 
-    Along each image direction, the steepest rise of the surface *above the pixel's tangent
-    plane* gives a horizon angle h; a wedge of the hemisphere below h holds sin^2 h of its
-    cosine-weighted solid angle. Convex surfaces fall away from their tangent plane, so they
-    score 0; folds, cups and grooves score up to ~0.5."""
+    A form factor falls off as 1 / r^2 while the area at distance r grows as r, so every
+    octave of distance matters about equally: all pixels within ``inner_px`` count one by one,
+    further out one sample per sector of log-spaced rings (each ring randomly turned per
+    object), weighted by the sector's area."""
+    span = np.arange(-inner_px, inner_px + 1)
+    grid = np.stack(np.meshgrid(span, span, indexing="ij"), -1).reshape(-1, 2)
+    d2 = (grid ** 2).sum(1)
+    inner = grid[(d2 > 0) & (d2 <= inner_px * inner_px)]
+    offsets, weights = [inner], [np.ones(len(inner))]
+    if radius_px > inner_px + 1:
+        edges = np.geomspace(inner_px + 0.5, radius_px, rings + 1)
+        dtheta = 2.0 * np.pi / per_ring
+        for lo, hi in itertools.pairwise(edges):
+            theta = (np.arange(per_ring) + rng.uniform(0.0, 1.0)) * dtheta
+            rho = np.sqrt(0.5 * (lo * lo + hi * hi))  # the sector's area centre
+            offsets.append(np.rint(np.stack([-rho * np.sin(theta), rho * np.cos(theta)], 1)))
+            weights.append(np.full(per_ring, 0.5 * (hi * hi - lo * lo) * dtheta))
+    return np.concatenate(offsets).astype(np.intp), np.concatenate(weights)
+
+
+def _coarse(arr: np.ndarray, k: int, weight: np.ndarray) -> np.ndarray:
+    """``weight``-weighted mean of each k x k block of an (H, W, ...) array (H, W multiples
+    of k): mask-aware downsampling, so rim pixels do not average in the background."""
+    h, w = arr.shape[0] // k, arr.shape[1] // k
+    wb = weight.reshape(h, k, w, k).astype(np.float32)
+    wb = wb.reshape(h, k, w, k, *([1] * (arr.ndim - 2)))
+    total = (arr.reshape(h, k, w, k, *arr.shape[2:]) * wb).sum(axis=(1, 3))
+    return total / np.maximum(wb.sum(axis=(1, 3)), 1e-6)
+
+
+def _upsample(arr: np.ndarray, size_h: int, size_w: int) -> np.ndarray:
+    """(N, h, w, C) -> (N, size_h, size_w, C), bilinear (OpenCV 5 resizes at most 128
+    channels at a time)."""
+    n, h, w, c = arr.shape
+    flat = arr.transpose(1, 2, 0, 3).reshape(h, w, n * c)
+    parts = [cv2.resize(np.ascontiguousarray(flat[..., i:i + 128]), (size_w, size_h),
+                        interpolation=cv2.INTER_LINEAR) for i in range(0, n * c, 128)]
+    up = np.concatenate([p.reshape(size_h, size_w, -1) for p in parts], axis=2)
+    return up.reshape(size_h, size_w, n, c).transpose(2, 0, 1, 3)
+
+
+def bounce_light(direct: np.ndarray | None, height: np.ndarray, normals: np.ndarray,
+                 mask: np.ndarray, rng: np.random.Generator, radius: float = 0.6,
+                 max_size: int = 96) -> np.ndarray:
+    """Irradiance / pi that each pixel receives from the rest of the surface, (N, H, W, C).
+
+    ``direct``: (N, H, W, C) outgoing (diffuse) radiance of every pixel under each light; None
+    gives every pixel radiance 1 and returns (1, H, W, 1): the cosine-weighted share of each
+    pixel's hemisphere that the surface covers (0 on convex shapes, 0.5 beside a wall).
+
+    Gathered over surface patches q within ``radius`` grid units (see
+    :func:`_gather_offsets`) with the point-to-patch form factor cos_p cos_q / (pi r^2) dA_q, where
+    cos_p, cos_q say how squarely p and q face each other (both must face). Visibility between
+    them is not tested. This is what the bowl of a vase or the inside of cloth folds receives
+    from the walls opposite when a light leaves them lit and the pixel itself in shadow:
+    measured on DiLiGenT harvest's concave pixels, about a quarter of the albedo under lights
+    behind the surface.
+
+    Bounced light varies slowly across the surface, so renders larger than ``max_size`` are
+    gathered on a grid 2x (or more) coarser and upsampled: a 160 px, 40-light object costs
+    ~0.4 s instead of ~1.5 s."""
     size_h, size_w = height.shape
+    k = -(-max(size_h, size_w) // max_size)
+    if k > 1:
+        ph, pw = -size_h % k, -size_w % k
+        wide = ((0, ph), (0, pw))
+        m = np.pad(mask, wide)
+        hc = _coarse(np.pad(height, wide), k, m)
+        nc = _coarse(np.pad(normals, (*wide, (0, 0))), k, m)
+        nc /= np.maximum(np.linalg.norm(nc, axis=2, keepdims=True), 1e-6)
+        mc = _coarse(m.astype(np.float32), k, np.ones_like(m)) >= 0.5
+        dc = None
+        if direct is not None:
+            dc = _coarse(np.pad(direct, ((0, 0), *wide, (0, 0))).transpose(1, 2, 0, 3), k,
+                         m).transpose(2, 0, 1, 3)
+        # The coarse grid spans the same [-1, 1] object, so radius (grid units) is unchanged.
+        coarse = bounce_light(dc, hc, nc, mc, rng, radius, max_size)
+        out = _upsample(coarse, size_h + ph, size_w + pw)[:, :size_h, :size_w]
+        out = np.ascontiguousarray(out, dtype=np.float32)
+        out[:, ~mask] = 0.0
+        return out
     step = 2.0 / (size_w - 1)
-    reach = max(radius / step, 2.0)
-    dist = np.unique(np.rint(np.geomspace(1.0, reach, distances)))
-    dz_drow, dz_dcol = np.gradient(height, step)
-    z = np.where(mask, height, -1e6)
-    ang = np.arange(directions) * (2 * np.pi / directions)
-    rows, cols = np.mgrid[0:size_h, 0:size_w]
-    best = np.zeros((directions, size_h, size_w))
-    for d in dist:
-        # Whole-pixel offsets, and the run and tangent-plane rise of *those* offsets (a rounded
-        # diagonal step is longer than d: using d would make a sphere look concave).
-        dr = np.rint(-d * np.sin(ang))[:, None, None]
-        dc = np.rint(d * np.cos(ang))[:, None, None]
-        run = np.hypot(dr, dc) * step
-        r, c = (rows + dr).astype(np.intp), (cols + dc).astype(np.intp)
-        ok = (r >= 0) & (r < size_h) & (c >= 0) & (c < size_w)
-        zs = z[np.clip(r, 0, size_h - 1), np.clip(c, 0, size_w - 1)]
-        ok &= zs > -1e5  # lookups off the object occlude nothing
-        rise = (dz_drow[None] * dr + dz_dcol[None] * dc) * step
-        tan_h = (zs - height[None] - rise) / run
-        best = np.maximum(best, np.where(ok, tan_h, 0.0))
-    occ = np.mean(best * best / (1.0 + best * best), axis=0)
-    return np.where(mask, occ, 0.0).astype(np.float32)
-
-
-def box_blur(a: np.ndarray, k: int, axes: tuple[int, int]) -> np.ndarray:
-    """Sum over a (2k+1)-wide box along each of ``axes`` (zero padding), via cumulative sums."""
-    for ax in axes:
-        pad = [(0, 0)] * a.ndim
-        pad[ax] = (k + 1, k)
-        c = np.cumsum(np.pad(a, pad), axis=ax)
-        n = a.shape[ax]
-        hi = [slice(None)] * a.ndim
-        lo = [slice(None)] * a.ndim
-        hi[ax], lo[ax] = slice(2 * k + 1, n + 2 * k + 1), slice(0, n)
-        a = c[tuple(hi)] - c[tuple(lo)]  # views: one subtraction, no index copies
-    return a
-
-
-def one_bounce(direct_diffuse: np.ndarray, kd: np.ndarray, occ: np.ndarray, mask: np.ndarray,
-               radius: float = 0.3) -> np.ndarray:
-    """Approximate one-bounce diffuse inter-reflection, (N, H, W, 3).
-
-    A pixel whose hemisphere is a share ``occ`` (cosine-weighted) covered by nearby surface
-    receives about occ * pi * L from it, L being that surface's outgoing radiance; a diffuse
-    pixel returns kd / pi of that: kd * occ * L. L is taken as the mask-weighted local mean
-    (three box passes ~ a Gaussian about radius / 2 wide) of the direct diffuse radiance."""
-    step = 2.0 / (mask.shape[1] - 1)
-    k = max(1, round(0.5 * radius / step / np.sqrt(3.0)))
-    m = mask.astype(np.float32)
-    num = direct_diffuse * m[None, ..., None]
-    den = m
-    for _ in range(3):
-        num = box_blur(num, k, (1, 2))
-        den = box_blur(den, k, (0, 1))
-    mean = num / np.maximum(den, 1e-6)[None, ..., None]
-    return (np.clip(kd, 0.0, 0.95).astype(np.float32)[None] * occ[None, ..., None] * mean)
+    offsets, px_area = _gather_offsets(radius / step, rng)
+    pad = int(np.abs(offsets).max())
+    z = np.where(mask, height, 0.0).astype(np.float32)
+    n = np.where(mask[..., None], normals, 0.0).astype(np.float32)
+    # A patch's surface area is its image area over n_z (a steep wall shows little area in
+    # the image but emits from a lot of surface).
+    emit_area = np.where(mask, step * step / np.clip(n[..., 2], 0.1, None), 0.0).astype(
+        np.float32)
+    zp, npad = np.pad(z, pad), np.pad(n, ((pad, pad), (pad, pad), (0, 0)))
+    ap = np.pad(emit_area, pad)
+    if direct is None:
+        src = np.ones((1, size_h, size_w, 1), np.float32)
+    else:
+        src = direct.astype(np.float32, copy=False)
+    srcp = np.pad(src, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
+    out = np.zeros(src.shape, np.float32)
+    min_r = np.float32(1.5 * step)
+    for (dr, dc), weight in zip(offsets, px_area, strict=True):
+        rows = slice(pad + dr, pad + dr + size_h)
+        cols = slice(pad + dc, pad + dc + size_w)
+        # vector p -> q in grid units: x right, y up (rows grow downwards), z towards the camera
+        dx, dy = np.float32(dc * step), np.float32(-dr * step)
+        dz = zp[rows, cols] - z
+        r2 = np.maximum(dx * dx + dy * dy + dz * dz, min_r * min_r)
+        nq = npad[rows, cols]
+        cos_p = (n[..., 0] * dx + n[..., 1] * dy + n[..., 2] * dz)
+        cos_q = -(nq[..., 0] * dx + nq[..., 1] * dy + nq[..., 2] * dz)
+        w = np.clip(cos_p, 0, None) * np.clip(cos_q, 0, None) / (np.float32(np.pi) * r2 * r2)
+        w *= ap[rows, cols] * np.float32(weight)
+        if not w.any():
+            continue
+        out += w[None, ..., None] * srcp[:, rows, cols]
+    out[:, ~mask] = 0.0
+    return out
 
 
 def sensor(signal: np.ndarray, rng: np.random.Generator,
@@ -248,8 +303,10 @@ def render_stack(rng: np.random.Generator | int, options: RenderOptions = Render
         direct = shade(normals, dirs, mat, diffuse_only=True)
         if shadow is not None:
             direct *= shadow
-        occ = concavity(height, mask)
-        radiance += np.float32(rng.uniform(0.6, 1.2)) * one_bounce(direct, mat.kd, occ, mask)
+        # One bounce, scaled up now and then for the further bounces of bright materials.
+        gain = np.float32(rng.uniform(0.8, 2.0))
+        kd = np.clip(mat.kd, 0.0, 0.95).astype(np.float32)
+        radiance += gain * kd[None] * bounce_light(direct, height, normals, mask, rng)
     radiance *= ints[:, None, None, :]
     radiance[:, ~mask] = 0.0
     vals = radiance[:, mask]
