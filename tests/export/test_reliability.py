@@ -1,7 +1,10 @@
 """msf-export under bad arguments, clashing outputs, interruption and degenerate checkpoints.
 
 Every failure is one line ``msf-export: error: ...`` (exit 2), Ctrl-C one line (exit 130), and
-the target folder holds neither a partial nor an unverified file afterwards.
+the target folder holds neither a partial nor an unverified file afterwards. msf-export writes
+through ``runtime/files.py`` (its rules are tested case by case in tests/runtime/test_files.py);
+these tests hold the command to them where an export can break them: the candidate file lives
+under a staging name while it is verified, the int8 quantiser's scratch folder beside it.
 """
 
 from __future__ import annotations
@@ -19,31 +22,38 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from msfnet.export.cli import main as export_main  # noqa: E402
-from msfnet.export.output import TEMP_PREFIX, OutputSlot, remove_stale  # noqa: E402
 from msfnet.export.passes import PASSES  # noqa: E402
-from msfnet.runtime.errors import InputError  # noqa: E402
+from msfnet.runtime.files import STAGING_TAG  # noqa: E402
 
 
-def _one_line_error(capsys, *parts: str) -> str:
+def _one_line_error(capsys, *parts: str, start: str = "msf-export: error: ") -> str:
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and err.startswith("msf-export: error: "), err
+    assert err.count("\n") == 0 and err.startswith(start), err
     for part in parts:
         assert part in err, err
     return err
 
 
+def _staging(folder: Path) -> list[Path]:
+    """files.py's temporary files and folders (``.<target>.msf-partial-<pid>-...``)."""
+    if not folder.is_dir():  # the folder made for a new output comes with the write
+        return []
+    return [p for p in folder.iterdir() if STAGING_TAG in p.name]
+
+
 # option, value, what the message must say: rejected by argparse before anything is read
 BAD_OPTIONS = [
-    ("--opset", "99", "--opset: 99 is outside the supported opsets 9-20"),
-    ("--opset", "5", "--opset: 5 is outside"),
+    ("--opset", "99", "--opset: must lie in 9..20, got '99'"),
+    ("--opset", "5", "--opset: must lie in 9..20"),
     ("--opset", "x", "--opset: 'x' is not an integer"),
     ("--static", "foo", "--static: 'foo': expected N,H,W"),
     ("--static", "8,30,32", "--static: '8,30,32': need N >= 1 and H, W positive multiples of 4"),
     ("--static", "0,32,32", "multiples of 4"),
-    ("--tolerance", "nan", "--tolerance: must be a positive number"),
-    ("--tolerance", "-1", "--tolerance: must be a positive number"),
-    ("--tolerance", "inf", "--tolerance: must be a positive number"),
-    ("--train-lights", "0", "--train-lights: must be positive, got 0"),
+    ("--tolerance", "nan", "--tolerance: 'nan' is not a finite number"),
+    ("--tolerance", "-1", "--tolerance: must be a positive number, got '-1'"),
+    ("--tolerance", "0", "--tolerance: must be a positive number"),
+    ("--tolerance", "inf", "--tolerance: 'inf' is not a finite number"),
+    ("--train-lights", "0", "--train-lights: must be a positive integer, got '0'"),
     ("--train-lights", "2.5", "--train-lights: '2.5' is not an integer"),
     ("--variant", "fp64", "--variant: invalid choice: 'fp64'"),
 ]
@@ -97,9 +107,9 @@ def test_output_may_never_replace_the_checkpoint(how: str, he_ckpt: Path, tmp_pa
     (tmp_path / "sub").mkdir(exist_ok=True)
     before = ckpt.read_bytes()
     assert export_main([str(ckpt), "-o", str(out), "--overwrite"]) == 2
-    _one_line_error(capsys, "the output would replace the input")
+    _one_line_error(capsys, "the output would replace an input")
     assert ckpt.read_bytes() == before
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(TEMP_PREFIX)]
+    assert not _staging(tmp_path)
 
 
 @pytest.mark.parametrize("where", ["under a file", "a folder", "read-only folder"])
@@ -157,12 +167,13 @@ def test_random_bytes_are_not_a_checkpoint(tmp_path: Path, capsys) -> None:
     assert "pickled" not in err
 
 
-def test_ctrl_c_during_the_export_is_one_line_and_leaves_nothing(he_ckpt: Path, tmp_path: Path,
-                                                                 capsys, monkeypatch) -> None:
+def test_ctrl_c_before_the_write_is_one_line_and_leaves_nothing(he_ckpt: Path,
+                                                                 tmp_path: Path, capsys,
+                                                                 monkeypatch) -> None:
     from dataclasses import replace
 
     def interrupted(*_a: object) -> None:
-        assert [p for p in (tmp_path / "new").iterdir() if p.name.startswith(TEMP_PREFIX)]
+        assert not (tmp_path / "new").exists()  # checked, but nothing made before the write
         raise KeyboardInterrupt
 
     for name in ("torch-export", "torch-export-staged"):  # whichever graph the default is
@@ -170,8 +181,55 @@ def test_ctrl_c_during_the_export_is_one_line_and_leaves_nothing(he_ckpt: Path, 
     out = tmp_path / "new" / "m.onnx"
     assert export_main([str(he_ckpt), "-o", str(out)]) == 130
     err = capsys.readouterr().err.strip()
-    assert err == "msf-export: interrupted; nothing written"
-    assert list(tmp_path.iterdir()) == []  # also the folder it created for the output
+    assert err == "msf-export: interrupted; nothing was written"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_while_verifying_removes_the_candidate(he_ckpt: Path, tmp_path: Path, capsys,
+                                                      monkeypatch) -> None:
+    """The written, not yet verified file exists only under its staging name; Ctrl-C during
+    its verification removes it and the folder made for it."""
+    import msfnet.export.pipeline as pipeline
+
+    seen: list[Path] = []
+
+    def interrupted(path: Path, *_a: object) -> None:
+        seen.append(path)
+        assert path.is_file() and path.parent == out.parent and STAGING_TAG in path.name
+        assert not out.exists()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "file_runner", interrupted)
+    out = tmp_path / "new" / "m.onnx"
+    assert export_main([str(he_ckpt), "-o", str(out)]) == 130
+    assert capsys.readouterr().err.strip() == "msf-export: interrupted; nothing was written"
+    assert len(seen) == 1 and not seen[0].exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ctrl_c_while_quantising_removes_the_scratch_folder(he_ckpt: Path, calib_npz: Path,
+                                                            tmp_path: Path, capsys,
+                                                            monkeypatch) -> None:
+    """int8's quantiser needs files: they go to a scratch folder beside the target (removed
+    after a kill -9 by the next export there, see test_killed_export_...)."""
+    import msfnet.export.quantize as quantize
+
+    seen: list[Path] = []
+
+    def interrupted(_model: object, _stacks: object, scratch: Path, **_kw: object) -> None:
+        seen.append(scratch)
+        assert scratch.is_dir() and scratch.parent == out.parent
+        assert scratch.name.startswith(f".{out.name}{STAGING_TAG}")
+        (scratch / "fp32.onnx").write_bytes(b"half")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(quantize, "quantize_model", interrupted)
+    out = tmp_path / "new" / "q.onnx"
+    assert export_main([str(he_ckpt), "-o", str(out), "--int8", "--calib",
+                        str(calib_npz)]) == 130
+    assert capsys.readouterr().err.strip() == "msf-export: interrupted; nothing was written"
+    assert len(seen) == 1 and not seen[0].exists()
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_internal_errors_are_one_line_unless_debug(he_ckpt: Path, tmp_path: Path, capsys,
@@ -185,70 +243,114 @@ def test_internal_errors_are_one_line_unless_debug(he_ckpt: Path, tmp_path: Path
         monkeypatch.setitem(PASSES, name, replace(PASSES[name], run=broken))
     args = [str(he_ckpt), "-o", str(tmp_path / "m.onnx")]
     assert export_main(args) == 1
-    _one_line_error(capsys, "internal error: ZeroDivisionError: boom", "--debug")
+    _one_line_error(capsys, "ZeroDivisionError: boom", "--debug",
+                    start="msf-export: internal error: ")
     with pytest.raises(ZeroDivisionError):
         export_main([*args, "--debug"])
     assert list(tmp_path.iterdir()) == []
 
 
-def test_stale_work_folders_go_running_ones_stay(tmp_path: Path) -> None:
-    stale = tmp_path / f"{TEMP_PREFIX}dead"
-    stale.mkdir()
-    (stale / "lock").touch()  # lock file nobody holds: its export was killed
-    (stale / "m.onnx").write_bytes(b"half")
-    with OutputSlot(tmp_path / "m.onnx") as running:
-        assert not stale.exists()
-        assert running.workdir is not None and running.workdir.exists()
-        assert remove_stale(tmp_path) == []  # held by a live export
-        running.commit(running.write(b"data"))
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx"]
-    with pytest.raises(InputError, match="output exists"):
-        OutputSlot(tmp_path / "m.onnx").__enter__()
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
 
 
-def _cli(*args: str) -> subprocess.Popen:
+def test_existing_output_and_staging_of_other_runs(he_ckpt: Path, tmp_path: Path,
+                                                   capsys) -> None:
+    """Staging a killed export left (a file and an int8 scratch folder) goes with the next
+    export to that target; a running export's (a live pid) and other targets' stay. An existing
+    output is replaced only with --overwrite."""
+    out = tmp_path / "m.onnx"
+    dead = _dead_pid()
+    stale_file = tmp_path / f".m.onnx{STAGING_TAG}{dead}-a1b2.onnx"
+    stale_file.write_bytes(b"half")
+    stale_scratch = tmp_path / f".m.onnx{STAGING_TAG}{dead}-c3d4"
+    stale_scratch.mkdir()
+    (stale_scratch / "fp32.onnx").write_bytes(b"half")
+    live = tmp_path / f".m.onnx{STAGING_TAG}{os.getppid()}-e5f6.onnx"
+    live.write_bytes(b"being written")
+    other = tmp_path / f".other.onnx{STAGING_TAG}{dead}-g7h8.onnx"
+    other.write_bytes(b"not ours")
+    args = [str(he_ckpt), "-o", str(out), "--plain"]
+    assert export_main(args) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name,
+                                                                 other.name])
+    capsys.readouterr()
+    out.write_bytes(b"keep me")
+    assert export_main(args) == 2
+    _one_line_error(capsys, str(out), "output exists; pass --overwrite to replace it")
+    assert out.read_bytes() == b"keep me"
+    assert export_main([*args, "--overwrite"]) == 0
+    assert out.read_bytes() != b"keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name,
+                                                                 other.name])
+
+
+# A child that runs the real msf-export, only with a pause before the written file is verified:
+# the candidate then exists (under its staging name) for long enough to be signalled or killed
+# there, on any machine (an AMX CPU finishes the whole export within a second).
+_SLOW_VERIFY = """
+import sys, time
+import msfnet.export.pipeline as pipeline
+real = pipeline.file_runner
+def slow(*args, **kwargs):
+    time.sleep(120)
+    return real(*args, **kwargs)
+pipeline.file_runner = slow
+from msfnet.export.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def _cli(*args: str, slow_verify: bool = False) -> subprocess.Popen:
     """msf-export in a child process with default signal handling (a background pytest may
     have SIGINT ignored, which the child would inherit)."""
-    return subprocess.Popen([sys.executable, "-m", "msfnet.export.cli", *args],
+    head = ["-c", _SLOW_VERIFY] if slow_verify else ["-m", "msfnet.export.cli"]
+    return subprocess.Popen([sys.executable, *head, *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
-def _wait_for_work_folder(proc: subprocess.Popen, folder: Path) -> None:
-    deadline = time.monotonic() + 120
-    while not [p for p in folder.iterdir() if p.name.startswith(TEMP_PREFIX)]:
+def _wait_for_candidate(proc: subprocess.Popen, folder: Path) -> Path:
+    """The written, unverified model under its staging name, once it is complete."""
+    deadline = time.monotonic() + 240
+    while True:
+        found = [p for p in _staging(folder) if p.suffix == ".onnx" and p.stat().st_size]
+        if found:
+            break
         assert proc.poll() is None, proc.communicate()
-        assert time.monotonic() < deadline, "export never started"
+        assert time.monotonic() < deadline, "the export never wrote its file"
         time.sleep(0.05)
-    time.sleep(0.05)  # handlers are in place before the work folder appears; a fast export
-    # (an AMX CPU) can finish within a second, so signal early
+    time.sleep(0.5)  # written and fsynced: the child sleeps before verifying
+    return found[0]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_signalled_export_leaves_nothing(sig: signal.Signals, he_ckpt: Path,
                                          tmp_path: Path) -> None:
-    out = tmp_path / "m.onnx"
-    proc = _cli(str(he_ckpt), "-o", str(out))
-    _wait_for_work_folder(proc, tmp_path)
+    out = tmp_path / "new" / "m.onnx"
+    proc = _cli(str(he_ckpt), "-o", str(out), slow_verify=True)
+    _wait_for_candidate(proc, out.parent)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == (130 if sig == signal.SIGINT else 128 + sig), err
-    assert err.strip().count("\n") == 0 and "interrupted" in err, err
-    assert list(tmp_path.iterdir()) == []
+    word = "interrupted" if sig == signal.SIGINT else "terminated"
+    assert err.strip().count("\n") == 0 and word in err and "nothing was written" in err, err
+    assert list(tmp_path.iterdir()) == []  # also the folder made for the output
 
 
 @pytest.mark.slow
 def test_killed_export_leaves_no_file_and_the_next_run_cleans_up(he_ckpt: Path,
                                                                   tmp_path: Path) -> None:
     out = tmp_path / "m.onnx"
-    proc = _cli(str(he_ckpt), "-o", str(out))
-    _wait_for_work_folder(proc, tmp_path)
+    proc = _cli(str(he_ckpt), "-o", str(out), slow_verify=True)
+    candidate = _wait_for_candidate(proc, tmp_path)
     proc.kill()  # SIGKILL: no handler runs
     proc.communicate(timeout=60)
     assert not out.exists()
-    left = [p for p in tmp_path.iterdir() if p.name.startswith(TEMP_PREFIX)]
-    assert left  # only a recognisable work folder, never the target
+    assert _staging(tmp_path) == [candidate]  # only a recognisable staging file
     again = _cli(str(he_ckpt), "-o", str(out))
     stdout, err = again.communicate(timeout=300)
     assert again.returncode == 0, err

@@ -1,6 +1,5 @@
-"""msf-export against the issue-13 rules. msf-export is being moved onto the shared helpers by
-another change; the cases it does not meet yet are strict xfails (they start passing, and so
-fail here, when that lands: then drop the marker)."""
+"""msf-export against the issue-13 rules (the cases that once failed), now that it runs on the
+shared helpers (runtime/cliutil.py, runtime/files.py) like every other command."""
 
 from __future__ import annotations
 

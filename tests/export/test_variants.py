@@ -10,7 +10,7 @@ import pytest
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
-from msfnet.export import output as output_mod  # noqa: E402
+from msfnet.export import pipeline  # noqa: E402
 from msfnet.export.cli import main as export_main  # noqa: E402
 from msfnet.export.passes import PASSES  # noqa: E402
 from msfnet.export.variants import (  # noqa: E402
@@ -22,6 +22,7 @@ from msfnet.export.variants import (  # noqa: E402
     variant_for,
 )
 from msfnet.runtime.errors import InputError  # noqa: E402
+from msfnet.runtime.files import STAGING_TAG  # noqa: E402
 
 STATIC = StaticShape(5, 16, 20)
 
@@ -80,16 +81,16 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
     # bundled trained model is what the int8 rule is for
     ckpt = default_checkpoint_path() if variant.needs_calibration else he_ckpt
     writes: list[Path] = []
-    real_write = output_mod.OutputSlot.write
+    real_write = pipeline.write_file
 
-    def counting_write(self, data: bytes) -> Path:
-        writes.append(real_write(self, data))
-        return writes[-1]
+    def counting_write(path: Path, data: bytes, target: Path) -> None:
+        writes.append(path)
+        real_write(path, data, target)
 
-    monkeypatch.setattr(output_mod.OutputSlot, "write", counting_write)
+    monkeypatch.setattr(pipeline, "write_file", counting_write)
     out = tmp_path / "out" / "model.onnx"
     temp_dirs: list[str] = []
-    if variant.needs_calibration:  # ORT's own temporary files must land in the work folder
+    if variant.needs_calibration:  # ORT's own temporary files must land in the scratch folder
         import tempfile
 
         import onnxruntime.quantization as ortq
@@ -104,7 +105,9 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
     options = ExportOptions(static=STATIC if variant.needs_shape else None)
     result = export_variant(ckpt, variant, out, calib=[calib_npz], options=options)
 
-    assert len(writes) == 1 and writes[0].name == out.name  # one write, then one rename
+    # one write, beside the target under a staging name, then one rename
+    assert len(writes) == 1 and writes[0].parent == out.parent
+    assert writes[0].name.startswith(f".{out.name}{STAGING_TAG}") and not writes[0].exists()
     assert sorted(p.name for p in out.parent.iterdir()) == [out.name]  # no temp left
     assert result.path == out and result.variant == variant.name
     assert result.size_bytes == out.stat().st_size
@@ -130,8 +133,8 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
         assert result.reference_rows and max(r.max_deg for r in result.reference_rows) < 0.01
         q = result.notes["quantization"]
         assert isinstance(q, dict) and q["deconvs_rewritten"] == 3
-        assert len(temp_dirs) == 1 and Path(temp_dirs[0]).parent.parent == out.parent
-        assert Path(temp_dirs[0]).parent.name.startswith(output_mod.TEMP_PREFIX)
+        assert len(temp_dirs) == 1 and Path(temp_dirs[0]).parent == out.parent
+        assert Path(temp_dirs[0]).name.startswith(f".{out.name}{STAGING_TAG}")
         ops = {n.op_type for n in onnx.load(str(out)).graph.node}
         assert "QuantizeLinear" in ops and "ConvTranspose" not in ops
     if variant.precision == "fp16-weights":
@@ -144,16 +147,16 @@ def test_verification_reads_the_file_on_disk(he_ckpt: Path, tmp_path: Path,
     check runs on the bytes on disk, not on the in-memory model."""
     from onnx import numpy_helper
 
-    real_write = output_mod.OutputSlot.write
+    real_write = pipeline.write_file
 
-    def damaging_write(self, data: bytes) -> Path:
+    def damaging_write(path: Path, data: bytes, target: Path) -> None:
         proto = onnx.load_from_string(data)
         init = next(t for t in proto.graph.initializer if len(t.dims) == 4)
         init.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(init) * np.float32(1.5),
                                               init.name))
-        return real_write(self, proto.SerializeToString())
+        real_write(path, proto.SerializeToString(), target)
 
-    monkeypatch.setattr(output_mod.OutputSlot, "write", damaging_write)
+    monkeypatch.setattr(pipeline, "write_file", damaging_write)
     out = tmp_path / "m.onnx"
     with pytest.raises(InputError, match="verification failed"):
         export_variant(he_ckpt, "fp32", out, options=ExportOptions(checks=((3, 16, 20),)))

@@ -60,7 +60,10 @@ def test_parser_errors_are_one_line_exit_2(capsys) -> None:
         p.parse_args(["--n", "nan"])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["msf-x: error: argument --n: 'nan' is not an integer"]
+    assert err == ["msf-x: error: --n: 'nan' is not an integer"]  # no "argument " prefix
+    with pytest.raises(SystemExit):
+        p.parse_args(["--m"])
+    assert capsys.readouterr().err == "msf-x: error: unrecognized arguments: --m\n"
 
 
 def _raise(exc: BaseException) -> Callable[[], int]:
@@ -188,6 +191,12 @@ def _synth_main(argv: list[str]) -> int:
     return main(argv)
 
 
+def _export_main(argv: list[str]) -> int:
+    from msfnet.export.cli import main
+
+    return main(argv)
+
+
 def _train_main(argv: list[str]) -> int:
     pytest.importorskip("torch")
     from msfnet.model.train_cli import main
@@ -196,7 +205,7 @@ def _train_main(argv: list[str]) -> int:
 
 
 MAINS = {"msf-run": _run_main, "msf-eval": _eval_main, "msf-calib": _calib_main,
-         "msf-synth": _synth_main, "msf-train": _train_main}
+         "msf-synth": _synth_main, "msf-train": _train_main, "msf-export": _export_main}
 
 # command: (argv before the option, [(option, bad values)])
 NUMERIC: dict[str, tuple[list[str], list[tuple[str, list[str]]]]] = {
@@ -231,6 +240,11 @@ NUMERIC: dict[str, tuple[list[str], list[tuple[str, list[str]]]]] = {
         ("--val-objects", ["0"]),
         ("--render-size", ["0", "nan", "1000000"]),
         ("--seed", ["-1"]),
+    ]),
+    "msf-export": (["model.pth"], [
+        ("--opset", ["8", "21", "nan", "17.0"]),
+        ("--train-lights", ["0", "-1", "nan", "2.5"]),
+        ("--tolerance", ["0", "-0.1", "nan", "inf", "deg"]),
     ]),
 }
 

@@ -24,6 +24,7 @@ from msfnet.runtime.files import (
     STAGING_TAG,
     check_output,
     remove_stale_staging,
+    scratch_folder,
     staged_files,
     staged_folder,
     write_atomic,
@@ -55,6 +56,7 @@ def _tree(tmp: Path) -> dict[str, Path]:
     (tmp / "a_dir").mkdir()
     (tmp / "link_to_stack").symlink_to(stack)
     (tmp / "link_to_lights").symlink_to(lights)
+    os.link(lights, tmp / "hard_link_to_lights")
     return {"stack": stack, "lights": lights}
 
 
@@ -66,6 +68,7 @@ REFUSED: dict[str, tuple[str, bool, bool, str]] = {
     "output inside the input folder": ("data/stack/res", True, False, "inside the input"),
     "file output inside the input folder": ("data/stack/l.txt", False, False, "inside the input"),
     "symlink to the input file": ("link_to_lights", False, True, "replace an input"),
+    "hard link to the input file": ("hard_link_to_lights", False, True, "replace an input"),
     "inside the input through a symlink": ("link_to_stack/res", True, False, "inside the input"),
     "parent path is a file": ("a_file/out", True, False, "is a file, not a folder"),
     "deeper under a file": ("a_file/x/y/out.txt", False, False, "is a file, not a folder"),
@@ -161,7 +164,14 @@ FAILING_WRITES: dict[str, Callable[[Path], None]] = {
     "write_atomic": lambda p: write_atomic(p / "new" / "deeper" / "a.txt", _fail),
     "staged_folder": lambda p: _staged_folder_failing(p / "new" / "deeper" / "out"),
     "staged_files (second file fails)": lambda p: _staged_files_failing(p / "new" / "d" / "a.txt"),
+    "scratch_folder": lambda p: _scratch_failing(p / "new" / "deeper" / "m.onnx"),
 }
+
+
+def _scratch_failing(target: Path) -> None:
+    with scratch_folder(target) as scratch:
+        (scratch / "fp32.onnx").write_bytes(b"half")
+        raise Boom
 
 
 def _staged_folder_failing(out: Path) -> None:
@@ -320,3 +330,51 @@ def test_stale_staging_of_killed_runs_is_removed(tmp_path: Path) -> None:
     assert live.exists() and unrelated.exists()  # never someone else's work in progress
     remove_stale_staging(tmp_path / "other")
     assert not unrelated.exists()
+
+
+# ---------------------------------------------------------------------------- scratch folders
+
+def test_scratch_folder_goes_the_output_stays(tmp_path: Path) -> None:
+    """Beside the target (named like its staging), always removed; folders made for it stay
+    only if the output was put in them."""
+    target = tmp_path / "new" / "m.onnx"
+    with scratch_folder(target) as scratch:
+        assert scratch.is_dir() and scratch.parent == target.parent
+        assert scratch.name.startswith(f".m.onnx{STAGING_TAG}{os.getpid()}-")
+        (scratch / "sub").mkdir()
+        (scratch / "sub" / "big.bin").write_bytes(b"x" * 100)
+        write_atomic(target, lambda t: t.write_bytes(b"model"))
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["m.onnx", "new"]
+    with scratch_folder(tmp_path / "other" / "x.onnx"):
+        pass
+    assert not (tmp_path / "other").exists()  # made for a file never written: removed
+
+
+def test_scratch_folder_removed_on_sigterm(tmp_path: Path) -> None:
+    code = ("import os, signal, sys\n"
+            "from pathlib import Path\n"
+            "from msfnet.runtime.files import install_signal_handlers, scratch_folder\n"
+            "signal.signal(signal.SIGTERM, signal.SIG_DFL)  # pytest's may be ignored\n"
+            "install_signal_handlers()\n"
+            "with scratch_folder(Path(sys.argv[1])) as s:\n"
+            "    (s / 'a.bin').write_bytes(b'half')\n"
+            "    os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    signal.pause()\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(tmp_path / "d" / "m.onnx")],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0 and "Terminated" in proc.stderr, proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_scratch_folder_of_a_killed_run_is_removed_by_the_next_write(tmp_path: Path) -> None:
+    target = tmp_path / "m.onnx"
+    stale = tmp_path / f".m.onnx{STAGING_TAG}{_dead_pid()}-abc"
+    (stale / "ort.quant.xyz").mkdir(parents=True)
+    (stale / "ort.quant.xyz" / "augmented.onnx").write_bytes(b"half")
+    with scratch_folder(target) as mine:
+        assert not stale.exists()
+        write_atomic(tmp_path / "other.txt", lambda t: t.write_text("x"))
+        assert mine.exists()  # a live process's scratch: never someone else's to remove
+        write_atomic(target, lambda t: t.write_bytes(b"model"))
+        assert mine.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx", "other.txt"]

@@ -1,19 +1,24 @@
 """msf-export: MSF-Net checkpoint (.pth) -> verified ONNX model with a dynamic light count.
 
-Errors are one line on stderr, ``msf-export: error: <file or option>: <problem>``: exit 2 for
-bad arguments or input (and failed verification), 130 for Ctrl-C, 128 + n for signal n, 1 for
-an internal error. A traceback is shown only with ``--debug``.
+Options and errors work as in every msfnet command (``runtime/cliutil.py``): one line on
+stderr, ``msf-export: error: <file or option>: <problem>``, exit 2 for bad arguments or input
+(and failed verification), 130 for Ctrl-C, 128 + n for signal n, 1 for an internal error. A
+traceback is shown only with ``--debug``. The file is written through ``runtime/files.py``.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
-import re
 import sys
-import traceback
 from pathlib import Path
-from typing import NoReturn
+
+from msfnet.runtime.cliutil import (
+    int_range,
+    make_parser,
+    positive_float,
+    positive_int,
+    run_command,
+)
 
 from .variants import (
     DEFAULT_OPSET,
@@ -32,45 +37,6 @@ from .variants import (
 PROG = "msf-export"
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors: ``msf-export: error: --opset: ...`` (no usage block)."""
-
-    def error(self, message: str) -> NoReturn:
-        message = re.sub(r"^argument ([^:]+): ", r"\1: ", message)
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def _opset(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not MIN_OPSET <= value <= MAX_OPSET:
-        raise argparse.ArgumentTypeError(f"{value} is outside the supported opsets "
-                                         f"{MIN_OPSET}-{MAX_OPSET}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be positive, got {value}")
-    return value
-
-
-def _degrees(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number of degrees, got {text}")
-    return value
-
-
 def _static(text: str) -> StaticShape:
     try:
         return StaticShape.parse(text)
@@ -85,24 +51,18 @@ def _table() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
-        prog=PROG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Export an MSF-Net PyTorch checkpoint ({'state_dict': ...} or a bare "
+    p = make_parser(
+        PROG,
+        "Export an MSF-Net PyTorch checkpoint ({'state_dict': ...} or a bare "
         "state_dict, legacy or zip format) to ONNX, then verify the written file with ONNX "
         "Runtime. Inputs: images float32 (B,N,3,H,W), lights float32 (B,N,3); output normals "
         "float32 (B,3,H,W). N, H, W are dynamic unless --static; H and W must be multiples "
         "of 4. By default the staged graph (cut at the max-over-lights steps), which msf-run "
         "feeds a few lights at a time: far less memory at many lights; --plain writes one "
-        "graph for other runtimes. The file appears only after it passed verification.",
-        epilog=_table() + "\n\nThe flags --static, --plain, --fp16-weights and --int8 pick "
-        "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = int8).",
-    )
-    from msfnet import __version__
-
-    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    p.add_argument("-q", "--quiet", action="store_true", help="print errors only")
-    p.add_argument("-v", "--verbose", action="store_true", help="print more detail")
+        "graph for other runtimes. The file appears only after it passed verification.")
+    p.epilog = (_table() + "\n\nThe flags --static, --plain, --fp16-weights and --int8 pick "
+                "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = "
+                "int8).")
     p.add_argument("checkpoint", type=Path, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)")
     p.add_argument("-o", "--output", type=Path, default=None,
                    help="output .onnx (default: the checkpoint's name with .onnx)")
@@ -111,10 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "see --list-variants")
     p.add_argument("--list-variants", action="store_true",
                    help="print the variants table (passes, verification rule) and exit")
-    p.add_argument("--opset", type=_opset, default=DEFAULT_OPSET,
+    p.add_argument("--opset", type=int_range(MIN_OPSET, MAX_OPSET), default=DEFAULT_OPSET,
                    help=f"ONNX opset, {MIN_OPSET}-{MAX_OPSET} (default {DEFAULT_OPSET}: GELU as "
                    "Erf, widest runtime support; int8 needs 13 or higher)")
-    p.add_argument("--train-lights", type=_positive_int, default=32,
+    p.add_argument("--train-lights", type=positive_int, default=32,
                    help="light count the model was trained with; stored in the metadata and "
                    "used by the runtime's sqrt(N / train_lights) scaling (default 32)")
     p.add_argument("--static", type=_static, default=None, metavar="N,H,W",
@@ -122,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "H and W multiples of 4")
     p.add_argument("--simplify", action="store_true",
                    help="simplify the graph with onnxslim (dynamic axes are kept)")
-    p.add_argument("--tolerance", type=_degrees, default=None, metavar="DEG",
+    p.add_argument("--tolerance", type=positive_float, default=None, metavar="DEG",
                    help=f"verification limit in degrees (default: the variant's own, "
                    f"{TOLERANCE_DEG} max vs PyTorch for fp32/fp16, {INT8_MEAN_LIMIT_DEG} mean "
                    "vs the fp32 graph for int8)")
@@ -143,7 +103,6 @@ def build_parser() -> argparse.ArgumentParser:
                    "the three max-over-lights steps, msf-run feeds a few lights at a time, "
                    "several times less memory per pixel at high light counts; same normals")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.add_argument("--debug", action="store_true", help="show tracebacks")
     return p
 
 
@@ -176,46 +135,23 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.checkpoint is None:
         parser.error("the following arguments are required: checkpoint")
-    from .output import Interrupted, signals_raise
+    return run_command(PROG, lambda: _export(args), debug=args.debug)
 
+
+def _export(args: argparse.Namespace) -> int:
+    from . import variants
+
+    variant = resolve_variant(args)
+    options = ExportOptions(opset=args.opset, train_lights=args.train_lights,
+                            static=args.static, simplify=args.simplify,
+                            tolerance_deg=args.tolerance)
     output = args.output or args.checkpoint.with_suffix(".onnx")
-    try:
-        with signals_raise():
-            return _export(args, output)
-    except Interrupted as exc:
-        print(f"{PROG}: interrupted by {exc}; nothing written", file=sys.stderr)
-        return 128 + exc.signum
-    except KeyboardInterrupt:
-        print(f"{PROG}: interrupted; nothing written", file=sys.stderr)
-        return 130
-
-
-def _export(args: argparse.Namespace, output: Path) -> int:
-    from msfnet.runtime.errors import InputError
-
-    try:
-        variant = resolve_variant(args)
-        from .variants import export_variant
-
-        options = ExportOptions(opset=args.opset, train_lights=args.train_lights,
-                                static=args.static, simplify=args.simplify,
-                                tolerance_deg=args.tolerance)
-        result = export_variant(args.checkpoint, variant, output, calib=args.calib,
-                                options=options, overwrite=args.overwrite)
-    except InputError as exc:
-        if args.debug:
-            traceback.print_exc()
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:
-        if args.debug:
-            raise
-        first = str(exc).strip().splitlines()[0][:300] if str(exc).strip() else ""
-        print(f"{PROG}: error: internal error: {type(exc).__name__}: {first} (run again with "
-              "--debug for the traceback)", file=sys.stderr)
-        return 1
-    for line in result.lines():
-        print(line)
+    result = variants.export_variant(args.checkpoint, variant, output, calib=args.calib,
+                                     options=options, overwrite=args.overwrite,
+                                     log=print if args.verbose and not args.quiet else None)
+    if not args.quiet:
+        for line in result.lines():
+            print(line)
     return 0
 
 

@@ -17,6 +17,7 @@ import msfnet
 from msfnet.model.checkpoint import sha256_of
 from msfnet.model.network import MSFNet
 from msfnet.runtime.contract import METADATA_KEYS, PREPROCESSING_SPEC
+from msfnet.runtime.files import scratch_folder
 from msfnet.runtime.stack import Stack
 
 from .onnx_export import (
@@ -26,7 +27,6 @@ from .onnx_export import (
     simplify,
     store_weights_fp16,
 )
-from .output import OutputSlot
 from .variants import ExportOptions, Variant
 
 PRECISION_LABELS = {"fp32": "fp32", "fp16-weights": "fp32 (fp16-stored weights)",
@@ -36,13 +36,14 @@ PRECISION_LABELS = {"fp32": "fp32", "fp16-weights": "fp32 (fp16-stored weights)"
 @dataclass
 class PassContext:
     """What the passes share: the torch network (already fp16-rounded for fp16 variants), the
-    request, calibration stacks, the output slot (for scratch files) and notes for the result."""
+    request, calibration stacks, the output path (scratch files go beside it) and notes for the
+    result."""
 
     model: MSFNet
     variant: Variant
     options: ExportOptions
     checkpoint: Path
-    slot: OutputSlot
+    output: Path
     stacks: list[Stack] = field(default_factory=list)
     notes: dict[str, object] = field(default_factory=dict)
 
@@ -113,10 +114,11 @@ def _quantise_int8(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.Mode
 
     assert proto is not None
     o = ctx.options
-    qmodel, summary = quantize_model(proto, ctx.stacks, ctx.slot.scratch, tile=o.calib_tile,
-                                     lights=o.calib_lights,
-                                     tiles_per_stack=o.calib_tiles_per_stack,
-                                     train_lights=o.train_lights)
+    with scratch_folder(ctx.output) as scratch:
+        qmodel, summary = quantize_model(proto, ctx.stacks, scratch, tile=o.calib_tile,
+                                         lights=o.calib_lights,
+                                         tiles_per_stack=o.calib_tiles_per_stack,
+                                         train_lights=o.train_lights)
     summary = {"deconvs_rewritten": ctx.notes.get("deconvs_rewritten", 0), **summary,
                "rewrite": "phases"}
     ctx.notes["quantization"] = summary

@@ -1,20 +1,24 @@
 """``run_export``: the passes of one variant, one write, verification of the written file, rename.
 
-Order of events (see ``variants.export_variant`` for the public entry point):
-1. the output slot: target checked (not an input, writable, not existing unless --overwrite)
-   and a locked work folder made beside it, before any slow work;
+Order of events (see ``variants.export_variant`` for the public entry point); the file is
+written by ``runtime/files.py`` like every msfnet output:
+1. the target checked (``files.check_output``: not an input, writable, not existing unless
+   --overwrite) before any slow work;
 2. checkpoint and calibration stacks loaded (bad input fails here, still before the export);
 3. the variant's passes on the in-memory model; before the first lossy pass (int8) the model
-   so far is checked against PyTorch and becomes the reference;
-4. one write of the final bytes into the work folder;
+   so far is checked against PyTorch and becomes the reference (int8's quantiser works on
+   files: they go to a ``files.scratch_folder`` beside the target, removed right after);
+4. one write of the final bytes into ``files.write_atomic``'s temporary sibling of the target;
 5. that file loaded by ONNX Runtime through the runtime's loader and compared with the
-   variant's reference (unit normals required too);
+   variant's reference (unit normals required too), still under its temporary name;
 6. only then one atomic rename onto the target. Any failure or interruption before that
-   removes the work folder and leaves the target as it was.
+   removes the temporary file and leaves the target as it was; one left by ``kill -9`` is
+   removed by the next export to the same target.
 """
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -24,10 +28,10 @@ import torch
 from msfnet.model.checkpoint import load_model
 from msfnet.model.network import MSFNet
 from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import check_output, write_atomic
 from msfnet.runtime.stack import Stack
 
 from .onnx_export import STAGED_CHECK_CHUNK, default_checks
-from .output import OutputSlot
 from .passes import PASSES, PassContext
 from .variants import FP32_RULE, ExportOptions, ExportResult, Variant, VerificationRow
 from .verify import (
@@ -97,48 +101,64 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
     staged_chunk = STAGED_CHECK_CHUNK if variant.graph == "staged" else None
     checks = list(options.checks or default_checks(options.static))
     threads = options.threads
-    with OutputSlot(output, overwrite=overwrite, inputs=inputs) as slot:
-        model = load_network(checkpoint, variant.precision == "fp16-weights")
-        stacks = load_stacks(calib)
-        ctx = PassContext(model, variant, options, checkpoint, slot, stacks)
-        proto = None
-        reference: bytes | None = None
-        reference_rows: list[VerificationRow] = []
-        for name in variant.effective_passes(options.simplify):
-            step = PASSES[name]
-            if step.lossy and reference is None:
-                assert proto is not None, f"lossy pass {name} cannot come first"
-                reference = proto.SerializeToString()
-                log("checking the fp32 graph against PyTorch (the reference for "
-                    f"{variant.name})")
-                reference_rows = compare(proto_runner(reference, staged_chunk, threads),
-                                         torch_runner(model), rendered_cases(checks))
-                judge(reference_rows, FP32_RULE, FP32_RULE.limit_deg,
-                      f"the fp32 graph (reference for {variant.name})", checkpoint)
-            log(f"pass: {name}")
-            proto = step.run(proto, ctx)
-        assert proto is not None
-        written = slot.write(proto.SerializeToString())
-        del proto
-        size = written.stat().st_size
+    check_output(output, inputs, overwrite=overwrite)
+    model = load_network(checkpoint, variant.precision == "fp16-weights")
+    stacks = load_stacks(calib)
+    ctx = PassContext(model, variant, options, checkpoint, output, stacks)
+    proto = None
+    reference: bytes | None = None
+    reference_rows: list[VerificationRow] = []
+    for name in variant.effective_passes(options.simplify):
+        step = PASSES[name]
+        if step.lossy and reference is None:
+            assert proto is not None, f"lossy pass {name} cannot come first"
+            reference = proto.SerializeToString()
+            log("checking the fp32 graph against PyTorch (the reference for "
+                f"{variant.name})")
+            reference_rows = compare(proto_runner(reference, staged_chunk, threads),
+                                     torch_runner(model), rendered_cases(checks))
+            judge(reference_rows, FP32_RULE, FP32_RULE.limit_deg,
+                  f"the fp32 graph (reference for {variant.name})", checkpoint)
+        log(f"pass: {name}")
+        proto = step.run(proto, ctx)
+    assert proto is not None
+    data = proto.SerializeToString()
+    del proto
+    limit = options.tolerance_deg if options.tolerance_deg is not None else variant.rule.limit_deg
+    rows: list[VerificationRow] = []
+
+    def write_verified(candidate: Path) -> None:
+        """The candidate is renamed onto ``output`` only if this returns."""
+        write_file(candidate, data, output)
         log(f"verifying the written file ({variant.rule.describe()})")
-        candidate = file_runner(written, staged_chunk, threads)
+        runner = file_runner(candidate, staged_chunk, threads)
         if variant.rule.reference == "fp32-graph":
             assert reference is not None
             o = options
-            rows = compare(candidate, proto_runner(reference, staged_chunk, threads),
-                           tile_cases(stacks, tile=o.calib_tile, lights=o.calib_lights,
-                                      tiles_per_stack=o.calib_tiles_per_stack,
-                                      train_lights=o.train_lights))
+            rows.extend(compare(runner, proto_runner(reference, staged_chunk, threads),
+                                tile_cases(stacks, tile=o.calib_tile, lights=o.calib_lights,
+                                           tiles_per_stack=o.calib_tiles_per_stack,
+                                           train_lights=o.train_lights)))
         else:
-            rows = compare(candidate, torch_runner(model), rendered_cases(checks))
-        limit = (options.tolerance_deg if options.tolerance_deg is not None
-                 else variant.rule.limit_deg)
+            rows.extend(compare(runner, torch_runner(model), rendered_cases(checks)))
         judge(rows, variant.rule, limit, source=checkpoint)
-        slot.commit(written)
+
+    write_atomic(output, write_verified, overwrite=overwrite)
     return ExportResult(path=output, variant=variant.name, rule=variant.rule, limit_deg=limit,
                         rows=tuple(rows), reference_rows=tuple(reference_rows),
-                        size_bytes=size, notes=dict(ctx.notes))
+                        size_bytes=len(data), notes=dict(ctx.notes))
+
+
+def write_file(path: Path, data: bytes, target: Path) -> None:
+    """The model's bytes, flushed to disk before the rename makes them the target (an export
+    is worth a power cut's protection); errors name the target, not the temporary file."""
+    try:
+        with open(path, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as exc:
+        raise InputError(f"cannot write the output ({exc.strerror or exc})", target) from exc
 
 
 __all__ = ["load_network", "run_export", "sniff_checkpoint"]

@@ -6,9 +6,10 @@ pass. The CLI (``msf-export --variant NAME`` or the older flags), the benchmark 
 go through this table.
 
 The pipeline works on one in-memory ``onnx.ModelProto``: torch export -> metadata -> (simplify)
--> (fp16 storage | deconv rewrite -> int8 quantisation), then ONE write to a private work folder
-beside the target, verification of exactly that file as ONNX Runtime loads it, and only then an
-atomic rename into place. Nothing of a failed, interrupted or unverified export is left behind.
+-> (fp16 storage | deconv rewrite -> int8 quantisation), then ONE write to a temporary sibling
+of the target (``runtime/files.py``'s ``write_atomic``, as every msfnet output), verification of
+exactly that file as ONNX Runtime loads it, and only then an atomic rename into place. Nothing
+of a failed, interrupted or unverified export is left behind.
 
 This module imports only the standard library at import time, so the CLI's argument parsing
 and ``--list-variants`` stay instant; torch, onnx and onnxruntime load when an export starts.

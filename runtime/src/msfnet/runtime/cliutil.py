@@ -12,9 +12,11 @@ import argparse
 import contextlib
 import math
 import os
+import re
 import sys
 import warnings
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 from .errors import InputError, MsfError, first_line, one_line
 from .files import (
@@ -93,9 +95,12 @@ def int_range(lo: int, hi: int) -> Callable[[str], int]:
 
 class Parser(argparse.ArgumentParser):
     """argparse with one-line errors in the ``<prog>: error: <problem>`` form and exit code 2
-    (argparse's own usage dump is noise when one option is wrong)."""
+    (argparse's own usage dump is noise when one option is wrong). The option leads the
+    problem as a file does: ``msf-x: error: --tile: must be a positive integer, got '0'``
+    (argparse's ``argument `` prefix dropped)."""
 
-    def error(self, message: str) -> None:  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
+        message = re.sub(r"^argument ([^:]+): ", r"\1: ", message)
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 

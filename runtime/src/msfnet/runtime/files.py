@@ -8,6 +8,8 @@ Rules every command follows (issue #13):
   the target and renamed as a whole; on SIGINT/SIGTERM the staging is removed, and staging left
   by a killed process (``kill -9``) is removed by the next run writing to the same place;
 - several output files of one command appear together or not at all (:func:`staged_files`);
+- intermediate files a command needs on disk go to a scratch folder beside the output that is
+  always removed (:func:`scratch_folder`), and after a ``kill -9`` by the next run;
 - output locations are checked before any long computation (:func:`check_output`);
 - commits hold a lock on the output's parent folder and defer Ctrl-C/SIGTERM, so two commands
   writing to the same place never mix their files (the second one is told, or replaces the first
@@ -206,6 +208,15 @@ def check_output(target: str | Path, inputs: Iterable[str | Path | None] = (), *
     return target
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """Two names of one file (a hard link): replacing one would still be writing "over" the
+    input, as a user sees it."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist (yet)
+        return False
+
+
 def check_not_input(target: str | Path, inputs: Iterable[str | Path | None] = (), *,
                     folder: bool = False) -> Path:
     """Refuse an output that is, contains or lies inside an input (symlinks resolved).
@@ -216,7 +227,7 @@ def check_not_input(target: str | Path, inputs: Iterable[str | Path | None] = ()
         if item is None:
             continue
         src = _resolved(Path(item))
-        if real == src:
+        if real == src or _same_file(real, src):
             raise InputError("the output would replace an input; choose another output path",
                              target)
         if _is_within(src, real):
@@ -277,6 +288,28 @@ def remove_stale_staging(target: Path) -> None:
 
 def _staging_name(target: Path) -> str:
     return f".{target.name}{STAGING_TAG}{os.getpid()}-"
+
+
+@contextmanager
+def scratch_folder(target: str | Path) -> Iterator[Path]:
+    """A private empty folder beside ``target`` for intermediate files of the command writing
+    it (for tools that only work on files, such as onnxruntime's quantiser).
+
+    Always removed on leaving the block, also on errors and signals (with
+    :func:`install_signal_handlers`); named like ``target``'s staging, so a folder left by a
+    killed process (``kill -9``) is removed by the next run writing ``target``. Beside the
+    target, not in /tmp: same file system and disk space as the output. Folders created for it
+    are removed again unless something (the output itself) has been put in them meanwhile.
+    """
+    target = Path(target)
+    created = _make_parents(target)
+    remove_stale_staging(target)
+    tmp = Path(tempfile.mkdtemp(prefix=_staging_name(target), dir=target.parent))
+    try:
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_empty(created)
 
 
 def write_atomic(path: str | Path, write: Callable[[Path], object], *,
@@ -494,5 +527,5 @@ def numbered_folder(base: str | Path) -> Path:
 
 __all__ = ["MANIFEST", "Terminated", "check_not_input", "check_output", "forget_written",
            "install_signal_handlers", "json_text", "numbered_folder", "remove_stale_staging",
-           "staged_files", "staged_folder", "to_jsonable", "vectors_text", "write_atomic",
-           "write_json", "write_text", "write_vectors", "written_outputs"]
+           "scratch_folder", "staged_files", "staged_folder", "to_jsonable", "vectors_text",
+           "write_atomic", "write_json", "write_text", "write_vectors", "written_outputs"]
