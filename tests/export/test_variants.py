@@ -163,6 +163,23 @@ def test_verification_reads_the_file_on_disk(he_ckpt: Path, tmp_path: Path,
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_written_file_that_does_not_load_is_named_as_the_output(he_ckpt: Path,
+                                                                  tmp_path: Path,
+                                                                  monkeypatch) -> None:
+    """The file is checked under its temporary name; an error must name the output the user
+    asked for (the temporary file is gone when the message is read)."""
+    def truncating_write(path: Path, data: bytes, target: Path) -> None:
+        path.write_bytes(data[: len(data) // 2])
+
+    monkeypatch.setattr(pipeline, "write_file", truncating_write)
+    out = tmp_path / "m.onnx"
+    with pytest.raises(InputError) as info:
+        export_variant(he_ckpt, "fp32", out, options=ExportOptions(checks=((3, 16, 20),)))
+    assert info.value.path == out and "does not load" in str(info.value)
+    assert STAGING_TAG not in str(info.value)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_simplify_is_an_option_of_any_row(he_ckpt: Path, tmp_path: Path,
                                           monkeypatch) -> None:
     pytest.importorskip("onnxslim")

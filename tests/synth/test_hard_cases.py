@@ -107,13 +107,29 @@ def test_view_share_is_zero_on_convex_shapes_and_large_in_a_cup():
     assert share[mask].mean() > 0.005
 
 
-@pytest.mark.parametrize(("slope_deg", "low", "high"), [(45, 0.6, 1.0), (60, 0.65, 1.0),
-                                                        (80, 0.75, 1.0)])
-def test_view_share_beside_a_wall_matches_the_lune_formula(slope_deg, low, high):
-    # A floor point beside an infinite plane rising at angle b sees it over a lune of the
-    # hemisphere whose cosine-weighted share is (1 - cos b) / 2 (0.5 beside a vertical wall).
-    # The gather reaches 0.6 grid units, so the top of the wall is cut off: measured 0.69,
-    # 0.74 and 0.84 of the formula at 0.1 grid units from the foot.
+def _wall_share_by_quadrature(slope_deg: float, x_p: float, radius: float) -> float:
+    """The cosine-weighted share of a floor point's hemisphere covered by a plane rising at
+    ``slope_deg`` from x = 0, counting the wall within ``radius`` (image-plane distance) of
+    the point, by brute-force quadrature on a fine grid: an independent reference for
+    ``bounce_light``'s sampled gather."""
+    h = 1e-3
+    xs = np.arange(h / 2, x_p + radius, h)
+    ys = np.arange(-radius + h / 2, radius, h)
+    x, y = np.meshgrid(xs, ys, indexing="ij")
+    inside = (x - x_p) ** 2 + y ** 2 <= radius ** 2
+    t = np.tan(np.radians(slope_deg))
+    d = np.stack([x - x_p, y, x * t], -1)  # floor point (x_p, 0, 0) -> wall point
+    r2 = (d ** 2).sum(-1)
+    n_q = np.array([-np.sin(np.radians(slope_deg)), 0.0, np.cos(np.radians(slope_deg))])
+    cos_p = d[..., 2] / np.sqrt(r2)
+    cos_q = np.clip(-(d @ n_q) / np.sqrt(r2), 0, None)
+    area = h * h / np.cos(np.radians(slope_deg))  # wall area over its image area
+    return float(np.sum(np.where(inside, cos_p * cos_q / (np.pi * r2), 0.0)) * area)
+
+
+@pytest.mark.parametrize("slope_deg", [45, 60, 80])
+def test_view_share_beside_a_wall_matches_quadrature(slope_deg):
+    # Without the 0.6 cut-off the share would be the lune formula (1 - cos b) / 2.
     size = 128
     x = np.linspace(-1.0, 1.0, size)[None].repeat(size, 0)
     z = np.where(x < 0, 0.0, x * np.tan(np.radians(slope_deg)))
@@ -121,8 +137,9 @@ def test_view_share_beside_a_wall_matches_the_lune_formula(slope_deg, low, high)
     share = bounce_light(None, z, normals_from_height(z, mask), mask, np.random.default_rng(0),
                          max_size=size)[0, ..., 0]
     col = int(np.argmin(np.abs(x[0] + 0.1)))
-    expected = (1.0 - np.cos(np.radians(slope_deg))) / 2.0
-    assert low * expected <= share[size // 2, col] <= high * expected
+    reference = _wall_share_by_quadrature(slope_deg, float(x[0, col]), 0.6)
+    assert reference < (1.0 - np.cos(np.radians(slope_deg))) / 2.0
+    assert share[size // 2, col] == pytest.approx(reference, rel=0.06)
 
 
 def test_bounce_light_is_linear_in_the_radiance_it_gathers():
@@ -134,10 +151,33 @@ def test_bounce_light_is_linear_in_the_radiance_it_gathers():
                                0.25 * np.broadcast_to(share, (2, 64, 64, 3)), atol=1e-6)
 
 
-def test_coarse_gather_of_large_renders_agrees_with_the_full_one():
-    share, mask = _view_share("cup", 160, 1)  # gathered on an 80 px grid, upsampled
-    full, _ = _view_share("cup", 160, 1, max_size=1000)
-    assert abs(share[mask].mean() - full[mask].mean()) < 0.15 * full[mask].mean()
+@pytest.mark.parametrize("size", [97, 160, 200])
+@pytest.mark.parametrize(("kind", "seed"), [("cup", 1), ("folds", 2)])
+def test_coarse_gather_of_large_renders_agrees_with_the_full_one(kind, seed, size):
+    # Above 96 px the far field is gathered on a 2-3x coarser grid: measured 0.85-0.97 of the
+    # full gather on these objects (steep walls blur on the coarse grid).
+    share, mask = _view_share(kind, size, seed)
+    full, _ = _view_share(kind, size, seed, max_size=1000)
+    assert 0.8 * full[mask].mean() <= share[mask].mean() <= 1.02 * full[mask].mean()
+
+
+def test_coarse_gather_does_not_dim_the_rim():
+    # A 60 deg wall under a rectangular mask whose edge cuts coarse pixels: upsampling must
+    # not blend in the zeros outside the object.
+    size = 161
+    x = np.linspace(-1.0, 1.0, size)[None].repeat(size, 0)
+    z = np.where(x < 0, 0.0, x * np.tan(np.radians(60)))
+    mask = np.zeros_like(z, bool)
+    mask[21:140, 11:150] = True
+    n = normals_from_height(z, mask)
+    coarse = bounce_light(None, z, n, mask, np.random.default_rng(0))[0, ..., 0]
+    full = bounce_light(None, z, n, mask, np.random.default_rng(0), max_size=1000)[0, ..., 0]
+    edge = np.zeros_like(mask)
+    edge[[21, 139], 11:150] = True
+    edge[21:140, [11, 149]] = True
+    rim = edge & (full > 0.05)
+    assert rim.sum() > 20
+    assert np.median(coarse[rim] / full[rim]) > 0.9
 
 
 def test_coarse_gather_upsamples_any_number_of_lights():

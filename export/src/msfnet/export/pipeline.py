@@ -131,7 +131,12 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
         """The candidate is renamed onto ``output`` only if this returns."""
         write_file(candidate, data, output)
         log(f"verifying the written file ({variant.rule.describe()})")
-        runner = file_runner(candidate, staged_chunk, threads)
+        try:
+            runner = file_runner(candidate, staged_chunk, threads)
+        except InputError as exc:
+            # name the output the user asked for, not the temporary file (gone by now)
+            problem = exc.message.replace(str(candidate), output.name)
+            raise InputError(f"the written file does not load: {problem}", output) from exc
         if variant.rule.reference == "fp32-graph":
             assert reference is not None
             o = options
