@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from msfnet.runtime.stack import Stack
+from msfnet.runtime.stack.transforms import area_downscale, downscale_mask, downscale_normals
 
 from .lights import rig_intensities, rig_lights, ring_rig
 from .materials import ALL_KINDS, KINDS, material_map, shade
@@ -198,14 +199,11 @@ def _gather(src: np.ndarray, height: np.ndarray, normals: np.ndarray, mask: np.n
     return out
 
 
-def _coarse(arr: np.ndarray, k: int, weight: np.ndarray) -> np.ndarray:
-    """``weight``-weighted mean of each k x k block of an (H, W, ...) array (H, W multiples
-    of k): mask-aware downsampling, so rim pixels do not average in the background."""
-    h, w = arr.shape[0] // k, arr.shape[1] // k
-    wb = weight.reshape(h, k, w, k).astype(np.float32)
-    wb = wb.reshape(h, k, w, k, *([1] * (arr.ndim - 2)))
-    total = (arr.reshape(h, k, w, k, *arr.shape[2:]) * wb).sum(axis=(1, 3))
-    return total / np.maximum(wb.sum(axis=(1, 3)), 1e-6)
+def _masked_mean(arr: np.ndarray, k: int, mask: np.ndarray) -> np.ndarray:
+    """Mean over the object's pixels of each k x k block of an (H, W, ...) array (H, W
+    multiples of k), so rim blocks do not average in the background."""
+    w = mask.reshape(mask.shape + (1,) * (arr.ndim - 2)).astype(np.float32)
+    return area_downscale(arr * w, k) / np.maximum(area_downscale(w, k), 1e-6)
 
 
 def _upsample(arr: np.ndarray, size_h: int, size_w: int) -> np.ndarray:
@@ -255,13 +253,12 @@ def bounce_light(direct: np.ndarray | None, height: np.ndarray, normals: np.ndar
         ph, pw = -size_h % k, -size_w % k
         wide = ((0, ph), (0, pw))
         m = np.pad(mask, wide)
-        hc = _coarse(np.pad(height, wide), k, m)
-        nc = _coarse(np.pad(normals, (*wide, (0, 0))), k, m)
-        nc /= np.maximum(np.linalg.norm(nc, axis=2, keepdims=True), 1e-6)
-        share = _coarse(m.astype(np.float32), k, np.ones_like(m))
-        mc = share >= 0.5
-        sc = _coarse(np.pad(src, ((0, 0), *wide, (0, 0))).transpose(1, 2, 0, 3), k,
-                     m).transpose(2, 0, 1, 3)
+        hc = _masked_mean(np.pad(height, wide), k, m)
+        # the block mean of the object's normals (zeros elsewhere), renormalised
+        nc = downscale_normals(np.pad(normals * mask[..., None], (*wide, (0, 0))), k)
+        mc = downscale_mask(m, k)
+        sc = _masked_mean(np.pad(src, ((0, 0), *wide, (0, 0))).transpose(1, 2, 0, 3), k,
+                          m).transpose(2, 0, 1, 3)
         # one coarse pixel is k pixels: offsets shrink k times, areas k^2 times, pitch grows
         far = _gather(sc, hc, nc, mc, np.rint(rings / k).astype(np.intp), ring_area / k ** 2,
                       step * k)
