@@ -10,7 +10,7 @@ import torch
 
 from msfnet.model.data import collate, make_sample, rotate_flip
 from msfnet.model.network import MSFNet, max_over_lights
-from msfnet.model.train import backward_losses, cosine_loss, stage_losses
+from msfnet.model.train import backward_losses, cosine_loss, gradient_loss, stage_losses
 from msfnet.model.train_cli import main as train_main
 from msfnet.runtime.preprocess import normalise
 from msfnet.synth import RenderOptions, render_stack
@@ -114,6 +114,38 @@ def test_loss_falls_in_a_few_steps():
     assert history[-1] < 0.6 * history[0], history
 
 
+def test_gradient_loss_scores_smoothed_relief_and_ignores_an_offset():
+    # A 1 px groove across a flat patch: the prediction without it loses the pixel-to-pixel
+    # changes; a constant offset of the whole map changes no difference between neighbours.
+    gt = torch.zeros(1, 3, 8, 8)
+    gt[:, 2] = 1.0
+    gt[0, 0, :, 4] = 0.6  # the groove's wall tilts the normal along x
+    mask = torch.ones(1, 8, 8, dtype=torch.bool)
+    flat = torch.zeros_like(gt)
+    flat[:, 2] = 1.0
+    assert float(gradient_loss(gt, gt, mask)) == 0.0
+    assert float(gradient_loss(gt + 0.1, gt, mask)) == pytest.approx(0.0, abs=1e-7)
+    # 8 rows x 2 column pairs differ by 0.6 in x, over 2 x 56 neighbour pairs
+    assert float(gradient_loss(flat, gt, mask)) == pytest.approx(8 * 2 * 0.6 / 112, rel=1e-6)
+    # pairs that leave the mask do not count
+    mask[:, :, 4] = False
+    assert float(gradient_loss(flat, gt, mask)) == 0.0
+
+
+def test_stage_losses_add_the_weighted_gradient_term():
+    torch.manual_seed(0)
+    model = MSFNet()
+    bt = _batch()
+    with torch.no_grad():
+        plain = stage_losses(model, bt.images, bt.lights, bt.normals, bt.mask)
+        both = stage_losses(model, bt.images, bt.lights, bt.normals, bt.mask, grad_weight=0.5)
+        feats = model.pooled_features(bt.images, bt.lights)
+        extras = [0.5 * gradient_loss(model.regressor(f), bt.normals, bt.mask) for f in feats]
+    for p, b, extra in zip(plain, both, extras, strict=True):
+        assert float(extra) > 0
+        assert float(b) == pytest.approx(float(p + extra), rel=1e-5)
+
+
 def test_rotate_flip_keeps_a_sphere_a_sphere():
     n, mask = sphere_normals(24)
     lights = np.array([[0.3, -0.2, 0.93], [-0.5, 0.1, 0.86]], np.float32)
@@ -168,7 +200,8 @@ def test_cli_starts_from_given_weights(tmp_path):
     assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "1", "--batch",
                        "1", "--lights", "3", "--crop", "16", "--pool", "1", "--render-size",
                        "32", "--val-objects", "1", "--no-progress", "--precision", "fp32",
-                       "--lr", "1e-12", "--init", str(ckpt)]) == 0
+                       "--lr", "1e-12", "--init", str(ckpt), "--grad-loss", "0.2"]) == 0
+    assert json.loads((out / "config.json").read_text())["grad_loss"] == 0.2
     trained = torch.load(out / "last.pth", weights_only=True)["state_dict"]
     want = start.state_dict()["regressor.est_normal.0.weight"].half().float()
     assert torch.allclose(trained["regressor.est_normal.0.weight"], want, atol=1e-6)

@@ -112,3 +112,12 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
         train_cli._run(train_cli.build_parser().parse_args(["--out", str(out), "--overwrite"]),
                        None)
     assert started == [[]]
+
+
+def test_negative_grad_loss_is_an_option_error(tmp_path: Path, capfd) -> None:
+    with pytest.raises(SystemExit) as exc:
+        train_main(["--out", str(tmp_path / "r"), "--grad-loss", "-1", "--no-progress"])
+    assert exc.value.code == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err[-1] == "msf-train: error: --grad-loss: must be 0 or more, got '-1'"
+    assert not (tmp_path / "r").exists()

@@ -22,7 +22,9 @@ from .lights import rig_intensities, rig_lights, ring_rig
 from .materials import ALL_KINDS, KINDS, material_map, shade
 from .shapes import (
     ALL_SHAPES,
+    CUP_DEPTH,
     DEFAULT_MAX_DEPTH,
+    FOLD_DEPTH,
     SHAPES,
     fine_relief,
     make_shape,
@@ -57,6 +59,8 @@ class RenderOptions:
     very_dark: float = 0.0  # P(dark materials, brightest value 25-43/255 of full scale)
     ring_rigs: float = 0.0  # P(LED ring rig instead of the cone / LED-board rigs)
     bit_depths: tuple[int, ...] = BIT_DEPTHS  # drawn uniformly (repeat one to favour it)
+    fold_depth: tuple[float, float] = FOLD_DEPTH  # range of the folds' depth (shapes.FOLD_DEPTH)
+    cup_depth: tuple[float, float] = CUP_DEPTH  # range of a cup's depth (shapes.CUP_DEPTH)
 
     @classmethod
     def hard(cls, **overrides: Any) -> RenderOptions:
@@ -70,7 +74,10 @@ class RenderOptions:
                    # diffuse plastic metal dark rough paint
                    material_weights=(0.1, 0.3, 0.15, 0.1, 0.15, 0.2),
                    steep=0.35, fine_relief=0.5, interreflection=0.5,
-                   very_dark=0.1, ring_rigs=0.25, bit_depths=(8, 8, 8, 10, 12, 16))
+                   very_dark=0.1, ring_rigs=0.25, bit_depths=(8, 8, 8, 10, 12, 16),
+                   # Up to twice as deep as the defaults: harvest's folds bounce ~0.3 of the
+                   # albedo onto walls facing away from the light; the default folds ~0.01.
+                   fold_depth=(0.25, 1.2), cup_depth=(0.5, 1.8))
         return replace(base, **overrides)
 
     @classmethod
@@ -300,7 +307,8 @@ def render_stack(rng: np.random.Generator | int, options: RenderOptions = Render
         w = None if w is None or len(w) != len(options.shapes) else np.asarray(w) / np.sum(w)
         shape = options.shapes[int(rng.choice(len(options.shapes), p=w))]
     steep = _chance(rng, options.steep)
-    height, mask = make_shape(shape, options.size, rng, options.max_depth, steep=steep)
+    height, mask = make_shape(shape, options.size, rng, options.max_depth, steep=steep,
+                              fold_depth=options.fold_depth, cup_depth=options.cup_depth)
     if _chance(rng, options.fine_relief):
         height = height + fine_relief(options.size, rng)
     normals = normals_from_height(height, mask).astype(np.float32)

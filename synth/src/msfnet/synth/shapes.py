@@ -17,6 +17,8 @@ ALL_SHAPES = SHAPES + EXTRA_SHAPES
 DEFAULT_MAX_DEPTH = 1.2  # dome height / radius drawn from [0.5, this] (see make_shape)
 STEEP_DEPTH = (1.5, 3.5)  # steep profile: height / radius drawn from this range
 STEEP_POWER = (2.0, 5.0)  # steep profile: superquadric exponent (2 = ellipsoid, more = boxier)
+FOLD_DEPTH = (0.25, 0.6)  # cloth fold amplitude x folds per grid unit (depth / period ~ this / 2)
+CUP_DEPTH = (0.5, 1.0)  # cup hollow depth over its opening radius (x max(dome depth, 0.8))
 
 
 def grid(size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -93,7 +95,8 @@ def _trim_outline(inside: np.ndarray) -> np.ndarray:
     return mask
 
 
-def cloth_folds(x: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def cloth_folds(x: np.ndarray, y: np.ndarray, rng: np.random.Generator,
+                depth: tuple[float, float] = FOLD_DEPTH) -> np.ndarray:
     """Harvest-like cloth folds: rounded ridges between deep, narrow, curved valleys.
 
     Along a warped coordinate u, the height is amp * (sin^2 + eps^2)^(g/2) with g < 1: a cusp
@@ -108,7 +111,7 @@ def cloth_folds(x: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> np.nd
         s = np.sin(np.pi * freq * u + rng.uniform(0, 2 * np.pi))
         eps = rng.uniform(0.03, 0.15)
         g = rng.uniform(0.35, 0.8)
-        amp = rng.uniform(0.25, 0.6) / freq * (1.0 if family == 0 else 0.5)
+        amp = rng.uniform(*depth) / freq * (1.0 if family == 0 else 0.5)
         # Folds die out along their length, as cloth folds do.
         along = 0.6 + 0.4 * np.cos(np.pi * rng.uniform(0.3, 1.0) * v + rng.uniform(0, 2 * np.pi))
         out += amp * along * (s * s + eps * eps) ** (g / 2)
@@ -117,13 +120,17 @@ def cloth_folds(x: np.ndarray, y: np.ndarray, rng: np.random.Generator) -> np.nd
 
 def make_shape(kind: str, size: int, rng: np.random.Generator,
                max_depth: float = DEFAULT_MAX_DEPTH,
-               steep: bool = False) -> tuple[np.ndarray, np.ndarray]:
+               steep: bool = False,
+               fold_depth: tuple[float, float] = FOLD_DEPTH,
+               cup_depth: tuple[float, float] = CUP_DEPTH) -> tuple[np.ndarray, np.ndarray]:
     """(height (H, W) float64, mask (H, W) bool) for one random shape of ``kind``.
 
     ``max_depth``: the dome's height over its radius is drawn from [0.5, max_depth]; above 1 the
     sides get steeper than a sphere's, so more of the object is seen at grazing slant.
     ``steep``: draw the height / radius from ``STEEP_DEPTH`` and a superquadric profile exponent
-    from ``STEEP_POWER`` instead (occluding-contour-like rims; ignored by full-frame shapes)."""
+    from ``STEEP_POWER`` instead (occluding-contour-like rims; ignored by full-frame shapes).
+    ``fold_depth`` / ``cup_depth``: ranges of the folds' and the cup's depth (see ``FOLD_DEPTH``,
+    ``CUP_DEPTH``); deeper ones shadow more and bounce more light between their walls."""
     x, y = grid(size)
     if kind == "relief":
         # A full-frame sculpted surface (like a bas-relief or a cloth patch): no silhouette.
@@ -132,7 +139,7 @@ def make_shape(kind: str, size: int, rng: np.random.Generator,
         return z, np.ones_like(z, bool)
     if kind == "folds" and rng.random() < 0.4:
         # A full-frame patch of folded cloth.
-        return cloth_folds(x, y, rng) + 0.05 * fourier_noise(x, y, rng, 8, 0.5, 3.0), \
+        return cloth_folds(x, y, rng, fold_depth) + 0.05 * fourier_noise(x, y, rng, 8, 0.5, 3.0), \
             np.ones_like(x, bool)
     if kind not in ALL_SHAPES:
         raise ValueError(f"unknown shape {kind!r}; choose from {', '.join(ALL_SHAPES)}")
@@ -166,13 +173,13 @@ def make_shape(kind: str, size: int, rng: np.random.Generator,
         z += fade * gaussian_bumps(x, y, rng, 5, (0.02, 0.08), (0.04, 0.12))
     elif kind == "folds":
         # A rounded bag-like object covered in folds (like DiLiGenT harvest).
-        z += np.sqrt(fade) * cloth_folds(x, y, rng)
+        z += np.sqrt(fade) * cloth_folds(x, y, rng, fold_depth)
     elif kind == "cup":
         # A bowl: a cavity of normalised radius a sunk into the dome, with a rounded lip. Its
         # inner wall starts vertical at the lip, so it is steep, self-shadowing and concave.
         a = rng.uniform(0.45, 0.8)
         lip = depth * r_mid * float(dome_profile(np.array(a), power))
-        hollow = rng.uniform(0.5, 1.0) * a * r_mid * max(depth, 0.8)
+        hollow = rng.uniform(*cup_depth) * a * r_mid * max(depth, 0.8)
         bowl = lip - hollow * dome_profile(rho / a, rng.uniform(2.0, 3.0))
         z = np.where(rho < a, bowl, z)
         width = rng.uniform(0.04, 0.1)
