@@ -378,3 +378,52 @@ def test_scratch_folder_of_a_killed_run_is_removed_by_the_next_write(tmp_path: P
         write_atomic(target, lambda t: t.write_bytes(b"model"))
         assert mine.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx", "other.txt"]
+
+
+def _record_syncs_and_renames(monkeypatch) -> list[tuple[str, str]]:
+    """Log of ("fsync", what the descriptor names) and ("rename", target) in call order."""
+    log: list[tuple[str, str]] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        log.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    def replace(src, dst) -> None:
+        log.append(("rename", str(dst)))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(files.os, "fsync", fsync)
+    monkeypatch.setattr(files.os, "replace", replace)
+    return log
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc to name descriptors")
+def test_every_commit_flushes_the_content_before_the_rename(tmp_path: Path, monkeypatch) -> None:
+    # A power cut after the rename must not leave an empty file under the output's name.
+    log = _record_syncs_and_renames(monkeypatch)
+    target = tmp_path / "n.txt"
+    write_text(target, "normals")
+    renamed = log.index(("rename", str(target)))
+    flushed = [i for i, (kind, name) in enumerate(log) if kind == "fsync" and STAGING_TAG in name]
+    assert flushed and max(flushed) < renamed  # the temporary sibling, before its rename
+    assert ("fsync", str(tmp_path)) in log[renamed:]  # then the folder holding the new name
+
+    log.clear()
+    outdir = tmp_path / "maps"
+    with staged_folder(outdir) as stage:
+        (stage / "sub").mkdir()
+        (stage / "sub" / "a.bin").write_bytes(b"a")
+        (stage / "b.bin").write_bytes(b"b")
+    renamed = log.index(("rename", str(outdir)))
+    before = {Path(name).name for kind, name in log[:renamed] if kind == "fsync"}
+    assert {"a.bin", "b.bin", MANIFEST} <= before
+
+    log.clear()
+    pair = [tmp_path / "l.txt", tmp_path / "l_confidence.txt"]
+    with staged_files(pair) as temps:
+        for t in temps:
+            t.write_text("x")
+    first_rename = min(log.index(("rename", str(p))) for p in pair)
+    synced = [name for kind, name in log[:first_rename] if kind == "fsync"]
+    assert len([n for n in synced if STAGING_TAG in n]) == 2

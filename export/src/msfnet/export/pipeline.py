@@ -18,7 +18,6 @@ written by ``runtime/files.py`` like every msfnet output:
 
 from __future__ import annotations
 
-import os
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -155,13 +154,10 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
 
 
 def write_file(path: Path, data: bytes, target: Path) -> None:
-    """The model's bytes, flushed to disk before the rename makes them the target (an export
-    is worth a power cut's protection); errors name the target, not the temporary file."""
+    """The model's bytes (``write_atomic`` flushes them to disk before the rename); errors name
+    the target, not the temporary file."""
     try:
-        with open(path, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+        path.write_bytes(data)
     except OSError as exc:
         raise InputError(f"cannot write the output ({exc.strerror or exc})", target) from exc
 
