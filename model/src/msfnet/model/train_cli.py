@@ -100,9 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ablation: no selective update (all stage losses train all modules)")
     p.add_argument("--grad-loss", type=nonnegative_float, default=d.grad_loss, metavar="W",
                    help="add W x the mean |difference| between predicted and true normal "
-                        "changes from pixel to pixel to each stage loss: rewards keeping "
-                        "1-3 px relief that the cosine loss lets the network smooth away "
-                        "(default 0: the paper's loss)")
+                        "changes from pixel to pixel to each stage loss (default 0: the "
+                        "paper's loss). Experimental: meant to keep 1-3 px relief, it lowered "
+                        "detail in a short CPU fine-tune (docs/training.md)")
     p.add_argument("--render-size", type=int_range(8, MAX_SIZE), default=d.render_size,
                    help=f"synthetic object size in pixels (default {d.render_size})")
     p.add_argument("--render-size-max", type=int_range(8, MAX_SIZE), default=d.render_size_max,
