@@ -322,7 +322,7 @@ def _wait_for_candidate(proc: subprocess.Popen, folder: Path) -> Path:
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline, "the export never wrote its file"
         time.sleep(0.05)
-    time.sleep(0.5)  # written and fsynced: the child sleeps before verifying
+    time.sleep(0.5)  # written: the child sleeps before verifying
     return found[0]
 
 

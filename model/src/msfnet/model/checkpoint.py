@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import write_atomic
 
 from .network import MSFNet
 
@@ -104,12 +105,8 @@ def save_checkpoint(model: torch.nn.Module, path: str | Path, fp16: bool = False
     ``fp16``: store floating-point tensors in half precision (half the size; load_state_dict
     casts them back to float32 on load, here and in the authors' code).
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     if fp16:
         state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
-    torch.save({"state_dict": state, "model": "MSF_Net", **extra}, tmp)
-    tmp.replace(path)
-    return path
+    content = {"state_dict": state, "model": "MSF_Net", **extra}
+    return write_atomic(path, lambda tmp: torch.save(content, tmp))

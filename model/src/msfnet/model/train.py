@@ -61,7 +61,8 @@ def cosine_loss(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
 
 
 def gradient_loss(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
-    """Mean |d pred - d gt| over horizontal and vertical neighbour pairs inside the mask.
+    """Mean over horizontal and vertical neighbour pairs inside the mask of |d pred - d gt|_1
+    (summed over the three components).
 
     The cosine loss barely notices a 1-3 px groove smoothed away (few pixels, small angles);
     this term scores the change from pixel to pixel, which is what such relief is made of."""
@@ -337,10 +338,8 @@ class Trainer:
     def save(self) -> None:
         weights, state = self._state_paths()
         save_checkpoint(self.model, weights, step=self.step, epoch=self.epoch)
-        tmp = state.with_name(f".{state.name}.tmp")
-        torch.save({"optimizer": self.opt.state_dict(), "step": self.step, "best": self.best},
-                   tmp)
-        tmp.replace(state)
+        content = {"optimizer": self.opt.state_dict(), "step": self.step, "best": self.best}
+        write_atomic(state, lambda tmp: torch.save(content, tmp))
 
     def _load(self) -> None:
         from .checkpoint import read_state_dict

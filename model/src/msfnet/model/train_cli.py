@@ -30,8 +30,10 @@ PROG = "msf-train"
 MAX_SIZE = 4096
 MAX_LIGHTS = 1024
 # What msf-train writes into OUT: --overwrite deletes these and nothing else.
+# (Checkpoints are written through files.write_atomic; the ".*.pth.tmp" names are temporaries
+# of versions before 2026-11-23, left by a kill -9.)
 TRAIN_FILES = ("config.json", "log.jsonl", "last.pth", "last_state.pth", "best.pth", "curve.png",
-               ".last_state.pth.tmp")
+               ".last.pth.tmp", ".last_state.pth.tmp", ".best.pth.tmp")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -99,8 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-sus", action="store_true",
                    help="ablation: no selective update (all stage losses train all modules)")
     p.add_argument("--grad-loss", type=nonnegative_float, default=d.grad_loss, metavar="W",
-                   help="add W x the mean |difference| between predicted and true normal "
-                        "changes from pixel to pixel to each stage loss (default 0: the "
+                   help="add W x the L1 distance between predicted and true normal changes "
+                        "from pixel to pixel to each stage loss (default 0: the "
                         "paper's loss). Experimental: meant to keep 1-3 px relief, it lowered "
                         "detail in a short CPU fine-tune (docs/training.md)")
     p.add_argument("--render-size", type=int_range(8, MAX_SIZE), default=d.render_size,

@@ -16,9 +16,10 @@ Rules every command follows (issue #13):
   with ``overwrite``), and a signal never lands between removing an old output and renaming the
   new one into place;
 - files get the user's normal permissions (umask), like any other tool's output;
-- contents are flushed to disk before the rename that publishes them, and the rename itself
-  after it (:func:`_durable`), so a power cut leaves the old output or the new one, not an
-  empty file under the new name (a few ms a file; measured 2 ms for 1 MB, 41 ms for 10 MB).
+- contents are flushed to disk before the rename that publishes them, and the folder after it
+  (:func:`_durable`), so a power cut never leaves an empty or partly written file under an
+  output's name (a few ms a file: 2 ms for 1 MB, 41 ms for 10 MB measured; the files of a
+  staged folder are flushed once, at its commit, from 8 threads).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import signal
 import tempfile
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -91,29 +93,69 @@ def restore_signal_handlers(previous: dict[int, object]) -> None:
 
 
 def _fsync(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    """Flush one file's data to disk. A file this process may only write (umask 0477, mode
+    0200) is opened for writing instead; one it cannot open at all is left to the page cache
+    (best effort: the write itself already succeeded). Errors of the flush itself (EIO, ENOSPC)
+    propagate: the data may not be on disk."""
+    modes = (os.O_WRONLY, os.O_RDONLY) if os.name == "nt" else (os.O_RDONLY, os.O_WRONLY)
+    for mode in modes:
+        try:
+            fd = os.open(path, mode)
+        except PermissionError:
+            continue
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        return
 
 
-def _durable(paths: Iterable[Path]) -> None:
-    """Flush these files (or every file in these folders) to disk: done before the rename, so
-    the renamed name never points at data still only in the page cache."""
+def _fsync_folder(folder: Path) -> None:
+    """Flush a folder's entries (renames, new names), best effort: Windows cannot open a
+    folder, and some file systems (network, FUSE) refuse to flush one."""
+    if os.name == "nt":
+        return
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _durable(paths: Sequence[Path], target: Path) -> None:
+    """Flush these files (or every file and folder in these folders) to disk before the rename
+    that publishes them, so the published name never points at data still only in memory.
+    Many files are flushed from a few threads (fsync releases the GIL; the file system then
+    commits them together). An error names ``target``, not the temporary file."""
+    files_: list[Path] = []
+    folders: list[Path] = []
     for path in paths:
-        if path.is_dir():
+        if path.is_dir() and not path.is_symlink():
             for item in path.rglob("*"):
-                if item.is_file() and not item.is_symlink():
-                    _fsync(item)
-        _fsync(path)
+                if item.is_symlink():
+                    continue
+                (folders if item.is_dir() else files_).append(item)
+            folders.append(path)
+        else:
+            files_.append(path)
+    try:
+        if len(files_) > 8:
+            with ThreadPoolExecutor(max_workers=8) as pool:
+                list(pool.map(_fsync, files_))
+        else:
+            for item in files_:
+                _fsync(item)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror or str(exc), str(target)) from exc
+    for folder in folders:
+        _fsync_folder(folder)
 
 
 def _sync_folders(folders: Iterable[Path]) -> None:
-    """Flush the renames in these folders (best effort: some file systems refuse a folder)."""
+    """Flush the renames in these folders (best effort, see :func:`_fsync_folder`)."""
     for folder in {Path(f) for f in folders}:
-        with contextlib.suppress(OSError):
-            _fsync(folder)
+        _fsync_folder(folder)
 
 
 def _umask() -> int:
@@ -362,16 +404,20 @@ def write_atomic(path: str | Path, write: Callable[[Path], object], *,
     try:
         write(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes files 0600; outputs follow the umask
-        _durable([tmp])
+        # A file inside a staging folder is flushed with the whole folder when that commits.
+        staged = any(STAGING_TAG in part for part in path.parts)
+        if not staged:
+            _durable([tmp], path)
         with _signals_deferred(), _commit_lock([path.parent]):
             if not overwrite and (path.exists() or path.is_symlink()):
                 raise InputError("output appeared while running (another command wrote it?); "
                                  "pass --overwrite to replace it", path)
             os.replace(tmp, path)
-            if output and not any(STAGING_TAG in part for part in path.parts):
+            if output and not staged:
                 _written.append(path)  # a file inside a staging folder is not an output yet
         done = True
-        _sync_folders([path.parent])
+        if not staged:
+            _sync_folders([path.parent])
     finally:
         tmp.unlink(missing_ok=True)
         if not done:
@@ -437,7 +483,7 @@ def staged_folder(outdir: str | Path, *, overwrite: bool = False) -> Iterator[Pa
         names = sorted(p.name for p in tmp.iterdir())
         (tmp / MANIFEST).write_text(json.dumps({"files": names}) + "\n")
         (tmp / MANIFEST).chmod(0o666 & ~_umask())
-        _durable([tmp])
+        _durable([tmp], outdir)
         with _signals_deferred(), _commit_lock([outdir.parent]):
             _commit(tmp, outdir, overwrite)
             _written.append(outdir)
@@ -507,7 +553,8 @@ def staged_files(targets: Sequence[str | Path], *, overwrite: bool = False
         yield list(temps)
         for tmp in temps:
             os.chmod(tmp, 0o666 & ~_umask())
-        _durable(temps)
+        for tmp, path in zip(temps, paths, strict=True):
+            _durable([tmp], path)
         with _signals_deferred(), _commit_lock([p.parent for p in paths]):
             _commit_files(list(zip(temps, paths, strict=True)), overwrite)
             _written.extend(paths)
