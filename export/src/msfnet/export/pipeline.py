@@ -147,6 +147,11 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
             rows.extend(compare(runner, torch_runner(model), rendered_cases(checks)))
         judge(rows, variant.rule, limit, source=checkpoint)
 
+    # Import the verifier's runtime before the partial file exists: a Ctrl-C / SIGTERM landing
+    # inside a C extension's import surfaces as "ImportError: initialization failed", not as
+    # the signal (seen once in CI's SIGTERM test).
+    import onnxruntime  # noqa: F401
+
     write_atomic(output, write_verified, overwrite=overwrite)
     return ExportResult(path=output, variant=variant.name, rule=variant.rule, limit_deg=limit,
                         rows=tuple(rows), reference_rows=tuple(reference_rows),
