@@ -493,3 +493,13 @@ def test_a_failed_flush_names_the_output_and_leaves_nothing(tmp_path: Path, monk
         (stage / "a.txt").write_text("a")
     assert exc.value.filename == str(tmp_path / "maps")
     assert not _leftovers(tmp_path) and not (tmp_path / "maps").exists()
+
+
+def test_an_output_replaced_again_counts_once(tmp_path: Path) -> None:
+    # msf-train rewrites last.pth every few minutes: an interrupted run has one output there.
+    files.forget_written()
+    for text in ("a", "b", "c"):
+        write_text(tmp_path / "last.txt", text)
+    write_text(tmp_path / "other.txt", "x")
+    assert written_outputs() == [tmp_path / "last.txt", tmp_path / "other.txt"]
+    files.forget_written()

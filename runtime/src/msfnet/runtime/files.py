@@ -92,6 +92,13 @@ def restore_signal_handlers(previous: dict[int, object]) -> None:
             signal.signal(sig, handler)  # type: ignore[arg-type]
 
 
+def _flush_and_close(fd: int) -> None:
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def _fsync(path: Path) -> None:
     """Flush one file's data to disk. A file this process may only write (umask 0477, mode
     0200) is opened for writing instead; one it cannot open at all is left to the page cache
@@ -103,24 +110,16 @@ def _fsync(path: Path) -> None:
             fd = os.open(path, mode)
         except PermissionError:
             continue
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        _flush_and_close(fd)
         return
 
 
 def _fsync_folder(folder: Path) -> None:
     """Flush a folder's entries (renames, new names), best effort: Windows cannot open a
     folder, and some file systems (network, FUSE) refuse to flush one."""
-    if os.name == "nt":
-        return
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+    if os.name != "nt":
+        with contextlib.suppress(OSError):
+            _flush_and_close(os.open(folder, os.O_RDONLY))
 
 
 def _durable(paths: Sequence[Path], target: Path) -> None:
@@ -413,8 +412,10 @@ def write_atomic(path: str | Path, write: Callable[[Path], object], *,
                 raise InputError("output appeared while running (another command wrote it?); "
                                  "pass --overwrite to replace it", path)
             os.replace(tmp, path)
-            if output and not staged:
-                _written.append(path)  # a file inside a staging folder is not an output yet
+            # A file inside a staging folder is not an output yet; one replaced again (msf-train's
+            # last.pth every few minutes) is still one output.
+            if output and not staged and path not in _written:
+                _written.append(path)
         done = True
         if not staged:
             _sync_folders([path.parent])
