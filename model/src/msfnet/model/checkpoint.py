@@ -48,6 +48,14 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if _is_lfs_pointer(path):
+            raise CheckpointError("a Git LFS pointer, not the checkpoint itself (fetch it with "
+                                  "`git lfs pull`)", path) from exc
+        # torch's weights-only reader says "Unsupported operand" for bytes that are no pickle
+        # at all (a text file, an HTML error page): that is not a checkpoint, not a threat.
+        if "Unsupported operand" in str(exc):
+            raise CheckpointError("not a PyTorch checkpoint (neither a zip archive nor a "
+                                  "pickle)", path) from exc
         if "weights_only" in str(exc) or "Unsupported global" in str(exc):
             raise CheckpointError("holds pickled Python objects, not only tensors; refusing to "
                                   "unpickle it (re-save it as a plain state_dict)", path) from exc
@@ -63,6 +71,11 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         raise CheckpointError("does not hold a state_dict of tensors (expected "
                               "{'state_dict': {...}} or a bare state_dict)", path)
     return {_strip_prefix(str(k)): v for k, v in obj.items()}
+
+
+def _is_lfs_pointer(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(64).startswith(b"version https://git-lfs")
 
 
 def _strip_prefix(key: str) -> str:
