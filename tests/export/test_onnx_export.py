@@ -220,6 +220,7 @@ def test_plain_pickle_is_never_executed(tmp_path: Path, capsys) -> None:
     bad.write_bytes(pickle.dumps({"state_dict": Evil()}))
     assert export_main([str(bad), "-o", str(tmp_path / "m.onnx")]) == 2
     assert not marker.exists()
+    assert "refusing to unpickle" in capsys.readouterr().err
 
 
 def test_fp16_weight_storage_halves_the_file_and_keeps_parity(published_ckpt: Path,

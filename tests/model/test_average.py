@@ -3,6 +3,7 @@ and refusals in one line before anything is written."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -14,9 +15,9 @@ from msfnet.model.checkpoint import load_model, read_state_dict, save_checkpoint
 from msfnet.model.network import MSFNet  # noqa: E402
 
 
-def _checkpoint(path: Path, seed: int) -> Path:
+def _model(seed: int, **options: bool) -> MSFNet:
     torch.manual_seed(seed)
-    model = MSFNet()
+    model = MSFNet(**options)
     with torch.no_grad():  # every tensor differs between the inputs, batch-norm's too
         for param in model.parameters():
             param.add_(torch.rand_like(param))
@@ -25,7 +26,11 @@ def _checkpoint(path: Path, seed: int) -> Path:
                 buf.uniform_(0.5, 1.5)
             elif "num_batches" in name:
                 buf.fill_(seed)
-    return save_checkpoint(model, path)
+    return model
+
+
+def _checkpoint(path: Path, seed: int, **options: bool) -> Path:
+    return save_checkpoint(_model(seed, **options), path)
 
 
 def test_the_mean_of_each_tensor(tmp_path: Path) -> None:
@@ -43,7 +48,30 @@ def test_the_mean_of_each_tensor(tmp_path: Path) -> None:
             assert torch.equal(value, states[0][key]), key  # step counters: the first's
 
 
-def test_the_mean_of_one_model_twice_predicts_as_it_does(tmp_path: Path) -> None:
+def test_fp16_and_data_parallel_inputs_average_like_the_others(tmp_path: Path) -> None:
+    """Published checkpoints come with ``module.`` prefixes; msf-train's bundled ones in fp16."""
+    a, b = _model(1), _model(2)
+    half = save_checkpoint(a, tmp_path / "a16.pth", fp16=True)
+    prefixed = tmp_path / "b_dp.pth"
+    torch.save({"state_dict": {f"module.{k}": v for k, v in b.state_dict().items()}}, prefixed)
+    mean = average_state_dicts([half, prefixed])
+    for key, value in b.state_dict().items():
+        if value.is_floating_point():
+            expected = (a.state_dict()[key].half().double() + value.double()) / 2
+            assert torch.allclose(mean[key].double(), expected, rtol=0, atol=1e-7), key
+
+
+@pytest.mark.parametrize("options", [{"mff": False}, {"mfe": False}])
+def test_ablation_snapshots_average_too(tmp_path: Path, options: dict[str, bool]) -> None:
+    paths = [str(_checkpoint(tmp_path / f"s{seed}.pth", seed, **options)) for seed in (1, 2)]
+    out = tmp_path / "avg.pth"
+    assert main([*paths, "-o", str(out), "-q"]) == 0
+    mean = read_state_dict(out)
+    assert set(mean) == set(MSFNet(**options).state_dict())
+    load_model(out, **options)
+
+
+def test_the_mean_of_two_copies_predicts_as_the_model_does(tmp_path: Path) -> None:
     a = _checkpoint(tmp_path / "a.pth", 7)
     b = tmp_path / "b.pth"
     b.write_bytes(a.read_bytes())
@@ -57,19 +85,20 @@ def test_the_mean_of_one_model_twice_predicts_as_it_does(tmp_path: Path) -> None
     assert torch.allclose(want, got, rtol=0, atol=1e-6)
 
 
-def test_fp16_output_and_message(tmp_path: Path, capsys) -> None:
+def test_fp16_output_message_and_provenance(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                            ) -> None:
     paths = [str(_checkpoint(tmp_path / f"s{i}.pth", i)) for i in (1, 2)]
     out = tmp_path / "sub" / "avg.pth"
     assert main([*paths, "-o", str(out), "--fp16"]) == 0
     assert "mean of 2 checkpoints" in capsys.readouterr().out
     raw = torch.load(out, map_location="cpu", weights_only=True)
-    assert raw["model"] == "MSF_Net"
+    assert raw["model"] == "MSF_Net" and raw["averaged_from"] == paths
     assert {v.dtype for v in raw["state_dict"].values() if v.is_floating_point()} == {
         torch.float16}
     load_model(out)  # and it loads strictly
 
 
-def _refused(argv: list[str], words: str, capfd) -> str:
+def _refused(argv: list[str], words: str, capfd: pytest.CaptureFixture[str]) -> str:
     assert main(argv) == 2
     lines = capfd.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("msf-average: error: "), lines
@@ -77,28 +106,39 @@ def _refused(argv: list[str], words: str, capfd) -> str:
     return lines[0]
 
 
-def test_refusals_leave_everything_as_it_was(tmp_path: Path, capfd) -> None:
+def test_refusals_leave_everything_as_it_was(tmp_path: Path,
+                                             capfd: pytest.CaptureFixture[str]) -> None:
     a = _checkpoint(tmp_path / "a.pth", 1)
     b = _checkpoint(tmp_path / "b.pth", 2)
+    no_fusion = _checkpoint(tmp_path / "nofusion.pth", 3, mff=False)
     junk = tmp_path / "junk.pth"
     junk.write_bytes(b"not a checkpoint")
-    partial = tmp_path / "partial.pth"
-    torch.save({"state_dict": {"conv.weight": torch.zeros(2)}}, partial)
+    broken = _model(4)
+    with torch.no_grad():
+        broken.regressor.deconv1[0].weight[0, 0, 0, 0] = float("nan")
+    nan = save_checkpoint(broken, tmp_path / "nan.pth")
     existing = tmp_path / "existing.pth"
     existing.write_bytes(b"keep me")
-    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    (tmp_path / "link.pth").symlink_to(a)
+    os.link(b, tmp_path / "hard.pth")
+    (tmp_path / "folder.pth").mkdir()
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    x = str(tmp_path / "x.pth")
 
-    _refused([str(a), "-o", str(tmp_path / "x.pth")], "at least two", capfd)
+    _refused([str(a), "-o", x], "at least two", capfd)
     _refused([str(a), str(b), "-o", str(a)], "replace an input", capfd)
     _refused([str(a), str(b), "-o", str(existing)], "--overwrite", capfd)
-    line = _refused([str(a), str(junk), "-o", str(tmp_path / "x.pth")], "not a", capfd)
-    assert str(junk) in line
-    line = _refused([str(a), str(partial), "-o", str(tmp_path / "x.pth")], "missing", capfd)
-    assert str(partial) in line
-    _refused([str(a), str(tmp_path / "gone.pth"), "-o", str(tmp_path / "x.pth")],
-             "not found", capfd)
+    for twice in ("link.pth", "hard.pth"):
+        line = _refused([str(a), str(b), str(tmp_path / twice), "-o", x], "given twice", capfd)
+        assert twice in line
+    for bad, words in ((junk, "not a PyTorch checkpoint"), (no_fusion, "missing key"),
+                       (nan, "NaN"), (tmp_path / "gone.pth", "not found"),
+                       (tmp_path / "folder.pth", "is a folder")):
+        line = _refused([str(a), str(bad), "-o", x], words, capfd)
+        assert f"error: {bad}: " in line
 
-    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+    assert not Path(x).exists()
 
 
 def test_overwrite_replaces_only_the_output(tmp_path: Path) -> None:
@@ -109,3 +149,16 @@ def test_overwrite_replaces_only_the_output(tmp_path: Path) -> None:
     assert main([str(a), str(b), "-o", str(out), "--overwrite", "-q"]) == 0
     load_model(out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pth", "avg.pth", "b.pth"]
+
+
+def test_help_does_not_import_torch() -> None:
+    """--help and argument errors must work (and fast) on an edge install without torch."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from msfnet.model.average import main\n"
+            "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "assert 'torch' not in sys.modules, 'torch imported'")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=False)
+    assert done.returncode == 0, done.stderr

@@ -27,3 +27,32 @@ def test_a_git_lfs_pointer_says_so(tmp_path: Path) -> None:
                     "oid sha256:" + "0" * 64 + "\nsize 123456\n")
     with pytest.raises(CheckpointError, match="Git LFS pointer"):
         read_state_dict(path)
+
+
+def test_a_folder_is_named_as_one(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointError, match="is a folder"):
+        read_state_dict(tmp_path)
+
+
+def test_pickled_objects_are_still_called_so(tmp_path: Path) -> None:
+    import pickle
+
+    path = tmp_path / "objects.pth"
+    path.write_bytes(pickle.dumps({"state_dict": {"w": Path("x")}}, protocol=2))
+    with pytest.raises(CheckpointError, match="pickled Python objects"):
+        read_state_dict(path)
+
+
+@pytest.mark.filterwarnings("ignore:Detected pickle protocol")
+@pytest.mark.parametrize("protocol", [0, 4, 5])
+def test_a_pickle_the_safe_reader_refuses_is_not_called_no_pickle(tmp_path: Path,
+                                                                   protocol: int) -> None:
+    """torch's weights-only reader says "Unsupported operand" both for bytes that are no pickle
+    and for pickle opcodes it lacks (protocol 0; FRAME of protocols 4-5)."""
+    import torch
+
+    path = tmp_path / "p.pth"
+    torch.save({"state_dict": {"w": torch.zeros(2)}}, path, pickle_protocol=protocol)
+    with pytest.raises(CheckpointError, match="a pickle that PyTorch's safe reader refuses "
+                                              r"\(Unsupported operand \d+\); refusing"):
+        read_state_dict(path)

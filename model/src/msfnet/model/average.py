@@ -9,55 +9,66 @@ fine-tune and the weights it started from.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from msfnet.runtime.cliutil import make_parser, run_command
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import check_output
 
-from .checkpoint import check_state_dict, read_state_dict, save_checkpoint
-from .network import MSFNet
+if TYPE_CHECKING:
+    import torch
 
 PROG = "msf-average"
 
 
 def average_state_dicts(paths: Sequence[str | Path]) -> dict[str, torch.Tensor]:
     """The element-wise mean of the checkpoints' floating-point tensors (accumulated in float64,
-    stored in float32; batch-norm running statistics are averaged like the weights); integer
-    tensors (batch-norm step counters) are taken from the first. Every checkpoint is checked
-    against the network first: CheckpointError names the one that does not fit."""
+    stored in float32); integer tensors (batch-norm step counters) are taken from the first.
+
+    Batch-norm running statistics are averaged like the weights, not re-estimated on data (the
+    snapshots of one fine-tune differ little). The network variant (the paper's ablations,
+    ``msf-train --no-mfe / --no-mff``) is read from the first file; every file must fit it and
+    hold finite numbers. Raises CheckpointError naming the file that does not.
+    """
+    import torch
+
+    from .checkpoint import CheckpointError, check_state_dict, network_for, read_state_dict
+
     if len(paths) < 2:
         raise ValueError("averaging needs at least two checkpoints")
-    reference = MSFNet().state_dict()
     total: dict[str, torch.Tensor] = {}
-    for path in paths:
-        state = read_state_dict(path)
-        check_state_dict(MSFNet(), state, path)
+    first = read_state_dict(paths[0])
+    network = network_for(first)
+    reference = network.state_dict()
+    for i, path in enumerate(paths):
+        state = first if i == 0 else read_state_dict(path)
+        check_state_dict(network, state, path)
         for key, value in state.items():
             if not reference[key].is_floating_point():
                 total.setdefault(key, value.clone())
-            elif key in total:
-                total[key] += value.double()
-            else:
-                total[key] = value.double()
-    return {k: (v / len(paths)).float() if reference[k].is_floating_point() else v
+                continue
+            if not bool(torch.isfinite(value).all()):
+                raise CheckpointError(f"{key} holds NaN or infinite values", path)
+            total[key] = total[key] + value.double() if key in total else value.double()
+    return {k: (v / len(paths)).float() if v.is_floating_point() else v
             for k, v in total.items()}
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = make_parser(
         PROG,
-        "Write one MSF-Net checkpoint whose weights are the mean of the given checkpoints' "
-        "(published {'state_dict': ...} format, for msf-export). Average snapshots of one run "
-        "(msf-train --snapshot-every) and score the result on real objects before using it.",
+        "Write one MSF-Net checkpoint whose weights are the mean of the given checkpoints'\n"
+        "(the published {'state_dict': ...} format, for msf-export). Average snapshots of one\n"
+        "run (msf-train --snapshot-every) and score the result on real objects before using\n"
+        "it; batch-norm statistics are averaged, not re-estimated.",
         ("msf-average runs/a/snap_0003500.pth runs/a/snap_0004500.pth -o runs/a/avg.pth",
          "msf-average runs/a/snap_*.pth -o avg.pth --fp16 && msf-export avg.pth -o avg.onnx"))
     p.add_argument("checkpoints", nargs="+", type=Path, metavar="CKPT",
-                   help="two or more checkpoints of the network (.pth)")
+                   help="two or more checkpoints of one network variant (.pth), each once")
     p.add_argument("-o", "--output", type=Path, required=True, help="checkpoint to write")
     p.add_argument("--fp16", action="store_true",
                    help="store the weights in half precision (half the size; loading casts "
@@ -66,15 +77,31 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _check_inputs(paths: Sequence[Path]) -> None:
+    """Two or more, and no file twice (a glob plus a name would weigh a snapshot double)."""
+    if len(paths) < 2:
+        raise InputError("averaging needs at least two checkpoints, got one", paths[0])
+    for i, path in enumerate(paths):
+        for earlier in paths[:i]:
+            try:
+                same = os.path.samefile(path, earlier)
+            except OSError:  # a missing file: the reader names it
+                same = False
+            if same:
+                raise InputError(f"the same file as {earlier}, given twice: each checkpoint "
+                                 "counts once", path)
+
+
 def _run(args: argparse.Namespace) -> int:
-    if len(args.checkpoints) < 2:
-        raise InputError("averaging needs at least two checkpoints, got one",
-                         args.checkpoints[0])
+    _check_inputs(args.checkpoints)
     check_output(args.output, args.checkpoints, overwrite=args.overwrite)
+    from .checkpoint import network_for, save_checkpoint
+
     state = average_state_dicts(args.checkpoints)
-    model = MSFNet()
+    model = network_for(state)
     model.load_state_dict(state, strict=True)
-    save_checkpoint(model, args.output, fp16=args.fp16)
+    save_checkpoint(model, args.output, fp16=args.fp16,
+                    averaged_from=[str(p) for p in args.checkpoints])
     if not args.quiet:
         print(f"wrote {args.output}: the mean of {len(args.checkpoints)} checkpoints' weights"
               + (" (fp16)" if args.fp16 else ""))

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import hashlib
 import pickle
+import pickletools
+import re
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -42,24 +44,14 @@ def sha256_of(path: str | Path) -> str:
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """The tensors of a checkpoint file, keys without ``module.`` prefixes."""
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError("is a folder, not a checkpoint file", path)
     if not path.is_file():
         raise CheckpointError("checkpoint file not found", path)
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        if _is_lfs_pointer(path):
-            raise CheckpointError("a Git LFS pointer, not the checkpoint itself (fetch it with "
-                                  "`git lfs pull`)", path) from exc
-        # torch's weights-only reader says "Unsupported operand" for bytes that are no pickle
-        # at all (a text file, an HTML error page): that is not a checkpoint, not a threat.
-        if "Unsupported operand" in str(exc):
-            raise CheckpointError("not a PyTorch checkpoint (neither a zip archive nor a "
-                                  "pickle)", path) from exc
-        if "weights_only" in str(exc) or "Unsupported global" in str(exc):
-            raise CheckpointError("holds pickled Python objects, not only tensors; refusing to "
-                                  "unpickle it (re-save it as a plain state_dict)", path) from exc
-        raise CheckpointError(f"not a PyTorch checkpoint ({first})", path) from exc
+        raise CheckpointError(_refusal(path, exc), path) from exc
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, KeyError,
             AttributeError, TypeError, IndexError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -71,6 +63,36 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         raise CheckpointError("does not hold a state_dict of tensors (expected "
                               "{'state_dict': {...}} or a bare state_dict)", path)
     return {_strip_prefix(str(k)): v for k, v in obj.items()}
+
+
+def _refusal(path: Path, exc: pickle.UnpicklingError) -> str:
+    """Why torch's weights-only reader refused the file, told from the file's own bytes: its
+    messages do not separate "no pickle at all" from "a pickle it does not support"."""
+    text = str(exc)
+    if _is_lfs_pointer(path):
+        return "a Git LFS pointer, not the checkpoint itself (fetch it with `git lfs pull`)"
+    if not zipfile.is_zipfile(path) and not _starts_with_a_pickle(path):
+        return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"
+    if "Unsupported global" in text:
+        return ("holds pickled Python objects, not only tensors; refusing to unpickle it "
+                "(re-save it as a plain state_dict)")
+    reason = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
+    detail = reason.group(1).strip()[:120] if reason else (text.strip().splitlines() or [""])[0]
+    return (f"a pickle that PyTorch's safe reader refuses ({detail}); refusing to unpickle it "
+            "(re-save the state_dict with torch.save's defaults)")
+
+
+def _starts_with_a_pickle(path: Path, limit: int = 1 << 20) -> bool:
+    """Whether the file opens with a complete pickle; pickletools only parses the opcodes,
+    nothing is built or run."""
+    with open(path, "rb") as f:
+        head = f.read(limit)
+    try:
+        for _ in pickletools.genops(head):
+            pass
+    except Exception:  # any parse failure means: not a pickle (truncated ones included)
+        return False
+    return True
 
 
 def _is_lfs_pointer(path: Path) -> bool:
@@ -100,6 +122,13 @@ def check_state_dict(model: torch.nn.Module, state: Mapping[str, torch.Tensor],
             problems.append(f"{len(keys)} {label} key(s): {shown}")
     if problems:
         raise CheckpointError("not an MSF-Net checkpoint: " + "; ".join(problems), source)
+
+
+def network_for(state: Mapping[str, torch.Tensor]) -> MSFNet:
+    """An untrained MSFNet of the variant whose keys ``state`` has (the paper's ablations drop
+    the later stages, ``--no-mfe``, or the fusion module, ``--no-mff``)."""
+    return MSFNet(mfe=any(k.startswith("extractor2.") for k in state),
+                  mff=any(k.startswith("fusion.") for k in state))
 
 
 def load_model(path: str | Path, **options: bool) -> MSFNet:
