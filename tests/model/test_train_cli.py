@@ -95,7 +95,7 @@ def test_train_refuses_before_training(case: str, tmp_path: Path, capfd) -> None
 
 def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> None:
     """--overwrite over an earlier run clears its files (and nothing else) before training."""
-    from msfnet.model import train_cli
+    from msfnet.model import train, train_cli
 
     out = _old_run(tmp_path, "best.pth", "curve.png", ".last.pth.msf-partial-1-x.pth")
     started = []
@@ -107,7 +107,7 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
         started.append(sorted(p.name for p in out.iterdir()))
         raise Stop
 
-    monkeypatch.setattr(train_cli, "Trainer", trainer)
+    monkeypatch.setattr(train, "Trainer", trainer)  # train_cli imports it when it starts
     with pytest.raises(Stop):
         train_cli._run(train_cli.build_parser().parse_args(["--out", str(out), "--overwrite"]),
                        None)

@@ -95,6 +95,14 @@ FAILURES: dict[str, tuple[BaseException, int, str, str]] = {
                     "nested"),
     "unexpected": (ZeroDivisionError("division by zero"), 1, "msf-x: internal error:",
                    "ZeroDivisionError"),
+    "optional package missing": (ModuleNotFoundError("No module named 'torch'", name="torch"),
+                                 2, "msf-x: error: needs the Python package 'torch'",
+                                 "pip install torch==2.13.0"),
+    "submodule of a missing package": (ModuleNotFoundError("x", name="depthai.node"), 2,
+                                       "msf-x: error: needs the Python package 'depthai'",
+                                       "msfnet[camera]"),
+    "own module missing (a bug)": (ModuleNotFoundError("x", name="msfnet.gone"), 1,
+                                   "msf-x: internal error:", "ModuleNotFoundError"),
 }
 
 
@@ -288,3 +296,17 @@ def test_calib_intrinsics_refused_before_any_work(tmp_path: Path, capfd) -> None
 def test_cliutil_exports() -> None:
     assert set(cliutil.__all__) >= {"run_command", "make_parser", "positive_float",
                                     "finite_float", "int_range", "add_common_flags"}
+
+
+@pytest.mark.parametrize("module", ["msfnet.model.train_cli", "msfnet.model.average",
+                                    "msfnet.export.cli", "msfnet.bench.cli"])
+def test_commands_needing_torch_parse_their_options_without_it(module: str) -> None:
+    """On the edge install (no torch) --help works and the work ends in one line, exit 2."""
+    import subprocess
+    import sys
+
+    code = (f"import sys\nsys.modules['torch'] = None\nfrom {module} import main\n"
+            "try:\n    main(['--help'])\nexcept SystemExit as exc:\n    sys.exit(exc.code)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          check=False, timeout=120)
+    assert done.returncode == 0 and "usage:" in done.stdout, done.stderr

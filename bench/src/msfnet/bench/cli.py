@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from msfnet.model.checkpoint import default_checkpoint_path
 from msfnet.runtime.cliutil import make_parser, positive_float, positive_int, run_command
 from msfnet.runtime.cpu import detect_cpu
 from msfnet.runtime.dispatch import choose_engine
@@ -155,7 +154,7 @@ def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str])
     import torch
 
     from msfnet.export.variants import export_variant
-    from msfnet.model.checkpoint import save_checkpoint
+    from msfnet.model.checkpoint import default_checkpoint_path, save_checkpoint
     from msfnet.model.network import MSFNet
 
     if args.random_weights and args.checkpoint is not None:

@@ -23,7 +23,7 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import STAGING_TAG, check_not_input
 from msfnet.synth.render import PRESETS
 
-from .train import SNAPSHOT, TrainConfig, Trainer, parse_curriculum
+from .train_config import SNAPSHOT, TrainConfig, parse_curriculum
 
 DEFAULTS = TrainConfig(out="")
 PROG = "msf-train"
@@ -259,6 +259,8 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         cfg = config_from(_explicit(argv), _stored_config(out))
     else:
         cfg = config_from(vars(args), {})
+    from .train import Trainer  # torch: only once the command line is known to be good
+
     trainer = Trainer(cfg, resume=resume)
     data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
     print(f"msf-train: {trainer.device.type}, "

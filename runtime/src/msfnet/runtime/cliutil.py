@@ -131,6 +131,24 @@ def add_common_flags(p: argparse.ArgumentParser) -> None:
                    help="show Python tracebacks instead of one-line errors")
 
 
+# The optional parts of the toolkit and how to get them (pyproject.toml's extras); torch comes
+# first as the local CPU wheel, so pip never pulls a CUDA build.
+_INSTALL = {
+    "torch": "pip install torch==2.13.0 (the CPU wheel), then pip install 'msfnet[export,train]'",
+    "onnx": "pip install 'msfnet[export]'",
+    "onnxslim": "pip install 'msfnet[export]'",
+    "openvino": "pip install 'msfnet[openvino]'",
+    "depthai": "pip install 'msfnet[camera]'",
+    "serial": "pip install 'msfnet[camera]'",
+    "ray": "pip install 'msfnet[ray]'",
+}
+
+
+def install_hint(module: str) -> str:
+    """The command that installs ``module`` (a top-level import name) for msfnet."""
+    return _INSTALL.get(module, f"pip install {module}")
+
+
 def _left_behind() -> str:
     done = written_outputs()
     if not done:
@@ -201,10 +219,15 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
     except Exception as exc:
         if debug:
             raise
+        missing = (exc.name or "").partition(".")[0] if isinstance(
+            exc, ModuleNotFoundError) else ""
+        if missing and missing != "msfnet":  # an optional dependency, not a bug of ours
+            return fail(f"error: needs the Python package {missing!r}, which is not "
+                        f"installed: {install_hint(missing)}", 2)
         return fail(f"internal error: {type(exc).__name__}: {first_line(exc)} (run with "
                     "--debug for the traceback; please report it)", 1)
 
 
-__all__ = ["Parser", "add_common_flags", "finite_float", "float_range", "int_range",
-           "make_parser", "nonnegative_float", "nonnegative_int", "positive_float",
+__all__ = ["Parser", "add_common_flags", "finite_float", "float_range", "install_hint",
+           "int_range", "make_parser", "nonnegative_float", "nonnegative_int", "positive_float",
            "positive_int", "run_command"]
