@@ -503,3 +503,33 @@ def test_an_output_replaced_again_counts_once(tmp_path: Path) -> None:
     write_text(tmp_path / "other.txt", "x")
     assert written_outputs() == [tmp_path / "last.txt", tmp_path / "other.txt"]
     files.forget_written()
+
+
+@pytest.mark.parametrize("kind", ["write_atomic", "staged_folder", "staged_files",
+                                  "scratch_folder"])
+def test_a_staging_place_refused_names_the_output(kind: str, tmp_path: Path,
+                                                  monkeypatch) -> None:
+    """A folder where no temporary can be made (read-only or pseudo file system, e.g. /proc):
+    the error is about the output the user named, not the hidden temporary beside it."""
+    import errno
+    import tempfile
+
+    from msfnet.runtime import files
+
+    def refuse(*_a: object, prefix: str = "", dir: str = "", **_k: object) -> object:
+        raise OSError(errno.EROFS, "Read-only file system", f"{dir}/{prefix}xyz")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    target = tmp_path / "out.txt"
+    with pytest.raises(OSError) as exc:
+        if kind == "write_atomic":
+            files.write_atomic(target, lambda p: p.write_text("x"))
+        elif kind == "staged_files":
+            with files.staged_files([target]):
+                pass
+        else:
+            with getattr(files, kind)(target):
+                pass
+    assert exc.value.filename == str(target) and exc.value.errno == errno.EROFS
+    assert list(tmp_path.iterdir()) == []

@@ -360,6 +360,20 @@ def _staging_name(target: Path) -> str:
     return f".{target.name}{STAGING_TAG}{os.getpid()}-"
 
 
+def _new_staging(target: Path, *, folder: bool) -> Path:
+    """A fresh staging folder, or empty file (0600), beside ``target``; a failure (a read-only
+    or pseudo file system) names the target the user gave, not the temporary name."""
+    try:
+        if folder:
+            return Path(tempfile.mkdtemp(prefix=_staging_name(target), dir=target.parent))
+        fd, name = tempfile.mkstemp(prefix=_staging_name(target), suffix=target.suffix,
+                                    dir=target.parent)
+        os.close(fd)
+        return Path(name)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(target)) from exc
+
+
 @contextmanager
 def scratch_folder(target: str | Path) -> Iterator[Path]:
     """A private empty folder beside ``target`` for intermediate files of the command writing
@@ -374,7 +388,7 @@ def scratch_folder(target: str | Path) -> Iterator[Path]:
     target = Path(target)
     created = _make_parents(target)
     remove_stale_staging(target)
-    tmp = Path(tempfile.mkdtemp(prefix=_staging_name(target), dir=target.parent))
+    tmp = _new_staging(target, folder=True)
     try:
         yield tmp
     finally:
@@ -395,10 +409,7 @@ def write_atomic(path: str | Path, write: Callable[[Path], object], *,
     path = Path(path)
     created = _make_parents(path)
     remove_stale_staging(path)
-    fd, tmp_name = tempfile.mkstemp(prefix=_staging_name(path), suffix=path.suffix,
-                                    dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    tmp = _new_staging(path, folder=False)
     done = False
     try:
         write(tmp)
@@ -476,7 +487,7 @@ def staged_folder(outdir: str | Path, *, overwrite: bool = False) -> Iterator[Pa
     outdir = Path(outdir)
     created = _make_parents(outdir)
     remove_stale_staging(outdir)
-    tmp = Path(tempfile.mkdtemp(prefix=_staging_name(outdir), dir=outdir.parent))
+    tmp = _new_staging(outdir, folder=True)
     done = False
     try:
         tmp.chmod(0o777 & ~_umask())
@@ -511,7 +522,7 @@ def _commit(tmp: Path, outdir: Path, overwrite: bool) -> None:
                 raise InputError("output folder appeared while running (another command wrote "
                                  "it?); pass --overwrite to replace it", outdir)
             refuse_foreign(outdir)
-        old = Path(tempfile.mkdtemp(prefix=_staging_name(outdir), dir=outdir.parent))
+        old = _new_staging(outdir, folder=True)
         os.replace(outdir, old / "old")
     try:
         os.replace(tmp, outdir)
@@ -547,10 +558,7 @@ def staged_files(targets: Sequence[str | Path], *, overwrite: bool = False
         for path in paths:
             created += _make_parents(path)
             remove_stale_staging(path)
-            fd, name = tempfile.mkstemp(prefix=_staging_name(path), suffix=path.suffix,
-                                        dir=path.parent)
-            os.close(fd)
-            temps.append(Path(name))
+            temps.append(_new_staging(path, folder=False))
         yield list(temps)
         for tmp in temps:
             os.chmod(tmp, 0o666 & ~_umask())
