@@ -1,6 +1,5 @@
-"""msf-bench against the issue-13 rules: options are checked by argparse before any
-benchmarking. msf-bench is not on the shared helpers yet (out of this change's scope): strict
-xfails, to be dropped when it is."""
+"""msf-bench against the reliability rules: options are checked by argparse, and a missing
+torch is found, before any benchmarking or writing."""
 
 from __future__ import annotations
 
@@ -9,8 +8,6 @@ import pytest
 pytest.importorskip("torch")
 
 from msfnet.bench import cli
-
-PENDING = "msf-bench options are plain float/str, parsed inside the benchmark (issue 13)"
 
 
 @pytest.mark.parametrize("option", [["--max-memory", "nan"], ["--max-memory", "-1"],
@@ -26,3 +23,18 @@ def test_options_are_refused_before_benchmarking(option: list[str], tmp_path, mo
     assert exc.value.code == 2
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and option[0] in err[0], err
+
+
+def test_without_torch_nothing_is_written_or_printed_but_one_line(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    code = ("import sys\nsys.modules['torch'] = None\n"
+            "from msfnet.bench.cli import main\nsys.exit(main(sys.argv[1:]))")
+    done = subprocess.run([sys.executable, "-c", code, "--quick", "--report-dir",
+                           str(tmp_path / "r")], capture_output=True, text=True, check=False,
+                          timeout=120, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "needs the Python package 'torch'" in lines[0], lines
+    assert done.stdout == "" and list(tmp_path.iterdir()) == []

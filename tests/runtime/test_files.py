@@ -533,3 +533,17 @@ def test_a_staging_place_refused_names_the_output(kind: str, tmp_path: Path,
                 pass
     assert exc.value.filename == str(target) and exc.value.errno == errno.EROFS
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("name", ["a" * 246 + ".pth", "é" * 120 + ".npy", "x." + "b" * 250])
+def test_a_long_legal_output_name_is_written(name: str, tmp_path: Path) -> None:
+    """The staging name adds ~30 bytes; a legal name of up to 255 bytes must still work, and
+    a stale staging file of a killed writer of that name is still found."""
+    target = tmp_path / name
+    stale = files._new_staging(target, folder=False)
+    stale.rename(stale.with_name(stale.name.replace(f"{os.getpid()}-", "999999999-", 1)))
+    files.write_atomic(target, lambda p: p.write_text("ok"))
+    with files.staged_folder(tmp_path / ("d" * 250)) as folder:
+        (folder / "f.txt").write_text("ok")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, "d" * 250])
+    assert target.read_text() == "ok"

@@ -367,6 +367,11 @@ def _mae(normals: np.ndarray, stack) -> float | None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    # The models are exported with torch and onnx: find them missing before anything is
+    # written or printed.
+    import onnx  # noqa: F401
+    import torch  # noqa: F401
+
     report = args.report_dir / "REPORT.md"
     if report.exists() and not args.overwrite:
         raise InputError("report exists; pass --overwrite to replace it", report)

@@ -236,6 +236,10 @@ def _prepare_out(args: argparse.Namespace) -> None:
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+    # torch now, after the options were checked and before OUT is touched: a missing torch
+    # must not cost an earlier run's files (--overwrite, --resume clean up first)
+    from .train import Trainer
+
     out: Path = args.out
     _prepare_out(args)
     resume = args.resume and (out / "last.pth").is_file() and (out / "last_state.pth").is_file()
@@ -259,8 +263,6 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         cfg = config_from(_explicit(argv), _stored_config(out))
     else:
         cfg = config_from(vars(args), {})
-    from .train import Trainer  # torch: only once the command line is known to be good
-
     trainer = Trainer(cfg, resume=resume)
     data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
     print(f"msf-train: {trainer.device.type}, "

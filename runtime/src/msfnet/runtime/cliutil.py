@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import math
 import os
 import re
@@ -131,22 +132,36 @@ def add_common_flags(p: argparse.ArgumentParser) -> None:
                    help="show Python tracebacks instead of one-line errors")
 
 
-# The optional parts of the toolkit and how to get them (pyproject.toml's extras); torch comes
-# first as the local CPU wheel, so pip never pulls a CUDA build.
-_INSTALL = {
-    "torch": "pip install torch==2.13.0 (the CPU wheel), then pip install 'msfnet[export,train]'",
-    "onnx": "pip install 'msfnet[export]'",
-    "onnxslim": "pip install 'msfnet[export]'",
-    "openvino": "pip install 'msfnet[openvino]'",
-    "depthai": "pip install 'msfnet[camera]'",
-    "serial": "pip install 'msfnet[camera]'",
-    "ray": "pip install 'msfnet[ray]'",
-}
+# Optional packages (pyproject.toml's extras) by import name -> the extra that brings them.
+_EXTRAS = {"torch": "export,train", "onnx": "export", "onnxslim": "export",
+           "openvino": "openvino", "depthai": "camera", "serial": "camera", "ray": "ray"}
 
 
 def install_hint(module: str) -> str:
-    """The command that installs ``module`` (a top-level import name) for msfnet."""
-    return _INSTALL.get(module, f"pip install {module}")
+    """How to install the optional package imported as ``module`` (a top-level name)."""
+    extra = _EXTRAS.get(module)
+    if extra is None:
+        return f"pip install {module}"
+    how = f"pip install 'msfnet[{extra}]' (in a checkout: pip install -e '.[{extra}]')"
+    if module == "torch":  # PyPI's default torch for Linux is the multi-GB CUDA build
+        how = ("pip install torch --index-url https://download.pytorch.org/whl/cpu (the CPU "
+               "build), then " + how)
+    return how
+
+
+def _missing_optional(exc: BaseException) -> str | None:
+    """The optional package whose absence raised ``exc``, or None: a module missing inside an
+    installed package (a broken install) or any other missing module stays an internal error."""
+    if not isinstance(exc, ModuleNotFoundError) or not exc.name:
+        return None
+    top = exc.name.partition(".")[0]
+    if top not in _EXTRAS:
+        return None
+    try:
+        present = importlib.util.find_spec(top) is not None
+    except (ImportError, ValueError):
+        present = False
+    return None if present else top
 
 
 def _left_behind() -> str:
@@ -219,9 +234,8 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
     except Exception as exc:
         if debug:
             raise
-        missing = (exc.name or "").partition(".")[0] if isinstance(
-            exc, ModuleNotFoundError) else ""
-        if missing and missing != "msfnet":  # an optional dependency, not a bug of ours
+        missing = _missing_optional(exc)
+        if missing:  # an optional part not installed, not a bug of ours
             return fail(f"error: needs the Python package {missing!r}, which is not "
                         f"installed: {install_hint(missing)}", 2)
         return fail(f"internal error: {type(exc).__name__}: {first_line(exc)} (run with "

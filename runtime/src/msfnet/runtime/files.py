@@ -344,7 +344,7 @@ def remove_stale_staging(target: Path) -> None:
     parent = target.parent
     if not parent.is_dir():
         return
-    prefix = f".{target.name}{STAGING_TAG}"
+    prefix = f".{_short(target.name)}{STAGING_TAG}"
     for entry in parent.iterdir():
         if not entry.name.startswith(prefix):
             continue
@@ -356,8 +356,22 @@ def remove_stale_staging(target: Path) -> None:
                 entry.unlink(missing_ok=True)
 
 
+def _short(name: str, limit: int = 150) -> str:
+    """``name`` cut to ``limit`` bytes: a staging name adds ~30 characters and a suffix, and a
+    legal 250-byte output name must not fail as "File name too long"."""
+    raw = os.fsencode(name)
+    if len(raw) <= limit:
+        return name
+    for end in range(limit, limit - 4, -1):  # not inside a multi-byte character
+        try:
+            return raw[:end].decode("utf-8")
+        except UnicodeDecodeError:
+            continue
+    return os.fsdecode(raw[:limit])
+
+
 def _staging_name(target: Path) -> str:
-    return f".{target.name}{STAGING_TAG}{os.getpid()}-"
+    return f".{_short(target.name)}{STAGING_TAG}{os.getpid()}-"
 
 
 def _new_staging(target: Path, *, folder: bool) -> Path:
@@ -366,7 +380,9 @@ def _new_staging(target: Path, *, folder: bool) -> Path:
     try:
         if folder:
             return Path(tempfile.mkdtemp(prefix=_staging_name(target), dir=target.parent))
-        fd, name = tempfile.mkstemp(prefix=_staging_name(target), suffix=target.suffix,
+        # the suffix stays (writers such as OpenCV pick the format by it), unless absurd
+        suffix = target.suffix if len(os.fsencode(target.suffix)) <= 32 else ""
+        fd, name = tempfile.mkstemp(prefix=_staging_name(target), suffix=suffix,
                                     dir=target.parent)
         os.close(fd)
         return Path(name)
