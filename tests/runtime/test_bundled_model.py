@@ -83,3 +83,18 @@ def test_bundled_model_beats_least_squares_on_each_validation_object(name: str) 
     # the claim, with room for engine and precision differences (bf16 vs fp32: < 0.1 deg)
     assert net.mae_deg < 0.75 * ls.mae_deg
     assert net.mae_deg == pytest.approx(model_mae, abs=0.3)
+
+
+def test_the_bundled_onnx_was_exported_from_the_bundled_checkpoint() -> None:
+    """The two bundled files are one model: the ONNX file records the sha256 of the checkpoint
+    it was exported from (a new checkpoint without a new export, or the reverse, fails here)."""
+    import hashlib
+
+    onnx = pytest.importorskip("onnx")
+    checkpoint = (Path(__file__).resolve().parents[2] / "model" / "src" / "msfnet" / "model"
+                  / "weights" / "msfnet_default.pth")
+    if not checkpoint.is_file():
+        pytest.skip("no checkout: the wheel ships only the ONNX file")
+    meta = {p.key: p.value for p in onnx.load(str(default_model_path()),
+                                              load_external_data=False).metadata_props}
+    assert meta["msfnet.checkpoint_sha256"] == hashlib.sha256(checkpoint.read_bytes()).hexdigest()

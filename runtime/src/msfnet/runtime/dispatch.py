@@ -36,14 +36,14 @@ machine is shared, so ratios, not seconds):
     OpenVINO int8 staged opt-in    0.673 / 2.93     0.917 / 4.88      4.13;  4.10
 
 (The model of 2026-11-22, measured the same way: int8 0.71 / 0.94 deg mean, bf16 0.08 / 0.07.)
-The previous bundled model (CPU-trained) stayed within the bound in int8 (ORT 0.32 / 0.44 deg
-mean); the sharper H100-trained model does not (calibrating on all six psmImages objects made it
-worse, 0.86 deg on held-out calibration tiles), so int8 is now opt-in everywhere and an int8
-export runs only when asked for (rule 2: an int8 file is itself the request). OpenVINO bf16 is
-the fastest path and 10x closer to fp32 than int8. Plain OpenVINO bf16 beat staged in every run
-so far (here by 1.1-1.35x; 1.5-2x in an earlier interleaved run): staged graphs save memory, not
-time, on this engine. The field notes measured OpenVINO bf16 at 3.31x ORT fp32 (0.087 deg mean)
-on Zen 5 (avx512_bf16, no AMX).
+The CPU-trained model bundled before 2026-11-22 stayed within the bound in int8 (ORT 0.32 / 0.44 deg
+mean); the sharper H100-trained models since 2026-11-22 do not (for that one, calibrating on all
+six psmImages objects made it worse, 0.86 deg on held-out calibration tiles), so int8 is now
+opt-in everywhere and an int8 export runs only when asked for (rule 2: an int8 file is itself
+the request). OpenVINO bf16 is the fastest path and 7-12x closer to fp32 than int8. Plain
+OpenVINO bf16 beat staged in every run so far (here by 1.1-1.35x; 1.5-2x in an earlier
+interleaved run): staged graphs save memory, not time, on this engine. The field notes measured
+OpenVINO bf16 at 3.31x ORT fp32 (0.087 deg mean) on Zen 5 (avx512_bf16, no AMX).
 """
 
 from __future__ import annotations
