@@ -1,7 +1,10 @@
-"""Helpers for the runtime tests: a small synthetic stack and a random-weight ONNX model."""
+"""Helpers for the tests: a small synthetic stack, a random-weight ONNX model, a command run
+without torch."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -136,3 +139,13 @@ def write_npz_bomb(path: Path, descr: str, shape: tuple[int, ...], zeros_mb: int
         with z.open("lights.npy", "w") as f:
             np.save(f, np.eye(3, dtype=np.float32))
     return path
+
+
+def run_without_torch(cli_module: str, argv: list[str], cwd: Path | None = None
+                      ) -> subprocess.CompletedProcess[str]:
+    """Run ``cli_module``'s main(argv) in a fresh interpreter where ``import torch`` fails, as
+    on the edge install (torch is installed here, so it is blocked, not removed)."""
+    code = (f"import sys\nsys.modules['torch'] = None\nfrom {cli_module} import main\n"
+            "sys.exit(main(sys.argv[1:]))")
+    return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
+                          check=False, timeout=120, cwd=cwd)

@@ -26,14 +26,10 @@ def test_options_are_refused_before_benchmarking(option: list[str], tmp_path, mo
 
 
 def test_without_torch_nothing_is_written_or_printed_but_one_line(tmp_path) -> None:
-    import subprocess
-    import sys
+    from _runtime_helpers import run_without_torch
 
-    code = ("import sys\nsys.modules['torch'] = None\n"
-            "from msfnet.bench.cli import main\nsys.exit(main(sys.argv[1:]))")
-    done = subprocess.run([sys.executable, "-c", code, "--quick", "--report-dir",
-                           str(tmp_path / "r")], capture_output=True, text=True, check=False,
-                          timeout=120, cwd=tmp_path)
+    done = run_without_torch("msfnet.bench.cli", ["--quick", "--report-dir", str(tmp_path / "r")],
+                             cwd=tmp_path)
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "needs the Python package 'torch'" in lines[0], lines

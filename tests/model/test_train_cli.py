@@ -126,15 +126,11 @@ def test_negative_grad_loss_is_an_option_error(tmp_path: Path, capfd) -> None:
 @pytest.mark.parametrize("mode", ["--overwrite", "--resume"])
 def test_without_torch_an_earlier_run_is_left_alone(tmp_path: Path, mode: str) -> None:
     """On an install without torch msf-train says so in one line before it clears OUT."""
-    import subprocess
-    import sys
+    from _runtime_helpers import run_without_torch
 
     out = _old_run(tmp_path, "best.pth", "snap_0000100.pth")
     before = _files(out)
-    code = ("import sys\nsys.modules['torch'] = None\n"
-            "from msfnet.model.train_cli import main\nsys.exit(main(sys.argv[1:]))")
-    done = subprocess.run([sys.executable, "-c", code, "--out", str(out), mode],
-                          capture_output=True, text=True, check=False, timeout=120)
+    done = run_without_torch("msfnet.model.train_cli", ["--out", str(out), mode])
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "needs the Python package 'torch'" in lines[0], lines

@@ -9,7 +9,6 @@ fine-tune and the weights it started from.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from msfnet.runtime.cliutil import make_parser, run_command
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import check_output
+from msfnet.runtime.files import check_output, same_file
 
 if TYPE_CHECKING:
     import torch
@@ -83,11 +82,7 @@ def _check_inputs(paths: Sequence[Path]) -> None:
         raise InputError("averaging needs at least two checkpoints, got one", paths[0])
     for i, path in enumerate(paths):
         for earlier in paths[:i]:
-            try:
-                same = os.path.samefile(path, earlier)
-            except OSError:  # a missing file: the reader names it
-                same = False
-            if same:
+            if same_file(path, earlier):  # a missing file: the reader names it later
                 raise InputError(f"the same file as {earlier}, given twice: each checkpoint "
                                  "counts once", path)
 

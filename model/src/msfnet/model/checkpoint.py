@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from msfnet.runtime.errors import InputError
+from msfnet.runtime.errors import InputError, first_line
 from msfnet.runtime.files import write_atomic
 
 from .network import MSFNet
@@ -54,8 +54,8 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         raise CheckpointError(_refusal(path, exc), path) from exc
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, KeyError,
             AttributeError, TypeError, IndexError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise CheckpointError(f"not a readable PyTorch checkpoint ({first[:200]})", path) from exc
+        raise CheckpointError(f"not a readable PyTorch checkpoint ({first_line(exc)})",
+                              path) from exc
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]
     if not isinstance(obj, Mapping) or not obj or not all(
@@ -69,35 +69,30 @@ def _refusal(path: Path, exc: pickle.UnpicklingError) -> str:
     """Why torch's weights-only reader refused the file, told from the file's own bytes: its
     messages do not separate "no pickle at all" from "a pickle it does not support"."""
     text = str(exc)
-    if _is_lfs_pointer(path):
+    with open(path, "rb") as f:
+        head = f.read(1 << 20)  # a legacy checkpoint's first pickle is far smaller
+    if head.startswith(b"version https://git-lfs"):
         return "a Git LFS pointer, not the checkpoint itself (fetch it with `git lfs pull`)"
-    if not zipfile.is_zipfile(path) and not _starts_with_a_pickle(path):
+    if not zipfile.is_zipfile(path) and not _is_a_pickle(head):
         return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"
     if "Unsupported global" in text:
         return ("holds pickled Python objects, not only tensors; refusing to unpickle it "
                 "(re-save it as a plain state_dict)")
     reason = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
-    detail = reason.group(1).strip()[:120] if reason else (text.strip().splitlines() or [""])[0]
+    detail = reason.group(1).strip()[:120] if reason else first_line(exc, 120)
     return (f"a pickle that PyTorch's safe reader refuses ({detail}); refusing to unpickle it "
             "(re-save the state_dict with torch.save's defaults)")
 
 
-def _starts_with_a_pickle(path: Path, limit: int = 1 << 20) -> bool:
-    """Whether the file opens with a complete pickle; pickletools only parses the opcodes,
+def _is_a_pickle(head: bytes) -> bool:
+    """Whether ``head`` opens with a complete pickle; pickletools only parses the opcodes,
     nothing is built or run."""
-    with open(path, "rb") as f:
-        head = f.read(limit)
     try:
         for _ in pickletools.genops(head):
             pass
     except Exception:  # any parse failure means: not a pickle (truncated ones included)
         return False
     return True
-
-
-def _is_lfs_pointer(path: Path) -> bool:
-    with open(path, "rb") as f:
-        return f.read(64).startswith(b"version https://git-lfs")
 
 
 def _strip_prefix(key: str) -> str:

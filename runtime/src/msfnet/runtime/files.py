@@ -278,12 +278,12 @@ def check_output(target: str | Path, inputs: Iterable[str | Path | None] = (), *
     return target
 
 
-def _same_file(a: Path, b: Path) -> bool:
-    """Two names of one file (a hard link): replacing one would still be writing "over" the
-    input, as a user sees it."""
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """Two names of one file (a hard link, a symlink): replacing one would still be writing
+    "over" the other, as a user sees it. False when either does not exist (yet)."""
     try:
         return os.path.samefile(a, b)
-    except OSError:  # one of them does not exist (yet)
+    except OSError:
         return False
 
 
@@ -297,7 +297,7 @@ def check_not_input(target: str | Path, inputs: Iterable[str | Path | None] = ()
         if item is None:
             continue
         src = _resolved(Path(item))
-        if real == src or _same_file(real, src):
+        if real == src or same_file(real, src):
             raise InputError("the output would replace an input; choose another output path",
                              target)
         if _is_within(src, real):
@@ -344,7 +344,7 @@ def remove_stale_staging(target: Path) -> None:
     parent = target.parent
     if not parent.is_dir():
         return
-    prefix = f".{_short(target.name)}{STAGING_TAG}"
+    prefix = _staging_prefix(target)
     for entry in parent.iterdir():
         if not entry.name.startswith(prefix):
             continue
@@ -370,8 +370,13 @@ def _short(name: str, limit: int = 150) -> str:
     return os.fsdecode(raw[:limit])
 
 
+def _staging_prefix(target: Path) -> str:
+    """What every staging name beside ``target`` starts with; the writer's pid follows."""
+    return f".{_short(target.name)}{STAGING_TAG}"
+
+
 def _staging_name(target: Path) -> str:
-    return f".{_short(target.name)}{STAGING_TAG}{os.getpid()}-"
+    return f"{_staging_prefix(target)}{os.getpid()}-"
 
 
 def _new_staging(target: Path, *, folder: bool) -> Path:
@@ -632,7 +637,8 @@ def numbered_folder(base: str | Path) -> Path:
     return base.with_name(f"{base.name}-{i}")
 
 
-__all__ = ["MANIFEST", "Terminated", "check_not_input", "check_output", "forget_written",
-           "install_signal_handlers", "json_text", "numbered_folder", "remove_stale_staging",
-           "scratch_folder", "staged_files", "staged_folder", "to_jsonable", "vectors_text",
-           "write_atomic", "write_json", "write_text", "write_vectors", "written_outputs"]
+__all__ = ["MANIFEST", "Terminated", "check_not_input", "check_output",
+           "forget_written", "install_signal_handlers", "json_text", "numbered_folder",
+           "remove_stale_staging", "same_file", "scratch_folder", "staged_files",
+           "staged_folder", "to_jsonable", "vectors_text", "write_atomic", "write_json",
+           "write_text", "write_vectors", "written_outputs"]
