@@ -12,7 +12,9 @@ from msfnet.calib.cameras import SimulatedCamera
 from msfnet.calib.capture import capture_stack, exposure_check
 from msfnet.calib.lights import ManualLights, SerialLights, SimulatedLights, SimulatedRig
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.stack import load_stack
+from msfnet.runtime.least_squares import least_squares_normals
+from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.stack import load_stack, save_stack
 from msfnet.synth import spheres as S
 
 
@@ -61,13 +63,10 @@ def test_capture_calibrate_resume_load(tmp_path, rng):
     # 3. The runtime reads the stack; plain least squares gives the sphere's normals.
     stack = load_stack(out)
     assert stack.num_lights == 10 and stack.mask.sum() == mask.sum()
-    assert np.degrees(np.arccos(np.clip((stack.lights * lights).sum(1), -1, 1))).max() < 0.5
-    img = (stack.images / stack.intensities[:, None, None, :]).mean(-1)  # (N, H, W)
+    assert angular_error_deg(stack.lights, lights).max() < 0.5
     gt = S.sphere_normals(rig.scene)
     lit = (np.einsum("hwc,nc->nhw", gt, lights) > 0.05).all(0) & stack.mask
-    b = np.linalg.lstsq(stack.lights, img[:, lit], rcond=None)[0].T
-    n = b / np.linalg.norm(b, axis=1, keepdims=True)
-    err = np.degrees(np.arccos(np.clip((n * gt[lit]).sum(1), -1, 1)))
+    err = angular_error_deg(least_squares_normals(stack)[lit], gt[lit])
     print(f"LS normals from the captured stack: mean {err.mean():.2f} deg over {lit.sum()} px")
     assert lit.sum() > 2000 and err.mean() < 1.5
     # Resuming a finished session captures nothing and rebuilds the same stack.
@@ -75,6 +74,47 @@ def test_capture_calibrate_resume_load(tmp_path, rng):
     capture_stack(cam2, SimulatedLights(rig), out, light_directions=write, progress=False,
                   log=lambda m: None)
     assert cam2.count == 0
+
+
+def _small_capture(out, normals=None, log=lambda m: None):
+    rig = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(6),
+                       np.linspace(0.8, 1.2, 18).reshape(6, 3))
+    gt = S.sphere_normals(rig.scene) if normals is None else normals
+    return capture_stack(SimulatedCamera(rig), SimulatedLights(rig), out,
+                         light_directions=rig.lights, light_intensities=rig.intensities,
+                         mask=S.sphere_masks(rig.scene)[0], normals_gt=gt, progress=False,
+                         log=log)
+
+
+def test_capture_writes_the_files_save_stack_writes(tmp_path):
+    """One stack writer: a captured stack, loaded and saved again, gives the same files."""
+    out = _small_capture(tmp_path / "cap")
+    stack = load_stack(out)
+    again = save_stack(stack, tmp_path / "saved")
+    for name in ("filenames.txt", "light_directions.txt", "light_intensities.txt", "mask.png",
+                 *stack.filenames):
+        assert (out / name).read_bytes() == (again / name).read_bytes(), name
+    assert (out / "Normal_gt.mat").is_file() and not (out / "Normal_gt.npy").exists()
+    np.testing.assert_array_equal(load_stack(again).normals_gt, stack.normals_gt)
+
+
+def test_resume_keeps_an_older_captures_npy_ground_truth(tmp_path):
+    out = _small_capture(tmp_path / "cap")
+    before = load_stack(out)
+    # the layout earlier msf-capture versions wrote: Normal_gt.npy (float32)
+    (out / "Normal_gt.mat").unlink()
+    np.save(out / "Normal_gt.npy", before.normals_gt)
+    stamps = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    logs = []
+    _small_capture(out, log=logs.append)  # finished: nothing captured, nothing rewritten
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == stamps
+    assert not any(m.startswith("updated") for m in logs)
+    np.testing.assert_array_equal(load_stack(out).normals_gt, before.normals_gt)
+    # new ground truth goes through the stack writer; the old file does not linger
+    flat = np.where(before.mask[..., None], np.float32([0, 0, 1]), 0).astype(np.float32)
+    _small_capture(out, normals=flat)
+    assert (out / "Normal_gt.mat").is_file() and not (out / "Normal_gt.npy").exists()
+    np.testing.assert_array_equal(load_stack(out).normals_gt, flat)
 
 
 def test_exposure_checks():

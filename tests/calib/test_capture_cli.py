@@ -12,16 +12,13 @@ import pytest
 from msfnet.calib.capture_cli import main as capture_main
 from msfnet.calib.cli import main as calib_main
 from msfnet.runtime.imageio import read_image
+from msfnet.runtime.metrics import angular_error_deg
 from msfnet.runtime.run_cli import main as run_main
 from msfnet.runtime.stack import load_stack, read_vectors
 from msfnet.runtime.stack.transforms import srgb_to_linear
 from msfnet.synth.spheres import ring_lights
 
 SIM = ["--camera", "sim", "-q"]
-
-
-def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.degrees(np.arccos(np.clip((a * b).sum(1), -1, 1)))
 
 
 def _rehearse(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -37,7 +34,7 @@ def test_no_hardware_rehearsal_through_the_clis(tmp_path: Path,
                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     _rehearse(tmp_path, monkeypatch)
     calibrated = read_vectors(tmp_path / "lights.txt", "light directions")
-    err = _angles(calibrated, ring_lights(12))
+    err = angular_error_deg(calibrated, ring_lights(12))
     print(f"calibrated lights vs the rig's: mean {err.mean():.3f}, max {err.max():.3f} deg")
     assert err.max() < 1.0
     stack = load_stack(tmp_path / "obj")

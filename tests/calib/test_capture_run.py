@@ -15,7 +15,7 @@ def test_capture_then_run_with_the_simulated_rig(tmp_path: Path, capsys) -> None
             "--run", "--method", "l2", "-o", str(out)]
     assert capture_main(args) == 0, capsys.readouterr().err
     assert (stack_dir / "light_directions.txt").is_file()
-    normals = np.load(out / "normals.npy")
+    normals = np.load(out / "normals.npy", allow_pickle=False)
     assert normals.shape[2] == 3 and np.isfinite(normals).all()
     lit = np.linalg.norm(normals, axis=2) > 0.5
     assert lit.sum() > 1000  # the sphere was reconstructed, not an empty map

@@ -12,13 +12,9 @@ from msfnet.calib import cli
 from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions
 from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 from msfnet.runtime.imageio import list_images, read_image, read_mask
+from msfnet.runtime.metrics import angular_error_deg
 from msfnet.runtime.stack import read_vectors
 from msfnet.synth import spheres as S
-
-
-def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), (a * b).sum(1)))
 
 
 def render_stack(scene, lights, gain, bloom=0.0, noise=1.0):
@@ -39,7 +35,7 @@ def test_orthographic_saturated_with_bloom():
     circles = fit_circles_from_mask(S.sphere_masks(scene)[0])
     assert abs(circles[0].r - 80) < 0.3 and abs(circles[0].cx - 94.5) < 0.2
     res = estimate_directions([imgs], [circles])
-    err = angles(res.directions, lights)
+    err = angular_error_deg(res.directions, lights)
     print(f"synthetic orthographic, saturated + bloom: mean {err.mean():.3f} "
           f"max {err.max():.3f} deg")
     assert err.max() < 0.5
@@ -69,11 +65,11 @@ def test_perspective_unsaturated():
     imgs = render_stack(scene, lights, gain=0.02)  # peak just at the white level
     circles = fit_circles_from_mask(S.sphere_masks(scene)[0])
     intr = Intrinsics(250.0, 250.0, *scene.camera.centre)
-    err = angles(estimate_directions([imgs], [circles], intr).directions, lights)
+    err = angular_error_deg(estimate_directions([imgs], [circles], intr).directions, lights)
     print(f"synthetic perspective f=250: mean {err.mean():.3f} max {err.max():.3f} deg")
     assert err.max() < 0.5
     # Ignoring the perspective is measurably worse (this is what --focal is for).
-    err_ortho = angles(estimate_directions([imgs], [circles]).directions, lights)
+    err_ortho = angular_error_deg(estimate_directions([imgs], [circles]).directions, lights)
     assert err_ortho.mean() > err.mean() + 0.5
 
 
@@ -89,7 +85,7 @@ def test_two_spheres_two_captures_averaged_and_rim_warning():
     assert np.all(np.abs(res.directions[:, 0]) < 0.02)
     assert len(res.estimates[0]) == 4
     res = estimate_directions([imgs], [circles])
-    err = angles(res.directions[:6], lights[:6])
+    err = angular_error_deg(res.directions[:6], lights[:6])
     assert err.max() < 0.6 and res.spread_deg[:6].max() < 0.6
     # Light 7 is 172 deg off-axis (behind the sphere): its highlight sits on the rim,
     # so it is warned about and gets a low confidence.
@@ -115,12 +111,12 @@ def test_psm_chrome_against_lights_txt(psm_dir):
     mask_circles = fit_circles_from_mask(read_mask(chrome / "chrome.mask.tga"))
     c = mask_circles[0]
     assert abs(c.cx - 253.27) < 0.3 and abs(c.cy - 147.77) < 0.3 and abs(c.r - 119.5) < 0.5
-    err = angles(estimate_directions([imgs], [mask_circles]).directions, ref)
+    err = angular_error_deg(estimate_directions([imgs], [mask_circles]).directions, ref)
     print(f"psmImages chrome (mask circle): mean {err.mean():.2f} max {err.max():.2f} deg")
     assert err.mean() < 3.5 and err.max() < 9.0
     auto = fit_circles_from_images(imgs)[0]
     assert np.hypot(auto.cx - c.cx, auto.cy - c.cy) < 2.5 and abs(auto.r - c.r) < 1.5
-    err_auto = angles(estimate_directions([imgs], [[auto]]).directions, ref)
+    err_auto = angular_error_deg(estimate_directions([imgs], [[auto]]).directions, ref)
     print(f"psmImages chrome (circle fitted from images): mean {err_auto.mean():.2f} "
           f"max {err_auto.max():.2f} deg")
     assert err_auto.mean() < 3.5
@@ -133,7 +129,7 @@ def test_cli_directions_on_psm(psm_dir, tmp_path, capsys):
     assert cli.main(["directions", str(folder), "-o", str(out)]) == 0
     rows = read_vectors(out, "lights")
     assert rows.shape == (12, 3) and np.allclose(np.linalg.norm(rows, axis=1), 1, atol=1e-5)
-    assert angles(rows, read_vectors(psm_dir / "lights.txt", "l")).mean() < 3.5
+    assert angular_error_deg(rows, read_vectors(psm_dir / "lights.txt", "l")).mean() < 3.5
     assert (tmp_path / "light_directions_diagnostic.png").is_file()
     assert "chrome.mask.tga" in capsys.readouterr().out
     assert cli.main(["directions", str(folder), "-o", str(out)]) == 2  # no silent clobber

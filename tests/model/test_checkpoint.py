@@ -56,3 +56,43 @@ def test_a_pickle_the_safe_reader_refuses_is_not_called_no_pickle(tmp_path: Path
     with pytest.raises(CheckpointError, match="a pickle that PyTorch's safe reader refuses "
                                               r"\(Unsupported operand \d+\); refusing"):
         read_state_dict(path)
+
+
+class _RunsACommand:
+    """Unpickling this would run a shell command (what a hostile checkpoint does)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self) -> tuple[object, tuple[str]]:
+        import os
+
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_a_pickle_that_would_run_code_is_refused_as_objects(tmp_path: Path) -> None:
+    import pickle
+
+    path = tmp_path / "evil.pth"
+    path.write_bytes(pickle.dumps({"state_dict": {"w": _RunsACommand(tmp_path / "ran")}},
+                                  protocol=2))
+    with pytest.raises(CheckpointError, match="pickled Python objects"):
+        read_state_dict(path)
+    assert not (tmp_path / "ran").exists()
+
+
+@pytest.mark.parametrize("spoil", ["int64", "complex", "sparse"])
+def test_weights_of_the_wrong_kind_are_named(spoil: str) -> None:
+    import torch
+
+    from msfnet.model.checkpoint import check_state_dict
+    from msfnet.model.network import MSFNet
+
+    model = MSFNet()
+    state = dict(model.state_dict())
+    key = "regressor.est_normal.0.weight"
+    state[key] = {"int64": state[key].long(), "complex": state[key].to(torch.complex64),
+                  "sparse": state[key].to_sparse()}[spoil]
+    with pytest.raises(CheckpointError, match=f"1 mis-typed key\\(s\\): {key}"):
+        check_state_dict(model, state, "x.pth")
+    check_state_dict(model, dict(model.state_dict()), "x.pth")  # the real thing passes

@@ -172,7 +172,7 @@ def test_sample_input_is_runtime_normalise_of_the_crop():
 
 
 @pytest.mark.slow
-def test_cli_trains_saves_and_resumes(tmp_path):
+def test_cli_trains_saves_and_resumes(tmp_path, capsys):
     out = tmp_path / "run"
     common = ["--batch", "2", "--lights", "4", "--crop", "16", "--pool", "3", "--render-size",
               "32", "--val-objects", "1", "--log-every", "1", "--no-progress", "--precision",
@@ -183,9 +183,15 @@ def test_cli_trains_saves_and_resumes(tmp_path):
     assert set(ckpt) >= {"state_dict", "model"} and ckpt["step"] == 2
     MSFNet().load_state_dict(ckpt["state_dict"], strict=True)
     assert train_main(["--out", str(out), "--epochs", "1", *common]) == 2  # refuses non-empty
-    assert train_main(["--out", str(out), "--resume", "--epochs", "2", "--no-progress"]) == 0
+    # a kill after the last save: rows past the saved step, the last one torn in mid-append
+    with open(out / "log.jsonl", "a") as f:
+        f.write('{"step": 3, "loss": 9.0}\n{"step": 4, "lo')
+    capsys.readouterr()
+    assert train_main(["--out", str(out), "--resume", "--epochs", "2", "-q"]) == 0
+    assert capsys.readouterr().out == ""  # -q: errors only
     rows = [json.loads(r) for r in (out / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows if "loss" in r] == [1, 2, 3, 4]
+    assert 9.0 not in [r["loss"] for r in rows if "loss" in r]
     assert sum("val_mae" in r for r in rows) == 2
     assert torch.load(out / "last_state.pth", weights_only=True)["step"] == 4
 

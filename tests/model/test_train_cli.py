@@ -3,6 +3,7 @@ msf-train's own files, a damaged config.json is one line; all before any trainin
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -35,11 +36,21 @@ def _data(t: Path) -> Path:
     return folder
 
 
+CONFIG = json.dumps({"epochs": 2, "steps_per_epoch": 3, "batch": 2, "curriculum": "0:4-4:16",
+                     "lr": 1e-3, "seed": 0})
+
+
 def _old_run(t: Path, *extra: str) -> Path:
     out = t / "run"
     out.mkdir()
     for name in ("config.json", "last.pth", "log.jsonl", *extra):
-        (out / name).write_text("{}" if name.endswith(".json") else "x")
+        (out / name).write_text(CONFIG if name == "config.json" else "x")
+    return out
+
+
+def _with_folder(out: Path, name: str) -> Path:
+    (out / name).mkdir()
+    (out / name / "notes.txt").write_text("mine")
     return out
 
 
@@ -68,6 +79,21 @@ REFUSED: dict[str, tuple[Callable[[Path], list[str]], list[str]]] = {
                                                   "--resume"], ["not an msf-train"]),
     "--resume with unknown keys": (lambda t: ["--out", str(_damaged(t, b'{"epochz": 3}')),
                                               "--resume"], ["epochz"]),
+    "--overwrite over a folder named like a snapshot": (
+        lambda t: ["--out", str(_with_folder(_old_run(t), "snap_0000001.pth")), "--overwrite"],
+        ["snap_0000001.pth", "did not"]),
+    "--overwrite where config.json is not msf-train's": (
+        lambda t: ["--out", str(_damaged(t, b'{"my": "settings"}')), "--overwrite"],
+        ["not an msf-train"]),
+    "--resume with weights but no optimiser state": (
+        lambda t: ["--out", str(_old_run(t, "best.pth")), "--resume"],
+        ["best.pth, last.pth", "--init"]),
+    "--resume changing the network": (
+        lambda t: ["--out", str(_old_run(t, "last_state.pth")), "--resume", "--no-mfe"],
+        ["--no-mfe changes the network"]),
+    "a curriculum beyond --render-lights": (
+        lambda t: ["--out", str(t / "r"), "--lights", "32", "--render-lights", "8"],
+        ["32 lights", "--render-lights"]),
     "--data neither synth nor a folder": (lambda t: ["--out", str(t / "r"), "--data",
                                                      str(t / "nowhere")], ["--data"]),
 }

@@ -202,3 +202,22 @@ def test_snapshots_are_kept_every_k_epochs(tmp_path):
     assert train_main(["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch",
                        "1", *TINY]) == 0
     assert not list(out.glob("snap_*.pth"))
+
+
+def test_resume_refuses_weights_and_optimiser_of_different_steps(tmp_path):
+    """A kill between the two files of a save must not resume from mismatched halves."""
+    from msfnet.model.checkpoint import save_checkpoint
+
+    cfg = TrainConfig(out=str(tmp_path), batch=1, curriculum="0:3-3:16", render_size=24,
+                      pool=1, val_objects=1, val_size=32, precision="fp32")
+    t = Trainer(cfg)
+    t.step = 5
+    t.save()
+    assert Trainer(cfg, resume=True).step == 5  # a consistent pair resumes
+    save_checkpoint(t.model, tmp_path / "last.pth", step=6)
+    with pytest.raises(InputError, match=r"last\.pth is from step 6 but last_state\.pth "
+                                         r"from step 5"):
+        Trainer(cfg, resume=True)
+    torch.save({"step": 6}, tmp_path / "last_state.pth")  # no optimiser in it
+    with pytest.raises(InputError, match="not an msf-train optimiser state"):
+        Trainer(cfg, resume=True)

@@ -6,7 +6,10 @@
 The parts follow the data flow, one top-level folder each (``<part>/src/msfnet/<part>``):
 ``calib`` (lights, capture) -> ``runtime`` (stack, normalise, infer, outputs; torch-free)
 <- ``export`` (checkpoint -> ONNX) <- ``model`` (the exact torch network, training), with
-``synth`` (synthetic stacks) for training, tests and the demo sample, and ``bench`` on top.
+``synth`` (synthetic stacks; -> ``runtime``) for training, tests and the demo sample, and
+``bench`` on top. One more arrow, ``calib -> synth`` (simulated rig only): ``msf-capture
+--camera sim`` renders its scene with ``msfnet.synth.spheres``, imported lazily only when
+the simulated rig is used (never by a capture with real hardware, nor by importing calib).
 """
 
 from __future__ import annotations

@@ -214,6 +214,7 @@ class SimulatedCamera:
         return cam.height, cam.width
 
     def capture(self) -> np.ndarray:
+        # calib -> synth, the simulated rig only (see the msfnet package docstring): lazy
         from msfnet.synth.spheres import expose, render
 
         r = self.rig

@@ -5,7 +5,10 @@ Layout of ``out_dir``::
     raw/ambient.png, raw/001.png ...   frames as captured (written atomically, never modified)
     session.json                       camera/light settings, linearisation, exposure checks
     001.png ... filenames.txt          the finished stack (ambient subtracted), DiLiGenT layout,
-    light_directions.txt ...           plus lights, intensities and mask when known
+    light_directions.txt ...           plus lights, intensities, mask and ground truth when
+                                       known, written by msfnet.runtime.stack's writers (the
+                                       files save_stack writes; Normal_gt.npy of older captures
+                                       is still read)
 
 Re-running with the same ``out_dir`` skips every frame already in ``raw/``: an interrupted
 session (Ctrl-C, cable pulled, power cut) loses at most the frame being written. A finished
@@ -29,9 +32,25 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import write_atomic
+from msfnet.runtime.files import vectors_text, write_atomic
 from msfnet.runtime.imageio import list_images, read_image, read_mask, write_png
-from msfnet.runtime.stack import read_vectors, unit_lights
+from msfnet.runtime.stack import (
+    FILENAMES_FILE,
+    INTENSITIES_FILE,
+    LIGHTS_FILE,
+    MASK_FILE,
+    NORMALS_FILE,
+    filenames_text,
+    read_normals,
+    read_vectors,
+    unit_lights,
+    write_filenames,
+    write_intensities,
+    write_lights,
+    write_mask,
+    write_normals,
+)
+from msfnet.runtime.stack.readers import unit_normals
 from msfnet.runtime.stack.transforms import linearise, white_level
 from msfnet.runtime.stack.types import check_intensities, check_lights
 
@@ -40,6 +59,9 @@ if TYPE_CHECKING:
     from msfnet.runtime.stack import LoadOptions
 
 SESSION = "session.json"
+# Ground truth as earlier msf-capture versions wrote it: still read on resume, and kept while
+# unchanged (the loader reads it too); new ground truth goes to Normal_gt.mat like save_stack's.
+LEGACY_NORMALS_FILE = "Normal_gt.npy"
 Log = Callable[[str], object]
 
 
@@ -90,10 +112,6 @@ def _to_uint(frame: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(frame), 0, 65535).astype(np.uint16)
 
 
-def _rows_text(rows: np.ndarray) -> str:
-    return "".join(" ".join(f"{v:.8f}" for v in r) + "\n" for r in rows)
-
-
 def read_session(path: Path) -> dict:
     """session.json as a dict; a damaged or foreign file is refused in one line."""
     try:
@@ -124,8 +142,8 @@ def check_folder(out: Path, overwrite: bool) -> None:
         return
     raw = out / "raw"
     theirs = list_images(out) + (list_images(raw) if raw.is_dir() else [])
-    if theirs or (out / "filenames.txt").exists():
-        example = theirs[0].name if theirs else "filenames.txt"
+    if theirs or (out / FILENAMES_FILE).exists():
+        example = theirs[0].name if theirs else FILENAMES_FILE
         raise InputError(f"the folder holds images msf-capture did not take (e.g. {example}, "
                          "and no session.json): use another folder, or --overwrite to capture "
                          "into it anyway", out)
@@ -274,16 +292,38 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
 
 
 def _finished(out: Path, n: int) -> bool:
-    return (out / "filenames.txt").is_file() and all((out / _name(i)).is_file()
-                                                     for i in range(n))
+    return (out / FILENAMES_FILE).is_file() and all((out / _name(i)).is_file()
+                                                    for i in range(n))
 
 
-def _write_if_changed(path: Path, text: str, log: Log) -> None:
+def _text_changed(path: Path, text: str, log: Log) -> bool:
+    """Whether a text file of the stack must be (re)written to hold ``text``; says so when an
+    existing one is updated."""
     if path.is_file() and path.read_text() == text:
-        return
+        return False
     if path.is_file():
         log(f"updated {path.name}")
-    write_atomic(path, lambda t: t.write_text(text))
+    return True
+
+
+def _mask_changed(path: Path, mask: np.ndarray, log: Log) -> bool:
+    if path.is_file() and np.array_equal(read_mask(path), mask):
+        return False
+    if path.is_file():
+        log(f"updated {path.name}")
+    return True
+
+
+def _normals_changed(out: Path, normals: np.ndarray) -> bool:
+    """Whether the ground truth on disk (Normal_gt.mat, or an older capture's Normal_gt.npy)
+    loads other than ``normals`` would once written: compared as the stack reader reads it."""
+    for old in (out / NORMALS_FILE, out / LEGACY_NORMALS_FILE):
+        if old.is_file():
+            try:
+                return not np.array_equal(read_normals(old), unit_normals(normals))
+            except InputError:  # unreadable: write it anew
+                return True
+    return True
 
 
 def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = None,
@@ -294,7 +334,8 @@ def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = N
     """Build the DiLiGenT-layout stack in ``out`` from ``out/raw``.
 
     Images are (re)built only when missing or when the linearisation changed (the raw frames
-    are the record); light files, mask and ground truth are written when given and different.
+    are the record); light files, mask and ground truth are written when given and different,
+    by the stack writers of msfnet.runtime.stack (the files save_stack writes).
     """
     raw = out / "raw"
     sess_path = out / SESSION
@@ -318,25 +359,25 @@ def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = N
                        stack_white_level=65535.0 if lin.active else session.get("white_level"))
         text = json.dumps(session, indent=1, sort_keys=True)
         write_atomic(sess_path, lambda t: t.write_text(text))
-    _write_if_changed(out / "filenames.txt", "\n".join(names) + "\n", log)
-    for arr, fname, what in ((light_directions, "light_directions.txt", "light directions"),
-                             (light_intensities, "light_intensities.txt", "light intensities")):
-        rows = check_vectors(arr, n, what)
-        if rows is not None:
-            _write_if_changed(out / fname, _rows_text(rows), log)
+    if _text_changed(out / FILENAMES_FILE, filenames_text(names), log):
+        write_filenames(out, names)
+    dirs = check_vectors(light_directions, n, "light directions")
+    if dirs is not None and _text_changed(out / LIGHTS_FILE, vectors_text(dirs), log):
+        write_lights(out, dirs)
+    ints = check_vectors(light_intensities, n, "light intensities")
+    if ints is not None and _text_changed(out / INTENSITIES_FILE, vectors_text(ints), log):
+        write_intensities(out, ints)
     if mask is not None:
         if mask.shape != shape:
             raise InputError(f"mask is {mask.shape} but frames are {shape}")
-        old = out / "mask.png"
-        if not (old.is_file() and np.array_equal(read_mask(old), mask)):
-            if old.is_file():
-                log("updated mask.png")
-            write_png(old, mask.astype(np.uint8) * 255)
+        if _mask_changed(out / MASK_FILE, mask, log):
+            write_mask(out, mask)
     if normals_gt is not None:
         gt = np.asarray(normals_gt, np.float32)
-        old = out / "Normal_gt.npy"
-        if not (old.is_file() and np.array_equal(np.load(old), gt)):
-            write_atomic(old, lambda t: np.save(t, gt))
+        if _normals_changed(out, gt):
+            write_normals(out, gt)
+            # one ground truth in the folder (the loader would prefer the new one anyway)
+            (out / LEGACY_NORMALS_FILE).unlink(missing_ok=True)
     return out
 
 

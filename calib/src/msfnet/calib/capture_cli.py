@@ -126,6 +126,7 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
     if args.camera == "sim" or rig_name == "sim":
         if args.camera != "sim" or rig_name != "sim":
             raise InputError("--camera sim and --light-rig sim go together")
+        # calib -> synth, the simulated rig only (see the msfnet package docstring): lazy
         from msfnet.synth.spheres import mirror_scene, ring_lights, sphere_masks, sphere_normals
 
         from .cameras import SimulatedCamera

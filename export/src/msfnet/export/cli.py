@@ -59,7 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
         "float32 (B,3,H,W). N, H, W are dynamic unless --static; H and W must be multiples "
         "of 4. By default the staged graph (cut at the max-over-lights steps), which msf-run "
         "feeds a few lights at a time: far less memory at many lights; --plain writes one "
-        "graph for other runtimes. The file appears only after it passed verification.")
+        "graph for other runtimes. The file appears only after it passed verification.",
+        verbose=True)
     p.epilog = (_table() + "\n\nThe flags --static, --plain, --fp16-weights and --int8 pick "
                 "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = "
                 "int8).")

@@ -41,21 +41,35 @@ def sha256_of(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
-    """The tensors of a checkpoint file, keys without ``module.`` prefixes."""
+def read_torch_file(path: str | Path) -> object:
+    """What a torch.save file holds, read with torch's weights-only reader (never unpickling
+    objects); any failure is one CheckpointError naming the file."""
     path = Path(path)
     if path.is_dir():
         raise CheckpointError("is a folder, not a checkpoint file", path)
     if not path.is_file():
         raise CheckpointError("checkpoint file not found", path)
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise CheckpointError(_refusal(path, exc), path) from exc
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, KeyError,
             AttributeError, TypeError, IndexError) as exc:
         raise CheckpointError(f"not a readable PyTorch checkpoint ({first_line(exc)})",
                               path) from exc
+
+
+def checkpoint_step(path: str | Path) -> int | None:
+    """The training step msf-train recorded in a checkpoint (None: not recorded)."""
+    obj = read_torch_file(path)
+    step = obj.get("step") if isinstance(obj, Mapping) else None
+    return int(step) if isinstance(step, int) else None
+
+
+def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
+    """The tensors of a checkpoint file, keys without ``module.`` prefixes."""
+    path = Path(path)
+    obj = read_torch_file(path)
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]
     if not isinstance(obj, Mapping) or not obj or not all(
@@ -75,7 +89,7 @@ def _refusal(path: Path, exc: pickle.UnpicklingError) -> str:
         return "a Git LFS pointer, not the checkpoint itself (fetch it with `git lfs pull`)"
     if not zipfile.is_zipfile(path) and not _is_a_pickle(head):
         return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"
-    if "Unsupported global" in text:
+    if re.search(r"unsupported global", text, re.IGNORECASE):  # wording varies by torch
         return ("holds pickled Python objects, not only tensors; refusing to unpickle it "
                 "(re-save it as a plain state_dict)")
     reason = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
@@ -109,14 +123,23 @@ def check_state_dict(model: torch.nn.Module, state: Mapping[str, torch.Tensor],
     unexpected = sorted(set(state) - set(expected))
     shapes = sorted(f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
                     for k, v in expected.items() if k in state and state[k].shape != v.shape)
+    # weights must be real floating-point dense tensors (an integer one would load truncated)
+    kinds = sorted(f"{k} {state[k].dtype}{'' if state[k].layout == torch.strided else ' sparse'}"
+                   for k, v in expected.items() if k in state and not _same_kind(state[k], v))
     problems = []
     for label, keys in (("missing", missing), ("unexpected", unexpected),
-                        ("mis-shaped", shapes)):
+                        ("mis-shaped", shapes), ("mis-typed", kinds)):
         if keys:
             shown = ", ".join(keys[:6]) + (f", ... (+{len(keys) - 6})" if len(keys) > 6 else "")
             problems.append(f"{len(keys)} {label} key(s): {shown}")
     if problems:
         raise CheckpointError("not an MSF-Net checkpoint: " + "; ".join(problems), source)
+
+
+def _same_kind(got: torch.Tensor, want: torch.Tensor) -> bool:
+    if got.layout != torch.strided or got.is_complex():
+        return False
+    return got.is_floating_point() == want.is_floating_point()
 
 
 def network_for(state: Mapping[str, torch.Tensor]) -> MSFNet:
@@ -142,8 +165,14 @@ def save_checkpoint(model: torch.nn.Module, path: str | Path, fp16: bool = False
     ``fp16``: store floating-point tensors in half precision (half the size; load_state_dict
     casts them back to float32 on load, here and in the authors' code).
     """
+    content = checkpoint_content(model, fp16, **extra)
+    return write_atomic(path, lambda tmp: torch.save(content, tmp))
+
+
+def checkpoint_content(model: torch.nn.Module, fp16: bool = False, **extra: object
+                       ) -> dict[str, object]:
+    """What :func:`save_checkpoint` writes, for a caller that writes it itself."""
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     if fp16:
         state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
-    content = {"state_dict": state, "model": "MSF_Net", **extra}
-    return write_atomic(path, lambda tmp: torch.save(content, tmp))
+    return {"state_dict": state, "model": "MSF_Net", **extra}

@@ -19,7 +19,7 @@ import signal
 import threading
 import time
 from collections.abc import Collection, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,13 +28,20 @@ import torch
 from torch import Tensor
 
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import write_atomic
+from msfnet.runtime.files import staged_files, write_atomic
 from msfnet.runtime.least_squares import least_squares_normals
 from msfnet.runtime.metrics import normal_metrics
 from msfnet.runtime.stack import Stack
 from msfnet.synth.render import RenderOptions, render_set
 
-from .checkpoint import save_checkpoint
+from .checkpoint import (
+    check_state_dict,
+    checkpoint_content,
+    checkpoint_step,
+    read_state_dict,
+    read_torch_file,
+    save_checkpoint,
+)
 from .data import (
     Batch,
     BlobbySource,
@@ -200,6 +207,16 @@ def _gt(stack: Stack) -> np.ndarray:
     return stack.normals_gt
 
 
+@dataclass(frozen=True)
+class TrainOutcome:
+    """Where a training run ended."""
+
+    step: int
+    best_val_mae: float  # best held-out synthetic MAE so far (deg)
+    val_ls_mae: float  # least squares on the same held-out set (deg)
+    stopped: int | None = None  # the signal that stopped it early, if one did
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig, resume: bool = False) -> None:
         self.cfg = cfg
@@ -261,25 +278,55 @@ class Trainer:
         return self.out / "last.pth", self.out / "last_state.pth"
 
     def save(self) -> None:
+        """last.pth and last_state.pth, replaced together: a resume needs both of one step."""
         weights, state = self._state_paths()
-        save_checkpoint(self.model, weights, step=self.step, epoch=self.epoch)
-        content = {"optimizer": self.opt.state_dict(), "step": self.step, "best": self.best}
-        write_atomic(state, lambda tmp: torch.save(content, tmp))
+        content = checkpoint_content(self.model, step=self.step, epoch=self.epoch)
+        optimiser = {"optimizer": self.opt.state_dict(), "step": self.step, "best": self.best}
+        with staged_files([weights, state], overwrite=True) as (tmp_weights, tmp_state):
+            torch.save(content, tmp_weights)
+            torch.save(optimiser, tmp_state)
 
     def _load(self) -> None:
-        from .checkpoint import read_state_dict
-
         weights, state = self._state_paths()
         if not weights.is_file() or not state.is_file():
             raise InputError("nothing to resume: last.pth / last_state.pth missing", self.out)
-        self.model.load_state_dict(read_state_dict(weights), strict=True)
-        st = torch.load(state, map_location="cpu", weights_only=True)
-        self.opt.load_state_dict(st["optimizer"])
+        tensors = read_state_dict(weights)
+        check_state_dict(self.model, tensors, weights)
+        self.model.load_state_dict(tensors, strict=True)
+        st = read_torch_file(state)
+        if not isinstance(st, dict) or not {"optimizer", "step", "best"} <= set(st):
+            raise InputError("not an msf-train optimiser state (expected optimizer, step, "
+                             "best)", state)
+        saved = checkpoint_step(weights)
+        if saved is not None and saved != int(st["step"]):
+            raise InputError(f"last.pth is from step {saved} but last_state.pth from step "
+                             f"{st['step']} (the run was stopped while saving); start a new "
+                             "run with --init on last.pth", self.out)
+        try:
+            self.opt.load_state_dict(st["optimizer"])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise InputError(f"the optimiser state does not fit this network ({exc})",
+                             state) from exc
         self.step, self.best = int(st["step"]), float(st["best"])
+        self.history = self._history_until(self.step)
+
+    def _history_until(self, step: int) -> list[dict]:
+        """log.jsonl's rows up to ``step`` (the saved state), the file rewritten to match: rows
+        logged after the last save would come again after resuming, and a kill in mid-append
+        leaves a torn last line."""
         log = self.out / "log.jsonl"
-        if log.is_file():
-            rows = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
-            self.history = [r for r in rows if r.get("step", 0) <= self.step]
+        if not log.is_file():
+            return []
+        rows = []
+        for line in log.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(row, dict) and row.get("step", 0) <= step:
+                rows.append(row)
+        write_atomic(log, lambda t: t.write_text("".join(json.dumps(r) + "\n" for r in rows)))
+        return rows
 
     @property
     def epoch(self) -> int:
@@ -381,7 +428,9 @@ class Trainer:
         return {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM,
                                                                     signal.SIGINT)}
 
-    def run(self, progress: bool = True) -> dict:
+    def run(self, progress: bool = True, report: bool = True) -> TrainOutcome:
+        """Train to the configured end or a SIGTERM / SIGINT. ``progress``: the progress bar;
+        ``report``: a line per epoch."""
         from tqdm import tqdm
 
         cfg = self.cfg
@@ -446,10 +495,11 @@ class Trainer:
                     self.log({"step": self.step, "epoch": epoch + 1, "val_mae": mae,
                               "val_ls_mae": self.val_ls, **speed, "time": time.time()})
                     gpu = f", GPU {util:.0f} %" if util is not None else ""
-                    bar.write(f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least squares "
-                              f"{self.val_ls:.2f}), loss {run_loss:.4f}, "
-                              f"{speed['samples_per_s']:.1f} samples/s, data wait "
-                              f"{100 * speed['data_wait']:.0f} %{gpu}")
+                    if report:
+                        bar.write(f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least "
+                                  f"squares {self.val_ls:.2f}), loss {run_loss:.4f}, "
+                                  f"{speed['samples_per_s']:.1f} samples/s, data wait "
+                                  f"{100 * speed['data_wait']:.0f} %{gpu}")
                     if cfg.snapshot_every and (epoch + 1) % cfg.snapshot_every == 0:
                         # Synthetic validation does not rank real objects reliably: keep
                         # snapshots to select on real validation objects afterwards.
@@ -470,7 +520,6 @@ class Trainer:
                 self.save()
                 name = signal.Signals(self.stop_signal).name
                 self.log({"step": self.step, "stopped": name, "time": time.time()})
-                bar.write(f"{name}: saved last.pth at step {self.step}; continue with --resume")
         finally:
             close = getattr(batches, "close", None)
             if close is not None:
@@ -480,7 +529,4 @@ class Trainer:
             for sig, handler in old_handlers.items():
                 signal.signal(sig, handler)
             bar.close()
-        result = {"step": self.step, "best_val_mae": self.best, "val_ls_mae": self.val_ls}
-        if self.stop_signal is not None:
-            result["stopped"] = self.stop_signal
-        return result
+        return TrainOutcome(self.step, self.best, self.val_ls, self.stop_signal)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import signal
 import sys
 from dataclasses import fields
@@ -177,6 +176,10 @@ def config_from(args: dict, base: dict) -> TrainConfig:
     if out.workers is not None and out.workers < 0:
         raise InputError("--workers must be >= 0")
     if out.data == "synth":
+        most = max(p.lights_max for p in parse_curriculum(out.curriculum))
+        if most > out.render_lights:  # the sampler would quietly use fewer lights
+            raise InputError(f"the curriculum asks for up to {most} lights but "
+                             f"--render-lights renders {out.render_lights}")
         crop = max(p.crop for p in parse_curriculum(out.curriculum))
         if crop > out.render_size:
             raise InputError(f"crop {crop} exceeds --render-size {out.render_size}")
@@ -188,25 +191,40 @@ def config_from(args: dict, base: dict) -> TrainConfig:
     return out
 
 
-def _stored_config(out: Path) -> dict:
-    """OUT/config.json of the run to resume, refused in one line if missing or damaged."""
+# keys every msf-train config.json has had: older runs may lack newer options, never these
+CORE_KEYS = frozenset({"epochs", "steps_per_epoch", "batch", "curriculum", "lr", "seed"})
+
+
+def _stored_config(out: Path, flag: str = "--resume") -> dict:
+    """OUT/config.json of an earlier run, refused in one line if missing, damaged or not
+    msf-train's."""
     stored = out / "config.json"
     if not stored.is_file():
-        raise InputError("--resume: no config.json in the output folder", out)
+        raise InputError(f"{flag}: no config.json in the output folder (not an msf-train "
+                         "run)", out)
     try:
         data = json.loads(stored.read_text())
     except (ValueError, UnicodeDecodeError, RecursionError) as exc:
-        raise InputError(f"--resume: config.json is damaged ({exc})", stored) from exc
+        raise InputError(f"{flag}: config.json is damaged ({exc})", stored) from exc
     known = {f.name for f in fields(TrainConfig)}
-    if not isinstance(data, dict) or not set(data) <= known:
+    if not isinstance(data, dict) or not CORE_KEYS <= set(data) <= known:
         unknown = sorted(set(data) - known) if isinstance(data, dict) else []
-        raise InputError("--resume: config.json is not an msf-train configuration"
+        raise InputError(f"{flag}: config.json is not an msf-train configuration"
                          + (f" (unknown keys {unknown[:3]})" if unknown else ""), stored)
     return data
 
 
-def _ours(name: str) -> bool:
-    return name in TRAIN_FILES or STAGING_TAG in name or SNAPSHOT.fullmatch(name) is not None
+def _ours(path: Path) -> bool:
+    """A file msf-train writes in OUT (by name; a folder is never ours)."""
+    name = path.name
+    return (path.is_file() and not path.is_symlink()
+            and (name in TRAIN_FILES or STAGING_TAG in name
+                 or SNAPSHOT.fullmatch(name) is not None))
+
+
+def _weights_in(out: Path) -> list[str]:
+    """Trained weights in OUT: never deleted to make room for a fresh start by --resume."""
+    return sorted(p.name for p in out.glob("*.pth") if _ours(p) and STAGING_TAG not in p.name)
 
 
 def _prepare_out(args: argparse.Namespace) -> None:
@@ -224,15 +242,13 @@ def _prepare_out(args: argparse.Namespace) -> None:
     if not args.overwrite:
         raise InputError("output folder is not empty (use --resume to continue or "
                          "--overwrite to start afresh)", out)
-    foreign = sorted(p.name for p in out.iterdir() if not _ours(p.name))
+    foreign = sorted(p.name for p in out.iterdir() if not _ours(p))
     if foreign:
         raise InputError(f"--overwrite: the folder holds files msf-train did not write (e.g. "
                          f"{foreign[0]}); refusing to delete them", out)
+    _stored_config(out, "--overwrite")  # names alone do not make it a run of ours
     for p in out.iterdir():
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p)
-        else:
-            p.unlink()
+        p.unlink()
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
@@ -240,45 +256,55 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     # must not cost an earlier run's files (--overwrite, --resume clean up first)
     from .train import Trainer
 
+    def say(line: str) -> None:
+        if not args.quiet:
+            print(line, flush=True)
+
     out: Path = args.out
     _prepare_out(args)
     resume = args.resume and (out / "last.pth").is_file() and (out / "last_state.pth").is_file()
     if args.resume and not resume:
         # Nothing saved yet (first chunk, or killed before the first save): start here, from
         # the stored settings if a config.json was written; but never in someone else's folder.
-        foreign = sorted(p.name for p in out.iterdir() if not _ours(p.name)) \
+        foreign = sorted(p.name for p in out.iterdir() if not _ours(p)) \
             if out.is_dir() else []
         if foreign:
             raise InputError(f"--resume: no msf-train run here (no config.json / last.pth) but "
                              f"other files (e.g. {foreign[0]})", out)
-        print(f"msf-train: nothing to resume in {out}: starting there", flush=True)
+        weights = _weights_in(out) if out.is_dir() else []
+        if weights:  # e.g. last_state.pth lost: starting over would delete trained weights
+            raise InputError(f"--resume: {', '.join(weights)} but no complete last.pth + "
+                             "last_state.pth pair to continue from; start a new run from "
+                             "those weights with --init in another folder", out)
+        say(f"msf-train: nothing to resume in {out}: starting there")
         base = _stored_config(out) if (out / "config.json").is_file() else {}
         cfg = config_from(_explicit(argv) if base else vars(args), base)
-        for name in ("log.jsonl", "best.pth", "last.pth", "last_state.pth"):
-            (out / name).unlink(missing_ok=True)
-        for snap in out.glob("snap_*.pth"):  # from the run that never saved a last.pth
-            if SNAPSHOT.fullmatch(snap.name):
-                snap.unlink()
+        (out / "log.jsonl").unlink(missing_ok=True)  # rows of a run that never saved
     elif resume:
-        cfg = config_from(_explicit(argv), _stored_config(out))
+        stored = _stored_config(out)
+        explicit = _explicit(argv)
+        for flag, key in (("--no-mfe", "mfe"), ("--no-mff", "mff")):
+            if flag.lstrip("-").replace("-", "_") in explicit and stored.get(key, True):
+                raise InputError(f"--resume: {flag} changes the network of the run being "
+                                 "resumed; start a new run instead", out)
+        cfg = config_from(explicit, stored)
     else:
         cfg = config_from(vars(args), {})
     trainer = Trainer(cfg, resume=resume)
     data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
-    print(f"msf-train: {trainer.device.type}, "
-          f"{'bf16 autocast' if trainer.bf16 else 'fp32'}, "
-          f"{'channels_last' if cfg.channels_last else 'NCHW'}, {cfg.threads} threads, "
-          f"{trainer.workers} data workers, data {data}, curriculum {cfg.curriculum}, "
-          f"from step {trainer.step}; validation: {len(trainer.val_set)} objects, "
-          f"least squares MAE {trainer.val_ls:.2f} deg", flush=True)
-    result = trainer.run(progress=not args.no_progress)
-    if "stopped" in result:
-        sig = int(result["stopped"])
-        print(f"msf-train: stopped by {signal.Signals(sig).name} at step {result['step']}; "
-              "last.pth saved, continue with --resume")
-        return 128 + sig
-    print(f"msf-train: done at step {result['step']}: best held-out MAE "
-          f"{result['best_val_mae']:.2f} deg (least squares {result['val_ls_mae']:.2f})")
+    say(f"msf-train: {trainer.device.type}, "
+        f"{'bf16 autocast' if trainer.bf16 else 'fp32'}, "
+        f"{'channels_last' if cfg.channels_last else 'NCHW'}, {cfg.threads} threads, "
+        f"{trainer.workers} data workers, data {data}, curriculum {cfg.curriculum}, "
+        f"from step {trainer.step}; validation: {len(trainer.val_set)} objects, "
+        f"least squares MAE {trainer.val_ls:.2f} deg")
+    result = trainer.run(progress=not (args.no_progress or args.quiet), report=not args.quiet)
+    if result.stopped is not None:
+        say(f"msf-train: stopped by {signal.Signals(result.stopped).name} at step "
+            f"{result.step}; last.pth saved, continue with --resume")
+        return 128 + result.stopped
+    say(f"msf-train: done at step {result.step}: best held-out MAE "
+        f"{result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})")
     return 0
 
 

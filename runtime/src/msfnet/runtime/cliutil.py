@@ -106,8 +106,9 @@ class Parser(argparse.ArgumentParser):
 
 
 def make_parser(prog: str, description: str, examples: Sequence[str] = (), *,
-                common: bool = True) -> Parser:
-    """A parser with the flags every command has: --version, -q/-v, --debug.
+                common: bool = True, verbose: bool = False) -> Parser:
+    """A parser with the flags every command has: --version, -q, --debug (and -v where the
+    command has more to say: ``verbose=True``).
 
     ``common=False``: only --version here; a command with sub-commands gives each of them the
     other flags with :func:`add_common_flags`, so they can follow the sub-command's name.
@@ -121,13 +122,14 @@ def make_parser(prog: str, description: str, examples: Sequence[str] = (), *,
                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     if common:
-        add_common_flags(p)
+        add_common_flags(p, verbose=verbose)
     return p
 
 
-def add_common_flags(p: argparse.ArgumentParser) -> None:
+def add_common_flags(p: argparse.ArgumentParser, *, verbose: bool = False) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="print errors only")
-    p.add_argument("-v", "--verbose", action="store_true", help="print more detail")
+    if verbose:  # only where it changes something: a flag that does nothing would mislead
+        p.add_argument("-v", "--verbose", action="store_true", help="print more detail")
     p.add_argument("--debug", action="store_true",
                    help="show Python tracebacks instead of one-line errors")
 

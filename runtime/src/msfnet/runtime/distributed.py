@@ -44,6 +44,8 @@ class ModelSpec:
     (None: the bundled model of the worker's own msfnet install)."""
 
     method: str = "msf"
+    engine: str | None = None
+    precision: str | None = None
     onnx_name: str | None = None
     onnx_bytes: bytes | None = None
     threads: int | None = 1
@@ -54,6 +56,10 @@ class ModelSpec:
 
     @classmethod
     def from_args(cls, onnx: Path | None, **options: Any) -> ModelSpec:
+        from .pipeline import check_method
+
+        check_method(options.get("method", "msf"), onnx, options.get("engine"),
+                     options.get("precision"))
         if onnx is not None and not onnx.is_file():
             raise InputError("ONNX model not found", onnx)
         return cls(onnx_name=None if onnx is None else str(onnx),
@@ -67,7 +73,8 @@ class ModelSpec:
         if self.onnx_bytes is not None:
             path = folder / Path(self.onnx_name or "model.onnx").name
             path.write_bytes(self.onnx_bytes)
-        return Model(path, method=self.method, threads=self.threads, provider=self.provider,
+        return Model(path, method=self.method, engine=self.engine, precision=self.precision,
+                     threads=self.threads, provider=self.provider,
                      tile=self.tile, max_memory_mb=self.max_memory_mb or DEFAULT_MAX_MEMORY_MB,
                      maps=self.maps)
 

@@ -106,6 +106,18 @@ class Result:
         return replace(self, stack=stack)
 
 
+def check_method(method: str, model: object, engine: str | None, precision: str | None
+                 ) -> None:
+    """Refuse options that contradict the method (before any work, also for a Ray batch)."""
+    if method not in ("msf", "l2"):
+        raise InputError(f"method {method!r}: expected 'msf' (the network) or 'l2'")
+    if method == "l2" and model is not None:
+        raise InputError("least squares (--method l2) needs no model; drop --onnx")
+    if method == "l2" and (engine or precision):
+        raise InputError("--engine / --precision choose how the network runs; --method l2 "
+                         "has no network")
+
+
 class Model:
     """A loaded estimator with its run options: create once, call on many stacks.
 
@@ -125,12 +137,9 @@ class Model:
         self.tiling = TilingOptions(tile, max_memory_mb)
         self.maps = maps  # inspection maps computed after the normals (None: normals only)
         self.estimator: Estimator
+        check_method(method, model, engine, precision)
         if method == "l2":
-            if model is not None:
-                raise InputError("least squares (--method l2) needs no model; drop --onnx")
             self.estimator = LeastSquaresEstimator()
-        elif method != "msf":
-            raise InputError(f"method {method!r}: expected 'msf' (the network) or 'l2'")
         elif model is not None and not isinstance(model, (str, Path)):
             self.estimator = NetworkEstimator(model)
         else:

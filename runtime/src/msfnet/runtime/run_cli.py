@@ -149,11 +149,6 @@ def open_model(args: argparse.Namespace) -> Model:
     """The estimator msf-run's options describe, loaded once."""
     from .pipeline import Model
 
-    if args.method == "l2" and args.onnx is not None:
-        raise InputError("--method l2 needs no model; drop --onnx")
-    if args.method == "l2" and (args.engine or args.precision):
-        raise InputError("--engine / --precision choose how the network runs; --method l2 "
-                         "has no network")
     return Model(args.onnx, method=args.method, engine=args.engine, precision=args.precision,
                  threads=args.threads, provider=args.provider, tile=args.tile,
                  max_memory_mb=args.max_memory, maps=map_options(args))
@@ -266,9 +261,8 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
     if args.ray is not None:
         from .distributed import ModelSpec, run_batch_ray
 
-        if args.method == "l2" and args.onnx is not None:
-            raise InputError("--method l2 needs no model; drop --onnx")
-        spec = ModelSpec.from_args(args.onnx, method=args.method, threads=args.threads or 1,
+        spec = ModelSpec.from_args(args.onnx, method=args.method, engine=args.engine,
+                                   precision=args.precision, threads=args.threads or 1,
                                    provider=args.provider, tile=args.tile,
                                    max_memory_mb=args.max_memory, maps=map_options(args))
         summary = run_batch_ray(spec, items, load, lambda n: root / n, address=args.ray or None,

@@ -1,4 +1,4 @@
-"""The photometric stack: its type, loaders, image selection and the DiLiGenT-layout writer."""
+"""The photometric stack: its type, loaders, image selection and the DiLiGenT-layout writers."""
 
 from .load import (
     GT_NAMES,
@@ -13,13 +13,29 @@ from .load import (
     prepare_stack,
 )
 from .readers import read_normals, read_vectors
-from .save import save_stack
+from .save import (
+    FILENAMES_FILE,
+    INTENSITIES_FILE,
+    LIGHTS_FILE,
+    MASK_FILE,
+    NORMALS_FILE,
+    filenames_text,
+    save_stack,
+    write_filenames,
+    write_image,
+    write_intensities,
+    write_lights,
+    write_mask,
+    write_normals,
+)
 from .select import evenly_spaced, parse_select, selection
 from .transforms import auto_mask, parse_roi
 from .types import Stack, as_held, held_dtype, light_condition, unit_lights
 
-__all__ = ["GT_NAMES", "INTENSITY_NAMES", "LIGHTS_NAMES", "MASK_NAMES", "LoadOptions", "Stack",
-           "as_held", "auto_mask", "check_stack_size", "evenly_spaced", "held_dtype",
-           "light_condition", "load_folder", "load_npz", "load_stack", "parse_roi",
-           "parse_select", "prepare_stack", "read_normals", "read_vectors", "save_stack",
-           "selection", "unit_lights"]
+__all__ = ["FILENAMES_FILE", "GT_NAMES", "INTENSITIES_FILE", "INTENSITY_NAMES", "LIGHTS_FILE",
+           "LIGHTS_NAMES", "MASK_FILE", "MASK_NAMES", "NORMALS_FILE", "LoadOptions", "Stack",
+           "as_held", "auto_mask", "check_stack_size", "evenly_spaced", "filenames_text",
+           "held_dtype", "light_condition", "load_folder", "load_npz", "load_stack",
+           "parse_roi", "parse_select", "prepare_stack", "read_normals", "read_vectors",
+           "save_stack", "selection", "unit_lights", "write_filenames", "write_image",
+           "write_intensities", "write_lights", "write_mask", "write_normals"]
