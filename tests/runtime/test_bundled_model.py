@@ -37,8 +37,10 @@ def test_demo_main_job_writes_outputs_and_metrics(tmp_path: Path, capsys) -> Non
     printed = capsys.readouterr().out
     assert "MAE" in printed and "least squares on the same stack" in printed
     metrics = json.loads((out / "metrics.json").read_text())
-    # measured 1.61 deg (least squares 4.73) with the bundled model of 2026-11-23
-    assert metrics["mae_deg"] < 4.0 and metrics["pixels"] > 1000 and metrics["invalid"] == 0
+    # measured 1.61 deg with OpenVINO bf16, 1.58 with ONNX Runtime fp32 (least squares 4.73),
+    # bundled model of 2026-11-23; the tolerance covers engines, not a worse model
+    assert metrics["mae_deg"] == pytest.approx(1.6, abs=0.3)
+    assert metrics["pixels"] > 1000 and metrics["invalid"] == 0
     normals = np.load(out / "normals.npy")
     assert normals.shape == (128, 128, 3)
 
@@ -55,7 +57,8 @@ def test_bundled_model_beats_least_squares_on_held_out_synthetic_objects() -> No
         model.append(net(stack).metrics.mae_deg)  # type: ignore[union-attr]
         ls.append(l2(stack).metrics.mae_deg)  # type: ignore[union-attr]
     print(f"bundled {np.mean(model):.2f} deg vs least squares {np.mean(ls):.2f} deg")
-    assert np.mean(model) < 0.7 * np.mean(ls)
+    assert np.mean(ls) == pytest.approx(7.03, abs=0.01)  # the same objects as measured
+    assert np.mean(model) == pytest.approx(2.21, abs=0.3)
 
 
 # MAE (deg) on a 128 x 128 crop centred on the object, every protocol image, measured with the

@@ -25,10 +25,11 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from msfnet.runtime.contract import TRAIN_LIGHTS
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.imageio import read_image
 from msfnet.runtime.preprocess import normalise
-from msfnet.runtime.stack import Stack, as_held, read_normals
+from msfnet.runtime.stack import Stack, as_held, read_normals, unit_lights
 from msfnet.synth.render import RenderOptions, render_stack
 
 
@@ -81,7 +82,7 @@ def random_crop(stack: Stack, crop: int, rng: np.random.Generator,
 
 def make_sample(stack: Stack, lights: int, crop: int, rng: np.random.Generator,
                 noise: float = 0.01, calib_jitter: float = 0.02,
-                train_lights: int = 32) -> tuple[np.ndarray, ...]:
+                train_lights: int = TRAIN_LIGHTS) -> tuple[np.ndarray, ...]:
     """One augmented training sample: (input (N,3,c,c), lights (N,3), normals (3,c,c), mask)."""
     if stack.normals_gt is None:
         raise InputError("training needs ground-truth normals", stack.source or stack.name)
@@ -167,8 +168,7 @@ def _read_light_list(path: Path) -> tuple[list[str], np.ndarray]:
         names.append(parts[0])
     if not names:
         raise InputError("image list is empty", path)
-    d = np.asarray(dirs, np.float32)
-    return names, d / np.linalg.norm(d, axis=1, keepdims=True)
+    return names, unit_lights(np.asarray(dirs), path)  # zero / NaN rows refused
 
 
 def find_blobby_samples(root: str | Path) -> list[tuple[Path, Path]]:

@@ -194,8 +194,8 @@ def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray |
     ``rendered``: pictures the caller already drew ("normals", "error" PNG bytes), reused
     instead of drawn twice (matplotlib figures are most of the time spent here).
     Everything is rendered in memory first, then each file is written through
-    ``imageio.write_atomic``: a failure while drawing writes nothing, and no file is ever left
-    half-written.
+    ``msfnet.runtime.files.write_atomic``: a failure while drawing writes nothing, and no file
+    is ever left half-written.
     """
     from . import pictures
     from .mesh import albedo_colors, height_mesh, write_ply
