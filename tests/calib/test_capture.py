@@ -12,6 +12,7 @@ from msfnet.calib.cameras import SimulatedCamera
 from msfnet.calib.capture import capture_stack, exposure_check
 from msfnet.calib.lights import ManualLights, SerialLights, SimulatedLights, SimulatedRig
 from msfnet.runtime.errors import InputError
+from msfnet.runtime.imageio import read_image
 from msfnet.runtime.least_squares import least_squares_normals
 from msfnet.runtime.metrics import angular_error_deg
 from msfnet.runtime.stack import load_stack, save_stack
@@ -177,3 +178,62 @@ def test_capture_cli_sim(tmp_path, capsys):
     assert (out / "004.png").is_file() and (out / "raw" / "ambient.png").is_file()
     assert capture_cli.main([str(out), "--camera", "opencv", "--light-rig", "sim"]) == 2
     assert "go together" in capsys.readouterr().err
+
+
+class Configured(SimulatedCamera):
+    """A simulated camera reporting driver settings, as the OpenCV and OAK back-ends do."""
+
+    def __init__(self, rig, **settings):
+        super().__init__(rig)
+        self.settings = settings
+
+    def info(self):
+        return {"backend": "opencv", "device": "0", **self.settings}
+
+
+def test_resume_with_another_exposure_is_refused(tmp_path):
+    rig = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(6))
+    out = tmp_path / "cap"
+    with pytest.raises(KeyboardInterrupt):
+        capture_stack(Interrupting(rig, 3), SimulatedLights(rig), out, progress=False,
+                      log=lambda m: None)
+    # Interrupting reports the simulated camera's info: give the session an exposure
+    session = json.loads((out / "session.json").read_text())
+    session["camera"] = {"backend": "opencv", "device": "0", "exposure": -6.0, "gain": 0.0}
+    (out / "session.json").write_text(json.dumps(session))
+    cam = Configured(rig, exposure=-5.0, gain=0.0)
+    with pytest.raises(InputError, match=r"exposure=-6\.0.*exposure=-5\.0.*--overwrite") as exc:
+        capture_stack(cam, SimulatedLights(rig), out, progress=False, log=lambda m: None)
+    assert exc.value.path == out / "session.json" and "gain" not in str(exc.value)
+    assert rig.frames == 3 and len(list((out / "raw").iterdir())) == 3
+    # the recorded settings resume (a key the session lacks, from an older version, is no
+    # difference)
+    cam = Configured(rig, exposure=-6.0, gain=0.0, focus=1.0)
+    capture_stack(cam, SimulatedLights(rig), out, progress=False, log=lambda m: None)
+    assert rig.frames == 7
+
+
+def test_overwrite_replaces_every_file_of_the_previous_stack(tmp_path):
+    out = _small_capture(tmp_path / "cap")
+    (out / "Normal_gt.npy").write_bytes(b"an older capture's ground truth")
+    rig = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(4))
+    capture_stack(SimulatedCamera(rig), SimulatedLights(rig), out, overwrite=True,
+                  progress=False, log=lambda m: None)
+    # nothing of the 6-light session is left to be read with the new frames
+    assert sorted(p.name for p in out.iterdir()) == [
+        "001.png", "002.png", "003.png", "004.png", "filenames.txt", "raw", "session.json"]
+
+
+def test_frames_captured_into_a_built_session_rebuild_its_stack(tmp_path):
+    """A frame re-taken (deleted from raw/, object lit anew) must reach the stack images: the
+    session's record of how they were built is dropped when new frames arrive."""
+    out = _small_capture(tmp_path / "cap")
+    (out / "raw" / "002.png").unlink()
+    brighter = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(6),
+                            gain=0.4)  # same camera info, another picture
+    capture_stack(SimulatedCamera(brighter), SimulatedLights(brighter), out, progress=False,
+                  log=lambda m: None)
+    raw = read_image(out / "raw" / "002.png").astype(np.int64)
+    amb = read_image(out / "raw" / "ambient.png").astype(np.int64)
+    np.testing.assert_array_equal(read_image(out / "002.png"), (raw - amb).clip(0))
+    assert json.loads((out / "session.json").read_text())["ambient_subtracted"] is True

@@ -177,3 +177,116 @@ def test_cli_conventions(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     with pytest.raises(SystemExit) as exc:
         capture_main(["--version"])
     assert exc.value.code == 0 and "msf-capture" in capsys.readouterr().out
+
+
+def _interrupt_after(monkeypatch: pytest.MonkeyPatch, frames: int) -> None:
+    """The simulated camera's cable is pulled after ``frames`` frames (Ctrl-C, kill)."""
+    from msfnet.calib.cameras import SimulatedCamera
+
+    real = SimulatedCamera.capture
+    taken = [0]
+
+    def capture(self: SimulatedCamera) -> np.ndarray:
+        if taken[0] >= frames:
+            raise KeyboardInterrupt
+        taken[0] += 1
+        return real(self)
+
+    monkeypatch.setattr(SimulatedCamera, "capture", capture)
+
+
+def test_overwrite_rebuilds_the_stack_from_the_new_frames(tmp_path: Path) -> None:
+    """--overwrite used to re-capture raw/ but keep the old stack images and filenames.txt
+    (the 'already built' test passed on the fresh session): a silently stale stack."""
+    out = tmp_path / "o"
+    assert capture_main([str(out), *SIM, "--count", "6"]) == 0
+    assert capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome",
+                         "--overwrite"]) == 0
+    amb = read_image(out / "raw" / "ambient.png").astype(np.int64)
+    for i in range(1, 5):  # each stack image is the new raw frame less the new ambient
+        raw = read_image(out / "raw" / f"{i:03d}.png").astype(np.int64)
+        np.testing.assert_array_equal(read_image(out / f"{i:03d}.png"), (raw - amb).clip(0))
+    assert (out / "filenames.txt").read_text().split() == [f"{i:03d}.png" for i in range(1, 5)]
+    assert not (out / "005.png").exists() and not (out / "raw" / "005.png").exists()
+    session = json.loads((out / "session.json").read_text())
+    assert session["count"] == 4 and session["camera"]["scene"] == "chrome"
+    assert session["linearisation"] is None and session["ambient_subtracted"] is True
+    assert load_stack(out).num_lights == 4
+
+
+def test_overwrite_deletes_only_the_frames_msf_capture_writes(tmp_path: Path) -> None:
+    """--overwrite used to delete every PNG in raw/, the user's own pictures too."""
+    out = tmp_path / "o"
+    assert capture_main([str(out), *SIM, "--count", "6"]) == 0
+    holiday = out / "raw" / "holiday.png"
+    import cv2
+
+    cv2.imwrite(str(holiday), np.full((4, 4), 7, np.uint8))
+    kept = holiday.read_bytes()
+    assert capture_main([str(out), *SIM, "--count", "4", "--overwrite"]) == 0
+    assert holiday.read_bytes() == kept
+    assert sorted(p.name for p in (out / "raw").iterdir()) == [
+        "001.png", "002.png", "003.png", "004.png", "ambient.png", "holiday.png"]
+
+
+def test_an_interrupted_overwrite_never_resumes_into_old_frames(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Killed right after --overwrite discarded the old session: the next plain run captures
+    every frame anew (none of the old ones counts) and builds the stack from them."""
+    out = tmp_path / "o"
+    assert capture_main([str(out), *SIM, "--count", "4"]) == 0
+    with monkeypatch.context() as m:
+        _interrupt_after(m, 0)
+        assert capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome",
+                             "--overwrite"]) == 130
+    assert sorted(p.name for p in out.iterdir()) == ["raw", "session.json"]
+    assert not list((out / "raw").iterdir())
+    assert capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome"]) == 0
+    assert json.loads((out / "session.json").read_text())["camera"]["scene"] == "chrome"
+
+
+def test_resume_with_other_camera_settings_is_refused(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Resuming with another scene used to mix frames of both setups into one stack."""
+    out = tmp_path / "b"
+    with monkeypatch.context() as m:
+        _interrupt_after(m, 3)
+        assert capture_main([str(out), *SIM, "--count", "6"]) == 130
+    capsys.readouterr()
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert capture_main([str(out), *SIM, "--count", "6", "--sim-scene", "chrome"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-capture: error: "), err
+    assert "session.json" in err[0] and "scene" in err[0] and "matte" in err[0] \
+        and "chrome" in err[0] and "--overwrite" in err[0], err
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    # the same settings resume; a finished stack is refused another scene as well
+    assert capture_main([str(out), *SIM, "--count", "6"]) == 0
+    assert capture_main([str(out), *SIM, "--count", "6", "--sim-scene", "chrome"]) == 2
+    assert "scene" in capsys.readouterr().err
+
+
+def test_a_kill_while_overwrite_discards_leaves_no_resumable_mix(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Killed after session.json went but before every old frame did: a plain re-run refuses
+    the folder (no old frame is resumed into a new session); --overwrite starts over."""
+    out = tmp_path / "o"
+    assert capture_main([str(out), *SIM, "--count", "4"]) == 0
+    real = Path.unlink
+
+    def unlink(self: Path, missing_ok: bool = False) -> None:
+        if self.parent.name == "raw":
+            raise KeyboardInterrupt
+        real(self, missing_ok)
+
+    with monkeypatch.context() as m:
+        m.setattr(Path, "unlink", unlink)
+        assert capture_main([str(out), *SIM, "--count", "4", "--overwrite"]) == 130
+    assert not (out / "session.json").exists() and not (out / "filenames.txt").exists()
+    capsys.readouterr()
+    assert capture_main([str(out), *SIM, "--count", "4"]) == 2
+    assert "did not take" in capsys.readouterr().err
+    assert capture_main([str(out), *SIM, "--count", "4", "--overwrite"]) == 0
+    assert load_stack(out).num_lights == 4

@@ -147,11 +147,31 @@ def test_unwritable_diagnostic_leaves_no_lights_file(chrome: Path, tmp_path: Pat
                                                      monkeypatch, capfd) -> None:
     """The diagnostic image fails to encode after the lights were computed: no output at all
     (the lights file used to be written first and left behind)."""
-    monkeypatch.setattr(cli.cv2, "imwrite", lambda *a, **k: False)
+    monkeypatch.setattr("msfnet.runtime.imageio.cv2.imwrite", lambda *a, **k: False)
     out = tmp_path / "res" / "l.txt"
     assert cli.main(["directions", str(chrome), "-o", str(out), "-q"]) == 2
     _one_line(capfd, ["diagnostic"])
     assert not (tmp_path / "res").exists()
+
+
+def test_the_diagnostic_goes_through_the_shared_encoder(chrome: Path, tmp_path: Path,
+                                                       monkeypatch) -> None:
+    from msfnet.runtime.imageio import encode_png
+
+    calls: list[tuple[Path, Path | None]] = []
+
+    def spy(path: Path, img: np.ndarray, name: Path | None = None) -> None:
+        calls.append((path, name))
+        encode_png(path, img, name=name)
+
+    monkeypatch.setattr(cli, "encode_png", spy)
+    diag = tmp_path / "diag.png"
+    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "l.txt"), "--diagnostic",
+                     str(diag), "-q"]) == 0
+    # written into staging (the name ends in .png: OpenCV picks the encoder from it), errors
+    # name the diagnostic file
+    assert len(calls) == 1 and calls[0][1] == diag and calls[0][0].suffix == ".png"
+    assert diag.is_file()
 
 
 def test_overwrite_replaces_every_output_together(chrome: Path, tmp_path: Path) -> None:
@@ -238,3 +258,40 @@ def test_intensities_refused(case: str, chrome: Path, tmp_path: Path, capfd) -> 
     assert cli.main([*argv, *extra]) == 2
     _one_line(capfd, words)
     assert _files(tmp_path) == before
+
+
+# ---------------------------------------------------------------- errors name their file
+
+def test_no_sphere_in_the_images_names_the_folder(tmp_path: Path, capfd) -> None:
+    """Noise, no mask: the message used to name no file."""
+    noise = tmp_path / "noise"
+    noise.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        write_png(noise / f"{i + 1:02d}.png", rng.integers(0, 256, (80, 96, 3), np.uint8))
+    out = tmp_path / "l.txt"
+    assert cli.main(["directions", str(noise), "-o", str(out)]) == 2
+    line = _one_line(capfd, ["could not find the sphere", "--mask"])
+    assert line.startswith(f"msf-calib: error: {noise}: "), line
+    assert cli.main(["intensities", str(noise), "--lights", str(_lights_file(tmp_path, 4)),
+                     "-o", str(out)]) == 2
+    assert _one_line(capfd, ["could not find the sphere"]).startswith(
+        f"msf-calib: error: {noise}: ")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["directions", "intensities"])
+def test_an_empty_mask_is_named(command: str, chrome: Path, tmp_path: Path, capfd) -> None:
+    mask = tmp_path / "empty.png"
+    write_png(mask, np.zeros((80, 96), np.uint8))
+    extra = ["--lights", str(_lights_file(tmp_path, 6))] if command == "intensities" else []
+    assert cli.main([command, str(chrome), *extra, "--mask", str(mask), "-o",
+                     str(tmp_path / "l.txt")]) == 2
+    line = _one_line(capfd, ["no sphere found in the mask"])
+    assert line.startswith(f"msf-calib: error: {mask}: "), line
+
+
+def _lights_file(folder: Path, count: int) -> Path:
+    path = folder / "dirs.txt"
+    path.write_text("".join(f"{a} {b} {c}\n" for a, b, c in S.ring_lights(count, (15, 55))))
+    return path

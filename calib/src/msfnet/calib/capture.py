@@ -11,10 +11,13 @@ Layout of ``out_dir``::
                                        is still read)
 
 Re-running with the same ``out_dir`` skips every frame already in ``raw/``: an interrupted
-session (Ctrl-C, cable pulled, power cut) loses at most the frame being written. A finished
-stack is kept as it is (only light files, mask or linearisation given anew are updated).
-Everything given is checked before the first frame: a bad lights file or mask must not cost a
-capture session.
+session (Ctrl-C, cable pulled, power cut) loses at most the frame being written. A resume with
+another light count or other camera settings (camera.info(): exposure, gain, mode, simulated
+scene ...) is refused: one stack never mixes frames of two setups. A finished stack is kept as
+it is (only light files, mask or linearisation given anew are updated). ``overwrite`` discards
+the previous session: its frames (only the names msf-capture writes: other images in ``raw/``
+stay), its session.json and the stack built from it. Everything given is checked before the
+first frame: a bad lights file or mask must not cost a capture session.
 """
 
 from __future__ import annotations
@@ -125,14 +128,67 @@ def read_session(path: Path) -> dict:
     return data
 
 
-def _load_session(path: Path, count: int, overwrite: bool) -> dict:
-    if not path.is_file() or overwrite:
+# Session keys saying which frames the stack images were built from and how; a session without
+# them (new, overwritten, or given new frames since) has its stack images built anew.
+_BUILT_KEYS = ("linearisation", "ambient_subtracted", "stack_white_level")
+
+
+def _load_session(path: Path, count: int, camera: dict) -> dict:
+    """The session to continue (a new one when there is none), refused when it was taken with
+    another light count or other camera settings."""
+    if not path.is_file():
         return {"count": count, "frames": {}}
     data = read_session(path)
     if data.get("count") != count:
         raise InputError(f"existing session has {data.get('count')} lights, this one {count} "
                          "(use another folder or --overwrite)", path)
+    recorded = data.get("camera")
+    if isinstance(recorded, dict):
+        # compared as session.json stores it (tuples become lists, keys strings)
+        now = json.loads(json.dumps(camera))
+        # a key only the new info has was not recorded by an older version: not a difference
+        # (NaN, which a driver may report, is not equal to itself: compare its JSON text too)
+        differ = sorted(k for k in recorded if k not in now or (
+            now[k] != recorded[k] and json.dumps(now[k]) != json.dumps(recorded[k])))
+        if differ:
+            def show(info: dict) -> str:
+                return ", ".join(f"{k}={info.get(k, '(none)')}" for k in differ)
+
+            raise InputError(f"existing session was taken with {show(recorded)}, this one with "
+                             f"{show(now)} (use another folder or --overwrite)", path)
     return data
+
+
+# What msf-capture writes: raw frames, stack images, and the stack's other files.
+_FRAME = re.compile(r"^(ambient|\d{3,})\.png$")
+_STACK_IMAGE = re.compile(r"^\d{3,}\.png$")
+_STACK_FILES = (FILENAMES_FILE, LIGHTS_FILE, INTENSITIES_FILE, MASK_FILE, NORMALS_FILE,
+                LEGACY_NORMALS_FILE)
+
+
+def _discard(out: Path) -> None:
+    """``overwrite``: remove the previous session, and only what msf-capture wrote (frame
+    names in raw/; the stack files where session.json says the folder is msf-capture's), so
+    that nothing of it is read with the new frames.
+
+    The order makes a kill midway harmless: while the stack goes (filenames.txt first), the
+    old session is intact and a plain re-run rebuilds its stack from its frames; once
+    session.json is gone, left-over frames are refused as foreign (check_folder) until
+    --overwrite, so they are never counted in a new session.
+    """
+    sess = out / SESSION
+    if sess.is_file():
+        for name in _STACK_FILES:
+            (out / name).unlink(missing_ok=True)
+        for p in out.iterdir():
+            if _STACK_IMAGE.match(p.name) and p.is_file():
+                p.unlink()
+        sess.unlink()
+    raw = out / "raw"
+    if raw.is_dir():
+        for p in raw.iterdir():
+            if _FRAME.match(p.name) and p.is_file():
+                p.unlink()
 
 
 def check_folder(out: Path, overwrite: bool) -> None:
@@ -211,13 +267,14 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
 
     camera: ``.capture() -> (H, W, 3) uint8/uint16``, ``.white_level``, ``.info()``, and
     optionally ``.frame_shape`` (H, W); lights: ``.count``, ``.on(i)`` (0-based, only that
-    light), ``.off()``. Frames already in ``out_dir/raw`` are kept and skipped (resume); a
-    finished stack is kept. ``strict`` turns exposure warnings into errors. Without light
-    directions the images are still written (e.g. a chrome-sphere capture for ``msf-calib
-    directions``); the folder is then not yet a stack. ``linearisation``: the camera's
-    encoding, undone when the stack is built (recorded in session.json). ``progress``:
-    False hides the bar; otherwise it shows on a terminal only. ``normals_gt``: known
-    normals (simulated scenes).
+    light), ``.off()``. Frames already in ``out_dir/raw`` are kept and skipped (resume, refused
+    when ``.info()`` differs from the session's); a finished stack is kept; ``overwrite``
+    discards the previous session and its stack first. ``strict`` turns exposure warnings into
+    errors. Without light directions the images are still written (e.g. a chrome-sphere
+    capture for ``msf-calib directions``); the folder is then not yet a stack.
+    ``linearisation``: the camera's encoding, undone when the stack is built (recorded in
+    session.json). ``progress``: False hides the bar; otherwise it shows on a terminal only.
+    ``normals_gt``: known normals (simulated scenes).
     """
     out = Path(out_dir)
     raw = out / "raw"
@@ -230,11 +287,11 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
     dirs = check_vectors(light_directions, n, "light directions")
     ints = check_vectors(light_intensities, n, "light intensities")
     mask_arr = check_mask(mask, _frame_shape(camera, raw))
-    if overwrite and raw.is_dir():
-        for p in raw.glob("*.png"):
-            p.unlink()
+    info = camera.info()  # before discarding anything: a device failing here costs nothing
+    if overwrite:
+        _discard(out)
     sess_path = out / SESSION
-    session = _load_session(sess_path, n, overwrite)
+    session = _load_session(sess_path, n, info)
     todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
     pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
     if not pending and _finished(out, n) and sess_path.is_file():
@@ -243,7 +300,10 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
         return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt,
                             log=log)
     raw.mkdir(parents=True, exist_ok=True)
-    session.update(count=n, camera=camera.info(), white_level=camera.white_level)
+    session.update(count=n, camera=info, white_level=camera.white_level)
+    if pending:  # new frames: a stack built before no longer shows them
+        for key in _BUILT_KEYS:
+            session.pop(key, None)
 
     def save_session() -> None:
         text = json.dumps(session, indent=1, sort_keys=True)
@@ -333,9 +393,10 @@ def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = N
                  normals_gt: np.ndarray | None = None, log: Log = print) -> Path:
     """Build the DiLiGenT-layout stack in ``out`` from ``out/raw``.
 
-    Images are (re)built only when missing or when the linearisation changed (the raw frames
-    are the record); light files, mask and ground truth are written when given and different,
-    by the stack writers of msfnet.runtime.stack (the files save_stack writes).
+    Images are (re)built unless session.json says they were built from these frames the same
+    way (the raw frames are the record); light files, mask and ground truth are written when
+    given and different, by the stack writers of msfnet.runtime.stack (the files save_stack
+    writes).
     """
     raw = out / "raw"
     sess_path = out / SESSION
@@ -347,12 +408,14 @@ def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = N
     if missing:
         raise InputError(f"session incomplete: {len(missing)} frame(s) missing, e.g. "
                          f"{missing[0]}; run the capture again to resume", raw)
-    recorded = session.get("linearisation")
-    if _finished(out, n) and recorded == lin.record() and \
-            session.get("ambient_subtracted", subtract_ambient) == subtract_ambient:
+    # no record (a new or overwritten session, or new frames): images on disk are not these
+    # frames' (an earlier session's, or the user's), whatever they look like
+    built = all(k in session for k in _BUILT_KEYS) and _finished(out, n)
+    if built and session["linearisation"] == lin.record() and \
+            session["ambient_subtracted"] == subtract_ambient:
         shape = read_image(out / names[0]).shape[:2]
     else:
-        if _finished(out, n):
+        if built:
             log("rebuilding the stack images from raw/ (linearisation or ambient changed)")
         shape = _build_images(out, names, subtract_ambient, lin)
         session.update(linearisation=lin.record(), ambient_subtracted=subtract_ambient,

@@ -20,7 +20,7 @@ from msfnet.runtime.cliutil import (
 )
 from msfnet.runtime.errors import InputError
 
-from .cameras import Camera
+from .cameras import Camera, SimulatedCamera
 from .capture import Linearisation, capture_loop, capture_stack, check_folder
 from .lights import Lights
 
@@ -99,8 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask", type=Path, help="object mask for the stack and exposure checks "
                    "(checked before capturing; the simulated camera writes its own)")
     p.add_argument("--overwrite", action="store_true",
-                   help="discard frames already captured, or capture into a folder holding "
-                   "other images")
+                   help="discard the session already captured (its frames, session.json and "
+                   "the stack built from them; other images stay), or capture into a folder "
+                   "holding other images")
     p.add_argument("--loop", nargs="?", type=nonnegative_int, const=0, default=None,
                    metavar="K", help="capture stack after stack into OUT/001, OUT/002, ... "
                    "(K takes; none or 0: until Ctrl-C); with --run each is run as soon as "
@@ -112,6 +113,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="after capturing, run msf-run on the stack; the rest of the command "
                    "line goes to msf-run (e.g. --run --method l2 -o out/)")
     return p
+
+
+class _SceneCamera(SimulatedCamera):
+    """The simulated camera, its info naming the scene: session.json records it, so a resume
+    with another --sim-scene is refused instead of mixing the two scenes' frames."""
+
+    def __init__(self, rig: Any, scene: str) -> None:
+        super().__init__(rig)
+        self.scene = scene
+
+    def info(self) -> dict:
+        return {**super().info(), "scene": self.scene}
 
 
 def _light_rig(args: argparse.Namespace) -> str:
@@ -129,7 +142,6 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
         # calib -> synth, the simulated rig only (see the msfnet package docstring): lazy
         from msfnet.synth.spheres import mirror_scene, ring_lights, sphere_masks, sphere_normals
 
-        from .cameras import SimulatedCamera
         from .lights import SimulatedLights, SimulatedRig
 
         kind = "mirror" if args.sim_scene == "chrome" else "matte"
@@ -141,7 +153,7 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
                  # a mirror sphere is dark but for a highlight of a few pixels: the
                  # under-exposure check (99.5th percentile) would fire on every frame
                  "min_level": 0.0 if kind == "mirror" else 0.1}
-        return SimulatedCamera(rig), SimulatedLights(rig), known
+        return _SceneCamera(rig, args.sim_scene), SimulatedLights(rig), known
     if rig_name == "serial":
         if not args.port:
             raise InputError("--light-rig serial needs --port")

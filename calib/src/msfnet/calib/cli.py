@@ -12,7 +12,6 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from msfnet.runtime.cliutil import (
@@ -25,7 +24,7 @@ from msfnet.runtime.cliutil import (
 )
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import check_output, staged_files, vectors_text
-from msfnet.runtime.imageio import list_images, read_image, read_mask
+from msfnet.runtime.imageio import encode_png, list_images, read_image, read_mask
 from msfnet.runtime.stack import read_vectors
 
 from .directions import Intrinsics, diagnostic_image, estimate_directions
@@ -105,8 +104,9 @@ def _intrinsics(args: argparse.Namespace, shape: tuple[int, int]) -> Intrinsics 
 def _circles(folder: Path, imgs: np.ndarray, mask: Path | None, spheres: int):
     mask_path = mask or _named(folder, ("mask",))
     if mask_path is not None:
-        return fit_circles_from_mask(read_mask(mask_path, imgs.shape[1:3])), mask_path
-    return fit_circles_from_images(imgs, spheres), None
+        return fit_circles_from_mask(read_mask(mask_path, imgs.shape[1:3]),
+                                     source=mask_path), mask_path
+    return fit_circles_from_images(imgs, spheres, source=folder), None
 
 
 def _diagnostic_paths(args: argparse.Namespace, out: Path, captures: int) -> list[Path]:
@@ -154,8 +154,7 @@ def _text_writer(text: str) -> Callable[[Path], None]:
 def _png_writer(rgb: np.ndarray, target: Path) -> Callable[[Path], None]:
     def write(tmp: Path) -> None:
         # the staging name ends in the target's suffix, so OpenCV picks the encoder from it
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(rgb[:, :, ::-1])):
-            raise InputError("cannot write the diagnostic image", target)
+        encode_png(tmp, rgb, name=target)
 
     return write
 
@@ -230,8 +229,8 @@ def cmd_intensities(args: argparse.Namespace) -> int:
     mask = read_mask(mask_path, imgs.shape[1:3]) if mask_path else None
     intr = _intrinsics(args, imgs.shape[1:3])
     if args.target == "sphere":
-        circ = (fit_circles_from_mask(mask) if mask is not None
-                else fit_circles_from_images(imgs))[0]
+        circ = (fit_circles_from_mask(mask, source=mask_path) if mask is not None
+                else fit_circles_from_images(imgs, source=folder))[0]
         normals, valid = target_normals(imgs.shape[1:3], circle=circ, mask=mask,
                                         intrinsics=intr)
     else:

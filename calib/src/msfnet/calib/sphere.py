@@ -6,6 +6,7 @@ Pixel convention: (x, y) = (column, row) of pixel centres, row 0 at the top.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -64,8 +65,10 @@ def crack_points(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.r_[xs + 0.5, xv.astype(np.float64)], np.r_[ys.astype(np.float64), yv + 0.5]
 
 
-def fit_circles_from_mask(mask: np.ndarray, min_area: int = 200) -> list[Circle]:
-    """One circle per connected blob of the mask (several spheres allowed), left to right."""
+def fit_circles_from_mask(mask: np.ndarray, min_area: int = 200,
+                          source: str | Path | None = None) -> list[Circle]:
+    """One circle per connected blob of the mask (several spheres allowed), left to right.
+    ``source``: the mask file, named by the error when there is no sphere."""
     m = np.asarray(mask).astype(np.uint8)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
     circles = []
@@ -78,7 +81,7 @@ def fit_circles_from_mask(mask: np.ndarray, min_area: int = 200) -> list[Circle]
         circles.append(fit_circle(x, y))
     if not circles:
         raise InputError("no sphere found in the mask (no blob of at least "
-                         f"{min_area} pixels)")
+                         f"{min_area} pixels)", source)
     return sorted(circles, key=lambda c: c.cx)
 
 
@@ -128,8 +131,10 @@ def _refine_edge(grey: np.ndarray, c: Circle, rays: int = 180, band: float = 0.0
     return fit
 
 
-def fit_circles_from_images(images: np.ndarray, count: int = 1) -> list[Circle]:
-    """Find ``count`` sphere silhouettes in a stack (N, H, W[, 3]) without a mask.
+def fit_circles_from_images(images: np.ndarray, count: int = 1,
+                            source: str | Path | None = None) -> list[Circle]:
+    """Find ``count`` sphere silhouettes in a stack (N, H, W[, 3]) without a mask (``source``:
+    where the images came from, named by the error when no sphere is found).
 
     Hough circles on the log-stretched mean image give a first guess; each is refined on the
     strongest radial edge. Less reliable than a mask: check the diagnostic image.
@@ -150,7 +155,8 @@ def fit_circles_from_images(images: np.ndarray, count: int = 1) -> list[Circle]:
         if found is not None and found.shape[1] >= count:
             break
     if found is None:
-        raise InputError("could not find the sphere in the images: pass a mask (--mask)")
+        raise InputError("could not find the sphere in the images: pass a mask (--mask)",
+                         source)
     # A narrow band keeps inner edges (bright rim reflections) from capturing the fit.
     circles = [_refine_edge(mean, _refine_edge(mean, Circle(*map(float, f))), band=0.04)
                for f in found[0, :count]]

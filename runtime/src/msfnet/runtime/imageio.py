@@ -137,15 +137,20 @@ def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndar
     return mask
 
 
+def encode_png(path: str | Path, img: np.ndarray, name: str | Path | None = None) -> None:
+    """Encode an RGB (or grey) uint8/uint16 image at ``path``: the one encoder of every PNG
+    writer, meant for a staging path (callers make the write atomic). ``name``: the file the
+    error names (the final one, not the staging path); default ``path``. OpenCV picks the
+    format from ``path``'s suffix, so a staging name keeps the target's (``.png``; msf-calib's
+    diagnostic may also be ``.tif``, ``.bmp`` or ``.jpg``)."""
+    arr = np.asarray(img)
+    if arr.ndim == 3:
+        arr = arr[:, :, ::-1]  # OpenCV writes BGR
+    if not cv2.imwrite(str(path), np.ascontiguousarray(arr)):
+        raise InputError("cannot write image", path if name is None else name)
+
+
 def write_png(path: str | Path, img: np.ndarray) -> None:
     """Write an RGB (or grey) uint8/uint16 image as PNG, atomically."""
     path = Path(path)
-    arr = np.asarray(img)
-    if arr.ndim == 3:
-        arr = arr[:, :, ::-1]
-
-    def _write(tmp: Path) -> None:
-        if not cv2.imwrite(str(tmp), arr):
-            raise InputError("cannot write image", path)
-
-    write_atomic(path, _write)
+    write_atomic(path, lambda tmp: encode_png(tmp, img, name=path))

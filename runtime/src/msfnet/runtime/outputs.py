@@ -11,11 +11,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
-from .errors import InputError
 from .files import json_text, staged_folder
+from .imageio import encode_png
 
 if TYPE_CHECKING:
     from .pipeline import Result
@@ -31,9 +30,7 @@ def normals_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
     """Into a staging folder (callers make the folder atomic)."""
-    arr = rgb[:, :, ::-1] if rgb.ndim == 3 else rgb
-    if not cv2.imwrite(str(path), np.ascontiguousarray(arr)):
-        raise InputError("cannot write image", path)
+    encode_png(path, rgb)
 
 
 def fill_result_folder(folder: Path, result: Result, report: bool = True) -> None:

@@ -1,0 +1,54 @@
+"""PNG writing (runtime/imageio.py): one encoder, RGB in, full bit depth, errors naming the file
+the user knows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from msfnet.runtime import imageio
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.imageio import encode_png, read_image, write_png
+
+RNG = np.random.default_rng(5)
+IMAGES = {
+    "rgb8": RNG.integers(0, 256, (9, 13, 3), np.uint8),
+    "rgb16": RNG.integers(0, 65536, (9, 13, 3), np.uint16),
+    "grey16": RNG.integers(0, 65536, (9, 13), np.uint16),
+    "strided view": RNG.integers(0, 256, (9, 26, 3), np.uint8)[:, ::2],
+}
+
+
+@pytest.mark.parametrize("name", sorted(IMAGES))
+def test_encode_png_writes_rgb_at_full_bit_depth(name: str, tmp_path: Path) -> None:
+    img = IMAGES[name]
+    path = tmp_path / "a.png"
+    encode_png(path, img)
+    np.testing.assert_array_equal(read_image(path), img)
+    stored = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # files hold BGR, as PNG readers expect
+    np.testing.assert_array_equal(stored[:, :, ::-1] if img.ndim == 3 else stored, img)
+    assert stored.dtype == img.dtype
+
+
+@pytest.mark.parametrize("name", sorted(IMAGES))
+def test_write_png_writes_the_encoders_bytes(name: str, tmp_path: Path) -> None:
+    encode_png(tmp_path / "a.png", IMAGES[name])
+    write_png(tmp_path / "b.png", IMAGES[name])
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+
+
+def test_a_failed_encode_names_the_final_file(tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Staging names mean nothing to the user: the error names ``name``, and write_png (atomic)
+    leaves nothing behind."""
+    monkeypatch.setattr(imageio.cv2, "imwrite", lambda *a, **k: False)
+    with pytest.raises(InputError, match="cannot write image") as exc:
+        encode_png(tmp_path / "staging.png", IMAGES["rgb8"], name=tmp_path / "final.png")
+    assert exc.value.path == tmp_path / "final.png"
+    with pytest.raises(InputError) as exc:
+        write_png(tmp_path / "out.png", IMAGES["rgb8"])
+    assert exc.value.path == tmp_path / "out.png"
+    assert not list(tmp_path.iterdir())
