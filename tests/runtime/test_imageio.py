@@ -52,3 +52,39 @@ def test_a_failed_encode_names_the_final_file(tmp_path: Path,
         write_png(tmp_path / "out.png", IMAGES["rgb8"])
     assert exc.value.path == tmp_path / "out.png"
     assert not list(tmp_path.iterdir())
+
+
+# -- damaged input files: one error naming the file, nothing from the decoders on stderr
+
+
+def test_a_png_with_damaged_bytes_is_refused_before_decoding(tmp_path: Path,
+                                                             capfd: pytest.CaptureFixture[str]
+                                                             ) -> None:
+    path = tmp_path / "005.png"
+    write_png(path, RNG.integers(0, 65536, (40, 50, 3), np.uint16))
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte inside the image data
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"005\.png: corrupt PNG \(chunk 'IDAT'"):
+        read_image(path)
+    assert capfd.readouterr().err == ""
+
+
+def test_a_jpeg_with_damaged_data_is_refused(tmp_path: Path,
+                                             capfd: pytest.CaptureFixture[str]) -> None:
+    ok, jpeg = cv2.imencode(".jpg", RNG.integers(0, 256, (32, 32, 3), np.uint8))
+    assert ok
+    data = jpeg.tobytes()
+    path = tmp_path / "005.jpg"
+    path.write_bytes(data[:-2] + b"\x00\x00\x00\x00" + data[-2:])  # junk before the end marker
+    with pytest.raises(InputError, match=r"005\.jpg: corrupt JPEG \(Corrupt JPEG data"):
+        read_image(path)
+    assert capfd.readouterr().err == ""
+    path.write_bytes(data)  # the intact file reads, and stderr works again afterwards
+    assert read_image(path).shape == (32, 32, 3)
+
+
+def test_hidden_companion_files_are_not_images(tmp_path: Path) -> None:
+    for name in ("001.png", "002.png", "._001.png", ".hidden.png"):
+        (tmp_path / name).write_bytes(b"x")
+    assert [p.name for p in imageio.list_images(tmp_path)] == ["001.png", "002.png"]

@@ -7,8 +7,13 @@ read TGA; Pillow reads TGA. So: OpenCV first, Pillow for what OpenCV cannot deco
 from __future__ import annotations
 
 import contextlib
+import os
 import re
-from collections.abc import Iterable
+import struct
+import tempfile
+import threading
+import zlib
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import cv2
@@ -40,11 +45,13 @@ def natural_key(name: str) -> list[object]:
 
 
 def list_images(folder: Path, exclude: Iterable[str] = ("mask", "normal", "albedo")) -> list[Path]:
-    """Image files of a folder in natural order, skipping masks, normal maps and the like."""
+    """Image files of a folder in natural order, skipping masks, normal maps and the like, and
+    hidden files (macOS writes ``._001.png`` companions on foreign file systems)."""
     files = [
         p
         for p in folder.iterdir()
         if p.is_file()
+        and not p.name.startswith(".")
         and p.suffix.lower() in IMAGE_SUFFIXES
         and not any(word in p.stem.lower() for word in exclude)
     ]
@@ -70,7 +77,9 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def _check_complete(path: Path) -> None:
-    """Refuse PNG and JPEG files that stop before their end marker (truncated copies)."""
+    """Refuse PNG and JPEG files that stop before their end marker (truncated copies) and PNG
+    files whose chunks fail their CRC (damaged bytes): libpng would print its own line on
+    stderr before failing, or decode damaged rows."""
     with open(path, "rb") as f:
         head = f.read(8)
         f.seek(0, 2)
@@ -81,6 +90,50 @@ def _check_complete(path: Path) -> None:
         raise InputError("truncated PNG (the file stops before its end marker)", path)
     if head.startswith(b"\xff\xd8") and _JPEG_END not in tail:
         raise InputError("truncated JPEG (the file stops before its end marker)", path)
+    if head.startswith(b"\x89PNG"):
+        _check_png_chunks(path)
+
+
+def _check_png_chunks(path: Path) -> None:
+    """Every chunk's CRC-32 (zlib's, at memory speed: a few ms for a 16-bit frame)."""
+    data = path.read_bytes()
+    pos = 8
+    while pos + 12 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        end = pos + 8 + length
+        if end + 4 > len(data):
+            raise InputError(f"corrupt PNG (chunk at byte {pos} runs past the end)", path)
+        (crc,) = struct.unpack(">I", data[end:end + 4])
+        if zlib.crc32(data[pos + 4:end]) != crc:
+            name = kind.decode("latin-1")
+            raise InputError(f"corrupt PNG (chunk {name!r} at byte {pos} fails its checksum)",
+                             path)
+        if kind == b"IEND":
+            return
+        pos = end + 4
+    raise InputError("corrupt PNG (no IEND chunk where the chunks end)", path)
+
+
+# libjpeg decodes damaged data with a warning on stderr ("Corrupt JPEG data: ...") and no error:
+# JPEG decoding runs with stderr captured, one file at a time (stderr is process-wide).
+_STDERR_LOCK = threading.Lock()
+_JPEG_DAMAGE = ("Corrupt JPEG data", "Premature end of JPEG", "Invalid JPEG", "Bogus")
+
+
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[list[str]]:
+    """What C libraries write on file descriptor 2 meanwhile (the text, once the block ends)."""
+    text: list[str] = []
+    with _STDERR_LOCK, tempfile.TemporaryFile() as sink:
+        saved = os.dup(2)
+        try:
+            os.dup2(sink.fileno(), 2)
+            yield text
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text.append(sink.read().decode("utf-8", "replace"))
 
 
 def _check_header(path: Path) -> None:
@@ -100,7 +153,16 @@ def _check_header(path: Path) -> None:
 
 
 def _read_with_opencv(path: Path) -> np.ndarray | None:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        with _captured_stderr() as said:
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        damage = [ln for ln in said[0].splitlines() if ln.startswith(_JPEG_DAMAGE)]
+        if damage:
+            raise InputError(f"corrupt JPEG ({damage[0].strip()})", path)
+        if said[0].strip():  # not ours to swallow
+            os.write(2, said[0].encode())
+    else:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is not None and img.ndim == 3:
         img = img[:, :, 2::-1] if img.shape[2] >= 3 else img  # BGR(A) -> RGB
     return img
