@@ -55,7 +55,8 @@ def as_float32(stack: Stack) -> Stack:
 
 
 def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = False) -> Path:
-    """Random-weight MSF-Net (seed 0) exported to ONNX with msf-export's code path.
+    """Random-weight MSF-Net (seed 0) exported to ONNX by msf-export's route (the verified
+    ``fp32`` variant, or ``staged``).
 
     PyTorch's default init shrinks activations layer by layer, so that model's output hardly
     depends on the images (8 vs 96 ball lights: 0.001 deg apart). ``sensitive`` re-initialises
@@ -64,7 +65,7 @@ def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = Fals
     ``staged``: the same weights as a staged export (``msf-export --staged``).
     """
     torch = pytest.importorskip("torch")
-    from msfnet.export.onnx_export import export_checkpoint
+    from msfnet.export.variants import ExportOptions, export_variant
     from msfnet.model.checkpoint import save_checkpoint
     from msfnet.model.network import MSFNet
 
@@ -79,7 +80,8 @@ def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = Fals
             if isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
                 torch.nn.init.kaiming_normal_(module.weight, a=0.1, nonlinearity="leaky_relu")
     save_checkpoint(model, folder / f"{stem}.pth")
-    export_checkpoint(folder / f"{stem}.pth", onnx_path, checks=[(3, 8, 8)], staged=staged)
+    export_variant(folder / f"{stem}.pth", "staged" if staged else "fp32", onnx_path,
+                   options=ExportOptions(checks=((3, 8, 8),)), overwrite=True)
     return onnx_path
 
 
@@ -118,9 +120,7 @@ def tiny_msfnet_onnx(path: Path, **metadata: str) -> Path:
     meta = model_metadata(train_lights=32, checkpoint_sha256="0" * 64, version="test",
                           static_shape=None, precision="fp32", staged=False)
     meta.update(metadata)
-    for key, value in meta.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = key, value
+    helper.set_model_props(model, meta)
     onnx.save(model, str(path))
     return path
 

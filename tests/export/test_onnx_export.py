@@ -13,7 +13,9 @@ onnx = pytest.importorskip("onnx")
 ort = pytest.importorskip("onnxruntime")
 
 from msfnet.export.cli import main as export_main  # noqa: E402
-from msfnet.export.onnx_export import random_inputs, verify  # noqa: E402
+from msfnet.export.onnx_export import random_inputs  # noqa: E402
+from msfnet.export.variants import VerificationRow  # noqa: E402
+from msfnet.export.verify import compare, file_runner, rendered_cases, torch_runner  # noqa: E402
 from msfnet.model.checkpoint import CheckpointError, load_model, read_state_dict  # noqa: E402
 from msfnet.model.network import MSFNet  # noqa: E402
 from msfnet.runtime.metrics import angular_error_deg  # noqa: E402
@@ -33,6 +35,13 @@ def _trained_like_net(seed: int = 0) -> MSFNet:
         bn.running_var.uniform_(0.5, 1.5)
         bn.num_batches_tracked.fill_(1000)
     return net.eval()
+
+
+def _verify(net: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]]
+            ) -> list[VerificationRow]:
+    """The written file (loaded as the runtime and msf-export's verification load it) against
+    PyTorch at each (N, H, W) on rendered objects, with the verifier's own comparison."""
+    return compare(file_runner(path, None), torch_runner(net), rendered_cases(checks))
 
 
 @pytest.fixture(scope="module")
@@ -86,10 +95,10 @@ def test_pickled_objects_are_refused(tmp_path: Path) -> None:
 def test_onnx_matches_pytorch_at_many_light_counts(published_ckpt: Path, exported: Path) -> None:
     net = load_model(published_ckpt)
     checks = [(3, 32, 32), (7, 28, 44), (32, 16, 24), (96, 24, 32)]  # last three non-square
-    results = verify(net, exported, checks)
+    results = _verify(net, exported, checks)
     for r in results:
-        assert r["max_deg"] < 0.01 and r["pixels"] > 100, r
-    assert [r["lights"] for r in results] == [3, 7, 32, 96]
+        assert r.max_deg < 0.01 and r.pixels > 100, r
+    assert [r.lights for r in results] == [3, 7, 32, 96]
 
 
 def test_onnx_batch_axis_is_dynamic(published_ckpt: Path, exported: Path) -> None:
@@ -137,7 +146,7 @@ def test_simplified_export_keeps_dynamic_axes(published_ckpt: Path, tmp_path: Pa
     out = tmp_path / "slim.onnx"
     assert export_main([str(published_ckpt), "-o", str(out), "--plain", "--simplify"]) == 0
     net = load_model(published_ckpt)
-    assert max(r["max_deg"] for r in verify(net, out, [(9, 20, 12)])) < 0.01
+    assert max(r.max_deg for r in _verify(net, out, [(9, 20, 12)])) < 0.01
 
 
 def _assert_clean_failure(capsys, args: list[str], out: Path, match: str) -> None:
@@ -234,4 +243,4 @@ def test_fp16_weight_storage_halves_the_file_and_keeps_parity(published_ckpt: Pa
     assert export_main([str(half_ckpt), "-o", str(out), "--plain", "--fp16-weights"]) == 0
     assert out.stat().st_size < 0.55 * exported.stat().st_size
     rounded = load_model(half_ckpt)  # fp16 tensors cast back to float32 on load
-    assert max(r["max_deg"] for r in verify(rounded, out, [(5, 16, 20)])) < 0.01
+    assert max(r.max_deg for r in _verify(rounded, out, [(5, 16, 20)])) < 0.01

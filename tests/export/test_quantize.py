@@ -9,13 +9,13 @@ import pytest
 import torch
 from _runtime_helpers import as_float32
 
-from msfnet.export.onnx_export import _torch_export
 from msfnet.export.quantize import (
     calibration_samples,
     calibration_tiles,
-    quantize_int8,
     tile_origins,
 )
+from msfnet.export.variants import ExportOptions, export_variant
+from msfnet.model.checkpoint import save_checkpoint
 from msfnet.model.network import MSFNet
 from msfnet.runtime.metrics import angular_error_deg
 from msfnet.runtime.stack import load_stack
@@ -43,13 +43,18 @@ def test_calibration_tiles_of_a_16bit_stack_equal_the_float32_ones(ball_dir):
 
 @pytest.fixture(scope="module")
 def quantised(tmp_path_factory, ball_dir):
+    """msf-export's int8 variant (torch export -> metadata -> deconv rewrite -> quantisation,
+    written once and verified) of a random-weight network, calibrated on ballPNG tiles."""
     torch.manual_seed(0)
     net = MSFNet().eval()
     tmp = tmp_path_factory.mktemp("q")
-    _torch_export(net, tmp / "fp32.onnx", 17, None)
+    save_checkpoint(net, tmp / "rand.pth")
     stack = load_stack(ball_dir, max_lights=12)
-    summary = quantize_int8(tmp / "fp32.onnx", tmp / "int8.onnx", [stack], tile=32, lights=8,
-                            tiles_per_stack=2)
+    result = export_variant(tmp / "rand.pth", "int8", tmp / "int8.onnx", calib=[stack],
+                            options=ExportOptions(checks=((3, 8, 8),), calib_tile=32,
+                                                  calib_lights=8, calib_tiles_per_stack=2))
+    summary = result.notes["quantization"]
+    assert isinstance(summary, dict)
     return net, tmp, stack, summary
 
 
@@ -93,17 +98,18 @@ def test_int8_of_the_trained_model_stays_within_half_a_degree(tmp_path, ball_dir
     further off (dispatch.MEASURED), which is why int8 is no default."""
     from dataclasses import replace
 
-    from msfnet.export.onnx_export import export_checkpoint
     from msfnet.model.checkpoint import default_checkpoint_path
     from msfnet.runtime.infer import infer_normals
     from msfnet.runtime.session import create_session
     from msfnet.runtime.tiling import plan_tiles
 
-    export_checkpoint(default_checkpoint_path(), tmp_path / "fp32.onnx",
-                      checks=[(3, 8, 8)])
+    options = ExportOptions(checks=((3, 8, 8),), calib_tiles_per_stack=3)
+    export_variant(default_checkpoint_path(), "fp32", tmp_path / "fp32.onnx", options=options)
     stack = load_stack(ball_dir, max_lights=16)
-    summary = quantize_int8(tmp_path / "fp32.onnx", tmp_path / "int8.onnx", [stack],
-                            tiles_per_stack=3)
+    result = export_variant(default_checkpoint_path(), "int8", tmp_path / "int8.onnx",
+                            calib=[stack], options=options)
+    summary = result.notes["quantization"]
+    assert isinstance(summary, dict)
     assert any("regressor" in n for n in summary["fp32_convs"])
     ys, xs = np.nonzero(stack.mask)
     y0, x0 = int(ys.mean()) - 100, int(xs.mean()) - 100  # the ball's upper-left rim + interior

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-import onnx
 import onnxruntime as ort
 import pytest
 import torch
 
-from msfnet.export.onnx_export import _torch_export, random_inputs
+from msfnet.export.onnx_export import random_inputs
+from msfnet.export.passes import PASSES, PassContext
 from msfnet.export.rewrite import deconv_weight_as_conv, rewrite_deconvs
+from msfnet.export.variants import ExportOptions, get_variant
 from msfnet.model.network import MSFNet
 from msfnet.runtime.metrics import angular_error_deg
 
@@ -28,17 +29,20 @@ def test_weight_transform_matches_torch_deconv(rng):
 
 @pytest.fixture(scope="module")
 def fp32_model(tmp_path_factory):
+    """The fp32 graph as msf-export's torch-export pass makes it (opset 17, dynamic axes): what
+    the int8 variants' rewrite-deconvs pass gets (metadata aside), unverified and in memory."""
     torch.manual_seed(0)
     net = MSFNet().eval()
-    path = tmp_path_factory.mktemp("rw") / "fp32.onnx"
-    _torch_export(net, path, 17, None)
-    return net, path
+    folder = tmp_path_factory.mktemp("rw")
+    ctx = PassContext(net, get_variant("fp32"), ExportOptions(), folder / "unused.pth",
+                      folder / "unused.onnx")
+    return net, PASSES["torch-export"].run(None, ctx)
 
 
 @pytest.mark.parametrize("mode", ["conv3x3", "phases"])
 def test_rewritten_graph_matches_pytorch(fp32_model, mode):
-    net, path = fp32_model
-    model, count = rewrite_deconvs(onnx.load(str(path)), mode)
+    net, proto = fp32_model
+    model, count = rewrite_deconvs(proto, mode)
     assert count == 3
     assert not any(n.op_type == "ConvTranspose" for n in model.graph.node)
     sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])

@@ -59,11 +59,11 @@ def test_staged_tiles_are_larger_for_the_same_memory(staged_onnx) -> None:
 
 def test_staged_and_static_do_not_combine(tmp_path) -> None:
     pytest.importorskip("torch")
-    from msfnet.export.onnx_export import StaticShape, export_checkpoint
+    from msfnet.export.variants import ExportOptions, StaticShape, export_variant
 
     with pytest.raises(InputError, match="--staged and --static"):
-        export_checkpoint(tmp_path / "none.pth", tmp_path / "x.onnx", staged=True,
-                          static=StaticShape(8, 32, 32))
+        export_variant(tmp_path / "none.pth", "staged", tmp_path / "x.onnx",
+                       options=ExportOptions(static=StaticShape(8, 32, 32)))
     assert not (tmp_path / "x.onnx").exists()
 
 

@@ -74,7 +74,9 @@ def test_unsupported_flag_combinations_are_refused() -> None:
 def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_ckpt: Path,
                                                            calib_npz: Path, tmp_path: Path,
                                                            monkeypatch) -> None:
-    from msfnet.model.checkpoint import default_checkpoint_path
+    import msfnet
+    from msfnet.model.checkpoint import default_checkpoint_path, sha256_of
+    from msfnet.runtime.contract import model_metadata
     from msfnet.runtime.session import create_session
 
     # int8 of random weights deviates ~1 deg mean (no trained activation statistics); the
@@ -119,6 +121,18 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
     assert meta["msfnet.precision"] == {"fp32": "fp32", "fp16-weights":
                                         "fp32 (fp16-stored weights)",
                                         "int8": "int8-qdq"}[variant.precision]
+    # the file's msfnet metadata, in order, is the contract's builder's (plus int8's summary;
+    # ORT's quantiser adds a key of its own, onnx.infer)
+    written = {e.key: e.value for e in onnx.load(str(out)).metadata_props
+               if e.key.startswith("msfnet.") or not variant.needs_calibration}
+    want_meta = model_metadata(train_lights=32, checkpoint_sha256=sha256_of(ckpt),
+                               version=msfnet.__version__,
+                               static_shape=(5, 16, 20) if variant.needs_shape else None,
+                               precision=meta["msfnet.precision"],
+                               staged=variant.graph == "staged", variant=variant.name)
+    if variant.needs_calibration:
+        want_meta["msfnet.quantization"] = written["msfnet.quantization"]
+    assert list(written.items()) == list(want_meta.items())
     rows = result.rows
     assert rows and all(r.pixels > 50 and r.norm_error < 1e-3 for r in rows)
     if variant.rule.inputs == "rendered":

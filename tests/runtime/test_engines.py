@@ -219,15 +219,14 @@ def _model(exports: dict[str, Path], key: str) -> Path:
     if key in exports:
         return exports[key]
     pytest.importorskip("torch", reason="exporting the bundled checkpoint needs torch")
-    from msfnet.export.onnx_export import export_checkpoint
+    from msfnet.export.variants import export_variant
     from msfnet.model.checkpoint import default_checkpoint_path
 
     folder = exports["_folder"]
     if key == "fp32_staged":
-        export_checkpoint(default_checkpoint_path(), folder / "fp32_staged.onnx", staged=True)
+        export_variant(default_checkpoint_path(), "staged", folder / "fp32_staged.onnx",
+                       overwrite=True)
     else:  # int8 / int8_staged: msf-export's verified int8 rows, calibrated on real stacks
-        from msfnet.export.variants import export_variant
-
         root = _data_root()
         calib = [root / "DiLiGenT" / "ballPNG",
                  *(p for p in (root / "psmImages" / o for o in ("cat", "owl")) if p.is_dir())]

@@ -7,15 +7,13 @@ The ONNX contract (also in the README):
   N, H, W (and B) are dynamic unless exported --static; H and W must be multiples of 4.
 
 Every function here works on an ``onnx.ModelProto`` in memory; only ``variants.export_variant``
-writes a file (once, after all passes) and verifies that file. ``export_checkpoint`` and
-``verify`` are the older entry points, kept as thin wrappers.
+writes a file (once, after all passes) and verifies that file (``verify.py``).
 """
 
 from __future__ import annotations
 
 import io
 import warnings
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,7 +23,7 @@ import torch
 from msfnet.model.network import MSFNet
 from msfnet.runtime.errors import InputError
 
-from .variants import DEFAULT_OPSET, TOLERANCE_DEG, ExportOptions, StaticShape, variant_for
+from .variants import StaticShape
 
 EXAMPLE_SHAPE = (2, 4, 24, 20)  # B, N, H, W of the tracing example: differs from every check
 STAGED_CHECK_CHUNK = 3  # verification chunk: uneven splits of every checked light count
@@ -152,12 +150,6 @@ def export_proto(model: torch.nn.Module, opset: int, static: StaticShape | None
     return proto
 
 
-def _torch_export(model: torch.nn.Module, path: Path, opset: int,
-                  static: StaticShape | None) -> None:
-    """Unverified monolithic export straight to ``path`` (tests and experiments only)."""
-    onnx.save(export_proto(model, opset, static), str(path))
-
-
 def set_metadata(proto: onnx.ModelProto, values: dict[str, str], *, replace_all: bool = False,
                  ) -> None:
     """Update (or with ``replace_all`` replace) metadata_props in place, keys kept in order."""
@@ -218,47 +210,6 @@ def default_checks(static: StaticShape | None) -> list[tuple[int, int, int]]:
     return [(3, 32, 32), (7, 28, 44), (32, 16, 24)]
 
 
-def verify(model: torch.nn.Module, path: str | Path, checks: list[tuple[int, int, int]],
-           batch: int = 1, threads: int = 0, staged_chunk: int | None = None
-           ) -> list[dict[str, float]]:
-    """ONNX Runtime (the file at ``path``) vs PyTorch at each (N, H, W) on rendered objects:
-    max/mean angle in degrees over the objects' pixels, as dicts. ``staged_chunk``: the file is
-    a staged export, run by the runtime's light-chunked loop with that many lights per call.
-    Measures only; the pass/fail rules live in ``variants`` / ``verify``."""
-    import onnxruntime as ort
-
-    from .verify import compare, rendered_cases, session_runner, torch_runner
-
-    opts = ort.SessionOptions()
-    if threads:
-        opts.intra_op_num_threads = threads
-    session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    rows = compare(session_runner(session, staged_chunk), torch_runner(model),
-                   rendered_cases(checks, batch=batch))
-    return [{"lights": r.lights, "height": r.size[0], "width": r.size[1], "pixels": r.pixels,
-             "max_deg": r.max_deg, "mean_deg": r.mean_deg} for r in rows]
-
-
-def export_checkpoint(checkpoint: str | Path, output: str | Path, *, opset: int = DEFAULT_OPSET,
-                      train_lights: int = 32, static: StaticShape | None = None,
-                      do_simplify: bool = False, checks: list[tuple[int, int, int]] | None = None,
-                      tolerance_deg: float = TOLERANCE_DEG, fp16_weights: bool = False,
-                      staged: bool = False) -> list[dict[str, float]]:
-    """The older entry point: the fp32 / fp16 / static / staged variant picked by flags,
-    replacing ``output`` if it exists; returns the verification rows as dicts."""
-    from .variants import export_variant
-
-    variant = variant_for(static=static is not None, staged=staged, plain=not staged,
-                          fp16_weights=fp16_weights)
-    options = ExportOptions(opset=opset, train_lights=train_lights, static=static,
-                            simplify=do_simplify, tolerance_deg=tolerance_deg,
-                            checks=tuple(checks) if checks else None)
-    result = export_variant(checkpoint, variant, output, options=options, overwrite=True)
-    return [{"lights": r.lights, "height": r.size[0], "width": r.size[1], "pixels": r.pixels,
-             "max_deg": r.max_deg, "mean_deg": r.mean_deg} for r in result.rows]
-
-
-__all__ = ["DEFAULT_OPSET", "EXAMPLE_SHAPE", "STAGED_CHECK_CHUNK", "TOLERANCE_DEG",
-           "StaticShape", "default_checks", "export_checkpoint", "export_proto",
+__all__ = ["EXAMPLE_SHAPE", "STAGED_CHECK_CHUNK", "default_checks", "export_proto",
            "export_staged_proto", "random_inputs", "rendered_inputs", "set_metadata",
-           "simplify", "store_weights_fp16", "verify"]
+           "simplify", "store_weights_fp16"]

@@ -18,7 +18,6 @@ fp32 (p99 3.3), 1.56x faster than fp32 on workload (b) (same run, 2 threads).
 
 from __future__ import annotations
 
-import json
 import logging
 import tempfile
 from collections.abc import Iterator, Sequence
@@ -31,8 +30,6 @@ from msfnet.runtime.contract import METADATA_KEYS
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.preprocess import normalise
 from msfnet.runtime.stack import Stack, load_stack
-
-from .rewrite import rewrite_deconvs
 
 CALIB_TILE = 64
 # Up to 96 lights: the max over more lights reaches larger feature values; calibrated at 16
@@ -175,8 +172,8 @@ def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Pat
                    reduce_range: bool = False) -> tuple[onnx.ModelProto, dict[str, object]]:
     """An fp32 msfnet graph whose transposed convs are already rewritten (``rewrite.py``) ->
     int8 QDQ graph, and a summary. onnxruntime's quantiser works on files: they go to
-    ``scratch`` (a private folder the caller removes). Metadata: precision int8-qdq plus the
-    summary under msfnet.quantization.
+    ``scratch`` (a private folder the caller removes). The ``quantise-int8`` pass
+    (``passes.py``) records the int8 precision and this summary in the metadata.
 
     method: 'minmax' (default; robust for this ReLU-like network) or 'percentile' / 'entropy'.
     """
@@ -229,40 +226,3 @@ def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Pat
         "method": method, "tile": tile, "lights": lights, "reduce_range": reduce_range,
         "fp32_convs": fp32_conv_names(model)}
     return qmodel, summary
-
-
-def quantize_int8(src: str | Path, dst: str | Path, stacks: Sequence[Stack], *,
-                  method: str = "minmax", tile: int = CALIB_TILE, lights: int = CALIB_LIGHTS,
-                  tiles_per_stack: int = CALIB_TILES_PER_STACK,
-                  reduce_range: bool = False, rewrite: str = "phases") -> dict[str, object]:
-    """fp32 msfnet ONNX file -> int8 QDQ ONNX file at ``dst`` (replaced atomically, NOT
-    verified: ``variants.export_variant(..., "int8", ...)`` is the verified route); returns a
-    summary dict.
-
-    rewrite: how transposed convs become convs ('phases', default, or 'conv3x3', see
-    rewrite.py). Same accuracy; 'phases' does no zero-tap work: int8 on workload (b) 1.56x fp32
-    against 1.28x for 'conv3x3' (same run, bundled model, 2 threads).
-    """
-    from msfnet.runtime.files import check_not_input, scratch_folder, write_atomic
-
-    check_not_input(dst, [src])
-    model, rewritten = rewrite_deconvs(onnx.load(str(src)), rewrite)
-    with scratch_folder(dst) as scratch:
-        qmodel, summary = quantize_model(model, stacks, scratch, method=method, tile=tile,
-                                         lights=lights, tiles_per_stack=tiles_per_stack,
-                                         reduce_range=reduce_range)
-    summary = {"deconvs_rewritten": rewritten, **summary, "rewrite": rewrite}
-    _set_meta(qmodel, {METADATA_KEYS["precision"]: "int8-qdq",
-                       "msfnet.quantization": json.dumps(summary)})
-    write_atomic(dst, lambda tmp: onnx.save(qmodel, str(tmp)))
-    return summary
-
-
-def _set_meta(model: onnx.ModelProto, values: dict[str, str]) -> None:
-    """Update metadata_props in place, keeping the fp32 export's other keys."""
-    current = {p.key: p.value for p in model.metadata_props}
-    current.update(values)
-    del model.metadata_props[:]
-    for k, v in current.items():
-        entry = model.metadata_props.add()
-        entry.key, entry.value = k, v

@@ -6,6 +6,7 @@ count the weights were trained with, the ONNX metadata keys and how they are rea
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +28,9 @@ METADATA_KEYS = {
     "static_shape": "msfnet.static_shape",
     "precision": "msfnet.precision",
     "graph": "msfnet.graph",
+    # written by msf-export for people and tools; the runtime does not read these two
+    "variant": "msfnet.variant",  # the export variant's name (msf-export --list-variants)
+    "quantization": "msfnet.quantization",  # int8 only: the calibration summary, JSON
 }
 
 PREPROCESSING_SPEC = {
@@ -104,11 +108,12 @@ def read_model_info(path: Path, meta: Mapping[str, str]) -> ModelInfo:
 
 def model_metadata(*, train_lights: int, checkpoint_sha256: str, version: str,
                    static_shape: tuple[int, int, int] | None, precision: str,
-                   staged: bool) -> dict[str, str]:
-    """The metadata_props an export writes (the inverse of :func:`read_model_info`)."""
-    import json
-
-    return {
+                   staged: bool, variant: str | None = None) -> dict[str, str]:
+    """The metadata_props an export writes (the inverse of :func:`read_model_info`), in the
+    order msf-export writes them. ``variant``: the export variant's name, written last as
+    ``msfnet.variant`` when given (every msf-export file has it; the runtime does not need it).
+    """
+    meta = {
         METADATA_KEYS["format"]: FORMAT,
         METADATA_KEYS["train_lights"]: str(train_lights),
         METADATA_KEYS["preprocessing"]: json.dumps(PREPROCESSING_SPEC),
@@ -120,3 +125,6 @@ def model_metadata(*, train_lights: int, checkpoint_sha256: str, version: str,
         METADATA_KEYS["precision"]: precision,
         METADATA_KEYS["graph"]: "staged" if staged else "monolithic",
     }
+    if variant is not None:
+        meta[METADATA_KEYS["variant"]] = variant
+    return meta
