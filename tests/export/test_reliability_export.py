@@ -108,3 +108,24 @@ def test_sigterm_during_export_leaves_no_partial_file(ckpt: Path, tmp_path: Path
             proc.wait()
     assert list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
     assert proc.returncode == 143 and len(err.strip().splitlines()) == 1, err
+
+
+def test_calib_without_int8_is_refused_not_ignored(ckpt: Path, tmp_path: Path, capfd) -> None:
+    line = _one_line_exit_2(capfd, _run([str(ckpt), "-o", str(tmp_path / "x.onnx"), "--calib",
+                                         str(tmp_path / "nowhere")]))
+    assert "--calib" in line and "--int8" in line
+    assert not (tmp_path / "x.onnx").exists()
+
+
+@pytest.mark.parametrize("ablation", [{"mfe": False}, {"mff": False}])
+def test_an_ablation_checkpoint_is_read_as_its_own_network(ablation: dict[str, bool],
+                                                          tmp_path: Path, capfd) -> None:
+    """msf-train --no-mfe / --no-mff runs load (the variant from the keys); the staged graph
+    cannot hold them, which is said in one line with the way out."""
+    from msfnet.model.checkpoint import load_model, save_checkpoint
+    from msfnet.model.network import MSFNet
+
+    path = save_checkpoint(MSFNet(**ablation), tmp_path / "ablation.pth")
+    assert load_model(path).state_dict().keys() == MSFNet(**ablation).state_dict().keys()
+    line = _one_line_exit_2(capfd, _run([str(path), "-o", str(tmp_path / "a.onnx")]))
+    assert "ablation checkpoint" in line and "--plain" in line

@@ -19,6 +19,7 @@ from msfnet.runtime.cliutil import (
     positive_int,
     run_command,
 )
+from msfnet.runtime.errors import InputError
 
 from .variants import (
     DEFAULT_OPSET,
@@ -110,8 +111,6 @@ def build_parser() -> argparse.ArgumentParser:
 def resolve_variant(args: argparse.Namespace) -> Variant:
     """--variant, or the row the flags pick; a flag given with --variant must agree with it
     (--static then only supplies the static rows' shape)."""
-    from msfnet.runtime.errors import InputError
-
     from .variants import variant_for
 
     if args.variant is None:
@@ -143,6 +142,9 @@ def _export(args: argparse.Namespace) -> int:
     from . import variants
 
     variant = resolve_variant(args)
+    if args.calib and not variant.needs_calibration:
+        raise InputError(f"--calib: only the int8 variants are calibrated; {variant.name} "
+                         "would ignore it (add --int8, or drop --calib)")
     options = ExportOptions(opset=args.opset, train_lights=args.train_lights,
                             static=args.static, simplify=args.simplify,
                             tolerance_deg=args.tolerance)

@@ -102,6 +102,9 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
     threads = options.threads
     check_output(output, inputs, overwrite=overwrite)
     model = load_network(checkpoint, variant.precision == "fp16-weights")
+    if variant.graph == "staged" and not (model.mfe and model.mff):
+        raise InputError("an ablation checkpoint (msf-train --no-mfe / --no-mff): the staged "
+                         "graph needs the full network; export it with --plain", checkpoint)
     stacks = load_stacks(calib)
     ctx = PassContext(model, variant, options, checkpoint, output, stacks)
     proto = None

@@ -150,9 +150,10 @@ def network_for(state: Mapping[str, torch.Tensor]) -> MSFNet:
 
 
 def load_model(path: str | Path, **options: bool) -> MSFNet:
-    """An MSFNet in eval mode with the checkpoint's weights (strict)."""
+    """An MSFNet in eval mode with the checkpoint's weights (strict); without ``options``, the
+    variant the checkpoint's keys describe (msf-train's ablation runs included)."""
     state = read_state_dict(path)
-    model = MSFNet(**options)
+    model = MSFNet(**options) if options else network_for(state)
     check_state_dict(model, state, path)
     model.load_state_dict(state, strict=True)
     return model.eval()
