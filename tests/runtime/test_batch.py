@@ -61,8 +61,9 @@ def test_folder_of_stacks_and_objects_txt(tmp_path: Path,
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert [(r["name"], r["lights"]) for r in summary["stacks"]] == [("s2", 4), ("s0", 5)]
     assert '"summary"' in lines
-    with pytest.raises(InputError, match="give one of them"):
-        items[0].options(LoadOptions(select="1-3"))
+    # --select overrides objects.txt, as in msf-eval
+    assert items[0].options(LoadOptions(select="1-3")).select == "1-3"
+    assert items[0].options(LoadOptions()).select == "1-4"
     with pytest.raises(InputError, match="named 's0'"):
         expand_stacks([stacks[0], stacks[0]])
 
@@ -154,6 +155,103 @@ def test_ray_missing_gives_a_clear_error(tmp_path: Path, monkeypatch: pytest.Mon
     stacks = _stacks(tmp_path / "in", 2)
     assert main(["--method", "l2", *map(str, stacks), "--ray", "-o", str(tmp_path / "o")]) == 2
     assert "pip install 'msfnet[ray]'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # it was left behind, empty
     # "--ray A B" would make A the cluster address: caught before anything runs
     assert main(["--method", "l2", "--ray", *map(str, stacks)]) == 2
     assert "put --ray after the stacks" in capsys.readouterr().err
+
+
+# name: (extra argv, how the model file is spoiled)
+FAILS_AFTER_CHECKS: dict[str, list[str]] = {
+    "bad --onnx": ["--onnx", "{junk}"],
+    "--workers without --ray": ["--method", "l2", "--workers", "2"],
+    "--precision the model lacks": ["--precision", "int8"],
+    "--intrinsics with a zero focal length": ["--method", "l2", "--intrinsics", "0", "1", "2",
+                                              "3"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(FAILS_AFTER_CHECKS))
+def test_a_refused_batch_leaves_no_folder(case: str, tmp_path: Path,
+                                          monkeypatch: pytest.MonkeyPatch,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """The batch made its output folder (and the parents) before opening the model: every
+    refused try left an empty folder, and used up a numbered name (batch, batch-2, ...)."""
+    stacks = _stacks(tmp_path / "in", 2)
+    (tmp_path / "junk.onnx").write_text("junk")
+    argv = [a.format(junk=tmp_path / "junk.onnx") for a in FAILS_AFTER_CHECKS[case]]
+    monkeypatch.chdir(tmp_path)
+    assert main([*argv, *map(str, stacks), "-o", "p1/p2/p3"]) == 2
+    assert main([*argv, *map(str, stacks)]) == 2  # the default ./msf-out/batch
+    assert capsys.readouterr().err.count("error") == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "junk.onnx"]
+
+
+def _bench_root(root: Path) -> Path:
+    """A DiLiGenT-like root: a small bear with 96 images (the protocol keeps 21-96), a ball."""
+    save_stack(sphere_stack(n=96, h=12, w=12, name="bear"), root / "bearPNG")
+    save_stack(sphere_stack(n=5, name="ball"), root / "ballPNG")
+    return root
+
+
+def test_benchmark_selection_is_printed_recorded_and_overridable(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """msf-run DiLiGenT/ used bear's 21-96 silently, and --select was refused with an error
+    about an objects.txt that did not exist. Now it is said, kept in profile.json, and
+    --select overrides it, as in msf-eval; naming the folder directly does the same."""
+    root = _bench_root(tmp_path / "DiLiGenT")
+    assert main(["--method", "l2", "--no-maps", str(root), "-o", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    assert "bearPNG: using images 21-96" in out and "--select overrides" in out
+    assert "ballPNG: using" not in out
+    profile = json.loads((tmp_path / "a" / "bearPNG" / "profile.json").read_text())
+    assert profile["lights"] == 76
+    assert profile["input"]["select"] == "21-96"
+    assert profile["input"]["select_from"] == "benchmark protocol"
+    assert "select" not in json.loads((tmp_path / "a" / "ballPNG" / "profile.json").read_text()
+                                      )["input"]
+    assert main(["--method", "l2", "--no-maps", str(root), "--select", "1-3", "-o",
+                 str(tmp_path / "b")]) == 0
+    assert "using images" not in capsys.readouterr().out
+    rows = json.loads((tmp_path / "b" / "summary.json").read_text())["stacks"]
+    assert [(r["name"], r["lights"]) for r in rows] == [("ballPNG", 3), ("bearPNG", 3)]
+    profile = json.loads((tmp_path / "b" / "bearPNG" / "profile.json").read_text())
+    assert profile["input"]["select_from"] == "--select"
+    # the same object named directly gets the same images
+    assert main(["--method", "l2", "--no-maps", str(root / "bearPNG"), "-o",
+                 str(tmp_path / "c")]) == 0
+    assert "bearPNG: using images 21-96" in capsys.readouterr().out
+    assert json.loads((tmp_path / "c" / "profile.json").read_text())["lights"] == 76
+    # a folder of the user's that is merely called bearPNG (not 96 images) runs whole
+    save_stack(sphere_stack(n=6, name="bear"), tmp_path / "mine" / "bearPNG")
+    assert main(["--method", "l2", "--no-maps", str(tmp_path / "mine"), "-o",
+                 str(tmp_path / "d")]) == 0
+    assert "using images" not in capsys.readouterr().out
+    assert json.loads((tmp_path / "d" / "bearPNG" / "profile.json").read_text())["lights"] == 6
+
+
+def test_batch_output_folder_rules(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """-o's help: "an existing non-empty folder is refused unless --overwrite". A batch wrote
+    into any folder, beside the user's files or into a single stack's output."""
+    stacks = _stacks(tmp_path / "in", 2)
+    run = ["--method", "l2", "--no-maps", "-q", *map(str, stacks), "-o"]
+    mine = tmp_path / "myphotos"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
+    assert main([*run, str(mine)]) == 2
+    assert "not empty; pass --overwrite" in capsys.readouterr().err
+    assert main([*run, str(mine), "--overwrite"]) == 2
+    assert "notes.txt" in capsys.readouterr().err
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+    single = tmp_path / "single"
+    assert main(["--method", "l2", "--no-maps", "-q", str(stacks[0]), "-o", str(single)]) == 0
+    assert main([*run, str(single), "--overwrite"]) == 2
+    assert "one stack's output" in capsys.readouterr().err
+    # a batch's own folder is replaced with --overwrite, also when it had other stacks
+    batch = tmp_path / "batch"
+    assert main([*run, str(batch)]) == 0
+    (batch / "s1").rename(batch / "old")
+    assert main([*run, str(batch)]) == 2
+    assert main([*run, str(batch), "--overwrite"]) == 0
+    assert sorted(p.name for p in batch.iterdir()) == ["old", "s0", "s1", "summary.json",
+                                                       "summary.md"]

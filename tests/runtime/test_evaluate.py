@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
@@ -85,3 +86,26 @@ def test_diligent_protocol_selects_bear_21_96(tmp_path: Path) -> None:
     save_stack(sphere_stack(n=5, name="ball"), root / "ballPNG")
     objs = {o.folder.name: o.select for o in find_objects(root)}
     assert objs == {"ballPNG": None, "bearPNG": "21-96"}
+
+
+def test_closing_line_lists_only_what_was_written(bench_root: Path, tmp_path: Path,
+                                                  capsys) -> None:
+    """Objects without ground truth get normal maps only; the line said "error maps"."""
+    assert main([str(bench_root), "--l2-only", "-o", str(tmp_path / "gt")]) == 0
+    assert "normal maps and error maps per object" in capsys.readouterr().out
+    for obj in ("objA", "objB"):
+        (bench_root / obj / "Normal_gt.mat").unlink()
+    assert main([str(bench_root), "--l2-only", "-o", str(tmp_path / "nogt")]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "normal maps per object" in last and "error" not in last
+    assert not list((tmp_path / "nogt").rglob("*_error.png"))
+
+
+def test_a_stack_file_is_not_a_benchmark(tmp_path: Path, capfd) -> None:
+    """msf-eval x.npz said "benchmark root or object folder not found" for a file there."""
+    npz = tmp_path / "good.npz"
+    np.savez(npz, images=np.ones((3, 4, 4, 3)), lights=np.eye(3))
+    assert main([str(npz), "--l2-only", "-q", "-o", str(tmp_path / "o")]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "good.npz: a file, not a benchmark" in err[0], err
+    assert "msf-run takes .npz" in err[0] and "not found" not in err[0]

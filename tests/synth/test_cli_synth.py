@@ -73,3 +73,29 @@ def test_bad_names(argv: list[str], words: list[str], tmp_path: Path, capfd) -> 
     assert main([str(tmp_path / "x"), *argv]) == 2
     _one_line(capfd, words)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_overwrite_replaces_only_what_msf_synth_wrote(tmp_path: Path, capfd) -> None:
+    """The help says "only one msf-synth wrote", but any msfnet folder was replaced (an
+    msf-run result too): the manifest did not say which command wrote it."""
+    import json
+
+    from _runtime_helpers import sphere_stack
+
+    from msfnet.runtime.run_cli import main as run_main
+    from msfnet.runtime.stack import save_stack
+
+    stack = save_stack(sphere_stack(n=4), tmp_path / "in")
+    result = tmp_path / "result"
+    assert run_main(["--method", "l2", "--no-maps", "-q", str(stack), "-o", str(result)]) == 0
+    before = sorted(p.name for p in result.iterdir())
+    assert main([str(result), *SMALL, "--overwrite"]) == 2
+    _one_line(capfd, ["result", "msf-run's output, not msf-synth's"])
+    assert sorted(p.name for p in result.iterdir()) == before
+    # a root from before the manifest named its writer is replaced as it always was
+    old = tmp_path / "old"
+    assert main([str(old), *SMALL, "-q"]) == 0
+    manifest = json.loads((old / MANIFEST).read_text())
+    assert manifest.pop("command") == "msf-synth"
+    (old / MANIFEST).write_text(json.dumps(manifest))
+    assert main([str(old), *SMALL, "--overwrite", "-q"]) == 0

@@ -159,3 +159,31 @@ def test_decoding_holds_one_stack_not_two(tmp_path: Path) -> None:
     assert s.images.dtype == np.uint16
     print(f"load peak {peak / 2**20:.2f} MB for a {s.images.nbytes / 2**20:.2f} MB stack")
     assert peak < 1.3 * s.images.nbytes
+
+
+@pytest.mark.parametrize("name", ["001.png", "stack.npy", "notes.txt"])
+def test_a_file_that_is_no_stack_is_named_as_such(tmp_path: Path, name: str) -> None:
+    """It exists: "stack folder not found" sent users looking for a typo."""
+    folder = save_stack(sphere_stack(n=4), tmp_path / "s")
+    path = folder / "001.png" if name == "001.png" else tmp_path / name
+    if name == "stack.npy":
+        np.save(path, sphere_stack(n=4).images)
+    elif name == "notes.txt":
+        path.write_text("x")
+    with pytest.raises(InputError, match=r"not a supported stack: expected a folder .* \.npz"):
+        load_stack(path)
+    with pytest.raises(InputError, match="stack folder not found"):
+        load_stack(tmp_path / "missing")
+
+
+def test_only_an_image_named_like_a_mask_is_the_mask(tmp_path: Path) -> None:
+    """Without mask.png a file like ``cat.mask.tga`` is the mask; a text file or a macOS
+    ``._mask.png`` with "mask" in the name is not (it failed as "cannot decode image")."""
+    stack = sphere_stack(n=4)
+    folder = save_stack(stack, tmp_path / "s")
+    (folder / "mask.png").rename(folder / "obj.mask.png")
+    (folder / "mask_notes.txt").write_text("threshold 127")
+    (folder / "._mask.png").write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+    np.testing.assert_array_equal(load_stack(folder).mask, stack.mask)
+    (folder / "obj.mask.png").unlink()
+    assert load_stack(folder).mask.all()  # no mask: every pixel

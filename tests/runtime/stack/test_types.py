@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.stack import Stack, as_held, held_dtype
+from msfnet.runtime.stack import Stack, as_held, held_dtype, load_stack, save_stack
 
 
 def _int_stack(dtype: type, scale: float = 1.0) -> Stack:
@@ -26,11 +28,19 @@ def test_integer_stacks_validate(dtype: type) -> None:
     assert stack.validate() is stack and stack.images.dtype == dtype
 
 
+def _nearly_full(stack: Stack) -> Stack:
+    """Every pixel at 65535 but one inside the mask (all of them: refused as saturated)."""
+    images = np.full_like(stack.images, 65535)
+    r, c = np.argwhere(stack.mask)[0]
+    images[0, r, c] = 1000
+    return replace(stack, images=images)
+
+
 def test_signal_range_uses_the_integer_maximum_without_overflow() -> None:
-    """Every pixel at 65535: the peak is read in uint16 (a max cannot overflow) and the
-    ratio to the intensity is taken in float64."""
+    """Pixels at 65535: the peak is read in uint16 (a max cannot overflow) and the ratio to
+    the intensity is taken in float64."""
     stack = _int_stack(np.uint16)
-    full = replace(stack, images=np.full_like(stack.images, 65535))
+    full = _nearly_full(stack)
     full.validate()
     tiny = np.full_like(stack.intensities, 65535 / 2e15)  # brightest / intensity = 2e15
     with pytest.raises(InputError, match=r"brightest pixel / light intensity is 2e\+15"):
@@ -45,6 +55,60 @@ def test_black_integer_stack_is_refused() -> None:
         replace(stack, images=np.zeros_like(stack.images)).validate()
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_saturated_stack_is_refused(dtype: type) -> None:
+    """Every pixel inside the mask at the white level: no shading, every normal a guess (it
+    ran with exit 0: 53 deg with least squares on a DiLiGenT crop). Outside the mask may be
+    anything; one pixel below full scale is enough to run."""
+    stack = _int_stack(dtype)
+    top = np.iinfo(dtype).max
+    images = np.where(stack.mask[None, :, :, None], top, 0).astype(dtype)
+    images = np.repeat(images, stack.num_lights, axis=0).repeat(3, axis=3)
+    with pytest.raises(InputError, match=f"every image is saturated.*at {top}"):
+        replace(stack, images=images).validate()
+    r, c = np.argwhere(stack.mask)[0]
+    images[2, r, c] = top - 1
+    replace(stack, images=images).validate()
+
+
+def test_saturated_float_stack_is_refused() -> None:
+    """Float images carry no white level: one value everywhere is what a clipped stack becomes
+    after --downscale or --srgb, and holds no shading either."""
+    stack = sphere_stack(n=5)
+    with pytest.raises(InputError, match="saturated"):
+        replace(stack, images=np.full_like(stack.images, 0.7)).validate()
+
+
+def test_lights_all_pointing_away_from_the_camera_are_refused() -> None:
+    """A z-away light file (every z < 0) spans 3-D and passed every check, then gave normals
+    55-90 deg off with exit 0."""
+    stack = sphere_stack(n=6)
+    away = stack.lights * np.array([1, 1, -1], np.float32)
+    with pytest.raises(InputError, match="no light direction points toward the camera"):
+        replace(stack, lights=away).validate()
+    some = away.copy()
+    some[0, 2] = 0.3  # one light in front is a (poor but) valid rig
+    replace(stack, lights=some / np.linalg.norm(some, axis=1, keepdims=True)).validate()
+
+
+def test_one_black_image_is_a_warning_naming_it(tmp_path: Path) -> None:
+    """A dead light or a missed trigger: the stack still runs (the other lights may suffice),
+    but the image is named; the rest of a good stack gives no warning."""
+    stack = save_stack(sphere_stack(n=8), tmp_path / "s")
+    assert load_stack(stack).warnings == []
+    cv2.imwrite(str(stack / "005.png"), np.zeros((36, 44, 3), np.uint16))
+    warnings = load_stack(stack).warnings
+    assert len(warnings) == 1 and str(stack / "005.png") in warnings[0]
+    assert "black" in warnings[0] and "\n" not in warnings[0]
+    arrays = sphere_stack(n=8)
+    arrays.images[2] *= 0.001  # from arrays: named by position
+    assert "image 3" in Stack.from_arrays(arrays.images, arrays.lights).warnings[0]
+    # a grazing light leaves most of the object dark: not a dead one
+    dim = sphere_stack(n=8)
+    dim.images[1] *= 0.05
+    assert dim.validate().warnings == []
+
+
 def test_held_types() -> None:
     assert held_dtype(np.uint8) == np.uint8 and held_dtype(np.uint16) == np.uint16
     for other in (np.float16, np.float32, np.float64, np.int8, np.int16, np.int32, np.uint32,
@@ -53,3 +117,16 @@ def test_held_types() -> None:
     a = np.zeros((2, 2), np.uint16)
     assert as_held(a) is a  # no copy
     assert as_held(a.astype(np.float64)).dtype == np.float32
+
+
+@pytest.mark.slow
+def test_real_benchmarks_load_without_warnings(ball_dir: Path, psm_dir: Path) -> None:
+    """The new checks (saturation, lights behind, black images) leave real data alone: every
+    DiLiGenT object (bear without its 20 corrupted images) and every psmImages object."""
+    diligent = ball_dir.parent
+    for name in ("ballPNG", "bearPNG", "harvestPNG"):
+        stack = load_stack(diligent / name, select="21-96" if name == "bearPNG" else None)
+        assert stack.warnings == [], name
+    for folder in sorted(p for p in psm_dir.iterdir() if p.is_dir()):
+        stack = load_stack(folder, lights=psm_dir / "lights.txt")
+        assert stack.warnings == [], folder.name

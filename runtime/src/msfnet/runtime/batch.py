@@ -16,11 +16,12 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .benchmarks import PROTOCOL_SELECT, find_objects
+from .benchmarks import PROTOCOL_SELECT, find_objects, protocol_note
 from .errors import InputError
-from .files import json_text, write_text
+from .files import MANIFEST, STAGING_TAG, json_text, write_text
 from .imageio import list_images
-from .stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack
+from .stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack, selection
+from .stack.load import count_images
 
 if TYPE_CHECKING:
     from .pipeline import Model, Result
@@ -30,27 +31,58 @@ SUMMARY_FILES = ("summary.json", "summary.md")
 
 @dataclass(frozen=True)
 class BatchItem:
-    """One stack of a batch: its path and, from an objects.txt, its own image selection."""
+    """One stack of a batch: its path and its own image selection, from an objects.txt or
+    from a benchmark's protocol (DiLiGenT bear: 21-96), which --select overrides (as in
+    msf-eval)."""
 
     path: Path
     select: str | None = None
+    origin: str = "objects.txt"  # where ``select`` comes from: "objects.txt" or "protocol"
 
     @property
     def name(self) -> str:
         return self.path.stem if self.path.suffix.lower() == ".npz" else self.path.name
 
     def options(self, load: LoadOptions) -> LoadOptions:
-        if self.select is None:
+        if self.select is None or load.select is not None:
             return load
-        if load.select is not None and load.select != self.select:
-            raise InputError(f"--select {load.select} and objects.txt's {self.select} for "
-                             f"{self.name}: give one of them")
         return replace(load, select=self.select)
+
+    def note(self, load: LoadOptions) -> str | None:
+        """The line to print when the benchmark's selection applies (it changes the result,
+        so it is never silent)."""
+        if self.origin != "protocol" or self.select is None or load.select is not None:
+            return None
+        return protocol_note(self.name, self.select)
+
+    def describe_input(self, load: LoadOptions) -> dict[str, object]:
+        """profile.json's "input": the options in effect and where the selection came from."""
+        info = self.options(load).describe()
+        if load.select is not None:
+            info["select_from"] = "--select"
+        elif self.select is not None:
+            info["select_from"] = ("benchmark protocol" if self.origin == "protocol"
+                                   else "objects.txt")
+        return info
 
 
 def _is_stack_folder(folder: Path) -> bool:
     return (folder / "filenames.txt").is_file() or any(
         (folder / n).is_file() for n in LIGHTS_NAMES) or bool(list_images(folder))
+
+
+def _protocol_item(folder: Path) -> BatchItem:
+    """A stack folder, with its benchmark's selection when its name is a known object's (as
+    msf-eval does, however the folder is named on the command line) and the selection fits
+    its images: a folder of ours that happens to be called bearPNG but holds 24 images is not
+    DiLiGenT's bear, and runs whole."""
+    select = PROTOCOL_SELECT.get(folder.name)
+    if select is not None:
+        try:
+            selection(count_images(folder), select, None)
+        except InputError:
+            select = None
+    return BatchItem(folder, select, "protocol")
 
 
 def expand_stacks(paths: Sequence[Path]) -> list[BatchItem]:
@@ -67,9 +99,11 @@ def expand_stacks(paths: Sequence[Path]) -> list[BatchItem]:
             if not subs:
                 raise InputError("neither a stack (images + light_directions.txt) nor a folder "
                                  "of stacks (sub-folders holding them, or an objects.txt)", path)
-            items += [BatchItem(d, PROTOCOL_SELECT.get(d.name)) for d in subs]
+            items += [_protocol_item(d) for d in subs]
+        elif path.is_dir():
+            items.append(_protocol_item(path))
         else:
-            items.append(BatchItem(path))  # a stack, or a missing path the loader reports
+            items.append(BatchItem(path))  # an .npz, or a path the loader reports
     names = [i.name for i in items]
     dup = next((n for n in names if names.count(n) > 1), None)
     if dup is not None:
@@ -185,6 +219,27 @@ class BatchSummary:
         write_text(folder / "summary.md", self.markdown())
 
 
+def check_batch_root(root: Path, names: Sequence[str], overwrite: bool) -> None:
+    """The parent of a batch's output folders: a new or empty folder, or with ``overwrite``
+    one holding only what a batch writes (msfnet output folders and the summary), so results
+    never mix with other files and no single output's manifest is broken by new entries."""
+    if not root.is_dir() or not any(root.iterdir()):
+        return  # absent (or a file: check_output names that problem for each stack)
+    if not overwrite:
+        raise InputError("output folder exists and is not empty; pass --overwrite to write "
+                         "the batch into it (replacing its earlier results)", root)
+    if (root / MANIFEST).exists():
+        raise InputError("--overwrite: the folder is one stack's output, not a batch's; "
+                         "choose another folder for the batch", root)
+    ours = set(names) | set(SUMMARY_FILES)
+    foreign = sorted(p.name for p in root.iterdir() if p.name not in ours
+                     and STAGING_TAG not in p.name
+                     and not (p.is_dir() and (p / MANIFEST).is_file()))
+    if foreign:
+        raise InputError(f"--overwrite: the folder holds files msfnet did not write (e.g. "
+                         f"{foreign[0]}); refusing to write the batch among them", root)
+
+
 def row_for(result: Result, output: Path | None) -> StackRow:
     stack = result.stack
     h, w = stack.shape
@@ -282,8 +337,10 @@ def run_batch(model: Model, items: Sequence[BatchItem | Stack], load: LoadOption
                 runs[-1]["load"] = decode_s
                 runs[-1]["total"] = runs[-1].get("total", 0.0) + decode_s
             # what model(path, load) records itself (auto-mask -> mask.png on save)
-            result.extra["input"] = (item.options(load) if isinstance(item, BatchItem)
-                                     else load).describe()
+            result.extra["input"] = (item.describe_input(load) if isinstance(item, BatchItem)
+                                     else load.describe())
+            if stack.warnings:
+                result.extra["warnings"] = list(stack.warnings)
             result.extra["batch"] = {"decode_s": decode_s, "wait_s": wait_s,
                                      "prefetched": prefetch and i > 0}
             out = out_for(name)
@@ -309,5 +366,5 @@ def run_batch(model: Model, items: Sequence[BatchItem | Stack], load: LoadOption
     return summary
 
 
-__all__ = ["SUMMARY_FILES", "BatchItem", "BatchSummary", "StackRow", "expand_stacks",
-           "row_for", "run_batch"]
+__all__ = ["SUMMARY_FILES", "BatchItem", "BatchSummary", "StackRow", "check_batch_root",
+           "expand_stacks", "row_for", "run_batch"]

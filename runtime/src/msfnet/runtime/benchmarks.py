@@ -14,6 +14,13 @@ from .errors import InputError
 from .stack import LIGHTS_NAMES
 
 PROTOCOL_SELECT = {"bearPNG": "21-96"}  # object folder -> the images the benchmark uses
+PROTOCOL_WHY = {"bearPNG": "DiLiGenT's protocol: bear's first 20 images are corrupted"}
+
+
+def protocol_note(name: str, select: str) -> str:
+    """The line a command prints when a benchmark's selection applies by the folder's name."""
+    why = PROTOCOL_WHY.get(name, "the benchmark's protocol")
+    return f"{name}: using images {select} ({why}); --select overrides"
 
 PUBLISHED_MAE: dict[str, dict[str, float]] = {
     "ballPNG": {"L2 (paper)": 4.10, "PS-FCN": 2.67, "MSF-Net (paper)": 2.27},
@@ -35,11 +42,15 @@ def find_objects(root: Path) -> list[BenchObject]:
     stack, or every sub-folder holding a stack. Known benchmark objects get their protocol's
     selection (DiLiGenT bear: 21-96) unless objects.txt says otherwise."""
     if not root.is_dir():
+        if root.exists():  # e.g. an .npz stack, which msf-run reads but a benchmark is not
+            raise InputError("a file, not a benchmark: expected a folder with objects.txt, "
+                             "object sub-folders, or one object folder (images + "
+                             "light_directions.txt); msf-run takes .npz stacks", root)
         raise InputError("benchmark root or object folder not found", root)
     listing = root / "objects.txt"
     if listing.is_file():
         out = []
-        for line in listing.read_text().splitlines():
+        for line in listing.read_text(encoding="utf-8-sig").splitlines():
             parts = line.split("#", 1)[0].split()
             if not parts:
                 continue
@@ -69,5 +80,5 @@ def check_unique(objects: list[BenchObject]) -> None:
 
 
 
-__all__ = ["PROTOCOL_SELECT", "PUBLISHED_MAE", "PUBLISHED_METHODS", "BenchObject",
-           "check_unique", "find_objects"]
+__all__ = ["PROTOCOL_SELECT", "PROTOCOL_WHY", "PUBLISHED_MAE", "PUBLISHED_METHODS",
+           "BenchObject", "check_unique", "find_objects", "protocol_note"]

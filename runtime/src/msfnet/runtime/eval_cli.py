@@ -25,7 +25,7 @@ from .benchmarks import (
 from .cliutil import make_parser, positive_float, positive_int, run_command
 from .detail import detail_ratio
 from .errors import InputError
-from .files import check_output, json_text, staged_folder
+from .files import check_output, json_text, staged_folder, writing_as
 from .maps import pictures
 from .outputs import normals_png, write_rgb_png
 from .pipeline import Model
@@ -102,6 +102,8 @@ def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
             stack = load_stack(obj.folder, opts)
             row: dict = {"object": obj.folder.name, "lights": stack.num_lights, "results": {},
                          "select": opts.select}
+            if stack.warnings:  # e.g. a black image among lit ones: scored, but flagged
+                row["warnings"] = list(stack.warnings)
             (tmp / obj.folder.name).mkdir()
             outs, errors = {}, {}
             for m, runner in runners.items():
@@ -201,18 +203,34 @@ def _run(args: argparse.Namespace) -> int:
     summary = evaluate(objects, outdir, model=model, use_l2=not args.no_l2, load=load,
                        overwrite=args.overwrite,
                        progress=sys.stderr.isatty() and not args.quiet and not args.json)
+    if not args.quiet:
+        for line in (w for r in summary["results"] for w in r.get("warnings", ())):
+            print(f"{PROG}: warning: {line}", file=sys.stderr)
     if args.json:
         print(json_text({**{k: v for k, v in summary.items() if k != "table"},
                          "output": str(outdir)}), end="")
     elif not args.quiet:
         print(summary["table"])
-        print(f"wrote {outdir}/ (results.json, results.md, error maps)")
+        print(f"wrote {outdir}/ ({written(summary)})")
     return 0
+
+
+def written(summary: dict) -> str:
+    """What evaluate() wrote, as the closing line lists it: error maps only for objects with
+    ground truth."""
+    scored = any("mae_deg" in v for r in summary["results"] for v in r["results"].values())
+    return ("results.json, results.md, normal maps" + (" and error maps" if scored else "")
+            + " per object")
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: _run(args), debug=args.debug)
+
+    def body() -> int:
+        with writing_as(PROG):  # output manifests name their writer
+            return _run(args)
+
+    return run_command(PROG, body, debug=args.debug)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,8 @@ Rules every command follows (issue #13):
 - an output never is, contains or lies inside an input (symlinks resolved, checked both ways);
 - an existing output is replaced only with ``overwrite``, and a folder only if msfnet wrote it
   (its ``.msfnet-output.json`` manifest lists every file in it): nothing else is ever deleted;
+  the manifest also names the command that wrote the folder, so a command can refuse to replace
+  another's (msf-synth replaces only a benchmark root it rendered);
 - files are written to a temporary sibling and renamed into place; folders are staged beside
   the target and renamed as a whole; on SIGINT/SIGTERM the staging is removed, and staging left
   by a killed process (``kill -9``) is removed by the next run writing to the same place;
@@ -34,6 +36,7 @@ import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +46,22 @@ from .errors import InputError
 MANIFEST = ".msfnet-output.json"
 STAGING_TAG = ".msf-partial-"  # ".<name>.msf-partial-<pid>-<random>" beside the target
 _SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+# The command writing outputs (each CLI sets it around its body with :func:`writing_as`), kept
+# in every output folder's manifest; folders written from Python without a command say so.
+_command: ContextVar[str | None] = ContextVar("msfnet_command", default=None)
+API_WRITER = "msfnet (Python API)"
+
+
+@contextmanager
+def writing_as(command: str) -> Iterator[None]:
+    """Record ``command`` as the writer of the output folders made inside the block."""
+    token = _command.set(command)
+    try:
+        yield
+    finally:
+        _command.reset(token)
+
 
 # Outputs this process has put in place, so an interrupted command can say truthfully what it
 # left behind (a multi-stack msf-run interrupted on its second stack has written the first).
@@ -241,10 +260,12 @@ def _is_within(inner: Path, outer: Path) -> bool:
 
 
 def check_output(target: str | Path, inputs: Iterable[str | Path | None] = (), *,
-                 overwrite: bool = False, folder: bool = False) -> Path:
+                 overwrite: bool = False, folder: bool = False,
+                 command: str | None = None) -> Path:
     """Refuse, before any work, an output that would clash with an input or with existing data.
 
-    ``folder``: the output is a folder of files (replaced only if msfnet wrote it).
+    ``folder``: the output is a folder of files (replaced only if msfnet wrote it; with
+    ``command``, only if that command wrote it, see :func:`refuse_foreign`).
     Returns the target as given. Raises InputError naming the path.
     """
     target = Path(target)
@@ -263,7 +284,7 @@ def check_output(target: str | Path, inputs: Iterable[str | Path | None] = (), *
                 if not overwrite:
                     raise InputError("output folder exists and is not empty; pass --overwrite "
                                      "to replace it", target)
-                refuse_foreign(target)
+                refuse_foreign(target, command)
         else:
             if target.is_dir():
                 raise InputError("output path is a folder", target)
@@ -309,23 +330,45 @@ def check_not_input(target: str | Path, inputs: Iterable[str | Path | None] = ()
     return real
 
 
-def refuse_foreign(folder: Path) -> None:
-    """--overwrite replaces a folder only if msfnet wrote everything in it."""
+def refuse_foreign(folder: Path, command: str | None = None) -> None:
+    """--overwrite replaces a folder only if msfnet wrote everything in it, and with
+    ``command`` only if that command did (folders from before the manifest named its writer
+    stay replaceable)."""
+    manifest = _read_manifest(folder)
+    if manifest is None and (folder / MANIFEST).exists():
+        raise InputError(f"--overwrite: the folder's {MANIFEST} is damaged, so msfnet cannot "
+                         "tell its own files; refusing to delete anything", folder)
     foreign = foreign_files(folder)
     if foreign:
         raise InputError(f"--overwrite: the folder holds files msfnet did not write (e.g. "
                          f"{foreign[0]}); refusing to delete them", folder)
+    writer = manifest[1] if manifest else None
+    if command is not None and writer is not None and writer != command:
+        raise InputError(f"--overwrite: the folder is {writer}'s output, not {command}'s; "
+                         "refusing to replace it (choose another folder)", folder)
+
+
+def _read_manifest(folder: Path) -> tuple[list[str], str | None] | None:
+    """An output folder's manifest ``{"files": [names], "command": writer}`` as (files,
+    writer); None when it is missing or damaged (not JSON, "files" not a list of names)."""
+    try:
+        data = json.loads((folder / MANIFEST).read_text())
+    except (OSError, ValueError, RecursionError):  # missing, unreadable, not UTF-8, not JSON
+        return None
+    if not isinstance(data, dict):
+        return None
+    files_ = data.get("files")
+    if not isinstance(files_, list) or not all(isinstance(f, str) for f in files_):
+        return None
+    writer = data.get("command")  # absent in folders written before it was recorded
+    return files_, writer if isinstance(writer, str) else None
 
 
 def foreign_files(folder: Path) -> list[str]:
-    """Entries of an existing output folder that its msfnet manifest does not list."""
-    listed: set[str] = set()
-    manifest = folder / MANIFEST
-    if manifest.is_file():
-        try:
-            listed = set(json.loads(manifest.read_text()).get("files", []))
-        except (ValueError, AttributeError):
-            listed = set()
+    """Entries of an existing output folder that its msfnet manifest does not list (all of
+    them when the manifest is missing or damaged)."""
+    manifest = _read_manifest(folder)
+    listed = set(manifest[0]) if manifest else set()
     return sorted(p.name for p in folder.iterdir() if p.name != MANIFEST and p.name not in listed)
 
 
@@ -498,12 +541,15 @@ def write_vectors(path: str | Path, rows: np.ndarray | Sequence[Sequence[float]]
 
 
 @contextmanager
-def staged_folder(outdir: str | Path, *, overwrite: bool = False) -> Iterator[Path]:
+def staged_folder(outdir: str | Path, *, overwrite: bool = False,
+                  command: str | None = None) -> Iterator[Path]:
     """Yield an empty staging folder beside ``outdir``; on success it becomes ``outdir``.
 
     Everything written into it appears at once (one rename) or not at all: an exception, Ctrl-C
     or SIGTERM (with :func:`install_signal_handlers`) removes the staging folder. A manifest of
-    the files is added, so a later ``--overwrite`` knows the folder is msfnet's own.
+    the files and of the command writing them (``command``, else the one of
+    :func:`writing_as`) is added, so a later ``--overwrite`` knows the folder is msfnet's own.
+    ``command`` also limits ``overwrite`` to that command's folders (see :func:`refuse_foreign`).
     """
     outdir = Path(outdir)
     created = _make_parents(outdir)
@@ -514,11 +560,12 @@ def staged_folder(outdir: str | Path, *, overwrite: bool = False) -> Iterator[Pa
         tmp.chmod(0o777 & ~_umask())
         yield tmp
         names = sorted(p.name for p in tmp.iterdir())
-        (tmp / MANIFEST).write_text(json.dumps({"files": names}) + "\n")
+        writer = command or _command.get() or API_WRITER
+        (tmp / MANIFEST).write_text(json.dumps({"files": names, "command": writer}) + "\n")
         (tmp / MANIFEST).chmod(0o666 & ~_umask())
         _durable([tmp], outdir)
         with _signals_deferred(), _commit_lock([outdir.parent]):
-            _commit(tmp, outdir, overwrite)
+            _commit(tmp, outdir, overwrite, command)
             _written.append(outdir)
         done = True
         _sync_folders([outdir.parent])
@@ -529,7 +576,7 @@ def staged_folder(outdir: str | Path, *, overwrite: bool = False) -> Iterator[Pa
             _remove_empty(created)
 
 
-def _commit(tmp: Path, outdir: Path, overwrite: bool) -> None:
+def _commit(tmp: Path, outdir: Path, overwrite: bool, command: str | None = None) -> None:
     """Put the finished staging folder in place; an old msfnet folder goes only afterwards.
 
     Runs under the parent folder's lock: whatever is at ``outdir`` now is what gets checked.
@@ -542,7 +589,7 @@ def _commit(tmp: Path, outdir: Path, overwrite: bool) -> None:
             if not overwrite:
                 raise InputError("output folder appeared while running (another command wrote "
                                  "it?); pass --overwrite to replace it", outdir)
-            refuse_foreign(outdir)
+            refuse_foreign(outdir, command)
         old = _new_staging(outdir, folder=True)
         os.replace(outdir, old / "old")
     try:
@@ -637,8 +684,8 @@ def numbered_folder(base: str | Path) -> Path:
     return base.with_name(f"{base.name}-{i}")
 
 
-__all__ = ["MANIFEST", "Terminated", "check_not_input", "check_output",
+__all__ = ["API_WRITER", "MANIFEST", "Terminated", "check_not_input", "check_output",
            "forget_written", "install_signal_handlers", "json_text", "numbered_folder",
            "remove_stale_staging", "same_file", "scratch_folder", "staged_files",
            "staged_folder", "to_jsonable", "vectors_text", "write_atomic", "write_json",
-           "write_text", "write_vectors", "written_outputs"]
+           "write_text", "write_vectors", "writing_as", "written_outputs"]

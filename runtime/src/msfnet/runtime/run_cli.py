@@ -3,15 +3,23 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
 from tqdm import tqdm
 
-from .batch import SUMMARY_FILES, BatchItem, StackRow, expand_stacks, run_batch
+from .batch import (
+    SUMMARY_FILES,
+    BatchItem,
+    StackRow,
+    check_batch_root,
+    expand_stacks,
+    run_batch,
+)
 from .cliutil import make_parser, positive_float, positive_int, run_command
 from .errors import InputError
-from .files import check_output, json_text, numbered_folder
+from .files import check_output, json_text, numbered_folder, writing_as
 from .maps import MAP_NAMES, MapOptions
 from .maps.integrate import METHODS as INTEGRATION_METHODS
 from .pipeline import Model, Result
@@ -61,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--intensities", type=Path, help="light intensities file (txt or json)")
     p.add_argument("--mask", type=Path, help="mask image (> 127 is object)")
     p.add_argument("--select", metavar="SPEC", help="1-based image subset, e.g. 21-96 or "
-                   "1,3,5-9")
+                   "1,3,5-9 (default: all images, or the benchmark's own selection, e.g. "
+                   "DiLiGenT bear 21-96, which a line reports and --select overrides)")
     p.add_argument("--max-lights", type=positive_int, metavar="K",
                    help="use K evenly spaced lights")
     p.add_argument("--threads", type=positive_int, metavar="T",
@@ -104,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     lin.add_argument("--gamma", type=positive_float, metavar="G",
                      help="images are power-law encoded: linear = (value / white) ** G")
     cam.add_argument("--white-level", type=positive_float, metavar="V",
-                     help="full-scale value for linearising (default 255 / 65535 by bit "
+                     help="full-scale value for --srgb / --gamma (default 255 / 65535 by bit "
                      "depth; needed for floating-point images above 1)")
     cam.add_argument("--auto-mask", action="store_true",
                      help="compute the object mask from the stack (object on a dark "
@@ -133,24 +142,32 @@ def build_parser() -> argparse.ArgumentParser:
                      "ray://head:10001 = a remote one; stack paths must be visible to the "
                      "workers")
     bat.add_argument("--workers", type=positive_int, metavar="K",
-                     help="Ray workers (default: the cluster's CPUs / --threads, at most one "
-                     "per stack)")
+                     help="Ray workers, with --ray (default: the cluster's CPUs / --threads, at "
+                     "most one per stack)")
+    # Python < 3.13 takes "-5,0,10,10" for an option ("--roi: expected one argument"); read a
+    # dash followed by a digit as a value, so --roi's own check speaks ("x and y must be >= 0")
+    p._negative_number_matcher = re.compile(r"^-\d[\d,.]*$|^-\.\d+$")
     return p
 
 
 def load_options(args: argparse.Namespace) -> LoadOptions:
+    if args.white_level is not None and not (args.srgb or args.gamma is not None):
+        # linear images need no full scale (normals do not depend on it): refuse, not ignore
+        raise InputError("--white-level is the full scale for linearising: it applies with "
+                         "--srgb or --gamma only")
     return LoadOptions(args.lights, args.intensities, args.mask, args.select, args.max_lights,
                        roi=args.roi, downscale=args.downscale, srgb=args.srgb,
                        gamma=args.gamma, white_level=args.white_level,
                        auto_mask=args.auto_mask, max_memory_mb=args.max_memory)
 
 
-def open_model(args: argparse.Namespace) -> Model:
-    """The estimator msf-run's options describe, loaded once."""
+def open_model(args: argparse.Namespace, threads: int | None = None) -> Model:
+    """The estimator msf-run's options describe, loaded once (``threads`` overrides
+    --threads)."""
     from .pipeline import Model
 
     return Model(args.onnx, method=args.method, engine=args.engine, precision=args.precision,
-                 threads=args.threads, provider=args.provider, tile=args.tile,
+                 threads=threads or args.threads, provider=args.provider, tile=args.tile,
                  max_memory_mb=args.max_memory, maps=map_options(args))
 
 
@@ -165,6 +182,8 @@ def parse_maps(text: str) -> tuple[str, ...]:
 
 def map_options(args: argparse.Namespace) -> MapOptions | None:
     """The inspection maps msf-run's options ask for (None: normals only)."""
+    if args.no_maps and args.maps is not None:
+        raise InputError("--maps and --no-maps contradict each other: give one of them")
     if args.no_maps:
         return None
     intr = tuple(args.intrinsics) if args.intrinsics else None
@@ -203,16 +222,46 @@ def print_result(result: Result, outdir: Path, files: list[Path],
     print(f"wrote {outdir}/ ({', '.join(f.name for f in files)})")
 
 
-def _run_single(args: argparse.Namespace, src: Path | Stack, load: LoadOptions) -> int:
+def _keep_warnings(result: Result) -> None:
+    """A stack that loads but looks wrong (a black image among lit ones) is kept in
+    profile.json (the normals are still computed)."""
+    if result.stack.warnings:
+        result.extra["warnings"] = list(result.stack.warnings)
+
+
+def _print_warnings(result: Result, args: argparse.Namespace) -> None:
+    """One line each on stderr, once the outputs are written (a run that then fails gives
+    its one error line only)."""
+    if not args.quiet:
+        for line in result.stack.warnings:
+            tqdm.write(f"{PROG}: warning: {line}", file=sys.stderr)
+
+
+def _say(args: argparse.Namespace, line: str | None) -> None:
+    if line and not args.quiet and not args.json:
+        print(line)
+
+
+def _run_single(args: argparse.Namespace, src: Path | Stack, load: LoadOptions,
+                item: BatchItem | None = None) -> int:
+    if args.workers is not None:
+        raise InputError("--workers is for --ray (workers of a batch on a cluster)")
     name = src.name if isinstance(src, Stack) else src.stem
     out = args.output if args.output is not None else numbered_folder(Path("msf-out") / name)
     inputs = [*load.inputs(), args.onnx] + ([src] if isinstance(src, Path) else [])
     check_output(out, inputs, overwrite=args.overwrite, folder=True)  # before any work
     model = open_model(args)
     progress = sys.stderr.isatty() and not args.quiet and not args.json
-    result = model(src, load, repeat=args.repeat, progress=progress)
+    if item is not None:
+        _say(args, item.note(load))
+    result = model(src, item.options(load) if item is not None else load, repeat=args.repeat,
+                   progress=progress)
+    if item is not None:
+        result.extra["input"] = item.describe_input(load)
+    _keep_warnings(result)
     files = result.save(out, overwrite=args.overwrite, inputs=tuple(load.inputs()),
                         report=not args.no_report)
+    _print_warnings(result, args)
     print_result(result, out, files, args)
     if args.demo and args.method != "l2" and not args.json and not args.quiet:
         l2 = Model.least_squares()(result.stack)
@@ -225,28 +274,48 @@ def _run_single(args: argparse.Namespace, src: Path | Stack, load: LoadOptions) 
 def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptions) -> int:
     if args.repeat != 1:
         raise InputError("--repeat profiles one stack; give a single STACK")
+    if args.workers is not None and args.ray is None:
+        raise InputError("--workers is for --ray")
     if args.output is not None:
         root = args.output
     else:
         one_folder = len(args.stacks) == 1 and args.stacks[0].is_dir()
         root = numbered_folder(Path("msf-out") / (args.stacks[0].name if one_folder
                                                   else "batch"))
-    # every output location is checked before any work
+    # Everything is checked, and the model opened, before anything is made: bad input leaves
+    # no output, not even an empty folder (the stacks' folders and the summary create it).
     inputs = [*load.inputs(), args.onnx]
+    check_batch_root(root, [i.name for i in items], args.overwrite)
     for item in items:
         check_output(root / item.name, [*inputs, item.path], overwrite=args.overwrite,
                      folder=True)
-        item.options(load)  # a --select clashing with objects.txt fails now, not midway
     for name in SUMMARY_FILES:
         check_output(root / name, [*inputs, *(i.path for i in items)],
                      overwrite=args.overwrite)
-    root.mkdir(parents=True, exist_ok=True)
+    model = None
+    if args.ray is not None:
+        from .distributed import ModelSpec, import_ray, run_batch_ray
+
+        import_ray()  # not installed: say so now
+        spec = ModelSpec.from_args(args.onnx, method=args.method, engine=args.engine,
+                                   precision=args.precision, threads=args.threads or 1,
+                                   provider=args.provider, tile=args.tile,
+                                   max_memory_mb=args.max_memory, maps=map_options(args))
+        # the workers open it far away; a file they would all refuse is refused here, once
+        open_model(args, threads=1)
+    else:
+        model = open_model(args)
     show = not args.quiet and not args.json
+    for item in items:
+        _say(args, item.note(load))
 
     def report(row: StackRow, result: Result | None) -> None:
         if row.error is not None:
             tqdm.write(f"{PROG}: error: {row.error}", file=sys.stderr)
-        elif args.json and result is not None:
+            return
+        if result is not None:
+            _print_warnings(result, args)
+        if args.json and result is not None:
             files = sorted(p.name for p in Path(row.output or ".").iterdir()
                            if not p.name.startswith("."))
             print_result(result, Path(row.output or "."), [Path(f) for f in files], args)
@@ -258,21 +327,13 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
                        f"{row.compute_s:.2f} s -> {row.output}/")
 
     progress = None if show else False
-    if args.ray is not None:
-        from .distributed import ModelSpec, run_batch_ray
-
-        spec = ModelSpec.from_args(args.onnx, method=args.method, engine=args.engine,
-                                   precision=args.precision, threads=args.threads or 1,
-                                   provider=args.provider, tile=args.tile,
-                                   max_memory_mb=args.max_memory, maps=map_options(args))
+    if model is None:
         summary = run_batch_ray(spec, items, load, lambda n: root / n, address=args.ray or None,
                                 workers=args.workers, overwrite=args.overwrite,
                                 summary_dir=root, on_result=report, progress=progress,
                                 inputs=tuple(load.inputs()))
     else:
-        if args.workers is not None:
-            raise InputError("--workers is for --ray")
-        summary = run_batch(open_model(args), items, load, lambda n: root / n,
+        summary = run_batch(model, items, load, lambda n: root / n,
                             overwrite=args.overwrite, prefetch=not args.no_prefetch,
                             summary_dir=root, on_result=report, progress=progress,
                             inputs=tuple(load.inputs()))
@@ -296,6 +357,7 @@ def _run(args: argparse.Namespace) -> int:
     if bool(args.stacks) == args.demo:
         raise InputError("give STACK folder(s) or .npz, or --demo, not both or neither")
     load = load_options(args)
+    map_options(args)  # contradicting map options are refused before any work
     if args.demo:
         from .demo import demo_stack
 
@@ -304,13 +366,18 @@ def _run(args: argparse.Namespace) -> int:
         return _run_single(args, demo_stack(), load)
     items = expand_stacks(args.stacks)
     if len(items) == 1 and args.ray is None and items[0].path == args.stacks[0]:
-        return _run_single(args, args.stacks[0], load)
+        return _run_single(args, args.stacks[0], load, items[0])
     return _run_batch(args, items, load)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: _run(args), debug=args.debug)
+
+    def body() -> int:
+        with writing_as(PROG):  # output manifests name their writer
+            return _run(args)
+
+    return run_command(PROG, body, debug=args.debug)
 
 
 if __name__ == "__main__":

@@ -83,11 +83,13 @@ def run(args: argparse.Namespace) -> list[str]:
     options = RenderOptions.preset(args.preset, size=args.size, lights=args.lights,
                                    materials=materials, cast_shadows=not args.no_shadows,
                                    noise=not args.no_noise)
-    check_output(out, overwrite=args.overwrite, folder=True)
+    # --overwrite replaces only a root msf-synth rendered (its help says so), never another
+    # command's results; the manifest names the writer
+    check_output(out, overwrite=args.overwrite, folder=True, command=PROG)
     names = []
     t0 = time.perf_counter()
     quiet = getattr(args, "quiet", False)
-    with staged_folder(out, overwrite=args.overwrite) as tmp:
+    with staged_folder(out, overwrite=args.overwrite, command=PROG) as tmp:
         for stack in tqdm(render_set(args.seed, args.objects, options, shapes=shapes),
                           total=args.objects, desc="render", unit="obj",
                           disable=quiet or not sys.stderr.isatty()):

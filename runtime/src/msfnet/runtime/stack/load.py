@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, first_line
-from ..imageio import list_images, read_image, read_mask
+from ..imageio import IMAGE_SUFFIXES, list_images, read_image, read_mask
 from .readers import read_normals, read_vectors, unit_normals
 from .select import selection
 from .transforms import Roi, Transforms, auto_mask
@@ -25,6 +25,9 @@ LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_dire
 INTENSITY_NAMES = ("light_intensities.txt", "intensities.txt", "light_intensities.json")
 MASK_NAMES = ("mask.png", "mask.tif", "mask.tiff", "mask.tga", "mask.bmp")
 GT_NAMES = ("Normal_gt.mat", "Normal_gt.npy", "Normal_gt.png", "normal_gt.png", "normals_gt.png")
+# what a STACK argument may be, for the message when it is something else
+STACK_KINDS = ("a folder of images with a lights file (DiLiGenT layout), or an .npz with "
+               "arrays 'images' and 'lights'")
 
 
 @dataclass(frozen=True)
@@ -62,8 +65,11 @@ class LoadOptions:
         return Transforms(self.roi, self.downscale, self.srgb, self.gamma, self.white_level)
 
     def describe(self) -> dict[str, object]:
-        """The real-camera options in effect, for profile.json."""
-        return {**self.transforms().describe(), "auto_mask": self.auto_mask}
+        """The real-camera options in effect, and the image selection when there is one, for
+        profile.json."""
+        chosen = {k: v for k, v in (("select", self.select), ("max_lights", self.max_lights))
+                  if v is not None}
+        return {**self.transforms().describe(), "auto_mask": self.auto_mask, **chosen}
 
 
 def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
@@ -168,10 +174,13 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
     ``indices`` (0-based) picks the images to keep; only those are decoded.
     """
     if not folder.is_dir():
+        if folder.exists():  # an image, a .npy, ...: it is there, just not a stack
+            raise InputError(f"not a supported stack: expected {STACK_KINDS}", folder)
         raise InputError("stack folder not found", folder)
     names_file = folder / "filenames.txt"
     if names_file.is_file():
-        names = [ln.strip() for ln in names_file.read_text().splitlines() if ln.strip()]
+        names = [ln.strip() for ln in names_file.read_text(encoding="utf-8-sig").splitlines()
+                 if ln.strip()]
         paths = [folder / n for n in names]
     else:
         paths = list_images(folder)
@@ -201,8 +210,7 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
     t = options.transforms()
     images, hw = _read_images(paths, options.threads, t, options.max_memory_mb)
     mask_path = None if options.auto_mask else options.mask or _first_existing(
-        folder, MASK_NAMES) or next((p for p in sorted(folder.iterdir())
-                                     if "mask" in p.stem.lower() and p.is_file()), None)
+        folder, MASK_NAMES) or _other_mask(folder)
     mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3],
                                                                          bool)
     gt_path = _first_existing(folder, GT_NAMES)
@@ -214,6 +222,13 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
         gt = t.normals(gt)
     return _finish(Stack(folder.name, images, light_dirs, ints, mask_arr, gt,
                          [p.name for p in paths], folder), options)
+
+
+def _other_mask(folder: Path) -> Path | None:
+    """An image named like a mask (``cat.mask.tga``); not a text file or a macOS ``._`` one."""
+    return next((p for p in sorted(folder.iterdir())
+                 if "mask" in p.stem.lower() and p.suffix.lower() in IMAGE_SUFFIXES
+                 and not p.name.startswith(".") and p.is_file()), None)
 
 
 def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
@@ -308,13 +323,14 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
     return prepare_stack(stack, replace(options, lights=None, intensities=None, mask=None))
 
 
-def _count_images(folder: Path) -> int:
+def count_images(folder: Path) -> int:
     """How many images a folder stack holds, without decoding any (0 if unknown)."""
     if not folder.is_dir():
         return 0
     names_file = folder / "filenames.txt"
     if names_file.is_file():
-        return sum(1 for ln in names_file.read_text().splitlines() if ln.strip())
+        return sum(1 for ln in names_file.read_text(encoding="utf-8-sig").splitlines()
+                   if ln.strip())
     return len(list_images(folder))
 
 
@@ -330,6 +346,6 @@ def load_stack(path: str | Path, options: LoadOptions | None = None, **overrides
     path = Path(path)
     if path.suffix.lower() == ".npz":
         return load_npz(path, opts)
-    count = _count_images(path)
+    count = count_images(path)
     return load_folder(path, opts,
                        selection(count, opts.select, opts.max_lights) if count else None)

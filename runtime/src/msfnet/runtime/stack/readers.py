@@ -26,9 +26,11 @@ def _check_small_file(path: Path, what: str) -> None:
 def read_vectors(path: Path, what: str) -> np.ndarray:
     """Rows of 3 numbers from txt (optional leading count line) or json (list or {key: list})."""
     _check_small_file(path, what)
+    # utf-8-sig: Windows editors ("UTF-8" in Notepad) start the file with a byte-order mark
     try:
+        text = path.read_text(encoding="utf-8-sig")
         if path.suffix.lower() == ".json":
-            data = json.loads(path.read_text())
+            data = json.loads(text)
             if isinstance(data, dict):
                 data = next((v for k, v in data.items() if isinstance(v, list)), None)
             if not isinstance(data, list):
@@ -36,7 +38,7 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
                                  "object holding one)", path)
             arr = np.asarray(data, dtype=np.float64)
         else:
-            rows = [r.replace(",", " ").split() for r in path.read_text().splitlines()]
+            rows = [r.replace(",", " ").split() for r in text.splitlines()]
             rows = [r for r in rows if r and not r[0].startswith("#")]
             if rows and len(rows[0]) == 1 and len(rows) > 1 and len(rows[1]) != 1:
                 count = rows[0][0]  # a leading count line ("12")

@@ -24,6 +24,11 @@ SIGNAL_RANGE = (1e-6, 1e15)
 # 96-light 16-bit DiLiGenT ball holds 172 MB instead of 344). Their values are exact in float32,
 # so consumers cast a tile or a light at a time and get the numbers a float32 stack gives.
 INTEGER_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
+# An image whose mean inside the mask (per unit light intensity) is below this fraction of a
+# typical image's (the stack's 75th percentile) is taken for a dead light or a missed trigger:
+# its pixels say "black" where the surface is lit, and every normal bends away from that light.
+# The darkest images of DiLiGenT and psmImages (grazing lights, shadows) are at 0.6 or more.
+DARK_IMAGE = 0.02
 
 
 def held_dtype(dtype: np.dtype | type) -> np.dtype:
@@ -61,6 +66,9 @@ class Stack:
     normals_gt: np.ndarray | None = None
     filenames: list[str] = field(default_factory=list)
     source: Path | None = None
+    # what validate() found suspicious but usable (an image black among lit ones): one line
+    # each, for the commands to print and keep in the profile
+    warnings: list[str] = field(default_factory=list, compare=False)
 
     @classmethod
     def from_arrays(cls, images: np.ndarray, lights: np.ndarray, *,
@@ -97,7 +105,8 @@ class Stack:
                        intensities=self.intensities[idx], filenames=names)
 
     def validate(self) -> Stack:
-        """Check shapes and values (no side effects); raise InputError naming the source."""
+        """Check shapes and values; raise InputError naming the source. Usable oddities are
+        (re)listed in ``warnings``, the only thing it changes."""
         src = self.source if self.source is not None else self.name
         if self.images.ndim != 4 or self.images.shape[3] != 3:
             raise InputError(f"images must be N x H x W x 3, got {self.images.shape}", src)
@@ -134,15 +143,17 @@ class Stack:
         return self
 
     def _check_pixels(self, src: object) -> None:
-        """Values the estimators cannot use: NaN/inf, negatives, a stack that is black inside
-        the mask (every normal would be a guess) or outside SIGNAL_RANGE. One light at a time,
-        so the check needs no stack-sized temporary. Unsigned images can hold neither NaN nor
-        negatives, and their maximum is taken in their own type (a max cannot overflow)."""
+        """Values the estimators cannot use: NaN/inf, negatives, a stack that is black or
+        saturated inside the mask (every normal would be a guess) or outside SIGNAL_RANGE; a
+        black image among lit ones becomes a warning. One light at a time, so the check needs
+        no stack-sized temporary. Unsigned images can hold neither NaN nor negatives, and their
+        extremes are taken in their own type (a max cannot overflow)."""
         kind = self.images.dtype.kind
         if kind not in "biuf":
             raise InputError(f"images have dtype {self.images.dtype}; expected numbers",
                              src)  # type: ignore[arg-type]
-        peak = np.zeros(self.num_lights)
+        n = self.num_lights
+        peak, low, mean = np.zeros(n), np.zeros(n), np.zeros(n)
         for i, img in enumerate(self.images):
             if kind == "f" and not np.isfinite(img).all():
                 raise InputError(f"images contain NaN or infinite pixel values (image {i + 1})",
@@ -150,10 +161,19 @@ class Stack:
             if kind in "fi" and img.min() < 0:
                 raise InputError(f"images contain negative pixel values (image {i + 1}; "
                                  "expected linear intensities >= 0)", src)  # type: ignore[arg-type]
-            peak[i] = float(img[self.mask].max())
+            inside = img[self.mask]
+            peak[i], low[i] = float(inside.max()), float(inside.min())
+            mean[i] = float(inside.mean(dtype=np.float64))
         if not peak.any():
             raise InputError("every image is black (zero) inside the mask: nothing to estimate "
                              "normals from", src)  # type: ignore[arg-type]
+        # integer images: at the type's full scale; float ones (their scale is unknown): one
+        # value everywhere, which is what a clipped stack becomes after --downscale or --srgb
+        full = float(np.iinfo(self.images.dtype).max) if kind in "ui" else float(peak.max())
+        if (low >= full).all():
+            raise InputError(f"every image is saturated inside the mask (all pixels at {full:g})"
+                             ": no shading to estimate normals from; lower the exposure",
+                             src)  # type: ignore[arg-type]
         ratio = peak[:, None] / self.intensities.astype(np.float64)  # (N, 3)
         top = float(ratio.max())
         lo, hi = SIGNAL_RANGE
@@ -161,6 +181,22 @@ class Stack:
             raise InputError(f"brightest pixel / light intensity is {top:.3g}, outside "
                              f"{lo:g}..{hi:g}: rescale the images or check the intensities' "
                              "units", src)  # type: ignore[arg-type]
+        self.warnings = self._dark_images(mean / self.intensities.astype(np.float64).mean(
+            axis=1), src)
+
+    def _dark_images(self, brightness: np.ndarray, src: object) -> list[str]:
+        """One warning per image far darker than the stack's typical one (see DARK_IMAGE)."""
+        typical = float(np.percentile(brightness, 75))
+        if typical <= 0:  # most images black: compare with the brightest instead
+            typical = float(brightness.max())
+        out = []
+        for i in np.flatnonzero(brightness < DARK_IMAGE * typical):
+            where = (f"{src}/{self.filenames[i]}" if self.filenames and isinstance(src, Path)
+                     and src.is_dir() else f"{src}: image {i + 1}")
+            out.append(f"{where}: (nearly) black inside the mask ({brightness[i] / typical:.1%} "
+                       "of a typical image's brightness): a dead light or a missed trigger? "
+                       "It is used as it is (leave it out with --select)")
+        return out
 
 
 def unit_lights(lights: np.ndarray, src: object = None) -> np.ndarray:
@@ -197,6 +233,12 @@ def check_lights(lights: np.ndarray, src: object = None) -> None:
         what = "rank < 3" if not np.isfinite(cond) else f"condition number {cond:.3g}"
         raise InputError(f"the light directions do not span 3-D ({what}; e.g. all lights "
                          "equal or in one plane): normals cannot be recovered", src)  # type: ignore[arg-type]
+    if not (lights[:, 2] > 0).any():
+        # z is toward the camera: lights all behind the object light nothing the camera sees
+        # (typically a file in the z-away convention); the normals would be nonsense
+        raise InputError("no light direction points toward the camera (every z <= 0; "
+                         "expected x right, y up, z toward the camera): flip the sign of z",
+                         src)  # type: ignore[arg-type]
 
 
 def check_intensities(intensities: np.ndarray, src: object = None) -> None:
