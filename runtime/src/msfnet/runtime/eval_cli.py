@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,7 @@ from .detail import detail_ratio
 from .errors import InputError
 from .files import check_output, json_text, staged_folder, writing_as
 from .maps import pictures
+from .metrics import NormalMetrics
 from .outputs import normals_png, write_rgb_png
 from .pipeline import Model
 from .stack import LoadOptions, load_stack
@@ -42,44 +43,136 @@ def _fmt(v: object, pct: bool = False) -> str:
     return f"{v * 100:.1f}" if pct else f"{v:.2f}"
 
 
-def markdown_table(rows: list[dict], methods: list[str]) -> str:
-    """Objects with ground truth: MAE per method beside the published figures, then err15/30."""
+@dataclass(frozen=True)
+class MethodScore:
+    """One method on one object: its metrics (with ground truth) and median run time."""
+
+    seconds: float
+    metrics: NormalMetrics | None = None
+
+    def column(self, name: str) -> float | None:
+        return None if self.metrics is None else float(getattr(self.metrics, name))
+
+    def as_dict(self) -> dict[str, object]:
+        return {**(self.metrics.as_dict() if self.metrics else {}), "seconds": self.seconds}
+
+
+@dataclass(frozen=True)
+class ObjectResult:
+    """One object of the benchmark, every method on it."""
+
+    name: str
+    lights: int
+    select: str | None
+    scores: dict[str, MethodScore]  # by method ("msf", "l2")
+    published: dict[str, float] | None = None  # published MAE by method (ground truth only)
+    detail_ratio: float | None = None  # model / least squares high-pass energy (no GT only)
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.published is not None
+
+    def as_dict(self) -> dict[str, object]:
+        """results.json's row."""
+        row: dict[str, object] = {"object": self.name, "lights": self.lights,
+                                  "results": {m: s.as_dict() for m, s in self.scores.items()},
+                                  "select": self.select}
+        if self.warnings:
+            row["warnings"] = list(self.warnings)
+        if self.has_ground_truth:
+            row["published"] = self.published
+        else:
+            row["note"] = "no ground truth"
+            if self.detail_ratio is not None:
+                row["detail_ratio"] = self.detail_ratio
+        return row
+
+
+@dataclass(frozen=True)
+class EvalSummary:
+    """What msf-eval measured; ``as_dict`` is results.json."""
+
+    objects: list[str]
+    model: str | None
+    methods: list[str]
+    results: list[ObjectResult]
+
+    @property
+    def scored(self) -> list[ObjectResult]:
+        return [r for r in self.results if r.has_ground_truth]
+
+    @property
+    def unscored(self) -> list[ObjectResult]:
+        return [r for r in self.results if not r.has_ground_truth]
+
+    def mean(self) -> dict[str, dict[str, float]]:
+        """Per method, the mean of each column over the objects with ground truth."""
+        out = {}
+        for m in self.methods:
+            scores = [r.scores[m] for r in self.scored if m in r.scores]
+            if scores and all(s.metrics is not None for s in scores):
+                out[m] = {c: float(np.mean([s.column(c) for s in scores])) for c in COLUMNS}
+        return out
+
+    def table(self) -> str:
+        tables = []
+        if self.scored:
+            tables.append(markdown_table(self.scored, self.methods, self.mean()))
+        if self.unscored:
+            tables.append(detail_table(self.unscored))
+        return "\n\n".join(tables)
+
+    def warnings(self) -> list[str]:
+        return [w for r in self.results for w in r.warnings]
+
+    def written(self) -> str:
+        """What evaluate() wrote, as the closing line lists it: error maps only for objects
+        with ground truth."""
+        return ("results.json, results.md, normal maps"
+                + (" and error maps" if self.scored else "") + " per object")
+
+    def as_dict(self) -> dict[str, object]:
+        return {"objects": self.objects, "model": self.model, "methods": self.methods,
+                "results": [r.as_dict() for r in self.scored + self.unscored],
+                "mean": self.mean()}
+
+
+def markdown_table(rows: list[ObjectResult], methods: list[str],
+                   mean: dict[str, dict[str, float]]) -> str:
+    """Objects with ground truth: MAE per method beside the published figures, then err15/30,
+    and a mean row."""
     published = [p for p in PUBLISHED_METHODS
-                 if any(p in PUBLISHED_MAE.get(r["object"], {}) for r in rows)]
+                 if any(p in PUBLISHED_MAE.get(r.name, {}) for r in rows)]
     head = ["object", "lights"] + [f"MAE {m}" for m in methods] + published
     head += [f"<15° % {m}" for m in methods] + [f"<30° % {m}" for m in methods]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        res = r["results"]
-        cells = [r["object"], str(r["lights"])]
+    Cells = dict[str, dict[str, float | None]]
+    table_rows: list[tuple[str, str, Cells]] = [
+        (r.name, str(r.lights), {m: {c: s.column(c) for c in COLUMNS}
+                                 for m, s in r.scores.items()}) for r in rows]
+    table_rows.append(("**mean**", "", {m: dict(v) for m, v in mean.items()}))
+    for name, lights, res in table_rows:
+        cells = [name, lights]
         cells += [_fmt(res.get(m, {}).get("mae_deg")) for m in methods]
-        cells += [_fmt(PUBLISHED_MAE.get(r["object"], {}).get(p)) for p in published]
+        cells += [_fmt(PUBLISHED_MAE.get(name, {}).get(p)) for p in published]
         cells += [_fmt(res.get(m, {}).get("err15"), True) for m in methods]
         cells += [_fmt(res.get(m, {}).get("err30"), True) for m in methods]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def detail_table(rows: list[dict]) -> str:
+def detail_table(rows: list[ObjectResult]) -> str:
     """Objects without ground truth: the model's high-pass energy relative to least squares'."""
     lines = ["| object | lights | detail msf / l2 |", "|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['object']} | {r['lights']} | {_fmt(r.get('detail_ratio'))} |")
+        lines.append(f"| {r.name} | {r.lights} | {_fmt(r.detail_ratio)} |")
     return "\n".join(lines)
-
-
-def mean_row(rows: list[dict], methods: list[str]) -> dict:
-    res = {}
-    for m in methods:
-        scored = [r["results"][m] for r in rows if m in r["results"]]
-        if scored:
-            res[m] = {c: float(np.mean([s[c] for s in scored])) for c in COLUMNS}
-    return {"object": "**mean**", "lights": "", "results": res}
 
 
 def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
              use_l2: bool = True, load: LoadOptions | None = None, overwrite: bool = False,
-             progress: bool = False) -> dict:
+             progress: bool = False) -> EvalSummary:
     """Score ``model`` (and least squares) on every object; write the results folder."""
     load = load or LoadOptions()
     check_unique(objects)
@@ -95,59 +188,45 @@ def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
     if not runners:
         raise InputError("nothing to evaluate: both the model and l2 are switched off")
     methods = list(runners)
+    results = []
     with staged_folder(outdir, overwrite=overwrite) as tmp:
-        rows, detail_rows = [], []
         for obj in objects:
             opts = replace(load, select=load.select or obj.select)
             stack = load_stack(obj.folder, opts)
-            row: dict = {"object": obj.folder.name, "lights": stack.num_lights, "results": {},
-                         "select": opts.select}
-            if stack.warnings:  # e.g. a black image among lit ones: scored, but flagged
-                row["warnings"] = list(stack.warnings)
             (tmp / obj.folder.name).mkdir()
-            outs, errors = {}, {}
+            outs, errors, scores = {}, {}, {}
             for m, runner in runners.items():
                 res = runner(stack, progress=progress)
                 outs[m] = res.normals
                 write_rgb_png(tmp / obj.folder.name / f"{m}_normals.png",
                               normals_png(res.normals, stack.mask))
-                seconds = res.timings.median_s("total")
-                if res.metrics is not None and res.error_deg is not None:
+                scored = res.metrics is not None and res.error_deg is not None
+                if res.error_deg is not None:
                     errors[m] = res.error_deg
-                    row["results"][m] = {**res.metrics.as_dict(), "seconds": seconds}
-                else:
-                    row["results"][m] = {"seconds": seconds}
+                scores[m] = MethodScore(res.timings.median_s("total"),
+                                        res.metrics if scored else None)
             # one colour range for every method of an object, so the pictures compare
             vmax = max((pictures.error_range(e, stack.mask) for e in errors.values()),
                        default=None)
             for m, err in errors.items():
                 (tmp / obj.folder.name / f"{m}_error.png").write_bytes(pictures.png_bytes(
                     pictures.error_picture(err, stack.mask, vmax=vmax)))
-            if stack.normals_gt is None:
-                row["note"] = "no ground truth"
-                if "msf" in outs and "l2" in outs:
-                    row["detail_ratio"] = detail_ratio(outs["msf"], outs["l2"], stack.mask)
-                detail_rows.append(row)
-            else:
-                row["published"] = PUBLISHED_MAE.get(obj.folder.name, {})
-                rows.append(row)
+            gt = stack.normals_gt is not None
+            detail = (detail_ratio(outs["msf"], outs["l2"], stack.mask)
+                      if not gt and "msf" in outs and "l2" in outs else None)
+            row = ObjectResult(obj.folder.name, stack.num_lights, opts.select, scores,
+                               published=PUBLISHED_MAE.get(obj.folder.name, {}) if gt else None,
+                               detail_ratio=detail, warnings=tuple(stack.warnings))
+            results.append(row)
             if progress:
-                print(f"{obj.folder.name}: " + ", ".join(
-                    f"{m} {v['mae_deg']:.2f} deg" for m, v in row["results"].items()
-                    if "mae_deg" in v), file=sys.stderr)
-        tables = []
-        if rows:
-            tables.append(markdown_table([*rows, mean_row(rows, methods)], methods))
-        if detail_rows:
-            tables.append(detail_table(detail_rows))
-        table = "\n\n".join(tables)
-        summary = {"objects": [str(o.folder) for o in objects],
-                   "model": runners["msf"].describe().get("model") if "msf" in runners
-                   else None, "methods": methods, "results": rows + detail_rows,
-                   "mean": mean_row(rows, methods)["results"] if rows else {}}
-        (tmp / "results.json").write_text(json_text(summary))
-        (tmp / "results.md").write_text(table + "\n")
-    summary["table"] = table
+                print(f"{row.name}: " + ", ".join(
+                    f"{m} {s.metrics.mae_deg:.2f} deg" for m, s in scores.items()
+                    if s.metrics is not None), file=sys.stderr)
+        summary = EvalSummary([str(o.folder) for o in objects],
+                              runners["msf"].describe().get("model") if "msf" in runners
+                              else None, methods, results)  # type: ignore[arg-type]
+        (tmp / "results.json").write_text(json_text(summary.as_dict()))
+        (tmp / "results.md").write_text(summary.table() + "\n")
     return summary
 
 
@@ -204,23 +283,14 @@ def _run(args: argparse.Namespace) -> int:
                        overwrite=args.overwrite,
                        progress=sys.stderr.isatty() and not args.quiet and not args.json)
     if not args.quiet:
-        for line in (w for r in summary["results"] for w in r.get("warnings", ())):
+        for line in summary.warnings():
             print(f"{PROG}: warning: {line}", file=sys.stderr)
     if args.json:
-        print(json_text({**{k: v for k, v in summary.items() if k != "table"},
-                         "output": str(outdir)}), end="")
+        print(json_text({**summary.as_dict(), "output": str(outdir)}), end="")
     elif not args.quiet:
-        print(summary["table"])
-        print(f"wrote {outdir}/ ({written(summary)})")
+        print(summary.table())
+        print(f"wrote {outdir}/ ({summary.written()})")
     return 0
-
-
-def written(summary: dict) -> str:
-    """What evaluate() wrote, as the closing line lists it: error maps only for objects with
-    ground truth."""
-    scored = any("mae_deg" in v for r in summary["results"] for v in r["results"].values())
-    return ("results.json, results.md, normal maps" + (" and error maps" if scored else "")
-            + " per object")
 
 
 def main(argv: list[str] | None = None) -> int:
