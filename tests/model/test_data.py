@@ -10,6 +10,7 @@ from _runtime_helpers import as_float32, png_stack
 from msfnet.model.data import BlobbySource, find_blobby_samples, load_blobby_sample, make_sample
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.imageio import write_png
+from msfnet.runtime.metrics import deviation_deg
 from msfnet.runtime.stack import load_stack
 from msfnet.synth.shapes import sphere_normals
 
@@ -44,8 +45,7 @@ def test_blobby_layout_is_found_and_loaded(tmp_path):
     assert s.images.shape == (5, 16, 16, 3) and s.name == "blob01/blob01_gold"
     assert s.images.dtype == np.uint8  # held as decoded; make_sample casts each crop
     np.testing.assert_array_equal(s.mask, mask)
-    assert np.degrees(np.arccos(np.clip(np.sum(s.normals_gt[mask] * normals[mask], 1),
-                                        -1, 1))).max() < 1.0  # 8-bit encoding
+    assert deviation_deg(s.normals_gt, normals, mask)[1] < 1.0  # 8-bit encoding
     src = BlobbySource(tmp_path, cache=2)
     b = src.batch(3, 4, 8, np.random.default_rng(0))
     assert tuple(b.images.shape) == (3, 4, 3, 8, 8) and tuple(b.normals.shape) == (3, 3, 8, 8)

@@ -224,3 +224,11 @@ def test_synth_source_draws_object_sizes_from_the_range():
     assert [s.shape for s in again.pool] == [s.shape for s in src.pool]
     fixed = SynthSource(3, opts, pool=3, refresh=1)
     assert {s.shape[0] for s in fixed.pool} == {24}
+
+
+def test_gpu_render_workers_follow_the_usable_cores(monkeypatch):
+    from msfnet.model import train
+
+    monkeypatch.setattr(train, "usable_cores", lambda: 8)
+    assert train.default_workers(torch.device("cuda")) == 6
+    assert train.default_workers(torch.device("cpu")) == 0

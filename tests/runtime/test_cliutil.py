@@ -28,7 +28,8 @@ from msfnet.runtime.cliutil import (
     run_command,
 )
 from msfnet.runtime.errors import InputError, MsfError
-from msfnet.runtime.files import Terminated, write_text
+from msfnet.runtime.files import write_text
+from msfnet.runtime.signals import Terminated
 
 # type: (accepted text -> value, refused texts)
 TYPES: dict[str, tuple[Callable[[str], object], dict[str, object], list[str]]] = {

@@ -36,7 +36,7 @@ from msfnet.runtime.engines import (
 )
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.infer import infer_normals
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.metrics import deviation_deg
 from msfnet.runtime.pipeline import default_model_path
 from msfnet.runtime.preprocess import network_lights, normalise
 from msfnet.runtime.session import create_session
@@ -50,11 +50,6 @@ FP32_TOL_MEAN_DEG, FP32_TOL_MAX_DEG = 0.01, 0.05
 # paths that are no default (dispatch.MEASURED above the bound): allowed this much over their
 # measured mean deviation, since the test crop is not the measurement's crop
 OPT_IN_TOL_DEG = 0.15
-
-
-def _deviation(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
-    d = angular_error_deg(out[0].transpose(1, 2, 0), ref[0].transpose(1, 2, 0))[mask]
-    return float(d.mean()), float(d.max())
 
 
 # ---------------------------------------------------------------- interface, no real data
@@ -164,7 +159,7 @@ def test_openvino_fp32_keeps_shapes_dynamic(sensitive_onnx, staged_onnx, staged)
         stack = sphere_stack(n=n, h=h, w=w, seed=n)
         x = normalise(stack.images, stack.intensities, stack.mask)[None]
         lights = network_lights(stack.lights)[None]
-        mean, mx = _deviation(engine.run(x, lights), ref.run(x, lights), stack.mask)
+        mean, mx = deviation_deg(engine.run(x, lights), ref.run(x, lights), stack.mask)
         assert mean < FP32_TOL_MEAN_DEG and mx < FP32_TOL_MAX_DEG, (n, h, w, mean, mx)
 
 
@@ -271,7 +266,7 @@ def test_path_within_its_bound_on_the_ball(ball_crops, bundled_exports, engine, 
     crop = _crop(ball_crops, lights)
     eng = open_engine(EngineChoice(engine, precision, "test", _model(bundled_exports, model)), 2)
     assert (eng.name, eng.precision) == (engine, precision)
-    mean, mx = _deviation(eng.run(crop["images"], crop["lights"]), crop["ref"], crop["mask"])
+    mean, mx = deviation_deg(eng.run(crop["images"], crop["lights"]), crop["ref"], crop["mask"])
     if precision == "fp32":
         assert mean < FP32_TOL_MEAN_DEG and mx < FP32_TOL_MAX_DEG, (mean, mx)
         return

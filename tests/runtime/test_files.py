@@ -390,7 +390,8 @@ def test_scratch_folder_goes_the_output_stays(tmp_path: Path) -> None:
 def test_scratch_folder_removed_on_sigterm(tmp_path: Path) -> None:
     code = ("import os, signal, sys\n"
             "from pathlib import Path\n"
-            "from msfnet.runtime.files import install_signal_handlers, scratch_folder\n"
+            "from msfnet.runtime.files import scratch_folder\n"
+            "from msfnet.runtime.signals import install_signal_handlers\n"
             "signal.signal(signal.SIGTERM, signal.SIG_DFL)  # pytest's may be ignored\n"
             "install_signal_handlers()\n"
             "with scratch_folder(Path(sys.argv[1])) as s:\n"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from msfnet.runtime.files import json_text
-from msfnet.runtime.metrics import angular_error_deg, error_map, normal_metrics
+from msfnet.runtime.metrics import angular_error_deg, deviation_deg, error_map, normal_metrics
 
 
 def _sphere(h: int = 20) -> tuple[np.ndarray, np.ndarray]:
@@ -60,3 +60,52 @@ def test_pixels_without_ground_truth_are_not_scored() -> None:
     assert m.gt_missing == 1 and m.pixels == mask.sum() - 1 and m.mae_deg < 1e-6
     json_text({"x": float("nan")})  # NaN becomes null, never bare NaN
     assert json.loads(json_text({"x": float("nan")})) == {"x": None}
+
+
+def _rotated_about_y(n: np.ndarray, deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return (n @ rot.T).astype(np.float32)
+
+
+def test_deviation_of_two_maps_in_either_layout() -> None:
+    """mean/max angle over the mask, for (H, W, 3) maps and for (1, 3, H, W) network output."""
+    _, mask = _sphere()
+    ref = np.zeros((*mask.shape, 3), np.float32)
+    ref[..., 2] = 1.0  # facing the camera: a rotation about y turns each normal by its angle
+    out = ref.copy()
+    out[mask] = _rotated_about_y(ref[mask], 2.0)
+    out[10, 10] = _rotated_about_y(ref[10, 10], 5.0)  # one pixel further off
+    assert mask[10, 10]
+    outside = ~mask
+    out[outside] = [1.0, 0.0, 0.0]  # far off outside the mask: never scored
+    mean, mx = deviation_deg(out, ref, mask)
+    n = mask.sum()
+    assert mx == pytest.approx(5.0, abs=1e-4)
+    assert mean == pytest.approx((2.0 * (n - 1) + 5.0) / n, abs=1e-4)
+    chw = deviation_deg(out.transpose(2, 0, 1)[None], ref.transpose(2, 0, 1)[None], mask)
+    assert chw == pytest.approx((mean, mx))
+    assert deviation_deg(ref, out, mask) == pytest.approx((mean, mx))  # symmetric
+    assert deviation_deg(ref, ref, mask) == (0.0, 0.0)
+
+
+@pytest.mark.parametrize("bad", ["zero", "nan", "short"])
+@pytest.mark.parametrize("which", ["out", "ref"])
+def test_deviation_scores_a_broken_pixel_180(bad: str, which: str) -> None:
+    """A zero or NaN output (a broken engine) can never look like a perfect match."""
+    ref, mask = _sphere()
+    out = ref.copy()
+    (out if which == "out" else ref)[mask] = {"zero": 0.0, "nan": np.nan, "short": 0.5}[bad]
+    assert deviation_deg(out, ref, mask) == (180.0, 180.0)
+
+
+def test_deviation_refuses_mismatched_shapes_and_empty_masks() -> None:
+    ref, mask = _sphere()
+    with pytest.raises(ValueError, match="different shapes"):
+        deviation_deg(ref, ref[:-1], mask)
+    with pytest.raises(ValueError, match="expected"):
+        deviation_deg(ref[..., :2], ref[..., :2], mask)
+    with pytest.raises(ValueError, match="mask"):
+        deviation_deg(ref, ref, mask[:-1])
+    with pytest.raises(ValueError, match="empty"):
+        deviation_deg(ref, ref, np.zeros_like(mask))

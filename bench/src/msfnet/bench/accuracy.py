@@ -18,14 +18,17 @@ import argparse
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from msfnet.runtime.cliutil import make_parser, positive_int, run_command
 from msfnet.runtime.dispatch import open_engine
 from msfnet.runtime.engines import installed_engines
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.metrics import deviation_deg
 
 from .data import data_root
 from .workloads import Workload, make_input
@@ -57,12 +60,6 @@ PATHS = (
 )
 
 
-def deviation_deg(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
-    """(mean, max) angle in degrees between two (1, 3, H, W) normal maps over the mask."""
-    d = angular_error_deg(out[0].transpose(1, 2, 0), ref[0].transpose(1, 2, 0))[mask]
-    return float(d.mean()), float(d.max())
-
-
 def _timed(engine, images: np.ndarray, lights: np.ndarray, repeats: int
            ) -> tuple[np.ndarray, float]:
     out = engine.run(images, lights)  # warm-up (arena growth, lazy compilation)
@@ -74,10 +71,20 @@ def _timed(engine, images: np.ndarray, lights: np.ndarray, repeats: int
     return out, statistics.median(times) if times else float("nan")
 
 
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
 def measure(stack_dir: Path, models: dict[str, Path], lights: tuple[int, ...] = (32, 96),
             size: int = 128, threads: int = 2, repeats: int = 1,
-            paths: tuple[EnginePath, ...] = PATHS) -> list[dict[str, object]]:
-    """Rows of (lights, path, mean/max deg vs ORT fp32, median s, x ORT fp32)."""
+            paths: tuple[EnginePath, ...] = PATHS, log: Callable[[str], object] | None = None
+            ) -> list[dict[str, object]]:
+    """Rows of (lights, path, mean/max deg vs ORT fp32, median s, x ORT fp32).
+
+    ``models``: model key (fp32, fp32_staged, int8, int8_staged) -> ONNX file; ``fp32`` is the
+    reference, and paths whose engine is not installed or whose file is missing are left out.
+    ``log``: a line per measured path (default: stderr)."""
+    emit = log or _to_stderr
     from msfnet.runtime.dispatch import EngineChoice
 
     have = installed_engines()
@@ -102,8 +109,7 @@ def measure(stack_dir: Path, models: dict[str, Path], lights: tuple[int, ...] = 
             rows.append({"lights": n, "size": size, "path": p.label, "mean_deg": mean,
                          "max_deg": mx, "median_s": secs, "x_ort_fp32": ref_s / secs,
                          "effective_precision": engine.precision})
-            print(f"{n} lights {p.label}: {mean:.3f} / {mx:.3f} deg, {secs:.2f} s",
-                  file=sys.stderr)
+            emit(f"{n} lights {p.label}: {mean:.3f} / {mx:.3f} deg, {secs:.2f} s")
     return rows
 
 
@@ -116,47 +122,67 @@ def table(rows: list[dict[str, object]]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    from msfnet.runtime.errors import InputError
-    from msfnet.runtime.pipeline import default_model_path
+PROG = "python -m msfnet.bench.accuracy"
 
-    p = argparse.ArgumentParser(prog="python -m msfnet.bench.accuracy", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+
+def light_counts(text: str) -> tuple[int, ...]:
+    """``32,96`` -> (32, 96); each a positive integer."""
+    return tuple(positive_int(t) for t in text.split(",") if t.strip()) or (positive_int(text),)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = make_parser(PROG, __doc__ or "", (f"{PROG} --models exports/ --lights 32,96",))
     p.add_argument("--data", type=Path, default=None,
                    help="data root holding DiLiGenT/ballPNG (default: $MSFNET_DATA, "
                    "./shared/data or ../shared/data)")
     p.add_argument("--models", type=Path, default=None,
                    help="folder with fp32.onnx, fp32_staged.onnx, int8.onnx, int8_staged.onnx")
-    p.add_argument("--lights", default="32,96")
-    p.add_argument("--size", type=int, default=128)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--repeats", type=int, default=1)
-    args = p.parse_args(argv)
-    try:
-        stack = data_root(args.data) / "DiLiGenT" / "ballPNG"
-        if not stack.is_dir():
-            raise InputError("ballPNG not found under the data root", stack)
-        models = {"fp32": default_model_path()}
-        if args.models is not None:
-            models.update({k: args.models / f"{k}.onnx"
-                           for k in ("fp32_staged", "int8", "int8_staged")})
-            if (args.models / "fp32.onnx").is_file():
-                models["fp32"] = args.models / "fp32.onnx"
-        from msfnet.runtime.engines.base import read_model_file
+    p.add_argument("--lights", type=light_counts, default=(32, 96),
+                   help="light counts, comma-separated (default 32,96)")
+    p.add_argument("--size", type=positive_int, default=128, help="crop edge, px (default 128)")
+    p.add_argument("--threads", type=positive_int, default=2, help="threads (default 2)")
+    p.add_argument("--repeats", type=positive_int, default=1,
+                   help="timed runs per path after a warm-up (default 1)")
+    return p
 
-        if read_model_file(models["fp32"]).staged:  # its rows would be filed as plain-graph ones
-            raise InputError("the plain-graph reference is a staged model: put a plain export "
-                             "(msf-export --plain) in --models as fp32.onnx", models["fp32"])
-        rows = measure(stack, models, tuple(int(v) for v in args.lights.split(",")),
-                       args.size, args.threads, args.repeats)
-    except InputError as exc:
-        print(f"msf-bench accuracy: error: {exc}", file=sys.stderr)
-        return 2
-    print(table(rows))
+
+def model_files(models_dir: Path | None) -> dict[str, Path]:
+    """The models to compare: the plain fp32 reference and the exports found in ``models_dir``;
+    InputError if the reference is a staged graph (its rows would be filed as plain-graph ones)."""
+    from msfnet.runtime.engines.base import read_model_file
+    from msfnet.runtime.pipeline import default_model_path
+
+    models = {"fp32": default_model_path()}
+    if models_dir is not None:
+        if not models_dir.is_dir():
+            raise InputError("--models: folder not found", models_dir)
+        models.update({k: models_dir / f"{k}.onnx"
+                       for k in ("fp32_staged", "int8", "int8_staged")})
+        if (models_dir / "fp32.onnx").is_file():
+            models["fp32"] = models_dir / "fp32.onnx"
+    if read_model_file(models["fp32"]).staged:
+        raise InputError("the plain-graph reference is a staged model: put a plain export "
+                         "(msf-export --plain) in --models as fp32.onnx", models["fp32"])
+    return models
+
+
+def _run(args: argparse.Namespace) -> int:
+    stack = data_root(args.data) / "DiLiGenT" / "ballPNG"
+    if not stack.is_dir():
+        raise InputError("ballPNG not found under the data root", stack)
+    rows = measure(stack, model_files(args.models), args.lights, args.size, args.threads,
+                   args.repeats, log=(lambda _line: None) if args.quiet else None)
+    if not args.quiet:
+        print(table(rows))
     return 0
 
 
-__all__ = ["PATHS", "EnginePath", "deviation_deg", "measure", "table"]
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_command(PROG, lambda: _run(args), debug=args.debug)
+
+
+__all__ = ["PATHS", "EnginePath", "measure", "model_files", "table"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -3,6 +3,13 @@
 Runs the matmul peak measurement, workloads (a)-(c) for every variant and thread count (each
 cell in a fresh process), workload (d) end to end through msf-run, and writes REPORT.md,
 report.json and a latency plot to the report folder.
+
+The report folder is one output, like every msfnet command's (runtime/files.py): the inputs and
+the folder are checked before any work, the whole report (with the models it measured and
+msf-run's outputs for (d)) is built in a staging folder beside it and appears complete or not at
+all, also on Ctrl-C or kill, and an earlier report is replaced only with --overwrite. The models
+are exported afresh on every run, never cached between runs: a report always measures the
+models it holds, and no run writes outside its own staging folder.
 """
 
 from __future__ import annotations
@@ -12,8 +19,8 @@ import json
 import platform
 import subprocess
 import sys
-import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +31,9 @@ from msfnet.runtime.cpu import detect_cpu
 from msfnet.runtime.dispatch import choose_engine
 from msfnet.runtime.engines import installed_engines
 from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import check_output, scratch_folder, staged_folder, writing_as
 from msfnet.runtime.flops import inference_flops
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.metrics import deviation_deg, normal_metrics
 
 from .data import ENV_VAR, data_root
 from .peak import engine_peaks, merge_peaks
@@ -64,6 +72,14 @@ def build_parser() -> argparse.ArgumentParser:
         "matmul peak measured in the same run, and angular deviation from PyTorch fp32.",
         ("msf-bench --quick --report-dir /tmp/msf-bench-quick",
          "msf-bench --report-dir bench/full --overwrite"))
+    p.epilog = (p.epilog or "") + """
+
+the report folder holds REPORT.md, report.json, latency.png, models/ (the ONNX exports
+it measured) and e2e/ (msf-run's outputs for workload (d)). It is built beside the
+target and appears complete or not at all (on Ctrl-C or kill too; staging left by
+kill -9 goes with the next run). It may not be, contain or lie inside an input
+(--stack, --calib, --checkpoint, the data root). Models are exported afresh on every
+run, never cached between runs, so a report always measures the models it holds."""
     p.add_argument("--checkpoint", type=Path, default=None,
                    help="MSF-Net checkpoint (.pth); default: the bundled trained model "
                    "(msfnet/weights/msfnet_default.pth)")
@@ -81,8 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "owl/horse when present)")
     p.add_argument("-o", "--output", "--report-dir", dest="report_dir", type=Path,
                    default=Path("msf-bench-out"),
-                   help="where REPORT.md, report.json, latency.png and the models go "
-                   "(default ./msf-bench-out)")
+                   help="report folder, written as a whole: REPORT.md, report.json, "
+                   "latency.png, models/, e2e/ (default ./msf-bench-out)")
     p.add_argument("--quick", action="store_true",
                    help="smoke test: tiny workloads, one timed run each (about 1-2 minutes)")
     p.add_argument("--variants", default=",".join(VARIANTS),
@@ -92,7 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-memory", type=positive_float, default=None,
                    help="msf-run --max-memory for workload (d), MB (default: msf-run's own)")
     p.add_argument("--no-e2e", action="store_true", help="skip workload (d)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing report")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier report folder (only one msfnet wrote: a folder "
+                   "holding other files is refused, never deleted)")
     return p
 
 
@@ -127,8 +145,9 @@ def dispatch_choices(models: dict) -> dict[str, str]:
     return out
 
 
-def resolve_paths(args: argparse.Namespace) -> None:
-    """Fill --stack / --calib from the data root; InputError with what was tried."""
+def resolve_paths(args: argparse.Namespace) -> Path | None:
+    """Fill --stack / --calib from the data root; InputError with what was tried. Returns the
+    data root, or None where none was needed or found."""
     root = None
     if args.stack is None or args.calib is None:
         try:
@@ -147,38 +166,99 @@ def resolve_paths(args: argparse.Namespace) -> None:
     if not args.stack.is_dir():
         raise InputError(f"stack folder not found (set --data or ${ENV_VAR}, or --stack)",
                          args.stack)
+    return root
 
 
-def prepare_models(args: argparse.Namespace, workdir: Path, variants: list[str]) -> dict:
-    """fp32 ONNX (and int8) from the checkpoint, or from seeded random weights."""
+@dataclass(frozen=True)
+class Plan:
+    """What one msf-bench run does, settled before anything is written or printed."""
+
+    variants: list[str]
+    notes: list[str]  # variants skipped on this machine, and why
+    threads: list[int]  # descending
+    checkpoint: Path | None  # None: seeded random weights
+
+
+def plan_run(args: argparse.Namespace) -> Plan:
+    """Check every option and input path, and the report folder against them (InputError),
+    before any work: the report folder is no input, does not hold one, and replaces an earlier
+    report only with --overwrite."""
+    from msfnet.model.checkpoint import default_checkpoint_path
+    from msfnet.runtime.pipeline import default_model_path
+
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
+    if args.random_weights and args.checkpoint is not None:
+        raise InputError("--random-weights and --checkpoint exclude each other")
+    checkpoint = None if args.random_weights else args.checkpoint or default_checkpoint_path()
+    if checkpoint is not None and not checkpoint.is_file():
+        raise InputError("checkpoint not found", checkpoint)
+    root = resolve_paths(args)
+    for calib in args.calib:
+        if not calib.exists():
+            raise InputError("--calib: stack not found", calib)
+    inputs = [args.stack, *args.calib, checkpoint, root,
+              None if args.no_e2e else default_model_path()]
+    check_output(args.report_dir, inputs, overwrite=args.overwrite, folder=True,
+                 command="msf-bench")  # --overwrite replaces an earlier report, nothing else
+    notes: list[str] = []
+    engines = installed_engines()
+    for v in [v for v in variants if v in OPENVINO_VARIANTS]:
+        if "openvino" not in engines:
+            notes.append(f"{v} skipped: openvino not installed (pip install 'msfnet[openvino]')")
+            variants.remove(v)
+        elif v in BF16_VARIANTS and not detect_cpu().has_bf16:
+            notes.append(f"{v} skipped: this CPU has no native bf16 (OpenVINO would run fp32)")
+            variants.remove(v)
+    return Plan(variants, notes, sorted(set(args.threads), reverse=True), checkpoint)
+
+
+@dataclass
+class Inputs:
+    """The data every cell and export reads, loaded (and so checked) before any work."""
+
+    feeds: dict[str, dict[str, np.ndarray]]  # workload key -> make_input's crop
+    calib: list | None  # int8 calibration stacks (None: no int8 variant)
+
+
+def load_inputs(args: argparse.Namespace, plan: Plan) -> Inputs:
+    """The workload crops of --stack and the int8 calibration stacks: a stack that cannot be
+    read is one InputError line before anything is written or printed."""
+    feeds = {wl.key: make_input(args.stack, wl)
+             for wl in (QUICK_WORKLOADS if args.quick else WORKLOADS)}
+    calib = None
+    if "ort-int8" in plan.variants:
+        from msfnet.export.quantize import load_calibration_stacks
+
+        calib = load_calibration_stacks(args.calib or [args.stack])
+    return Inputs(feeds, calib)
+
+
+def prepare_models(plan: Plan, workdir: Path, calib: list | None) -> dict:
+    """fp32 ONNX (and int8 when ``calib`` stacks are given) from the checkpoint, or from seeded
+    random weights, exported into ``workdir`` (a new folder inside the report's staging)."""
     import torch
 
     from msfnet.export.variants import export_variant
-    from msfnet.model.checkpoint import default_checkpoint_path, save_checkpoint
+    from msfnet.model.checkpoint import save_checkpoint
     from msfnet.model.network import MSFNet
 
-    if args.random_weights and args.checkpoint is not None:
-        raise InputError("--random-weights and --checkpoint exclude each other")
-    ckpt = args.checkpoint or default_checkpoint_path()
-    if args.random_weights:
+    workdir.mkdir()
+    ckpt = plan.checkpoint
+    if ckpt is None:
         torch.manual_seed(0)
         ckpt = workdir / "random_seed0.pth"
         save_checkpoint(MSFNet().eval(), ckpt)
-    elif not ckpt.is_file():
-        raise InputError("checkpoint not found", ckpt)
-    models: dict = {"checkpoint": str(ckpt), "random_weights": args.random_weights}
-    stacks = None
-    if "ort-int8" in variants:
-        from msfnet.export.quantize import load_calibration_stacks
-
-        stacks = load_calibration_stacks(args.calib or [args.stack])
+    models: dict = {"checkpoint": str(ckpt), "random_weights": plan.checkpoint is None}
     # The export variants table: every file is verified as msf-export verifies it.
     rows = [("fp32", "fp32"), ("fp32_staged", "staged")]
-    if stacks is not None:
+    if calib is not None:
         rows += [("int8", "int8"), ("int8_staged", "staged-int8")]
     for key, variant in rows:
         out = workdir / f"msfnet_{key}.onnx"
-        result = export_variant(ckpt, variant, out, calib=stacks, overwrite=True)
+        result = export_variant(ckpt, variant, out, calib=calib)
         models[key] = str(out)
         if key.startswith("int8"):
             models[f"{key}_summary"] = {"variant": variant, "mean_deg": result.mean_deg,
@@ -229,81 +309,69 @@ def run_cell_subprocess(spec: dict, tmp: Path) -> dict:
 
 
 def accuracy(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    d = angular_error_deg(out[0].transpose(1, 2, 0), ref[0].transpose(1, 2, 0))[mask]
-    return {"max_deg": float(d.max()), "mean_deg": float(d.mean())}
+    mean, mx = deviation_deg(out, ref, mask)
+    return {"max_deg": mx, "mean_deg": mean}
 
 
-def bench(args: argparse.Namespace) -> dict:
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-    unknown = [v for v in variants if v not in VARIANTS]
-    if unknown:
-        raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
-    notes: list[str] = []
+def _say(args: argparse.Namespace, line: str) -> None:
+    if not args.quiet:
+        print(f"msf-bench: {line}", file=sys.stderr)
+
+
+def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratch: Path) -> dict:
+    """Run everything; the models and (d)'s msf-run outputs go to ``work`` (the report's
+    staging folder), intermediate files to ``scratch``. Paths in the result name ``work``."""
+    variants, threads = plan.variants, plan.threads
     engines = installed_engines()
-    for v in [v for v in variants if v in OPENVINO_VARIANTS]:
-        if "openvino" not in engines:
-            notes.append(f"{v} skipped: openvino not installed (pip install 'msfnet[openvino]')")
-            variants.remove(v)
-        elif v in BF16_VARIANTS and not detect_cpu().has_bf16:
-            notes.append(f"{v} skipped: this CPU has no native bf16 (OpenVINO would run fp32)")
-            variants.remove(v)
-    for n in notes:
-        print(f"msf-bench: {n}", file=sys.stderr)
-    threads = sorted(set(args.threads), reverse=True)
-    resolve_paths(args)
-    workdir = args.report_dir / "models"
-    workdir.mkdir(parents=True, exist_ok=True)
     started = time.time()
     result: dict = {"date": time.strftime("%Y-%m-%d %H:%M %Z"), "machine": machine_description(),
                     "quick": args.quick, "variants": {v: VARIANTS[v] for v in variants},
-                    "notes": notes, "data": {"stack": str(args.stack),
-                                             "calib": [str(p) for p in args.calib]}}
-    print("msf-bench: exporting models ...", file=sys.stderr)
-    models = prepare_models(args, workdir, variants)
+                    "notes": plan.notes, "data": {"stack": str(args.stack),
+                                                  "calib": [str(p) for p in args.calib]}}
+    _say(args, "exporting models ...")
+    models = prepare_models(plan, work / "models", data.calib)
     result["models"] = models
     result["dispatch"] = dispatch_choices(models)
-    print("msf-bench: measuring matmul peaks (torch, ONNX Runtime, OpenVINO) ...",
-          file=sys.stderr)
+    _say(args, "measuring matmul peaks (torch, ONNX Runtime, OpenVINO) ...")
     peaks_before = engine_peaks(threads, engines)
     rows = []
-    with tempfile.TemporaryDirectory(prefix="msf-bench-") as tmpname:
-        tmp = Path(tmpname)
-        inputs: dict[str, tuple[Path, np.ndarray]] = {}
-        refs: dict[str, np.ndarray] = {}
-        cells = schedule(args.quick, variants, threads)
-        for wl, v, t, warm, reps in tqdm(cells, desc="msf-bench", unit="cell"):
-            if wl.key not in inputs:
-                feed = make_input(args.stack, wl)
-                path = tmp / f"input_{wl.key}.npz"
-                np.savez(path, images=feed["images"], lights=feed["lights"])
-                inputs[wl.key] = (path, feed["mask"])
-            spec = {"variant": v, "threads": t, "warmup": warm, "repeats": reps,
-                    "input": str(inputs[wl.key][0]), "checkpoint": models["checkpoint"],
-                    "onnx": models[MODEL_OF_VARIANT.get(v, "fp32")],
-                    "output": str(tmp / "out.npy"), "result": str(tmp / "result.json")}
-            cell = run_cell_subprocess(spec, tmp)
-            row = {"workload": wl.key, "label": wl.label(), "lights": wl.lights,
-                   "pixels": wl.pixels, "variant": v, "threads": t, "gflop": wl.flops / 1e9,
-                   **cell}
-            if "error" not in cell:
-                out = np.load(tmp / "out.npy")
-                if v == "torch-fp32" and wl.key not in refs:
-                    refs[wl.key] = out
-                if wl.key in refs:
-                    row.update(accuracy(out, refs[wl.key], inputs[wl.key][1]))
-                row["gflops_per_s"] = wl.flops / cell["median_s"] / 1e9
-            rows.append(row)
+    inputs: dict[str, tuple[Path, np.ndarray]] = {}
+    refs: dict[str, np.ndarray] = {}
+    cells = schedule(args.quick, variants, threads)
+    for wl, v, t, warm, reps in tqdm(cells, desc="msf-bench", unit="cell",
+                                     disable=args.quiet):
+        if wl.key not in inputs:
+            feed = data.feeds[wl.key]
+            path = scratch / f"input_{wl.key}.npz"
+            np.savez(path, images=feed["images"], lights=feed["lights"])
+            inputs[wl.key] = (path, feed["mask"])
+        spec = {"variant": v, "threads": t, "warmup": warm, "repeats": reps,
+                "input": str(inputs[wl.key][0]), "checkpoint": models["checkpoint"],
+                "onnx": models[MODEL_OF_VARIANT.get(v, "fp32")],
+                "output": str(scratch / "out.npy"), "result": str(scratch / "result.json")}
+        cell = run_cell_subprocess(spec, scratch)
+        row = {"workload": wl.key, "label": wl.label(), "lights": wl.lights,
+               "pixels": wl.pixels, "variant": v, "threads": t, "gflop": wl.flops / 1e9,
+               **cell}
+        if "error" not in cell:
+            out = np.load(scratch / "out.npy")
+            if v == "torch-fp32" and wl.key not in refs:
+                refs[wl.key] = out
+            if wl.key in refs:
+                row.update(accuracy(out, refs[wl.key], inputs[wl.key][1]))
+            row["gflops_per_s"] = wl.flops / cell["median_s"] / 1e9
+        rows.append(row)
     result["rows"] = rows
-    print("msf-bench: measuring matmul peaks again ...", file=sys.stderr)
+    _say(args, "measuring matmul peaks again ...")
     result["peaks"] = merge_peaks(peaks_before, engine_peaks(threads, engines))
     if not args.no_e2e:
-        result["e2e"] = end_to_end(args, models, variants, threads)
+        result["e2e"] = end_to_end(args, models, variants, threads, work / "e2e")
     result["elapsed_s"] = time.time() - started
     return result
 
 
 def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
-               threads: list[int]) -> list[dict]:
+               threads: list[int], folder: Path) -> list[dict]:
     """Workload (d): msf-run on the whole stack in a fresh process, normals only.
 
     First the default command (bundled model, no engine or precision flag: what dispatch picks
@@ -331,8 +399,8 @@ def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
         names += [("ort-int8", Path(models["int8"]), ort),
                   ("ort-int8-staged", Path(models["int8_staged"]), ort)]
     runs, outs = [], {}
-    for v, onnx, extra in tqdm(names, desc="msf-bench (d)", unit="run"):
-        outdir = args.report_dir / "e2e" / v
+    for v, onnx, extra in tqdm(names, desc="msf-bench (d)", unit="run", disable=args.quiet):
+        outdir = folder / v
         # The default command carries the target: the median of 3 fresh processes (single runs
         # varied by +-10 % here); one run for the other rows keeps the full mode short.
         repeats = 3 if v == "default" and not args.quick else 1
@@ -355,15 +423,15 @@ def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
                      "mae_vs_gt_deg": _mae(normals, stack)})
     for run in runs:
         if run["variant"] != "ort-fp32":
-            d = angular_error_deg(outs[run["variant"]], outs["ort-fp32"])[stack.mask]
-            run.update({"max_deg_vs_fp32": float(d.max()), "mean_deg_vs_fp32": float(d.mean())})
+            mean, mx = deviation_deg(outs[run["variant"]], outs["ort-fp32"], stack.mask)
+            run.update({"max_deg_vs_fp32": mx, "mean_deg_vs_fp32": mean})
     return runs
 
 
 def _mae(normals: np.ndarray, stack) -> float | None:
     if stack.normals_gt is None:
         return None
-    return float(angular_error_deg(normals, stack.normals_gt)[stack.mask].mean())
+    return normal_metrics(normals, stack.normals_gt, stack.mask).mae_deg
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -372,24 +440,50 @@ def _run(args: argparse.Namespace) -> int:
     import onnx  # noqa: F401
     import torch  # noqa: F401
 
-    report = args.report_dir / "REPORT.md"
-    if report.exists() and not args.overwrite:
-        raise InputError("report exists; pass --overwrite to replace it", report)
-    result = bench(args)
-    files = write_report(result, args.report_dir)
+    plan = plan_run(args)  # every check before anything is written or printed
+    data = load_inputs(args, plan)
+    for note in plan.notes:
+        _say(args, note)
+    final = args.report_dir
+    with staged_folder(final, overwrite=args.overwrite) as work, \
+            scratch_folder(final) as scratch:
+        result = published(bench(args, plan, data, work, scratch), work, final)
+        files = write_report(result, work)
     if not args.quiet:
         print(files["table"])
         for f in files["paths"]:
-            print(f"wrote {f}")
+            print(f"wrote {final / Path(f).relative_to(work)}")
     return 0
+
+
+def published(result: dict, work: Path, final: Path) -> dict:
+    """``result`` with every path inside the staging folder ``work`` named where the report
+    ends up (``final``): report.json and REPORT.md name the published files."""
+
+    def rebase(value: object) -> object:
+        if isinstance(value, str):
+            return value.replace(str(work), str(final))
+        if isinstance(value, dict):
+            return {k: rebase(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return type(value)(rebase(v) for v in value)
+        return value
+
+    return {k: rebase(v) for k, v in result.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return run_command("msf-bench", lambda: _run(args), debug=args.debug)
+
+    def body() -> int:
+        with writing_as("msf-bench"):  # the report's manifest names its writer
+            return _run(args)
+
+    return run_command("msf-bench", body, debug=args.debug)
 
 
-__all__ = ["Workload", "build_parser", "inference_flops", "main", "schedule"]
+__all__ = ["Inputs", "Plan", "Workload", "build_parser", "inference_flops", "load_inputs",
+           "main", "plan_run", "published", "schedule"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -11,17 +11,21 @@ surface, and the CPU model and core count, as a table and optionally as JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from msfnet.runtime import cpu
+from msfnet.runtime.cliutil import make_parser, positive_int, run_command
+from msfnet.runtime.files import check_output, write_json
 from msfnet.runtime.maps.curvature import curvature_maps
 from msfnet.runtime.maps.integrate import METHODS, integrate_normals
+
+PROG = "python -m msfnet.bench.maps"
 
 HEIGHT, WIDTH = 512, 612
 
@@ -52,24 +56,6 @@ def bench_object(h: int = HEIGHT, w: int = WIDTH) -> tuple[np.ndarray, np.ndarra
     return np.where(mask, z, np.nan), mask, n
 
 
-def cpu_model() -> str:
-    """The CPU's model name from /proc/cpuinfo (Linux), else what platform knows."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def usable_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def time_call(fn, repeat: int) -> tuple[list[float], list[float], object]:
     walls, cpus, out = [], [], None
     for _ in range(repeat):
@@ -84,7 +70,7 @@ def run(methods: tuple[str, ...], repeat: int, size: tuple[int, int] = (HEIGHT, 
         ) -> dict[str, object]:
     z, mask, n = bench_object(*size)
     results: dict[str, object] = {
-        "cpu": cpu_model(), "cores": usable_cores(), "frame": f"{size[1]}x{size[0]}",
+        "cpu": cpu.detect_cpu().model, "cores": cpu.usable_cores(), "frame": f"{size[1]}x{size[0]}",
         "mask_pixels": int(mask.sum()), "load_average": os.getloadavg(), "methods": {}}
     table = results["methods"]
     assert isinstance(table, dict)
@@ -119,22 +105,34 @@ def format_table(results: dict[str, object]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m msfnet.bench.maps",
-                                description="Time normal integration (and curvature) on a "
-                                f"{WIDTH}x{HEIGHT} masked object.")
+def build_parser() -> argparse.ArgumentParser:
+    p = make_parser(PROG, f"Time normal integration (and curvature) on a {WIDTH}x{HEIGHT} "
+                    "masked object.", (f"{PROG} --repeat 5 --json maps.json",))
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
-    p.add_argument("--repeat", type=int, default=3, help="runs per method (median reported)")
-    p.add_argument("--size", type=int, nargs=2, default=(HEIGHT, WIDTH), metavar=("H", "W"),
-                   help=f"frame size (default {HEIGHT} {WIDTH})")
+    p.add_argument("--repeat", type=positive_int, default=3,
+                   help="runs per method (median reported)")
+    p.add_argument("--size", type=positive_int, nargs=2, default=(HEIGHT, WIDTH),
+                   metavar=("H", "W"), help=f"frame size (default {HEIGHT} {WIDTH})")
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
-    args = p.parse_args(argv)
-    results = run(tuple(args.methods), max(1, args.repeat), tuple(args.size))
-    print(format_table(results))
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
+    return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.json is not None:  # before the timing, which takes a while
+        check_output(args.json, overwrite=args.overwrite)
+    results = run(tuple(args.methods), args.repeat, tuple(args.size))
     if args.json is not None:
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+        write_json(args.json, results, overwrite=args.overwrite)
+    if not args.quiet:
+        print(format_table(results))
     return 0
 
 
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_command(PROG, lambda: _run(args), debug=args.debug)
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main())

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-from msfnet.runtime.files import write_atomic
+from msfnet.runtime.files import write_atomic, write_json, write_text
 
 from .workloads import ENGINE_OF_VARIANT, VARIANT_PEAK
 
@@ -211,7 +210,7 @@ def plot(result: dict, path: Path) -> bool:
     axes[1].legend(fontsize=7)
     fig.suptitle("MSF-Net latency (workloads (a)-(c) crops of ballPNG; (d) full stack)")
     fig.tight_layout()
-    write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110))
+    write_atomic(path, lambda tmp: fig.savefig(tmp, format="png", dpi=110), overwrite=False)
     plt.close(fig)
     return True
 
@@ -268,14 +267,14 @@ def markdown(result: dict, has_plot: bool) -> str:
 
 
 def write_report(result: dict, folder: Path) -> dict:
-    folder.mkdir(parents=True, exist_ok=True)
+    """REPORT.md, report.json and latency.png in ``folder`` (msf-bench: the report's staging
+    folder, published as a whole). Never replaces a file: InputError if one exists."""
     add_ratios(result)
     add_e2e_ratios(result)
     has_plot = plot(result, folder / "latency.png")
     md = markdown(result, has_plot)
-    write_atomic(folder / "report.json",
-                 lambda tmp: Path(tmp).write_text(json.dumps(result, indent=1, default=str)))
-    write_atomic(folder / "REPORT.md", lambda tmp: Path(tmp).write_text(md))
+    write_json(folder / "report.json", result, overwrite=False)
+    write_text(folder / "REPORT.md", md, overwrite=False)
     paths = [folder / "REPORT.md", folder / "report.json"]
     if has_plot:
         paths.append(folder / "latency.png")

@@ -175,7 +175,12 @@ def time_msf_run(stack_dir: Path, onnx: Path | None, outdir: Path, threads: int,
         cmd += ["--max-lights", str(max_lights)]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    _, status, _ = os.wait4(proc.pid, 0)
+    try:
+        _, status, _ = os.wait4(proc.pid, 0)
+    except BaseException:  # Ctrl-C, SIGTERM: the run must not go on writing into the report
+        proc.kill()
+        proc.wait()
+        raise
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
-import os
 import signal
 import threading
 import time
@@ -27,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from msfnet.runtime.cpu import usable_cores
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import staged_files, write_atomic
 from msfnet.runtime.least_squares import least_squares_normals
@@ -150,19 +150,12 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def cpu_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def default_workers(device: torch.device, cores: int | None = None) -> int:
     """Render workers: none on the CPU (the cores train; today's in-process source), and on a
     GPU all cores but two (the main process and the GPU feeder), at most 12."""
     if device.type != "cuda":
         return 0
-    return max(0, min((cpu_cores() if cores is None else cores) - 2, 12))
+    return max(0, min((usable_cores() if cores is None else cores) - 2, 12))
 
 
 def stop_workers(timeout: float = 10.0, spare: Collection[object] = ()) -> int:

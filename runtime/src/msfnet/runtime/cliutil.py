@@ -20,13 +20,8 @@ from collections.abc import Callable, Sequence
 from typing import NoReturn
 
 from .errors import InputError, MsfError, first_line, one_line
-from .files import (
-    Terminated,
-    forget_written,
-    install_signal_handlers,
-    restore_signal_handlers,
-    written_outputs,
-)
+from .files import forget_written, written_outputs
+from .signals import Terminated, install_signal_handlers, restore_signal_handlers
 
 
 def _number(text: str, kind: type) -> float:

@@ -30,9 +30,7 @@ import contextlib
 import json
 import os
 import shutil
-import signal
 import tempfile
-import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -42,10 +40,11 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .signals import signals_deferred
 
 MANIFEST = ".msfnet-output.json"
 STAGING_TAG = ".msf-partial-"  # ".<name>.msf-partial-<pid>-<random>" beside the target
-_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+
 
 # The command writing outputs (each CLI sets it around its body with :func:`writing_as`), kept
 # in every output folder's manifest; folders written from Python without a command say so.
@@ -75,40 +74,6 @@ def written_outputs() -> list[Path]:
 
 def forget_written() -> None:
     _written.clear()
-
-
-class Terminated(BaseException):
-    """SIGTERM/SIGHUP arrived: unwinds like Ctrl-C so every ``finally`` cleans up."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
-
-
-def _raise_terminated(signum: int, frame: object) -> None:
-    raise Terminated(signum)
-
-
-def install_signal_handlers() -> dict[int, object]:
-    """Turn SIGTERM (and SIGHUP) into an exception, so staged outputs are removed on a kill.
-
-    Returns the previous handlers (for :func:`restore_signal_handlers`). A signal the caller
-    ignores (``nohup``) stays ignored."""
-    previous: dict[int, object] = {}
-    for name in ("SIGTERM", "SIGHUP"):
-        sig = getattr(signal, name, None)
-        if sig is None or signal.getsignal(sig) is signal.SIG_IGN:
-            continue
-        # outside the main thread this raises ValueError: keep the default behaviour there
-        with contextlib.suppress(ValueError):
-            previous[sig] = signal.signal(sig, _raise_terminated)
-    return previous
-
-
-def restore_signal_handlers(previous: dict[int, object]) -> None:
-    for sig, handler in previous.items():
-        with contextlib.suppress(ValueError, TypeError):
-            signal.signal(sig, handler)  # type: ignore[arg-type]
 
 
 def _flush_and_close(fd: int) -> None:
@@ -180,33 +145,6 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
-
-
-@contextmanager
-def _signals_deferred() -> Iterator[None]:
-    """Hold Ctrl-C/SIGTERM/SIGHUP until the block is done, then act on the first one.
-
-    A renaming sequence interrupted half-way could leave an old output moved aside and the new
-    one not yet in place. Swapping the Python-level handlers (not the thread mask) also covers
-    signals the kernel delivers to a native worker thread (ONNX Runtime's, for instance).
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield  # handlers can only be changed (and only run) in the main thread
-        return
-    pending: list[int] = []
-    old = {sig: signal.signal(sig, lambda signum, frame: pending.append(signum))
-           for sig in _SIGNALS}
-    try:
-        yield
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-        if pending:
-            handler = old[pending[0]]
-            if callable(handler):
-                handler(pending[0], None)
-            elif handler == signal.SIG_DFL:
-                os.kill(os.getpid(), pending[0])
 
 
 @contextmanager
@@ -482,7 +420,7 @@ def write_atomic(path: str | Path, write: Callable[[Path], object], *,
         staged = any(STAGING_TAG in part for part in path.parts)
         if not staged:
             _durable([tmp], path)
-        with _signals_deferred(), _commit_lock([path.parent]):
+        with signals_deferred(), _commit_lock([path.parent]):
             if not overwrite and (path.exists() or path.is_symlink()):
                 raise InputError("output appeared while running (another command wrote it?); "
                                  "pass --overwrite to replace it", path)
@@ -564,7 +502,7 @@ def staged_folder(outdir: str | Path, *, overwrite: bool = False,
         (tmp / MANIFEST).write_text(json.dumps({"files": names, "command": writer}) + "\n")
         (tmp / MANIFEST).chmod(0o666 & ~_umask())
         _durable([tmp], outdir)
-        with _signals_deferred(), _commit_lock([outdir.parent]):
+        with signals_deferred(), _commit_lock([outdir.parent]):
             _commit(tmp, outdir, overwrite, command)
             _written.append(outdir)
         done = True
@@ -632,7 +570,7 @@ def staged_files(targets: Sequence[str | Path], *, overwrite: bool = False
             os.chmod(tmp, 0o666 & ~_umask())
         for tmp, path in zip(temps, paths, strict=True):
             _durable([tmp], path)
-        with _signals_deferred(), _commit_lock([p.parent for p in paths]):
+        with signals_deferred(), _commit_lock([p.parent for p in paths]):
             _commit_files(list(zip(temps, paths, strict=True)), overwrite)
             _written.extend(paths)
         done = True
@@ -684,8 +622,8 @@ def numbered_folder(base: str | Path) -> Path:
     return base.with_name(f"{base.name}-{i}")
 
 
-__all__ = ["API_WRITER", "MANIFEST", "Terminated", "check_not_input", "check_output",
-           "forget_written", "install_signal_handlers", "json_text", "numbered_folder",
+__all__ = ["API_WRITER", "MANIFEST", "check_not_input", "check_output",
+           "forget_written", "json_text", "numbered_folder",
            "remove_stale_staging", "same_file", "scratch_folder", "staged_files",
            "staged_folder", "to_jsonable", "vectors_text", "write_atomic", "write_json",
            "write_text", "write_vectors", "writing_as", "written_outputs"]

@@ -27,6 +27,33 @@ def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(cross, dot))
 
 
+def deviation_deg(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """(mean, max) angle in degrees between two normal maps over the mask pixels.
+
+    The maps are both (1, 3, H, W), as a network or engine returns them, or both (H, W, 3), as
+    msf-run saves them; ``mask`` is (H, W) bool. Compares two predictions (an engine against a
+    reference), so it is symmetric: a pixel where either map is not a unit vector (zero, NaN,
+    wrong length) scores 180 deg, as in :func:`normal_metrics`, so a broken output can never
+    look like a perfect match. ValueError for other shapes or an empty mask.
+    """
+    a, b, mask = np.asarray(a), np.asarray(b), np.asarray(mask, bool)
+    if a.shape != b.shape:
+        raise ValueError(f"deviation_deg: maps of different shapes {a.shape} and {b.shape}")
+    if a.ndim == 4 and a.shape[:2] == (1, 3):
+        a, b = a[0].transpose(1, 2, 0), b[0].transpose(1, 2, 0)
+    elif not (a.ndim == 3 and a.shape[-1] == 3):
+        raise ValueError(f"deviation_deg: expected (1, 3, H, W) or (H, W, 3) maps, got {a.shape}")
+    if mask.shape != a.shape[:2]:
+        raise ValueError(f"deviation_deg: mask {mask.shape} does not match the maps {a.shape}")
+    if not mask.any():
+        raise ValueError("deviation_deg: the mask is empty")
+    pa, pb = a[mask], b[mask]
+    with np.errstate(invalid="ignore"):
+        err = angular_error_deg(np.nan_to_num(pa), np.nan_to_num(pb))
+    err[~(is_unit(pa) & is_unit(pb))] = 180.0
+    return float(err.mean()), float(err.max())
+
+
 def is_unit(v: np.ndarray, tolerance: float = UNIT_TOLERANCE) -> np.ndarray:
     """Boolean per vector (last axis): finite and of length 1 within ``tolerance``."""
     with np.errstate(invalid="ignore"):
@@ -73,5 +100,5 @@ def normal_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> Normal
                          gt_missing=int(mask.sum() - scored.sum()))
 
 
-__all__ = ["UNIT_TOLERANCE", "NormalMetrics", "angular_error_deg", "error_map", "is_unit",
-           "normal_metrics"]
+__all__ = ["UNIT_TOLERANCE", "NormalMetrics", "angular_error_deg", "deviation_deg", "error_map",
+           "is_unit", "normal_metrics"]

@@ -6,7 +6,6 @@ produce garbage normals.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import onnxruntime as ort
 
 from .chunked import DEFAULT_CHUNK, STAGE_INPUTS, STAGE_OUTPUTS, run_staged
 from .contract import ModelInfo, read_model_info
+from .cpu import usable_cores
 from .errors import InputError, first_line
 
 PROVIDER_ALIASES = {
@@ -80,10 +80,8 @@ def resolve_provider(name: str | None) -> str:
 
 
 def default_threads() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
+    """Threads when none are asked for: the cores this process may use (runtime/cpu.py)."""
+    return usable_cores()
 
 
 def create_session(path: str | Path, *, threads: int | None = None, provider: str | None = None,
