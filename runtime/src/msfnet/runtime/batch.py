@@ -20,6 +20,8 @@ from .benchmarks import PROTOCOL_SELECT, find_objects, protocol_note
 from .errors import InputError
 from .files import MANIFEST, STAGING_TAG, json_text, write_text
 from .imageio import list_images
+from .metrics import NormalMetrics
+from .profile import BatchStats
 from .stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack, selection
 from .stack.load import count_images
 
@@ -126,7 +128,7 @@ class StackRow:
     wait_s: float = 0.0  # what the runner waited for the decoded stack (decode not hidden)
     compute_s: float = 0.0  # normalise + infer + metrics
     save_s: float = 0.0  # writing the output folder
-    metrics: dict[str, float | int] | None = None
+    metrics: NormalMetrics | None = None  # with ground truth
     worker: str | None = None
     error: str | None = None
 
@@ -181,7 +183,7 @@ class BatchSummary:
                 "output")
         rows = []
         for r in self.rows:
-            mae = r.metrics.get("mae_deg") if r.metrics else None
+            mae = r.metrics.mae_deg if r.metrics else None
             rows.append((r.name, str(r.lights), f"{r.width}x{r.height}", f"{r.decode_s:.2f}",
                          f"{r.wait_s:.2f}", f"{r.compute_s:.2f}", f"{r.save_s:.2f}",
                          "-" if mae is None else f"{mae:.2f}",
@@ -246,7 +248,7 @@ def row_for(result: Result, output: Path | None) -> StackRow:
     return StackRow(stack.name, str(stack.source or stack.name),
                     None if output is None else str(output), stack.num_lights, w, h,
                     int(stack.mask.sum()),
-                    metrics=result.metrics.as_dict() if result.metrics else None)
+                    metrics=result.metrics)
 
 
 OnResult = Callable[[StackRow, "Result | None"], None]
@@ -337,12 +339,9 @@ def run_batch(model: Model, items: Sequence[BatchItem | Stack], load: LoadOption
                 runs[-1]["load"] = decode_s
                 runs[-1]["total"] = runs[-1].get("total", 0.0) + decode_s
             # what model(path, load) records itself (auto-mask -> mask.png on save)
-            result.extra["input"] = (item.describe_input(load) if isinstance(item, BatchItem)
-                                     else load.describe())
-            if stack.warnings:
-                result.extra["warnings"] = list(stack.warnings)
-            result.extra["batch"] = {"decode_s": decode_s, "wait_s": wait_s,
-                                     "prefetched": prefetch and i > 0}
+            result.input = (item.describe_input(load) if isinstance(item, BatchItem)
+                            else load.describe())
+            result.batch = BatchStats(decode_s, wait_s=wait_s, prefetched=prefetch and i > 0)
             out = out_for(name)
             t0 = time.perf_counter()
             if out is not None:

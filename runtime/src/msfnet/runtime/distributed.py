@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 from .batch import BatchItem, BatchSummary, OnResult, StackRow, row_for
 from .errors import InputError
 from .maps import MapOptions
+from .profile import BatchStats
 from .stack import LoadOptions, load_stack
 
 if TYPE_CHECKING:
@@ -105,8 +106,8 @@ class StackWorker:
         runs = result.timings.runs
         runs[-1]["load"] = decode_s
         runs[-1]["total"] = runs[-1].get("total", 0.0) + decode_s
-        result.extra["input"] = load.describe()  # as model(path, load) records it
-        result.extra["batch"] = {"decode_s": decode_s, "worker": self.where}
+        result.input = load.describe()  # as model(path, load) records it
+        result.batch = BatchStats(decode_s, worker=self.where)
         return {"name": name, "result": result.without_images(), "decode_s": decode_s,
                 "compute_s": compute_s, "where": self.where}
 

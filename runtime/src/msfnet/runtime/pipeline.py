@@ -20,7 +20,7 @@ Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any st
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,7 @@ from .estimators import (
 )
 from .maps import InspectionMaps, MapOptions, stack_maps
 from .metrics import NormalMetrics, error_map, normal_metrics
-from .profile import Profile, StageTimer
+from .profile import BatchStats, Profile, StageTimer
 from .stack import LoadOptions, Stack, load_stack, prepare_stack
 from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
 
@@ -60,7 +60,8 @@ class Result:
     error_deg: np.ndarray | None = None  # (H, W) angular error, NaN where not scored
     plan: TilePlan | None = None
     maps: InspectionMaps | None = None  # albedo, height, curvature, ... (Model(maps=...))
-    extra: dict[str, object] = field(default_factory=dict)
+    input: dict[str, object] | None = None  # how the stack was read (LoadOptions.describe())
+    batch: BatchStats | None = None  # set by a batch run
 
     def profile(self) -> dict[str, object]:
         """Latency per stage, memory, work done and what ran: profile.json's content."""
@@ -74,13 +75,18 @@ class Result:
             info["tiles"] = {"run": len(p.tiles), "skipped": p.skipped, "tile_px": p.tile_size,
                              "halo_px": p.halo, "pixels_computed": p.pixels,
                              "overhead_vs_image": p.pixels / float(h * w)}
-        return {**self.timings.summary(), **info, **self.extra}
+        if self.input is not None:
+            info["input"] = self.input
+        if self.stack.warnings:  # a stack that loads but looks wrong: kept with the result
+            info["warnings"] = list(self.stack.warnings)
+        if self.batch is not None:
+            info["batch"] = self.batch.as_dict()
+        return {**self.timings.summary(), **info}
 
     @property
     def auto_mask(self) -> bool:
         """Whether the mask was computed from the images (``--auto-mask``)."""
-        info = self.extra.get("input")
-        return isinstance(info, dict) and bool(info.get("auto_mask"))
+        return self.input is not None and bool(self.input.get("auto_mask"))
 
     def save(self, folder: str | Path, *, overwrite: bool = False,
              inputs: tuple[Path, ...] = (), write_mask: bool | None = None,
@@ -203,11 +209,8 @@ class Model:
                         maps = stack_maps(loaded, est.normals, self.maps)
             prof.add(timer)
             prof.flops = est.flops
-            extra: dict[str, object] = {}
-            if load is not None:
-                extra["input"] = load.describe()
             result = Result(loaded, est.normals, self.describe(), prof, metrics, err, est.plan,
-                            maps, extra=extra)
+                            maps, input=load.describe() if load is not None else None)
         assert result is not None
         return result
 

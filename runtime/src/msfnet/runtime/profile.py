@@ -6,7 +6,7 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -110,4 +110,17 @@ class Profile:
         return "\n".join(lines)
 
 
-__all__ = ["STAGES", "Profile", "StageTimer", "peak_rss_mb"]
+@dataclass(frozen=True)
+class BatchStats:
+    """How a stack of a batch was fed to the model (profile.json's "batch")."""
+
+    decode_s: float  # reading and decoding the stack
+    wait_s: float | None = None  # how long the model waited for it (prefetching hides decode)
+    prefetched: bool | None = None  # decoded while the previous stack ran
+    worker: str | None = None  # host:pid of the Ray worker that ran it
+
+    def as_dict(self) -> dict[str, object]:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+__all__ = ["STAGES", "BatchStats", "Profile", "StageTimer", "peak_rss_mb"]

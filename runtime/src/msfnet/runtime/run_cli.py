@@ -222,13 +222,6 @@ def print_result(result: Result, outdir: Path, files: list[Path],
     print(f"wrote {outdir}/ ({', '.join(f.name for f in files)})")
 
 
-def _keep_warnings(result: Result) -> None:
-    """A stack that loads but looks wrong (a black image among lit ones) is kept in
-    profile.json (the normals are still computed)."""
-    if result.stack.warnings:
-        result.extra["warnings"] = list(result.stack.warnings)
-
-
 def _print_warnings(result: Result, args: argparse.Namespace) -> None:
     """One line each on stderr, once the outputs are written (a run that then fails gives
     its one error line only)."""
@@ -257,8 +250,7 @@ def _run_single(args: argparse.Namespace, src: Path | Stack, load: LoadOptions,
     result = model(src, item.options(load) if item is not None else load, repeat=args.repeat,
                    progress=progress)
     if item is not None:
-        result.extra["input"] = item.describe_input(load)
-    _keep_warnings(result)
+        result.input = item.describe_input(load)
     files = result.save(out, overwrite=args.overwrite, inputs=tuple(load.inputs()),
                         report=not args.no_report)
     _print_warnings(result, args)
@@ -320,7 +312,7 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
                            if not p.name.startswith("."))
             print_result(result, Path(row.output or "."), [Path(f) for f in files], args)
         elif show:
-            mae = row.metrics.get("mae_deg") if row.metrics else None
+            mae = row.metrics.mae_deg if row.metrics else None
             score = "" if mae is None else f", MAE {mae:.2f} deg"
             tqdm.write(f"{row.name}: {row.lights} lights, {row.width}x{row.height}{score}; "
                        f"decode {row.decode_s:.2f} s (waited {row.wait_s:.2f}), infer "
