@@ -38,7 +38,7 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.infer import infer_normals
 from msfnet.runtime.metrics import deviation_deg
 from msfnet.runtime.pipeline import default_model_path
-from msfnet.runtime.preprocess import network_lights, normalise
+from msfnet.runtime.preprocess import network_input
 from msfnet.runtime.session import create_session
 from msfnet.runtime.tiling import plan_tiles
 
@@ -130,8 +130,7 @@ def test_staged_loop_is_shared_through_a_callable(staged_onnx) -> None:
     """run_staged_with(callable) is run_staged itself: same result, every output requested
     through the callable, never a copy of the loop."""
     stack = sphere_stack(n=11, h=20, w=24, seed=5)
-    x = normalise(stack.images, stack.intensities, stack.mask)[None]
-    lights = network_lights(stack.lights)[None]
+    x, lights = network_input(stack)
     sess = create_session(staged_onnx, threads=2).session
     calls: list[str] = []
 
@@ -157,8 +156,7 @@ def test_openvino_fp32_keeps_shapes_dynamic(sensitive_onnx, staged_onnx, staged)
     assert engine.info.staged == staged
     for n, h, w in ((3, 12, 16), (7, 20, 24), (11, 16, 16)):
         stack = sphere_stack(n=n, h=h, w=w, seed=n)
-        x = normalise(stack.images, stack.intensities, stack.mask)[None]
-        lights = network_lights(stack.lights)[None]
+        x, lights = network_input(stack)
         mean, mx = deviation_deg(engine.run(x, lights), ref.run(x, lights), stack.mask)
         assert mean < FP32_TOL_MEAN_DEG and mx < FP32_TOL_MAX_DEG, (n, h, w, mean, mx)
 
@@ -185,8 +183,8 @@ def _rim_crop(lights: int, size: int = 64) -> dict[str, np.ndarray]:
     sl = (slice(y0, y0 + size), slice(x0, x0 + size))
     mask = stack.mask[sl]
     assert 0.2 < mask.mean() < 0.9  # rim and background both present
-    x = normalise(stack.images[:, sl[0], sl[1]], stack.intensities, mask)
-    return {"images": x[None], "lights": network_lights(stack.lights)[None], "mask": mask}
+    images, lights = network_input(stack, *sl)
+    return {"images": images, "lights": lights, "mask": mask}
 
 
 @pytest.fixture(scope="module")

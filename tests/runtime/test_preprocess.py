@@ -65,3 +65,25 @@ def test_integer_tiles_give_the_float32_input_bit_for_bit(rng: np.random.Generat
         np.testing.assert_array_equal(x, normalise(images.astype(np.float32), ints, mask))
         np.testing.assert_allclose(np.linalg.norm(x[:, :, 0, 0], axis=0), np.sqrt(96 / 32),
                                    rtol=1e-5)
+
+
+def test_network_input_is_the_crop_of_the_normalised_stack_padded_with_zeros() -> None:
+    """One function assembles a crop's network input (runtime tiles, int8 calibration, bench
+    workloads, export checks): the crop of the normalised images, zero-padded, unit lights."""
+    from _runtime_helpers import sphere_stack
+
+    from msfnet.runtime.preprocess import network_input, network_lights
+
+    stack = sphere_stack(n=7, h=30, w=26, seed=4)
+    full = normalise(stack.images, stack.intensities, stack.mask)
+    rows, cols = slice(20, 30), slice(5, 26)
+    x, lights = network_input(stack, rows, cols, shape=(12, 24))
+    assert x.shape == (1, 7, 3, 12, 24) and lights.shape == (1, 7, 3)
+    np.testing.assert_array_equal(x[0, :, :, :10, :21], full[:, :, rows, cols])
+    assert not x[0, :, :, 10:].any() and not x[0, :, :, :, 21:].any()
+    np.testing.assert_array_equal(lights[0], network_lights(stack.lights))
+    pick = [0, 3, 6]
+    sub, sub_lights = network_input(stack, lights=pick, train_lights=16)
+    np.testing.assert_array_equal(sub[0], normalise(stack.images[pick], stack.intensities[pick],
+                                                    stack.mask, 16))
+    np.testing.assert_array_equal(sub_lights[0], network_lights(stack.lights[pick]))

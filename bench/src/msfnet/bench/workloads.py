@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.runtime.flops import inference_flops
-from msfnet.runtime.preprocess import network_lights, normalise
+from msfnet.runtime.preprocess import network_input
 
 
 @dataclass(frozen=True)
@@ -80,11 +80,9 @@ def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
     h, w = stack.mask.shape
     y0 = int(np.clip(ys.mean() - wl.size / 2, 0, h - wl.size)) // 4 * 4
     x0 = int(np.clip(xs.mean() - wl.size / 2, 0, w - wl.size)) // 4 * 4
-    sl = (slice(y0, y0 + wl.size), slice(x0, x0 + wl.size))
-    mask = stack.mask[sl]
-    x = normalise(stack.images[:, sl[0], sl[1]], stack.intensities, mask)
-    return {"images": x[None], "lights": network_lights(stack.lights)[None],
-            "mask": mask}
+    rows, cols = slice(y0, y0 + wl.size), slice(x0, x0 + wl.size)
+    images, lights = network_input(stack, rows, cols)
+    return {"images": images, "lights": lights, "mask": stack.mask[rows, cols]}
 
 
 def _max_rss_mb() -> float:

@@ -49,7 +49,7 @@ def rendered_inputs(batch: int, lights: int, height: int, width: int,
     Only object pixels are compared: in the empty background a trained network's raw output is
     a near-zero vector whose direction is ill-conditioned (measured: ~0.5 against a median of
     ~100 before normalisation), and the runtime zeroes those pixels anyway."""
-    from msfnet.runtime.preprocess import normalise
+    from msfnet.runtime.preprocess import network_input
     from msfnet.synth.render import RenderOptions, render_stack
 
     images = np.empty((batch, lights, 3, height, width), np.float32)
@@ -58,9 +58,8 @@ def rendered_inputs(batch: int, lights: int, height: int, width: int,
     options = RenderOptions(size=max(height, width), lights=lights)
     for b in range(batch):
         stack = render_stack(np.random.default_rng([seed, b]), options)
-        crop = stack.images[:, :height, :width]
-        images[b] = normalise(crop, stack.intensities, stack.mask[:height, :width])
-        dirs[b] = stack.lights
+        x, lit = network_input(stack, slice(0, height), slice(0, width))
+        images[b], dirs[b] = x[0], lit[0]
         masks[b] = stack.mask[:height, :width]
     return images, dirs, masks
 

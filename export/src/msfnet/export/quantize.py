@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from msfnet.runtime.contract import METADATA_KEYS
+from msfnet.runtime.contract import METADATA_KEYS, TRAIN_LIGHTS
 from msfnet.runtime.errors import InputError
-from msfnet.runtime.preprocess import normalise
+from msfnet.runtime.preprocess import network_input
 from msfnet.runtime.stack import Stack, load_stack
 
 CALIB_TILE = 64
@@ -63,7 +63,7 @@ def tile_origins(mask: np.ndarray, tile: int, count: int, seed: int = 0) -> list
 
 def calibration_tiles(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
                       lights: int = CALIB_LIGHTS, tiles_per_stack: int = CALIB_TILES_PER_STACK,
-                      train_lights: int = 32, seed: int = 0
+                      train_lights: int = TRAIN_LIGHTS, seed: int = 0
                       ) -> Iterator[tuple[dict[str, np.ndarray], np.ndarray, str]]:
     """(feeds, mask (t, t), stack name) per tile; see ``calibration_samples``."""
     for si, stack in enumerate(stacks):
@@ -71,22 +71,18 @@ def calibration_tiles(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
         for ti, (y0, x0) in enumerate(tile_origins(stack.mask, tile, tiles_per_stack, seed + si)):
             n = counts[ti % len(counts)]
             idx = evenly(stack.num_lights, n)
-            crop = (slice(y0, y0 + tile), slice(x0, x0 + tile))
-            mask = stack.mask[crop]
-            # only the crop is gathered (and cast to float in normalise), not all N images
-            x = normalise(stack.images[idx, crop[0], crop[1]], stack.intensities[idx],
-                          mask, train_lights)
-            pad_h, pad_w = tile - x.shape[2], tile - x.shape[3]
-            if pad_h or pad_w:
-                x = np.pad(x, ((0, 0), (0, 0), (0, pad_h), (0, pad_w)))
-                mask = np.pad(mask, ((0, pad_h), (0, pad_w)))
-            yield ({"images": x[None].astype(np.float32),
-                    "lights": stack.lights[idx][None].astype(np.float32)}, mask, stack.name)
+            rows, cols = slice(y0, y0 + tile), slice(x0, x0 + tile)
+            x, dirs = network_input(stack, rows, cols, lights=idx, train_lights=train_lights,
+                                    shape=(tile, tile))
+            mask = np.zeros((tile, tile), bool)
+            crop = stack.mask[rows, cols]
+            mask[:crop.shape[0], :crop.shape[1]] = crop
+            yield {"images": x, "lights": dirs}, mask, stack.name
 
 
 def calibration_samples(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
                         lights: int = CALIB_LIGHTS, tiles_per_stack: int = CALIB_TILES_PER_STACK,
-                        train_lights: int = 32,
+                        train_lights: int = TRAIN_LIGHTS,
                         seed: int = 0) -> Iterator[dict[str, np.ndarray]]:
     """Network feeds {'images': (1,N,3,t,t), 'lights': (1,N,3)} from real stacks.
 
@@ -168,7 +164,7 @@ CALIBRATION_METHODS = ("minmax", "percentile", "entropy")
 
 def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Path, *,
                    method: str = "minmax", tile: int = CALIB_TILE, lights: int = CALIB_LIGHTS,
-                   tiles_per_stack: int = CALIB_TILES_PER_STACK, train_lights: int = 32,
+                   tiles_per_stack: int = CALIB_TILES_PER_STACK, train_lights: int = TRAIN_LIGHTS,
                    reduce_range: bool = False) -> tuple[onnx.ModelProto, dict[str, object]]:
     """An fp32 msfnet graph whose transposed convs are already rewritten (``rewrite.py``) ->
     int8 QDQ graph, and a summary. onnxruntime's quantiser works on files: they go to

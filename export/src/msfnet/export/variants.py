@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
+from msfnet.runtime.contract import TRAIN_LIGHTS
+
 if TYPE_CHECKING:
     from msfnet.runtime.stack import Stack
 
@@ -204,7 +206,7 @@ class ExportOptions:
     or the static shape). ``calib_*``: int8 calibration (and verification) tiles."""
 
     opset: int = DEFAULT_OPSET
-    train_lights: int = 32
+    train_lights: int = TRAIN_LIGHTS
     static: StaticShape | None = None
     simplify: bool = False
     tolerance_deg: float | None = None
@@ -332,3 +334,4 @@ __all__ = ["DEFAULT_OPSET", "FP16_RULE", "FP32_RULE", "INT8_RULE", "MAX_OPSET", 
            "StaticShape",
            "Variant", "VerificationRow", "VerifyRule", "check_options", "export_variant",
            "get_variant", "variant_for"]
+

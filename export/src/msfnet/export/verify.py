@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from msfnet.runtime.contract import TRAIN_LIGHTS
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.metrics import angular_error_deg
 
@@ -51,7 +52,7 @@ def rendered_cases(checks: Iterable[tuple[int, int, int]], batch: int = 1,
 
 
 def tile_cases(stacks: Sequence[Stack], *, tile: int, lights: int, tiles_per_stack: int,
-               train_lights: int = 32, seed: int = 1000) -> Iterator[Case]:
+               train_lights: int = TRAIN_LIGHTS, seed: int = 1000) -> Iterator[Case]:
     """Calibration-like tiles (inside the stacks' masks, at up to three light counts), taken at
     other places than the calibration's own (different seed)."""
     from .quantize import calibration_tiles

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import InputError, MsfError, first_line
-from .preprocess import network_lights, normalise
+from .preprocess import network_input
 from .profile import StageTimer
 from .stack import Stack
 from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan, plan_tiles, tile_size_for_memory
@@ -59,7 +59,6 @@ def infer_normals(model: Engine, stack: Stack, plan: TilePlan,
     hp = max(max(t.window[1] for t in plan.tiles), h)
     wp = max(max(t.window[3] for t in plan.tiles), w)
     out = np.zeros((hp, wp, 3), np.float32)
-    lights = network_lights(stack.lights)[None]
     train_lights = model.info.train_lights
     bar = None
     if progress and len(plan.tiles) > 1:
@@ -71,11 +70,8 @@ def infer_normals(model: Engine, stack: Stack, plan: TilePlan,
         wy0, wy1, wx0, wx1 = t.window
         with timer("preprocess"):
             # only the part of the window inside the image holds data; the rest is zero padding
-            iy1, ix1 = min(wy1, h), min(wx1, w)
-            x = np.zeros((1, n, 3, wy1 - wy0, wx1 - wx0), np.float32)
-            x[0, :, :, : iy1 - wy0, : ix1 - wx0] = normalise(
-                stack.images[:, wy0:iy1, wx0:ix1], stack.intensities,
-                stack.mask[wy0:iy1, wx0:ix1], train_lights)
+            x, lights = network_input(stack, slice(wy0, min(wy1, h)), slice(wx0, min(wx1, w)),
+                                      train_lights=train_lights, shape=(wy1 - wy0, wx1 - wx0))
         with timer("inference"):
             try:
                 y = model.run(x, lights)

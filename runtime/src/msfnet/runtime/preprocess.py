@@ -10,9 +10,15 @@ runtime relies on that.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from .contract import INPUT_MULTIPLE, TRAIN_LIGHTS
+
+if TYPE_CHECKING:
+    from .stack import Stack
 
 
 def normalise(images: np.ndarray, intensities: np.ndarray, mask: np.ndarray,
@@ -39,3 +45,22 @@ def network_lights(lights: np.ndarray) -> np.ndarray:
     """Unit light directions as float32, (N, 3)."""
     lights = np.asarray(lights, np.float64)
     return (lights / np.linalg.norm(lights, axis=1, keepdims=True)).astype(np.float32)
+
+
+def network_input(stack: Stack, rows: slice = slice(None), cols: slice = slice(None), *,
+                  lights: Sequence[int] | np.ndarray | None = None,
+                  train_lights: int = TRAIN_LIGHTS,
+                  shape: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The network's two inputs for a crop of ``stack``: images (1, N, 3, h, w) normalised as
+    above and lights (1, N, 3) unit directions. ``lights``: indices of a light subset;
+    ``shape``: zero-pad the crop to this (h, w), e.g. a tile reaching past the image. Only the
+    crop is gathered and cast, never all N full images."""
+    pick = slice(None) if lights is None else np.asarray(lights)
+    x = normalise(stack.images[pick, rows, cols], stack.intensities[pick],
+                  stack.mask[rows, cols], train_lights)
+    if shape is not None and tuple(shape) != x.shape[2:]:
+        padded = np.zeros((*x.shape[:2], *shape), np.float32)
+        padded[:, :, :x.shape[2], :x.shape[3]] = x
+        x = padded
+    return x[None], network_lights(stack.lights[pick])[None]
+
