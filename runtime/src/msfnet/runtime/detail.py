@@ -22,14 +22,21 @@ def _inner_mask(mask: np.ndarray, margin: int) -> np.ndarray:
     return cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
 
 
-def highpass_energy(normals: np.ndarray, mask: np.ndarray, sigma: float = SIGMA_PX) -> float:
-    """Mean over inner mask pixels of |n - smooth(n)|^2, smoothing within the mask only
-    (normalised convolution, so background zeros do not leak in)."""
+def masked_smooth(normals: np.ndarray, mask: np.ndarray, sigma: float = SIGMA_PX
+                  ) -> np.ndarray:
+    """Gaussian-smoothed (H, W, 3) map, within the mask only (normalised convolution, so
+    background zeros do not leak in at the outline); zeros outside the mask."""
     m = mask.astype(np.float32)
     n = np.nan_to_num(normals.astype(np.float32)) * m[..., None]
-    ksize = (0, 0)
-    weight = cv2.GaussianBlur(m, ksize, sigma)
-    smooth = cv2.GaussianBlur(n, ksize, sigma) / np.maximum(weight, 1e-6)[..., None]
+    weight = cv2.GaussianBlur(m, (0, 0), sigma)
+    smooth = cv2.GaussianBlur(n, (0, 0), sigma) / np.maximum(weight, 1e-6)[..., None]
+    return smooth * m[..., None]
+
+
+def highpass_energy(normals: np.ndarray, mask: np.ndarray, sigma: float = SIGMA_PX) -> float:
+    """Mean over inner mask pixels of |n - smooth(n)|^2 (:func:`masked_smooth`)."""
+    n = np.nan_to_num(normals.astype(np.float32)) * mask[..., None]
+    smooth = masked_smooth(normals, mask, sigma)
     inner = _inner_mask(mask, int(np.ceil(3 * sigma)))
     if not inner.any():
         return float("nan")
@@ -43,4 +50,4 @@ def detail_ratio(normals: np.ndarray, reference: np.ndarray, mask: np.ndarray) -
     return highpass_energy(normals, mask) / ref if ref > 0 else float("nan")
 
 
-__all__ = ["SIGMA_PX", "detail_ratio", "highpass_energy"]
+__all__ = ["SIGMA_PX", "detail_ratio", "highpass_energy", "masked_smooth"]

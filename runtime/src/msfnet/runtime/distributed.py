@@ -54,13 +54,14 @@ class ModelSpec:
     tile: int | None = None
     max_memory_mb: float | None = None
     maps: MapOptions | None = None  # inspection maps computed by the worker
+    fine_detail: bool = False
 
     @classmethod
     def from_args(cls, onnx: Path | None, **options: Any) -> ModelSpec:
         from .pipeline import check_method
 
         check_method(options.get("method", "msf"), onnx, options.get("engine"),
-                     options.get("precision"))
+                     options.get("precision"), bool(options.get("fine_detail")))
         if onnx is not None and not onnx.is_file():
             raise InputError("ONNX model not found", onnx)
         return cls(onnx_name=None if onnx is None else str(onnx),
@@ -77,7 +78,7 @@ class ModelSpec:
         return Model(path, method=self.method, engine=self.engine, precision=self.precision,
                      threads=self.threads, provider=self.provider,
                      tile=self.tile, max_memory_mb=self.max_memory_mb or DEFAULT_MAX_MEMORY_MB,
-                     maps=self.maps)
+                     maps=self.maps, fine_detail=self.fine_detail)
 
 
 class StackWorker:

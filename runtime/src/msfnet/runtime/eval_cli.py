@@ -255,6 +255,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(e.g. psmImages/lights.txt)")
     p.add_argument("--select", metavar="SPEC", help="image subset for every object (default: "
                    "the benchmark's protocol, e.g. DiLiGenT bear 21-96)")
+    p.add_argument("--fine-detail", action="store_true",
+                   help="the model with msf-run's --fine-detail (also run at 2x, fine detail "
+                   "from that run; about 5x the time)")
     p.add_argument("--threads", type=positive_int, metavar="T", help="inference threads")
     p.add_argument("--provider", default="cpu", metavar="P", help="execution provider")
     p.add_argument("--tile", type=int, metavar="S", help="tile edge in px (0 = untiled)")
@@ -276,9 +279,11 @@ def _run(args: argparse.Namespace) -> int:
     load = LoadOptions(lights=args.lights, select=args.select, max_lights=args.max_lights)
     check_output(outdir, [*args.roots, args.onnx, *load.inputs()], overwrite=args.overwrite,
                  folder=True)
+    if args.l2_only and args.fine_detail:
+        raise InputError("--l2-only and --fine-detail contradict each other")
     model = None if args.l2_only else Model(
         args.onnx, threads=args.threads, provider=args.provider, tile=args.tile,
-        max_memory_mb=args.max_memory, maps=None)
+        max_memory_mb=args.max_memory, maps=None, fine_detail=args.fine_detail)
     summary = evaluate(objects, outdir, model=model, use_l2=not args.no_l2, load=load,
                        overwrite=args.overwrite,
                        progress=sys.stderr.isatty() and not args.quiet and not args.json)

@@ -33,6 +33,7 @@ from .estimators import (
     NetworkEstimator,
     TilingOptions,
 )
+from .fine_detail import FineDetailEstimator
 from .maps import InspectionMaps, MapOptions, stack_maps
 from .metrics import NormalMetrics, error_map, normal_metrics
 from .profile import BatchStats, Profile, StageTimer
@@ -112,8 +113,8 @@ class Result:
         return replace(self, stack=stack)
 
 
-def check_method(method: str, model: object, engine: str | None, precision: str | None
-                 ) -> None:
+def check_method(method: str, model: object, engine: str | None, precision: str | None,
+                 fine_detail: bool = False) -> None:
     """Refuse options that contradict the method (before any work, also for a Ray batch)."""
     if method not in ("msf", "l2"):
         raise InputError(f"method {method!r}: expected 'msf' (the network) or 'l2'")
@@ -122,6 +123,9 @@ def check_method(method: str, model: object, engine: str | None, precision: str 
     if method == "l2" and (engine or precision):
         raise InputError("--engine / --precision choose how the network runs; --method l2 "
                          "has no network")
+    if method == "l2" and fine_detail:
+        raise InputError("--fine-detail runs the network a second time; --method l2 has no "
+                         "network (least squares keeps all detail, and its noise)")
 
 
 class Model:
@@ -129,7 +133,9 @@ class Model:
 
     ``Model()`` is the bundled network; ``Model("x.onnx", threads=2)`` another msfnet ONNX
     export (loaded once, here); ``Model.least_squares()`` classical least squares.
-    ``engine`` / ``precision`` pick the execution engine (default: chosen for this CPU).
+    ``engine`` / ``precision`` pick the execution engine (default: chosen for this CPU);
+    ``fine_detail`` also runs the network at 2x for relief of a few pixels
+    (:mod:`msfnet.runtime.fine_detail`).
     Calling it (``model(stack)``, :meth:`predict`) returns a :class:`Result` and writes
     nothing; a model may be called any number of times.
     """
@@ -139,11 +145,11 @@ class Model:
                  precision: str | None = None, threads: int | None = None,
                  provider: str | None = None, tile: int | None = None,
                  max_memory_mb: float = DEFAULT_MAX_MEMORY_MB,
-                 maps: MapOptions | None = DEFAULT_MAPS) -> None:
+                 maps: MapOptions | None = DEFAULT_MAPS, fine_detail: bool = False) -> None:
         self.tiling = TilingOptions(tile, max_memory_mb)
         self.maps = maps  # inspection maps computed after the normals (None: normals only)
         self.estimator: Estimator
-        check_method(method, model, engine, precision)
+        check_method(method, model, engine, precision, fine_detail)
         if method == "l2":
             self.estimator = LeastSquaresEstimator()
         elif model is not None and not isinstance(model, (str, Path)):
@@ -154,6 +160,8 @@ class Model:
                 raise InputError(f"no model given and no bundled model at {path}; export one "
                                  "with msf-export, or use least squares (--method l2)")
             self.estimator = _open_network(path, engine, precision, threads, provider)
+        if fine_detail and isinstance(self.estimator, NetworkEstimator):
+            self.estimator = FineDetailEstimator(self.estimator)
 
     @classmethod
     def least_squares(cls, *, max_memory_mb: float = DEFAULT_MAX_MEMORY_MB,

@@ -82,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="compute precision (default: the fastest one measured within 0.5 deg "
                    "of fp32 on real data for this CPU; bf16 needs OpenVINO and a CPU with "
                    "native bf16)")
+    p.add_argument("--fine-detail", action="store_true",
+                   help="keep relief of a few pixels (engravings, scratches, fabric): also run "
+                   "the network on the stack enlarged 2x and take the fine detail from that run "
+                   "(about 5x the inference time and 4x the stack's memory; docs/run.md)")
     p.add_argument("--provider", default="cpu", metavar="P",
                    help="ONNX Runtime execution provider: cpu (default), cuda, ... when "
                    "installed")
@@ -168,7 +172,8 @@ def open_model(args: argparse.Namespace, threads: int | None = None) -> Model:
 
     return Model(args.onnx, method=args.method, engine=args.engine, precision=args.precision,
                  threads=threads or args.threads, provider=args.provider, tile=args.tile,
-                 max_memory_mb=args.max_memory, maps=map_options(args))
+                 max_memory_mb=args.max_memory, maps=map_options(args),
+                 fine_detail=args.fine_detail)
 
 
 def parse_maps(text: str) -> tuple[str, ...]:
@@ -292,7 +297,8 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
         spec = ModelSpec.from_args(args.onnx, method=args.method, engine=args.engine,
                                    precision=args.precision, threads=args.threads or 1,
                                    provider=args.provider, tile=args.tile,
-                                   max_memory_mb=args.max_memory, maps=map_options(args))
+                                   max_memory_mb=args.max_memory, maps=map_options(args),
+                                   fine_detail=args.fine_detail)
         # the workers open it far away; a file they would all refuse is refused here, once
         open_model(args, threads=1)
     else:
