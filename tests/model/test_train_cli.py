@@ -91,6 +91,12 @@ REFUSED: dict[str, tuple[Callable[[Path], list[str]], list[str]]] = {
     "--resume changing the network": (
         lambda t: ["--out", str(_old_run(t, "last_state.pth")), "--resume", "--no-mfe"],
         ["--no-mfe changes the network"]),
+    "--overwrite with an option refused later": (
+        lambda t: ["--out", str(_old_run(t, "best.pth")), "--overwrite", "--render-lights",
+                   "8"], ["--render-lights"]),
+    "--overwrite with a missing --init": (
+        lambda t: ["--out", str(_old_run(t, "best.pth")), "--overwrite", "--init",
+                   str(t / "nowhere.pth")], ["not found"]),
     "a curriculum beyond --render-lights": (
         lambda t: ["--out", str(t / "r"), "--lights", "32", "--render-lights", "8"],
         ["32 lights", "--render-lights"]),

@@ -218,6 +218,7 @@ def test_resume_refuses_weights_and_optimiser_of_different_steps(tmp_path):
     with pytest.raises(InputError, match=r"last\.pth is from step 6 but last_state\.pth "
                                          r"from step 5"):
         Trainer(cfg, resume=True)
-    torch.save({"step": 6}, tmp_path / "last_state.pth")  # no optimiser in it
-    with pytest.raises(InputError, match="not an msf-train optimiser state"):
-        Trainer(cfg, resume=True)
+    for odd in ({"step": 6}, {"optimizer": {}, "step": "six", "best": None}):
+        torch.save(odd, tmp_path / "last_state.pth")  # no optimiser / not numbers
+        with pytest.raises(InputError, match="not an msf-train optimiser state"):
+            Trainer(cfg, resume=True)

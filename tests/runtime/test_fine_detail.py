@@ -18,8 +18,10 @@ def test_enlarge_keeps_dtype_lights_and_the_outline() -> None:
     assert big.images.shape == (5, 40, 48, 3) and big.images.dtype == stack.images.dtype
     np.testing.assert_array_equal(big.lights, stack.lights)
     np.testing.assert_array_equal(big.mask[::2, ::2], stack.mask)
-    with pytest.raises(InputError, match="above --max-memory"):
-        enlarge(stack, 2, max_memory_mb=0.01)
+    held = stack.images.nbytes / 2**20  # the stack and its 4x enlargement: 5x
+    with pytest.raises(InputError, match=r"its 2x enlargement: .* above --max-memory"):
+        enlarge(stack, 2, max_memory_mb=4.9 * held)
+    enlarge(stack, 2, max_memory_mb=5.1 * held)
 
 
 def test_shrink_averages_back_to_unit_normals() -> None:
@@ -101,3 +103,18 @@ def test_msf_run_fine_detail_is_recorded_and_refused_with_least_squares(
     assert main([str(src), "--method", "l2", "--fine-detail", "-o", str(tmp_path / "l2")]) == 2
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--fine-detail" in err[0] and not (tmp_path / "l2").exists()
+
+
+def test_msf_eval_records_fine_detail(random_onnx, tmp_path) -> None:
+    import json
+
+    from msfnet.runtime.eval_cli import main
+    from msfnet.runtime.stack import save_stack
+
+    save_stack(sphere_stack(n=6, h=24, w=28, seed=2), tmp_path / "bench" / "s")
+    for flag, out in (([], "plain"), (["--fine-detail"], "fine")):
+        assert main([str(tmp_path / "bench"), "--onnx", str(random_onnx), "--no-l2", "-q",
+                     "-o", str(tmp_path / out), *flag]) == 0
+    assert json.loads((tmp_path / "plain" / "results.json").read_text())["fine_detail"] is False
+    assert json.loads((tmp_path / "fine" / "results.json").read_text())["fine_detail"] is True
+    assert "--fine-detail" in (tmp_path / "fine" / "results.md").read_text()

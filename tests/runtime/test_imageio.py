@@ -76,12 +76,50 @@ def test_a_jpeg_with_damaged_data_is_refused(tmp_path: Path,
     assert ok
     data = jpeg.tobytes()
     path = tmp_path / "005.jpg"
-    path.write_bytes(data[:-2] + b"\x00\x00\x00\x00" + data[-2:])  # junk before the end marker
+    path.write_bytes(data[:len(data) // 2] + b"\xff\xd9")  # half the image data lost
     with pytest.raises(InputError, match=r"005\.jpg: corrupt JPEG \(Corrupt JPEG data"):
         read_image(path)
     assert capfd.readouterr().err == ""
     path.write_bytes(data)  # the intact file reads, and stderr works again afterwards
     assert read_image(path).shape == (32, 32, 3)
+
+
+def test_padding_before_a_jpeg_end_marker_is_no_damage(tmp_path: Path,
+                                                       capfd: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    """Webcam frames often carry a few bytes before the end marker: every pixel decodes."""
+    img = RNG.integers(0, 256, (32, 32, 3), np.uint8)
+    ok, jpeg = cv2.imencode(".jpg", img)
+    assert ok
+    data = jpeg.tobytes()
+    (tmp_path / "a.jpg").write_bytes(data)
+    (tmp_path / "b.jpg").write_bytes(data[:-2] + b"\x00" * 4 + data[-2:])
+    np.testing.assert_array_equal(read_image(tmp_path / "b.jpg"), read_image(tmp_path / "a.jpg"))
+    assert capfd.readouterr().err == ""
+
+
+def test_other_output_written_while_a_jpeg_decodes_is_not_lost(
+        tmp_path: Path, capfd: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """stderr is captured process-wide while libjpeg runs: what is not the decoder's goes
+    back out, also when the file is then refused."""
+    import os
+
+    ok, jpeg = cv2.imencode(".jpg", RNG.integers(0, 256, (32, 32, 3), np.uint8))
+    assert ok
+    data = jpeg.tobytes()
+    path = tmp_path / "bad.jpg"
+    path.write_bytes(data[:len(data) // 2] + b"\xff\xd9")
+    decode = cv2.imread
+
+    def decode_while_someone_writes(*args: object) -> object:
+        os.write(2, b"a line from another thread\n")
+        return decode(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(imageio.cv2, "imread", decode_while_someone_writes)
+    with pytest.raises(InputError, match="corrupt JPEG"):
+        read_image(path)
+    assert capfd.readouterr().err == "a line from another thread\n"
 
 
 def test_hidden_companion_files_are_not_images(tmp_path: Path) -> None:

@@ -287,7 +287,8 @@ class Trainer:
         check_state_dict(self.model, tensors, weights)
         self.model.load_state_dict(tensors, strict=True)
         st = read_torch_file(state)
-        if not isinstance(st, dict) or not {"optimizer", "step", "best"} <= set(st):
+        if not isinstance(st, dict) or not {"optimizer", "step", "best"} <= set(st) \
+                or not isinstance(st["step"], int) or not isinstance(st["best"], (int, float)):
             raise InputError("not an msf-train optimiser state (expected optimizer, step, "
                              "best)", state)
         saved = checkpoint_step(weights)

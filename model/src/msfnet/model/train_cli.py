@@ -227,9 +227,10 @@ def _weights_in(out: Path) -> list[str]:
     return sorted(p.name for p in out.glob("*.pth") if _ours(p) and STAGING_TAG not in p.name)
 
 
-def _prepare_out(args: argparse.Namespace) -> None:
+def _prepare_out(args: argparse.Namespace) -> list[Path]:
     """OUT is never an input nor holds one; an existing OUT is continued (--resume) or, with
-    --overwrite, cleared of msf-train's own files only."""
+    --overwrite, cleared of msf-train's own files only (returned: the caller deletes them once
+    every option has been checked)."""
     out: Path = args.out
     inputs = [args.init] + ([args.data] if args.data != "synth" else [])
     check_not_input(out, inputs, folder=True)
@@ -238,7 +239,7 @@ def _prepare_out(args: argparse.Namespace) -> None:
     if args.resume and args.overwrite:
         raise InputError("--resume and --overwrite contradict each other")
     if args.resume or not out.exists() or not any(out.iterdir()):
-        return
+        return []
     if not args.overwrite:
         raise InputError("output folder is not empty (use --resume to continue or "
                          "--overwrite to start afresh)", out)
@@ -247,13 +248,13 @@ def _prepare_out(args: argparse.Namespace) -> None:
         raise InputError(f"--overwrite: the folder holds files msf-train did not write (e.g. "
                          f"{foreign[0]}); refusing to delete them", out)
     _stored_config(out, "--overwrite")  # names alone do not make it a run of ours
-    for p in out.iterdir():
-        p.unlink()
+    return sorted(out.iterdir())  # deleted by the caller once every option has been checked
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     # torch now, after the options were checked and before OUT is touched: a missing torch
     # must not cost an earlier run's files (--overwrite, --resume clean up first)
+    from .checkpoint import read_state_dict
     from .train import Trainer
 
     def say(line: str) -> None:
@@ -261,7 +262,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             print(line, flush=True)
 
     out: Path = args.out
-    _prepare_out(args)
+    earlier = _prepare_out(args)
     resume = args.resume and (out / "last.pth").is_file() and (out / "last_state.pth").is_file()
     if args.resume and not resume:
         # Nothing saved yet (first chunk, or killed before the first save): start here, from
@@ -290,6 +291,10 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         cfg = config_from(explicit, stored)
     else:
         cfg = config_from(vars(args), {})
+        if cfg.init is not None:
+            read_state_dict(cfg.init)  # a bad --init is refused while the earlier run exists
+        for path in earlier:  # --overwrite: only now, with every option checked
+            path.unlink()
     trainer = Trainer(cfg, resume=resume)
     data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
     say(f"msf-train: {trainer.device.type}, "

@@ -97,6 +97,7 @@ class EvalSummary:
     model: str | None
     methods: list[str]
     results: list[ObjectResult]
+    fine_detail: bool = False  # the model ran with --fine-detail
 
     @property
     def scored(self) -> list[ObjectResult]:
@@ -121,6 +122,8 @@ class EvalSummary:
             tables.append(markdown_table(self.scored, self.methods, self.mean()))
         if self.unscored:
             tables.append(detail_table(self.unscored))
+        if self.fine_detail:
+            tables.append("msf: with --fine-detail (also run at 2x, fine detail from that run)")
         return "\n\n".join(tables)
 
     def warnings(self) -> list[str]:
@@ -134,6 +137,7 @@ class EvalSummary:
 
     def as_dict(self) -> dict[str, object]:
         return {"objects": self.objects, "model": self.model, "methods": self.methods,
+                "fine_detail": self.fine_detail,
                 "results": [r.as_dict() for r in self.scored + self.unscored],
                 "mean": self.mean()}
 
@@ -224,7 +228,9 @@ def evaluate(objects: list[BenchObject], outdir: Path, *, model: Model | None,
                     if s.metrics is not None), file=sys.stderr)
         summary = EvalSummary([str(o.folder) for o in objects],
                               runners["msf"].describe().get("model") if "msf" in runners
-                              else None, methods, results)  # type: ignore[arg-type]
+                              else None, methods, results,  # type: ignore[arg-type]
+                              fine_detail="msf" in runners
+                              and "fine_detail" in runners["msf"].describe())
         (tmp / "results.json").write_text(json_text(summary.as_dict()))
         (tmp / "results.md").write_text(summary.table() + "\n")
     return summary

@@ -6,10 +6,13 @@ it). Run on the stack enlarged ``FACTOR`` x, the same relief spans twice the pix
 survives; but the enlarged run sees less of the object around each pixel and its overall shape
 is slightly worse. So the result takes both: the coarse shape of the normal run and the fine
 detail (the high-pass at the detail check's own ``SIGMA_PX``) of the enlarged run, shrunk back.
-It costs the enlarged run on top, about 1 + FACTOR^2 times the inference.
+It costs the enlarged run on top, about 1 + FACTOR^2 times the inference, and holds the
+stack and its enlargement (1 + FACTOR^2 times the stack's memory) within --max-memory.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -19,17 +22,25 @@ from .errors import InputError
 from .estimators import Estimate, NetworkEstimator, TilingOptions
 from .profile import StageTimer
 from .stack import Stack
-from .stack.load import check_stack_size
 
 FACTOR = 2
 
 
+def enlarged_mb(stack: Stack, factor: int = FACTOR) -> float:
+    return stack.images.nbytes * factor * factor / 2**20
+
+
 def enlarge(stack: Stack, factor: int = FACTOR, max_memory_mb: float | None = None) -> Stack:
     """The stack with every image enlarged ``factor`` x (bicubic; mask nearest), in the images'
-    own dtype; refused up front if it alone would exceed ``max_memory_mb``."""
+    own dtype; refused up front if it and the stack itself would exceed ``max_memory_mb``."""
     n, (h, w) = stack.num_lights, stack.shape
-    check_stack_size(n, h * factor, w * factor, max_memory_mb, stack.source or stack.name,
-                     stack.images.dtype)
+    held = stack.images.nbytes / 2**20
+    need = held + enlarged_mb(stack, factor)
+    if max_memory_mb is not None and need > max_memory_mb:
+        raise InputError(f"--fine-detail holds the stack and its {factor}x enlargement: "
+                         f"{need:.0f} MB, above --max-memory {max_memory_mb:g} MB (use --roi, "
+                         "--downscale, --max-lights or a larger budget)",
+                         stack.source or stack.name)
     size = (w * factor, h * factor)
     images = np.empty((n, h * factor, w * factor, 3), stack.images.dtype)
     for i in range(n):  # OpenCV saturates integer types: cubic overshoot never wraps
@@ -78,14 +89,18 @@ class FineDetailEstimator:
 
     def estimate(self, stack: Stack, tiling: TilingOptions, timer: StageTimer,
                  progress: bool = False) -> Estimate:
-        base = self.network.estimate(stack, tiling, timer, progress)
+        # the enlarged run first: a budget too small for it is refused before any inference,
+        # and its tiles are sized for what is left beside the original stack
         with timer("preprocess"):
             big = enlarge(stack, self.factor, tiling.max_memory_mb)
-        detail = self.network.estimate(big, tiling, timer, progress)
+        left = replace(tiling, max_memory_mb=tiling.max_memory_mb - stack.images.nbytes / 2**20)
+        detail = self.network.estimate(big, left, timer, progress)
+        del big
+        base = self.network.estimate(stack, tiling, timer, progress)
         with timer("postprocess"):
             fine = shrink(detail.normals, stack.shape)
             normals = fuse(base.normals, fine, stack.mask, self.sigma)
         return Estimate(normals, base.plan, base.flops + detail.flops)
 
 
-__all__ = ["FACTOR", "FineDetailEstimator", "enlarge", "fuse", "shrink"]
+__all__ = ["FACTOR", "FineDetailEstimator", "enlarge", "enlarged_mb", "fuse", "shrink"]

@@ -115,9 +115,18 @@ def _check_png_chunks(path: Path) -> None:
 
 
 # libjpeg decodes damaged data with a warning on stderr ("Corrupt JPEG data: ...") and no error:
-# JPEG decoding runs with stderr captured, one file at a time (stderr is process-wide).
+# JPEG decoding runs with stderr captured, one file at a time (stderr is process-wide), and the
+# damage libjpeg notices is refused. JPEG has no checksum: a few changed bytes inside the image
+# data can still decode unnoticed (PNG's CRCs catch those; prefer PNG or TIFF for stacks).
 _STDERR_LOCK = threading.Lock()
 _JPEG_DAMAGE = ("Corrupt JPEG data", "Premature end of JPEG", "Invalid JPEG", "Bogus")
+
+
+def _benign_padding(line: str) -> bool:
+    """A few bytes of padding before the end marker (common in webcam MJPEG frames): libjpeg
+    calls it corrupt data, but every pixel decodes. Thousands of them mean lost data."""
+    found = re.match(r"Corrupt JPEG data: (\d+) extraneous bytes before marker 0xd9", line)
+    return found is not None and int(found.group(1)) <= 64
 
 
 @contextlib.contextmanager
@@ -156,11 +165,16 @@ def _read_with_opencv(path: Path) -> np.ndarray | None:
     if path.suffix.lower() in (".jpg", ".jpeg"):
         with _captured_stderr() as said:
             img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        damage = [ln for ln in said[0].splitlines() if ln.startswith(_JPEG_DAMAGE)]
+        damage: list[str] = []
+        other: list[str] = []
+        for line in said[0].splitlines():
+            if _benign_padding(line):
+                continue
+            (damage if line.startswith(_JPEG_DAMAGE) else other).append(line)
+        if other:  # not the decoder's: another thread's output, passed on as it was
+            os.write(2, ("\n".join(other) + "\n").encode())
         if damage:
             raise InputError(f"corrupt JPEG ({damage[0].strip()})", path)
-        if said[0].strip():  # not ours to swallow
-            os.write(2, said[0].encode())
     else:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is not None and img.ndim == 3:

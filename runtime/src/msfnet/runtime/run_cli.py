@@ -85,7 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fine-detail", action="store_true",
                    help="keep relief of a few pixels (engravings, scratches, fabric): also run "
                    "the network on the stack enlarged 2x and take the fine detail from that run "
-                   "(about 5x the inference time and 4x the stack's memory; docs/run.md)")
+                   "(about 5x the time; the stack and its enlargement, 5x its memory, must fit "
+                   "--max-memory; docs/run.md)")
     p.add_argument("--provider", default="cpu", metavar="P",
                    help="ONNX Runtime execution provider: cpu (default), cuda, ... when "
                    "installed")
