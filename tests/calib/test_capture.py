@@ -120,12 +120,13 @@ def test_resume_keeps_an_older_captures_npy_ground_truth(tmp_path):
 
 def test_exposure_checks():
     dark = np.full((10, 10, 3), 3, np.uint8)
-    assert exposure_check(dark, 255)["too_dark"]
+    assert exposure_check(dark, 255).too_dark
     bright = np.full((10, 10, 3), 255, np.uint8)
-    assert exposure_check(bright, 255)["too_bright"]
+    assert exposure_check(bright, 255).too_bright
+    assert exposure_check(bright, 255).problems() == ["100.0% saturated"]
     ok = np.tile(np.linspace(0, 200, 10, dtype=np.uint8), (10, 1))
     chk = exposure_check(ok, 255)
-    assert not chk["too_dark"] and not chk["too_bright"]
+    assert not chk.too_dark and not chk.too_bright and chk.problems() == []
 
 
 class FakePort:

@@ -27,7 +27,7 @@ import json
 import re
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -94,15 +94,32 @@ class Linearisation:
         return None
 
 
+@dataclass(frozen=True)
+class Exposure:
+    """One frame's exposure, as session.json records it."""
+
+    saturated: float  # share of pixels at the white level
+    p99_5: float  # the bright end (99.5th percentile) as a share of the white level
+    too_bright: bool
+    too_dark: bool
+
+    def problems(self) -> list[str]:
+        found = []
+        if self.too_bright:
+            found.append(f"{self.saturated:.1%} saturated")
+        if self.too_dark:
+            found.append(f"under-exposed (brightest 0.5% at {self.p99_5:.0%} of range)")
+        return found
+
+
 def exposure_check(frame: np.ndarray, white_level: float, mask: np.ndarray | None = None,
-                   max_saturated: float = 0.01, min_level: float = 0.1) -> dict:
+                   max_saturated: float = 0.01, min_level: float = 0.1) -> Exposure:
     """Share of saturated pixels and the bright end (99.5th percentile) of the frame."""
     g = frame.max(axis=-1) if frame.ndim == 3 else frame
     vals = g[mask] if mask is not None else g.ravel()
     sat = float(np.mean(vals >= 0.99 * white_level))
     p = float(np.percentile(vals, 99.5)) / white_level
-    return {"saturated": sat, "p99_5": p, "too_bright": sat > max_saturated,
-            "too_dark": p < min_level}
+    return Exposure(sat, p, sat > max_saturated, p < min_level)
 
 
 def _name(i: int) -> str:
@@ -331,13 +348,8 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
             if i is not None:
                 chk = exposure_check(frame, camera.white_level, mask_arr, max_saturated,
                                      min_level)
-                chk["time"] = time.time()
-                session["frames"][name] = chk
-                msg = []
-                if chk["too_bright"]:
-                    msg.append(f"{chk['saturated']:.1%} saturated")
-                if chk["too_dark"]:
-                    msg.append(f"under-exposed (brightest 0.5% at {chk['p99_5']:.0%} of range)")
+                session["frames"][name] = {**asdict(chk), "time": time.time()}
+                msg = chk.problems()
                 if msg:
                     problems.append(f"{name}: " + ", ".join(msg))
                     log(f"warning: {problems[-1]}")
@@ -523,6 +535,6 @@ def capture_loop(camera, lights, root: str | Path, *, iterations: int | None = N
         yield step
 
 
-__all__ = ["SESSION", "Linearisation", "LoopStep", "capture_loop", "capture_stack",
+__all__ = ["SESSION", "Exposure", "Linearisation", "LoopStep", "capture_loop", "capture_stack",
            "check_folder", "check_mask", "check_vectors", "exposure_check", "finish_stack",
            "next_take"]
