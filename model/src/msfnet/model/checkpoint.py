@@ -59,17 +59,20 @@ def read_torch_file(path: str | Path) -> object:
                               path) from exc
 
 
-def checkpoint_step(path: str | Path) -> int | None:
-    """The training step msf-train recorded in a checkpoint (None: not recorded)."""
+def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], int | None]:
+    """The tensors of a checkpoint file and the training step msf-train recorded in it (None:
+    not recorded), from one read."""
     obj = read_torch_file(path)
     step = obj.get("step") if isinstance(obj, Mapping) else None
-    return int(step) if isinstance(step, int) else None
+    return _tensors(obj, Path(path)), step if isinstance(step, int) else None
 
 
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """The tensors of a checkpoint file, keys without ``module.`` prefixes."""
-    path = Path(path)
-    obj = read_torch_file(path)
+    return _tensors(read_torch_file(path), Path(path))
+
+
+def _tensors(obj: object, path: Path) -> dict[str, torch.Tensor]:
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]
     if not isinstance(obj, Mapping) or not obj or not all(

@@ -37,8 +37,7 @@ from msfnet.synth.render import RenderOptions, render_set
 from .checkpoint import (
     check_state_dict,
     checkpoint_content,
-    checkpoint_step,
-    read_state_dict,
+    read_checkpoint,
     read_torch_file,
     save_checkpoint,
 )
@@ -283,7 +282,7 @@ class Trainer:
         weights, state = self._state_paths()
         if not weights.is_file() or not state.is_file():
             raise InputError("nothing to resume: last.pth / last_state.pth missing", self.out)
-        tensors = read_state_dict(weights)
+        tensors, saved = read_checkpoint(weights)
         check_state_dict(self.model, tensors, weights)
         self.model.load_state_dict(tensors, strict=True)
         st = read_torch_file(state)
@@ -291,7 +290,6 @@ class Trainer:
                 or not isinstance(st["step"], int) or not isinstance(st["best"], (int, float)):
             raise InputError("not an msf-train optimiser state (expected optimizer, step, "
                              "best)", state)
-        saved = checkpoint_step(weights)
         if saved is not None and saved != int(st["step"]):
             raise InputError(f"last.pth is from step {saved} but last_state.pth from step "
                              f"{st['step']} (the run was stopped while saving); start a new "

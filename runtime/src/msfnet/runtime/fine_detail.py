@@ -22,20 +22,16 @@ from .errors import InputError
 from .estimators import Estimate, NetworkEstimator, TilingOptions
 from .profile import StageTimer
 from .stack import Stack
+from .stack.readers import unit_normals
 
 FACTOR = 2
-
-
-def enlarged_mb(stack: Stack, factor: int = FACTOR) -> float:
-    return stack.images.nbytes * factor * factor / 2**20
 
 
 def enlarge(stack: Stack, factor: int = FACTOR, max_memory_mb: float | None = None) -> Stack:
     """The stack with every image enlarged ``factor`` x (bicubic; mask nearest), in the images'
     own dtype; refused up front if it and the stack itself would exceed ``max_memory_mb``."""
     n, (h, w) = stack.num_lights, stack.shape
-    held = stack.images.nbytes / 2**20
-    need = held + enlarged_mb(stack, factor)
+    need = stack.images.nbytes * (1 + factor * factor) / 2**20
     if max_memory_mb is not None and need > max_memory_mb:
         raise InputError(f"--fine-detail holds the stack and its {factor}x enlargement: "
                          f"{need:.0f} MB, above --max-memory {max_memory_mb:g} MB (use --roi, "
@@ -55,19 +51,14 @@ def enlarge(stack: Stack, factor: int = FACTOR, max_memory_mb: float | None = No
 def shrink(normals: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """An enlarged run's (H', W', 3) normals averaged back to ``shape`` and made unit again."""
     small = cv2.resize(normals, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
-    return unit(small)
-
-
-def unit(normals: np.ndarray) -> np.ndarray:
-    length = np.linalg.norm(normals, axis=2, keepdims=True)
-    return np.where(length > 1e-8, normals / np.maximum(length, 1e-8), 0).astype(np.float32)
+    return unit_normals(small)
 
 
 def fuse(coarse: np.ndarray, fine: np.ndarray, mask: np.ndarray,
          sigma: float = SIGMA_PX) -> np.ndarray:
     """Low-pass of ``coarse`` + high-pass of ``fine``, unit length, zeros outside the mask."""
     fused = masked_smooth(coarse, mask, sigma) + fine - masked_smooth(fine, mask, sigma)
-    return unit(fused * mask[..., None])
+    return unit_normals(fused * mask[..., None])
 
 
 class FineDetailEstimator:
@@ -103,4 +94,4 @@ class FineDetailEstimator:
         return Estimate(normals, base.plan, base.flops + detail.flops)
 
 
-__all__ = ["FACTOR", "FineDetailEstimator", "enlarge", "enlarged_mb", "fuse", "shrink"]
+__all__ = ["FACTOR", "FineDetailEstimator", "enlarge", "fuse", "shrink"]

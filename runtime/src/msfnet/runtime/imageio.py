@@ -65,8 +65,8 @@ def read_image(path: str | Path) -> np.ndarray:
         raise InputError("image file not found", path)
     if not path.is_file():
         raise InputError("not a regular file (expected an image)", path)
-    _check_header(path)
-    img = None if path.suffix.lower() == ".tga" else _read_with_opencv(path)
+    png = _check_header(path)
+    img = None if path.suffix.lower() == ".tga" else _read_with_opencv(path, png)
     if img is None:
         img = _read_with_pillow(path)
     if img.ndim == 3 and img.shape[2] == 4:
@@ -76,10 +76,11 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def _check_complete(path: Path) -> None:
+def _check_complete(path: Path) -> bytes | None:
     """Refuse PNG and JPEG files that stop before their end marker (truncated copies) and PNG
     files whose chunks fail their CRC (damaged bytes): libpng would print its own line on
-    stderr before failing, or decode damaged rows."""
+    stderr before failing, or decode damaged rows. Returns a PNG's bytes (read once: checked
+    here, decoded from memory)."""
     with open(path, "rb") as f:
         head = f.read(8)
         f.seek(0, 2)
@@ -90,12 +91,12 @@ def _check_complete(path: Path) -> None:
         raise InputError("truncated PNG (the file stops before its end marker)", path)
     if head.startswith(b"\xff\xd8") and _JPEG_END not in tail:
         raise InputError("truncated JPEG (the file stops before its end marker)", path)
-    if head.startswith(b"\x89PNG"):
-        _check_png_chunks(path)
+    return _checked_png(path) if head.startswith(b"\x89PNG") else None
 
 
-def _check_png_chunks(path: Path) -> None:
-    """Every chunk's CRC-32 (zlib's, at memory speed: a few ms for a 16-bit frame)."""
+def _checked_png(path: Path) -> bytes:
+    """The file's bytes, every chunk's CRC-32 verified (zlib's, at memory speed: a few ms for
+    a 16-bit frame)."""
     data = path.read_bytes()
     pos = 8
     while pos + 12 <= len(data):
@@ -109,7 +110,7 @@ def _check_png_chunks(path: Path) -> None:
             raise InputError(f"corrupt PNG (chunk {name!r} at byte {pos} fails its checksum)",
                              path)
         if kind == b"IEND":
-            return
+            return data
         pos = end + 4
     raise InputError("corrupt PNG (no IEND chunk where the chunks end)", path)
 
@@ -145,9 +146,10 @@ def _captured_stderr() -> Iterator[list[str]]:
             text.append(sink.read().decode("utf-8", "replace"))
 
 
-def _check_header(path: Path) -> None:
-    """Read the size from the header (no decoding) and refuse absurd ones."""
-    _check_complete(path)
+def _check_header(path: Path) -> bytes | None:
+    """Read the size from the header (no decoding) and refuse absurd ones; a PNG's bytes
+    come back (see :func:`_check_complete`)."""
+    png = _check_complete(path)
     try:
         from PIL import Image
 
@@ -155,14 +157,17 @@ def _check_header(path: Path) -> None:
         with Image.open(path) as im:
             w, h = im.size
     except Exception:
-        return  # not a format Pillow knows: OpenCV will decode it (or report the problem)
+        return png  # not a format Pillow knows: OpenCV will decode it (or report the problem)
     if w * h > MAX_PIXELS:
         raise InputError(f"image is {w}x{h} ({w * h / 1e6:.0f} MP), above the "
                          f"{MAX_PIXELS / 1e6:.0f} MP limit: refusing to decode it", path)
+    return png
 
 
-def _read_with_opencv(path: Path) -> np.ndarray | None:
-    if path.suffix.lower() in (".jpg", ".jpeg"):
+def _read_with_opencv(path: Path, png: bytes | None = None) -> np.ndarray | None:
+    if png is not None:  # already read and checked
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    elif path.suffix.lower() in (".jpg", ".jpeg"):
         with _captured_stderr() as said:
             img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         damage: list[str] = []
