@@ -30,8 +30,8 @@ from msfnet.runtime.engines import installed_engines
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.metrics import deviation_deg
 
-from .data import data_root
-from .workloads import Workload, make_input
+from msfnet.bench.data import data_root
+from msfnet.bench.workloads import Workload, make_input
 
 
 @dataclass(frozen=True)

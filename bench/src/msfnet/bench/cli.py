@@ -35,19 +35,10 @@ from msfnet.runtime.files import check_output, scratch_folder, staged_folder, wr
 from msfnet.runtime.flops import inference_flops
 from msfnet.runtime.metrics import deviation_deg, normal_metrics
 
-from .data import ENV_VAR, data_root
-from .peak import engine_peaks, merge_peaks
-from .report import write_report
-from .workloads import (
-    BF16_VARIANTS,
-    OPENVINO_VARIANTS,
-    QUICK_WORKLOADS,
-    VARIANTS,
-    WORKLOADS,
-    Workload,
-    make_input,
-    time_msf_run,
-)
+from msfnet.bench.data import ENV_VAR, data_root
+from msfnet.bench.peak import engine_peaks, merge_peaks
+from msfnet.bench.report import write_report
+from msfnet.bench.workloads import BF16_VARIANTS, OPENVINO_VARIANTS, QUICK_WORKLOADS, VARIANTS, WORKLOADS, Workload, make_input, time_msf_run
 
 # relative to the data root (--data, $MSFNET_DATA, ./shared/data or ../shared/data)
 STACK_IN_DATA = Path("DiLiGenT") / "ballPNG"

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from msfnet.runtime.files import write_atomic, write_json, write_text
 
-from .workloads import ENGINE_OF_VARIANT, VARIANT_PEAK
+from msfnet.bench.workloads import ENGINE_OF_VARIANT, VARIANT_PEAK
 
 FULL_IMAGE_NOTE = ("per-light loop on (d) extrapolated linearly in lights x pixels from its "
                    "measured (b) run (same threads), untiled full image")

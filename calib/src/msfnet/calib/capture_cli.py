@@ -20,9 +20,9 @@ from msfnet.runtime.cliutil import (
 )
 from msfnet.runtime.errors import InputError
 
-from .cameras import Camera, SimulatedCamera
-from .capture import Linearisation, capture_loop, capture_stack, check_folder
-from .lights import Lights
+from msfnet.calib.cameras import Camera, SimulatedCamera
+from msfnet.calib.capture import Linearisation, capture_loop, capture_stack, check_folder
+from msfnet.calib.lights import Lights
 
 PROG = "msf-capture"
 EXAMPLES = (
@@ -142,7 +142,7 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
         # calib -> synth, the simulated rig only (see the msfnet package docstring): lazy
         from msfnet.synth.spheres import mirror_scene, ring_lights, sphere_masks, sphere_normals
 
-        from .lights import SimulatedLights, SimulatedRig
+        from msfnet.calib.lights import SimulatedLights, SimulatedRig
 
         kind = "mirror" if args.sim_scene == "chrome" else "matte"
         rig = SimulatedRig(mirror_scene(160, 128, 56, kind=kind), ring_lights(args.count or 12),
@@ -157,24 +157,24 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
     if rig_name == "serial":
         if not args.port:
             raise InputError("--light-rig serial needs --port")
-        from .lights import SerialLights
+        from msfnet.calib.lights import SerialLights
 
         lights: Lights = SerialLights(args.port, args.baud, args.count, settle=args.settle)
     else:
         if not args.count:
             raise InputError("--light-rig manual needs --count")
-        from .lights import ManualLights
+        from msfnet.calib.lights import ManualLights
 
         lights = ManualLights(args.count)
     if args.camera == "oak":
-        from .cameras import OakCamera
+        from msfnet.calib.cameras import OakCamera
 
         cam: Camera = OakCamera(int(args.exposure or 10000), args.iso, args.wb_kelvin,
                                 int(args.focus if args.focus is not None else 120),
                                 args.oak_mode, args.bayer,
                                 device_id=None if args.device == "0" else args.device)
     else:
-        from .cameras import OpenCVCamera
+        from msfnet.calib.cameras import OpenCVCamera
 
         dev = int(args.device) if args.device.isdigit() else args.device
         cam = OpenCVCamera(dev, exposure=args.exposure, gain=args.gain,

@@ -27,9 +27,9 @@ from msfnet.runtime.files import check_output, staged_files, vectors_text
 from msfnet.runtime.imageio import encode_png, list_images, read_image, read_mask
 from msfnet.runtime.stack import read_vectors
 
-from .directions import Intrinsics, diagnostic_image, estimate_directions
-from .intensities import estimate_intensities, target_normals
-from .sphere import fit_circles_from_images, fit_circles_from_mask
+from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions
+from msfnet.calib.intensities import estimate_intensities, target_normals
+from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 
 PROG = "msf-calib"
 EXCLUDE = ("mask", "normal", "albedo", "ambient", "dark", "diagnostic")

@@ -20,7 +20,7 @@ from msfnet.runtime.camera import Intrinsics
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.metrics import angular_error_deg
 
-from .sphere import Circle, finite_lstsq
+from msfnet.calib.sphere import Circle, finite_lstsq
 
 
 @dataclass

@@ -12,8 +12,8 @@ import numpy as np
 
 from msfnet.runtime.errors import InputError
 
-from .directions import Intrinsics, sphere_geometry
-from .sphere import Circle
+from msfnet.calib.directions import Intrinsics, sphere_geometry
+from msfnet.calib.sphere import Circle
 
 
 def target_normals(shape: tuple[int, int], *, circle: Circle | None = None,

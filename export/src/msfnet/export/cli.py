@@ -21,19 +21,7 @@ from msfnet.runtime.cliutil import (
 )
 from msfnet.runtime.errors import InputError
 
-from .variants import (
-    DEFAULT_OPSET,
-    INT8_MEAN_LIMIT_DEG,
-    MAX_OPSET,
-    MIN_OPSET,
-    TOLERANCE_DEG,
-    VARIANT_NAMES,
-    VARIANTS,
-    ExportOptions,
-    StaticShape,
-    Variant,
-    get_variant,
-)
+from msfnet.export.variants import DEFAULT_OPSET, INT8_MEAN_LIMIT_DEG, MAX_OPSET, MIN_OPSET, TOLERANCE_DEG, VARIANT_NAMES, VARIANTS, ExportOptions, StaticShape, Variant, get_variant
 
 PROG = "msf-export"
 
@@ -111,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
 def resolve_variant(args: argparse.Namespace) -> Variant:
     """--variant, or the row the flags pick; a flag given with --variant must agree with it
     (--static then only supplies the static rows' shape)."""
-    from .variants import variant_for
+    from msfnet.export.variants import variant_for
 
     if args.variant is None:
         return variant_for(static=args.static is not None, staged=args.staged,
@@ -139,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from . import variants
+    from msfnet.export import variants
 
     variant = resolve_variant(args)
     if args.calib and not variant.needs_calibration:

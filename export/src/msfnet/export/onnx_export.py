@@ -23,7 +23,7 @@ import torch
 from msfnet.model.network import MSFNet
 from msfnet.runtime.errors import InputError
 
-from .variants import StaticShape
+from msfnet.export.variants import StaticShape
 
 EXAMPLE_SHAPE = (2, 4, 24, 20)  # B, N, H, W of the tracing example: differs from every check
 STAGED_CHECK_CHUNK = 3  # verification chunk: uneven splits of every checked light count
@@ -81,7 +81,7 @@ def export_staged_proto(model: MSFNet, opset: int) -> onnx.ModelProto:
     call can feed small placeholders to the entry points it does not use."""
     from msfnet.runtime.chunked import FEATURES, STAGE_INPUTS, STAGE_OUTPUTS
 
-    from .staged import StagedGraph
+    from msfnet.export.staged import StagedGraph
 
     _, n, h, w = EXAMPLE_SHAPE
     images, lights = (torch.from_numpy(a) for a in random_inputs(1, n, h, w))

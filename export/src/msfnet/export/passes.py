@@ -20,14 +20,8 @@ from msfnet.runtime.contract import METADATA_KEYS, model_metadata
 from msfnet.runtime.files import scratch_folder
 from msfnet.runtime.stack import Stack
 
-from .onnx_export import (
-    export_proto,
-    export_staged_proto,
-    set_metadata,
-    simplify,
-    store_weights_fp16,
-)
-from .variants import ExportOptions, Variant
+from msfnet.export.onnx_export import export_proto, export_staged_proto, set_metadata, simplify, store_weights_fp16
+from msfnet.export.variants import ExportOptions, Variant
 
 PRECISION_LABELS = {"fp32": "fp32", "fp16-weights": "fp32 (fp16-stored weights)",
                     "int8": "int8-qdq"}
@@ -100,7 +94,7 @@ def _rewrite_deconvs(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.Mo
     'phases' rather than rewrite.py's 'conv3x3': same accuracy, but no zero-tap work (int8 on
     workload (b) 1.56x fp32 against 1.28x for 'conv3x3'; same run, bundled model, 2 threads).
     """
-    from .rewrite import rewrite_deconvs
+    from msfnet.export.rewrite import rewrite_deconvs
 
     assert proto is not None
     rewritten, count = rewrite_deconvs(proto, "phases")
@@ -109,7 +103,7 @@ def _rewrite_deconvs(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.Mo
 
 
 def _quantise_int8(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
-    from .quantize import quantize_model
+    from msfnet.export.quantize import quantize_model
 
     assert proto is not None
     o = ctx.options

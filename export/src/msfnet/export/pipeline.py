@@ -30,18 +30,10 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import check_output, write_atomic
 from msfnet.runtime.stack import Stack
 
-from .onnx_export import STAGED_CHECK_CHUNK, default_checks
-from .passes import PASSES, PassContext
-from .variants import FP32_RULE, ExportOptions, ExportResult, Variant, VerificationRow
-from .verify import (
-    compare,
-    file_runner,
-    judge,
-    proto_runner,
-    rendered_cases,
-    tile_cases,
-    torch_runner,
-)
+from msfnet.export.onnx_export import STAGED_CHECK_CHUNK, default_checks
+from msfnet.export.passes import PASSES, PassContext
+from msfnet.export.variants import FP32_RULE, ExportOptions, ExportResult, Variant, VerificationRow
+from msfnet.export.verify import compare, file_runner, judge, proto_runner, rendered_cases, tile_cases, torch_runner
 
 # zip (torch >= 1.6), or a pickle stream (legacy torch.save starts with a pickled magic number)
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
@@ -85,7 +77,7 @@ def load_network(checkpoint: Path, fp16_weights: bool) -> MSFNet:
 
 
 def load_stacks(calib: Sequence[str | Path | Stack]) -> list[Stack]:
-    from .quantize import load_calibration_stacks
+    from msfnet.export.quantize import load_calibration_stacks
 
     paths = [c for c in calib if not isinstance(c, Stack)]
     loaded = iter(load_calibration_stacks(paths) if paths else [])

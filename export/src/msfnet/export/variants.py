@@ -320,7 +320,7 @@ def export_variant(checkpoint: str | Path, variant: str | Variant, output: str |
     line) for bad input, an unwritable or clashing output, or a failed verification; then
     ``output`` is untouched and no temporary file remains. ``log``: progress lines.
     """
-    from .pipeline import run_export
+    from msfnet.export.pipeline import run_export
 
     v = get_variant(variant)
     opts = options or ExportOptions()

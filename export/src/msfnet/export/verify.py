@@ -21,7 +21,7 @@ from msfnet.runtime.contract import TRAIN_LIGHTS
 from msfnet.runtime.errors import InputError
 from msfnet.runtime.metrics import angular_error_deg
 
-from .variants import VerificationRow, VerifyRule
+from msfnet.export.variants import VerificationRow, VerifyRule
 
 if TYPE_CHECKING:
     import torch
@@ -44,7 +44,7 @@ class Case:
 def rendered_cases(checks: Iterable[tuple[int, int, int]], batch: int = 1,
                    seed: int = 100) -> Iterator[Case]:
     """Rendered non-Lambertian objects at each (N, H, W), normalised as the runtime does."""
-    from .onnx_export import rendered_inputs
+    from msfnet.export.onnx_export import rendered_inputs
 
     for i, (n, h, w) in enumerate(checks):
         images, lights, masks = rendered_inputs(batch, n, h, w, seed=seed + i)
@@ -55,7 +55,7 @@ def tile_cases(stacks: Sequence[Stack], *, tile: int, lights: int, tiles_per_sta
                train_lights: int = TRAIN_LIGHTS, seed: int = 1000) -> Iterator[Case]:
     """Calibration-like tiles (inside the stacks' masks, at up to three light counts), taken at
     other places than the calibration's own (different seed)."""
-    from .quantize import calibration_tiles
+    from msfnet.export.quantize import calibration_tiles
 
     for feeds, mask, name in calibration_tiles(stacks, tile=tile, lights=lights,
                                                tiles_per_stack=tiles_per_stack,

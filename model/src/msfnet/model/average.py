@@ -35,7 +35,7 @@ def average_state_dicts(paths: Sequence[str | Path]) -> dict[str, torch.Tensor]:
     """
     import torch
 
-    from .checkpoint import CheckpointError, check_state_dict, network_for, read_state_dict
+    from msfnet.model.checkpoint import CheckpointError, check_state_dict, network_for, read_state_dict
 
     if len(paths) < 2:
         raise ValueError("averaging needs at least two checkpoints")
@@ -90,7 +90,7 @@ def _check_inputs(paths: Sequence[Path]) -> None:
 def _run(args: argparse.Namespace) -> int:
     _check_inputs(args.checkpoints)
     check_output(args.output, args.checkpoints, overwrite=args.overwrite)
-    from .checkpoint import network_for, save_checkpoint
+    from msfnet.model.checkpoint import network_for, save_checkpoint
 
     state = average_state_dicts(args.checkpoints)
     model = network_for(state)

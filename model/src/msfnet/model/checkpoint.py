@@ -20,7 +20,7 @@ import torch
 from msfnet.runtime.errors import InputError, first_line
 from msfnet.runtime.files import write_atomic
 
-from .network import MSFNet
+from msfnet.model.network import MSFNet
 
 
 def default_checkpoint_path() -> Path:

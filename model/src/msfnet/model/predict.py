@@ -23,7 +23,7 @@ from msfnet.runtime.metrics import normal_metrics
 from msfnet.runtime.stack import Stack, load_stack
 from msfnet.runtime.tiling import plan_tiles
 
-from .network import MSFNet
+from msfnet.model.network import MSFNet
 
 
 def autocast(enabled: bool, device_type: str = "cpu"):
@@ -74,7 +74,7 @@ def predict_normals(model: MSFNet, stack: Stack, bf16: bool = False,
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .checkpoint import load_model
+    from msfnet.model.checkpoint import load_model
 
     p = argparse.ArgumentParser(prog="python -m msfnet.model.predict",
                                 description="Torch inference of a checkpoint on one stack; "

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .network import MSFNet
+from msfnet.model.network import MSFNet
 
 
 def _light_input(images: Tensor, lights: Tensor, i: int) -> Tensor:

@@ -34,25 +34,11 @@ from msfnet.runtime.metrics import normal_metrics
 from msfnet.runtime.stack import Stack
 from msfnet.synth.render import RenderOptions, render_set
 
-from .checkpoint import (
-    check_state_dict,
-    checkpoint_content,
-    read_checkpoint,
-    read_torch_file,
-    save_checkpoint,
-)
-from .data import (
-    Batch,
-    BlobbySource,
-    SourceSpec,
-    StepPlan,
-    SynthSource,
-    batch_from_dict,
-    make_loader,
-)
-from .network import MSFNet
-from .predict import autocast, predict_normals
-from .train_config import TrainConfig, parse_curriculum
+from msfnet.model.checkpoint import check_state_dict, checkpoint_content, read_checkpoint, read_torch_file, save_checkpoint
+from msfnet.model.data import Batch, BlobbySource, SourceSpec, StepPlan, SynthSource, batch_from_dict, make_loader
+from msfnet.model.network import MSFNet
+from msfnet.model.predict import autocast, predict_normals
+from msfnet.model.train_config import TrainConfig, parse_curriculum
 
 STAGE_WEIGHTS = (0.5, 0.5, 1.0)
 
@@ -221,7 +207,7 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.model = MSFNet(mfe=cfg.mfe, mff=cfg.mff)
         if cfg.init and not resume:
-            from .checkpoint import check_state_dict, read_state_dict
+            from msfnet.model.checkpoint import check_state_dict, read_state_dict
 
             state = read_state_dict(cfg.init)
             check_state_dict(self.model, state, cfg.init)

@@ -22,7 +22,7 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import STAGING_TAG, check_not_input
 from msfnet.synth.render import PRESETS
 
-from .train_config import SNAPSHOT, TrainConfig, parse_curriculum
+from msfnet.model.train_config import SNAPSHOT, TrainConfig, parse_curriculum
 
 DEFAULTS = TrainConfig(out="")
 PROG = "msf-train"
@@ -254,8 +254,8 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
 def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     # torch now, after the options were checked and before OUT is touched: a missing torch
     # must not cost an earlier run's files (--overwrite, --resume clean up first)
-    from .checkpoint import read_state_dict
-    from .train import Trainer
+    from msfnet.model.checkpoint import read_state_dict
+    from msfnet.model.train import Trainer
 
     def say(line: str) -> None:
         if not args.quiet:

@@ -16,17 +16,17 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .benchmarks import PROTOCOL_SELECT, find_objects, protocol_note
-from .errors import InputError
-from .files import MANIFEST, STAGING_TAG, json_text, write_text
-from .imageio import list_images
-from .metrics import NormalMetrics
-from .profile import BatchStats
-from .stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack, selection
-from .stack.load import count_images
+from msfnet.runtime.benchmarks import PROTOCOL_SELECT, find_objects, protocol_note
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import MANIFEST, STAGING_TAG, json_text, write_text
+from msfnet.runtime.imageio import list_images
+from msfnet.runtime.metrics import NormalMetrics
+from msfnet.runtime.profile import BatchStats
+from msfnet.runtime.stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack, selection
+from msfnet.runtime.stack.load import count_images
 
 if TYPE_CHECKING:
-    from .pipeline import Model, Result
+    from msfnet.runtime.pipeline import Model, Result
 
 SUMMARY_FILES = ("summary.json", "summary.md")
 
@@ -257,7 +257,7 @@ OnResult = Callable[[StackRow, "Result | None"], None]
 def _decode(item: BatchItem | Stack, load: LoadOptions) -> tuple[Stack, float]:
     start = time.perf_counter()
     if isinstance(item, Stack):
-        from .stack import prepare_stack
+        from msfnet.runtime.stack import prepare_stack
 
         stack = prepare_stack(item, load)
     else:

@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import InputError
-from .stack import LIGHTS_NAMES
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.stack import LIGHTS_NAMES
 
 PROTOCOL_SELECT = {"bearPNG": "21-96"}  # object folder -> the images the benchmark uses
 PROTOCOL_WHY = {"bearPNG": "DiLiGenT's protocol: bear's first 20 images are corrupted"}

@@ -19,9 +19,9 @@ import warnings
 from collections.abc import Callable, Sequence
 from typing import NoReturn
 
-from .errors import InputError, MsfError, first_line, one_line
-from .files import forget_written, written_outputs
-from .signals import Terminated, install_signal_handlers, restore_signal_handlers
+from msfnet.runtime.errors import InputError, MsfError, first_line, one_line
+from msfnet.runtime.files import forget_written, written_outputs
+from msfnet.runtime.signals import Terminated, install_signal_handlers, restore_signal_handlers
 
 
 def _number(text: str, kind: type) -> float:

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import InputError
+from msfnet.runtime.errors import InputError
 
 FORMAT = "msfnet-normals-v1"
 INPUT_MULTIPLE = 4  # the network halves H and W once and doubles back: multiples of 4

@@ -159,7 +159,7 @@ def _read_cache(path: Path) -> CpuInfo | None:
 def _write_cache(path: Path, info: CpuInfo) -> None:
     """Through the one atomic writer (concurrent writers each put a whole file in place), as no
     command output; the files of earlier boots are removed."""
-    from .files import write_json
+    from msfnet.runtime.files import write_json
 
     try:
         for old in path.parent.glob("cpu-*.json"):

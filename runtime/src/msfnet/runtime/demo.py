@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .stack import Stack, load_stack
+from msfnet.runtime.stack import Stack, load_stack
 
 DEMO_FILE = Path(__file__).resolve().parent / "data" / "demo_stack.npz"
 

@@ -52,17 +52,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from .contract import ModelInfo
-from .cpu import CpuInfo
-from .engines.base import (
-    ENGINES,
-    Engine,
-    engine_name,
-    model_precision,
-    precision_name,
-    read_model_file,
-)
-from .errors import InputError
+from msfnet.runtime.contract import ModelInfo
+from msfnet.runtime.cpu import CpuInfo
+from msfnet.runtime.engines.base import ENGINES, Engine, engine_name, model_precision, precision_name, read_model_file
+from msfnet.runtime.errors import InputError
 
 ACCURACY_BOUND_DEG = 0.5
 
@@ -210,14 +203,14 @@ def open_engine(choice: EngineChoice, threads: int | None = None, *, chunk: int 
     if path is None:
         raise InputError("open_engine: no model path (give model=... or choose from a path)")
     if choice.engine == "onnxruntime":
-        from .engines.onnxruntime import open_onnxruntime
+        from msfnet.runtime.engines.onnxruntime import open_onnxruntime
 
         return open_onnxruntime(path, threads=threads, precision=choice.precision,
                                 provider=provider, chunk=chunk)
     if choice.engine == "openvino":
         if provider not in (None, "cpu"):
             raise InputError(f"--provider {provider}: ONNX Runtime only (OpenVINO runs on CPU)")
-        from .engines.openvino import open_openvino
+        from msfnet.runtime.engines.openvino import open_openvino
 
         return open_openvino(path, threads=threads, precision=choice.precision, chunk=chunk)
     raise InputError(f"unknown engine {choice.engine!r} (known: {', '.join(ENGINES)})")

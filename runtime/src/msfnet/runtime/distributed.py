@@ -20,14 +20,14 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .batch import BatchItem, BatchSummary, OnResult, StackRow, row_for
-from .errors import InputError
-from .maps import MapOptions
-from .profile import BatchStats
-from .stack import LoadOptions, load_stack
+from msfnet.runtime.batch import BatchItem, BatchSummary, OnResult, StackRow, row_for
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.maps import MapOptions
+from msfnet.runtime.profile import BatchStats
+from msfnet.runtime.stack import LoadOptions, load_stack
 
 if TYPE_CHECKING:
-    from .pipeline import Model, Result
+    from msfnet.runtime.pipeline import Model, Result
 
 
 def import_ray() -> Any:
@@ -58,7 +58,7 @@ class ModelSpec:
 
     @classmethod
     def from_args(cls, onnx: Path | None, **options: Any) -> ModelSpec:
-        from .pipeline import check_method
+        from msfnet.runtime.pipeline import check_method
 
         check_method(options.get("method", "msf"), onnx, options.get("engine"),
                      options.get("precision"), bool(options.get("fine_detail")))
@@ -68,8 +68,8 @@ class ModelSpec:
                    onnx_bytes=None if onnx is None else onnx.read_bytes(), **options)
 
     def build(self, folder: Path) -> Model:
-        from .pipeline import Model
-        from .tiling import DEFAULT_MAX_MEMORY_MB
+        from msfnet.runtime.pipeline import Model
+        from msfnet.runtime.tiling import DEFAULT_MAX_MEMORY_MB
 
         path = None
         if self.onnx_bytes is not None:

@@ -13,13 +13,13 @@ from typing import Protocol
 
 import numpy as np
 
-from .engines.base import Engine
-from .flops import inference_flops
-from .infer import choose_plan, infer_normals
-from .least_squares import least_squares_normals
-from .profile import StageTimer
-from .stack import Stack
-from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
+from msfnet.runtime.engines.base import Engine
+from msfnet.runtime.flops import inference_flops
+from msfnet.runtime.infer import choose_plan, infer_normals
+from msfnet.runtime.least_squares import least_squares_normals
+from msfnet.runtime.profile import StageTimer
+from msfnet.runtime.stack import Stack
+from msfnet.runtime.tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
 
 
 @dataclass(frozen=True)

@@ -15,23 +15,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .benchmarks import (
-    PUBLISHED_MAE,
-    PUBLISHED_METHODS,
-    BenchObject,
-    check_unique,
-    find_objects,
-)
-from .cliutil import make_parser, positive_float, positive_int, run_command
-from .detail import detail_ratio
-from .errors import InputError
-from .files import check_output, json_text, staged_folder, writing_as
-from .maps import pictures
-from .metrics import NormalMetrics
-from .outputs import normals_png, write_rgb_png
-from .pipeline import Model
-from .stack import LoadOptions, load_stack
-from .tiling import DEFAULT_MAX_MEMORY_MB
+from msfnet.runtime.benchmarks import PUBLISHED_MAE, PUBLISHED_METHODS, BenchObject, check_unique, find_objects
+from msfnet.runtime.cliutil import make_parser, positive_float, positive_int, run_command
+from msfnet.runtime.detail import detail_ratio
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import check_output, json_text, staged_folder, writing_as
+from msfnet.runtime.maps import pictures
+from msfnet.runtime.metrics import NormalMetrics
+from msfnet.runtime.outputs import normals_png, write_rgb_png
+from msfnet.runtime.pipeline import Model
+from msfnet.runtime.stack import LoadOptions, load_stack
+from msfnet.runtime.tiling import DEFAULT_MAX_MEMORY_MB
 
 PROG = "msf-eval"
 COLUMNS = ("mae_deg", "err15", "err30")

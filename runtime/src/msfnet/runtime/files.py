@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .signals import signals_deferred
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.signals import signals_deferred
 
 MANIFEST = ".msfnet-output.json"
 STAGING_TAG = ".msf-partial-"  # ".<name>.msf-partial-<pid>-<random>" beside the target

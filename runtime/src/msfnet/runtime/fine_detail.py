@@ -17,12 +17,12 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from .detail import SIGMA_PX, masked_smooth
-from .errors import InputError
-from .estimators import Estimate, NetworkEstimator, TilingOptions
-from .profile import StageTimer
-from .stack import Stack
-from .stack.readers import unit_normals
+from msfnet.runtime.detail import SIGMA_PX, masked_smooth
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.estimators import Estimate, NetworkEstimator, TilingOptions
+from msfnet.runtime.profile import StageTimer
+from msfnet.runtime.stack import Stack
+from msfnet.runtime.stack.readers import unit_normals
 
 FACTOR = 2
 

@@ -19,8 +19,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import InputError, first_line
-from .files import write_atomic
+from msfnet.runtime.errors import InputError, first_line
+from msfnet.runtime.files import write_atomic
 
 # Refuse images above this many pixels from the header, before decoding (a decompression bomb:
 # a few KB of PNG that decodes to tens of GB). 250 MP is ~10x a large industrial sensor.

@@ -13,14 +13,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import InputError, MsfError, first_line
-from .preprocess import network_input
-from .profile import StageTimer
-from .stack import Stack
-from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan, plan_tiles, tile_size_for_memory
+from msfnet.runtime.errors import InputError, MsfError, first_line
+from msfnet.runtime.preprocess import network_input
+from msfnet.runtime.profile import StageTimer
+from msfnet.runtime.stack import Stack
+from msfnet.runtime.tiling import DEFAULT_MAX_MEMORY_MB, TilePlan, plan_tiles, tile_size_for_memory
 
 if TYPE_CHECKING:
-    from .engines.base import Engine
+    from msfnet.runtime.engines.base import Engine
 
 
 @dataclass

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
-from .preprocess import network_lights
-from .stack import Stack
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.preprocess import network_lights
+from msfnet.runtime.stack import Stack
 
 # working set per (mask pixel x light): the RGB gather (as held: 12 B float32, 6 B uint16; an
 # integer one's float32 copy lives only while grey is computed), float64 grey and, when

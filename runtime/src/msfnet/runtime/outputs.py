@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .files import json_text, staged_folder
-from .imageio import encode_png
+from msfnet.runtime.files import json_text, staged_folder
+from msfnet.runtime.imageio import encode_png
 
 if TYPE_CHECKING:
-    from .pipeline import Result
+    from msfnet.runtime.pipeline import Result
 
 
 def normals_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -38,7 +38,7 @@ def fill_result_folder(folder: Path, result: Result, report: bool = True) -> Non
     picture with a colour-convention sphere, metrics and an error picture with a colour bar
     (automatic range) when there is ground truth, the profile, and the inspection maps with
     report.html when they were computed."""
-    from .maps import pictures, write_maps
+    from msfnet.runtime.maps import pictures, write_maps
 
     mask = result.stack.mask
     profile = result.profile()

@@ -25,20 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .engines.base import Engine
-from .errors import InputError
-from .estimators import (
-    Estimator,
-    LeastSquaresEstimator,
-    NetworkEstimator,
-    TilingOptions,
-)
-from .fine_detail import FineDetailEstimator
-from .maps import InspectionMaps, MapOptions, stack_maps
-from .metrics import NormalMetrics, error_map, normal_metrics
-from .profile import BatchStats, Profile, StageTimer
-from .stack import LoadOptions, Stack, load_stack, prepare_stack
-from .tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
+from msfnet.runtime.engines.base import Engine
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.estimators import Estimator, LeastSquaresEstimator, NetworkEstimator, TilingOptions
+from msfnet.runtime.fine_detail import FineDetailEstimator
+from msfnet.runtime.maps import InspectionMaps, MapOptions, stack_maps
+from msfnet.runtime.metrics import NormalMetrics, error_map, normal_metrics
+from msfnet.runtime.profile import BatchStats, Profile, StageTimer
+from msfnet.runtime.stack import LoadOptions, Stack, load_stack, prepare_stack
+from msfnet.runtime.tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
 
 WEIGHTS = Path(__file__).resolve().parent / "weights"
 DEFAULT_MAPS = MapOptions()  # albedo, height (Poisson), curvature, mesh
@@ -95,8 +90,8 @@ class Result:
         """Write normals.npy/png, profile.json and, with ground truth, metrics.json and
         error.png into ``folder``, all at once or not at all; mask.png too when the mask was
         computed (``write_mask``: None = only then). Returns the files written."""
-        from .files import check_output
-        from .outputs import write_result
+        from msfnet.runtime.files import check_output
+        from msfnet.runtime.outputs import write_result
 
         folder = Path(folder)
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
@@ -235,9 +230,9 @@ class Model:
 def _open_network(path: Path, engine: str | None, precision: str | None,
                   threads: int | None, provider: str | None) -> NetworkEstimator:
     """Pick the engine and precision for this CPU and model (or honour the overrides)."""
-    from .cpu import detect_cpu
-    from .dispatch import choose_engine, open_engine
-    from .engines import installed_engines
+    from msfnet.runtime.cpu import detect_cpu
+    from msfnet.runtime.dispatch import choose_engine, open_engine
+    from msfnet.runtime.engines import installed_engines
 
     if provider not in (None, "cpu") and engine is None:
         engine = "onnxruntime"  # execution providers are ONNX Runtime's

@@ -15,10 +15,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .contract import INPUT_MULTIPLE, TRAIN_LIGHTS
+from msfnet.runtime.contract import INPUT_MULTIPLE, TRAIN_LIGHTS
 
 if TYPE_CHECKING:
-    from .stack import Stack
+    from msfnet.runtime.stack import Stack
 
 
 def normalise(images: np.ndarray, intensities: np.ndarray, mask: np.ndarray,

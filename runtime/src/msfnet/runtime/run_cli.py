@@ -9,22 +9,15 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .batch import (
-    SUMMARY_FILES,
-    BatchItem,
-    StackRow,
-    check_batch_root,
-    expand_stacks,
-    run_batch,
-)
-from .cliutil import make_parser, positive_float, positive_int, run_command
-from .errors import InputError
-from .files import check_output, json_text, numbered_folder, writing_as
-from .maps import MAP_NAMES, MapOptions
-from .maps.integrate import METHODS as INTEGRATION_METHODS
-from .pipeline import Model, Result
-from .stack import LoadOptions, Stack, parse_roi
-from .tiling import DEFAULT_MAX_MEMORY_MB, HALO
+from msfnet.runtime.batch import SUMMARY_FILES, BatchItem, StackRow, check_batch_root, expand_stacks, run_batch
+from msfnet.runtime.cliutil import make_parser, positive_float, positive_int, run_command
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import check_output, json_text, numbered_folder, writing_as
+from msfnet.runtime.maps import MAP_NAMES, MapOptions
+from msfnet.runtime.maps.integrate import METHODS as INTEGRATION_METHODS
+from msfnet.runtime.pipeline import Model, Result
+from msfnet.runtime.stack import LoadOptions, Stack, parse_roi
+from msfnet.runtime.tiling import DEFAULT_MAX_MEMORY_MB, HALO
 
 PROG = "msf-run"
 EXAMPLES = (
@@ -169,7 +162,7 @@ def load_options(args: argparse.Namespace) -> LoadOptions:
 def open_model(args: argparse.Namespace, threads: int | None = None) -> Model:
     """The estimator msf-run's options describe, loaded once (``threads`` overrides
     --threads)."""
-    from .pipeline import Model
+    from msfnet.runtime.pipeline import Model
 
     return Model(args.onnx, method=args.method, engine=args.engine, precision=args.precision,
                  threads=threads or args.threads, provider=args.provider, tile=args.tile,
@@ -292,7 +285,7 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
                      overwrite=args.overwrite)
     model = None
     if args.ray is not None:
-        from .distributed import ModelSpec, import_ray, run_batch_ray
+        from msfnet.runtime.distributed import ModelSpec, import_ray, run_batch_ray
 
         import_ray()  # not installed: say so now
         spec = ModelSpec.from_args(args.onnx, method=args.method, engine=args.engine,
@@ -358,7 +351,7 @@ def _run(args: argparse.Namespace) -> int:
     load = load_options(args)
     map_options(args)  # contradicting map options are refused before any work
     if args.demo:
-        from .demo import demo_stack
+        from msfnet.runtime.demo import demo_stack
 
         if args.ray is not None:
             raise InputError("--demo runs here; --ray is for stacks on disk")

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from .chunked import DEFAULT_CHUNK, STAGE_INPUTS, STAGE_OUTPUTS, run_staged
-from .contract import ModelInfo, read_model_info
-from .cpu import usable_cores
-from .errors import InputError, first_line
+from msfnet.runtime.chunked import DEFAULT_CHUNK, STAGE_INPUTS, STAGE_OUTPUTS, run_staged
+from msfnet.runtime.contract import ModelInfo, read_model_info
+from msfnet.runtime.cpu import usable_cores
+from msfnet.runtime.errors import InputError, first_line
 
 PROVIDER_ALIASES = {
     "cpu": "CPUExecutionProvider",

@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .chunked import STORED_BYTES_PER_PIXEL_LIGHT
-from .contract import INPUT_MULTIPLE as MULTIPLE
-from .errors import InputError
-from .flops import receptive_field
-from .preprocess import padded_size
+from msfnet.runtime.chunked import STORED_BYTES_PER_PIXEL_LIGHT
+from msfnet.runtime.contract import INPUT_MULTIPLE as MULTIPLE
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.flops import receptive_field
+from msfnet.runtime.preprocess import padded_size
 
 HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
 # ONNX Runtime working set per (network-input pixel x light), fp32 CPU provider, arena off (see

@@ -18,9 +18,9 @@ from msfnet.runtime.errors import InputError
 from msfnet.runtime.files import check_output, staged_folder
 from msfnet.runtime.stack import save_stack
 
-from .materials import ALL_KINDS
-from .render import PRESETS, RenderOptions, render_set
-from .shapes import ALL_SHAPES
+from msfnet.synth.materials import ALL_KINDS
+from msfnet.synth.render import PRESETS, RenderOptions, render_set
+from msfnet.synth.shapes import ALL_SHAPES
 
 PROG = "msf-synth"
 MAX_SIZE = 4096  # px; one 4096^2 object with 32 lights is already 6 GB of float32 images

@@ -14,7 +14,7 @@ import numpy as np
 
 from msfnet.runtime.files import write_atomic
 
-from .render import RenderOptions, render_stack
+from msfnet.synth.render import RenderOptions, render_stack
 
 DEMO_SEED = 20261122
 DEMO_OPTIONS = RenderOptions(size=128, lights=32)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .shapes import fourier_noise, grid
+from msfnet.synth.shapes import fourier_noise, grid
 
 KINDS = ("diffuse", "plastic", "metal", "dark")
 KIND_WEIGHTS = (0.15, 0.45, 0.2, 0.2)

@@ -18,18 +18,9 @@ import numpy as np
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.transforms import area_downscale, downscale_mask, downscale_normals
 
-from .lights import rig_intensities, rig_lights, ring_rig
-from .materials import ALL_KINDS, KINDS, material_map, shade
-from .shapes import (
-    ALL_SHAPES,
-    CUP_DEPTH,
-    DEFAULT_MAX_DEPTH,
-    FOLD_DEPTH,
-    SHAPES,
-    fine_relief,
-    make_shape,
-    normals_from_height,
-)
+from msfnet.synth.lights import rig_intensities, rig_lights, ring_rig
+from msfnet.synth.materials import ALL_KINDS, KINDS, material_map, shade
+from msfnet.synth.shapes import ALL_SHAPES, CUP_DEPTH, DEFAULT_MAX_DEPTH, FOLD_DEPTH, SHAPES, fine_relief, make_shape, normals_from_height
 
 FULL_SCALE = 65535.0  # images are returned in 16-bit counts, as save_stack writes them
 BIT_DEPTHS = (8, 10, 12, 14, 16)

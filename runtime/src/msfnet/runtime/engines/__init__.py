@@ -5,24 +5,13 @@ and ``chunk`` (see base.Engine). Which engine and precision to use on this CPU i
 ``msfnet.runtime.dispatch``.
 """
 
-from .base import (
-    ENGINES,
-    PRECISIONS,
-    Engine,
-    SubgraphSession,
-    engine_name,
-    installed_engines,
-    model_precision,
-    precision_name,
-    read_model_file,
-    run_staged_with,
-)
-from .onnxruntime import OrtEngine, open_onnxruntime
+from msfnet.runtime.engines.base import ENGINES, PRECISIONS, Engine, SubgraphSession, engine_name, installed_engines, model_precision, precision_name, read_model_file, run_staged_with
+from msfnet.runtime.engines.onnxruntime import OrtEngine, open_onnxruntime
 
 
 def open_openvino(*args, **kwargs):  # type: ignore[no-untyped-def]
     """Lazy: importing this package must not import openvino (see engines/openvino.py)."""
-    from .openvino import open_openvino as _open
+    from msfnet.runtime.engines.openvino import open_openvino as _open
 
     return _open(*args, **kwargs)
 

@@ -15,10 +15,10 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..chunked import run_staged
-from ..contract import ModelInfo, read_model_info
-from ..errors import InputError
-from ..session import check_io
+from msfnet.runtime.chunked import run_staged
+from msfnet.runtime.contract import ModelInfo, read_model_info
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.session import check_io
 
 ENGINES = ("onnxruntime", "openvino")
 ENGINE_ALIASES = {"onnxruntime": "onnxruntime", "ort": "onnxruntime",

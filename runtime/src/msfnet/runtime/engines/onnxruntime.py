@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..contract import ModelInfo
-from ..errors import InputError
-from ..session import ModelSession, create_session
-from .base import model_precision
+from msfnet.runtime.contract import ModelInfo
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.session import ModelSession, create_session
+from msfnet.runtime.engines.base import model_precision
 
 
 class OrtEngine:

@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from ..chunked import DEFAULT_CHUNK, STAGE_OUTPUTS
-from ..contract import ModelInfo
-from ..errors import InputError
-from ..session import default_threads
-from .base import model_precision, read_model_file, run_staged_with
+from msfnet.runtime.chunked import DEFAULT_CHUNK, STAGE_OUTPUTS
+from msfnet.runtime.contract import ModelInfo
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.session import default_threads
+from msfnet.runtime.engines.base import model_precision, read_model_file, run_staged_with
 
 # OpenVINO's names for the compute precisions
 _HINTS = {"fp32": "f32", "bf16": "bf16"}

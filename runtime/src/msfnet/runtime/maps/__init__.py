@@ -12,8 +12,8 @@ curvature, shape index), ``mesh`` (PLY via plyfile), ``pictures`` (matplotlib, l
 when writing.
 """
 
-from .api import MAP_NAMES, InspectionMaps, MapOptions, compute_maps, stack_maps, write_maps
-from .integrate import METHODS, Intrinsics, integrate_normals
+from msfnet.runtime.maps.api import MAP_NAMES, InspectionMaps, MapOptions, compute_maps, stack_maps, write_maps
+from msfnet.runtime.maps.integrate import METHODS, Intrinsics, integrate_normals
 
 __all__ = ["MAP_NAMES", "METHODS", "InspectionMaps", "Intrinsics", "MapOptions", "compute_maps",
            "integrate_normals", "stack_maps", "write_maps"]

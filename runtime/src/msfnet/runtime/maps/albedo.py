@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
-from .validate import check_normals
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.maps.validate import check_normals
 
 DEFAULT_MIN_SHADING = 0.1
 SATURATION_FRACTION = 0.99  # default: values at >= 99 % of the stack's maximum count as clipped

@@ -16,13 +16,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..files import write_atomic
-from ..stack import Stack
-from .albedo import DEFAULT_MIN_SHADING, albedo_map
-from .curvature import DEFAULT_SIGMA, curvature_maps
-from .integrate import DEFAULT_MIN_NZ, METHODS, Integration, Intrinsics, integrate_normals
-from .validate import check_normals
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import write_atomic
+from msfnet.runtime.stack import Stack
+from msfnet.runtime.maps.albedo import DEFAULT_MIN_SHADING, albedo_map
+from msfnet.runtime.maps.curvature import DEFAULT_SIGMA, curvature_maps
+from msfnet.runtime.maps.integrate import DEFAULT_MIN_NZ, METHODS, Integration, Intrinsics, integrate_normals
+from msfnet.runtime.maps.validate import check_normals
 
 MAP_NAMES = ("albedo", "height", "curvature", "mesh")
 
@@ -197,9 +197,9 @@ def write_maps(folder: str | Path, maps: InspectionMaps, *, images: np.ndarray |
     ``msfnet.runtime.files.write_atomic``: a failure while drawing writes nothing, and no file
     is ever left half-written.
     """
-    from . import pictures
-    from .mesh import albedo_colors, height_mesh, write_ply
-    from .report import build_report
+    from msfnet.runtime.maps import pictures
+    from msfnet.runtime.maps.mesh import albedo_colors, height_mesh, write_ply
+    from msfnet.runtime.maps.report import build_report
 
     folder = Path(folder)
     m = maps.mask

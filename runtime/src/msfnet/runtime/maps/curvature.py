@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .validate import check_normals
+from msfnet.runtime.maps.validate import check_normals
 
 DEFAULT_SIGMA = 1.0
 DEFAULT_FLAT = 1e-4  # 1/px: below this curvedness a patch counts as planar

@@ -60,9 +60,9 @@ import scipy.sparse.linalg as sla
 from scipy import ndimage
 from scipy.special import expit
 
-from ..camera import Intrinsics
-from ..errors import InputError
-from .validate import check_normals
+from msfnet.runtime.camera import Intrinsics
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.maps.validate import check_normals
 
 METHODS = ("fc", "poisson", "bini")
 DEFAULT_MIN_NZ = 0.05

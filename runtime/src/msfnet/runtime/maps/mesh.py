@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..files import write_atomic
-from .integrate import Intrinsics
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.files import write_atomic
+from msfnet.runtime.maps.integrate import Intrinsics
 
 
 @dataclass

@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .curvature import symmetric_range
+from msfnet.runtime.maps.curvature import symmetric_range
 
 BACKGROUND = (0.88, 0.88, 0.88)
 WIDTH_IN = 5.0  # inches at DPI: pictures are ~500 px wide, readable side by side in a report

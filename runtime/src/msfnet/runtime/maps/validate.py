@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
+from msfnet.runtime.errors import InputError
 
 MIN_NORM = 1e-6  # below this a normal counts as "no estimate" (zeros from a degenerate fit)
 

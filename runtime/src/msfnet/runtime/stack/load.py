@@ -14,12 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, first_line
-from ..imageio import IMAGE_SUFFIXES, list_images, read_image, read_mask
-from .readers import read_normals, read_vectors, unit_normals
-from .select import selection
-from .transforms import Roi, Transforms, auto_mask
-from .types import Stack, as_held, check_intensities, check_lights, held_dtype, unit_lights
+from msfnet.runtime.errors import InputError, first_line
+from msfnet.runtime.imageio import IMAGE_SUFFIXES, list_images, read_image, read_mask
+from msfnet.runtime.stack.readers import read_normals, read_vectors, unit_normals
+from msfnet.runtime.stack.select import selection
+from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask
+from msfnet.runtime.stack.types import Stack, as_held, check_intensities, check_lights, held_dtype, unit_lights
 
 LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_directions.json")
 INTENSITY_NAMES = ("light_intensities.txt", "intensities.txt", "light_intensities.json")

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, first_line
-from ..imageio import read_image
+from msfnet.runtime.errors import InputError, first_line
+from msfnet.runtime.imageio import read_image
 
 MAX_VECTOR_FILE_BYTES = 64 * 2**20  # a million lights is a few tens of MB of text
 

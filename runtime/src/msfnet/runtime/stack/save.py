@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..files import vectors_text, write_atomic, write_text
-from ..imageio import write_png
-from .load import GT_NAMES, INTENSITY_NAMES, LIGHTS_NAMES, MASK_NAMES
-from .types import Stack
+from msfnet.runtime.files import vectors_text, write_atomic, write_text
+from msfnet.runtime.imageio import write_png
+from msfnet.runtime.stack.load import GT_NAMES, INTENSITY_NAMES, LIGHTS_NAMES, MASK_NAMES
+from msfnet.runtime.stack.types import Stack
 
 FILENAMES_FILE = "filenames.txt"
 LIGHTS_FILE = LIGHTS_NAMES[0]  # light_directions.txt

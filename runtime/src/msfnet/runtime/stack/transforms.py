@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ..errors import InputError
-from .types import as_held
+from msfnet.runtime.errors import InputError
+from msfnet.runtime.stack.types import as_held
 
 Roi = tuple[int, int, int, int]  # x, y, width, height in pixels of the stored images
 

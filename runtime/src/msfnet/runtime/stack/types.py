@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from msfnet.runtime.errors import InputError
 
 # Light sets whose 3 x 3 moment matrix is worse conditioned than this cannot separate the normal's
 # components (e.g. all lights nearly parallel): least squares and the network both degrade.
