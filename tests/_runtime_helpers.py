@@ -14,8 +14,9 @@ import pytest
 from msfnet.runtime.stack import Stack
 
 
-def sphere_stack(n: int = 8, h: int = 36, w: int = 44, seed: int = 0, name: str = "sphere"
-                 ) -> Stack:
+def sphere_stack(
+    n: int = 8, h: int = 36, w: int = 44, seed: int = 0, name: str = "sphere"
+) -> Stack:
     """A Lambertian sphere (albedo 0.8, radius ~ 0.45 min(h, w)) under n upper-hemisphere lights."""
     rng = np.random.default_rng(seed)
     lights = rng.normal(size=(n, 3))
@@ -32,13 +33,20 @@ def sphere_stack(n: int = 8, h: int = 36, w: int = 44, seed: int = 0, name: str 
     ints = rng.uniform(0.5, 1.5, size=(n, 3))
     shading = np.clip(np.einsum("hwc,nc->nhw", normals, lights), 0, None)
     images = 0.8 * 40000.0 * shading[..., None] * ints[:, None, None, :]
-    return Stack(name, images.astype(np.float32), lights.astype(np.float32),
-                 ints.astype(np.float32), mask, normals.astype(np.float32),
-                 [f"{i + 1:03d}.png" for i in range(n)])
+    return Stack(
+        name,
+        images.astype(np.float32),
+        lights.astype(np.float32),
+        ints.astype(np.float32),
+        mask,
+        normals.astype(np.float32),
+        [f"{i + 1:03d}.png" for i in range(n)],
+    )
 
 
-def png_stack(folder: Path, bit_depth: int, n: int = 8, h: int = 36, w: int = 44,
-              seed: int = 0) -> Path:
+def png_stack(
+    folder: Path, bit_depth: int, n: int = 8, h: int = 36, w: int = 44, seed: int = 0
+) -> Path:
     """:func:`sphere_stack` written as 8- or 16-bit PNGs (DiLiGenT layout, ground truth
     included): a stack on disk whose values are integers, 8-bit ones scaled to 0..255."""
     from msfnet.runtime.stack import save_stack
@@ -80,8 +88,13 @@ def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = Fals
             if isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
                 torch.nn.init.kaiming_normal_(module.weight, a=0.1, nonlinearity="leaky_relu")
     save_checkpoint(model, folder / f"{stem}.pth")
-    export_variant(folder / f"{stem}.pth", "staged" if staged else "fp32", onnx_path,
-                   options=ExportOptions(checks=((3, 8, 8),)), overwrite=True)
+    export_variant(
+        folder / f"{stem}.pth",
+        "staged" if staged else "fp32",
+        onnx_path,
+        options=ExportOptions(checks=((3, 8, 8),)),
+        overwrite=True,
+    )
     return onnx_path
 
 
@@ -106,19 +119,31 @@ def tiny_msfnet_onnx(path: Path, **metadata: str) -> Path:
         helper.make_node("Add", ["norm", "eps"], ["den"]),
         helper.make_node("Div", ["m", "den"], ["normals"]),
     ]
-    inits = [helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0]),
-             helper.make_tensor("eps", TensorProto.FLOAT, [], [1e-12]),
-             helper.make_tensor("axis1", TensorProto.INT64, [1], [1])]
+    inits = [
+        helper.make_tensor("zero", TensorProto.FLOAT, [], [0.0]),
+        helper.make_tensor("eps", TensorProto.FLOAT, [], [1e-12]),
+        helper.make_tensor("axis1", TensorProto.INT64, [1], [1]),
+    ]
     graph = helper.make_graph(
-        nodes, "tiny_msfnet",
-        [helper.make_tensor_value_info("images", TensorProto.FLOAT, ["B", "N", 3, "H", "W"]),
-         helper.make_tensor_value_info("lights", TensorProto.FLOAT, ["B", "N", 3])],
+        nodes,
+        "tiny_msfnet",
+        [
+            helper.make_tensor_value_info("images", TensorProto.FLOAT, ["B", "N", 3, "H", "W"]),
+            helper.make_tensor_value_info("lights", TensorProto.FLOAT, ["B", "N", 3]),
+        ],
         [helper.make_tensor_value_info("normals", TensorProto.FLOAT, ["B", 3, "H", "W"])],
-        inits)
+        inits,
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
-    meta = model_metadata(train_lights=32, checkpoint_sha256="0" * 64, version="test",
-                          static_shape=None, precision="fp32", staged=False)
+    meta = model_metadata(
+        train_lights=32,
+        checkpoint_sha256="0" * 64,
+        version="test",
+        static_shape=None,
+        precision="fp32",
+        staged=False,
+    )
     meta.update(metadata)
     helper.set_model_props(model, meta)
     onnx.save(model, str(path))
@@ -133,7 +158,8 @@ def write_npz_bomb(path: Path, descr: str, shape: tuple[int, ...], zeros_mb: int
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
         with z.open("images.npy", "w", force_zip64=True) as f:
             np.lib.format.write_array_header_1_0(
-                f, {"descr": descr, "fortran_order": False, "shape": shape})
+                f, {"descr": descr, "fortran_order": False, "shape": shape}
+            )
             for _ in range(zeros_mb):
                 f.write(bytes(2**20))
         with z.open("lights.npy", "w") as f:
@@ -141,11 +167,20 @@ def write_npz_bomb(path: Path, descr: str, shape: tuple[int, ...], zeros_mb: int
     return path
 
 
-def run_without_torch(cli_module: str, argv: list[str], cwd: Path | None = None
-                      ) -> subprocess.CompletedProcess[str]:
+def run_without_torch(
+    cli_module: str, argv: list[str], cwd: Path | None = None
+) -> subprocess.CompletedProcess[str]:
     """Run ``cli_module``'s main(argv) in a fresh interpreter where ``import torch`` fails, as
     on the edge install (torch is installed here, so it is blocked, not removed)."""
-    code = (f"import sys\nsys.modules['torch'] = None\nfrom {cli_module} import main\n"
-            "sys.exit(main(sys.argv[1:]))")
-    return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
-                          check=False, timeout=120, cwd=cwd)
+    code = (
+        f"import sys\nsys.modules['torch'] = None\nfrom {cli_module} import main\n"
+        "sys.exit(main(sys.argv[1:]))"
+    )
+    return subprocess.run(
+        [sys.executable, "-c", code, *argv],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=120,
+        cwd=cwd,
+    )

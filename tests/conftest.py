@@ -34,7 +34,7 @@ def psm_dir() -> Path:
 
 @pytest.fixture(autouse=True, scope="session")
 def _private_cache_home(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Tests keep the CPU probe (msfnet.runtime.cpu) in a folder of their own, not the user's
+    """Tests keep the CPU probe (msfnet.common.cpu) in a folder of their own, not the user's
     ~/.cache."""
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("cache"))
 

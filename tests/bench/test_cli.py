@@ -14,8 +14,8 @@ from _runtime_helpers import png_stack
 pytest.importorskip("torch")
 
 from msfnet.bench import cli
-from msfnet.runtime.files import MANIFEST
-from msfnet.runtime.signals import Terminated
+from msfnet.common.files import MANIFEST
+from msfnet.common.signals import Terminated
 
 
 @pytest.fixture(scope="module")
@@ -25,13 +25,28 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _argv(stack: Path, out: Path, *extra: str) -> list[str]:
-    return ["--stack", str(stack), "--calib", str(stack), "-o", str(out), "--quick",
-            "--variants", "ort-fp32", "--threads", "1", "--no-e2e", "--random-weights", *extra]
+    return [
+        "--stack",
+        str(stack),
+        "--calib",
+        str(stack),
+        "-o",
+        str(out),
+        "--quick",
+        "--variants",
+        "ort-fp32",
+        "--threads",
+        "1",
+        "--no-e2e",
+        "--random-weights",
+        *extra,
+    ]
 
 
 def _tree(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
-            if p.is_file()}
+    return {
+        str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+    }
 
 
 def _unreached(*args: object) -> dict:
@@ -50,12 +65,29 @@ def _fake_bench(tag: str, fail: type[BaseException] | None = None):
         (scratch / "input_a.npz").write_text("scratch")
         if fail is not None:
             raise fail(15) if fail is Terminated else fail()
-        return {"date": "d", "quick": True, "elapsed_s": 1.0, "rows": [], "notes": [],
-                "machine": {"cpu": "x", "cores": 1, "isa_flags": [], "platform": "p",
-                            "python": "3", "onnxruntime": "1"},
-                "peaks": [], "variants": {}, "dispatch": {},
-                "models": {"random_weights": True, "checkpoint": str(work / "models" / "r.pth"),
-                           "fp32": str(model)}}
+        return {
+            "date": "d",
+            "quick": True,
+            "elapsed_s": 1.0,
+            "rows": [],
+            "notes": [],
+            "machine": {
+                "cpu": "x",
+                "cores": 1,
+                "isa_flags": [],
+                "platform": "p",
+                "python": "3",
+                "onnxruntime": "1",
+            },
+            "peaks": [],
+            "variants": {},
+            "dispatch": {},
+            "models": {
+                "random_weights": True,
+                "checkpoint": str(work / "models" / "r.pth"),
+                "fp32": str(model),
+            },
+        }
 
     return bench
 
@@ -68,8 +100,12 @@ def _one_error(capfd: pytest.CaptureFixture[str]) -> str:
 
 @pytest.mark.parametrize("where", ["stack", "inside stack", "holds checkpoint"])
 def test_a_report_folder_that_is_or_holds_an_input_is_refused(
-        where: str, stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        capfd: pytest.CaptureFixture[str]) -> None:
+    where: str,
+    stack: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
     monkeypatch.setattr(cli, "bench", _unreached)
     before = _tree(stack)
     if where == "holds checkpoint":
@@ -89,8 +125,8 @@ def test_a_report_folder_that_is_or_holds_an_input_is_refused(
 
 
 def test_a_missing_checkpoint_is_one_line_and_writes_nothing(
-        stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        capfd: pytest.CaptureFixture[str]) -> None:
+    stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
     monkeypatch.setattr(cli, "bench", _unreached)
     argv = [a for a in _argv(stack, tmp_path / "bench" / "bad") if a != "--random-weights"]
     assert cli.main([*argv, "--checkpoint", str(tmp_path / "BAD.pth")]) == 2
@@ -100,8 +136,8 @@ def test_a_missing_checkpoint_is_one_line_and_writes_nothing(
 
 
 def test_the_report_appears_whole_and_is_replaced_only_with_overwrite(
-        stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        capfd: pytest.CaptureFixture[str]) -> None:
+    stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "report"
     monkeypatch.setattr(cli, "bench", _fake_bench("first"))
     assert cli.main(_argv(stack, out)) == 0
@@ -127,8 +163,8 @@ def test_the_report_appears_whole_and_is_replaced_only_with_overwrite(
 
 
 def test_overwrite_never_deletes_files_msfnet_did_not_write(
-        stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        capfd: pytest.CaptureFixture[str]) -> None:
+    stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "bench"
     (out / "src").mkdir(parents=True)
     (out / "REPORT.md").write_text("an old report beside source code\n")
@@ -141,8 +177,14 @@ def test_overwrite_never_deletes_files_msfnet_did_not_write(
 @pytest.mark.parametrize(("signal_", "code"), [(KeyboardInterrupt, 130), (Terminated, 143)])
 @pytest.mark.parametrize("earlier", [False, True])
 def test_an_interrupted_run_leaves_no_partial_report(
-        signal_: type[BaseException], code: int, earlier: bool, stack: Path, tmp_path: Path,
-        monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]) -> None:
+    signal_: type[BaseException],
+    code: int,
+    earlier: bool,
+    stack: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capfd: pytest.CaptureFixture[str],
+) -> None:
     """Ctrl-C or SIGTERM after the models are exported: no OUT/models/*.onnx left, and an
     earlier report stays as it was."""
     out = tmp_path / "report"
@@ -163,9 +205,11 @@ def test_an_interrupted_run_leaves_no_partial_report(
 
 def test_published_names_the_final_folder(tmp_path: Path) -> None:
     work = tmp_path / ".report.msf-partial-1-x"
-    result = {"models": {"fp32": str(work / "models" / "a.onnx")},
-              "e2e": [{"command": f"msf-run S -o {work}/e2e/default", "median_s": 1.0}],
-              "data": {"stack": "/data/ball"}}
+    result = {
+        "models": {"fp32": str(work / "models" / "a.onnx")},
+        "e2e": [{"command": f"msf-run S -o {work}/e2e/default", "median_s": 1.0}],
+        "data": {"stack": "/data/ball"},
+    }
     got = cli.published(result, work, tmp_path / "report")
     assert got["models"]["fp32"] == str(tmp_path / "report" / "models" / "a.onnx")
     assert got["e2e"][0]["command"] == f"msf-run S -o {tmp_path / 'report'}/e2e/default"
@@ -173,8 +217,9 @@ def test_published_names_the_final_folder(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_a_quick_run_writes_one_complete_report(stack: Path, tmp_path: Path,
-                                                capfd: pytest.CaptureFixture[str]) -> None:
+def test_a_quick_run_writes_one_complete_report(
+    stack: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
     """The real benchmark (ort-fp32 and the torch reference, one thread, workload (d) included)
     on a small stack: everything it writes lies in the report folder, which names itself."""
     out = tmp_path / "report"
@@ -182,8 +227,14 @@ def test_a_quick_run_writes_one_complete_report(stack: Path, tmp_path: Path,
     argv = [a for a in _argv(stack, out) if a != "--no-e2e"]
     assert cli.main(argv) == 0, capfd.readouterr().err
     files = set(_tree(out))
-    assert {"REPORT.md", "report.json", MANIFEST, "models/msfnet_fp32.onnx",
-            "models/msfnet_fp32_staged.onnx", "models/random_seed0.pth"} <= files
+    assert {
+        "REPORT.md",
+        "report.json",
+        MANIFEST,
+        "models/msfnet_fp32.onnx",
+        "models/msfnet_fp32_staged.onnx",
+        "models/random_seed0.pth",
+    } <= files
     assert any(f.startswith("e2e/default/") for f in files)
     text = (out / "report.json").read_text()
     assert ".msf-partial" not in text and str(out / "models" / "msfnet_fp32.onnx") in text

@@ -8,7 +8,7 @@ import pytest
 
 from msfnet.bench.cli import build_parser, resolve_paths
 from msfnet.bench.data import data_root
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 
 def _tree(tmp_path: Path) -> tuple[Path, Path]:
@@ -44,7 +44,8 @@ def test_missing_folders_are_errors_naming_what_was_tried(tmp_path: Path) -> Non
 
 
 def test_default_stack_does_not_depend_on_the_install_location(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     cwd, data = _tree(tmp_path)
     (data / "psmImages" / "cat").mkdir(parents=True)
     monkeypatch.chdir(cwd)

@@ -42,15 +42,15 @@ def test_json_output_follows_the_output_rules(tmp_path: Path, capsys, monkeypatc
     assert str(out) in err[0] and "--overwrite" in err[0]
     assert out.read_text() == "earlier\n"
     monkeypatch.undo()
-    assert main(["--size", "48", "60", "--repeat", "1", "--json", str(out), "--overwrite",
-                 "-q"]) == 0
+    assert (
+        main(["--size", "48", "60", "--repeat", "1", "--json", str(out), "--overwrite", "-q"]) == 0
+    )
     assert json.loads(out.read_text())["frame"] == "60x48"
     assert capsys.readouterr().out == ""  # -q: errors only
     assert sorted(p.name for p in tmp_path.iterdir()) == ["maps.json"]  # no temporary left
 
 
-def test_json_output_must_be_a_file_and_options_are_checked(tmp_path: Path,
-                                                                     capsys) -> None:
+def test_json_output_must_be_a_file_and_options_are_checked(tmp_path: Path, capsys) -> None:
     assert main(["--json", str(tmp_path)]) == 2  # a folder
     assert capsys.readouterr().err.count("\n") == 1
     with pytest.raises(SystemExit) as exc:
@@ -64,8 +64,8 @@ def test_cpu_and_cores_come_from_runtime_cpu(monkeypatch) -> None:
     """One place knows the CPU: its model from runtime.cpu.detect_cpu, the cores from
     runtime.cpu.usable_cores (at least 1, also where the affinity query reports none)."""
     from msfnet.bench import maps
-    from msfnet.runtime import cpu
-    from msfnet.runtime.cpu import CpuInfo
+    from msfnet.common import cpu
+    from msfnet.common.cpu import CpuInfo
 
     monkeypatch.setattr(cpu, "detect_cpu", lambda: CpuInfo.from_flags([], model="Test CPU 9000"))
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(), raising=False)

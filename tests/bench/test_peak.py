@@ -18,11 +18,13 @@ def test_matmul_graphs_compute_a_matmul(dtype: str) -> None:
 
     n = 32
     model = matmul_onnx(n, dtype)
-    weights = {t.name: numpy_helper.to_array(t)
-               for t in load_from_string(model).graph.initializer}
+    weights = {t.name: numpy_helper.to_array(t) for t in load_from_string(model).graph.initializer}
     rng = np.random.default_rng(0)
-    a = (rng.integers(0, 256, (n, n), dtype=np.uint8) if dtype == "int8"
-         else rng.standard_normal((n, n)).astype(np.float32))
+    a = (
+        rng.integers(0, 256, (n, n), dtype=np.uint8)
+        if dtype == "int8"
+        else rng.standard_normal((n, n)).astype(np.float32)
+    )
     sess = ort.InferenceSession(model, providers=["CPUExecutionProvider"])
     y = sess.run(None, {"A": a})[0]
     if dtype == "qdq":  # A quantised with scale 0.02 / zero 128, B dequantised with 0.01
@@ -51,10 +53,14 @@ def test_openvino_peak_runs() -> None:
 def test_merged_peak_is_the_best_measurement() -> None:
     from msfnet.bench.peak import merge_peaks
 
-    before = [{"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 40.0},
-              {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 900.0}]
-    after = [{"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 290.0},
-             {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 150.0}]
+    before = [
+        {"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 40.0},
+        {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 900.0},
+    ]
+    after = [
+        {"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 290.0},
+        {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 150.0},
+    ]
     merged = {(p["engine"], p["dtype"]): p for p in merge_peaks(before, after)}
     assert merged[("onnxruntime", "fp32")]["gflops"] == 290.0
     assert merged[("openvino", "bf16")]["gflops"] == 900.0
@@ -69,5 +75,5 @@ def test_growth_stops_at_a_slow_small_size_and_keeps_the_fastest_size() -> None:
 
     n, times, per_size = _grow_and_time(slow, min_seconds=0.01, max_size=4096, repeats=2)
     assert n == 256 and len(times) == 2 and list(per_size) == [256]
-    n, _, per_size = _grow_and_time(lambda n: (lambda: None), 1.0, 2048, 2)
+    n, _, per_size = _grow_and_time(lambda n: lambda: None, 1.0, 2048, 2)
     assert list(per_size) == [1024, 2048] and n in per_size

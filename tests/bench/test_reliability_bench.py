@@ -10,10 +10,13 @@ pytest.importorskip("torch")
 from msfnet.bench import cli
 
 
-@pytest.mark.parametrize("option", [["--max-memory", "nan"], ["--max-memory", "-1"],
-                                    ["--threads", "x"], ["--threads", "0"]])
-def test_options_are_refused_before_benchmarking(option: list[str], tmp_path, monkeypatch,
-                                                 capfd) -> None:
+@pytest.mark.parametrize(
+    "option",
+    [["--max-memory", "nan"], ["--max-memory", "-1"], ["--threads", "x"], ["--threads", "0"]],
+)
+def test_options_are_refused_before_benchmarking(
+    option: list[str], tmp_path, monkeypatch, capfd
+) -> None:
     def reached(args: object) -> None:
         raise AssertionError(f"{option} reached the benchmark unchecked")
 
@@ -28,8 +31,9 @@ def test_options_are_refused_before_benchmarking(option: list[str], tmp_path, mo
 def test_without_torch_nothing_is_written_or_printed_but_one_line(tmp_path) -> None:
     from _runtime_helpers import run_without_torch
 
-    done = run_without_torch("msfnet.bench.cli", ["--quick", "--report-dir", str(tmp_path / "r")],
-                             cwd=tmp_path)
+    done = run_without_torch(
+        "msfnet.bench.cli", ["--quick", "--report-dir", str(tmp_path / "r")], cwd=tmp_path
+    )
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "needs the Python package 'torch'" in lines[0], lines

@@ -10,10 +10,21 @@ from msfnet.bench.workloads import WORKLOADS
 
 
 def _row(wl, variant, threads, median, lights, pixels):
-    return {"workload": wl, "label": wl, "variant": variant, "threads": threads,
-            "median_s": median, "p90_s": median, "peak_rss_mb": 100.0, "lights": lights,
-            "pixels": pixels, "gflop": 1.0, "gflops_per_s": 1.0 / median,
-            "max_deg": 0.1, "mean_deg": 0.01}
+    return {
+        "workload": wl,
+        "label": wl,
+        "variant": variant,
+        "threads": threads,
+        "median_s": median,
+        "p90_s": median,
+        "peak_rss_mb": 100.0,
+        "lights": lights,
+        "pixels": pixels,
+        "gflop": 1.0,
+        "gflops_per_s": 1.0 / median,
+        "max_deg": 0.1,
+        "mean_deg": 0.01,
+    }
 
 
 def test_per_light_extrapolation_is_linear():
@@ -37,18 +48,47 @@ def test_full_schedule_has_reference_first_and_required_cells():
 
 
 def test_report_ratios_and_files(tmp_path):
-    rows = [_row("b", "torch-fp32", 2, 4.0, 32, 16384), _row("b", "ort-fp32", 2, 2.0, 32, 16384),
-            _row("b", "ort-int8", 2, 0.5, 32, 16384), _row("b", "per-light", 2, 8.0, 32, 16384)]
-    result = {"date": "d", "quick": True, "elapsed_s": 1.0, "rows": rows,
-              "machine": {"cpu": "x", "cores": 2, "isa_flags": [], "platform": "p",
-                          "python": "3", "onnxruntime": "1"},
-              "peaks": [{"dtype": "fp32", "threads": 2, "gflops": 2.0}],
-              "models": {"random_weights": True, "checkpoint": "c"}, "variants": {},
-              "e2e": [{"variant": "default", "threads": 2, "lights": 32, "height": 128,
-                       "width": 256, "median_s": 1.0, "peak_rss_mb": 500.0,
-                       "mean_deg_vs_fp32": 0.2, "max_deg_vs_fp32": 1.0,
-                       "engine": "onnxruntime", "precision": "int8", "graph": "monolithic",
-                       "command": "msf-run STACK", "choice": "onnxruntime int8: why"}]}
+    rows = [
+        _row("b", "torch-fp32", 2, 4.0, 32, 16384),
+        _row("b", "ort-fp32", 2, 2.0, 32, 16384),
+        _row("b", "ort-int8", 2, 0.5, 32, 16384),
+        _row("b", "per-light", 2, 8.0, 32, 16384),
+    ]
+    result = {
+        "date": "d",
+        "quick": True,
+        "elapsed_s": 1.0,
+        "rows": rows,
+        "machine": {
+            "cpu": "x",
+            "cores": 2,
+            "isa_flags": [],
+            "platform": "p",
+            "python": "3",
+            "onnxruntime": "1",
+        },
+        "peaks": [{"dtype": "fp32", "threads": 2, "gflops": 2.0}],
+        "models": {"random_weights": True, "checkpoint": "c"},
+        "variants": {},
+        "e2e": [
+            {
+                "variant": "default",
+                "threads": 2,
+                "lights": 32,
+                "height": 128,
+                "width": 256,
+                "median_s": 1.0,
+                "peak_rss_mb": 500.0,
+                "mean_deg_vs_fp32": 0.2,
+                "max_deg_vs_fp32": 1.0,
+                "engine": "onnxruntime",
+                "precision": "int8",
+                "graph": "monolithic",
+                "command": "msf-run STACK",
+                "choice": "onnxruntime int8: why",
+            }
+        ],
+    }
     files = write_report(result, tmp_path)
     data = json.loads((tmp_path / "report.json").read_text())
     int8 = next(r for r in data["rows"] if r["variant"] == "ort-int8")
@@ -66,20 +106,48 @@ def test_report_ratios_and_files(tmp_path):
 
 
 def test_each_variant_is_compared_with_its_own_precisions_peak(tmp_path):
-    rows = [_row("b", "ort-fp32", 2, 2.0, 32, 16384), _row("b", "ort-int8", 2, 1.0, 32, 16384),
-            _row("b", "ov-bf16", 2, 0.25, 32, 16384), _row("b", "torch-fp32", 2, 4.0, 32, 16384)]
-    peaks = [{"engine": "torch", "dtype": "fp32", "threads": 2, "gflops": 1.0},
-             {"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 2.0},
-             {"engine": "onnxruntime", "dtype": "int8", "threads": 2, "gflops": 20.0},
-             {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 8.0}]
-    features = {"avx2": True, "avx512f": True, "avx512_vnni": True, "avx_vnni": True,
-                "avx512_bf16": True, "amx_bf16": True, "amx_int8": True, "source": "py-cpuinfo"}
-    result = {"date": "d", "quick": True, "elapsed_s": 1.0, "rows": rows, "peaks": peaks,
-              "machine": {"cpu": "Xeon", "cores": 2, "isa_flags": ["amx_bf16"],
-                          "cpu_features": features, "platform": "p", "python": "3",
-                          "onnxruntime": "1", "openvino": "2026.4"},
-              "models": {"random_weights": True, "checkpoint": "c"}, "variants": {},
-              "dispatch": {"fp32": "openvino bf16: fp32 model; CPU has native bf16 (AMX)"}}
+    rows = [
+        _row("b", "ort-fp32", 2, 2.0, 32, 16384),
+        _row("b", "ort-int8", 2, 1.0, 32, 16384),
+        _row("b", "ov-bf16", 2, 0.25, 32, 16384),
+        _row("b", "torch-fp32", 2, 4.0, 32, 16384),
+    ]
+    peaks = [
+        {"engine": "torch", "dtype": "fp32", "threads": 2, "gflops": 1.0},
+        {"engine": "onnxruntime", "dtype": "fp32", "threads": 2, "gflops": 2.0},
+        {"engine": "onnxruntime", "dtype": "int8", "threads": 2, "gflops": 20.0},
+        {"engine": "openvino", "dtype": "bf16", "threads": 2, "gflops": 8.0},
+    ]
+    features = {
+        "avx2": True,
+        "avx512f": True,
+        "avx512_vnni": True,
+        "avx_vnni": True,
+        "avx512_bf16": True,
+        "amx_bf16": True,
+        "amx_int8": True,
+        "source": "py-cpuinfo",
+    }
+    result = {
+        "date": "d",
+        "quick": True,
+        "elapsed_s": 1.0,
+        "rows": rows,
+        "peaks": peaks,
+        "machine": {
+            "cpu": "Xeon",
+            "cores": 2,
+            "isa_flags": ["amx_bf16"],
+            "cpu_features": features,
+            "platform": "p",
+            "python": "3",
+            "onnxruntime": "1",
+            "openvino": "2026.4",
+        },
+        "models": {"random_weights": True, "checkpoint": "c"},
+        "variants": {},
+        "dispatch": {"fp32": "openvino bf16: fp32 model; CPU has native bf16 (AMX)"},
+    }
     write_report(result, tmp_path)
     data = {r["variant"]: r for r in json.loads((tmp_path / "report.json").read_text())["rows"]}
     # gflops_per_s is 1/median: 0.5, 1, 4, 0.25 GFLOP/s
@@ -93,8 +161,10 @@ def test_each_variant_is_compared_with_its_own_precisions_peak(tmp_path):
     assert "amx_bf16 yes" in md and "avx512_bf16 yes" in md and "openvino 2026.4" in md
     assert "dispatch on this machine, fp32 model: openvino bf16" in md
     # the fastest (b) variant against its own precision's peak
-    assert "fastest variant on (b), ov-bf16: 50 % of the same-run openvino bf16 matmul peak: " \
+    assert (
+        "fastest variant on (b), ov-bf16: 50 % of the same-run openvino bf16 matmul peak: "
         "target >= 80 % **not met**" in md
+    )
 
 
 def test_openvino_bf16_variants_are_scheduled_on_every_workload():

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from msfnet.calib import cameras
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 dai = pytest.importorskip("depthai")
 
@@ -74,8 +74,10 @@ def test_capture_from_real_oak(devices):
 
 
 def test_calib_never_imports_torch_depthai_or_serial():
-    code = ("import sys; import msfnet.calib.cli, msfnet.calib.capture_cli, msfnet.calib.capture, "
-            "msfnet.calib.cameras, msfnet.calib.lights; "
-            "print(sorted(m for m in ('torch', 'depthai', 'serial') if m in sys.modules))")
+    code = (
+        "import sys; import msfnet.calib.cli, msfnet.calib.capture_cli, msfnet.calib.capture, "
+        "msfnet.calib.cameras, msfnet.calib.lights; "
+        "print(sorted(m for m in ('torch', 'depthai', 'serial') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -11,10 +11,10 @@ from msfnet.calib import capture_cli, cli
 from msfnet.calib.cameras import SimulatedCamera
 from msfnet.calib.capture import capture_stack, exposure_check
 from msfnet.calib.lights import ManualLights, SerialLights, SimulatedLights, SimulatedRig
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import read_image
-from msfnet.runtime.least_squares import least_squares_normals
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.common.errors import InputError
+from msfnet.common.imageio import read_image
+from msfnet.runtime.evaluate.metrics import angular_error_deg
+from msfnet.runtime.infer.least_squares import least_squares_normals
 from msfnet.runtime.stack import load_stack, save_stack
 from msfnet.synth import spheres as S
 
@@ -38,26 +38,45 @@ def test_capture_calibrate_resume_load(tmp_path, rng):
     intens = rng.uniform(0.7, 1.3, (10, 3))
     # 1. Calibration capture of a chrome sphere, then msf-calib directions on it.
     chrome = SimulatedRig(S.mirror_scene(160, 128, 56), lights, intens, gain=0.02, bit_depth=8)
-    cal = capture_stack(SimulatedCamera(chrome), SimulatedLights(chrome), tmp_path / "cal",
-                        mask=S.sphere_masks(chrome.scene)[0], progress=False, log=lambda m: None)
+    cal = capture_stack(
+        SimulatedCamera(chrome),
+        SimulatedLights(chrome),
+        tmp_path / "cal",
+        mask=S.sphere_masks(chrome.scene)[0],
+        progress=False,
+        log=lambda m: None,
+    )
     write = tmp_path / "light_directions.txt"
     # raw/ holds ambient.png (subtracted automatically); the sphere mask comes from the rig.
-    assert cli.main(["directions", str(cal / "raw"), "--mask", str(cal / "mask.png"),
-                     "-o", str(write)]) == 0
+    assert (
+        cli.main(
+            ["directions", str(cal / "raw"), "--mask", str(cal / "mask.png"), "-o", str(write)]
+        )
+        == 0
+    )
     # 2. Object capture (matte sphere), interrupted after 6 of 11 frames (ambient + 10).
     rig = SimulatedRig(S.mirror_scene(160, 128, 56, kind="matte"), lights, intens, noise=20.0)
     out = tmp_path / "obj"
     with pytest.raises(KeyboardInterrupt):
-        capture_stack(Interrupting(rig, 6), SimulatedLights(rig), out, progress=False,
-                      log=lambda m: None)
+        capture_stack(
+            Interrupting(rig, 6), SimulatedLights(rig), out, progress=False, log=lambda m: None
+        )
     assert len(list((out / "raw").glob("*.png"))) == 6
     assert not (out / "filenames.txt").exists()
     assert not list((out / "raw").glob(".*"))  # no half-written temporaries
     cam = Interrupting(rig, 100)
     logs = []
     mask = S.sphere_masks(rig.scene)[0]
-    capture_stack(cam, SimulatedLights(rig), out, light_directions=write,
-                  light_intensities=intens, mask=mask, progress=False, log=logs.append)
+    capture_stack(
+        cam,
+        SimulatedLights(rig),
+        out,
+        light_directions=write,
+        light_intensities=intens,
+        mask=mask,
+        progress=False,
+        log=logs.append,
+    )
     assert cam.count == 5 and any("resuming: 6 of 11" in m for m in logs)
     session = json.loads((out / "session.json").read_text())
     assert len(session["frames"]) == 10 and session["count"] == 10
@@ -72,19 +91,30 @@ def test_capture_calibrate_resume_load(tmp_path, rng):
     assert lit.sum() > 2000 and err.mean() < 1.5
     # Resuming a finished session captures nothing and rebuilds the same stack.
     cam2 = Interrupting(rig, 0)
-    capture_stack(cam2, SimulatedLights(rig), out, light_directions=write, progress=False,
-                  log=lambda m: None)
+    capture_stack(
+        cam2, SimulatedLights(rig), out, light_directions=write, progress=False, log=lambda m: None
+    )
     assert cam2.count == 0
 
 
 def _small_capture(out, normals=None, log=lambda m: None):
-    rig = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(6),
-                       np.linspace(0.8, 1.2, 18).reshape(6, 3))
+    rig = SimulatedRig(
+        S.mirror_scene(48, 40, 16, kind="matte"),
+        S.ring_lights(6),
+        np.linspace(0.8, 1.2, 18).reshape(6, 3),
+    )
     gt = S.sphere_normals(rig.scene) if normals is None else normals
-    return capture_stack(SimulatedCamera(rig), SimulatedLights(rig), out,
-                         light_directions=rig.lights, light_intensities=rig.intensities,
-                         mask=S.sphere_masks(rig.scene)[0], normals_gt=gt, progress=False,
-                         log=log)
+    return capture_stack(
+        SimulatedCamera(rig),
+        SimulatedLights(rig),
+        out,
+        light_directions=rig.lights,
+        light_intensities=rig.intensities,
+        mask=S.sphere_masks(rig.scene)[0],
+        normals_gt=gt,
+        progress=False,
+        log=log,
+    )
 
 
 def test_capture_writes_the_files_save_stack_writes(tmp_path):
@@ -92,8 +122,13 @@ def test_capture_writes_the_files_save_stack_writes(tmp_path):
     out = _small_capture(tmp_path / "cap")
     stack = load_stack(out)
     again = save_stack(stack, tmp_path / "saved")
-    for name in ("filenames.txt", "light_directions.txt", "light_intensities.txt", "mask.png",
-                 *stack.filenames):
+    for name in (
+        "filenames.txt",
+        "light_directions.txt",
+        "light_intensities.txt",
+        "mask.png",
+        *stack.filenames,
+    ):
         assert (out / name).read_bytes() == (again / name).read_bytes(), name
     assert (out / "Normal_gt.mat").is_file() and not (out / "Normal_gt.npy").exists()
     np.testing.assert_array_equal(load_stack(again).normals_gt, stack.normals_gt)
@@ -196,8 +231,9 @@ def test_resume_with_another_exposure_is_refused(tmp_path):
     rig = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(6))
     out = tmp_path / "cap"
     with pytest.raises(KeyboardInterrupt):
-        capture_stack(Interrupting(rig, 3), SimulatedLights(rig), out, progress=False,
-                      log=lambda m: None)
+        capture_stack(
+            Interrupting(rig, 3), SimulatedLights(rig), out, progress=False, log=lambda m: None
+        )
     # Interrupting reports the simulated camera's info: give the session an exposure
     session = json.loads((out / "session.json").read_text())
     session["camera"] = {"backend": "opencv", "device": "0", "exposure": -6.0, "gain": 0.0}
@@ -218,11 +254,24 @@ def test_overwrite_replaces_every_file_of_the_previous_stack(tmp_path):
     out = _small_capture(tmp_path / "cap")
     (out / "Normal_gt.npy").write_bytes(b"an older capture's ground truth")
     rig = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(4))
-    capture_stack(SimulatedCamera(rig), SimulatedLights(rig), out, overwrite=True,
-                  progress=False, log=lambda m: None)
+    capture_stack(
+        SimulatedCamera(rig),
+        SimulatedLights(rig),
+        out,
+        overwrite=True,
+        progress=False,
+        log=lambda m: None,
+    )
     # nothing of the 6-light session is left to be read with the new frames
     assert sorted(p.name for p in out.iterdir()) == [
-        "001.png", "002.png", "003.png", "004.png", "filenames.txt", "raw", "session.json"]
+        "001.png",
+        "002.png",
+        "003.png",
+        "004.png",
+        "filenames.txt",
+        "raw",
+        "session.json",
+    ]
 
 
 def test_frames_captured_into_a_built_session_rebuild_its_stack(tmp_path):
@@ -230,10 +279,16 @@ def test_frames_captured_into_a_built_session_rebuild_its_stack(tmp_path):
     session's record of how they were built is dropped when new frames arrive."""
     out = _small_capture(tmp_path / "cap")
     (out / "raw" / "002.png").unlink()
-    brighter = SimulatedRig(S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(6),
-                            gain=0.4)  # same camera info, another picture
-    capture_stack(SimulatedCamera(brighter), SimulatedLights(brighter), out, progress=False,
-                  log=lambda m: None)
+    brighter = SimulatedRig(
+        S.mirror_scene(48, 40, 16, kind="matte"), S.ring_lights(6), gain=0.4
+    )  # same camera info, another picture
+    capture_stack(
+        SimulatedCamera(brighter),
+        SimulatedLights(brighter),
+        out,
+        progress=False,
+        log=lambda m: None,
+    )
     raw = read_image(out / "raw" / "002.png").astype(np.int64)
     amb = read_image(out / "raw" / "ambient.png").astype(np.int64)
     np.testing.assert_array_equal(read_image(out / "002.png"), (raw - amb).clip(0))

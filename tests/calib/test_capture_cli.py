@@ -11,9 +11,9 @@ import pytest
 
 from msfnet.calib.capture_cli import main as capture_main
 from msfnet.calib.cli import main as calib_main
-from msfnet.runtime.imageio import read_image
-from msfnet.runtime.metrics import angular_error_deg
-from msfnet.runtime.run_cli import main as run_main
+from msfnet.common.imageio import read_image
+from msfnet.runtime.cli.run import main as run_main
+from msfnet.runtime.evaluate.metrics import angular_error_deg
 from msfnet.runtime.stack import load_stack, read_vectors
 from msfnet.runtime.stack.transforms import srgb_to_linear
 from msfnet.synth.spheres import ring_lights
@@ -30,8 +30,9 @@ def _rehearse(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     assert capture_main(["obj/", *SIM, "--light-directions", "lights.txt"]) == 0
 
 
-def test_no_hardware_rehearsal_through_the_clis(tmp_path: Path,
-                                                monkeypatch: pytest.MonkeyPatch) -> None:
+def test_no_hardware_rehearsal_through_the_clis(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     _rehearse(tmp_path, monkeypatch)
     calibrated = read_vectors(tmp_path / "lights.txt", "light directions")
     err = angular_error_deg(calibrated, ring_lights(12))
@@ -42,8 +43,10 @@ def test_no_hardware_rehearsal_through_the_clis(tmp_path: Path,
     assert stack.normals_gt is not None and 0.2 < stack.mask.mean() < 0.6
     assert run_main(["obj/", "--method", "l2", "-q"]) == 0
     metrics = json.loads((tmp_path / "msf-out" / "obj" / "metrics.json").read_text())
-    print(f"least squares on the rehearsal stack: MAE {metrics['mae_deg']:.3f} deg, median "
-          f"{metrics['median_deg']:.3f} deg")
+    print(
+        f"least squares on the rehearsal stack: MAE {metrics['mae_deg']:.3f} deg, median "
+        f"{metrics['median_deg']:.3f} deg"
+    )
     # (the mean includes the rim, where attached shadows bend least squares by design)
     assert metrics["median_deg"] < 1.0 and metrics["mae_deg"] < 5.0
     assert metrics["pixels"] == int(stack.mask.sum())
@@ -51,7 +54,8 @@ def test_no_hardware_rehearsal_through_the_clis(tmp_path: Path,
 
 @pytest.mark.slow
 def test_no_hardware_rehearsal_with_the_bundled_network(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     _rehearse(tmp_path, monkeypatch)
     assert run_main(["obj/", "-q"]) == 0  # exactly the README's last step
     metrics = json.loads((tmp_path / "msf-out" / "obj" / "metrics.json").read_text())
@@ -59,8 +63,9 @@ def test_no_hardware_rehearsal_with_the_bundled_network(
     assert metrics["mae_deg"] < 10.0 and metrics["invalid"] == 0
 
 
-def test_rerun_on_a_finished_folder_keeps_it(tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+def test_rerun_on_a_finished_folder_keeps_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "obj"
     assert capture_main([str(out), "--camera", "sim", "--count", "6"]) == 0
     stamps = {p.name: p.stat().st_mtime_ns for p in out.rglob("*.png")}
@@ -75,21 +80,23 @@ def test_rerun_on_a_finished_folder_keeps_it(tmp_path: Path,
     assert "has 6 lights, this one 8" in capsys.readouterr().err
 
 
-def test_inputs_are_checked_before_the_first_frame(tmp_path: Path,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
+def test_inputs_are_checked_before_the_first_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     bad_count = tmp_path / "five.txt"
     bad_count.write_text("0 0 1\n" * 5)
     flat = tmp_path / "flat.txt"  # 12 lights in one plane: normals cannot be recovered
-    flat.write_text("".join(f"{np.cos(a):.4f} {np.sin(a):.4f} 0\n"
-                            for a in np.linspace(0, 6, 12)))
+    flat.write_text("".join(f"{np.cos(a):.4f} {np.sin(a):.4f} 0\n" for a in np.linspace(0, 6, 12)))
     small_mask = tmp_path / "mask.png"
     import cv2
 
     cv2.imwrite(str(small_mask), np.full((10, 10), 255, np.uint8))
-    cases = [(["--light-directions", str(bad_count)], "5 light directions for 12 lights"),
-             (["--light-directions", str(flat)], "do not span 3-D"),
-             (["--mask", str(small_mask)], "mask is 10x10 but the camera delivers 160x128"),
-             (["--mask", str(tmp_path / "none.png")], "not found")]
+    cases = [
+        (["--light-directions", str(bad_count)], "5 light directions for 12 lights"),
+        (["--light-directions", str(flat)], "do not span 3-D"),
+        (["--mask", str(small_mask)], "mask is 10x10 but the camera delivers 160x128"),
+        (["--mask", str(tmp_path / "none.png")], "not found"),
+    ]
     for i, (extra, message) in enumerate(cases):
         out = tmp_path / f"o{i}"
         assert capture_main([str(out), "--camera", "sim", *extra]) == 2, extra
@@ -97,9 +104,9 @@ def test_inputs_are_checked_before_the_first_frame(tmp_path: Path,
         assert not (out / "raw").exists()  # nothing was captured
 
 
-def test_a_folder_of_someone_elses_images_is_refused(tmp_path: Path,
-                                                     capsys: pytest.CaptureFixture[str]
-                                                     ) -> None:
+def test_a_folder_of_someone_elses_images_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     import cv2
 
     theirs = tmp_path / "photos"
@@ -108,16 +115,20 @@ def test_a_folder_of_someone_elses_images_is_refused(tmp_path: Path,
     assert capture_main([str(theirs), "--camera", "sim", "--count", "4"]) == 2
     assert "images msf-capture did not take (e.g. IMG_0001.png" in capsys.readouterr().err
     assert sorted(p.name for p in theirs.iterdir()) == ["IMG_0001.png"]
-    assert capture_main([str(theirs), "--camera", "sim", "--count", "4", "--overwrite",
-                         "-q"]) == 0
+    assert capture_main([str(theirs), "--camera", "sim", "--count", "4", "--overwrite", "-q"]) == 0
     assert (theirs / "IMG_0001.png").is_file() and (theirs / "004.png").is_file()
 
 
-def test_loop_captures_and_runs_numbered_takes(tmp_path: Path,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_loop_captures_and_runs_numbered_takes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     root = tmp_path / "takes"
-    assert capture_main([str(root), "--camera", "sim", "--count", "6", "--loop", "2",
-                         "--run", "--method", "l2"]) == 0
+    assert (
+        capture_main(
+            [str(root), "--camera", "sim", "--count", "6", "--loop", "2", "--run", "--method", "l2"]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "take 001" in printed and "take 002" in printed and "MAE" in printed
     for take in ("001", "002"):
@@ -126,8 +137,7 @@ def test_loop_captures_and_runs_numbered_takes(tmp_path: Path,
     # an interrupted take is resumed by the next loop, not skipped
     (root / "003" / "raw").mkdir(parents=True)
     (root / "003" / "session.json").write_text(json.dumps({"count": 6, "frames": {}}))
-    assert capture_main([str(root), "--camera", "sim", "--count", "6", "--loop", "1",
-                         "-q"]) == 0
+    assert capture_main([str(root), "--camera", "sim", "--count", "6", "--loop", "1", "-q"]) == 0
     assert load_stack(root / "003").num_lights == 6 and not (root / "004").exists()
 
 
@@ -135,21 +145,28 @@ def test_capture_loop_api(tmp_path: Path) -> None:
     from msfnet.calib.cameras import SimulatedCamera
     from msfnet.calib.capture import capture_loop
     from msfnet.calib.lights import SimulatedLights, SimulatedRig
-    from msfnet.runtime.pipeline import Model
+    from msfnet.runtime.api import Model
     from msfnet.synth.spheres import mirror_scene
 
     rig = SimulatedRig(mirror_scene(48, 40, 16, kind="matte"), ring_lights(5))
-    steps = capture_loop(SimulatedCamera(rig), SimulatedLights(rig), tmp_path / "live",
-                         iterations=2, model=Model.least_squares(),
-                         light_directions=rig.lights, progress=False, log=lambda m: None)
+    steps = capture_loop(
+        SimulatedCamera(rig),
+        SimulatedLights(rig),
+        tmp_path / "live",
+        iterations=2,
+        model=Model.least_squares(),
+        light_directions=rig.lights,
+        progress=False,
+        log=lambda m: None,
+    )
     got = list(steps)
     assert [s.stack.name for s in got] == ["001", "002"]
-    assert all(s.result is not None and s.output is not None and s.output.is_dir()
-               for s in got)
+    assert all(s.result is not None and s.output is not None and s.output.is_dir() for s in got)
 
 
-def test_linearisation_is_applied_and_recorded(tmp_path: Path,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_linearisation_is_applied_and_recorded(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     out = tmp_path / "cam"
     assert capture_main([str(out), "--camera", "sim", "--count", "4", "--srgb", "-q"]) == 0
     session = json.loads((out / "session.json").read_text())
@@ -169,8 +186,7 @@ def test_linearisation_is_applied_and_recorded(tmp_path: Path,
 
 
 def test_cli_conventions(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert capture_main(["-o", str(tmp_path / "a"), "--camera", "sim", "--count", "4",
-                         "-q"]) == 0
+    assert capture_main(["-o", str(tmp_path / "a"), "--camera", "sim", "--count", "4", "-q"]) == 0
     assert (tmp_path / "a" / "004.png").is_file()
     assert capture_main([str(tmp_path / "b"), "-o", str(tmp_path / "c"), "--camera", "sim"]) == 2
     assert "once" in capsys.readouterr().err
@@ -200,8 +216,9 @@ def test_overwrite_rebuilds_the_stack_from_the_new_frames(tmp_path: Path) -> Non
     (the 'already built' test passed on the fresh session): a silently stale stack."""
     out = tmp_path / "o"
     assert capture_main([str(out), *SIM, "--count", "6"]) == 0
-    assert capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome",
-                         "--overwrite"]) == 0
+    assert (
+        capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome", "--overwrite"]) == 0
+    )
     amb = read_image(out / "raw" / "ambient.png").astype(np.int64)
     for i in range(1, 5):  # each stack image is the new raw frame less the new ambient
         raw = read_image(out / "raw" / f"{i:03d}.png").astype(np.int64)
@@ -226,19 +243,28 @@ def test_overwrite_deletes_only_the_frames_msf_capture_writes(tmp_path: Path) ->
     assert capture_main([str(out), *SIM, "--count", "4", "--overwrite"]) == 0
     assert holiday.read_bytes() == kept
     assert sorted(p.name for p in (out / "raw").iterdir()) == [
-        "001.png", "002.png", "003.png", "004.png", "ambient.png", "holiday.png"]
+        "001.png",
+        "002.png",
+        "003.png",
+        "004.png",
+        "ambient.png",
+        "holiday.png",
+    ]
 
 
 def test_an_interrupted_overwrite_never_resumes_into_old_frames(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Killed right after --overwrite discarded the old session: the next plain run captures
     every frame anew (none of the old ones counts) and builds the stack from them."""
     out = tmp_path / "o"
     assert capture_main([str(out), *SIM, "--count", "4"]) == 0
     with monkeypatch.context() as m:
         _interrupt_after(m, 0)
-        assert capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome",
-                             "--overwrite"]) == 130
+        assert (
+            capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome", "--overwrite"])
+            == 130
+        )
     assert sorted(p.name for p in out.iterdir()) == ["raw", "session.json"]
     assert not list((out / "raw").iterdir())
     assert capture_main([str(out), *SIM, "--count", "4", "--sim-scene", "chrome"]) == 0
@@ -246,8 +272,8 @@ def test_an_interrupted_overwrite_never_resumes_into_old_frames(
 
 
 def test_resume_with_other_camera_settings_is_refused(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        capsys: pytest.CaptureFixture[str]) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Resuming with another scene used to mix frames of both setups into one stack."""
     out = tmp_path / "b"
     with monkeypatch.context() as m:
@@ -258,8 +284,13 @@ def test_resume_with_other_camera_settings_is_refused(
     assert capture_main([str(out), *SIM, "--count", "6", "--sim-scene", "chrome"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("msf-capture: error: "), err
-    assert "session.json" in err[0] and "scene" in err[0] and "matte" in err[0] \
-        and "chrome" in err[0] and "--overwrite" in err[0], err
+    assert (
+        "session.json" in err[0]
+        and "scene" in err[0]
+        and "matte" in err[0]
+        and "chrome" in err[0]
+        and "--overwrite" in err[0]
+    ), err
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     # the same settings resume; a finished stack is refused another scene as well
     assert capture_main([str(out), *SIM, "--count", "6"]) == 0
@@ -268,8 +299,8 @@ def test_resume_with_other_camera_settings_is_refused(
 
 
 def test_a_kill_while_overwrite_discards_leaves_no_resumable_mix(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-        capsys: pytest.CaptureFixture[str]) -> None:
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Killed after session.json went but before every old frame did: a plain re-run refuses
     the folder (no old frame is resumed into a new session); --overwrite starts over."""
     out = tmp_path / "o"

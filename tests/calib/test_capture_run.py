@@ -11,8 +11,20 @@ from msfnet.calib.capture_cli import main as capture_main
 
 def test_capture_then_run_with_the_simulated_rig(tmp_path: Path, capsys) -> None:
     stack_dir, out = tmp_path / "captured", tmp_path / "out"
-    args = [str(stack_dir), "--camera", "sim", "--light-rig", "sim", "--count", "8",
-            "--run", "--method", "l2", "-o", str(out)]
+    args = [
+        str(stack_dir),
+        "--camera",
+        "sim",
+        "--light-rig",
+        "sim",
+        "--count",
+        "8",
+        "--run",
+        "--method",
+        "l2",
+        "-o",
+        str(out),
+    ]
     assert capture_main(args) == 0, capsys.readouterr().err
     assert (stack_dir / "light_directions.txt").is_file()
     normals = np.load(out / "normals.npy", allow_pickle=False)

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from msfnet.calib import cli
-from msfnet.runtime.files import STAGING_TAG
-from msfnet.runtime.imageio import write_png
+from msfnet.common.files import STAGING_TAG
+from msfnet.common.imageio import write_png
 from msfnet.runtime.stack import read_vectors
 from msfnet.synth import spheres as S
 
@@ -30,8 +30,10 @@ def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("capture") / "chrome"
     folder.mkdir()
     for i, light in enumerate(lights):
-        write_png(folder / f"{i + 1:02d}.png",
-                  S.expose(S.render(scene, light), 1.0, 8, 1.0, np.random.default_rng(i)))
+        write_png(
+            folder / f"{i + 1:02d}.png",
+            S.expose(S.render(scene, light), 1.0, 8, 1.0, np.random.default_rng(i)),
+        )
     write_png(folder / "mask.png", S.sphere_masks(scene)[0].astype(np.uint8) * 255)
     return folder
 
@@ -68,27 +70,41 @@ def test_directions_writes_all_three_outputs(chrome: Path, tmp_path: Path, capfd
 # name: (prepare(tmp, chrome) -> extra argv, words) -- every case: exit 2, one line,
 # nothing created and nothing changed
 REFUSED: dict[str, tuple[Callable[[Path, Path], list[str]], list[str]]] = {
-    "confidence file exists": (lambda t, c: _existing(t / "l_confidence.txt"),
-                               ["l_confidence.txt", "--overwrite"]),
-    "diagnostic exists": (lambda t, c: _existing(t / "l_diagnostic.png"),
-                          ["l_diagnostic.png", "--overwrite"]),
-    "--diagnostic target exists": (lambda t, c: ["--diagnostic", _make(t / "mine.png")[0]],
-                                   ["mine.png", "--overwrite"]),
+    "confidence file exists": (
+        lambda t, c: _existing(t / "l_confidence.txt"),
+        ["l_confidence.txt", "--overwrite"],
+    ),
+    "diagnostic exists": (
+        lambda t, c: _existing(t / "l_diagnostic.png"),
+        ["l_diagnostic.png", "--overwrite"],
+    ),
+    "--diagnostic target exists": (
+        lambda t, c: ["--diagnostic", _make(t / "mine.png")[0]],
+        ["mine.png", "--overwrite"],
+    ),
     "lights file exists": (lambda t, c: _existing(t / "l.txt"), ["l.txt", "--overwrite"]),
-    "--diagnostic is an input image": (lambda t, c: ["--diagnostic", str(c / "01.png"),
-                                                     "--overwrite"], ["input"]),
-    "--diagnostic is the mask": (lambda t, c: ["--diagnostic", str(c / "mask.png"),
-                                               "--overwrite"], ["input"]),
-    "--diagnostic is the lights file": (lambda t, c: ["-o", str(t / "d.png"), "--diagnostic",
-                                                      str(t / "d.png")], ["same file"]),
-    "--diagnostic not an image name": (lambda t, c: ["--diagnostic", str(t / "d.txt")],
-                                       [".png"]),
-    "--diagnostic under a file": (lambda t, c: ["--diagnostic",
-                                                str(Path(_make(t / "f")[0]) / "d.png")],
-                                  ["is a file, not a folder"]),
+    "--diagnostic is an input image": (
+        lambda t, c: ["--diagnostic", str(c / "01.png"), "--overwrite"],
+        ["input"],
+    ),
+    "--diagnostic is the mask": (
+        lambda t, c: ["--diagnostic", str(c / "mask.png"), "--overwrite"],
+        ["input"],
+    ),
+    "--diagnostic is the lights file": (
+        lambda t, c: ["-o", str(t / "d.png"), "--diagnostic", str(t / "d.png")],
+        ["same file"],
+    ),
+    "--diagnostic not an image name": (lambda t, c: ["--diagnostic", str(t / "d.txt")], [".png"]),
+    "--diagnostic under a file": (
+        lambda t, c: ["--diagnostic", str(Path(_make(t / "f")[0]) / "d.png")],
+        ["is a file, not a folder"],
+    ),
     "--intrinsics 0 0 0 0": (lambda t, c: ["--intrinsics", "0", "0", "0", "0"], ["positive"]),
-    "--focal with --intrinsics": (lambda t, c: ["--focal", "100", "--intrinsics", "100", "100",
-                                                "40", "40"], ["contradict"]),
+    "--focal with --intrinsics": (
+        lambda t, c: ["--focal", "100", "--intrinsics", "100", "100", "40", "40"],
+        ["contradict"],
+    ),
     "8-bit and 16-bit frames": (lambda t, c: _sixteen_bit(c / "03.png"), ["03.png", "uint16"]),
     "ambient of another size": (lambda t, c: _ambient(c, (10, 10)), ["ambient"]),
     "no sphere in the mask": (lambda t, c: _empty_mask(c), ["no sphere"]),
@@ -107,7 +123,7 @@ def _existing(path: Path) -> list[str]:
 
 
 def _sixteen_bit(path: Path) -> list[str]:
-    from msfnet.runtime.imageio import read_image
+    from msfnet.common.imageio import read_image
 
     write_png(path, read_image(path).astype(np.uint16) * 257)
     return []
@@ -143,20 +159,22 @@ def test_output_never_replaces_or_lands_in_an_input(target: str, chrome: Path, c
     assert _files(chrome.parent) == before
 
 
-def test_unwritable_diagnostic_leaves_no_lights_file(chrome: Path, tmp_path: Path,
-                                                     monkeypatch, capfd) -> None:
+def test_unwritable_diagnostic_leaves_no_lights_file(
+    chrome: Path, tmp_path: Path, monkeypatch, capfd
+) -> None:
     """The diagnostic image fails to encode after the lights were computed: no output at all
     (the lights file used to be written first and left behind)."""
-    monkeypatch.setattr("msfnet.runtime.imageio.cv2.imwrite", lambda *a, **k: False)
+    monkeypatch.setattr("msfnet.common.imageio.cv2.imwrite", lambda *a, **k: False)
     out = tmp_path / "res" / "l.txt"
     assert cli.main(["directions", str(chrome), "-o", str(out), "-q"]) == 2
     _one_line(capfd, ["diagnostic"])
     assert not (tmp_path / "res").exists()
 
 
-def test_the_diagnostic_goes_through_the_shared_encoder(chrome: Path, tmp_path: Path,
-                                                       monkeypatch) -> None:
-    from msfnet.runtime.imageio import encode_png
+def test_the_diagnostic_goes_through_the_shared_encoder(
+    chrome: Path, tmp_path: Path, monkeypatch
+) -> None:
+    from msfnet.common.imageio import encode_png
 
     calls: list[tuple[Path, Path | None]] = []
 
@@ -166,8 +184,20 @@ def test_the_diagnostic_goes_through_the_shared_encoder(chrome: Path, tmp_path: 
 
     monkeypatch.setattr(cli, "encode_png", spy)
     diag = tmp_path / "diag.png"
-    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "l.txt"), "--diagnostic",
-                     str(diag), "-q"]) == 0
+    assert (
+        cli.main(
+            [
+                "directions",
+                str(chrome),
+                "-o",
+                str(tmp_path / "l.txt"),
+                "--diagnostic",
+                str(diag),
+                "-q",
+            ]
+        )
+        == 0
+    )
     # written into staging (the name ends in .png: OpenCV picks the encoder from it), errors
     # name the diagnostic file
     assert len(calls) == 1 and calls[0][1] == diag and calls[0][0].suffix == ".png"
@@ -179,16 +209,31 @@ def test_overwrite_replaces_every_output_together(chrome: Path, tmp_path: Path) 
     for name in ("l.txt", "l_confidence.txt", "l_diagnostic.png"):
         (tmp_path / name).write_text("old")
     assert cli.main(["directions", str(chrome), "-o", str(out), "--overwrite", "-q"]) == 0
-    assert all((tmp_path / n).read_bytes() != b"old" for n in ("l.txt", "l_confidence.txt",
-                                                                "l_diagnostic.png"))
+    assert all(
+        (tmp_path / n).read_bytes() != b"old"
+        for n in ("l.txt", "l_confidence.txt", "l_diagnostic.png")
+    )
     assert read_vectors(out, "l").shape == (6, 3)
 
 
 def test_several_captures_name_their_diagnostics(chrome: Path, tmp_path: Path) -> None:
     second = Path(shutil.copytree(chrome, tmp_path / "chrome2"))
     diag = tmp_path / "d" / "diag.png"
-    assert cli.main(["directions", str(chrome), str(second), "-o", str(tmp_path / "l.txt"),
-                     "--diagnostic", str(diag), "-q"]) == 0
+    assert (
+        cli.main(
+            [
+                "directions",
+                str(chrome),
+                str(second),
+                "-o",
+                str(tmp_path / "l.txt"),
+                "--diagnostic",
+                str(diag),
+                "-q",
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in diag.parent.iterdir()) == ["diag_1.png", "diag_2.png"]
 
 
@@ -205,9 +250,25 @@ def test_ctrl_c_writes_nothing(chrome: Path, tmp_path: Path, monkeypatch, capfd)
 
 def test_intrinsics_zero_does_not_hang(chrome: Path, tmp_path: Path) -> None:
     """Issue 13: a subprocess with a timeout, so the old hang fails instead of blocking."""
-    proc = subprocess.run([sys.executable, "-m", "msfnet.calib.cli", "directions", str(chrome),
-                           "-o", str(tmp_path / "l.txt"), "--intrinsics", "0", "0", "0", "0"],
-                          capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "msfnet.calib.cli",
+            "directions",
+            str(chrome),
+            "-o",
+            str(tmp_path / "l.txt"),
+            "--intrinsics",
+            "0",
+            "0",
+            "0",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not (tmp_path / "l.txt").exists()
 
@@ -216,24 +277,30 @@ def test_intrinsics_zero_does_not_hang(chrome: Path, tmp_path: Path) -> None:
 def test_library_rejects_broken_intrinsics_and_nan_fits() -> None:
     from msfnet.calib.directions import Intrinsics, sphere_geometry
     from msfnet.calib.sphere import Circle, fit_circle
-    from msfnet.runtime.errors import InputError
+    from msfnet.common.errors import InputError
 
     with pytest.raises(InputError, match="positive focal"):
         Intrinsics(0.0, 0.0, 0.0, 0.0)
     with pytest.raises(InputError, match="non-finite"):
         fit_circle(np.array([0.0, 1.0, np.nan, 2.0]), np.array([0.0, 1.0, 2.0, 0.0]))
     with pytest.raises(InputError, match="non-finite"):
-        sphere_geometry(Circle(40.0, 40.0, np.inf), np.array([40.0]), np.array([40.0]),
-                        Intrinsics(100.0, 100.0, 40.0, 40.0))
+        sphere_geometry(
+            Circle(40.0, 40.0, np.inf),
+            np.array([40.0]),
+            np.array([40.0]),
+            Intrinsics(100.0, 100.0, 40.0, 40.0),
+        )
 
 
 # ---------------------------------------------------------------------------- intensities
 
+
 def _intensity_args(chrome: Path, tmp_path: Path, *extra: str) -> list[str]:
     lights = tmp_path / "dirs.txt"
     if not lights.exists():
-        lights.write_text("".join(f"{a} {b} {c}\n" for a, b, c in S.ring_lights(6, (15, 55),
-                                                                                seed=3)))
+        lights.write_text(
+            "".join(f"{a} {b} {c}\n" for a, b, c in S.ring_lights(6, (15, 55), seed=3))
+        )
     return ["intensities", str(chrome), "--lights", str(lights), *extra]
 
 
@@ -262,6 +329,7 @@ def test_intensities_refused(case: str, chrome: Path, tmp_path: Path, capfd) -> 
 
 # ---------------------------------------------------------------- errors name their file
 
+
 def test_no_sphere_in_the_images_names_the_folder(tmp_path: Path, capfd) -> None:
     """Noise, no mask: the message used to name no file."""
     noise = tmp_path / "noise"
@@ -273,10 +341,15 @@ def test_no_sphere_in_the_images_names_the_folder(tmp_path: Path, capfd) -> None
     assert cli.main(["directions", str(noise), "-o", str(out)]) == 2
     line = _one_line(capfd, ["could not find the sphere", "--mask"])
     assert line.startswith(f"msf-calib: error: {noise}: "), line
-    assert cli.main(["intensities", str(noise), "--lights", str(_lights_file(tmp_path, 4)),
-                     "-o", str(out)]) == 2
+    assert (
+        cli.main(
+            ["intensities", str(noise), "--lights", str(_lights_file(tmp_path, 4)), "-o", str(out)]
+        )
+        == 2
+    )
     assert _one_line(capfd, ["could not find the sphere"]).startswith(
-        f"msf-calib: error: {noise}: ")
+        f"msf-calib: error: {noise}: "
+    )
     assert not out.exists()
 
 
@@ -285,8 +358,10 @@ def test_an_empty_mask_is_named(command: str, chrome: Path, tmp_path: Path, capf
     mask = tmp_path / "empty.png"
     write_png(mask, np.zeros((80, 96), np.uint8))
     extra = ["--lights", str(_lights_file(tmp_path, 6))] if command == "intensities" else []
-    assert cli.main([command, str(chrome), *extra, "--mask", str(mask), "-o",
-                     str(tmp_path / "l.txt")]) == 2
+    assert (
+        cli.main([command, str(chrome), *extra, "--mask", str(mask), "-o", str(tmp_path / "l.txt")])
+        == 2
+    )
     line = _one_line(capfd, ["no sphere found in the mask"])
     assert line.startswith(f"msf-calib: error: {mask}: "), line
 

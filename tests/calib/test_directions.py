@@ -11,8 +11,8 @@ import pytest
 from msfnet.calib import cli
 from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions
 from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
-from msfnet.runtime.imageio import list_images, read_image, read_mask
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.common.imageio import list_images, read_image, read_mask
+from msfnet.runtime.evaluate.metrics import angular_error_deg
 from msfnet.runtime.stack import read_vectors
 from msfnet.synth import spheres as S
 
@@ -36,8 +36,9 @@ def test_orthographic_saturated_with_bloom():
     assert abs(circles[0].r - 80) < 0.3 and abs(circles[0].cx - 94.5) < 0.2
     res = estimate_directions([imgs], [circles])
     err = angular_error_deg(res.directions, lights)
-    print(f"synthetic orthographic, saturated + bloom: mean {err.mean():.3f} "
-          f"max {err.max():.3f} deg")
+    print(
+        f"synthetic orthographic, saturated + bloom: mean {err.mean():.3f} max {err.max():.3f} deg"
+    )
     assert err.max() < 0.5
     assert res.warnings == [] and np.all(res.confidence > 0.5)
 
@@ -55,8 +56,10 @@ def test_integer_capture_equals_its_float_copy():
     got = estimate_directions([imgs], [circles])
     want = estimate_directions([floats], [circles], white_level=255.0)
     np.testing.assert_array_equal(got.directions, want.directions)
-    np.testing.assert_array_equal(diagnostic_image(imgs, circles, got.estimates),
-                                  diagnostic_image(floats, circles, want.estimates))
+    np.testing.assert_array_equal(
+        diagnostic_image(imgs, circles, got.estimates),
+        diagnostic_image(floats, circles, want.estimates),
+    )
 
 
 def test_perspective_unsaturated():
@@ -79,8 +82,10 @@ def test_two_spheres_two_captures_averaged_and_rim_warning():
     imgs = render_stack(scene, lights, gain=1.0)
     circles = fit_circles_from_mask(np.any(S.sphere_masks(scene), axis=0))
     assert len(circles) == 2
-    res = estimate_directions([imgs, imgs[:, :, ::-1][:, :, :, ::-1]],
-                              [circles, [type(c)(219 - c.cx, c.cy, c.r) for c in circles]])
+    res = estimate_directions(
+        [imgs, imgs[:, :, ::-1][:, :, :, ::-1]],
+        [circles, [type(c)(219 - c.cx, c.cy, c.r) for c in circles]],
+    )
     # The mirrored capture gives mirrored directions: averaging them must collapse x to ~0.
     assert np.all(np.abs(res.directions[:, 0]) < 0.02)
     assert len(res.estimates[0]) == 4
@@ -94,14 +99,19 @@ def test_two_spheres_two_captures_averaged_and_rim_warning():
 
 
 def test_missing_highlight_is_an_error():
-    from msfnet.runtime.errors import InputError
+    from msfnet.common.errors import InputError
 
     scene = S.mirror_scene(120, 120, 40)
-    imgs = np.stack([S.expose(S.render(scene, l_), 1.0) for l_ in S.ring_lights(3, seed=1)]
-                    + [S.expose(S.render(scene, None), 1.0)])
+    imgs = np.stack(
+        [S.expose(S.render(scene, l_), 1.0) for l_ in S.ring_lights(3, seed=1)]
+        + [S.expose(S.render(scene, None), 1.0)]
+    )
     with pytest.raises(InputError, match="image 4"):
-        estimate_directions([imgs], fit_circles_from_mask(S.sphere_masks(scene)[0]) and
-                            [fit_circles_from_mask(S.sphere_masks(scene)[0])])
+        estimate_directions(
+            [imgs],
+            fit_circles_from_mask(S.sphere_masks(scene)[0])
+            and [fit_circles_from_mask(S.sphere_masks(scene)[0])],
+        )
 
 
 def test_psm_chrome_against_lights_txt(psm_dir):
@@ -117,8 +127,10 @@ def test_psm_chrome_against_lights_txt(psm_dir):
     auto = fit_circles_from_images(imgs)[0]
     assert np.hypot(auto.cx - c.cx, auto.cy - c.cy) < 2.5 and abs(auto.r - c.r) < 1.5
     err_auto = angular_error_deg(estimate_directions([imgs], [[auto]]).directions, ref)
-    print(f"psmImages chrome (circle fitted from images): mean {err_auto.mean():.2f} "
-          f"max {err_auto.max():.2f} deg")
+    print(
+        f"psmImages chrome (circle fitted from images): mean {err_auto.mean():.2f} "
+        f"max {err_auto.max():.2f} deg"
+    )
     assert err_auto.mean() < 3.5
 
 

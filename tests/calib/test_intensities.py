@@ -7,7 +7,7 @@ import numpy as np
 from msfnet.calib import cli
 from msfnet.calib.intensities import estimate_intensities, target_normals
 from msfnet.calib.sphere import fit_circles_from_mask
-from msfnet.runtime.imageio import write_png
+from msfnet.common.imageio import write_png
 from msfnet.runtime.stack import read_vectors
 from msfnet.synth import spheres as S
 
@@ -22,9 +22,12 @@ def test_matte_sphere_with_ambient(rng, tmp_path):
     truth = _truth(8, rng)
     scene = S.mirror_scene(150, 140, 60, kind="matte")
     amb = 3.0  # strong ambient: without subtraction the ratios come out wrong
-    imgs = np.stack([S.expose(S.render(scene, l_, e, ambient=amb), 0.5, 16, 2.0,
-                              np.random.default_rng(i)) for i, (l_, e) in
-                     enumerate(zip(lights, truth, strict=True))])
+    imgs = np.stack(
+        [
+            S.expose(S.render(scene, l_, e, ambient=amb), 0.5, 16, 2.0, np.random.default_rng(i))
+            for i, (l_, e) in enumerate(zip(lights, truth, strict=True))
+        ]
+    )
     dark = S.expose(S.render(scene, None, ambient=amb), 0.5, 16, 2.0, np.random.default_rng(99))
     mask = S.sphere_masks(scene)[0]
     normals, valid = target_normals(mask.shape, circle=fit_circles_from_mask(mask)[0])
@@ -43,8 +46,10 @@ def test_matte_sphere_with_ambient(rng, tmp_path):
     write_png(folder / "sphere_mask.png", mask.astype(np.uint8) * 255)
     (tmp_path / "l.txt").write_text("".join(f"{a} {b} {c}\n" for a, b, c in lights))
     out = tmp_path / "light_intensities.txt"
-    assert cli.main(["intensities", str(folder), "--lights", str(tmp_path / "l.txt"),
-                     "-o", str(out)]) == 0
+    assert (
+        cli.main(["intensities", str(folder), "--lights", str(tmp_path / "l.txt"), "-o", str(out)])
+        == 0
+    )
     assert np.abs(read_vectors(out, "i") / truth - 1).max() < 0.01
 
 
@@ -53,8 +58,12 @@ def test_plane_of_known_normal(rng):
     truth = _truth(6, rng)
     pn = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
     albedo = np.array([0.7, 0.6, 0.5])
-    imgs = np.stack([np.broadcast_to(albedo * e * max(pn @ l_, 0) * 200, (40, 50, 3))
-                     for l_, e in zip(lights, truth, strict=True)])
+    imgs = np.stack(
+        [
+            np.broadcast_to(albedo * e * max(pn @ l_, 0) * 200, (40, 50, 3))
+            for l_, e in zip(lights, truth, strict=True)
+        ]
+    )
     normals, valid = target_normals((40, 50), plane_normal=pn)
     est, _ = estimate_intensities(imgs, lights, normals, valid, white_level=255)
     # Per-channel albedo stays in (it is the target's colour): compare per-channel ratios.
@@ -67,13 +76,18 @@ def test_integer_images_equal_their_float_copy(rng):
     intensities of the float copy."""
     lights = S.ring_lights(6, (10, 50), seed=2)
     scene = S.mirror_scene(150, 140, 60, kind="matte")
-    imgs = np.stack([S.expose(S.render(scene, l_, e), 0.5, 16, 2.0, np.random.default_rng(i))
-                     for i, (l_, e) in enumerate(zip(lights, _truth(6, rng), strict=True))])
+    imgs = np.stack(
+        [
+            S.expose(S.render(scene, l_, e), 0.5, 16, 2.0, np.random.default_rng(i))
+            for i, (l_, e) in enumerate(zip(lights, _truth(6, rng), strict=True))
+        ]
+    )
     assert imgs.dtype == np.uint16
     mask = S.sphere_masks(scene)[0]
     normals, valid = target_normals(mask.shape, circle=fit_circles_from_mask(mask)[0])
     for stack in (imgs, imgs[..., 1]):  # RGB, grey
         got, _ = estimate_intensities(stack, lights, normals, valid)
-        want, _ = estimate_intensities(stack.astype(np.float64), lights, normals, valid,
-                                       white_level=65535.0)
+        want, _ = estimate_intensities(
+            stack.astype(np.float64), lights, normals, valid, white_level=65535.0
+        )
         np.testing.assert_array_equal(got, want)

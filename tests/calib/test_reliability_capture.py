@@ -21,8 +21,11 @@ def _run(argv: list[str]) -> int:
         return int(exc.code or 0)
 
 
-@pytest.mark.parametrize("content", [b"\xff\xfe\x00 not text", b"[1, 2]", b'"a string"'],
-                         ids=["binary", "list", "string"])
+@pytest.mark.parametrize(
+    "content",
+    [b"\xff\xfe\x00 not text", b"[1, 2]", b'"a string"'],
+    ids=["binary", "list", "string"],
+)
 def test_corrupt_session_json_is_one_line(content: bytes, tmp_path: Path, capfd) -> None:
     out = tmp_path / "session"
     out.mkdir()
@@ -34,9 +37,16 @@ def test_corrupt_session_json_is_one_line(content: bytes, tmp_path: Path, capfd)
     assert sorted(p.name for p in out.iterdir()) == ["session.json"]
 
 
-@pytest.mark.parametrize("option", [["--settle", "nan"], ["--settle", "-1"],
-                                    ["--count", "0"], ["--average", "0"],
-                                    ["--exposure", "inf"]])
+@pytest.mark.parametrize(
+    "option",
+    [
+        ["--settle", "nan"],
+        ["--settle", "-1"],
+        ["--count", "0"],
+        ["--average", "0"],
+        ["--exposure", "inf"],
+    ],
+)
 def test_numeric_options_are_validated(option: list[str], tmp_path: Path, capfd) -> None:
     out = tmp_path / "session"
     assert _run([str(out), *SIM, *option]) == 2

@@ -49,6 +49,11 @@ def calib_npz(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small rendered stack (12 lights, 64 px sphere) as an .npz, for int8 calibration."""
     stack = sphere_stack(n=12, h=64, w=64, seed=3)
     path = tmp_path_factory.mktemp("calib") / "sphere.npz"
-    np.savez(path, images=stack.images, lights=stack.lights, intensities=stack.intensities,
-             mask=stack.mask)
+    np.savez(
+        path,
+        images=stack.images,
+        lights=stack.lights,
+        intensities=stack.intensities,
+        mask=stack.mask,
+    )
     return path

@@ -18,7 +18,7 @@ from msfnet.export.variants import VerificationRow  # noqa: E402
 from msfnet.export.verify import compare, file_runner, rendered_cases, torch_runner  # noqa: E402
 from msfnet.model.checkpoint import CheckpointError, load_model, read_state_dict  # noqa: E402
 from msfnet.model.network import MSFNet  # noqa: E402
-from msfnet.runtime.metrics import angular_error_deg  # noqa: E402
+from msfnet.runtime.evaluate.metrics import angular_error_deg  # noqa: E402
 
 
 def _trained_like_net(seed: int = 0) -> MSFNet:
@@ -37,8 +37,9 @@ def _trained_like_net(seed: int = 0) -> MSFNet:
     return net.eval()
 
 
-def _verify(net: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]]
-            ) -> list[VerificationRow]:
+def _verify(
+    net: torch.nn.Module, path: Path, checks: list[tuple[int, int, int]]
+) -> list[VerificationRow]:
     """The written file (loaded as the runtime and msf-export's verification load it) against
     PyTorch at each (N, H, W) on rendered objects, with the verifier's own comparison."""
     return compare(file_runner(path, None), torch_runner(net), rendered_cases(checks))
@@ -49,8 +50,9 @@ def published_ckpt(tmp_path_factory) -> Path:
     """A checkpoint in the published format: legacy serialisation, DataParallel prefixes."""
     path = tmp_path_factory.mktemp("ckpt") / "checkp_30.pth.tar"
     state = {f"module.{k}": v for k, v in _trained_like_net().state_dict().items()}
-    torch.save({"state_dict": state, "model": "MSF_Net"}, path,
-               _use_new_zipfile_serialization=False)
+    torch.save(
+        {"state_dict": state, "model": "MSF_Net"}, path, _use_new_zipfile_serialization=False
+    )
     return path
 
 
@@ -116,27 +118,41 @@ def test_onnx_declares_contract_and_metadata(exported: Path, published_ckpt: Pat
     import hashlib
 
     proto = onnx.load(str(exported))
-    dims = {v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
-            for v in [*proto.graph.input, *proto.graph.output]}
-    assert dims == {"images": ["batch", "lights", 3, "height", "width"],
-                    "lights": ["batch", "lights", 3],
-                    "normals": ["batch", 3, "height", "width"]}
+    dims = {
+        v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
+        for v in [*proto.graph.input, *proto.graph.output]
+    }
+    assert dims == {
+        "images": ["batch", "lights", 3, "height", "width"],
+        "lights": ["batch", "lights", 3],
+        "normals": ["batch", 3, "height", "width"],
+    }
     meta = {p.key: p.value for p in proto.metadata_props}
     assert meta["msfnet.train_lights"] == "32"
     assert meta["msfnet.format"] == "msfnet-normals-v1"
-    assert meta["msfnet.checkpoint_sha256"] == hashlib.sha256(
-        published_ckpt.read_bytes()).hexdigest()
+    assert (
+        meta["msfnet.checkpoint_sha256"] == hashlib.sha256(published_ckpt.read_bytes()).hexdigest()
+    )
     assert "sqrt(N / train_lights)" in meta["msfnet.preprocessing"]
     assert proto.opset_import[0].version == 17
 
 
 def test_static_export_runs_at_its_shape(published_ckpt: Path, tmp_path: Path) -> None:
     out = tmp_path / "static.onnx"
-    assert export_main([str(published_ckpt), "-o", str(out), "--static", "5,16,20",
-                        "--train-lights", "16"]) == 0
+    assert (
+        export_main(
+            [str(published_ckpt), "-o", str(out), "--static", "5,16,20", "--train-lights", "16"]
+        )
+        == 0
+    )
     proto = onnx.load(str(out))
-    assert [d.dim_value for d in proto.graph.input[0].type.tensor_type.shape.dim] == [1, 5, 3,
-                                                                                      16, 20]
+    assert [d.dim_value for d in proto.graph.input[0].type.tensor_type.shape.dim] == [
+        1,
+        5,
+        3,
+        16,
+        20,
+    ]
     meta = {p.key: p.value for p in proto.metadata_props}
     assert meta["msfnet.static_shape"] == "5,16,20" and meta["msfnet.train_lights"] == "16"
 
@@ -159,8 +175,7 @@ def _assert_clean_failure(capsys, args: list[str], out: Path, match: str) -> Non
 
 
 def test_missing_file_fails_cleanly(tmp_path: Path, capsys) -> None:
-    _assert_clean_failure(capsys, [str(tmp_path / "nope.pth")], tmp_path / "m.onnx",
-                          "not found")
+    _assert_clean_failure(capsys, [str(tmp_path / "nope.pth")], tmp_path / "m.onnx", "not found")
 
 
 def test_corrupt_file_fails_cleanly(tmp_path: Path, capsys) -> None:
@@ -169,8 +184,7 @@ def test_corrupt_file_fails_cleanly(tmp_path: Path, capsys) -> None:
     _assert_clean_failure(capsys, [str(bad)], tmp_path / "m.onnx", "corrupt.pth")
 
 
-def test_truncated_checkpoint_fails_cleanly(published_ckpt: Path, tmp_path: Path,
-                                            capsys) -> None:
+def test_truncated_checkpoint_fails_cleanly(published_ckpt: Path, tmp_path: Path, capsys) -> None:
     bad = tmp_path / "truncated.pth"
     bad.write_bytes(published_ckpt.read_bytes()[:100_000])
     _assert_clean_failure(capsys, [str(bad)], tmp_path / "m.onnx", "truncated.pth")
@@ -208,8 +222,7 @@ def test_not_a_state_dict_fails_cleanly(tmp_path: Path, capsys) -> None:
     _assert_clean_failure(capsys, [str(bad)], tmp_path / "m.onnx", "state_dict")
 
 
-def test_existing_output_is_not_clobbered(published_ckpt: Path, tmp_path: Path,
-                                          capsys) -> None:
+def test_existing_output_is_not_clobbered(published_ckpt: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "taken.onnx"
     out.write_bytes(b"keep me")
     assert export_main([str(published_ckpt), "-o", str(out)]) == 2
@@ -232,9 +245,9 @@ def test_plain_pickle_is_never_executed(tmp_path: Path, capsys) -> None:
     assert "refusing to unpickle" in capsys.readouterr().err
 
 
-def test_fp16_weight_storage_halves_the_file_and_keeps_parity(published_ckpt: Path,
-                                                              exported: Path,
-                                                              tmp_path: Path) -> None:
+def test_fp16_weight_storage_halves_the_file_and_keeps_parity(
+    published_ckpt: Path, exported: Path, tmp_path: Path
+) -> None:
     from msfnet.model.checkpoint import save_checkpoint
 
     half_ckpt = save_checkpoint(load_model(published_ckpt), tmp_path / "half.pth", fp16=True)

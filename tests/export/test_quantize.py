@@ -17,7 +17,7 @@ from msfnet.export.quantize import (
 from msfnet.export.variants import ExportOptions, export_variant
 from msfnet.model.checkpoint import save_checkpoint
 from msfnet.model.network import MSFNet
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.evaluate.metrics import angular_error_deg
 from msfnet.runtime.stack import load_stack
 
 
@@ -33,8 +33,11 @@ def test_calibration_tiles_of_a_16bit_stack_equal_the_float32_ones(ball_dir):
     """int8 calibration reads real (16-bit) stacks: only each crop is gathered and cast."""
     held = load_stack(ball_dir, max_lights=40)
     assert held.images.dtype == np.uint16
-    pairs = zip(calibration_tiles([held], tiles_per_stack=3),
-                calibration_tiles([as_float32(held)], tiles_per_stack=3), strict=True)
+    pairs = zip(
+        calibration_tiles([held], tiles_per_stack=3),
+        calibration_tiles([as_float32(held)], tiles_per_stack=3),
+        strict=True,
+    )
     for (got, mask, _), (want, want_mask, _) in pairs:
         np.testing.assert_array_equal(mask, want_mask)
         for key in ("images", "lights"):
@@ -50,9 +53,15 @@ def quantised(tmp_path_factory, ball_dir):
     tmp = tmp_path_factory.mktemp("q")
     save_checkpoint(net, tmp / "rand.pth")
     stack = load_stack(ball_dir, max_lights=12)
-    result = export_variant(tmp / "rand.pth", "int8", tmp / "int8.onnx", calib=[stack],
-                            options=ExportOptions(checks=((3, 8, 8),), calib_tile=32,
-                                                  calib_lights=8, calib_tiles_per_stack=2))
+    result = export_variant(
+        tmp / "rand.pth",
+        "int8",
+        tmp / "int8.onnx",
+        calib=[stack],
+        options=ExportOptions(
+            checks=((3, 8, 8),), calib_tile=32, calib_lights=8, calib_tiles_per_stack=2
+        ),
+    )
     summary = result.notes["quantization"]
     assert isinstance(summary, dict)
     return net, tmp, stack, summary
@@ -65,8 +74,9 @@ def test_int8_graph_has_no_fp32_deconv(quantised):
     assert summary["deconvs_rewritten"] == 3
     assert "ConvTranspose" not in ops
     # the extractors' convs are quantised; fusion gates, first conv and regressor stay fp32
-    weights_q = sum(1 for n in model.graph.node if n.op_type == "DequantizeLinear"
-                    and "weight" in n.input[0])
+    weights_q = sum(
+        1 for n in model.graph.node if n.op_type == "DequantizeLinear" and "weight" in n.input[0]
+    )
     convs = sum(1 for n in model.graph.node if n.op_type == "Conv")
     assert convs >= 18 and weights_q == convs - len(summary["fp32_convs"]) >= 9
     meta = {p.key: p.value for p in model.metadata_props}
@@ -99,22 +109,27 @@ def test_int8_of_the_trained_model_stays_within_half_a_degree(tmp_path, ball_dir
     from dataclasses import replace
 
     from msfnet.model.checkpoint import default_checkpoint_path
-    from msfnet.runtime.infer import infer_normals
-    from msfnet.runtime.session import create_session
-    from msfnet.runtime.tiling import plan_tiles
+    from msfnet.runtime.engines.ort_session import create_session
+    from msfnet.runtime.infer.tiled import infer_normals
+    from msfnet.runtime.infer.tiling import plan_tiles
 
     options = ExportOptions(checks=((3, 8, 8),), calib_tiles_per_stack=3)
     export_variant(default_checkpoint_path(), "fp32", tmp_path / "fp32.onnx", options=options)
     stack = load_stack(ball_dir, max_lights=16)
-    result = export_variant(default_checkpoint_path(), "int8", tmp_path / "int8.onnx",
-                            calib=[stack], options=options)
+    result = export_variant(
+        default_checkpoint_path(), "int8", tmp_path / "int8.onnx", calib=[stack], options=options
+    )
     summary = result.notes["quantization"]
     assert isinstance(summary, dict)
     assert any("regressor" in n for n in summary["fp32_convs"])
     ys, xs = np.nonzero(stack.mask)
     y0, x0 = int(ys.mean()) - 100, int(xs.mean()) - 100  # the ball's upper-left rim + interior
-    crop = replace(stack, images=stack.images[:, y0:y0 + 96, x0:x0 + 96],
-                   mask=stack.mask[y0:y0 + 96, x0:x0 + 96], normals_gt=None)
+    crop = replace(
+        stack,
+        images=stack.images[:, y0 : y0 + 96, x0 : x0 + 96],
+        mask=stack.mask[y0 : y0 + 96, x0 : x0 + 96],
+        normals_gt=None,
+    )
     plan = plan_tiles(crop.mask, None)
     ref = infer_normals(create_session(tmp_path / "fp32.onnx", threads=2), crop, plan).normals
     out = infer_normals(create_session(tmp_path / "int8.onnx", threads=2), crop, plan).normals

@@ -2,7 +2,7 @@
 
 Every failure is one line ``msf-export: error: ...`` (exit 2), Ctrl-C one line (exit 130), and
 the target folder holds neither a partial nor an unverified file afterwards. msf-export writes
-through ``runtime/files.py`` (its rules are tested case by case in tests/runtime/test_files.py);
+through ``common/files.py`` (its rules are tested case by case in tests/runtime/test_files.py);
 these tests hold the command to them where an export can break them: the candidate file lives
 under a staging name while it is verified, the int8 quantiser's scratch folder beside it.
 """
@@ -21,9 +21,9 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from msfnet.common.files import STAGING_TAG  # noqa: E402
 from msfnet.export.cli import main as export_main  # noqa: E402
 from msfnet.export.passes import PASSES  # noqa: E402
-from msfnet.runtime.files import STAGING_TAG  # noqa: E402
 
 
 def _one_line_error(capsys, *parts: str, start: str = "msf-export: error: ") -> str:
@@ -59,10 +59,12 @@ BAD_OPTIONS = [
 ]
 
 
-@pytest.mark.parametrize(("option", "value", "message"), BAD_OPTIONS,
-                         ids=[f"{o}={v}" for o, v, _ in BAD_OPTIONS])
-def test_bad_option_values_give_one_line_and_exit_2(option: str, value: str, message: str,
-                                                    tmp_path: Path, capsys) -> None:
+@pytest.mark.parametrize(
+    ("option", "value", "message"), BAD_OPTIONS, ids=[f"{o}={v}" for o, v, _ in BAD_OPTIONS]
+)
+def test_bad_option_values_give_one_line_and_exit_2(
+    option: str, value: str, message: str, tmp_path: Path, capsys
+) -> None:
     with pytest.raises(SystemExit) as info:
         export_main([str(tmp_path / "m.pth"), "-o", str(tmp_path / "m.onnx"), option, value])
     assert info.value.code == 2
@@ -83,23 +85,29 @@ BAD_REQUESTS = [
 ]
 
 
-@pytest.mark.parametrize(("args", "message"), BAD_REQUESTS,
-                         ids=[" ".join(a) for a, _ in BAD_REQUESTS])
-def test_impossible_requests_fail_before_reading_anything(args: list[str], message: str,
-                                                          tmp_path: Path, capsys) -> None:
-    assert export_main([str(tmp_path / "absent.pth"), "-o", str(tmp_path / "m.onnx"),
-                        *args]) == 2
+@pytest.mark.parametrize(
+    ("args", "message"), BAD_REQUESTS, ids=[" ".join(a) for a, _ in BAD_REQUESTS]
+)
+def test_impossible_requests_fail_before_reading_anything(
+    args: list[str], message: str, tmp_path: Path, capsys
+) -> None:
+    assert export_main([str(tmp_path / "absent.pth"), "-o", str(tmp_path / "m.onnx"), *args]) == 2
     _one_line_error(capsys, message)
     assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("how", ["same path", "dotted path", "symlink", "hard link"])
-def test_output_may_never_replace_the_checkpoint(how: str, he_ckpt: Path, tmp_path: Path,
-                                                 capsys) -> None:
+def test_output_may_never_replace_the_checkpoint(
+    how: str, he_ckpt: Path, tmp_path: Path, capsys
+) -> None:
     ckpt = tmp_path / "x.pth"
     ckpt.write_bytes(he_ckpt.read_bytes())
-    out = {"same path": ckpt, "dotted path": tmp_path / "sub" / ".." / "x.pth",
-           "symlink": tmp_path / "link.onnx", "hard link": tmp_path / "hard.onnx"}[how]
+    out = {
+        "same path": ckpt,
+        "dotted path": tmp_path / "sub" / ".." / "x.pth",
+        "symlink": tmp_path / "link.onnx",
+        "hard link": tmp_path / "hard.onnx",
+    }[how]
     if how == "symlink":
         out.symlink_to(ckpt)
     elif how == "hard link":
@@ -113,8 +121,9 @@ def test_output_may_never_replace_the_checkpoint(how: str, he_ckpt: Path, tmp_pa
 
 
 @pytest.mark.parametrize("where", ["under a file", "a folder", "read-only folder"])
-def test_unwritable_output_fails_before_the_export(where: str, he_ckpt: Path, tmp_path: Path,
-                                                   capsys, monkeypatch) -> None:
+def test_unwritable_output_fails_before_the_export(
+    where: str, he_ckpt: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
     if where == "read-only folder" and os.geteuid() == 0:
         pytest.skip("root writes into read-only folders")
     blocker = tmp_path / "file.txt"
@@ -122,8 +131,11 @@ def test_unwritable_output_fails_before_the_export(where: str, he_ckpt: Path, tm
     ro = tmp_path / "ro"
     ro.mkdir()
     ro.chmod(0o555)
-    out = {"under a file": blocker / "sub" / "m.onnx", "a folder": tmp_path,
-           "read-only folder": ro / "m.onnx"}[where]
+    out = {
+        "under a file": blocker / "sub" / "m.onnx",
+        "a folder": tmp_path,
+        "read-only folder": ro / "m.onnx",
+    }[where]
 
     def no_export(*_a: object) -> None:
         raise AssertionError("the export started before the output was checked")
@@ -138,18 +150,20 @@ def test_unwritable_output_fails_before_the_export(where: str, he_ckpt: Path, tm
     assert list(ro.iterdir()) == []
 
 
-def test_output_inside_a_calibration_folder_is_refused(he_ckpt: Path, tmp_path: Path,
-                                                       capsys) -> None:
+def test_output_inside_a_calibration_folder_is_refused(
+    he_ckpt: Path, tmp_path: Path, capsys
+) -> None:
     stack = tmp_path / "stack"
     stack.mkdir()
-    assert export_main([str(he_ckpt), "-o", str(stack / "q.onnx"), "--int8", "--calib",
-                        str(stack)]) == 2
+    assert (
+        export_main([str(he_ckpt), "-o", str(stack / "q.onnx"), "--int8", "--calib", str(stack)])
+        == 2
+    )
     _one_line_error(capsys, "inside the input folder")
     assert list(stack.iterdir()) == []
 
 
-def test_zero_weight_checkpoint_fails_verification(zero_ckpt: Path, tmp_path: Path,
-                                                   capsys) -> None:
+def test_zero_weight_checkpoint_fails_verification(zero_ckpt: Path, tmp_path: Path, capsys) -> None:
     """All-zero weights give (0, 0, 0) normals in PyTorch and ONNX alike: the angle check
     alone passes (atan2(0, 0) = 0), the unit-normal check must not."""
     out = tmp_path / "zero.onnx"
@@ -167,9 +181,9 @@ def test_random_bytes_are_not_a_checkpoint(tmp_path: Path, capsys) -> None:
     assert "pickled" not in err
 
 
-def test_ctrl_c_before_the_write_is_one_line_and_leaves_nothing(he_ckpt: Path,
-                                                                 tmp_path: Path, capsys,
-                                                                 monkeypatch) -> None:
+def test_ctrl_c_before_the_write_is_one_line_and_leaves_nothing(
+    he_ckpt: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
     from dataclasses import replace
 
     def interrupted(*_a: object) -> None:
@@ -185,8 +199,9 @@ def test_ctrl_c_before_the_write_is_one_line_and_leaves_nothing(he_ckpt: Path,
     assert list(tmp_path.iterdir()) == []
 
 
-def test_ctrl_c_while_verifying_removes_the_candidate(he_ckpt: Path, tmp_path: Path, capsys,
-                                                      monkeypatch) -> None:
+def test_ctrl_c_while_verifying_removes_the_candidate(
+    he_ckpt: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
     """The written, not yet verified file exists only under its staging name; Ctrl-C during
     its verification removes it and the folder made for it."""
     import msfnet.export.pipeline as pipeline
@@ -207,9 +222,9 @@ def test_ctrl_c_while_verifying_removes_the_candidate(he_ckpt: Path, tmp_path: P
     assert list(tmp_path.iterdir()) == []
 
 
-def test_ctrl_c_while_quantising_removes_the_scratch_folder(he_ckpt: Path, calib_npz: Path,
-                                                            tmp_path: Path, capsys,
-                                                            monkeypatch) -> None:
+def test_ctrl_c_while_quantising_removes_the_scratch_folder(
+    he_ckpt: Path, calib_npz: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
     """int8's quantiser needs files: they go to a scratch folder beside the target (removed
     after a kill -9 by the next export there, see test_killed_export_...)."""
     import msfnet.export.quantize as quantize
@@ -225,15 +240,15 @@ def test_ctrl_c_while_quantising_removes_the_scratch_folder(he_ckpt: Path, calib
 
     monkeypatch.setattr(quantize, "quantize_model", interrupted)
     out = tmp_path / "new" / "q.onnx"
-    assert export_main([str(he_ckpt), "-o", str(out), "--int8", "--calib",
-                        str(calib_npz)]) == 130
+    assert export_main([str(he_ckpt), "-o", str(out), "--int8", "--calib", str(calib_npz)]) == 130
     assert capsys.readouterr().err.strip() == "msf-export: interrupted; nothing was written"
     assert len(seen) == 1 and not seen[0].exists()
     assert list(tmp_path.iterdir()) == []
 
 
-def test_internal_errors_are_one_line_unless_debug(he_ckpt: Path, tmp_path: Path, capsys,
-                                                   monkeypatch) -> None:
+def test_internal_errors_are_one_line_unless_debug(
+    he_ckpt: Path, tmp_path: Path, capsys, monkeypatch
+) -> None:
     from dataclasses import replace
 
     def broken(*_a: object) -> None:
@@ -243,8 +258,9 @@ def test_internal_errors_are_one_line_unless_debug(he_ckpt: Path, tmp_path: Path
         monkeypatch.setitem(PASSES, name, replace(PASSES[name], run=broken))
     args = [str(he_ckpt), "-o", str(tmp_path / "m.onnx")]
     assert export_main(args) == 1
-    _one_line_error(capsys, "ZeroDivisionError: boom", "--debug",
-                    start="msf-export: internal error: ")
+    _one_line_error(
+        capsys, "ZeroDivisionError: boom", "--debug", start="msf-export: internal error: "
+    )
     with pytest.raises(ZeroDivisionError):
         export_main([*args, "--debug"])
     assert list(tmp_path.iterdir()) == []
@@ -256,8 +272,7 @@ def _dead_pid() -> int:
     return proc.pid
 
 
-def test_existing_output_and_staging_of_other_runs(he_ckpt: Path, tmp_path: Path,
-                                                   capsys) -> None:
+def test_existing_output_and_staging_of_other_runs(he_ckpt: Path, tmp_path: Path, capsys) -> None:
     """Staging a killed export left (a file and an int8 scratch folder) goes with the next
     export to that target; a running export's (a live pid) and other targets' stay. An existing
     output is replaced only with --overwrite."""
@@ -274,8 +289,7 @@ def test_existing_output_and_staging_of_other_runs(he_ckpt: Path, tmp_path: Path
     other.write_bytes(b"not ours")
     args = [str(he_ckpt), "-o", str(out), "--plain"]
     assert export_main(args) == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name,
-                                                                 other.name])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name, other.name])
     capsys.readouterr()
     out.write_bytes(b"keep me")
     assert export_main(args) == 2
@@ -283,8 +297,7 @@ def test_existing_output_and_staging_of_other_runs(he_ckpt: Path, tmp_path: Path
     assert out.read_bytes() == b"keep me"
     assert export_main([*args, "--overwrite"]) == 0
     assert out.read_bytes() != b"keep me"
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name,
-                                                                 other.name])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, live.name, other.name])
 
 
 # A child that runs the real msf-export, only with a pause before the written file is verified:
@@ -307,9 +320,13 @@ def _cli(*args: str, slow_verify: bool = False) -> subprocess.Popen:
     """msf-export in a child process with default signal handling (a background pytest may
     have SIGINT ignored, which the child would inherit)."""
     head = ["-c", _SLOW_VERIFY] if slow_verify else ["-m", "msfnet.export.cli"]
-    return subprocess.Popen([sys.executable, *head, *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    return subprocess.Popen(
+        [sys.executable, *head, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
 
 
 def _wait_for_candidate(proc: subprocess.Popen, folder: Path) -> Path:
@@ -328,8 +345,9 @@ def _wait_for_candidate(proc: subprocess.Popen, folder: Path) -> Path:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-def test_signalled_export_leaves_nothing(sig: signal.Signals, he_ckpt: Path,
-                                         tmp_path: Path) -> None:
+def test_signalled_export_leaves_nothing(
+    sig: signal.Signals, he_ckpt: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "new" / "m.onnx"
     proc = _cli(str(he_ckpt), "-o", str(out), slow_verify=True)
     _wait_for_candidate(proc, out.parent)
@@ -342,8 +360,9 @@ def test_signalled_export_leaves_nothing(sig: signal.Signals, he_ckpt: Path,
 
 
 @pytest.mark.slow
-def test_killed_export_leaves_no_file_and_the_next_run_cleans_up(he_ckpt: Path,
-                                                                  tmp_path: Path) -> None:
+def test_killed_export_leaves_no_file_and_the_next_run_cleans_up(
+    he_ckpt: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "m.onnx"
     proc = _cli(str(he_ckpt), "-o", str(out), slow_verify=True)
     candidate = _wait_for_candidate(proc, tmp_path)

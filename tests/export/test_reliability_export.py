@@ -1,5 +1,5 @@
 """msf-export against the issue-13 rules (the cases that once failed), now that it runs on the
-shared helpers (runtime/cliutil.py, runtime/files.py) like every other command."""
+shared helpers (common/cli.py, common/files.py) like every other command."""
 
 from __future__ import annotations
 
@@ -41,15 +41,15 @@ def _run(argv: list[str]) -> int:
 
 
 def test_train_lights_zero_is_one_line(ckpt: Path, tmp_path: Path, capfd) -> None:
-    _one_line_exit_2(capfd, _run([str(ckpt), "-o", str(tmp_path / "m.onnx"),
-                                  "--train-lights", "0"]))
+    _one_line_exit_2(
+        capfd, _run([str(ckpt), "-o", str(tmp_path / "m.onnx"), "--train-lights", "0"])
+    )
     assert list(tmp_path.iterdir()) == []
 
 
 def test_static_foo_is_one_line(ckpt: Path, tmp_path: Path, capfd) -> None:
     """StaticShape.parse raises InputError inside argparse: a traceback today."""
-    _one_line_exit_2(capfd, _run([str(ckpt), "-o", str(tmp_path / "m.onnx"), "--static",
-                                  "foo"]))
+    _one_line_exit_2(capfd, _run([str(ckpt), "-o", str(tmp_path / "m.onnx"), "--static", "foo"]))
 
 
 def test_ctrl_c_is_one_line_exit_130(ckpt: Path, tmp_path: Path, monkeypatch, capfd) -> None:
@@ -79,10 +79,12 @@ def test_output_over_its_own_checkpoint_is_refused(ckpt: Path, tmp_path: Path, c
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("option", [["--opset", "99"], ["--tolerance", "nan"],
-                                    ["--tolerance", "-1"]])
-def test_numeric_options_are_validated_up_front(option: list[str], ckpt: Path, tmp_path: Path,
-                                                capfd) -> None:
+@pytest.mark.parametrize(
+    "option", [["--opset", "99"], ["--tolerance", "nan"], ["--tolerance", "-1"]]
+)
+def test_numeric_options_are_validated_up_front(
+    option: list[str], ckpt: Path, tmp_path: Path, capfd
+) -> None:
     """--opset 99 raised a torch traceback after loading; --tolerance nan passed any model."""
     t0 = time.perf_counter()
     _one_line_exit_2(capfd, _run([str(ckpt), "-o", str(tmp_path / "m.onnx"), *option]))
@@ -93,9 +95,12 @@ def test_numeric_options_are_validated_up_front(option: list[str], ckpt: Path, t
 @pytest.mark.slow
 def test_sigterm_during_export_leaves_no_partial_file(ckpt: Path, tmp_path: Path) -> None:
     out = tmp_path / "m.onnx"
-    proc = subprocess.Popen([sys.executable, "-m", "msfnet.export.cli", str(ckpt), "-o",
-                             str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "msfnet.export.cli", str(ckpt), "-o", str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         deadline = time.time() + 120
         while not any(tmp_path.iterdir()) and proc.poll() is None and time.time() < deadline:
@@ -111,15 +116,18 @@ def test_sigterm_during_export_leaves_no_partial_file(ckpt: Path, tmp_path: Path
 
 
 def test_calib_without_int8_is_refused_not_ignored(ckpt: Path, tmp_path: Path, capfd) -> None:
-    line = _one_line_exit_2(capfd, _run([str(ckpt), "-o", str(tmp_path / "x.onnx"), "--calib",
-                                         str(tmp_path / "nowhere")]))
+    line = _one_line_exit_2(
+        capfd,
+        _run([str(ckpt), "-o", str(tmp_path / "x.onnx"), "--calib", str(tmp_path / "nowhere")]),
+    )
     assert "--calib" in line and "--int8" in line
     assert not (tmp_path / "x.onnx").exists()
 
 
 @pytest.mark.parametrize("ablation", [{"mfe": False}, {"mff": False}])
-def test_an_ablation_checkpoint_is_read_as_its_own_network(ablation: dict[str, bool],
-                                                          tmp_path: Path, capfd) -> None:
+def test_an_ablation_checkpoint_is_read_as_its_own_network(
+    ablation: dict[str, bool], tmp_path: Path, capfd
+) -> None:
     """msf-train --no-mfe / --no-mff runs load (the variant from the keys); the staged graph
     cannot hold them, which is said in one line with the way out."""
     from msfnet.model.checkpoint import load_model, save_checkpoint

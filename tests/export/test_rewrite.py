@@ -12,16 +12,18 @@ from msfnet.export.passes import PASSES, PassContext
 from msfnet.export.rewrite import deconv_weight_as_conv, rewrite_deconvs
 from msfnet.export.variants import ExportOptions, get_variant
 from msfnet.model.network import MSFNet
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.evaluate.metrics import angular_error_deg
 
 
 def test_weight_transform_matches_torch_deconv(rng):
     w = rng.normal(size=(5, 3, 4, 4)).astype(np.float32)
     x = rng.normal(size=(2, 5, 7, 6)).astype(np.float32)
-    ref = torch.nn.functional.conv_transpose2d(torch.from_numpy(x), torch.from_numpy(w),
-                                               stride=2, padding=1)
-    conv = torch.nn.functional.conv2d(torch.from_numpy(x),
-                                      torch.from_numpy(deconv_weight_as_conv(w)), padding=1)
+    ref = torch.nn.functional.conv_transpose2d(
+        torch.from_numpy(x), torch.from_numpy(w), stride=2, padding=1
+    )
+    conv = torch.nn.functional.conv2d(
+        torch.from_numpy(x), torch.from_numpy(deconv_weight_as_conv(w)), padding=1
+    )
     out = torch.nn.functional.pixel_shuffle(conv, 2)
     assert out.shape == ref.shape == (2, 3, 14, 12)
     assert torch.allclose(out, ref, atol=1e-5)
@@ -34,8 +36,9 @@ def fp32_model(tmp_path_factory):
     torch.manual_seed(0)
     net = MSFNet().eval()
     folder = tmp_path_factory.mktemp("rw")
-    ctx = PassContext(net, get_variant("fp32"), ExportOptions(), folder / "unused.pth",
-                      folder / "unused.onnx")
+    ctx = PassContext(
+        net, get_variant("fp32"), ExportOptions(), folder / "unused.pth", folder / "unused.onnx"
+    )
     return net, PASSES["torch-export"].run(None, ctx)
 
 

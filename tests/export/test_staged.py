@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.chunked import STAGE_INPUTS, STAGE_OUTPUTS
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.infer import choose_plan, infer_normals
-from msfnet.runtime.metrics import angular_error_deg
-from msfnet.runtime.session import create_session
-from msfnet.runtime.tiling import plan_tiles, tile_size_for_memory
+from msfnet.common.errors import InputError
+from msfnet.runtime.engines.ort_session import create_session
+from msfnet.runtime.engines.staged_loop import STAGE_INPUTS, STAGE_OUTPUTS
+from msfnet.runtime.evaluate.metrics import angular_error_deg
+from msfnet.runtime.infer.tiled import choose_plan, infer_normals
+from msfnet.runtime.infer.tiling import plan_tiles, tile_size_for_memory
 
 
 def test_staged_model_declares_itself(staged_onnx, sensitive_onnx) -> None:
@@ -41,8 +41,12 @@ def test_chunked_run_equals_monolithic(staged_onnx, sensitive_onnx, chunk) -> No
     diff = angular_error_deg(got[stack.mask], want[stack.mask])
     assert diff.max() < 0.01, diff.max()
     # a stack with the last light dropped gives different normals: the comparison can fail
-    fewer = replace(stack, images=stack.images[:-1], lights=stack.lights[:-1],
-                    intensities=stack.intensities[:-1])
+    fewer = replace(
+        stack,
+        images=stack.images[:-1],
+        lights=stack.lights[:-1],
+        intensities=stack.intensities[:-1],
+    )
     other = infer_normals(staged, fewer, plan).normals
     assert angular_error_deg(other[stack.mask], want[stack.mask]).mean() > 0.05
 
@@ -62,8 +66,12 @@ def test_staged_and_static_do_not_combine(tmp_path) -> None:
     from msfnet.export.variants import ExportOptions, StaticShape, export_variant
 
     with pytest.raises(InputError, match="--staged and --static"):
-        export_variant(tmp_path / "none.pth", "staged", tmp_path / "x.onnx",
-                       options=ExportOptions(static=StaticShape(8, 32, 32)))
+        export_variant(
+            tmp_path / "none.pth",
+            "staged",
+            tmp_path / "x.onnx",
+            options=ExportOptions(static=StaticShape(8, 32, 32)),
+        )
     assert not (tmp_path / "x.onnx").exists()
 
 

@@ -10,6 +10,8 @@ import pytest
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
+from msfnet.common.errors import InputError  # noqa: E402
+from msfnet.common.files import STAGING_TAG  # noqa: E402
 from msfnet.export import pipeline  # noqa: E402
 from msfnet.export.cli import main as export_main  # noqa: E402
 from msfnet.export.passes import PASSES  # noqa: E402
@@ -21,16 +23,15 @@ from msfnet.export.variants import (  # noqa: E402
     export_variant,
     variant_for,
 )
-from msfnet.runtime.errors import InputError  # noqa: E402
-from msfnet.runtime.files import STAGING_TAG  # noqa: E402
 
 STATIC = StaticShape(5, 16, 20)
 
 
 def _params() -> list:
     """Every row; the int8 ones (calibration, minutes on a busy CPU) only with -m slow."""
-    return [pytest.param(v, id=v.name, marks=[pytest.mark.slow] if v.slow else [])
-            for v in VARIANTS]
+    return [
+        pytest.param(v, id=v.name, marks=[pytest.mark.slow] if v.slow else []) for v in VARIANTS
+    ]
 
 
 def test_table_rows_are_consistent() -> None:
@@ -48,9 +49,15 @@ def test_table_rows_are_consistent() -> None:
         assert (v.rule.reference == "pytorch-fp16-weights") == ("fp16-storage" in v.passes)
         assert v.slow == v.needs_calibration, v.name
         # the older flags pick exactly this row
-        assert variant_for(static=v.graph == "static", plain=v.graph == "dynamic",
-                           fp16_weights=v.precision == "fp16-weights",
-                           int8=v.precision == "int8") is v
+        assert (
+            variant_for(
+                static=v.graph == "static",
+                plain=v.graph == "dynamic",
+                fp16_weights=v.precision == "fp16-weights",
+                int8=v.precision == "int8",
+            )
+            is v
+        )
     # no graph flag: the staged graph (msf-run's lean path); --staged is accepted as before
     assert variant_for().name == "staged" and variant_for(staged=True).name == "staged"
     assert variant_for(int8=True).name == "staged-int8"
@@ -58,7 +65,10 @@ def test_table_rows_are_consistent() -> None:
         variant_for(staged=True, plain=True)
     defaults = ExportOptions()  # duplicated to keep the table free of heavy imports
     assert (defaults.calib_tile, defaults.calib_lights, defaults.calib_tiles_per_stack) == (
-        quantize.CALIB_TILE, quantize.CALIB_LIGHTS, quantize.CALIB_TILES_PER_STACK)
+        quantize.CALIB_TILE,
+        quantize.CALIB_LIGHTS,
+        quantize.CALIB_TILES_PER_STACK,
+    )
 
 
 def test_unsupported_flag_combinations_are_refused() -> None:
@@ -71,13 +81,13 @@ def test_unsupported_flag_combinations_are_refused() -> None:
 
 
 @pytest.mark.parametrize("variant", _params())
-def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_ckpt: Path,
-                                                           calib_npz: Path, tmp_path: Path,
-                                                           monkeypatch) -> None:
+def test_variant_writes_once_and_verifies_the_written_file(
+    variant: Variant, he_ckpt: Path, calib_npz: Path, tmp_path: Path, monkeypatch
+) -> None:
     import msfnet
     from msfnet.model.checkpoint import default_checkpoint_path, sha256_of
     from msfnet.runtime.contract import model_metadata
-    from msfnet.runtime.session import create_session
+    from msfnet.runtime.engines.ort_session import create_session
 
     # int8 of random weights deviates ~1 deg mean (no trained activation statistics); the
     # bundled trained model is what the int8 rule is for
@@ -118,26 +128,37 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
     assert meta["msfnet.variant"] == variant.name
     assert model.info.staged == (variant.graph == "staged")
     assert (model.info.static_shape is not None) == (variant.graph == "static")
-    assert meta["msfnet.precision"] == {"fp32": "fp32", "fp16-weights":
-                                        "fp32 (fp16-stored weights)",
-                                        "int8": "int8-qdq"}[variant.precision]
+    assert (
+        meta["msfnet.precision"]
+        == {"fp32": "fp32", "fp16-weights": "fp32 (fp16-stored weights)", "int8": "int8-qdq"}[
+            variant.precision
+        ]
+    )
     # the file's msfnet metadata, in order, is the contract's builder's (plus int8's summary;
     # ORT's quantiser adds a key of its own, onnx.infer)
-    written = {e.key: e.value for e in onnx.load(str(out)).metadata_props
-               if e.key.startswith("msfnet.") or not variant.needs_calibration}
-    want_meta = model_metadata(train_lights=32, checkpoint_sha256=sha256_of(ckpt),
-                               version=msfnet.__version__,
-                               static_shape=(5, 16, 20) if variant.needs_shape else None,
-                               precision=meta["msfnet.precision"],
-                               staged=variant.graph == "staged", variant=variant.name)
+    written = {
+        e.key: e.value
+        for e in onnx.load(str(out)).metadata_props
+        if e.key.startswith("msfnet.") or not variant.needs_calibration
+    }
+    want_meta = model_metadata(
+        train_lights=32,
+        checkpoint_sha256=sha256_of(ckpt),
+        version=msfnet.__version__,
+        static_shape=(5, 16, 20) if variant.needs_shape else None,
+        precision=meta["msfnet.precision"],
+        staged=variant.graph == "staged",
+        variant=variant.name,
+    )
     if variant.needs_calibration:
         want_meta["msfnet.quantization"] = written["msfnet.quantization"]
     assert list(written.items()) == list(want_meta.items())
     rows = result.rows
     assert rows and all(r.pixels > 50 and r.norm_error < 1e-3 for r in rows)
     if variant.rule.inputs == "rendered":
-        want = {(5, 16, 20)} if variant.graph == "static" else {
-            (3, 32, 32), (7, 28, 44), (32, 16, 24)}
+        want = (
+            {(5, 16, 20)} if variant.graph == "static" else {(3, 32, 32), (7, 28, 44), (32, 16, 24)}
+        )
         assert {(r.lights, *r.size) for r in rows} == want
         assert result.max_deg <= 0.01 and not result.reference_rows
     else:  # int8: tiles of the calibration stack vs the fp32 graph, itself checked first
@@ -155,8 +176,7 @@ def test_variant_writes_once_and_verifies_the_written_file(variant: Variant, he_
         assert out.stat().st_size < 0.55 * he_ckpt.stat().st_size
 
 
-def test_verification_reads_the_file_on_disk(he_ckpt: Path, tmp_path: Path,
-                                             monkeypatch) -> None:
+def test_verification_reads_the_file_on_disk(he_ckpt: Path, tmp_path: Path, monkeypatch) -> None:
     """A write that alters the model (here: one conv scaled) must fail verification, i.e. the
     check runs on the bytes on disk, not on the in-memory model."""
     from onnx import numpy_helper
@@ -166,8 +186,9 @@ def test_verification_reads_the_file_on_disk(he_ckpt: Path, tmp_path: Path,
     def damaging_write(path: Path, data: bytes, target: Path) -> None:
         proto = onnx.load_from_string(data)
         init = next(t for t in proto.graph.initializer if len(t.dims) == 4)
-        init.CopyFrom(numpy_helper.from_array(numpy_helper.to_array(init) * np.float32(1.5),
-                                              init.name))
+        init.CopyFrom(
+            numpy_helper.from_array(numpy_helper.to_array(init) * np.float32(1.5), init.name)
+        )
         real_write(path, proto.SerializeToString(), target)
 
     monkeypatch.setattr(pipeline, "write_file", damaging_write)
@@ -177,11 +198,12 @@ def test_verification_reads_the_file_on_disk(he_ckpt: Path, tmp_path: Path,
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_written_file_that_does_not_load_is_named_as_the_output(he_ckpt: Path,
-                                                                  tmp_path: Path,
-                                                                  monkeypatch) -> None:
+def test_a_written_file_that_does_not_load_is_named_as_the_output(
+    he_ckpt: Path, tmp_path: Path, monkeypatch
+) -> None:
     """The file is checked under its temporary name; an error must name the output the user
     asked for (the temporary file is gone when the message is read)."""
+
     def truncating_write(path: Path, data: bytes, target: Path) -> None:
         path.write_bytes(data[: len(data) // 2])
 
@@ -194,8 +216,7 @@ def test_a_written_file_that_does_not_load_is_named_as_the_output(he_ckpt: Path,
     assert list(tmp_path.iterdir()) == []
 
 
-def test_simplify_is_an_option_of_any_row(he_ckpt: Path, tmp_path: Path,
-                                          monkeypatch) -> None:
+def test_simplify_is_an_option_of_any_row(he_ckpt: Path, tmp_path: Path, monkeypatch) -> None:
     pytest.importorskip("onnxslim")
     from dataclasses import replace
 
@@ -207,13 +228,16 @@ def test_simplify_is_an_option_of_any_row(he_ckpt: Path, tmp_path: Path,
         return real(proto, ctx)
 
     monkeypatch.setitem(PASSES, "simplify", replace(PASSES["simplify"], run=spy))
-    result = export_variant(he_ckpt, "staged", tmp_path / "slim.onnx",
-                            options=ExportOptions(simplify=True, checks=((9, 20, 12),)))
+    result = export_variant(
+        he_ckpt,
+        "staged",
+        tmp_path / "slim.onnx",
+        options=ExportOptions(simplify=True, checks=((9, 20, 12),)),
+    )
     assert seen == ["staged"] and result.max_deg < 0.01
 
 
-def test_cli_prints_the_result_of_the_written_file(he_ckpt: Path, tmp_path: Path,
-                                                   capsys) -> None:
+def test_cli_prints_the_result_of_the_written_file(he_ckpt: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "s.onnx"
     assert export_main([str(he_ckpt), "-o", str(out), "--static", "3,8,12"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
@@ -223,13 +247,24 @@ def test_cli_prints_the_result_of_the_written_file(he_ckpt: Path, tmp_path: Path
 
 
 @pytest.mark.slow
-def test_cli_int8_prints_int8_rows_never_fp32_ones(calib_npz: Path, tmp_path: Path,
-                                                   capsys) -> None:
+def test_cli_int8_prints_int8_rows_never_fp32_ones(calib_npz: Path, tmp_path: Path, capsys) -> None:
     from msfnet.model.checkpoint import default_checkpoint_path
 
     out = tmp_path / "q.onnx"
-    assert export_main([str(default_checkpoint_path()), "-o", str(out), "--plain", "--int8",
-                        "--calib", str(calib_npz)]) == 0
+    assert (
+        export_main(
+            [
+                str(default_checkpoint_path()),
+                "-o",
+                str(out),
+                "--plain",
+                "--int8",
+                "--calib",
+                str(calib_npz),
+            ]
+        )
+        == 0
+    )
     lines = capsys.readouterr().out.strip().splitlines()
     verified = [ln for ln in lines if ln.startswith("verified")]
     assert verified and all(ln.startswith("verified int8") for ln in verified), lines
@@ -239,13 +274,27 @@ def test_cli_int8_prints_int8_rows_never_fp32_ones(calib_npz: Path, tmp_path: Pa
 
 
 @pytest.mark.slow
-def test_int8_verification_can_fail_and_then_writes_nothing(he_ckpt: Path, calib_npz: Path,
-                                                            tmp_path: Path, capsys) -> None:
+def test_int8_verification_can_fail_and_then_writes_nothing(
+    he_ckpt: Path, calib_npz: Path, tmp_path: Path, capsys
+) -> None:
     """Random He weights quantise worse (measured ~1.1 deg mean on the sphere tiles): with a
     0.5 deg limit the written int8 file must be rejected and removed."""
     out = tmp_path / "q.onnx"
-    assert export_main([str(he_ckpt), "-o", str(out), "--int8", "--calib", str(calib_npz),
-                        "--tolerance", "0.5"]) == 2
+    assert (
+        export_main(
+            [
+                str(he_ckpt),
+                "-o",
+                str(out),
+                "--int8",
+                "--calib",
+                str(calib_npz),
+                "--tolerance",
+                "0.5",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "verification failed" in err and "deg mean" in err, err
     assert list(tmp_path.iterdir()) == []

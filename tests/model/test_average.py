@@ -85,16 +85,16 @@ def test_the_mean_of_two_copies_predicts_as_the_model_does(tmp_path: Path) -> No
     assert torch.allclose(want, got, rtol=0, atol=1e-6)
 
 
-def test_fp16_output_message_and_provenance(tmp_path: Path, capsys: pytest.CaptureFixture[str]
-                                            ) -> None:
+def test_fp16_output_message_and_provenance(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     paths = [str(_checkpoint(tmp_path / f"s{i}.pth", i)) for i in (1, 2)]
     out = tmp_path / "sub" / "avg.pth"
     assert main([*paths, "-o", str(out), "--fp16"]) == 0
     assert "mean of 2 checkpoints" in capsys.readouterr().out
     raw = torch.load(out, map_location="cpu", weights_only=True)
     assert raw["model"] == "MSF_Net" and raw["averaged_from"] == paths
-    assert {v.dtype for v in raw["state_dict"].values() if v.is_floating_point()} == {
-        torch.float16}
+    assert {v.dtype for v in raw["state_dict"].values() if v.is_floating_point()} == {torch.float16}
     load_model(out)  # and it loads strictly
 
 
@@ -106,8 +106,9 @@ def _refused(argv: list[str], words: str, capfd: pytest.CaptureFixture[str]) -> 
     return lines[0]
 
 
-def test_refusals_leave_everything_as_it_was(tmp_path: Path,
-                                             capfd: pytest.CaptureFixture[str]) -> None:
+def test_refusals_leave_everything_as_it_was(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
     a = _checkpoint(tmp_path / "a.pth", 1)
     b = _checkpoint(tmp_path / "b.pth", 2)
     no_fusion = _checkpoint(tmp_path / "nofusion.pth", 3, mff=False)
@@ -131,9 +132,13 @@ def test_refusals_leave_everything_as_it_was(tmp_path: Path,
     for twice in ("link.pth", "hard.pth"):
         line = _refused([str(a), str(b), str(tmp_path / twice), "-o", x], "given twice", capfd)
         assert twice in line
-    for bad, words in ((junk, "not a PyTorch checkpoint"), (no_fusion, "missing key"),
-                       (nan, "NaN"), (tmp_path / "gone.pth", "not found"),
-                       (tmp_path / "folder.pth", "is a folder")):
+    for bad, words in (
+        (junk, "not a PyTorch checkpoint"),
+        (no_fusion, "missing key"),
+        (nan, "NaN"),
+        (tmp_path / "gone.pth", "not found"),
+        (tmp_path / "folder.pth", "is a folder"),
+    ):
         line = _refused([str(a), str(bad), "-o", x], words, capfd)
         assert f"error: {bad}: " in line
 
@@ -156,9 +161,10 @@ def test_help_does_not_import_torch() -> None:
     import subprocess
     import sys
 
-    code = ("import sys; from msfnet.model.average import main\n"
-            "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
-            "assert 'torch' not in sys.modules, 'torch imported'")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          check=False)
+    code = (
+        "import sys; from msfnet.model.average import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "assert 'torch' not in sys.modules, 'torch imported'"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
     assert done.returncode == 0, done.stderr

@@ -23,8 +23,9 @@ def test_a_text_file_is_not_a_checkpoint(tmp_path: Path, content: bytes) -> None
 
 def test_a_git_lfs_pointer_says_so(tmp_path: Path) -> None:
     path = tmp_path / "checkp_30.pth.tar"
-    path.write_text("version https://git-lfs.github.com/spec/v1\n"
-                    "oid sha256:" + "0" * 64 + "\nsize 123456\n")
+    path.write_text(
+        "version https://git-lfs.github.com/spec/v1\noid sha256:" + "0" * 64 + "\nsize 123456\n"
+    )
     with pytest.raises(CheckpointError, match="Git LFS pointer"):
         read_state_dict(path)
 
@@ -45,16 +46,20 @@ def test_pickled_objects_are_still_called_so(tmp_path: Path) -> None:
 
 @pytest.mark.filterwarnings("ignore:Detected pickle protocol")
 @pytest.mark.parametrize("protocol", [0, 4, 5])
-def test_a_pickle_the_safe_reader_refuses_is_not_called_no_pickle(tmp_path: Path,
-                                                                   protocol: int) -> None:
+def test_a_pickle_the_safe_reader_refuses_is_not_called_no_pickle(
+    tmp_path: Path, protocol: int
+) -> None:
     """torch's weights-only reader says "Unsupported operand" both for bytes that are no pickle
     and for pickle opcodes it lacks (protocol 0; FRAME of protocols 4-5)."""
     import torch
 
     path = tmp_path / "p.pth"
     torch.save({"state_dict": {"w": torch.zeros(2)}}, path, pickle_protocol=protocol)
-    with pytest.raises(CheckpointError, match="a pickle that PyTorch's safe reader refuses "
-                                              r"\(Unsupported operand \d+\); refusing"):
+    with pytest.raises(
+        CheckpointError,
+        match="a pickle that PyTorch's safe reader refuses "
+        r"\(Unsupported operand \d+\); refusing",
+    ):
         read_state_dict(path)
 
 
@@ -74,8 +79,9 @@ def test_a_pickle_that_would_run_code_is_refused_as_objects(tmp_path: Path) -> N
     import pickle
 
     path = tmp_path / "evil.pth"
-    path.write_bytes(pickle.dumps({"state_dict": {"w": _RunsACommand(tmp_path / "ran")}},
-                                  protocol=2))
+    path.write_bytes(
+        pickle.dumps({"state_dict": {"w": _RunsACommand(tmp_path / "ran")}}, protocol=2)
+    )
     with pytest.raises(CheckpointError, match="pickled Python objects"):
         read_state_dict(path)
     assert not (tmp_path / "ran").exists()
@@ -91,8 +97,11 @@ def test_weights_of_the_wrong_kind_are_named(spoil: str) -> None:
     model = MSFNet()
     state = dict(model.state_dict())
     key = "regressor.est_normal.0.weight"
-    state[key] = {"int64": state[key].long(), "complex": state[key].to(torch.complex64),
-                  "sparse": state[key].to_sparse()}[spoil]
+    state[key] = {
+        "int64": state[key].long(),
+        "complex": state[key].to(torch.complex64),
+        "sparse": state[key].to_sparse(),
+    }[spoil]
     with pytest.raises(CheckpointError, match=f"1 mis-typed key\\(s\\): {key}"):
         check_state_dict(model, state, "x.pth")
     check_state_dict(model, dict(model.state_dict()), "x.pth")  # the real thing passes

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from _runtime_helpers import as_float32, png_stack
 
+from msfnet.common.errors import InputError
+from msfnet.common.imageio import write_png
 from msfnet.model.data import BlobbySource, find_blobby_samples, load_blobby_sample, make_sample
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import write_png
-from msfnet.runtime.metrics import deviation_deg
+from msfnet.runtime.evaluate.metrics import deviation_deg
 from msfnet.runtime.stack import load_stack
 from msfnet.synth.shapes import sphere_normals
 

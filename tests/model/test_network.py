@@ -11,26 +11,36 @@ from msfnet.model.reference import per_light_forward  # noqa: E402
 
 # (key, shape) straight from the layer table in docs/architecture.md
 EXPECTED = {
-    "extractor1.conv1.0.weight": (64, 6, 3, 3), "extractor1.conv1.0.bias": (64,),
-    "extractor1.conv2.0.weight": (128, 64, 3, 3), "extractor1.conv2.0.bias": (128,),
-    "extractor1.conv3.0.weight": (96, 128, 3, 3), "extractor1.conv3.0.bias": (96,),
-    "extractor1.conv4.0.weight": (96, 96, 3, 3), "extractor1.conv4.0.bias": (96,),
-    "regressor.deconv1.0.weight": (128, 96, 3, 3), "regressor.deconv1.0.bias": (128,),
+    "extractor1.conv1.0.weight": (64, 6, 3, 3),
+    "extractor1.conv1.0.bias": (64,),
+    "extractor1.conv2.0.weight": (128, 64, 3, 3),
+    "extractor1.conv2.0.bias": (128,),
+    "extractor1.conv3.0.weight": (96, 128, 3, 3),
+    "extractor1.conv3.0.bias": (96,),
+    "extractor1.conv4.0.weight": (96, 96, 3, 3),
+    "extractor1.conv4.0.bias": (96,),
+    "regressor.deconv1.0.weight": (128, 96, 3, 3),
+    "regressor.deconv1.0.bias": (128,),
     "regressor.deconv2.0.weight": (128, 64, 4, 4),
-    "regressor.deconv3.0.weight": (32, 64, 3, 3), "regressor.deconv3.0.bias": (32,),
+    "regressor.deconv3.0.weight": (32, 64, 3, 3),
+    "regressor.deconv3.0.bias": (32,),
     "regressor.est_normal.0.weight": (3, 32, 3, 3),
 }
 for stage in ("extractor2", "extractor3"):
     EXPECTED |= {
-        f"{stage}.conv1.0.weight": (192, 192, 3, 3), f"{stage}.conv1.0.bias": (192,),
+        f"{stage}.conv1.0.weight": (192, 192, 3, 3),
+        f"{stage}.conv1.0.bias": (192,),
         f"{stage}.conv2.0.weight": (192, 128, 4, 4),
-        f"{stage}.conv3.0.weight": (96, 128, 3, 3), f"{stage}.conv3.0.bias": (96,),
+        f"{stage}.conv3.0.weight": (96, 128, 3, 3),
+        f"{stage}.conv3.0.bias": (96,),
     }
 for branch in ("f_x", "f_y"):
     EXPECTED |= {
         f"fusion.{branch}.0.weight": (96, 96, 1, 1),
-        f"fusion.{branch}.1.weight": (96,), f"fusion.{branch}.1.bias": (96,),
-        f"fusion.{branch}.1.running_mean": (96,), f"fusion.{branch}.1.running_var": (96,),
+        f"fusion.{branch}.1.weight": (96,),
+        f"fusion.{branch}.1.bias": (96,),
+        f"fusion.{branch}.1.running_mean": (96,),
+        f"fusion.{branch}.1.running_var": (96,),
         f"fusion.{branch}.1.num_batches_tracked": (),
     }
 

@@ -12,7 +12,7 @@ from msfnet.model.data import collate, make_sample, rotate_flip
 from msfnet.model.network import MSFNet, max_over_lights
 from msfnet.model.train import backward_losses, cosine_loss, gradient_loss, stage_losses
 from msfnet.model.train_cli import main as train_main
-from msfnet.runtime.preprocess import normalise
+from msfnet.runtime.infer.normalise import normalise
 from msfnet.synth import RenderOptions, render_stack
 from msfnet.synth.shapes import sphere_normals
 
@@ -41,11 +41,17 @@ def test_middle_loss_sends_no_gradient_into_extractor1():
         if name.startswith("extractor1."):
             assert grad is None or torch.count_nonzero(grad) == 0, name
     for prefix in ("extractor2.", "fusion.", "regressor."):
-        assert any(grad is not None and grad.abs().sum() > 0
-                   for n, grad in g.items() if n.startswith(prefix)), prefix
+        assert any(
+            grad is not None and grad.abs().sum() > 0
+            for n, grad in g.items()
+            if n.startswith(prefix)
+        ), prefix
     # extractor3 plays no part in the middle stage
-    assert all(grad is None or torch.count_nonzero(grad) == 0
-               for n, grad in g.items() if n.startswith("extractor3."))
+    assert all(
+        grad is None or torch.count_nonzero(grad) == 0
+        for n, grad in g.items()
+        if n.startswith("extractor3.")
+    )
     # without SUS the same loss does reach extractor1
     model.zero_grad(set_to_none=True)
     losses = stage_losses(model, bt.images, bt.lights, bt.normals, bt.mask)
@@ -74,9 +80,11 @@ def test_selective_update_equals_detaching_extractor1_for_the_middle_loss():
     m3 = max_over_lights(f3, b)
     f1d = f1.detach()
     f2d = model.extractor2(model.stage_input(f1d, max_over_lights(f1d, b)))
-    loss = (0.5 * cosine_loss(model.regressor(m1), n, m)
-            + 0.5 * cosine_loss(model.regressor(max_over_lights(f2d, b)), n, m)
-            + cosine_loss(model.regressor(m3), n, m))
+    loss = (
+        0.5 * cosine_loss(model.regressor(m1), n, m)
+        + 0.5 * cosine_loss(model.regressor(max_over_lights(f2d, b)), n, m)
+        + cosine_loss(model.regressor(m3), n, m)
+    )
     loss.backward()
     for name, p in model.named_parameters():
         ref = p.grad if p.grad is not None else torch.zeros_like(p)
@@ -167,18 +175,34 @@ def test_sample_input_is_runtime_normalise_of_the_crop():
     # full crop, all lights: equal to runtime normalise up to the light order and rotation
     ref = normalise(s.images, s.intensities, s.mask)
     assert x.shape == (10, 3, 32, 32)
-    np.testing.assert_allclose(np.sort(np.abs(x).ravel()), np.sort(np.abs(ref).ravel()),
-                               rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        np.sort(np.abs(x).ravel()), np.sort(np.abs(ref).ravel()), rtol=1e-5, atol=1e-7
+    )
 
 
 @pytest.mark.slow
 def test_cli_trains_saves_and_resumes(tmp_path, capsys):
     out = tmp_path / "run"
-    common = ["--batch", "2", "--lights", "4", "--crop", "16", "--pool", "3", "--render-size",
-              "32", "--val-objects", "1", "--log-every", "1", "--no-progress", "--precision",
-              "fp32"]
-    assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "2",
-                       *common]) == 0
+    common = [
+        "--batch",
+        "2",
+        "--lights",
+        "4",
+        "--crop",
+        "16",
+        "--pool",
+        "3",
+        "--render-size",
+        "32",
+        "--val-objects",
+        "1",
+        "--log-every",
+        "1",
+        "--no-progress",
+        "--precision",
+        "fp32",
+    ]
+    assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "2", *common]) == 0
     ckpt = torch.load(out / "last.pth", weights_only=True)
     assert set(ckpt) >= {"state_dict", "model"} and ckpt["step"] == 2
     MSFNet().load_state_dict(ckpt["state_dict"], strict=True)
@@ -203,10 +227,40 @@ def test_cli_starts_from_given_weights(tmp_path):
     start = MSFNet()
     ckpt = save_checkpoint(start, tmp_path / "start.pth", fp16=True)
     out = tmp_path / "run"
-    assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "1", "--batch",
-                       "1", "--lights", "3", "--crop", "16", "--pool", "1", "--render-size",
-                       "32", "--val-objects", "1", "--no-progress", "--precision", "fp32",
-                       "--lr", "1e-12", "--init", str(ckpt), "--grad-loss", "0.2"]) == 0
+    assert (
+        train_main(
+            [
+                "--out",
+                str(out),
+                "--epochs",
+                "1",
+                "--steps-per-epoch",
+                "1",
+                "--batch",
+                "1",
+                "--lights",
+                "3",
+                "--crop",
+                "16",
+                "--pool",
+                "1",
+                "--render-size",
+                "32",
+                "--val-objects",
+                "1",
+                "--no-progress",
+                "--precision",
+                "fp32",
+                "--lr",
+                "1e-12",
+                "--init",
+                str(ckpt),
+                "--grad-loss",
+                "0.2",
+            ]
+        )
+        == 0
+    )
     assert json.loads((out / "config.json").read_text())["grad_loss"] == 0.2
     trained = torch.load(out / "last.pth", weights_only=True)["state_dict"]
     want = start.state_dict()["regressor.est_normal.0.weight"].half().float()

@@ -36,8 +36,9 @@ def _data(t: Path) -> Path:
     return folder
 
 
-CONFIG = json.dumps({"epochs": 2, "steps_per_epoch": 3, "batch": 2, "curriculum": "0:4-4:16",
-                     "lr": 1e-3, "seed": 0})
+CONFIG = json.dumps(
+    {"epochs": 2, "steps_per_epoch": 3, "batch": 2, "curriculum": "0:4-4:16", "lr": 1e-3, "seed": 0}
+)
 
 
 def _old_run(t: Path, *extra: str) -> Path:
@@ -56,52 +57,86 @@ def _with_folder(out: Path, name: str) -> Path:
 
 # name: (build(tmp) -> argv, words in the error)
 REFUSED: dict[str, tuple[Callable[[Path], list[str]], list[str]]] = {
-    "--out is the --init checkpoint": (lambda t: ["--out", str(_ckpt(t)), "--init",
-                                                  str(t / "weights.pth"), "--overwrite"],
-                                       ["replace an input"]),
-    "--out holds the --init checkpoint": (lambda t: ["--out", str(t), "--init", str(_ckpt(t)),
-                                                     "--overwrite"], ["contains the input"]),
-    "--out holds the --data folder": (lambda t: ["--out", str(t), "--data", str(_data(t)),
-                                                 "--overwrite"], ["contains the input"]),
-    "--out inside the --data folder": (lambda t: ["--out", str(_data(t) / "run"), "--data",
-                                                  str(t / "blobby")], ["inside the input"]),
+    "--out is the --init checkpoint": (
+        lambda t: ["--out", str(_ckpt(t)), "--init", str(t / "weights.pth"), "--overwrite"],
+        ["replace an input"],
+    ),
+    "--out holds the --init checkpoint": (
+        lambda t: ["--out", str(t), "--init", str(_ckpt(t)), "--overwrite"],
+        ["contains the input"],
+    ),
+    "--out holds the --data folder": (
+        lambda t: ["--out", str(t), "--data", str(_data(t)), "--overwrite"],
+        ["contains the input"],
+    ),
+    "--out inside the --data folder": (
+        lambda t: ["--out", str(_data(t) / "run"), "--data", str(t / "blobby")],
+        ["inside the input"],
+    ),
     "--out is a file": (lambda t: ["--out", str(_ckpt(t))], ["not a folder"]),
-    "--overwrite over a foreign file": (lambda t: ["--out", str(_old_run(t, "thesis.tex")),
-                                                   "--overwrite"], ["thesis.tex", "did not"]),
+    "--overwrite over a foreign file": (
+        lambda t: ["--out", str(_old_run(t, "thesis.tex")), "--overwrite"],
+        ["thesis.tex", "did not"],
+    ),
     "non-empty without --overwrite": (lambda t: ["--out", str(_old_run(t))], ["--resume"]),
-    "--resume and --overwrite": (lambda t: ["--out", str(_old_run(t)), "--resume",
-                                            "--overwrite"], ["contradict"]),
-    "--resume in a folder of other files": (lambda t: ["--out", str(_foreign(t)), "--resume"],
-                                             ["no msf-train run", "notes.txt"]),
-    "--resume with binary config.json": (lambda t: ["--out", str(_damaged(t, b"\xff\xfe\x00")),
-                                                    "--resume"], ["damaged"]),
-    "--resume with a list as config": (lambda t: ["--out", str(_damaged(t, b"[1, 2]")),
-                                                  "--resume"], ["not an msf-train"]),
-    "--resume with unknown keys": (lambda t: ["--out", str(_damaged(t, b'{"epochz": 3}')),
-                                              "--resume"], ["epochz"]),
+    "--resume and --overwrite": (
+        lambda t: ["--out", str(_old_run(t)), "--resume", "--overwrite"],
+        ["contradict"],
+    ),
+    "--resume in a folder of other files": (
+        lambda t: ["--out", str(_foreign(t)), "--resume"],
+        ["no msf-train run", "notes.txt"],
+    ),
+    "--resume with binary config.json": (
+        lambda t: ["--out", str(_damaged(t, b"\xff\xfe\x00")), "--resume"],
+        ["damaged"],
+    ),
+    "--resume with a list as config": (
+        lambda t: ["--out", str(_damaged(t, b"[1, 2]")), "--resume"],
+        ["not an msf-train"],
+    ),
+    "--resume with unknown keys": (
+        lambda t: ["--out", str(_damaged(t, b'{"epochz": 3}')), "--resume"],
+        ["epochz"],
+    ),
     "--overwrite over a folder named like a snapshot": (
         lambda t: ["--out", str(_with_folder(_old_run(t), "snap_0000001.pth")), "--overwrite"],
-        ["snap_0000001.pth", "did not"]),
+        ["snap_0000001.pth", "did not"],
+    ),
     "--overwrite where config.json is not msf-train's": (
         lambda t: ["--out", str(_damaged(t, b'{"my": "settings"}')), "--overwrite"],
-        ["not an msf-train"]),
+        ["not an msf-train"],
+    ),
     "--resume with weights but no optimiser state": (
         lambda t: ["--out", str(_old_run(t, "best.pth")), "--resume"],
-        ["best.pth, last.pth", "--init"]),
+        ["best.pth, last.pth", "--init"],
+    ),
     "--resume changing the network": (
         lambda t: ["--out", str(_old_run(t, "last_state.pth")), "--resume", "--no-mfe"],
-        ["--no-mfe changes the network"]),
+        ["--no-mfe changes the network"],
+    ),
     "--overwrite with an option refused later": (
-        lambda t: ["--out", str(_old_run(t, "best.pth")), "--overwrite", "--render-lights",
-                   "8"], ["--render-lights"]),
+        lambda t: ["--out", str(_old_run(t, "best.pth")), "--overwrite", "--render-lights", "8"],
+        ["--render-lights"],
+    ),
     "--overwrite with a missing --init": (
-        lambda t: ["--out", str(_old_run(t, "best.pth")), "--overwrite", "--init",
-                   str(t / "nowhere.pth")], ["not found"]),
+        lambda t: [
+            "--out",
+            str(_old_run(t, "best.pth")),
+            "--overwrite",
+            "--init",
+            str(t / "nowhere.pth"),
+        ],
+        ["not found"],
+    ),
     "a curriculum beyond --render-lights": (
         lambda t: ["--out", str(t / "r"), "--lights", "32", "--render-lights", "8"],
-        ["32 lights", "--render-lights"]),
-    "--data neither synth nor a folder": (lambda t: ["--out", str(t / "r"), "--data",
-                                                     str(t / "nowhere")], ["--data"]),
+        ["32 lights", "--render-lights"],
+    ),
+    "--data neither synth nor a folder": (
+        lambda t: ["--out", str(t / "r"), "--data", str(t / "nowhere")],
+        ["--data"],
+    ),
 }
 
 
@@ -141,8 +176,9 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
 
     monkeypatch.setattr(train, "Trainer", trainer)  # train_cli imports it when it starts
     with pytest.raises(Stop):
-        train_cli._run(train_cli.build_parser().parse_args(["--out", str(out), "--overwrite"]),
-                       None)
+        train_cli._run(
+            train_cli.build_parser().parse_args(["--out", str(out), "--overwrite"]), None
+        )
     assert started == [[]]
 
 

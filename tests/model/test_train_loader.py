@@ -12,18 +12,38 @@ import numpy as np
 import pytest
 import torch
 
+from msfnet.common.errors import InputError
 from msfnet.model import train as train_mod
 from msfnet.model.data import SourceSpec, StepPlan, StepStream, make_loader, worker_init
 from msfnet.model.train import TrainConfig, Trainer, default_workers, resolve_device
 from msfnet.model.train_cli import main as train_main
-from msfnet.runtime.errors import InputError
 from msfnet.synth import RenderOptions
 
 torch.set_num_threads(2)
 
-TINY = ["--batch", "1", "--lights", "3", "--crop", "8", "--pool", "2", "--render-size", "24",
-        "--val-objects", "1", "--val-size", "32", "--log-every", "1", "--no-progress",
-        "--precision", "fp32", "--device", "cpu"]
+TINY = [
+    "--batch",
+    "1",
+    "--lights",
+    "3",
+    "--crop",
+    "8",
+    "--pool",
+    "2",
+    "--render-size",
+    "24",
+    "--val-objects",
+    "1",
+    "--val-size",
+    "32",
+    "--log-every",
+    "1",
+    "--no-progress",
+    "--precision",
+    "fp32",
+    "--device",
+    "cpu",
+]
 
 
 def test_device_choice_without_cuda(monkeypatch):
@@ -43,14 +63,23 @@ def test_device_choice_without_cuda(monkeypatch):
 
 def test_trainer_on_cpu_when_cuda_is_unavailable(monkeypatch, tmp_path):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    cfg = TrainConfig(out=str(tmp_path), batch=1, curriculum="0:3-3:16", render_size=24,
-                      pool=1, val_objects=1, val_size=32, render_preset="hard")
+    cfg = TrainConfig(
+        out=str(tmp_path),
+        batch=1,
+        curriculum="0:3-3:16",
+        render_size=24,
+        pool=1,
+        val_objects=1,
+        val_size=32,
+        render_preset="hard",
+    )
     t = Trainer(cfg)
     assert t.device.type == "cpu" and t.workers == 0
     assert t.bf16 == train_mod.bf16_available()
     assert next(t.model.parameters()).device.type == "cpu"
-    assert t.render_options == RenderOptions.hard(size=24, lights=cfg.render_lights,
-                                                  max_depth=cfg.render_max_depth)
+    assert t.render_options == RenderOptions.hard(
+        size=24, lights=cfg.render_lights, max_depth=cfg.render_max_depth
+    )
     assert t.source is not None and t.source.options.steep > 0  # the hard preset reaches data
 
 
@@ -84,8 +113,12 @@ def test_two_workers_deliver_steps_in_order():
 
 def test_cli_trains_through_worker_processes_and_logs_throughput(tmp_path):
     out = tmp_path / "run"
-    assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "2",
-                       "--workers", "1", *TINY]) == 0
+    assert (
+        train_main(
+            ["--out", str(out), "--epochs", "1", "--steps-per-epoch", "2", "--workers", "1", *TINY]
+        )
+        == 0
+    )
     rows = [json.loads(r) for r in (out / "log.jsonl").read_text().splitlines()]
     steps = [r for r in rows if "loss" in r]
     assert [r["step"] for r in steps] == [1, 2]
@@ -107,8 +140,18 @@ def test_sigterm_saves_last_and_resume_finishes(tmp_path, monkeypatch):
         return result
 
     monkeypatch.setattr(Trainer, "train_step", step_then_signal)
-    cmd = ["--out", str(out), "--epochs", "1", "--steps-per-epoch", "3", "--workers", "1",
-           "--resume", *TINY]
+    cmd = [
+        "--out",
+        str(out),
+        "--epochs",
+        "1",
+        "--steps-per-epoch",
+        "3",
+        "--workers",
+        "1",
+        "--resume",
+        *TINY,
+    ]
     # --resume with nothing there starts the run, so one command serves every chunk.
     assert train_main(cmd) == 128 + signal.SIGTERM
     assert torch.load(out / "last.pth", weights_only=True)["step"] == 1
@@ -127,12 +170,26 @@ def test_in_process_path_is_unchanged_by_the_worker_option(tmp_path):
     # what SynthSource.batch gives with rng [seed, 0].
     from msfnet.model.data import SynthSource
 
-    cfg = TrainConfig(out=str(tmp_path), batch=2, curriculum="0:4-4:16", render_size=24,
-                      pool=2, refresh=1, val_objects=1, val_size=32, device="cpu", workers=0)
+    cfg = TrainConfig(
+        out=str(tmp_path),
+        batch=2,
+        curriculum="0:4-4:16",
+        render_size=24,
+        pool=2,
+        refresh=1,
+        val_objects=1,
+        val_size=32,
+        device="cpu",
+        workers=0,
+    )
     t = Trainer(cfg)
     batch, lights, crop = next(t._local_batches(10))
-    ref_src = SynthSource(cfg.seed, RenderOptions(size=24, lights=cfg.render_lights,
-                                                  max_depth=cfg.render_max_depth), 2, 1)
+    ref_src = SynthSource(
+        cfg.seed,
+        RenderOptions(size=24, lights=cfg.render_lights, max_depth=cfg.render_max_depth),
+        2,
+        1,
+    )
     rng = np.random.default_rng([cfg.seed, 0])
     rng.integers(4, 5)
     ref = ref_src.batch(2, 4, 16, rng, noise=cfg.noise)
@@ -186,21 +243,46 @@ def test_stuck_workers_that_ignore_sigterm_are_killed():
 
 def test_snapshots_are_kept_every_k_epochs(tmp_path):
     out = tmp_path / "run"
-    assert train_main(["--out", str(out), "--epochs", "4", "--steps-per-epoch", "1",
-                       "--snapshot-every", "2", *TINY]) == 0
-    assert sorted(p.name for p in out.glob("snap_*.pth")) == ["snap_0000002.pth",
-                                                              "snap_0000004.pth"]
+    assert (
+        train_main(
+            [
+                "--out",
+                str(out),
+                "--epochs",
+                "4",
+                "--steps-per-epoch",
+                "1",
+                "--snapshot-every",
+                "2",
+                *TINY,
+            ]
+        )
+        == 0
+    )
+    assert sorted(p.name for p in out.glob("snap_*.pth")) == [
+        "snap_0000002.pth",
+        "snap_0000004.pth",
+    ]
     snap = torch.load(out / "snap_0000004.pth", weights_only=True)
     last = torch.load(out / "last.pth", weights_only=True)
-    assert snap["step"] == 4 and all(torch.equal(snap["state_dict"][k], v)
-                                     for k, v in last["state_dict"].items())
+    assert snap["step"] == 4 and all(
+        torch.equal(snap["state_dict"][k], v) for k, v in last["state_dict"].items()
+    )
     # --overwrite counts snapshots as msf-train's own files, and only those it names
     (out / "snap_final.pth").write_bytes(b"the user's")
-    assert train_main(["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch",
-                       "1", *TINY]) == 2
+    assert (
+        train_main(
+            ["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch", "1", *TINY]
+        )
+        == 2
+    )
     (out / "snap_final.pth").unlink()
-    assert train_main(["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch",
-                       "1", *TINY]) == 0
+    assert (
+        train_main(
+            ["--out", str(out), "--overwrite", "--epochs", "1", "--steps-per-epoch", "1", *TINY]
+        )
+        == 0
+    )
     assert not list(out.glob("snap_*.pth"))
 
 
@@ -208,15 +290,26 @@ def test_resume_refuses_weights_and_optimiser_of_different_steps(tmp_path):
     """A kill between the two files of a save must not resume from mismatched halves."""
     from msfnet.model.checkpoint import save_checkpoint
 
-    cfg = TrainConfig(out=str(tmp_path), batch=1, curriculum="0:3-3:16", render_size=24,
-                      pool=1, val_objects=1, val_size=32, precision="fp32")
+    cfg = TrainConfig(
+        out=str(tmp_path),
+        batch=1,
+        curriculum="0:3-3:16",
+        render_size=24,
+        pool=1,
+        val_objects=1,
+        val_size=32,
+        precision="fp32",
+    )
     t = Trainer(cfg)
     t.step = 5
     t.save()
     assert Trainer(cfg, resume=True).step == 5  # a consistent pair resumes
     save_checkpoint(t.model, tmp_path / "last.pth", step=6)
-    with pytest.raises(InputError, match=r"last\.pth is from step 6 but last_state\.pth "
-                                         r"from step 5"):
+    with pytest.raises(
+        InputError,
+        match=r"last\.pth is from step 6 but last_state\.pth "
+        r"from step 5",
+    ):
         Trainer(cfg, resume=True)
     for odd in ({"step": 6}, {"optimizer": {}, "step": "six", "best": None}):
         torch.save(odd, tmp_path / "last_state.pth")  # no optimiser / not numbers

@@ -29,12 +29,14 @@ def _files(root: Path) -> set[str]:
     return {str(p.relative_to(root)) for p in root.rglob("*")}
 
 
-def test_readme_example_runs_verbatim(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                      capsys: pytest.CaptureFixture[str]) -> None:
-    import msfnet.runtime.pipeline as pipeline
+def test_readme_example_runs_verbatim(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import msfnet.runtime.api as pipeline
 
-    assert README_EXAMPLE.strip() in (pipeline.__doc__ or "").replace("\n    ", "\n"), \
+    assert README_EXAMPLE.strip() in (pipeline.__doc__ or "").replace("\n    ", "\n"), (
         "the pipeline docstring shows another example"
+    )
     save_stack(sphere_stack(n=10, h=36, w=44), tmp_path / "obj")
     monkeypatch.chdir(tmp_path)
     before = _files(tmp_path)
@@ -51,16 +53,18 @@ def test_readme_example_runs_verbatim(tmp_path: Path, monkeypatch: pytest.Monkey
     assert l2.metrics is None and l2.normals.shape == (36, 44, 3)  # type: ignore[attr-defined]
 
 
-def test_two_calls_in_a_row_agree_and_write_nothing(random_onnx: Path, tmp_path: Path,
-                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+def test_two_calls_in_a_row_agree_and_write_nothing(
+    random_onnx: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.chdir(tmp_path)
     stack = sphere_stack(n=6, h=28, w=32)
     model = Model(random_onnx, threads=1)
     first, second = model(stack), model(stack)
     np.testing.assert_array_equal(first.normals, second.normals)
     assert first.metrics == second.metrics and first is not second
-    again = model.predict(stack.images, stack.lights, mask=stack.mask,
-                          intensities=stack.intensities)
+    again = model.predict(
+        stack.images, stack.lights, mask=stack.mask, intensities=stack.intensities
+    )
     np.testing.assert_array_equal(again.normals, first.normals)
     assert os.listdir(tmp_path) == []  # no output folder, no cache, nothing
     assert "threads=1" in repr(model)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.run_cli import main
+from msfnet.runtime.cli.run import main
 from msfnet.runtime.stack import save_stack
 
 
@@ -45,24 +45,43 @@ def _two_lights(d: Path) -> None:
 
 CASES: dict[str, tuple[Callable[[Path], None], str, str]] = {
     # name: (corrupt the folder, file named in the message, words in the message)
-    "mismatched_counts": (lambda d: _drop_last_row(d / "light_directions.txt"),
-                          "light_directions.txt", "7 light directions for 8 images"),
-    "unreadable_image": (lambda d: (d / "003.png").write_bytes(b"not a png at all"),
-                         "003.png", "cannot decode"),
+    "mismatched_counts": (
+        lambda d: _drop_last_row(d / "light_directions.txt"),
+        "light_directions.txt",
+        "7 light directions for 8 images",
+    ),
+    "unreadable_image": (
+        lambda d: (d / "003.png").write_bytes(b"not a png at all"),
+        "003.png",
+        "cannot decode",
+    ),
     "truncated_image": (lambda d: _truncate(d / "005.png"), "005.png", "truncated"),
-    "different_sizes": (lambda d: cv2.imwrite(str(d / "002.png"),
-                                              np.zeros((20, 20, 3), np.uint16)),
-                        "002.png", "but 001.png is"),
-    "nan_light": (lambda d: _replace_row(d / "light_directions.txt", 2, "nan 0.1 0.9"),
-                  "light_directions.txt", "NaN"),
-    "zero_light": (lambda d: _replace_row(d / "light_directions.txt", 4, "0 0 0"),
-                   "sphere", "zero-length light direction"),
+    "different_sizes": (
+        lambda d: cv2.imwrite(str(d / "002.png"), np.zeros((20, 20, 3), np.uint16)),
+        "002.png",
+        "but 001.png is",
+    ),
+    "nan_light": (
+        lambda d: _replace_row(d / "light_directions.txt", 2, "nan 0.1 0.9"),
+        "light_directions.txt",
+        "NaN",
+    ),
+    "zero_light": (
+        lambda d: _replace_row(d / "light_directions.txt", 4, "0 0 0"),
+        "sphere",
+        "zero-length light direction",
+    ),
     "two_lights": (_two_lights, "sphere", "at least 3 lights"),
-    "zero_intensity": (lambda d: _replace_row(d / "light_intensities.txt", 1, "0 0 0"),
-                       "light_intensities.txt", "positive"),
-    "wrong_size_mask": (lambda d: cv2.imwrite(str(d / "mask.png"),
-                                              np.full((10, 12), 255, np.uint8)),
-                        "mask.png", "mask is 12x10 but images are 44x36"),
+    "zero_intensity": (
+        lambda d: _replace_row(d / "light_intensities.txt", 1, "0 0 0"),
+        "light_intensities.txt",
+        "positive",
+    ),
+    "wrong_size_mask": (
+        lambda d: cv2.imwrite(str(d / "mask.png"), np.full((10, 12), 255, np.uint8)),
+        "mask.png",
+        "mask is 12x10 but images are 44x36",
+    ),
 }
 
 
@@ -104,9 +123,11 @@ def _tiny_onnx(path: Path, with_meta: bool = False) -> Path:
     from onnx import TensorProto, helper
 
     graph = helper.make_graph(
-        [helper.make_node("Identity", ["images"], ["normals"])], "not_msfnet",
+        [helper.make_node("Identity", ["images"], ["normals"])],
+        "not_msfnet",
         [helper.make_tensor_value_info("images", TensorProto.FLOAT, None)],
-        [helper.make_tensor_value_info("normals", TensorProto.FLOAT, None)])
+        [helper.make_tensor_value_info("normals", TensorProto.FLOAT, None)],
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8
     if with_meta:  # claims to be msfnet but has the wrong inputs
@@ -126,8 +147,12 @@ def test_not_an_msfnet_model(kind: str, stack_dir: Path, tmp_path: Path, capfd) 
     out = tmp_path / "out" / "result"
     out.parent.mkdir()
     assert main(["--onnx", str(model), str(stack_dir), "-o", str(out)]) == 2
-    words = {"foreign": "not an msfnet model", "foreign_with_meta": "not an msfnet model",
-             "garbage": "cannot load ONNX model", "missing": "not found"}[kind]
+    words = {
+        "foreign": "not an msfnet model",
+        "foreign_with_meta": "not an msfnet model",
+        "garbage": "cannot load ONNX model",
+        "missing": "not found",
+    }[kind]
     _assert_one_line_error(capfd, ["model.onnx", words])
     _no_outputs(out)
 
@@ -179,9 +204,13 @@ def test_bad_arguments(stack_dir: Path, tmp_path: Path, capfd) -> None:
 def _npz(tmp: Path, **change: object) -> Path:
     """sphere_stack as an .npz, with arrays replaced or dropped (value None)."""
     s = sphere_stack()
-    arrays: dict[str, object] = {"images": s.images, "lights": s.lights,
-                                 "intensities": s.intensities, "mask": s.mask,
-                                 "normals": s.normals_gt}
+    arrays: dict[str, object] = {
+        "images": s.images,
+        "lights": s.lights,
+        "intensities": s.intensities,
+        "mask": s.mask,
+        "normals": s.normals_gt,
+    }
     for key, value in change.items():
         if value is None:
             arrays.pop(key)
@@ -258,81 +287,156 @@ def _random_bytes_npz(tmp: Path) -> list[str]:
 # name: (argv builder(tmp, stack_dir) -> argv, words in the message, words NOT in it)
 HOSTILE: dict[str, tuple[Callable[[Path, Path], list[str]], list[str], list[str]]] = {
     # silently wrong numbers before
-    "npz NaN pixel": (lambda t, d: [str(_npz(t, images=_images_with(np.nan)))],
-                      ["stack.npz", "NaN"], []),
-    "npz inf pixel": (lambda t, d: [str(_npz(t, images=_images_with(np.inf)))],
-                      ["stack.npz", "infinite"], []),
-    "npz negative pixel": (lambda t, d: [str(_npz(t, images=_images_with(-3.0)))],
-                           ["stack.npz", "negative"], []),
-    "npz negative int16 pixel": (lambda t, d: [str(_npz(t, images=_images_with(-3, np.int16)))],
-                                 ["negative"], []),
-    "npz float64 beyond float32": (lambda t, d: [str(_npz(t, images=_images_with(1e300,
-                                                                                np.float64)))],
-                                   ["float32 range"], []),
-    "npz string images": (lambda t, d: [str(_npz(t, images=np.array(["a", "b"])))],
-                          ["dtype"], []),
-    "8-bit image among 16-bit": (lambda t, d: _eight_bit_among_sixteen(d),
-                                 ["004.png", "uint8", "one bit depth"], []),
-    "all lights equal": (lambda t, d: _light_rows(d, ["0.1 0.2 0.9"] * 8),
-                         ["do not span 3-D"], []),
-    "lights in one plane": (lambda t, d: _light_rows(
-        d, [f"{np.cos(a):.6f} {np.sin(a):.6f} 0" for a in np.linspace(0, 3, 8)]),
-        ["do not span 3-D"], []),
+    "npz NaN pixel": (
+        lambda t, d: [str(_npz(t, images=_images_with(np.nan)))],
+        ["stack.npz", "NaN"],
+        [],
+    ),
+    "npz inf pixel": (
+        lambda t, d: [str(_npz(t, images=_images_with(np.inf)))],
+        ["stack.npz", "infinite"],
+        [],
+    ),
+    "npz negative pixel": (
+        lambda t, d: [str(_npz(t, images=_images_with(-3.0)))],
+        ["stack.npz", "negative"],
+        [],
+    ),
+    "npz negative int16 pixel": (
+        lambda t, d: [str(_npz(t, images=_images_with(-3, np.int16)))],
+        ["negative"],
+        [],
+    ),
+    "npz float64 beyond float32": (
+        lambda t, d: [str(_npz(t, images=_images_with(1e300, np.float64)))],
+        ["float32 range"],
+        [],
+    ),
+    "npz string images": (lambda t, d: [str(_npz(t, images=np.array(["a", "b"])))], ["dtype"], []),
+    "8-bit image among 16-bit": (
+        lambda t, d: _eight_bit_among_sixteen(d),
+        ["004.png", "uint8", "one bit depth"],
+        [],
+    ),
+    "all lights equal": (lambda t, d: _light_rows(d, ["0.1 0.2 0.9"] * 8), ["do not span 3-D"], []),
+    "lights in one plane": (
+        lambda t, d: _light_rows(
+            d, [f"{np.cos(a):.6f} {np.sin(a):.6f} 0" for a in np.linspace(0, 3, 8)]
+        ),
+        ["do not span 3-D"],
+        [],
+    ),
     "--select 1,1,1": (lambda t, d: [str(d), "--select", "1,1,1"], ["more than once"], []),
     "--select 2,3,2,4": (lambda t, d: [str(d), "--select", "2,3,2,4"], ["image 2"], []),
-    "intensities 1e-40": (lambda t, d: _intensity_rows(d, "1e-40 1e-40 1e-40"),
-                          ["light intensity", "outside"], []),
-    "intensities 1e30": (lambda t, d: _intensity_rows(d, "1e30 1e30 1e30"),
-                         ["light intensity", "outside"], []),
+    "intensities 1e-40": (
+        lambda t, d: _intensity_rows(d, "1e-40 1e-40 1e-40"),
+        ["light intensity", "outside"],
+        [],
+    ),
+    "intensities 1e30": (
+        lambda t, d: _intensity_rows(d, "1e30 1e30 1e30"),
+        ["light intensity", "outside"],
+        [],
+    ),
     "black stack": (lambda t, d: _black(d), ["black"], []),
     "ground truth all zero": (lambda t, d: _zero_ground_truth(d), ["ground-truth"], []),
     # tracebacks before
     "--select 5-3": (lambda t, d: [str(d), "--select", "5-3"], ["runs backwards"], []),
-    "--select 1-99999999999": (lambda t, d: [str(d), "--select", "1-99999999999"],
-                               ["outside 1..8"], []),
+    "--select 1-99999999999": (
+        lambda t, d: [str(d), "--select", "1-99999999999"],
+        ["outside 1..8"],
+        [],
+    ),
     "--select x-y": (lambda t, d: [str(d), "--select", "x-y"], ["1-based"], []),
-    "output under a file": (lambda t, d: [str(d), "-o", str(_write_rows(t / "f", ["x"]) / "o")],
-                            ["is a file, not a folder"], []),
-    "--max-memory below the stack (l2)": (lambda t, d: [str(d), "--max-memory", "0.05"],
-                                          ["--max-memory 0.05 MB", "loaded"], []),
-    "model metadata train_lights 0": (lambda t, d: _model_with(
-        t, d, **{"msfnet.train_lights": "0"}), ["crafted.onnx", "train_lights"], []),
-    "model metadata train_lights 1e9": (lambda t, d: _model_with(
-        t, d, **{"msfnet.train_lights": "1000000000"}), ["train_lights"], []),
-    "model metadata input_multiple 8": (lambda t, d: _model_with(
-        t, d, **{"msfnet.input_multiple": "8"}), ["multiples of 8"], []),
-    "model metadata static shape 0": (lambda t, d: _model_with(
-        t, d, **{"msfnet.static_shape": "8,0,0"}), ["static_shape"], []),
-    "--threads 100000 (model)": (lambda t, d: [*_model_with(t, d), "--threads", "100000"],
-                                 ["--threads"], []),
+    "output under a file": (
+        lambda t, d: [str(d), "-o", str(_write_rows(t / "f", ["x"]) / "o")],
+        ["is a file, not a folder"],
+        [],
+    ),
+    "--max-memory below the stack (l2)": (
+        lambda t, d: [str(d), "--max-memory", "0.05"],
+        ["--max-memory 0.05 MB", "loaded"],
+        [],
+    ),
+    "model metadata train_lights 0": (
+        lambda t, d: _model_with(t, d, **{"msfnet.train_lights": "0"}),
+        ["crafted.onnx", "train_lights"],
+        [],
+    ),
+    "model metadata train_lights 1e9": (
+        lambda t, d: _model_with(t, d, **{"msfnet.train_lights": "1000000000"}),
+        ["train_lights"],
+        [],
+    ),
+    "model metadata input_multiple 8": (
+        lambda t, d: _model_with(t, d, **{"msfnet.input_multiple": "8"}),
+        ["multiples of 8"],
+        [],
+    ),
+    "model metadata static shape 0": (
+        lambda t, d: _model_with(t, d, **{"msfnet.static_shape": "8,0,0"}),
+        ["static_shape"],
+        [],
+    ),
+    "--threads 100000 (model)": (
+        lambda t, d: [*_model_with(t, d), "--threads", "100000"],
+        ["--threads"],
+        [],
+    ),
     "model is a folder": (lambda t, d: [str(d), "--onnx", str(d.parent)], ["not a file"], []),
     # misleading messages before
-    "light rows of 2 numbers": (lambda t, d: _light_rows(d, ["0.1 0.9"] * 8),
-                                ["3 numbers per row", "2"], ["8 images"]),
-    "npz lights of 2 columns": (lambda t, d: [str(_npz(t, lights=np.ones((8, 2))))],
-                                ["3 numbers per row", "(8, 2)"], ["8 images but 8"]),
+    "light rows of 2 numbers": (
+        lambda t, d: _light_rows(d, ["0.1 0.9"] * 8),
+        ["3 numbers per row", "2"],
+        ["8 images"],
+    ),
+    "npz lights of 2 columns": (
+        lambda t, d: [str(_npz(t, lights=np.ones((8, 2))))],
+        ["3 numbers per row", "(8, 2)"],
+        ["8 images but 8"],
+    ),
     "npz of random bytes": (lambda t, d: _random_bytes_npz(t), ["not an .npz"], ["pickle"]),
     "empty lights file": (lambda t, d: _light_rows(d, []), ["no rows"], []),
-    "count line disagrees": (lambda t, d: _light_rows(d, ["12", *["0.1 0.2 0.9"] * 8]),
-                             ["says 12 rows but 8 follow"], []),
-    "lights file is a folder": (lambda t, d: [str(d), "--lights", str(d.parent)],
-                                ["not a regular file"], ["not found"]),
+    "count line disagrees": (
+        lambda t, d: _light_rows(d, ["12", *["0.1 0.2 0.9"] * 8]),
+        ["says 12 rows but 8 follow"],
+        [],
+    ),
+    "lights file is a folder": (
+        lambda t, d: [str(d), "--lights", str(d.parent)],
+        ["not a regular file"],
+        ["not found"],
+    ),
     # accepted with exit 0 and nonsense normals before (review of the edge runtime)
-    "every light behind the object (z-away file)": (lambda t, d: _lights_behind(d), [
-        "light_directions.txt", "toward the camera"], []),
+    "every light behind the object (z-away file)": (
+        lambda t, d: _lights_behind(d),
+        ["light_directions.txt", "toward the camera"],
+        [],
+    ),
     "every pixel saturated": (lambda t, d: _saturated(d), ["sphere", "saturated"], []),
     # "stack folder not found" for a file that is there
-    "an image as the stack": (lambda t, d: [str(d / "001.png")],
-                              ["001.png", "not a supported stack", ".npz"], ["not found"]),
-    "an .npy as the stack": (lambda t, d: [str(_npy(t))], ["stack.npy", "not a supported"],
-                             ["not found"]),
+    "an image as the stack": (
+        lambda t, d: [str(d / "001.png")],
+        ["001.png", "not a supported stack", ".npz"],
+        ["not found"],
+    ),
+    "an .npy as the stack": (
+        lambda t, d: [str(_npy(t))],
+        ["stack.npy", "not a supported"],
+        ["not found"],
+    ),
     # options silently ignored, or the wrong message, before
-    "--workers on one stack": (lambda t, d: [str(d), "--workers", "4"], ["--workers", "--ray"],
-                               []),
-    "--maps with --no-maps": (lambda t, d: [str(d), "--maps", "height", "--no-maps"],
-                              ["--maps", "--no-maps"], []),
-    "--white-level without linearising": (lambda t, d: [str(d), "--white-level", "200"],
-                                          ["--white-level", "--srgb or --gamma"], []),
+    "--workers on one stack": (lambda t, d: [str(d), "--workers", "4"], ["--workers", "--ray"], []),
+    "--maps with --no-maps": (
+        lambda t, d: [str(d), "--maps", "height", "--no-maps"],
+        ["--maps", "--no-maps"],
+        [],
+    ),
+    "--white-level without linearising": (
+        lambda t, d: [str(d), "--white-level", "200"],
+        ["--white-level", "--srgb or --gamma"],
+        [],
+    ),
 }
 
 
@@ -360,10 +464,20 @@ def test_hostile_input(case: str, stack_dir: Path, tmp_path: Path, capfd) -> Non
 DATA_LOSS: dict[str, Callable[[Path, Path], list[str]]] = {
     "-o PARENT_OF_STACK --overwrite": lambda t, d: [str(d), "-o", str(d.parent), "--overwrite"],
     "-o STACK --overwrite": lambda t, d: [str(d), "-o", str(d), "--overwrite"],
-    "-o LIGHTS_FILE --overwrite": lambda t, d: [str(d), "--lights", str(d / "lights2.txt"), "-o",
-                                                str(d / "lights2.txt"), "--overwrite"],
-    "-o symlink to the stack": lambda t, d: [str(d), "-o", str(_link(t / "link", d)),
-                                             "--overwrite"],
+    "-o LIGHTS_FILE --overwrite": lambda t, d: [
+        str(d),
+        "--lights",
+        str(d / "lights2.txt"),
+        "-o",
+        str(d / "lights2.txt"),
+        "--overwrite",
+    ],
+    "-o symlink to the stack": lambda t, d: [
+        str(d),
+        "-o",
+        str(_link(t / "link", d)),
+        "--overwrite",
+    ],
 }
 
 
@@ -373,8 +487,9 @@ def _link(link: Path, target: Path) -> Path:
 
 
 @pytest.mark.parametrize("case", sorted(DATA_LOSS))
-def test_overwrite_never_touches_an_input(case: str, stack_dir: Path, tmp_path: Path,
-                                          capfd) -> None:
+def test_overwrite_never_touches_an_input(
+    case: str, stack_dir: Path, tmp_path: Path, capfd
+) -> None:
     (stack_dir / "lights2.txt").write_text((stack_dir / "light_directions.txt").read_text())
     before = {p: p.read_bytes() for p in stack_dir.parent.rglob("*") if p.is_file()}
     assert main(["--method", "l2", *DATA_LOSS[case](tmp_path, stack_dir)]) == 2
@@ -382,8 +497,9 @@ def test_overwrite_never_touches_an_input(case: str, stack_dir: Path, tmp_path: 
     assert {p: p.read_bytes() for p in stack_dir.parent.rglob("*") if p.is_file()} == before
 
 
-def test_disk_full_while_writing_is_one_line_and_leaves_nothing(stack_dir: Path, tmp_path: Path,
-                                                                monkeypatch, capfd) -> None:
+def test_disk_full_while_writing_is_one_line_and_leaves_nothing(
+    stack_dir: Path, tmp_path: Path, monkeypatch, capfd
+) -> None:
     """ENOSPC during the write of normals.npy (after the inference): one line, exit 2, no
     output folder and no staging left."""
     import errno
@@ -391,7 +507,7 @@ def test_disk_full_while_writing_is_one_line_and_leaves_nothing(stack_dir: Path,
     def full(*args: object, **kwargs: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr("msfnet.runtime.outputs.np.save", full)
+    monkeypatch.setattr("msfnet.runtime.results.outputs.np.save", full)
     out = tmp_path / "out" / "result"
     out.parent.mkdir()
     assert main(["--method", "l2", str(stack_dir), "-o", str(out)]) == 2
@@ -400,7 +516,7 @@ def test_disk_full_while_writing_is_one_line_and_leaves_nothing(stack_dir: Path,
 
 
 def test_msf_eval_duplicate_object_names(stack_dir: Path, tmp_path: Path, capfd) -> None:
-    from msfnet.runtime.eval_cli import main as eval_main
+    from msfnet.runtime.cli.eval import main as eval_main
 
     root = stack_dir.parent
     (root / "objects.txt").write_text("sphere\nsphere 1-4\n")
@@ -411,19 +527,18 @@ def test_msf_eval_duplicate_object_names(stack_dir: Path, tmp_path: Path, capfd)
     assert not out.exists()
 
 
-def test_max_memory_message_quotes_the_users_value(stack_dir: Path, tmp_path: Path,
-                                                   capfd) -> None:
+def test_max_memory_message_quotes_the_users_value(stack_dir: Path, tmp_path: Path, capfd) -> None:
     from _runtime_helpers import tiny_msfnet_onnx
 
     model = tiny_msfnet_onnx(tmp_path / "tiny.onnx")
     out = tmp_path / "out"
-    assert main(["--onnx", str(model), str(stack_dir), "-o", str(out), "--max-memory",
-                 "151"]) == 2
+    assert main(["--onnx", str(model), str(stack_dir), "-o", str(out), "--max-memory", "151"]) == 2
     _assert_one_line_error(capfd, ["--max-memory 151 MB"])
 
 
-def test_a_black_image_among_lit_ones_is_one_warning_line(stack_dir: Path, tmp_path: Path,
-                                                          capfd) -> None:
+def test_a_black_image_among_lit_ones_is_one_warning_line(
+    stack_dir: Path, tmp_path: Path, capfd
+) -> None:
     """A dead light (image 5 all zero) ran silently with the MAE up from 3.8 to 14.9 deg: now
     a warning names the image (not an error: the other lights may suffice), and profile.json
     keeps it."""
@@ -435,14 +550,16 @@ def test_a_black_image_among_lit_ones_is_one_warning_line(stack_dir: Path, tmp_p
     assert str(stack_dir / "005.png") in err[0] and "black" in err[0]
     profile = json.loads((out / "profile.json").read_text())
     assert profile["warnings"] == [err[0].removeprefix("msf-run: warning: ")]
-    assert main(["--method", "l2", "--no-maps", str(stack_dir), "-o", str(tmp_path / "q"),
-                 "-q"]) == 0
+    assert (
+        main(["--method", "l2", "--no-maps", str(stack_dir), "-o", str(tmp_path / "q"), "-q"]) == 0
+    )
     assert capfd.readouterr().err == ""  # -q: errors only
 
 
 @pytest.mark.parametrize("roi", [["--roi", "-5,0,10,10"], ["--roi=-5,0,10,10"]])
-def test_a_negative_roi_gets_the_roi_message(roi: list[str], stack_dir: Path, tmp_path: Path,
-                                             capfd) -> None:
+def test_a_negative_roi_gets_the_roi_message(
+    roi: list[str], stack_dir: Path, tmp_path: Path, capfd
+) -> None:
     """argparse took "-5,0,10,10" for an option: "--roi: expected one argument"."""
     with pytest.raises(SystemExit) as exit_:
         main(["--method", "l2", str(stack_dir), *roi, "-o", str(tmp_path / "o")])

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msfnet.runtime.pipeline import Model, default_model_path
-from msfnet.runtime.run_cli import main as run_main
-from msfnet.runtime.session import create_session
+from msfnet.runtime.api import Model, default_model_path
+from msfnet.runtime.cli.run import main as run_main
+from msfnet.runtime.engines.ort_session import create_session
 from msfnet.runtime.stack import LoadOptions, load_stack
 
 
@@ -75,8 +75,9 @@ def test_bundled_model_beats_least_squares_on_each_validation_object(name: str) 
     mask = load_stack(folder, LoadOptions(select=select, max_lights=3)).mask
     ys, xs = np.nonzero(mask)
     cy, cx, size = int(ys.mean()), int(xs.mean()), 128
-    stack = load_stack(folder, LoadOptions(select=select,
-                                           roi=(cx - size // 2, cy - size // 2, size, size)))
+    stack = load_stack(
+        folder, LoadOptions(select=select, roi=(cx - size // 2, cy - size // 2, size, size))
+    )
     net = Model(threads=2)(stack).metrics
     ls = Model.least_squares()(stack).metrics
     assert net is not None and ls is not None
@@ -94,10 +95,19 @@ def test_the_bundled_onnx_was_exported_from_the_bundled_checkpoint() -> None:
     import hashlib
 
     onnx = pytest.importorskip("onnx")
-    checkpoint = (Path(__file__).resolve().parents[2] / "model" / "src" / "msfnet" / "model"
-                  / "weights" / "msfnet_default.pth")
+    checkpoint = (
+        Path(__file__).resolve().parents[2]
+        / "model"
+        / "src"
+        / "msfnet"
+        / "model"
+        / "weights"
+        / "msfnet_default.pth"
+    )
     if not checkpoint.is_file():
         pytest.skip("no checkout: the wheel ships only the ONNX file")
-    meta = {p.key: p.value for p in onnx.load(str(default_model_path()),
-                                              load_external_data=False).metadata_props}
+    meta = {
+        p.key: p.value
+        for p in onnx.load(str(default_model_path()), load_external_data=False).metadata_props
+    }
     assert meta["msfnet.checkpoint_sha256"] == hashlib.sha256(checkpoint.read_bytes()).hexdigest()

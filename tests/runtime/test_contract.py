@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from msfnet.runtime.api import default_model_path
 from msfnet.runtime.contract import (
     FORMAT,
     INPUT_MULTIPLE,
@@ -14,17 +15,27 @@ from msfnet.runtime.contract import (
     model_metadata,
     read_model_info,
 )
-from msfnet.runtime.pipeline import default_model_path
 
 
 @pytest.mark.parametrize(("static", "staged"), [(None, False), (None, True), ((5, 16, 20), False)])
 def test_read_model_info_inverts_model_metadata(static, staged) -> None:
-    meta = model_metadata(train_lights=16, checkpoint_sha256="ab" * 32, version="9.9",
-                          static_shape=static, precision="int8-qdq", staged=staged,
-                          variant="some-variant")
+    meta = model_metadata(
+        train_lights=16,
+        checkpoint_sha256="ab" * 32,
+        version="9.9",
+        static_shape=static,
+        precision="int8-qdq",
+        staged=staged,
+        variant="some-variant",
+    )
     info = read_model_info(Path("m.onnx"), meta)
-    assert (info.train_lights, info.input_multiple, info.static_shape, info.precision,
-            info.staged) == (16, INPUT_MULTIPLE, static, "int8-qdq", staged)
+    assert (
+        info.train_lights,
+        info.input_multiple,
+        info.static_shape,
+        info.precision,
+        info.staged,
+    ) == (16, INPUT_MULTIPLE, static, "int8-qdq", staged)
     assert info.metadata == meta
     assert meta[METADATA_KEYS["format"]] == FORMAT
     assert meta[METADATA_KEYS["static_shape"]] == ("" if static is None else "5,16,20")
@@ -32,12 +43,29 @@ def test_read_model_info_inverts_model_metadata(static, staged) -> None:
 
 
 def test_variant_key_only_when_given() -> None:
-    meta = model_metadata(train_lights=32, checkpoint_sha256="0" * 64, version="test",
-                          static_shape=None, precision="fp32", staged=False)
+    meta = model_metadata(
+        train_lights=32,
+        checkpoint_sha256="0" * 64,
+        version="test",
+        static_shape=None,
+        precision="fp32",
+        staged=False,
+    )
     assert "msfnet.variant" not in meta
-    assert list(meta) == [METADATA_KEYS[k] for k in (
-        "format", "train_lights", "preprocessing", "checkpoint_sha256", "version",
-        "input_multiple", "static_shape", "precision", "graph")]
+    assert list(meta) == [
+        METADATA_KEYS[k]
+        for k in (
+            "format",
+            "train_lights",
+            "preprocessing",
+            "checkpoint_sha256",
+            "version",
+            "input_multiple",
+            "static_shape",
+            "precision",
+            "graph",
+        )
+    ]
 
 
 def test_bundled_model_carries_exactly_what_model_metadata_builds() -> None:
@@ -47,9 +75,14 @@ def test_bundled_model_carries_exactly_what_model_metadata_builds() -> None:
     path = default_model_path()
     proto = onnx.load(str(path), load_external_data=False)
     meta = {p.key: p.value for p in proto.metadata_props}
-    built = model_metadata(train_lights=32, checkpoint_sha256=meta["msfnet.checkpoint_sha256"],
-                           version=meta["msfnet.version"], static_shape=None,
-                           precision="fp32 (fp16-stored weights)", staged=True,
-                           variant="staged-fp16")
+    built = model_metadata(
+        train_lights=32,
+        checkpoint_sha256=meta["msfnet.checkpoint_sha256"],
+        version=meta["msfnet.version"],
+        static_shape=None,
+        precision="fp32 (fp16-stored weights)",
+        staged=True,
+        variant="staged-fp16",
+    )
     assert list(built.items()) == list(meta.items())
     assert read_model_info(path, built) == read_model_info(path, meta)

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack, write_npz_bomb
 
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.least_squares import least_squares_normals, rows_for_memory
+from msfnet.common.errors import InputError
+from msfnet.runtime.infer.least_squares import least_squares_normals, rows_for_memory
 from msfnet.runtime.stack import LoadOptions, load_stack, save_stack
 
 
@@ -32,8 +32,9 @@ def test_least_squares_stays_within_the_budget(budget_mb: float) -> None:
     stack = sphere_stack(n=24, h=120, w=160)
     stack_mb = stack.images.nbytes / 2**20  # 5.3 MB
     free, unbounded_peak = _peak_mb(lambda: least_squares_normals(stack))
-    banded, peak = _peak_mb(lambda: least_squares_normals(stack, max_memory_mb=stack_mb
-                                                          + budget_mb))
+    banded, peak = _peak_mb(
+        lambda: least_squares_normals(stack, max_memory_mb=stack_mb + budget_mb)
+    )
     out_mb = banded.nbytes / 2**20
     assert peak <= budget_mb + out_mb, (peak, budget_mb)
     assert unbounded_peak > budget_mb + out_mb  # without a budget it would not fit: can fail
@@ -60,8 +61,7 @@ def test_folder_loader_refuses_before_decoding(tmp_path: Path, monkeypatch) -> N
     decoded: list[Path] = []
     real = load.read_image
     monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
-    with pytest.raises(InputError,
-                       match=r"8 images of 160x120 take 0.88 MB.*--max-memory 0.5 MB"):
+    with pytest.raises(InputError, match=r"8 images of 160x120 take 0.88 MB.*--max-memory 0.5 MB"):
         load_stack(folder, LoadOptions(max_memory_mb=0.5))
     assert len(decoded) == 1  # only the first, for its size
     assert load_stack(folder, LoadOptions(max_memory_mb=0.5, select="1-3")).num_lights == 3
@@ -77,7 +77,7 @@ def test_npz_bomb_is_refused_from_the_header(tmp_path: Path) -> None:
 
 
 def test_msf_run_passes_its_budget_to_the_loader(tmp_path: Path, monkeypatch, capfd) -> None:
-    from msfnet.runtime.run_cli import main
+    from msfnet.runtime.cli.run import main
 
     folder = save_stack(sphere_stack(n=8, h=120, w=160), tmp_path / "s")
     import msfnet.runtime.stack.load as load
@@ -85,6 +85,7 @@ def test_msf_run_passes_its_budget_to_the_loader(tmp_path: Path, monkeypatch, ca
     decoded: list[Path] = []
     real = load.read_image
     monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
-    assert main(["--method", "l2", str(folder), "-o", str(tmp_path / "o"), "--max-memory",
-                 "0.5"]) == 2  # the 16-bit stack takes 0.88 MB
+    assert (
+        main(["--method", "l2", str(folder), "-o", str(tmp_path / "o"), "--max-memory", "0.5"]) == 2
+    )  # the 16-bit stack takes 0.88 MB
     assert len(decoded) == 1, "every image was decoded before the budget was checked"

@@ -21,12 +21,20 @@ from _runtime_helpers import tiny_msfnet_onnx
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from msfnet.runtime.files import STAGING_TAG
-from msfnet.runtime.run_cli import main
+from msfnet.common.files import STAGING_TAG
+from msfnet.runtime.cli.run import main
 
-SETTINGS = settings(max_examples=40, deadline=None, derandomize=True, database=None,
-                    suppress_health_check=[HealthCheck.function_scoped_fixture,
-                                           HealthCheck.too_slow, HealthCheck.data_too_large])
+SETTINGS = settings(
+    max_examples=40,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[
+        HealthCheck.function_scoped_fixture,
+        HealthCheck.too_slow,
+        HealthCheck.data_too_large,
+    ],
+)
 
 # Hypothesis favours the first and last entries of a sampled_from list (boundary values), so
 # every list below starts and ends with a sensible value and holds the broken ones inside.
@@ -34,10 +42,11 @@ SETTINGS = settings(max_examples=40, deadline=None, derandomize=True, database=N
 # light counts: mostly enough for photometric stereo, sometimes not
 COUNTS = st.sampled_from([3, 2, 0, 4, 5, 6, 8, 4])
 # floats a careless or hostile file holds
-WILD = st.one_of(st.floats(-2, 2), st.sampled_from([0.0, 1.0, -1.0, np.nan, np.inf, -np.inf,
-                                                    1e-40, 1e30, 65535.0]))
-PIXEL = st.one_of(st.floats(0, 60000), st.sampled_from([0.0, np.nan, np.inf, -5.0, 1e-30,
-                                                        3e38]))
+WILD = st.one_of(
+    st.floats(-2, 2),
+    st.sampled_from([0.0, 1.0, -1.0, np.nan, np.inf, -np.inf, 1e-40, 1e30, 65535.0]),
+)
+PIXEL = st.one_of(st.floats(0, 60000), st.sampled_from([0.0, np.nan, np.inf, -5.0, 1e-30, 3e38]))
 
 
 @st.composite
@@ -49,8 +58,9 @@ def light_rows(draw, n: int) -> np.ndarray:
     arr = rng.normal(size=(rows, cols))
     if cols >= 3:
         arr[:, 2] = np.abs(arr[:, 2]) + 0.5
-    breakage = draw(st.sampled_from(["none", "wild", "duplicate", "equal", "zero_row",
-                                     *["none"] * 5]))
+    breakage = draw(
+        st.sampled_from(["none", "wild", "duplicate", "equal", "zero_row", *["none"] * 5])
+    )
     if rows and breakage == "wild":
         arr[draw(st.integers(0, rows - 1)), draw(st.integers(0, cols - 1))] = draw(WILD)
     elif rows > 1 and breakage == "duplicate":
@@ -125,12 +135,14 @@ def npz_stacks(draw, root: Path) -> list[str]:
         images.flat[draw(st.integers(0, images.size - 1))] = draw(PIXEL)
     if np.issubdtype(dtype, np.integer):
         info = np.iinfo(dtype)
-        images = np.clip(np.nan_to_num(images, posinf=info.max, neginf=info.min),
-                         info.min, info.max)
+        images = np.clip(
+            np.nan_to_num(images, posinf=info.max, neginf=info.min), info.min, info.max
+        )
     arrays = {"images": images.astype(dtype), "lights": draw(light_rows(n))}
     if draw(st.booleans()):
-        arrays["intensities"] = np.abs(rng.normal(size=(n, 3))) * draw(st.sampled_from(
-            [1.0, 0.0, 1e-40, 1e30, 1.0]))
+        arrays["intensities"] = np.abs(rng.normal(size=(n, 3))) * draw(
+            st.sampled_from([1.0, 0.0, 1e-40, 1e30, 1.0])
+        )
     if draw(st.booleans()):
         arrays["mask"] = rng.random((h, w)) < draw(st.sampled_from([1.0, 0.0, 0.5]))
     if draw(st.booleans()):
@@ -144,17 +156,26 @@ def npz_stacks(draw, root: Path) -> list[str]:
 def invocations(draw, root: Path) -> list[str]:
     argv = draw(st.one_of(folder_stacks(root), npz_stacks(root)))
     if draw(st.integers(0, 5)) == 0:  # a --lights override of its own
-        argv += ["--lights", str(_write_vectors(root / "override.txt",
-                                                draw(light_rows(draw(COUNTS))),
-                                                draw(st.booleans())))]
+        argv += [
+            "--lights",
+            str(
+                _write_vectors(
+                    root / "override.txt", draw(light_rows(draw(COUNTS))), draw(st.booleans())
+                )
+            ),
+        ]
     # each option: sometimes given, then mostly a sensible value
     options = {
-        "--select": st.one_of(st.sampled_from(["1-3", "1,1,1", "5-3", "0", "1-99999999999", "x",
-                                               "", "2-", "-4", "1,3,4", "2-"]),
-                              st.text("0123456789-,: ", max_size=6)),
+        "--select": st.one_of(
+            st.sampled_from(
+                ["1-3", "1,1,1", "5-3", "0", "1-99999999999", "x", "", "2-", "-4", "1,3,4", "2-"]
+            ),
+            st.text("0123456789-,: ", max_size=6),
+        ),
         "--max-lights": st.sampled_from(["3", "2", "0", "nan", "10", "4"]),
-        "--max-memory": st.sampled_from(["64", "0.5", "1e-3", "nan", "inf", "-1", "0", "1e12",
-                                         "4096"]),
+        "--max-memory": st.sampled_from(
+            ["64", "0.5", "1e-3", "nan", "inf", "-1", "0", "1e12", "4096"]
+        ),
         "--repeat": st.sampled_from(["1", "0", "2"]),
     }
     for flag, values in options.items():
@@ -179,8 +200,7 @@ def _numbers(value: object) -> list[float]:
         return [x for v in value.values() for x in _numbers(v)]
     if isinstance(value, list):
         return [x for v in value for x in _numbers(v)]
-    return [float(value)] if isinstance(value, (int, float)) and not isinstance(value, bool) \
-        else []
+    return [float(value)] if isinstance(value, (int, float)) and not isinstance(value, bool) else []
 
 
 def _check_one_run(argv: list[str], root: Path, capfd, record: bool = True) -> int:
@@ -215,7 +235,8 @@ def _check_one_run(argv: list[str], root: Path, capfd, record: bool = True) -> i
     if (out / "metrics.json").exists():
         metrics = _finite_json(out / "metrics.json")
         assert isinstance(metrics, dict) and all(
-            isinstance(v, (int, float)) and np.isfinite(v) for v in metrics.values()), metrics
+            isinstance(v, (int, float)) and np.isfinite(v) for v in metrics.values()
+        ), metrics
         assert 0 <= metrics["mae_deg"] <= 180
     return code
 
@@ -242,8 +263,7 @@ def test_msf_run_tiny_model_on_anything(data, tiny_model: Path, capfd) -> None:
         argv = data.draw(invocations(root), label="argv")
         tile = data.draw(st.sampled_from([None, "0", "48", "50", "-4", "96"]), label="tile")
         extra = [] if tile is None else [f"--tile={tile}"]
-        _check_one_run(["--onnx", str(tiny_model), "--threads", "1", *extra, *argv], root,
-                       capfd)
+        _check_one_run(["--onnx", str(tiny_model), "--threads", "1", *extra, *argv], root, capfd)
 
 
 def test_the_property_sees_both_outcomes(tmp_path: Path, capfd) -> None:

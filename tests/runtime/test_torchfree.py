@@ -32,7 +32,7 @@ for info in pkgutil.walk_packages(msfnet.runtime.__path__, "msfnet.runtime."):
     importlib.import_module(info.name)  # every runtime module, present and future
 import msfnet
 msfnet.Model, msfnet.load_stack
-from msfnet.runtime.run_cli import main
+from msfnet.runtime.cli.run import main
 
 npz, onnx, out = sys.argv[1:4]
 assert main(["--onnx", onnx, npz, "-o", out + "/msf", "--tile", "48", "--threads", "1"]) == 0
@@ -45,10 +45,20 @@ print("TORCH-FREE OK")
 def test_runtime_without_torch(random_onnx: Path, tmp_path: Path) -> None:
     ref = sphere_stack(n=5, h=28, w=32)
     npz = tmp_path / "sphere.npz"
-    np.savez(npz, images=ref.images, lights=ref.lights, intensities=ref.intensities,
-             mask=ref.mask, normals=ref.normals_gt)
-    proc = subprocess.run([sys.executable, "-c", SCRIPT, str(npz), str(random_onnx),
-                           str(tmp_path)], capture_output=True, text=True, timeout=120)
+    np.savez(
+        npz,
+        images=ref.images,
+        lights=ref.lights,
+        intensities=ref.intensities,
+        mask=ref.mask,
+        normals=ref.normals_gt,
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", SCRIPT, str(npz), str(random_onnx), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "TORCH-FREE OK" in proc.stdout
     assert (tmp_path / "msf" / "normals.npy").is_file()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from msfnet.runtime.files import MANIFEST, STAGING_TAG
+from msfnet.common.files import MANIFEST, STAGING_TAG
 from msfnet.synth import cli
 from msfnet.synth.cli import main
 
@@ -46,8 +46,9 @@ def test_overwrite_never_deletes_a_foreign_folder(tmp_path: Path, capfd) -> None
 
 
 @pytest.mark.parametrize("failure", [KeyboardInterrupt, OSError])
-def test_interrupted_render_leaves_nothing(failure: type[BaseException], tmp_path: Path,
-                                          monkeypatch, capfd) -> None:
+def test_interrupted_render_leaves_nothing(
+    failure: type[BaseException], tmp_path: Path, monkeypatch, capfd
+) -> None:
     """Ctrl-C or a full disk on the second object: no root with one object in it."""
     real = cli.save_stack
     calls = []
@@ -65,10 +66,13 @@ def test_interrupted_render_leaves_nothing(failure: type[BaseException], tmp_pat
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize(("argv", "words"), [
-    (["--shapes", "cube"], ["--shapes", "cube"]),
-    (["--materials", ""], ["--materials"]),
-])
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--shapes", "cube"], ["--shapes", "cube"]),
+        (["--materials", ""], ["--materials"]),
+    ],
+)
 def test_bad_names(argv: list[str], words: list[str], tmp_path: Path, capfd) -> None:
     assert main([str(tmp_path / "x"), *argv]) == 2
     _one_line(capfd, words)
@@ -82,7 +86,7 @@ def test_overwrite_replaces_only_what_msf_synth_wrote(tmp_path: Path, capfd) -> 
 
     from _runtime_helpers import sphere_stack
 
-    from msfnet.runtime.run_cli import main as run_main
+    from msfnet.runtime.cli.run import main as run_main
     from msfnet.runtime.stack import save_stack
 
     stack = save_stack(sphere_stack(n=4), tmp_path / "in")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msfnet.runtime.least_squares import least_squares_normals
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.evaluate.metrics import angular_error_deg
+from msfnet.runtime.infer.least_squares import least_squares_normals
 from msfnet.synth import RenderOptions, render_set, render_stack
 from msfnet.synth.cli import main as synth_main
 from msfnet.synth.lights import grid_lights, led_ring_lights, ring_rig
@@ -26,8 +26,10 @@ def test_default_options_render_as_before_the_hard_cases():
     # Figures of the renderer before issue #10 (the README's held-out numbers used it): every
     # new feature must leave the default random stream and the shading untouched.
     opts = RenderOptions(size=48, lights=12)
-    want = {0: ("synth_creases", 36360844.0, 540.2764118210762, 728, [247.0, 397.0, 617.0]),
-            11: ("synth_blob", 484078162.0, 665.5217543187027, 903, [12863.0, 41573.0, 30967.0])}
+    want = {
+        0: ("synth_creases", 36360844.0, 540.2764118210762, 728, [247.0, 397.0, 617.0]),
+        11: ("synth_blob", 484078162.0, 665.5217543187027, 903, [12863.0, 41573.0, 30967.0]),
+    }
     for seed, (name, img_sum, n_sum, mask_sum, pixel) in want.items():
         s = render_stack(seed, opts)
         assert s.name == name and int(s.mask.sum()) == mask_sum
@@ -68,9 +70,17 @@ def test_lambertian_sphere_stays_exact_under_least_squares(extra):
     # profiles and fine relief change the normals, not the reflectance model; a ring rig (lights
     # at one or two angles) still pins normals down. Least squares is exact on pixels that
     # every light reaches.
-    opts = RenderOptions(size=64, lights=20, shapes=("sphere",), materials=("diffuse",),
-                         max_materials=1, cast_shadows=False, noise=False, ring_rigs=1.0,
-                         **extra)
+    opts = RenderOptions(
+        size=64,
+        lights=20,
+        shapes=("sphere",),
+        materials=("diffuse",),
+        max_materials=1,
+        cast_shadows=False,
+        noise=False,
+        ring_rigs=1.0,
+        **extra,
+    )
     s = render_stack(3, opts)
     lit = s.mask & np.all(np.einsum("hwc,kc->khw", s.normals_gt, s.lights) > 0.02, axis=0)
     assert lit.sum() > 300
@@ -91,8 +101,9 @@ def test_steep_option_puts_many_pixels_at_grazing_slant():
 
 def _view_share(kind: str, size: int, seed: int, **kw) -> tuple[np.ndarray, np.ndarray]:
     z, mask = make_shape(kind, size, np.random.default_rng(seed))
-    share = bounce_light(None, z, normals_from_height(z, mask), mask,
-                         np.random.default_rng(0), **kw)
+    share = bounce_light(
+        None, z, normals_from_height(z, mask), mask, np.random.default_rng(0), **kw
+    )
     return share[0, ..., 0], mask
 
 
@@ -116,8 +127,9 @@ def test_deeper_folds_and_cups_hide_more_of_the_sky(seed):
         means = []
         for depth in ((0.3, 0.3), (1.2, 1.2)):
             z, mask = make_shape(kind, 64, np.random.default_rng(seed), **{key: depth})
-            share = bounce_light(None, z, normals_from_height(z, mask), mask,
-                                 np.random.default_rng(0))[0, ..., 0]
+            share = bounce_light(
+                None, z, normals_from_height(z, mask), mask, np.random.default_rng(0)
+            )[0, ..., 0]
             means.append(float(share[mask].mean()))
         assert means[1] > 1.3 * means[0] + 1e-3, (kind, means)
 
@@ -138,10 +150,10 @@ def _wall_share_by_quadrature(slope_deg: float, x_p: float, radius: float) -> fl
     xs = np.arange(h / 2, x_p + radius, h)
     ys = np.arange(-radius + h / 2, radius, h)
     x, y = np.meshgrid(xs, ys, indexing="ij")
-    inside = (x - x_p) ** 2 + y ** 2 <= radius ** 2
+    inside = (x - x_p) ** 2 + y**2 <= radius**2
     t = np.tan(np.radians(slope_deg))
     d = np.stack([x - x_p, y, x * t], -1)  # floor point (x_p, 0, 0) -> wall point
-    r2 = (d ** 2).sum(-1)
+    r2 = (d**2).sum(-1)
     n_q = np.array([-np.sin(np.radians(slope_deg)), 0.0, np.cos(np.radians(slope_deg))])
     cos_p = d[..., 2] / np.sqrt(r2)
     cos_q = np.clip(-(d @ n_q) / np.sqrt(r2), 0, None)
@@ -156,8 +168,9 @@ def test_view_share_beside_a_wall_matches_quadrature(slope_deg):
     x = np.linspace(-1.0, 1.0, size)[None].repeat(size, 0)
     z = np.where(x < 0, 0.0, x * np.tan(np.radians(slope_deg)))
     mask = np.ones_like(z, bool)
-    share = bounce_light(None, z, normals_from_height(z, mask), mask, np.random.default_rng(0),
-                         max_size=size)[0, ..., 0]
+    share = bounce_light(
+        None, z, normals_from_height(z, mask), mask, np.random.default_rng(0), max_size=size
+    )[0, ..., 0]
     col = int(np.argmin(np.abs(x[0] + 0.1)))
     reference = _wall_share_by_quadrature(slope_deg, float(x[0, col]), 0.6)
     assert reference < (1.0 - np.cos(np.radians(slope_deg))) / 2.0
@@ -169,8 +182,11 @@ def test_bounce_light_is_linear_in_the_radiance_it_gathers():
     n = normals_from_height(z, mask)
     share = bounce_light(None, z, n, mask, np.random.default_rng(0))
     const = np.full((2, 64, 64, 3), 0.25, np.float32)
-    np.testing.assert_allclose(bounce_light(const, z, n, mask, np.random.default_rng(0)),
-                               0.25 * np.broadcast_to(share, (2, 64, 64, 3)), atol=1e-6)
+    np.testing.assert_allclose(
+        bounce_light(const, z, n, mask, np.random.default_rng(0)),
+        0.25 * np.broadcast_to(share, (2, 64, 64, 3)),
+        atol=1e-6,
+    )
 
 
 @pytest.mark.parametrize("size", [97, 160, 200])
@@ -214,8 +230,9 @@ def test_coarse_gather_upsamples_any_number_of_lights():
 
 def test_interreflection_brightens_the_inside_of_a_cup():
     # A probability of 1e-12 still makes the draw, so both renders are the same object.
-    kw = dict(size=64, lights=8, noise=False, cast_shadows=True, max_materials=1,
-              materials=("diffuse",))
+    kw = dict(
+        size=64, lights=8, noise=False, cast_shadows=True, max_materials=1, materials=("diffuse",)
+    )
     off = render_stack(5, RenderOptions(**kw, interreflection=1e-12), shape="cup")
     on = render_stack(5, RenderOptions(**kw, interreflection=1.0), shape="cup")
     np.testing.assert_array_equal(off.normals_gt, on.normals_gt)
@@ -244,7 +261,7 @@ def _highpass_energy(n: np.ndarray, mask: np.ndarray) -> float:
     """Mean squared difference between the normals and their 3 x 3 box mean (1-3 px detail),
     3 px inside the mask (the rim's curvature would swamp it)."""
     pad = np.pad(n, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    box = sum(pad[i:i + n.shape[0], j:j + n.shape[1]] for i in range(3) for j in range(3)) / 9
+    box = sum(pad[i : i + n.shape[0], j : j + n.shape[1]] for i in range(3) for j in range(3)) / 9
     return float(np.mean(np.sum((n - box) ** 2, axis=2)[_erode(mask, 3)]))
 
 
@@ -297,8 +314,9 @@ def test_oren_nayar_is_lambert_at_zero_roughness_and_flatter_when_rough():
     # Light from the camera onto a rough sphere: the limb is brighter than Lambert predicts.
     n, mask = sphere_normals(48)
     ones = np.ones((48, 48))
-    mat = MaterialMap(kd=np.full((48, 48, 3), 0.5), f0=np.full((48, 48, 3), 0.04),
-                      ks=0 * ones, alpha=0.5 * ones)
+    mat = MaterialMap(
+        kd=np.full((48, 48, 3), 0.5), f0=np.full((48, 48, 3), 0.04), ks=0 * ones, alpha=0.5 * ones
+    )
     rough = MaterialMap(**{**mat.__dict__, "sigma": 0.6 * ones})
     head_on = np.array([[0.0, 0.0, 1.0]])
     lam, on = shade(n, head_on, mat)[0, ..., 0], shade(n, head_on, rough)[0, ..., 0]
@@ -313,8 +331,14 @@ def test_paint_has_a_sharp_lobe_on_a_broad_one():
     assert float(mat.alpha2.max()) <= 0.1 < 0.12 <= float(mat.alpha.min())
     # A fixed paint: the clear coat adds a small peak well above the broad lobe's.
     ones = np.ones((64, 64))
-    paint = MaterialMap(kd=np.full((64, 64, 3), 0.1), f0=np.full((64, 64, 3), 0.5),
-                        ks=0.5 * ones, alpha=0.3 * ones, ks2=1.0 * ones, alpha2=0.05 * ones)
+    paint = MaterialMap(
+        kd=np.full((64, 64, 3), 0.1),
+        f0=np.full((64, 64, 3), 0.5),
+        ks=0.5 * ones,
+        alpha=0.3 * ones,
+        ks2=1.0 * ones,
+        alpha2=0.05 * ones,
+    )
     n, mask = sphere_normals(64)
     light = np.array([[0.3, 0.2, 0.93]]) / np.linalg.norm([0.3, 0.2, 0.93])
     with_coat = shade(n, light, paint)[0, ..., 1][mask]
@@ -354,11 +378,40 @@ def test_diligent_like_board_has_96_lights_within_50_degrees():
 
 def test_cli_renders_the_hard_preset(tmp_path):
     out = tmp_path / "hard"
-    assert synth_main([str(out), "--objects", "2", "--lights", "5", "--size", "24",
-                       "--preset", "hard", "--seed", "1"]) == 0
+    assert (
+        synth_main(
+            [
+                str(out),
+                "--objects",
+                "2",
+                "--lights",
+                "5",
+                "--size",
+                "24",
+                "--preset",
+                "hard",
+                "--seed",
+                "1",
+            ]
+        )
+        == 0
+    )
     names = (out / "objects.txt").read_text().split()
     assert names == ["obj0000_sphere", "obj0001_blob"]  # the preset's shapes, in turn
-    assert synth_main([str(tmp_path / "x"), "--shapes", "cup,folds", "--objects", "2",
-                       "--size", "24", "--lights", "4"]) == 0
-    assert (tmp_path / "x" / "objects.txt").read_text().split() == ["obj0000_cup",
-                                                                     "obj0001_folds"]
+    assert (
+        synth_main(
+            [
+                str(tmp_path / "x"),
+                "--shapes",
+                "cup,folds",
+                "--objects",
+                "2",
+                "--size",
+                "24",
+                "--lights",
+                "4",
+            ]
+        )
+        == 0
+    )
+    assert (tmp_path / "x" / "objects.txt").read_text().split() == ["obj0000_cup", "obj0001_folds"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msfnet.runtime.metrics import angular_error_deg
+from msfnet.runtime.evaluate.metrics import angular_error_deg
 from msfnet.runtime.stack import load_stack
 from msfnet.synth import RenderOptions, render_set, render_stack
 from msfnet.synth.cli import main as synth_main
@@ -45,8 +45,15 @@ def _ls_normals(images, lights, mask):
 
 
 def test_lambertian_sphere_solved_by_least_squares_under_1_degree():
-    opts = RenderOptions(size=64, lights=20, shapes=("sphere",), materials=("diffuse",),
-                         max_materials=1, cast_shadows=False, noise=False)
+    opts = RenderOptions(
+        size=64,
+        lights=20,
+        shapes=("sphere",),
+        materials=("diffuse",),
+        max_materials=1,
+        cast_shadows=False,
+        noise=False,
+    )
     lights = cone_lights(20, np.random.default_rng(0), 35.0)
     s = render_stack(3, opts, lights=lights, intensities=np.ones((20, 3), np.float32))
     # Pixels lit by every light (no attached shadow): the Lambertian model is exact there.
@@ -63,8 +70,9 @@ def test_height_field_normals_match_a_plane():
     x, y = np.meshgrid(t, -t)
     n = normals_from_height(0.3 * x - 0.5 * y)
     expect = np.array([-0.3, 0.5, 1.0]) / np.linalg.norm([-0.3, 0.5, 1.0])
-    np.testing.assert_allclose(n.reshape(-1, 3), np.broadcast_to(expect, (size * size, 3)),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        n.reshape(-1, 3), np.broadcast_to(expect, (size * size, 3)), atol=1e-9
+    )
 
 
 def test_cast_shadow_behind_a_tall_block():
@@ -83,8 +91,15 @@ def test_cast_shadow_behind_a_tall_block():
 
 
 def test_specular_material_is_not_lambertian():
-    opts = RenderOptions(size=64, lights=24, shapes=("sphere",), materials=("metal",),
-                         max_materials=1, cast_shadows=False, noise=False)
+    opts = RenderOptions(
+        size=64,
+        lights=24,
+        shapes=("sphere",),
+        materials=("metal",),
+        max_materials=1,
+        cast_shadows=False,
+        noise=False,
+    )
     lights = cone_lights(24, np.random.default_rng(1), 40.0)
     s = render_stack(5, opts, lights=lights, intensities=np.ones((24, 3), np.float32))
     lit = s.mask & np.all(np.einsum("hwc,kc->khw", s.normals_gt, lights) > 0.02, axis=0)
@@ -99,13 +114,14 @@ def test_shapes_mask_excludes_outline_ring():
 
 def test_cli_writes_readable_diligent_layout(tmp_path, capsys):
     out = tmp_path / "syn"
-    assert synth_main([str(out), "--objects", "2", "--lights", "6", "--size", "24",
-                       "--seed", "4"]) == 0
+    assert (
+        synth_main([str(out), "--objects", "2", "--lights", "6", "--size", "24", "--seed", "4"])
+        == 0
+    )
     names = (out / "objects.txt").read_text().split()
     assert len(names) == 2
     s = load_stack(out / names[1])
-    ref = next(render_set(4, 1, RenderOptions(size=24, lights=6), start=1,
-                          shapes=SHAPES))
+    ref = next(render_set(4, 1, RenderOptions(size=24, lights=6), start=1, shapes=SHAPES))
     assert s.num_lights == 6 and s.normals_gt is not None
     np.testing.assert_allclose(s.images, np.rint(ref.images), atol=0.5)
     np.testing.assert_allclose(s.normals_gt, ref.normals_gt, atol=1e-6)

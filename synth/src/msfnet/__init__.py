@@ -24,7 +24,7 @@ __path__ = extend_path(__path__, __name__)
 __version__ = "0.2.0"
 
 if TYPE_CHECKING:
-    from msfnet.runtime.pipeline import Model, Result
+    from msfnet.runtime.api import Model, Result
     from msfnet.runtime.stack import LoadOptions, Stack, load_stack
 
 __all__ = ["LoadOptions", "Model", "Result", "Stack", "__version__", "load_stack"]
@@ -33,7 +33,7 @@ __all__ = ["LoadOptions", "Model", "Result", "Stack", "__version__", "load_stack
 def __getattr__(name: str) -> object:
     # Lazy, so that `import msfnet.model` (training workers) does not load onnxruntime.
     if name in ("Model", "Result"):
-        from msfnet.runtime import pipeline
+        from msfnet.runtime import api as pipeline
 
         return getattr(pipeline, name)
     if name in ("LoadOptions", "Stack", "load_stack"):

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from _runtime_helpers import as_float32, png_stack, sphere_stack, write_npz_bomb
 
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import read_image
+from msfnet.common.errors import InputError
+from msfnet.common.imageio import read_image
 from msfnet.runtime.stack import (
     LoadOptions,
     Stack,
@@ -48,16 +48,19 @@ def test_roi_alone_keeps_the_integer_type(tmp_path: Path) -> None:
     np.testing.assert_array_equal(in_memory.images, crop.images)
 
 
-@pytest.mark.parametrize("options", [dict(downscale=2), dict(srgb=True), dict(gamma=2.2),
-                                     dict(roi=(0, 0, 40, 30), downscale=2)])
+@pytest.mark.parametrize(
+    "options",
+    [dict(downscale=2), dict(srgb=True), dict(gamma=2.2), dict(roi=(0, 0, 40, 30), downscale=2)],
+)
 def test_value_transforms_give_float32(tmp_path: Path, options: dict) -> None:
     """Block means and linear values are fractions: those stacks stay float32, computed from
     the stored integers exactly as before."""
     folder = png_stack(tmp_path / "s", 8, n=5)
     s = load_stack(folder, **options)
     assert s.images.dtype == np.float32
-    from_float = prepare_stack(as_float32(load_stack(folder)), LoadOptions(**options,
-                                                                           white_level=255.0))
+    from_float = prepare_stack(
+        as_float32(load_stack(folder)), LoadOptions(**options, white_level=255.0)
+    )
     np.testing.assert_array_equal(s.images, from_float.images)
 
 
@@ -86,14 +89,26 @@ def test_float_tiff_stays_float32(tmp_path: Path) -> None:
     np.testing.assert_array_equal(s.images, ref.images / np.float32(65535))
 
 
-@pytest.mark.parametrize(("stored", "held"), [
-    (np.uint8, np.uint8), (np.uint16, np.uint16), (np.float32, np.float32),
-    (np.float64, np.float32), (np.int32, np.float32), (np.float16, np.float32),
-])
+@pytest.mark.parametrize(
+    ("stored", "held"),
+    [
+        (np.uint8, np.uint8),
+        (np.uint16, np.uint16),
+        (np.float32, np.float32),
+        (np.float64, np.float32),
+        (np.int32, np.float32),
+        (np.float16, np.float32),
+    ],
+)
 def test_npz_keeps_uint8_and_uint16(tmp_path: Path, stored: type, held: type) -> None:
     ref = sphere_stack(n=5)
-    images = np.rint(ref.images * np.float32(255 / 65535) if stored == np.uint8
-                     else ref.images / 64 if stored == np.float16 else ref.images)
+    images = np.rint(
+        ref.images * np.float32(255 / 65535)
+        if stored == np.uint8
+        else ref.images / 64
+        if stored == np.float16
+        else ref.images
+    )
     path = tmp_path / "s.npz"
     np.savez(path, images=images.astype(stored), lights=ref.lights, mask=ref.mask)
     s = load_stack(path)
@@ -112,15 +127,18 @@ def test_from_arrays_holds_the_same_types() -> None:
     assert Stack.from_arrays(ints.astype(np.int32), ref.lights).images.dtype == np.float32
 
 
-@pytest.mark.parametrize(("bits", "options", "said", "mb"), [
-    (16, {}, "0.88", 0.879),  # 8 x 120 x 160 x 3 values of 2 bytes
-    (8, {}, "0.44", 0.439),
-    (8, {"gamma": 2.2}, "2", 1.758),  # linearised: float32
-    (16, {"downscale": 2}, "0.44", 0.439),  # float32, a quarter of the pixels
-])
-def test_max_memory_counts_the_type_held(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                         bits: int, options: dict, said: str,
-                                         mb: float) -> None:
+@pytest.mark.parametrize(
+    ("bits", "options", "said", "mb"),
+    [
+        (16, {}, "0.88", 0.879),  # 8 x 120 x 160 x 3 values of 2 bytes
+        (8, {}, "0.44", 0.439),
+        (8, {"gamma": 2.2}, "2", 1.758),  # linearised: float32
+        (16, {"downscale": 2}, "0.44", 0.439),  # float32, a quarter of the pixels
+    ],
+)
+def test_max_memory_counts_the_type_held(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, bits: int, options: dict, said: str, mb: float
+) -> None:
     folder = png_stack(tmp_path / "s", bits, n=8, h=120, w=160)
     import msfnet.runtime.stack.load as load
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from _runtime_helpers import as_float32, png_stack
 
-from msfnet.runtime.imageio import read_image
+from msfnet.common.imageio import read_image
 from msfnet.runtime.stack import (
     FILENAMES_FILE,
     INTENSITIES_FILE,
@@ -29,8 +29,9 @@ from msfnet.runtime.stack import (
 
 
 @pytest.mark.parametrize(("stored", "written"), [(16, 16), (16, 8), (8, 16), (8, 8)])
-def test_integer_stack_saves_like_its_float32_copy(tmp_path: Path, stored: int,
-                                                   written: int) -> None:
+def test_integer_stack_saves_like_its_float32_copy(
+    tmp_path: Path, stored: int, written: int
+) -> None:
     stack = load_stack(png_stack(tmp_path / "in", stored, n=4))
     a = save_stack(stack, tmp_path / "int", bit_depth=written)
     b = save_stack(as_float32(stack), tmp_path / "float", bit_depth=written)
@@ -60,8 +61,9 @@ def test_per_file_writers_are_what_save_stack_writes(tmp_path: Path) -> None:
     for name in files:
         if name != NORMALS_FILE:  # a .mat file records when it was written
             assert (whole / name).read_bytes() == (parts / name).read_bytes(), name
-    np.testing.assert_array_equal(read_normals(parts / NORMALS_FILE),
-                                  read_normals(whole / NORMALS_FILE))
+    np.testing.assert_array_equal(
+        read_normals(parts / NORMALS_FILE), read_normals(whole / NORMALS_FILE)
+    )
     a, b = load_stack(whole), load_stack(parts)
     for field in ("images", "lights", "intensities", "mask", "normals_gt"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 from msfnet.runtime.stack import evenly_spaced, parse_select, selection
 
 GOOD = [

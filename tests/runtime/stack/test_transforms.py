@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.pipeline import Model
+from msfnet.common.errors import InputError
+from msfnet.runtime.api import Model
 from msfnet.runtime.stack import (
     LoadOptions,
     Stack,
@@ -41,16 +41,16 @@ def _saved(stack: Stack, folder: Path, bit_depth: int = 16) -> Path:
 
 def test_srgb_formula_round_trips() -> None:
     v = np.linspace(0, 1, 1001)
-    np.testing.assert_allclose(srgb_to_linear(_srgb_encode(v).astype(np.float32)), v,
-                               atol=2e-6)
+    np.testing.assert_allclose(srgb_to_linear(_srgb_encode(v).astype(np.float32)), v, atol=2e-6)
 
 
 def test_srgb_8bit_render_linearised_gives_the_linear_render(tmp_path: Path) -> None:
     lin_stack = sphere_stack(n=6, h=40, w=48)
     lin = lin_stack.images / 65535.0  # linear radiance, 0..~0.75 of full scale
     encoded = np.rint(_srgb_encode(lin) * 255.0)
-    folder = _saved(replace(lin_stack, images=encoded.astype(np.float32)), tmp_path / "s",
-                    bit_depth=8)
+    folder = _saved(
+        replace(lin_stack, images=encoded.astype(np.float32)), tmp_path / "s", bit_depth=8
+    )
     got = load_stack(folder, srgb=True).images / 255.0
     # 8-bit quantisation: half a step of 1/255 times the EOTF's largest slope (2.28 at 1.0)
     err = np.abs(got - lin).max()
@@ -83,8 +83,9 @@ def _object_on_dark_backdrop(folder: Path) -> tuple[Path, np.ndarray]:
     h, w = stack.shape
     backdrop = (0.002 + 0.004 * np.linspace(0, 1, w)[None, :]) * 65535.0
     noise = rng.normal(0, 0.001 * 65535.0, stack.images.shape)
-    images = np.where(stack.mask[None, :, :, None], stack.images,
-                      backdrop[None, :, :, None] + noise)
+    images = np.where(
+        stack.mask[None, :, :, None], stack.images, backdrop[None, :, :, None] + noise
+    )
     images = np.clip(images, 0, 65535).astype(np.float32)
     return _saved(replace(stack, images=images, mask=np.ones((h, w), bool)), folder), stack.mask
 
@@ -133,15 +134,16 @@ def test_roi_crops_images_mask_and_ground_truth_alike(tmp_path: Path) -> None:
     x, y, w, h = roi = parse_roi("7,5,30,21")
     part = load_stack(folder, roi=roi)
     assert part.shape == (h, w)
-    np.testing.assert_array_equal(part.images, full.images[:, y:y + h, x:x + w])
-    np.testing.assert_array_equal(part.mask, full.mask[y:y + h, x:x + w])
+    np.testing.assert_array_equal(part.images, full.images[:, y : y + h, x : x + w])
+    np.testing.assert_array_equal(part.mask, full.mask[y : y + h, x : x + w])
     assert full.normals_gt is not None and part.normals_gt is not None
-    np.testing.assert_array_equal(part.normals_gt, full.normals_gt[y:y + h, x:x + w])
+    np.testing.assert_array_equal(part.normals_gt, full.normals_gt[y : y + h, x : x + w])
     # ROI first, then the downscale: 30x21 -> 15x10 (the odd last row is dropped)
     both = load_stack(folder, roi=roi, downscale=2)
     assert both.shape == (10, 15)
-    np.testing.assert_allclose(both.images[2],
-                               area_downscale(full.images[2, y:y + h, x:x + w], 2), rtol=1e-6)
+    np.testing.assert_allclose(
+        both.images[2], area_downscale(full.images[2, y : y + h, x : x + w], 2), rtol=1e-6
+    )
     with pytest.raises(InputError, match="past the 48x40 image"):
         load_stack(folder, roi=(40, 0, 10, 10))
 
@@ -159,8 +161,13 @@ def _unshadowed_sphere(h: int, w: int, n: int = 12) -> Stack:
     mask = x**2 + y**2 < np.sin(np.radians(55)) ** 2
     normals = np.dstack([x, y, np.sqrt(np.clip(1 - x**2 - y**2, 0, None))]) * mask[..., None]
     images = 50000.0 * np.clip(np.einsum("hwc,nc->nhw", normals, lights), 0, None)
-    return Stack.from_arrays(np.repeat(images[..., None], 3, 3).astype(np.float32), lights,
-                             mask=mask, normals_gt=normals.astype(np.float32), name="sphere")
+    return Stack.from_arrays(
+        np.repeat(images[..., None], 3, 3).astype(np.float32),
+        lights,
+        mask=mask,
+        normals_gt=normals.astype(np.float32),
+        name="sphere",
+    )
 
 
 def test_downscale_2_of_a_sphere_keeps_least_squares_accurate(tmp_path: Path) -> None:
@@ -172,8 +179,10 @@ def test_downscale_2_of_a_sphere_keeps_least_squares_accurate(tmp_path: Path) ->
     assert abs(small.mask.sum() * 4 - stack.mask.sum()) < 0.05 * stack.mask.sum()
     result = Model.least_squares()(small)
     assert full.metrics is not None and result.metrics is not None
-    print(f"least squares MAE: full size {full.metrics.mae_deg:.4f} deg, downscaled 2x "
-          f"{result.metrics.mae_deg:.4f} deg")
+    print(
+        f"least squares MAE: full size {full.metrics.mae_deg:.4f} deg, downscaled 2x "
+        f"{result.metrics.mae_deg:.4f} deg"
+    )
     assert result.metrics.mae_deg < 1.0
     # the same images with the ground truth shifted by one block: the test can fail
     assert small.normals_gt is not None
@@ -193,12 +202,15 @@ def test_in_memory_stack_gets_the_same_treatment(tmp_path: Path) -> None:
     assert stack.shape == (40, 48)  # the caller's stack is left alone
 
 
-@pytest.mark.parametrize(("options", "message"), [
-    (dict(srgb=True, gamma=2.2), "give one of them"),
-    (dict(gamma=-1.0), "positive"),
-    (dict(downscale=0), "positive integer"),
-    (dict(auto_mask=True, mask=Path("m.png")), "choose one"),
-])
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (dict(srgb=True, gamma=2.2), "give one of them"),
+        (dict(gamma=-1.0), "positive"),
+        (dict(downscale=0), "positive integer"),
+        (dict(auto_mask=True, mask=Path("m.png")), "choose one"),
+    ],
+)
 def test_contradictory_options_are_refused(options: dict, message: str) -> None:
     with pytest.raises(InputError, match=message):
         LoadOptions(**options)

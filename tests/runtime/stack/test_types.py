@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 from msfnet.runtime.stack import Stack, as_held, held_dtype, load_stack, save_stack
 
 
@@ -111,8 +111,16 @@ def test_one_black_image_is_a_warning_naming_it(tmp_path: Path) -> None:
 
 def test_held_types() -> None:
     assert held_dtype(np.uint8) == np.uint8 and held_dtype(np.uint16) == np.uint16
-    for other in (np.float16, np.float32, np.float64, np.int8, np.int16, np.int32, np.uint32,
-                  np.bool_):
+    for other in (
+        np.float16,
+        np.float32,
+        np.float64,
+        np.int8,
+        np.int16,
+        np.int32,
+        np.uint32,
+        np.bool_,
+    ):
         assert held_dtype(other) == np.float32
     a = np.zeros((2, 2), np.uint16)
     assert as_held(a) is a  # no copy

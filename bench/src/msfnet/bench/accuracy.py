@@ -24,14 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.cliutil import make_parser, positive_int, run_command
-from msfnet.runtime.dispatch import open_engine
-from msfnet.runtime.engines import installed_engines
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.metrics import deviation_deg
-
 from msfnet.bench.data import data_root
 from msfnet.bench.workloads import Workload, make_input
+from msfnet.common.cli import make_parser, positive_int, run_command
+from msfnet.common.errors import InputError
+from msfnet.runtime.engines import installed_engines
+from msfnet.runtime.engines.dispatch import open_engine
+from msfnet.runtime.evaluate.metrics import deviation_deg
 
 
 @dataclass(frozen=True)
@@ -60,8 +59,9 @@ PATHS = (
 )
 
 
-def _timed(engine, images: np.ndarray, lights: np.ndarray, repeats: int
-           ) -> tuple[np.ndarray, float]:
+def _timed(
+    engine, images: np.ndarray, lights: np.ndarray, repeats: int
+) -> tuple[np.ndarray, float]:
     out = engine.run(images, lights)  # warm-up (arena growth, lazy compilation)
     times = []
     for _ in range(repeats):
@@ -75,50 +75,78 @@ def _to_stderr(line: str) -> None:
     print(line, file=sys.stderr)
 
 
-def measure(stack_dir: Path, models: dict[str, Path], lights: tuple[int, ...] = (32, 96),
-            size: int = 128, threads: int = 2, repeats: int = 1,
-            paths: tuple[EnginePath, ...] = PATHS, log: Callable[[str], object] | None = None
-            ) -> list[dict[str, object]]:
+def measure(
+    stack_dir: Path,
+    models: dict[str, Path],
+    lights: tuple[int, ...] = (32, 96),
+    size: int = 128,
+    threads: int = 2,
+    repeats: int = 1,
+    paths: tuple[EnginePath, ...] = PATHS,
+    log: Callable[[str], object] | None = None,
+) -> list[dict[str, object]]:
     """Rows of (lights, path, mean/max deg vs ORT fp32, median s, x ORT fp32).
 
     ``models``: model key (fp32, fp32_staged, int8, int8_staged) -> ONNX file; ``fp32`` is the
     reference, and paths whose engine is not installed or whose file is missing are left out.
     ``log``: a line per measured path (default: stderr)."""
     emit = log or _to_stderr
-    from msfnet.runtime.dispatch import EngineChoice
+    from msfnet.runtime.engines.dispatch import EngineChoice
 
     have = installed_engines()
     rows: list[dict[str, object]] = []
     for n in lights:
         feed = make_input(stack_dir, Workload("acc", n, size))
         images, lights_, mask = feed["images"], feed["lights"], feed["mask"]
-        ref_engine = open_engine(EngineChoice("onnxruntime", "fp32", "reference",
-                                              models["fp32"]), threads)
+        ref_engine = open_engine(
+            EngineChoice("onnxruntime", "fp32", "reference", models["fp32"]), threads
+        )
         ref, ref_s = _timed(ref_engine, images, lights_, repeats)
         del ref_engine
-        rows.append({"lights": n, "size": size, "path": "onnxruntime fp32", "mean_deg": 0.0,
-                     "max_deg": 0.0, "median_s": ref_s, "x_ort_fp32": 1.0})
+        rows.append(
+            {
+                "lights": n,
+                "size": size,
+                "path": "onnxruntime fp32",
+                "mean_deg": 0.0,
+                "max_deg": 0.0,
+                "median_s": ref_s,
+                "x_ort_fp32": 1.0,
+            }
+        )
         for p in paths:
             model = models.get(p.model)
             if p.engine not in have or model is None or not Path(model).is_file():
                 continue
-            engine = open_engine(EngineChoice(p.engine, p.precision, "measurement", model),
-                                 threads)
+            engine = open_engine(EngineChoice(p.engine, p.precision, "measurement", model), threads)
             out, secs = _timed(engine, images, lights_, repeats)
             mean, mx = deviation_deg(out, ref, mask)
-            rows.append({"lights": n, "size": size, "path": p.label, "mean_deg": mean,
-                         "max_deg": mx, "median_s": secs, "x_ort_fp32": ref_s / secs,
-                         "effective_precision": engine.precision})
+            rows.append(
+                {
+                    "lights": n,
+                    "size": size,
+                    "path": p.label,
+                    "mean_deg": mean,
+                    "max_deg": mx,
+                    "median_s": secs,
+                    "x_ort_fp32": ref_s / secs,
+                    "effective_precision": engine.precision,
+                }
+            )
             emit(f"{n} lights {p.label}: {mean:.3f} / {mx:.3f} deg, {secs:.2f} s")
     return rows
 
 
 def table(rows: list[dict[str, object]]) -> str:
-    lines = ["| lights | engine precision | mean deg vs ORT fp32 | max deg | median s | "
-             "x ORT fp32 |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| lights | engine precision | mean deg vs ORT fp32 | max deg | median s | x ORT fp32 |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        lines.append(f"| {r['lights']} | {r['path']} | {r['mean_deg']:.3f} | {r['max_deg']:.3f}"
-                     f" | {r['median_s']:.2f} | {r['x_ort_fp32']:.2f} |")
+        lines.append(
+            f"| {r['lights']} | {r['path']} | {r['mean_deg']:.3f} | {r['max_deg']:.3f}"
+            f" | {r['median_s']:.2f} | {r['x_ort_fp32']:.2f} |"
+        )
     return "\n".join(lines)
 
 
@@ -132,37 +160,55 @@ def light_counts(text: str) -> tuple[int, ...]:
 
 def build_parser() -> argparse.ArgumentParser:
     p = make_parser(PROG, __doc__ or "", (f"{PROG} --models exports/ --lights 32,96",))
-    p.add_argument("--data", type=Path, default=None,
-                   help="data root holding DiLiGenT/ballPNG (default: $MSFNET_DATA, "
-                   "./shared/data or ../shared/data)")
-    p.add_argument("--models", type=Path, default=None,
-                   help="folder with fp32.onnx, fp32_staged.onnx, int8.onnx, int8_staged.onnx")
-    p.add_argument("--lights", type=light_counts, default=(32, 96),
-                   help="light counts, comma-separated (default 32,96)")
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="data root holding DiLiGenT/ballPNG (default: $MSFNET_DATA, "
+        "./shared/data or ../shared/data)",
+    )
+    p.add_argument(
+        "--models",
+        type=Path,
+        default=None,
+        help="folder with fp32.onnx, fp32_staged.onnx, int8.onnx, int8_staged.onnx",
+    )
+    p.add_argument(
+        "--lights",
+        type=light_counts,
+        default=(32, 96),
+        help="light counts, comma-separated (default 32,96)",
+    )
     p.add_argument("--size", type=positive_int, default=128, help="crop edge, px (default 128)")
     p.add_argument("--threads", type=positive_int, default=2, help="threads (default 2)")
-    p.add_argument("--repeats", type=positive_int, default=1,
-                   help="timed runs per path after a warm-up (default 1)")
+    p.add_argument(
+        "--repeats",
+        type=positive_int,
+        default=1,
+        help="timed runs per path after a warm-up (default 1)",
+    )
     return p
 
 
 def model_files(models_dir: Path | None) -> dict[str, Path]:
     """The models to compare: the plain fp32 reference and the exports found in ``models_dir``;
     InputError if the reference is a staged graph (its rows would be filed as plain-graph ones)."""
+    from msfnet.runtime.api import default_model_path
     from msfnet.runtime.engines.base import read_model_file
-    from msfnet.runtime.pipeline import default_model_path
 
     models = {"fp32": default_model_path()}
     if models_dir is not None:
         if not models_dir.is_dir():
             raise InputError("--models: folder not found", models_dir)
-        models.update({k: models_dir / f"{k}.onnx"
-                       for k in ("fp32_staged", "int8", "int8_staged")})
+        models.update({k: models_dir / f"{k}.onnx" for k in ("fp32_staged", "int8", "int8_staged")})
         if (models_dir / "fp32.onnx").is_file():
             models["fp32"] = models_dir / "fp32.onnx"
     if read_model_file(models["fp32"]).staged:
-        raise InputError("the plain-graph reference is a staged model: put a plain export "
-                         "(msf-export --plain) in --models as fp32.onnx", models["fp32"])
+        raise InputError(
+            "the plain-graph reference is a staged model: put a plain export "
+            "(msf-export --plain) in --models as fp32.onnx",
+            models["fp32"],
+        )
     return models
 
 
@@ -170,8 +216,15 @@ def _run(args: argparse.Namespace) -> int:
     stack = data_root(args.data) / "DiLiGenT" / "ballPNG"
     if not stack.is_dir():
         raise InputError("ballPNG not found under the data root", stack)
-    rows = measure(stack, model_files(args.models), args.lights, args.size, args.threads,
-                   args.repeats, log=(lambda _line: None) if args.quiet else None)
+    rows = measure(
+        stack,
+        model_files(args.models),
+        args.lights,
+        args.size,
+        args.threads,
+        args.repeats,
+        log=(lambda _line: None) if args.quiet else None,
+    )
     if not args.quiet:
         print(table(rows))
     return 0

@@ -4,7 +4,7 @@ Runs the matmul peak measurement, workloads (a)-(c) for every variant and thread
 cell in a fresh process), workload (d) end to end through msf-run, and writes REPORT.md,
 report.json and a latency plot to the report folder.
 
-The report folder is one output, like every msfnet command's (runtime/files.py): the inputs and
+The report folder is one output, like every msfnet command's (common/files.py): the inputs and
 the folder are checked before any work, the whole report (with the models it measured and
 msf-run's outputs for (d)) is built in a staging folder beside it and appears complete or not at
 all, also on Ctrl-C or kill, and an earlier report is replaced only with --overwrite. The models
@@ -26,26 +26,37 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from msfnet.runtime.cliutil import make_parser, positive_float, positive_int, run_command
-from msfnet.runtime.cpu import detect_cpu
-from msfnet.runtime.dispatch import choose_engine
-from msfnet.runtime.engines import installed_engines
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import check_output, scratch_folder, staged_folder, writing_as
-from msfnet.runtime.flops import inference_flops
-from msfnet.runtime.metrics import deviation_deg, normal_metrics
-
 from msfnet.bench.data import ENV_VAR, data_root
 from msfnet.bench.peak import engine_peaks, merge_peaks
 from msfnet.bench.report import write_report
-from msfnet.bench.workloads import BF16_VARIANTS, OPENVINO_VARIANTS, QUICK_WORKLOADS, VARIANTS, WORKLOADS, Workload, make_input, time_msf_run
+from msfnet.bench.workloads import (
+    BF16_VARIANTS,
+    OPENVINO_VARIANTS,
+    QUICK_WORKLOADS,
+    VARIANTS,
+    WORKLOADS,
+    Workload,
+    make_input,
+    time_msf_run,
+)
+from msfnet.common.cli import make_parser, positive_float, positive_int, run_command
+from msfnet.common.cpu import detect_cpu
+from msfnet.common.errors import InputError
+from msfnet.common.files import check_output, scratch_folder, staged_folder, writing_as
+from msfnet.runtime.engines import installed_engines
+from msfnet.runtime.engines.dispatch import choose_engine
+from msfnet.runtime.evaluate.metrics import deviation_deg, normal_metrics
+from msfnet.runtime.infer.flops import inference_flops
 
 # relative to the data root (--data, $MSFNET_DATA, ./shared/data or ../shared/data)
 STACK_IN_DATA = Path("DiLiGenT") / "ballPNG"
 CALIB_IN_DATA = [STACK_IN_DATA, *(Path("psmImages") / o for o in ("cat", "owl", "horse"))]
 
-MODEL_OF_VARIANT = {"ort-int8": "int8", "ort-fp32-staged": "fp32_staged",
-                    "ov-bf16-staged": "fp32_staged"}
+MODEL_OF_VARIANT = {
+    "ort-int8": "int8",
+    "ort-fp32-staged": "fp32_staged",
+    "ov-bf16-staged": "fp32_staged",
+}
 
 
 def thread_counts(text: str) -> list[int]:
@@ -61,9 +72,14 @@ def build_parser() -> argparse.ArgumentParser:
         "lights 64x64, (b) 32 lights 128x128, (c) 96 lights 128x128 and (d) a full stack "
         "through msf-run. Reports median/p90 latency, peak RSS, GFLOP/s, fraction of the "
         "matmul peak measured in the same run, and angular deviation from PyTorch fp32.",
-        ("msf-bench --quick --report-dir /tmp/msf-bench-quick",
-         "msf-bench --report-dir bench/full --overwrite"))
-    p.epilog = (p.epilog or "") + """
+        (
+            "msf-bench --quick --report-dir /tmp/msf-bench-quick",
+            "msf-bench --report-dir bench/full --overwrite",
+        ),
+    )
+    p.epilog = (
+        (p.epilog or "")
+        + """
 
 the report folder holds REPORT.md, report.json, latency.png, models/ (the ONNX exports
 it measured) and e2e/ (msf-run's outputs for workload (d)). It is built beside the
@@ -71,50 +87,100 @@ target and appears complete or not at all (on Ctrl-C or kill too; staging left b
 kill -9 goes with the next run). It may not be, contain or lie inside an input
 (--stack, --calib, --checkpoint, the data root). Models are exported afresh on every
 run, never cached between runs, so a report always measures the models it holds."""
-    p.add_argument("--checkpoint", type=Path, default=None,
-                   help="MSF-Net checkpoint (.pth); default: the bundled trained model "
-                   "(msfnet/weights/msfnet_default.pth)")
-    p.add_argument("--random-weights", action="store_true",
-                   help="seeded random weights instead of a checkpoint (accuracy figures then "
-                   "only measure numerical deviation; int8 errors of a trained model differ)")
-    p.add_argument("--data", type=Path, default=None,
-                   help=f"data root holding DiLiGenT/ballPNG and psmImages/ (default: "
-                   f"${ENV_VAR}, else ./shared/data or ../shared/data from the current folder)")
-    p.add_argument("--stack", type=Path, default=None,
-                   help=f"real stack for the inputs and workload (d) (default DATA/"
-                   f"{STACK_IN_DATA.as_posix()})")
-    p.add_argument("--calib", type=Path, nargs="+", default=None,
-                   help="stacks to calibrate int8 on (default: the stack + DATA/psmImages cat/"
-                   "owl/horse when present)")
-    p.add_argument("-o", "--output", "--report-dir", dest="report_dir", type=Path,
-                   default=Path("msf-bench-out"),
-                   help="report folder, written as a whole: REPORT.md, report.json, "
-                   "latency.png, models/, e2e/ (default ./msf-bench-out)")
-    p.add_argument("--quick", action="store_true",
-                   help="smoke test: tiny workloads, one timed run each (about 1-2 minutes)")
-    p.add_argument("--variants", default=",".join(VARIANTS),
-                   help=f"comma list from {', '.join(VARIANTS)} (default: all available)")
-    p.add_argument("--threads", type=thread_counts, default=[2, 1],
-                   help="thread counts, comma-separated (default 2,1)")
-    p.add_argument("--max-memory", type=positive_float, default=None,
-                   help="msf-run --max-memory for workload (d), MB (default: msf-run's own)")
+    )
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        help="MSF-Net checkpoint (.pth); default: the bundled trained model "
+        "(msfnet/weights/msfnet_default.pth)",
+    )
+    p.add_argument(
+        "--random-weights",
+        action="store_true",
+        help="seeded random weights instead of a checkpoint (accuracy figures then "
+        "only measure numerical deviation; int8 errors of a trained model differ)",
+    )
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help=f"data root holding DiLiGenT/ballPNG and psmImages/ (default: "
+        f"${ENV_VAR}, else ./shared/data or ../shared/data from the current folder)",
+    )
+    p.add_argument(
+        "--stack",
+        type=Path,
+        default=None,
+        help=f"real stack for the inputs and workload (d) (default DATA/"
+        f"{STACK_IN_DATA.as_posix()})",
+    )
+    p.add_argument(
+        "--calib",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="stacks to calibrate int8 on (default: the stack + DATA/psmImages cat/"
+        "owl/horse when present)",
+    )
+    p.add_argument(
+        "-o",
+        "--output",
+        "--report-dir",
+        dest="report_dir",
+        type=Path,
+        default=Path("msf-bench-out"),
+        help="report folder, written as a whole: REPORT.md, report.json, "
+        "latency.png, models/, e2e/ (default ./msf-bench-out)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="smoke test: tiny workloads, one timed run each (about 1-2 minutes)",
+    )
+    p.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help=f"comma list from {', '.join(VARIANTS)} (default: all available)",
+    )
+    p.add_argument(
+        "--threads",
+        type=thread_counts,
+        default=[2, 1],
+        help="thread counts, comma-separated (default 2,1)",
+    )
+    p.add_argument(
+        "--max-memory",
+        type=positive_float,
+        default=None,
+        help="msf-run --max-memory for workload (d), MB (default: msf-run's own)",
+    )
     p.add_argument("--no-e2e", action="store_true", help="skip workload (d)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace an earlier report folder (only one msfnet wrote: a folder "
-                   "holding other files is refused, never deleted)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an earlier report folder (only one msfnet wrote: a folder "
+        "holding other files is refused, never deleted)",
+    )
     return p
 
 
 def machine_description() -> dict[str, object]:
-    """CPU model and the features that decide engines and precisions (runtime/cpu.py)."""
+    """CPU model and the features that decide engines and precisions (common/cpu.py)."""
     import onnxruntime
 
     cpu = detect_cpu()
     flags = sorted(f for f in cpu.all_flags if f.startswith(("avx", "amx", "fma")))
     out: dict[str, object] = {
-        "cpu": cpu.model, "vendor": cpu.vendor, "cores": cpu.cores, "isa_flags": flags,
-        "cpu_features": cpu.as_dict(), "python": platform.python_version(),
-        "onnxruntime": onnxruntime.__version__, "platform": platform.platform()}
+        "cpu": cpu.model,
+        "vendor": cpu.vendor,
+        "cores": cpu.cores,
+        "isa_flags": flags,
+        "cpu_features": cpu.as_dict(),
+        "python": platform.python_version(),
+        "onnxruntime": onnxruntime.__version__,
+        "platform": platform.platform(),
+    }
     try:
         import openvino
 
@@ -125,7 +191,7 @@ def machine_description() -> dict[str, object]:
 
 
 def dispatch_choices(models: dict) -> dict[str, str]:
-    """What msfnet.runtime.dispatch picks on this machine for each exported model."""
+    """What msfnet.runtime.engines.dispatch picks on this machine for each exported model."""
     out = {}
     for key in ("fp32", "fp32_staged", "int8", "int8_staged"):
         if key in models:
@@ -155,8 +221,9 @@ def resolve_paths(args: argparse.Namespace) -> Path | None:
             calib += [root / p for p in CALIB_IN_DATA[1:] if (root / p).exists()]
         args.calib = calib
     if not args.stack.is_dir():
-        raise InputError(f"stack folder not found (set --data or ${ENV_VAR}, or --stack)",
-                         args.stack)
+        raise InputError(
+            f"stack folder not found (set --data or ${ENV_VAR}, or --stack)", args.stack
+        )
     return root
 
 
@@ -175,7 +242,7 @@ def plan_run(args: argparse.Namespace) -> Plan:
     before any work: the report folder is no input, does not hold one, and replaces an earlier
     report only with --overwrite."""
     from msfnet.model.checkpoint import default_checkpoint_path
-    from msfnet.runtime.pipeline import default_model_path
+    from msfnet.runtime.api import default_model_path
 
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in variants if v not in VARIANTS]
@@ -190,10 +257,16 @@ def plan_run(args: argparse.Namespace) -> Plan:
     for calib in args.calib:
         if not calib.exists():
             raise InputError("--calib: stack not found", calib)
-    inputs = [args.stack, *args.calib, checkpoint, root,
-              None if args.no_e2e else default_model_path()]
-    check_output(args.report_dir, inputs, overwrite=args.overwrite, folder=True,
-                 command="msf-bench")  # --overwrite replaces an earlier report, nothing else
+    inputs = [
+        args.stack,
+        *args.calib,
+        checkpoint,
+        root,
+        None if args.no_e2e else default_model_path(),
+    ]
+    check_output(
+        args.report_dir, inputs, overwrite=args.overwrite, folder=True, command="msf-bench"
+    )  # --overwrite replaces an earlier report, nothing else
     notes: list[str] = []
     engines = installed_engines()
     for v in [v for v in variants if v in OPENVINO_VARIANTS]:
@@ -217,8 +290,9 @@ class Inputs:
 def load_inputs(args: argparse.Namespace, plan: Plan) -> Inputs:
     """The workload crops of --stack and the int8 calibration stacks: a stack that cannot be
     read is one InputError line before anything is written or printed."""
-    feeds = {wl.key: make_input(args.stack, wl)
-             for wl in (QUICK_WORKLOADS if args.quick else WORKLOADS)}
+    feeds = {
+        wl.key: make_input(args.stack, wl) for wl in (QUICK_WORKLOADS if args.quick else WORKLOADS)
+    }
     calib = None
     if "ort-int8" in plan.variants:
         from msfnet.export.quantize import load_calibration_stacks
@@ -252,8 +326,12 @@ def prepare_models(plan: Plan, workdir: Path, calib: list | None) -> dict:
         result = export_variant(ckpt, variant, out, calib=calib)
         models[key] = str(out)
         if key.startswith("int8"):
-            models[f"{key}_summary"] = {"variant": variant, "mean_deg": result.mean_deg,
-                                        "max_deg": result.max_deg, "notes": result.notes}
+            models[f"{key}_summary"] = {
+                "variant": variant,
+                "mean_deg": result.mean_deg,
+                "max_deg": result.max_deg,
+                "notes": result.notes,
+            }
     return models
 
 
@@ -292,8 +370,11 @@ def schedule(quick: bool, variants: list[str], threads: list[int]):
 def run_cell_subprocess(spec: dict, tmp: Path) -> dict:
     spec_file = tmp / "spec.json"
     spec_file.write_text(json.dumps(spec))
-    proc = subprocess.run([sys.executable, "-m", "msfnet.bench.workloads", str(spec_file)],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "msfnet.bench.workloads", str(spec_file)],
+        capture_output=True,
+        text=True,
+    )
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1][:300] if proc.stderr else "failed"}
     return json.loads(Path(spec["result"]).read_text())
@@ -315,10 +396,14 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
     variants, threads = plan.variants, plan.threads
     engines = installed_engines()
     started = time.time()
-    result: dict = {"date": time.strftime("%Y-%m-%d %H:%M %Z"), "machine": machine_description(),
-                    "quick": args.quick, "variants": {v: VARIANTS[v] for v in variants},
-                    "notes": plan.notes, "data": {"stack": str(args.stack),
-                                                  "calib": [str(p) for p in args.calib]}}
+    result: dict = {
+        "date": time.strftime("%Y-%m-%d %H:%M %Z"),
+        "machine": machine_description(),
+        "quick": args.quick,
+        "variants": {v: VARIANTS[v] for v in variants},
+        "notes": plan.notes,
+        "data": {"stack": str(args.stack), "calib": [str(p) for p in args.calib]},
+    }
     _say(args, "exporting models ...")
     models = prepare_models(plan, work / "models", data.calib)
     result["models"] = models
@@ -329,21 +414,34 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
     inputs: dict[str, tuple[Path, np.ndarray]] = {}
     refs: dict[str, np.ndarray] = {}
     cells = schedule(args.quick, variants, threads)
-    for wl, v, t, warm, reps in tqdm(cells, desc="msf-bench", unit="cell",
-                                     disable=args.quiet):
+    for wl, v, t, warm, reps in tqdm(cells, desc="msf-bench", unit="cell", disable=args.quiet):
         if wl.key not in inputs:
             feed = data.feeds[wl.key]
             path = scratch / f"input_{wl.key}.npz"
             np.savez(path, images=feed["images"], lights=feed["lights"])
             inputs[wl.key] = (path, feed["mask"])
-        spec = {"variant": v, "threads": t, "warmup": warm, "repeats": reps,
-                "input": str(inputs[wl.key][0]), "checkpoint": models["checkpoint"],
-                "onnx": models[MODEL_OF_VARIANT.get(v, "fp32")],
-                "output": str(scratch / "out.npy"), "result": str(scratch / "result.json")}
+        spec = {
+            "variant": v,
+            "threads": t,
+            "warmup": warm,
+            "repeats": reps,
+            "input": str(inputs[wl.key][0]),
+            "checkpoint": models["checkpoint"],
+            "onnx": models[MODEL_OF_VARIANT.get(v, "fp32")],
+            "output": str(scratch / "out.npy"),
+            "result": str(scratch / "result.json"),
+        }
         cell = run_cell_subprocess(spec, scratch)
-        row = {"workload": wl.key, "label": wl.label(), "lights": wl.lights,
-               "pixels": wl.pixels, "variant": v, "threads": t, "gflop": wl.flops / 1e9,
-               **cell}
+        row = {
+            "workload": wl.key,
+            "label": wl.label(),
+            "lights": wl.lights,
+            "pixels": wl.pixels,
+            "variant": v,
+            "threads": t,
+            "gflop": wl.flops / 1e9,
+            **cell,
+        }
         if "error" not in cell:
             out = np.load(scratch / "out.npy")
             if v == "torch-fp32" and wl.key not in refs:
@@ -361,8 +459,9 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
     return result
 
 
-def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
-               threads: list[int], folder: Path) -> list[dict]:
+def end_to_end(
+    args: argparse.Namespace, models: dict, variants: list[str], threads: list[int], folder: Path
+) -> list[dict]:
     """Workload (d): msf-run on the whole stack in a fresh process, normals only.
 
     First the default command (bundled model, no engine or precision flag: what dispatch picks
@@ -377,41 +476,59 @@ def end_to_end(args: argparse.Namespace, models: dict, variants: list[str],
     # it runs their staged export, so every row computes the same network.
     from msfnet.model.checkpoint import default_checkpoint_path
 
-    bundled = not models.get("random_weights") and Path(models["checkpoint"]).resolve() == \
-        default_checkpoint_path().resolve()
+    bundled = (
+        not models.get("random_weights")
+        and Path(models["checkpoint"]).resolve() == default_checkpoint_path().resolve()
+    )
     names: list[tuple[str, Path | None, list[str]]] = [
         ("default", None if bundled else Path(models["fp32_staged"]), []),
         ("ort-fp32", Path(models["fp32"]), ort),
-        ("ort-fp32-staged", Path(models["fp32_staged"]), ort)]
+        ("ort-fp32-staged", Path(models["fp32_staged"]), ort),
+    ]
     if "ov-bf16" in variants:
-        names.append(("ov-bf16", Path(models["fp32"]),
-                      ["--engine", "openvino", "--precision", "bf16"]))
+        names.append(
+            ("ov-bf16", Path(models["fp32"]), ["--engine", "openvino", "--precision", "bf16"])
+        )
     if "ort-int8" in variants:
-        names += [("ort-int8", Path(models["int8"]), ort),
-                  ("ort-int8-staged", Path(models["int8_staged"]), ort)]
+        names += [
+            ("ort-int8", Path(models["int8"]), ort),
+            ("ort-int8-staged", Path(models["int8_staged"]), ort),
+        ]
     runs, outs = [], {}
     for v, onnx, extra in tqdm(names, desc="msf-bench (d)", unit="run", disable=args.quiet):
         outdir = folder / v
         # The default command carries the target: the median of 3 fresh processes (single runs
         # varied by +-10 % here); one run for the other rows keeps the full mode short.
         repeats = 3 if v == "default" and not args.quick else 1
-        walls = [time_msf_run(args.stack, onnx, outdir, max(threads), budget, max_lights, extra)
-                 for _ in range(repeats)]
+        walls = [
+            time_msf_run(args.stack, onnx, outdir, max(threads), budget, max_lights, extra)
+            for _ in range(repeats)
+        ]
         w = walls[-1]
         normals = np.load(outdir / "normals.npy")
         outs[v] = normals
         prof = w["profile"]
-        runs.append({"variant": v, "threads": max(threads), "lights": stack.num_lights,
-                     "height": stack.shape[0], "width": stack.shape[1],
-                     "walls_s": [x["wall_s"] for x in walls],
-                     "median_s": float(np.median([x["wall_s"] for x in walls])),
-                     "peak_rss_mb": max(x["peak_rss_mb"] for x in walls),
-                     "command": w["command"],
-                     "engine": prof.get("engine"), "precision": prof.get("precision"),
-                     "graph": prof.get("graph"), "choice": prof.get("choice"),
-                     "tiles": prof.get("tiles"), "stages": prof.get("stages"),
-                     "inference_gflops_per_s": prof.get("inference_gflops_per_s"),
-                     "mae_vs_gt_deg": _mae(normals, stack)})
+        runs.append(
+            {
+                "variant": v,
+                "threads": max(threads),
+                "lights": stack.num_lights,
+                "height": stack.shape[0],
+                "width": stack.shape[1],
+                "walls_s": [x["wall_s"] for x in walls],
+                "median_s": float(np.median([x["wall_s"] for x in walls])),
+                "peak_rss_mb": max(x["peak_rss_mb"] for x in walls),
+                "command": w["command"],
+                "engine": prof.get("engine"),
+                "precision": prof.get("precision"),
+                "graph": prof.get("graph"),
+                "choice": prof.get("choice"),
+                "tiles": prof.get("tiles"),
+                "stages": prof.get("stages"),
+                "inference_gflops_per_s": prof.get("inference_gflops_per_s"),
+                "mae_vs_gt_deg": _mae(normals, stack),
+            }
+        )
     for run in runs:
         if run["variant"] != "ort-fp32":
             mean, mx = deviation_deg(outs[run["variant"]], outs["ort-fp32"], stack.mask)
@@ -436,8 +553,7 @@ def _run(args: argparse.Namespace) -> int:
     for note in plan.notes:
         _say(args, note)
     final = args.report_dir
-    with staged_folder(final, overwrite=args.overwrite) as work, \
-            scratch_folder(final) as scratch:
+    with staged_folder(final, overwrite=args.overwrite) as work, scratch_folder(final) as scratch:
         result = published(bench(args, plan, data, work, scratch), work, final)
         files = write_report(result, work)
     if not args.quiet:
@@ -473,8 +589,18 @@ def main(argv: list[str] | None = None) -> int:
     return run_command("msf-bench", body, debug=args.debug)
 
 
-__all__ = ["Inputs", "Plan", "Workload", "build_parser", "inference_flops", "load_inputs",
-           "main", "plan_run", "published", "schedule"]
+__all__ = [
+    "Inputs",
+    "Plan",
+    "Workload",
+    "build_parser",
+    "inference_flops",
+    "load_inputs",
+    "main",
+    "plan_run",
+    "published",
+    "schedule",
+]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -10,14 +10,18 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 ENV_VAR = "MSFNET_DATA"
 RELATIVE_CANDIDATES = (Path("shared") / "data", Path("..") / "shared" / "data")
 
 
-def data_root(explicit: str | Path | None = None, *, cwd: Path | None = None,
-              env: dict[str, str] | None = None) -> Path:
+def data_root(
+    explicit: str | Path | None = None,
+    *,
+    cwd: Path | None = None,
+    env: dict[str, str] | None = None,
+) -> Path:
     """The data root folder (holding DiLiGenT/, psmImages/); InputError naming what was tried.
 
     An explicit path or $MSFNET_DATA must exist: a typo there is an error, not a silent
@@ -39,8 +43,10 @@ def data_root(explicit: str | Path | None = None, *, cwd: Path | None = None,
     for path in tried:
         if path.is_dir():
             return path.resolve()
-    raise InputError("no data folder: pass --data DIR (holding DiLiGenT/ballPNG) or set "
-                     f"${ENV_VAR}; also looked in {', '.join(str(p) for p in tried)}")
+    raise InputError(
+        "no data folder: pass --data DIR (holding DiLiGenT/ballPNG) or set "
+        f"${ENV_VAR}; also looked in {', '.join(str(p) for p in tried)}"
+    )
 
 
 __all__ = ["ENV_VAR", "data_root"]

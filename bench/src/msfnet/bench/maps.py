@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime import cpu
-from msfnet.runtime.cliutil import make_parser, positive_int, run_command
-from msfnet.runtime.files import check_output, write_json
-from msfnet.runtime.maps.curvature import curvature_maps
-from msfnet.runtime.maps.integrate import METHODS, integrate_normals
+from msfnet.common import cpu
+from msfnet.common.cli import make_parser, positive_int, run_command
+from msfnet.common.files import check_output, write_json
+from msfnet.runtime.results.maps.curvature import curvature_maps
+from msfnet.runtime.results.maps.integrate import METHODS, integrate_normals
 
 PROG = "python -m msfnet.bench.maps"
 
@@ -43,8 +43,11 @@ def bench_object(h: int = HEIGHT, w: int = WIDTH) -> tuple[np.ndarray, np.ndarra
     root = np.sqrt(np.clip(1 - u**2 - v**2, 1e-3, None))
     z = amp * root
     d_col, d_row = -amp * u / (au * root), -amp * v / (av * root)
-    for fr, fc, a, fs in ((0.39, 0.41, 20.0, 0.05), (0.59, 0.65, -15.0, 0.065),
-                          (0.29, 0.69, 10.0, 0.033)):
+    for fr, fc, a, fs in (
+        (0.39, 0.41, 20.0, 0.05),
+        (0.59, 0.65, -15.0, 0.065),
+        (0.29, 0.69, 10.0, 0.033),
+    ):
         r0, c0, s = fr * h, fc * w, fs * w  # bumps placed and sized relative to the frame
         e = a * scale * np.exp(-((rows - r0) ** 2 + (cols - c0) ** 2) / (2 * s * s))
         z += e
@@ -66,12 +69,18 @@ def time_call(fn, repeat: int) -> tuple[list[float], list[float], object]:
     return walls, cpus, out
 
 
-def run(methods: tuple[str, ...], repeat: int, size: tuple[int, int] = (HEIGHT, WIDTH)
-        ) -> dict[str, object]:
+def run(
+    methods: tuple[str, ...], repeat: int, size: tuple[int, int] = (HEIGHT, WIDTH)
+) -> dict[str, object]:
     z, mask, n = bench_object(*size)
     results: dict[str, object] = {
-        "cpu": cpu.detect_cpu().model, "cores": cpu.usable_cores(), "frame": f"{size[1]}x{size[0]}",
-        "mask_pixels": int(mask.sum()), "load_average": os.getloadavg(), "methods": {}}
+        "cpu": cpu.detect_cpu().model,
+        "cores": cpu.usable_cores(),
+        "frame": f"{size[1]}x{size[0]}",
+        "mask_pixels": int(mask.sum()),
+        "load_average": os.getloadavg(),
+        "methods": {},
+    }
     table = results["methods"]
     assert isinstance(table, dict)
     for method in methods:
@@ -79,40 +88,66 @@ def run(methods: tuple[str, ...], repeat: int, size: tuple[int, int] = (HEIGHT, 
         hgt = res.height  # type: ignore[attr-defined]
         d = (hgt - z)[mask]
         d -= d.mean()
-        table[method] = {"median_s": statistics.median(walls), "min_s": min(walls),
-                         "max_s": max(walls), "cpu_s": statistics.median(cpus),
-                         "iterations": res.iterations,  # type: ignore[attr-defined]
-                         "rms_px": float(np.sqrt(np.mean(d * d))),
-                         "rms_pct_of_range": float(100 * np.sqrt(np.mean(d * d))
-                                                   / (np.nanmax(z) - np.nanmin(z)))}
+        table[method] = {
+            "median_s": statistics.median(walls),
+            "min_s": min(walls),
+            "max_s": max(walls),
+            "cpu_s": statistics.median(cpus),
+            "iterations": res.iterations,  # type: ignore[attr-defined]
+            "rms_px": float(np.sqrt(np.mean(d * d))),
+            "rms_pct_of_range": float(
+                100 * np.sqrt(np.mean(d * d)) / (np.nanmax(z) - np.nanmin(z))
+            ),
+        }
     walls, cpus, _ = time_call(lambda: curvature_maps(n, mask), repeat)
-    table["curvature"] = {"median_s": statistics.median(walls), "min_s": min(walls),
-                          "max_s": max(walls), "cpu_s": statistics.median(cpus)}
+    table["curvature"] = {
+        "median_s": statistics.median(walls),
+        "min_s": min(walls),
+        "max_s": max(walls),
+        "cpu_s": statistics.median(cpus),
+    }
     return results
 
 
 def format_table(results: dict[str, object]) -> str:
-    lines = [f"CPU: {results['cpu']} ({results['cores']} usable cores, load average "
-             f"{', '.join(f'{x:.1f}' for x in results['load_average'])})",  # type: ignore
-             f"object: {results['frame']} frame, {results['mask_pixels']} mask pixels",
-             f"{'map':<10} {'median s':>9} {'min s':>7} {'max s':>7} {'cpu s':>7} "
-             f"{'iters':>6} {'RMS px':>8} {'% range':>8}"]
+    lines = [
+        f"CPU: {results['cpu']} ({results['cores']} usable cores, load average "
+        f"{', '.join(f'{x:.1f}' for x in results['load_average'])})",  # type: ignore
+        f"object: {results['frame']} frame, {results['mask_pixels']} mask pixels",
+        f"{'map':<10} {'median s':>9} {'min s':>7} {'max s':>7} {'cpu s':>7} "
+        f"{'iters':>6} {'RMS px':>8} {'% range':>8}",
+    ]
     for name, r in results["methods"].items():  # type: ignore[attr-defined]
-        extra = (f"{r['iterations']:>6} {r['rms_px']:>8.3f} {r['rms_pct_of_range']:>8.3f}"
-                 if "rms_px" in r else f"{'':>6} {'':>8} {'':>8}")
-        lines.append(f"{name:<10} {r['median_s']:>9.3f} {r['min_s']:>7.3f} {r['max_s']:>7.3f} "
-                     f"{r['cpu_s']:>7.3f} {extra}")
+        extra = (
+            f"{r['iterations']:>6} {r['rms_px']:>8.3f} {r['rms_pct_of_range']:>8.3f}"
+            if "rms_px" in r
+            else f"{'':>6} {'':>8} {'':>8}"
+        )
+        lines.append(
+            f"{name:<10} {r['median_s']:>9.3f} {r['min_s']:>7.3f} {r['max_s']:>7.3f} "
+            f"{r['cpu_s']:>7.3f} {extra}"
+        )
     return "\n".join(lines)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = make_parser(PROG, f"Time normal integration (and curvature) on a {WIDTH}x{HEIGHT} "
-                    "masked object.", (f"{PROG} --repeat 5 --json maps.json",))
+    p = make_parser(
+        PROG,
+        f"Time normal integration (and curvature) on a {WIDTH}x{HEIGHT} masked object.",
+        (f"{PROG} --repeat 5 --json maps.json",),
+    )
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
-    p.add_argument("--repeat", type=positive_int, default=3,
-                   help="runs per method (median reported)")
-    p.add_argument("--size", type=positive_int, nargs=2, default=(HEIGHT, WIDTH),
-                   metavar=("H", "W"), help=f"frame size (default {HEIGHT} {WIDTH})")
+    p.add_argument(
+        "--repeat", type=positive_int, default=3, help="runs per method (median reported)"
+    )
+    p.add_argument(
+        "--size",
+        type=positive_int,
+        nargs=2,
+        default=(HEIGHT, WIDTH),
+        metavar=("H", "W"),
+        help=f"frame size (default {HEIGHT} {WIDTH})",
+    )
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     return p

@@ -25,9 +25,13 @@ MIN_SECONDS = 0.15
 MAX_SIZE = 4096
 
 
-def _grow_and_time(make: Callable[[int], Callable[[], object]], min_seconds: float,
-                   max_size: int, repeats: int, start: int = 256
-                   ) -> tuple[int, list[float], dict[int, float]]:
+def _grow_and_time(
+    make: Callable[[int], Callable[[], object]],
+    min_seconds: float,
+    max_size: int,
+    repeats: int,
+    start: int = 256,
+) -> tuple[int, list[float], dict[int, float]]:
     """Double n until one call takes ``min_seconds`` (or n = max_size), timing ``repeats`` calls
     at every n from 1024 up (smaller products are too short to reach the peak). Returns the
     size whose fastest call was fastest per FLOP, its call times, and the best time per size."""
@@ -49,24 +53,34 @@ def _grow_and_time(make: Callable[[int], Callable[[], object]], min_seconds: flo
         if last:
             break
         n = min(max_size, n * 2)
-    best_n = max(per_size, key=lambda k: k ** 3 / max(min(per_size[k]), 1e-9))
+    best_n = max(per_size, key=lambda k: k**3 / max(min(per_size[k]), 1e-9))
     return best_n, per_size[best_n], {k: min(v) for k, v in per_size.items()}
 
 
-def _result(engine: str, dtype: str, threads: int, n: int, times: list[float],
-            per_size: dict[int, float]) -> dict[str, object]:
+def _result(
+    engine: str, dtype: str, threads: int, n: int, times: list[float], per_size: dict[int, float]
+) -> dict[str, object]:
     """``gflops`` is the fastest call's rate: a peak is what the machine can do, and on a shared
     machine other jobs only ever slow a call down (the median is kept as ``median_gflops``)."""
-    ops = 2.0 * n ** 3  # multiply-adds count 2 (int8: operations, reported as "gflops" too)
-    return {"engine": engine, "dtype": dtype, "threads": threads, "size": n,
-            "gflops": ops / max(min(times), 1e-9) / 1e9,
-            "median_gflops": ops / statistics.median(times) / 1e9,
-            "by_size": {str(k): 2.0 * k ** 3 / max(t, 1e-9) / 1e9
-                        for k, t in sorted(per_size.items())}}
+    ops = 2.0 * n**3  # multiply-adds count 2 (int8: operations, reported as "gflops" too)
+    return {
+        "engine": engine,
+        "dtype": dtype,
+        "threads": threads,
+        "size": n,
+        "gflops": ops / max(min(times), 1e-9) / 1e9,
+        "median_gflops": ops / statistics.median(times) / 1e9,
+        "by_size": {str(k): 2.0 * k**3 / max(t, 1e-9) / 1e9 for k, t in sorted(per_size.items())},
+    }
 
 
-def matmul_peak_gflops(dtype: str = "fp32", threads: int = 2, min_seconds: float = MIN_SECONDS,
-                       max_size: int = 3072, repeats: int = 5) -> dict[str, object]:
+def matmul_peak_gflops(
+    dtype: str = "fp32",
+    threads: int = 2,
+    min_seconds: float = MIN_SECONDS,
+    max_size: int = 3072,
+    repeats: int = 5,
+) -> dict[str, object]:
     """torch: median GFLOP/s of square matmuls in ``dtype`` ('fp32' or 'bf16') at ``threads``."""
     import torch
 
@@ -79,8 +93,7 @@ def matmul_peak_gflops(dtype: str = "fp32", threads: int = 2, min_seconds: float
         b = torch.randn(n, n, generator=gen).to(tdtype)
         return lambda: a @ b
 
-    return _result("torch", dtype, threads,
-                   *_grow_and_time(make, min_seconds, max_size, repeats))
+    return _result("torch", dtype, threads, *_grow_and_time(make, min_seconds, max_size, repeats))
 
 
 def matmul_onnx(n: int, dtype: str) -> bytes:
@@ -100,21 +113,29 @@ def matmul_onnx(n: int, dtype: str) -> bytes:
         nodes = [helper.make_node("MatMulInteger", ["A", "B"], ["Y"])]
         a_type, y_type = TensorProto.UINT8, TensorProto.INT32
     elif dtype == "qdq":
-        inits = [numpy_helper.from_array(rng.integers(-127, 128, (n, n), dtype=np.int8), "Bq"),
-                 numpy_helper.from_array(np.array(0.01, np.float32), "b_scale"),
-                 numpy_helper.from_array(np.array(0, np.int8), "b_zero"),
-                 numpy_helper.from_array(np.array(0.02, np.float32), "a_scale"),
-                 numpy_helper.from_array(np.array(128, np.uint8), "a_zero")]
-        nodes = [helper.make_node("QuantizeLinear", ["A", "a_scale", "a_zero"], ["Aq"]),
-                 helper.make_node("DequantizeLinear", ["Aq", "a_scale", "a_zero"], ["Ad"]),
-                 helper.make_node("DequantizeLinear", ["Bq", "b_scale", "b_zero"], ["Bd"]),
-                 helper.make_node("MatMul", ["Ad", "Bd"], ["Y"])]
+        inits = [
+            numpy_helper.from_array(rng.integers(-127, 128, (n, n), dtype=np.int8), "Bq"),
+            numpy_helper.from_array(np.array(0.01, np.float32), "b_scale"),
+            numpy_helper.from_array(np.array(0, np.int8), "b_zero"),
+            numpy_helper.from_array(np.array(0.02, np.float32), "a_scale"),
+            numpy_helper.from_array(np.array(128, np.uint8), "a_zero"),
+        ]
+        nodes = [
+            helper.make_node("QuantizeLinear", ["A", "a_scale", "a_zero"], ["Aq"]),
+            helper.make_node("DequantizeLinear", ["Aq", "a_scale", "a_zero"], ["Ad"]),
+            helper.make_node("DequantizeLinear", ["Bq", "b_scale", "b_zero"], ["Bd"]),
+            helper.make_node("MatMul", ["Ad", "Bd"], ["Y"]),
+        ]
         a_type, y_type = f32, f32
     else:
         raise ValueError(f"dtype {dtype!r}: expected fp32, int8 or qdq")
-    graph = helper.make_graph(nodes, f"matmul_{dtype}_{n}",
-                              [helper.make_tensor_value_info("A", a_type, [n, n])],
-                              [helper.make_tensor_value_info("Y", y_type, [n, n])], inits)
+    graph = helper.make_graph(
+        nodes,
+        f"matmul_{dtype}_{n}",
+        [helper.make_tensor_value_info("A", a_type, [n, n])],
+        [helper.make_tensor_value_info("Y", y_type, [n, n])],
+        inits,
+    )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8  # readable by every onnxruntime / openvino this project supports
     return model.SerializeToString()
@@ -127,8 +148,13 @@ def _input(n: int, dtype: str) -> np.ndarray:
     return rng.standard_normal((n, n)).astype(np.float32)
 
 
-def ort_matmul_peak(dtype: str = "fp32", threads: int = 2, min_seconds: float = MIN_SECONDS,
-                    max_size: int = MAX_SIZE, repeats: int = 5) -> dict[str, object]:
+def ort_matmul_peak(
+    dtype: str = "fp32",
+    threads: int = 2,
+    min_seconds: float = MIN_SECONDS,
+    max_size: int = MAX_SIZE,
+    repeats: int = 5,
+) -> dict[str, object]:
     """ONNX Runtime CPU: GFLOP/s (fp32) or GOP/s (int8, MatMulInteger) of its own GEMM."""
     import onnxruntime as ort
 
@@ -137,17 +163,22 @@ def ort_matmul_peak(dtype: str = "fp32", threads: int = 2, min_seconds: float = 
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         opts.log_severity_level = 3
-        sess = ort.InferenceSession(matmul_onnx(n, dtype), opts,
-                                    providers=["CPUExecutionProvider"])
+        sess = ort.InferenceSession(matmul_onnx(n, dtype), opts, providers=["CPUExecutionProvider"])
         feed = {"A": _input(n, dtype)}
         return lambda: sess.run(None, feed)
 
-    return _result("onnxruntime", dtype, threads,
-                   *_grow_and_time(make, min_seconds, max_size, repeats))
+    return _result(
+        "onnxruntime", dtype, threads, *_grow_and_time(make, min_seconds, max_size, repeats)
+    )
 
 
-def ov_matmul_peak(dtype: str = "fp32", threads: int = 2, min_seconds: float = MIN_SECONDS,
-                   max_size: int = MAX_SIZE, repeats: int = 5) -> dict[str, object]:
+def ov_matmul_peak(
+    dtype: str = "fp32",
+    threads: int = 2,
+    min_seconds: float = MIN_SECONDS,
+    max_size: int = MAX_SIZE,
+    repeats: int = 5,
+) -> dict[str, object]:
     """OpenVINO CPU: fp32 / bf16 (the fp32 graph with the bf16 hint) / int8 (QDQ MatMul)."""
     import openvino as ov
 
@@ -156,19 +187,28 @@ def ov_matmul_peak(dtype: str = "fp32", threads: int = 2, min_seconds: float = M
 
     def make(n: int) -> Callable[[], object]:
         model = core.read_model(matmul_onnx(n, "qdq" if dtype == "int8" else "fp32"), b"")
-        compiled = core.compile_model(model, "CPU", {
-            "INFERENCE_PRECISION_HINT": hint, "INFERENCE_NUM_THREADS": threads,
-            "NUM_STREAMS": 1, "PERFORMANCE_HINT": "LATENCY"})
+        compiled = core.compile_model(
+            model,
+            "CPU",
+            {
+                "INFERENCE_PRECISION_HINT": hint,
+                "INFERENCE_NUM_THREADS": threads,
+                "NUM_STREAMS": 1,
+                "PERFORMANCE_HINT": "LATENCY",
+            },
+        )
         request = compiled.create_infer_request()
         feed = {"A": _input(n, "fp32")}
         return lambda: request.infer(feed)
 
-    return _result("openvino", dtype, threads,
-                   *_grow_and_time(make, min_seconds, max_size, repeats))
+    return _result(
+        "openvino", dtype, threads, *_grow_and_time(make, min_seconds, max_size, repeats)
+    )
 
 
-def engine_peaks(threads: list[int], engines: set[str], torch_peaks: bool = True
-                 ) -> list[dict[str, object]]:
+def engine_peaks(
+    threads: list[int], engines: set[str], torch_peaks: bool = True
+) -> list[dict[str, object]]:
     """Every (engine, precision) peak at every thread count, in this process."""
     out: list[dict[str, object]] = []
     for t in threads:
@@ -194,5 +234,11 @@ def merge_peaks(*runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [{**p, "runs": seen[key]} for key, p in best.items()]
 
 
-__all__ = ["engine_peaks", "matmul_onnx", "matmul_peak_gflops", "merge_peaks", "ort_matmul_peak",
-           "ov_matmul_peak"]
+__all__ = [
+    "engine_peaks",
+    "matmul_onnx",
+    "matmul_peak_gflops",
+    "merge_peaks",
+    "ort_matmul_peak",
+    "ov_matmul_peak",
+]

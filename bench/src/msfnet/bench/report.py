@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from msfnet.runtime.files import write_atomic, write_json, write_text
-
 from msfnet.bench.workloads import ENGINE_OF_VARIANT, VARIANT_PEAK
+from msfnet.common.files import write_atomic, write_json, write_text
 
-FULL_IMAGE_NOTE = ("per-light loop on (d) extrapolated linearly in lights x pixels from its "
-                   "measured (b) run (same threads), untiled full image")
+FULL_IMAGE_NOTE = (
+    "per-light loop on (d) extrapolated linearly in lights x pixels from its "
+    "measured (b) run (same threads), untiled full image"
+)
 
 
 def _peak(result: dict, dtype: str, threads: int, engine: str = "torch") -> float | None:
@@ -28,18 +29,25 @@ def fp32_peak(result: dict, threads: int) -> tuple[float | None, str]:
 
 def _find(rows: list[dict], wl: str, variant: str, threads: int) -> dict | None:
     for r in rows:
-        if (r["workload"], r["variant"], r["threads"]) == (wl, variant, threads) \
-                and "median_s" in r:
+        if (r["workload"], r["variant"], r["threads"]) == (
+            wl,
+            variant,
+            threads,
+        ) and "median_s" in r:
             return r
     return None
 
 
-def per_light_estimate(rows: list[dict], lights: int, pixels: int,
-                       threads: int) -> tuple[float, bool] | None:
+def per_light_estimate(
+    rows: list[dict], lights: int, pixels: int, threads: int
+) -> tuple[float, bool] | None:
     """Per-light loop seconds at (lights, pixels): measured if that cell exists, else scaled
     from the largest measured per-light cell (linear in lights x pixels). (seconds, measured)."""
-    cands = [r for r in rows if r["variant"] == "per-light" and r["threads"] == threads
-             and "median_s" in r]
+    cands = [
+        r
+        for r in rows
+        if r["variant"] == "per-light" and r["threads"] == threads and "median_s" in r
+    ]
     for r in cands:
         if r["lights"] == lights and r["pixels"] == pixels:
             return r["median_s"], True
@@ -75,13 +83,17 @@ def _fmt(v, spec: str, none: str = "-") -> str:
 
 
 def table(result: dict) -> str:
-    head = ("| workload | variant | thr | median s | p90 s | peak RSS MB | GFLOP/s | % fp32 peak "
-            "| % own peak | x ORT fp32 | x torch | x per-light | max deg | mean deg |")
+    head = (
+        "| workload | variant | thr | median s | p90 s | peak RSS MB | GFLOP/s | % fp32 peak "
+        "| % own peak | x ORT fp32 | x torch | x per-light | max deg | mean deg |"
+    )
     lines = [head, "|" + "---|" * 14]
     for r in result["rows"]:
         if "median_s" not in r:
-            lines.append(f"| {r['label']} | {r['variant']} | {r['threads']} | error: "
-                         f"{r.get('error', '')[:80]} |" + " |" * 10)
+            lines.append(
+                f"| {r['label']} | {r['variant']} | {r['threads']} | error: "
+                f"{r.get('error', '')[:80]} |" + " |" * 10
+            )
             continue
         pl = _fmt(r["x_vs_per_light"], ".2f")
         if r["x_vs_per_light"] is not None and not r["per_light_measured"]:
@@ -94,7 +106,8 @@ def table(result: dict) -> str:
             f"{_fmt(None if frac is None else 100 * frac, '.0f')} | "
             f"{_fmt(None if own is None else 100 * own, '.0f')} | "
             f"{_fmt(r['x_vs_ort_fp32'], '.2f')} | {_fmt(r['x_vs_torch'], '.2f')} | {pl} | "
-            f"{_fmt(r.get('max_deg'), '.3f')} | {_fmt(r.get('mean_deg'), '.3f')} |")
+            f"{_fmt(r.get('max_deg'), '.3f')} | {_fmt(r.get('mean_deg'), '.3f')} |"
+        )
     return "\n".join(lines)
 
 
@@ -102,13 +115,19 @@ def e2e_table(result: dict) -> str:
     runs = result.get("e2e") or []
     if not runs:
         return "(workload (d) not run)"
-    lines = ["| row | engine precision graph | thr | lights | image | tiles run/skipped | "
-             "median wall s (runs) | peak RSS MiB | inference GFLOP/s | MAE vs GT deg | "
-             "vs ORT fp32 max/mean deg | x per-light (extrapolated) |", "|" + "---|" * 12]
+    lines = [
+        "| row | engine precision graph | thr | lights | image | tiles run/skipped | "
+        "median wall s (runs) | peak RSS MiB | inference GFLOP/s | MAE vs GT deg | "
+        "vs ORT fp32 max/mean deg | x per-light (extrapolated) |",
+        "|" + "---|" * 12,
+    ]
     for r in runs:
         tiles = r.get("tiles") or {}
-        dev = ("-" if "mean_deg_vs_fp32" not in r else
-               f"{r['max_deg_vs_fp32']:.2f} / {r['mean_deg_vs_fp32']:.3f}")
+        dev = (
+            "-"
+            if "mean_deg_vs_fp32" not in r
+            else f"{r['max_deg_vs_fp32']:.2f} / {r['mean_deg_vs_fp32']:.3f}"
+        )
         path = " ".join(str(r.get(k) or "?") for k in ("engine", "precision", "graph"))
         lines.append(
             f"| {r['variant']} | {path} | {r['threads']} | {r['lights']} | "
@@ -117,25 +136,31 @@ def e2e_table(result: dict) -> str:
             f"({len(r.get('walls_s') or [1])}) | {_fmt(r.get('peak_rss_mb'), '.0f')} | "
             f"{_fmt(r.get('inference_gflops_per_s'), '.1f')} | "
             f"{_fmt(r.get('mae_vs_gt_deg'), '.2f')} | {dev} | "
-            f"{_fmt(r.get('x_vs_per_light'), '.1f')} |")
+            f"{_fmt(r.get('x_vs_per_light'), '.1f')} |"
+        )
     default = next((r for r in runs if r["variant"] == "default"), None)
     if default and default.get("choice"):
-        lines += ["", f"`default` is `{default['command']}`; msf-run's engine choice: "
-                      f"{default['choice']}"]
+        lines += [
+            "",
+            f"`default` is `{default['command']}`; msf-run's engine choice: {default['choice']}",
+        ]
     return "\n".join(lines)
 
 
 def add_e2e_ratios(result: dict) -> None:
     for r in result.get("e2e") or []:
-        est = per_light_estimate(result["rows"], r["lights"], r["height"] * r["width"],
-                                 r["threads"])
+        est = per_light_estimate(
+            result["rows"], r["lights"], r["height"] * r["width"], r["threads"]
+        )
         r["per_light_estimate_s"] = est[0] if est else None
         r["x_vs_per_light"] = est[0] / r["median_s"] if est else None
 
 
 # (engine, precision, graph) of a run -> the (a)-(c) variant that times the same path
-PATH_VARIANT = {(engine, precision, "staged" if v.endswith("-staged") else "monolithic"): v
-                for v, (engine, precision) in ENGINE_OF_VARIANT.items()}
+PATH_VARIANT = {
+    (engine, precision, "staged" if v.endswith("-staged") else "monolithic"): v
+    for v, (engine, precision) in ENGINE_OF_VARIANT.items()
+}
 FULL_STACK_X, FULL_STACK_MIB = 60.0, 1536.0  # issue #12: >= 60x per-light, <= 1.5 GiB
 
 
@@ -149,11 +174,13 @@ def targets(result: dict) -> list[str]:
         x, rss = default.get("x_vs_per_light"), default.get("peak_rss_mb")
         ok = x is not None and x >= FULL_STACK_X and rss is not None and rss <= FULL_STACK_MIB
         walls = ", ".join(f"{w:.1f}" for w in default.get("walls_s") or [])
-        out.append(f"- (d) the default command (`{default['command']}`): median "
-                   f"{default['median_s']:.1f} s ({walls}), {_fmt(x, '.1f')}x the per-light loop "
-                   f"({_fmt(default.get('per_light_estimate_s'), '.0f')} s, {FULL_IMAGE_NOTE}); "
-                   f"peak RSS {_fmt(rss, '.0f')} MiB: target >= {FULL_STACK_X:.0f}x and <= "
-                   f"{FULL_STACK_MIB:.0f} MiB **{'met' if ok else 'not met'}**.")
+        out.append(
+            f"- (d) the default command (`{default['command']}`): median "
+            f"{default['median_s']:.1f} s ({walls}), {_fmt(x, '.1f')}x the per-light loop "
+            f"({_fmt(default.get('per_light_estimate_s'), '.0f')} s, {FULL_IMAGE_NOTE}); "
+            f"peak RSS {_fmt(rss, '.0f')} MiB: target >= {FULL_STACK_X:.0f}x and <= "
+            f"{FULL_STACK_MIB:.0f} MiB **{'met' if ok else 'not met'}**."
+        )
     feats = result.get("machine", {}).get("cpu_features") or {}
     bf16_cpu = bool(feats.get("avx512_bf16") or feats.get("amx_bf16"))
     goal = 3.0 if bf16_cpu else 1.5
@@ -163,18 +190,31 @@ def targets(result: dict) -> list[str]:
     if r:
         x, mean = r.get("x_vs_ort_fp32") or 0.0, r.get("mean_deg")
         ok = x >= goal and mean is not None and mean <= 0.5
-        out.append(f"- the default path on (b) ({variant}, what msf-run picks here), {t} "
-                   f"threads: {x:.2f}x ORT fp32, mean deviation {_fmt(mean, '.3f')} deg: target "
-                   f">= {goal}x within 0.5 deg on a {'bf16' if bf16_cpu else 'non-bf16'} CPU "
-                   f"**{'met' if ok else 'not met'}**.")
-    best = min((r for r in rows if r["workload"] == "b" and r["threads"] == t
-                and r.get("fraction_own_peak") and r["variant"] in VARIANT_PEAK),
-               key=lambda r: r["median_s"], default=None)
+        out.append(
+            f"- the default path on (b) ({variant}, what msf-run picks here), {t} "
+            f"threads: {x:.2f}x ORT fp32, mean deviation {_fmt(mean, '.3f')} deg: target "
+            f">= {goal}x within 0.5 deg on a {'bf16' if bf16_cpu else 'non-bf16'} CPU "
+            f"**{'met' if ok else 'not met'}**."
+        )
+    best = min(
+        (
+            r
+            for r in rows
+            if r["workload"] == "b"
+            and r["threads"] == t
+            and r.get("fraction_own_peak")
+            and r["variant"] in VARIANT_PEAK
+        ),
+        key=lambda r: r["median_s"],
+        default=None,
+    )
     if best:
         f = best["fraction_own_peak"]
-        out.append(f"- fastest variant on (b), {best['variant']}: {100 * f:.0f} % of the "
-                   f"same-run {best['own_peak']} matmul peak: target >= 80 % "
-                   f"**{'met' if f >= 0.8 else 'not met'}**.")
+        out.append(
+            f"- fastest variant on (b), {best['variant']}: {100 * f:.0f} % of the "
+            f"same-run {best['own_peak']} matmul peak: target >= 80 % "
+            f"**{'met' if f >= 0.8 else 'not met'}**."
+        )
     return out
 
 
@@ -190,8 +230,11 @@ def plot(result: dict, path: Path) -> bool:
     t = max((r["threads"] for r in rows), default=2)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for v in sorted({r["variant"] for r in rows}):
-        pts = sorted((r["lights"], r["pixels"], r["median_s"]) for r in rows
-                     if r["variant"] == v and r["threads"] == t)
+        pts = sorted(
+            (r["lights"], r["pixels"], r["median_s"])
+            for r in rows
+            if r["variant"] == v and r["threads"] == t
+        )
         if not pts:
             continue
         axes[0].plot([p[0] for p in pts], [p[2] for p in pts], "o-", label=v)
@@ -217,48 +260,86 @@ def plot(result: dict, path: Path) -> bool:
 
 def markdown(result: dict, has_plot: bool) -> str:
     m = result["machine"]
-    peaks = ", ".join(f"{p.get('engine', 'torch')} {p['dtype']} {p['threads']} thr "
-                      f"{p['gflops']:.1f}" for p in result["peaks"])
+    peaks = ", ".join(
+        f"{p.get('engine', 'torch')} {p['dtype']} {p['threads']} thr {p['gflops']:.1f}"
+        for p in result["peaks"]
+    )
     feats = m.get("cpu_features") or {}
-    cpu_line = ", ".join(f"{k} {'yes' if feats[k] else 'no'}" for k in
-                         ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16",
-                          "amx_bf16", "amx_int8") if k in feats)
+    cpu_line = ", ".join(
+        f"{k} {'yes' if feats[k] else 'no'}"
+        for k in (
+            "avx2",
+            "avx512f",
+            "avx512_vnni",
+            "avx_vnni",
+            "avx512_bf16",
+            "amx_bf16",
+            "amx_int8",
+        )
+        if k in feats
+    )
     models = result["models"]
-    weights = ("seeded random weights (no trained checkpoint given): the deviation columns "
-               "measure numerics only" if models.get("random_weights")
-               else f"checkpoint {models['checkpoint']}")
+    weights = (
+        "seeded random weights (no trained checkpoint given): the deviation columns "
+        "measure numerics only"
+        if models.get("random_weights")
+        else f"checkpoint {models['checkpoint']}"
+    )
     lines = [
-        "# msf-bench report", "",
+        "# msf-bench report",
+        "",
         f"- date: {result['date']}; mode: {'quick' if result['quick'] else 'full'}; "
         f"elapsed {result['elapsed_s'] / 60:.1f} min",
         f"- machine: {m['cpu']}, {m['cores']} cores, ISA {' '.join(m['isa_flags'])}; "
         f"{m['platform']}; Python {m['python']}, onnxruntime {m['onnxruntime']}",
-        *([f"- CPU features (msfnet.runtime.cpu, via {feats.get('source')}): {cpu_line}"]
-          if feats else []),
+        *(
+            [f"- CPU features (msfnet.common.cpu, via {feats.get('source')}): {cpu_line}"]
+            if feats
+            else []
+        ),
         *([f"- openvino {m['openvino']}"] if m.get("openvino") else []),
         f"- matmul peaks measured in this run, each engine's own kernels (GFLOP/s; int8: "
         f"GOP/s; the fastest call of two measurements, before and after the cells): {peaks}",
-        *[f"- dispatch on this machine, {k} model: {v}" for k, v in
-          (result.get("dispatch") or {}).items()],
+        *[
+            f"- dispatch on this machine, {k} model: {v}"
+            for k, v in (result.get("dispatch") or {}).items()
+        ],
         f"- weights: {weights}",
         "- inputs: crops of the real ballPNG stack centred on the ball, evenly spaced lights; "
         "deviation = angle to PyTorch fp32 (lights folded) over mask pixels",
-        "- GFLOP/s from the analytic count (runtime/flops.py, 2 FLOP per MAC); '% fp32 peak' "
+        "- GFLOP/s from the analytic count (runtime/infer/flops.py, 2 FLOP per MAC); '% fp32 peak' "
         "divides by ONNX Runtime's fp32 matmul peak at the same thread count, for every "
         "variant; '% own peak' by the peak of the variant's own engine and precision (ORT int8 "
         "MatMulInteger for int8, OpenVINO bf16 for bf16, torch fp32 for the PyTorch rows)",
         "- the machine is shared and noisy: compare ratios within this run, not across runs",
         "- `~` marks a per-light ratio extrapolated from the measured (b) per-light run "
-        "(linear in lights x pixels)", "",
+        "(linear in lights x pixels)",
+        "",
         *[f"- note: {n}" for n in result.get("notes", [])],
-        *(["- note: a row above 100 % of its own peak ran faster than its engine's MatMul kernel "
-           "does at that precision (convolution kernels can beat a plain f32-in/f32-out MatMul, "
-           "e.g. OpenVINO bf16's): the peak is a reference, not a ceiling"]
-          if any((r.get("fraction_own_peak") or 0) > 1 for r in result["rows"]) else []), "",
-        "## Targets", "", *targets(result), "",
-        "## Workloads (a)-(c)", "", table(result), "",
+        *(
+            [
+                "- note: a row above 100 % of its own peak ran faster than its engine's MatMul "
+                "kernel does at that precision (convolution kernels can beat a plain "
+                "f32-in/f32-out MatMul, "
+                "e.g. OpenVINO bf16's): the peak is a reference, not a ceiling"
+            ]
+            if any((r.get("fraction_own_peak") or 0) > 1 for r in result["rows"])
+            else []
+        ),
+        "",
+        "## Targets",
+        "",
+        *targets(result),
+        "",
+        "## Workloads (a)-(c)",
+        "",
+        table(result),
+        "",
         "## Workload (d): full stack end to end through msf-run (fresh process: load -> "
-        "normals on disk)", "", e2e_table(result), "",
+        "normals on disk)",
+        "",
+        e2e_table(result),
+        "",
     ]
     if has_plot:
         lines += ["![latency](latency.png)", ""]

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.flops import inference_flops
-from msfnet.runtime.preprocess import network_input
+from msfnet.runtime.infer.flops import inference_flops
+from msfnet.runtime.infer.normalise import network_input
 
 
 @dataclass(frozen=True)
@@ -56,15 +56,20 @@ VARIANTS = {
 }
 # variant -> (engine, precision) of the matmul peak it is compared with ("share of its own peak")
 VARIANT_PEAK = {
-    "ort-fp32": ("onnxruntime", "fp32"), "ort-fp32-staged": ("onnxruntime", "fp32"),
-    "ort-int8": ("onnxruntime", "int8"), "ov-bf16": ("openvino", "bf16"),
-    "ov-bf16-staged": ("openvino", "bf16"), "torch-fp32": ("torch", "fp32"),
+    "ort-fp32": ("onnxruntime", "fp32"),
+    "ort-fp32-staged": ("onnxruntime", "fp32"),
+    "ort-int8": ("onnxruntime", "int8"),
+    "ov-bf16": ("openvino", "bf16"),
+    "ov-bf16-staged": ("openvino", "bf16"),
+    "torch-fp32": ("torch", "fp32"),
     "per-light": ("torch", "fp32"),
 }
-# variant -> (engine, precision) it asks msfnet.runtime.dispatch.open_engine for
+# variant -> (engine, precision) it asks msfnet.runtime.engines.dispatch.open_engine for
 ENGINE_OF_VARIANT = {
-    "ort-fp32": ("onnxruntime", "fp32"), "ort-fp32-staged": ("onnxruntime", "fp32"),
-    "ort-int8": ("onnxruntime", "int8"), "ov-bf16": ("openvino", "bf16"),
+    "ort-fp32": ("onnxruntime", "fp32"),
+    "ort-fp32-staged": ("onnxruntime", "fp32"),
+    "ort-int8": ("onnxruntime", "int8"),
+    "ov-bf16": ("openvino", "bf16"),
     "ov-bf16-staged": ("openvino", "bf16"),
 }
 OPENVINO_VARIANTS = tuple(v for v, (e, _) in ENGINE_OF_VARIANT.items() if e == "openvino")
@@ -86,8 +91,8 @@ def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
 
 
 def _max_rss_mb() -> float:
-    """Peak RSS of this process (VmHWM on Linux: see msfnet.runtime.profile.peak_rss_mb)."""
-    from msfnet.runtime.profile import peak_rss_mb
+    """Peak RSS of this process (VmHWM on Linux: see msfnet.runtime.results.profile.peak_rss_mb)."""
+    from msfnet.runtime.results.profile import peak_rss_mb
 
     return peak_rss_mb()
 
@@ -98,7 +103,7 @@ import runpy, sys
 from msfnet.bench.workloads import _max_rss_mb
 out, sys.argv = sys.argv[1], ["msf-run", *sys.argv[2:]]
 try:
-    runpy.run_module("msfnet.runtime.run_cli", run_name="__main__")
+    runpy.run_module("msfnet.runtime.cli.run", run_name="__main__")
 finally:
     open(out, "w").write(str(_max_rss_mb()))
 """
@@ -109,11 +114,12 @@ def _runner(variant: str, spec: dict):
     threads = int(spec["threads"])
     if variant in ENGINE_OF_VARIANT:
         # through the runtime's own engines: the bench times what msf-run would run
-        from msfnet.runtime.dispatch import EngineChoice, open_engine
+        from msfnet.runtime.engines.dispatch import EngineChoice, open_engine
 
         engine_key, precision = ENGINE_OF_VARIANT[variant]
-        engine = open_engine(EngineChoice(engine_key, precision, "msf-bench", Path(spec["onnx"])),
-                             threads)
+        engine = open_engine(
+            EngineChoice(engine_key, precision, "msf-bench", Path(spec["onnx"])), threads
+        )
         return engine.run, {"precision": engine.precision, "engine": engine.describe()}
     import torch
 
@@ -148,14 +154,25 @@ def run_cell(spec: dict) -> dict:
         out = run(images, lights)
         times.append(time.perf_counter() - t0)
     np.save(spec["output"], np.asarray(out, dtype=np.float32))
-    return {"times_s": times, "median_s": statistics.median(times),
-            "p90_s": float(np.percentile(times, 90)), "init_s": init_s,
-            "peak_rss_mb": _max_rss_mb(), **info}
+    return {
+        "times_s": times,
+        "median_s": statistics.median(times),
+        "p90_s": float(np.percentile(times, 90)),
+        "init_s": init_s,
+        "peak_rss_mb": _max_rss_mb(),
+        **info,
+    }
 
 
-def time_msf_run(stack_dir: Path, onnx: Path | None, outdir: Path, threads: int,
-                 max_memory_mb: float | None, max_lights: int | None = None,
-                 extra: Sequence[str] = ()) -> dict:
+def time_msf_run(
+    stack_dir: Path,
+    onnx: Path | None,
+    outdir: Path,
+    threads: int,
+    max_memory_mb: float | None,
+    max_lights: int | None = None,
+    extra: Sequence[str] = (),
+) -> dict:
     """One end-to-end ``msf-run`` in a fresh process (load -> normals on disk).
 
     ``onnx`` None runs the bundled model and ``max_memory_mb`` None msf-run's own budget: the
@@ -164,11 +181,22 @@ def time_msf_run(stack_dir: Path, onnx: Path | None, outdir: Path, threads: int,
 
     rss_file = outdir.parent / f".{outdir.name}.rss"
     rss_file.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-c", _E2E_WRAPPER, str(rss_file), str(stack_dir),
-           *(["--onnx", str(onnx)] if onnx is not None else []),
-           "-o", str(outdir), "--overwrite", "--threads", str(threads), "--no-maps",
-           *(["--max-memory", str(max_memory_mb)] if max_memory_mb is not None else []),
-           *extra]
+    cmd = [
+        sys.executable,
+        "-c",
+        _E2E_WRAPPER,
+        str(rss_file),
+        str(stack_dir),
+        *(["--onnx", str(onnx)] if onnx is not None else []),
+        "-o",
+        str(outdir),
+        "--overwrite",
+        "--threads",
+        str(threads),
+        "--no-maps",
+        *(["--max-memory", str(max_memory_mb)] if max_memory_mb is not None else []),
+        *extra,
+    ]
     if max_lights:
         cmd += ["--max-lights", str(max_lights)]
     t0 = time.perf_counter()
@@ -190,8 +218,12 @@ def time_msf_run(stack_dir: Path, onnx: Path | None, outdir: Path, threads: int,
         profile = json.loads(pfile.read_text())
     peak = float(rss_file.read_text())
     rss_file.unlink()
-    return {"wall_s": wall, "peak_rss_mb": peak, "profile": profile,
-            "command": " ".join(["msf-run", *cmd[4:]])}
+    return {
+        "wall_s": wall,
+        "peak_rss_mb": peak,
+        "profile": profile,
+        "command": " ".join(["msf-run", *cmd[4:]]),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -202,9 +234,20 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["BF16_VARIANTS", "ENGINE_OF_VARIANT", "OPENVINO_VARIANTS", "QUICK_WORKLOADS",
-           "VARIANTS", "VARIANT_PEAK", "WORKLOADS", "Workload", "asdict", "make_input",
-           "run_cell", "time_msf_run"]
+__all__ = [
+    "BF16_VARIANTS",
+    "ENGINE_OF_VARIANT",
+    "OPENVINO_VARIANTS",
+    "QUICK_WORKLOADS",
+    "VARIANTS",
+    "VARIANT_PEAK",
+    "WORKLOADS",
+    "Workload",
+    "asdict",
+    "make_input",
+    "run_cell",
+    "time_msf_run",
+]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -7,5 +7,12 @@ from msfnet.calib.directions import DirectionResult, LightEstimate, estimate_dir
 from msfnet.calib.intensities import estimate_intensities
 from msfnet.calib.sphere import Circle, fit_circles_from_images, fit_circles_from_mask
 
-__all__ = ["Circle", "DirectionResult", "LightEstimate", "estimate_directions",
-           "estimate_intensities", "fit_circles_from_images", "fit_circles_from_mask"]
+__all__ = [
+    "Circle",
+    "DirectionResult",
+    "LightEstimate",
+    "estimate_directions",
+    "estimate_intensities",
+    "fit_circles_from_images",
+    "fit_circles_from_mask",
+]

@@ -12,7 +12,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 
 class Camera(Protocol):
@@ -28,10 +28,18 @@ class Camera(Protocol):
 class OpenCVCamera:
     """A cv2.VideoCapture device (index or URL) with automatic controls switched off."""
 
-    def __init__(self, device: int | str = 0, width: int | None = None,
-                 height: int | None = None, exposure: float | None = None,
-                 gain: float | None = None, wb_kelvin: float | None = None,
-                 focus: float | None = None, flush: int = 4, average: int = 1) -> None:
+    def __init__(
+        self,
+        device: int | str = 0,
+        width: int | None = None,
+        height: int | None = None,
+        exposure: float | None = None,
+        gain: float | None = None,
+        wb_kelvin: float | None = None,
+        focus: float | None = None,
+        flush: int = 4,
+        average: int = 1,
+    ) -> None:
         self.cap = cv2.VideoCapture(device)
         if not self.cap.isOpened():
             raise InputError(f"cannot open OpenCV camera {device!r}")
@@ -73,8 +81,10 @@ class OpenCVCamera:
         return np.clip(np.rint(mean * 257.0), 0, 65535).astype(np.uint16)
 
     def info(self) -> dict:
-        props = {k: self.cap.get(getattr(cv2, f"CAP_PROP_{k.upper()}")) for k in
-                 ("frame_width", "frame_height", "exposure", "gain", "wb_temperature", "focus")}
+        props = {
+            k: self.cap.get(getattr(cv2, f"CAP_PROP_{k.upper()}"))
+            for k in ("frame_width", "frame_height", "exposure", "gain", "wb_temperature", "focus")
+        }
         return {"backend": "opencv", "device": str(self.device), "average": self.average, **props}
 
     def close(self) -> None:
@@ -88,8 +98,9 @@ def oak_devices(dai=None) -> list:
     return list(dai.Device.getAllAvailableDevices())
 
 
-def unpack_raw10(data: np.ndarray, width: int, height: int, stride: int | None = None
-                 ) -> np.ndarray:
+def unpack_raw10(
+    data: np.ndarray, width: int, height: int, stride: int | None = None
+) -> np.ndarray:
     """MIPI RAW10 packed (4 pixels in 5 bytes, low bits in the 5th) -> uint16 (H, W)."""
     buf = np.frombuffer(np.asarray(data, np.uint8).tobytes(), np.uint8)
     stride = stride or width * 5 // 4
@@ -101,12 +112,17 @@ def unpack_raw10(data: np.ndarray, width: int, height: int, stride: int | None =
     return out.reshape(height, width)
 
 
-BAYER = {"RGGB": cv2.COLOR_BayerBG2RGB, "BGGR": cv2.COLOR_BayerRG2RGB,
-         "GRBG": cv2.COLOR_BayerGB2RGB, "GBRG": cv2.COLOR_BayerGR2RGB}
+BAYER = {
+    "RGGB": cv2.COLOR_BayerBG2RGB,
+    "BGGR": cv2.COLOR_BayerRG2RGB,
+    "GRBG": cv2.COLOR_BayerGB2RGB,
+    "GBRG": cv2.COLOR_BayerGR2RGB,
+}
 
 
-def raw_to_rgb(raw: np.ndarray, pattern: str = "RGGB", black_level: int = 64,
-               bits: int = 10) -> np.ndarray:
+def raw_to_rgb(
+    raw: np.ndarray, pattern: str = "RGGB", black_level: int = 64, bits: int = 10
+) -> np.ndarray:
     """Linear camera RGB (uint16, scaled to 16 bits) from a Bayer mosaic: the photometric
     choice, since ISP outputs are tone-mapped."""
     top = (1 << bits) - 1
@@ -122,8 +138,9 @@ def oak_frame_to_rgb(frame, pattern: str = "RGGB", black_level: int = 64) -> np.
     t = frame.getType()
     w, h = frame.getWidth(), frame.getHeight()
     if t == dai.ImgFrame.Type.RAW10:
-        return raw_to_rgb(unpack_raw10(frame.getData(), w, h, frame.getStride()), pattern,
-                          black_level, 10)
+        return raw_to_rgb(
+            unpack_raw10(frame.getData(), w, h, frame.getStride()), pattern, black_level, 10
+        )
     if t == dai.ImgFrame.Type.RAW16:
         raw = np.frombuffer(np.asarray(frame.getData()).tobytes(), np.uint16)[: w * h]
         return raw_to_rgb(raw.reshape(h, w), pattern, black_level, 16)
@@ -152,22 +169,33 @@ class OakCamera:
     ISP (tone-mapped, not linear: intensity calibration then absorbs only part of it).
     """
 
-    def __init__(self, exposure_us: int = 10000, iso: int = 100, wb_kelvin: int = 5500,
-                 lens_position: int = 120, mode: str = "raw", bayer: str = "RGGB",
-                 black_level: int = 64, device_id: str | None = None, flush: int = 3) -> None:
+    def __init__(
+        self,
+        exposure_us: int = 10000,
+        iso: int = 100,
+        wb_kelvin: int = 5500,
+        lens_position: int = 120,
+        mode: str = "raw",
+        bayer: str = "RGGB",
+        black_level: int = 64,
+        device_id: str | None = None,
+        flush: int = 3,
+    ) -> None:
         try:
             import depthai as dai
         except ImportError as exc:
-            raise InputError("the OAK back-end needs depthai: pip install 'msfnet[camera]'") \
-                from exc
+            raise InputError(
+                "the OAK back-end needs depthai: pip install 'msfnet[camera]'"
+            ) from exc
         devices = oak_devices(dai)
         if not devices:
             raise InputError("no OAK device found (USB connection, udev rules, container flags)")
         if device_id is not None and device_id not in [d.getDeviceId() for d in devices]:
             raise InputError(f"OAK device {device_id} not found")
         self.mode, self.bayer, self.black_level, self.flush = mode, bayer, black_level, flush
-        self.settings = dict(exposure_us=exposure_us, iso=iso, wb_kelvin=wb_kelvin,
-                             lens_position=lens_position)
+        self.settings = dict(
+            exposure_us=exposure_us, iso=iso, wb_kelvin=wb_kelvin, lens_position=lens_position
+        )
         info = next(d for d in devices if device_id in (None, d.getDeviceId()))
         self.device = dai.Device(info)
         self.pipeline = dai.Pipeline(self.device)
@@ -187,8 +215,11 @@ class OakCamera:
     def capture(self) -> np.ndarray:
         for _ in range(self.flush):  # frames already in flight were exposed under the old light
             self.queue.get()
-        return oak_frame_to_rgb(self.queue.get(), self.bayer, self.black_level) \
-            if self.mode == "raw" else oak_frame_to_rgb(self.queue.get())
+        return (
+            oak_frame_to_rgb(self.queue.get(), self.bayer, self.black_level)
+            if self.mode == "raw"
+            else oak_frame_to_rgb(self.queue.get())
+        )
 
     def info(self) -> dict:
         return {"backend": "oak", "mode": self.mode, **self.settings}
@@ -233,5 +264,14 @@ class SimulatedCamera:
         pass
 
 
-__all__ = ["BAYER", "OakCamera", "OpenCVCamera", "SimulatedCamera", "oak_control",
-           "oak_devices", "oak_frame_to_rgb", "raw_to_rgb", "unpack_raw10"]
+__all__ = [
+    "BAYER",
+    "OakCamera",
+    "OpenCVCamera",
+    "SimulatedCamera",
+    "oak_control",
+    "oak_devices",
+    "oak_frame_to_rgb",
+    "raw_to_rgb",
+    "unpack_raw10",
+]

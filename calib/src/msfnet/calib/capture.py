@@ -34,9 +34,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from tqdm import tqdm
 
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import vectors_text, write_atomic
-from msfnet.runtime.imageio import list_images, read_image, read_mask, write_png
+from msfnet.common.errors import InputError
+from msfnet.common.files import vectors_text, write_atomic
+from msfnet.common.imageio import list_images, read_image, read_mask, write_png
 from msfnet.runtime.stack import (
     FILENAMES_FILE,
     INTENSITIES_FILE,
@@ -58,7 +58,7 @@ from msfnet.runtime.stack.transforms import linearise, white_level
 from msfnet.runtime.stack.types import check_intensities, check_lights
 
 if TYPE_CHECKING:
-    from msfnet.runtime.pipeline import Model, Result
+    from msfnet.runtime.api import Model, Result
     from msfnet.runtime.stack import LoadOptions
 
 SESSION = "session.json"
@@ -112,8 +112,13 @@ class Exposure:
         return found
 
 
-def exposure_check(frame: np.ndarray, white_level: float, mask: np.ndarray | None = None,
-                   max_saturated: float = 0.01, min_level: float = 0.1) -> Exposure:
+def exposure_check(
+    frame: np.ndarray,
+    white_level: float,
+    mask: np.ndarray | None = None,
+    max_saturated: float = 0.01,
+    min_level: float = 0.1,
+) -> Exposure:
     """Share of saturated pixels and the bright end (99.5th percentile) of the frame."""
     g = frame.max(axis=-1) if frame.ndim == 3 else frame
     vals = g[mask] if mask is not None else g.ravel()
@@ -137,11 +142,13 @@ def read_session(path: Path) -> dict:
     try:
         data = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError, RecursionError) as exc:
-        raise InputError(f"session file is damaged ({type(exc).__name__}); delete it to start "
-                         "over", path) from exc
+        raise InputError(
+            f"session file is damaged ({type(exc).__name__}); delete it to start over", path
+        ) from exc
     if not isinstance(data, dict) or not isinstance(data.get("count", 0), int):
-        raise InputError("session file is not an msf-capture session; delete it to start over",
-                         path)
+        raise InputError(
+            "session file is not an msf-capture session; delete it to start over", path
+        )
     return data
 
 
@@ -157,30 +164,47 @@ def _load_session(path: Path, count: int, camera: dict) -> dict:
         return {"count": count, "frames": {}}
     data = read_session(path)
     if data.get("count") != count:
-        raise InputError(f"existing session has {data.get('count')} lights, this one {count} "
-                         "(use another folder or --overwrite)", path)
+        raise InputError(
+            f"existing session has {data.get('count')} lights, this one {count} "
+            "(use another folder or --overwrite)",
+            path,
+        )
     recorded = data.get("camera")
     if isinstance(recorded, dict):
         # compared as session.json stores it (tuples become lists, keys strings)
         now = json.loads(json.dumps(camera))
         # a key only the new info has was not recorded by an older version: not a difference
         # (NaN, which a driver may report, is not equal to itself: compare its JSON text too)
-        differ = sorted(k for k in recorded if k not in now or (
-            now[k] != recorded[k] and json.dumps(now[k]) != json.dumps(recorded[k])))
+        differ = sorted(
+            k
+            for k in recorded
+            if k not in now
+            or (now[k] != recorded[k] and json.dumps(now[k]) != json.dumps(recorded[k]))
+        )
         if differ:
+
             def show(info: dict) -> str:
                 return ", ".join(f"{k}={info.get(k, '(none)')}" for k in differ)
 
-            raise InputError(f"existing session was taken with {show(recorded)}, this one with "
-                             f"{show(now)} (use another folder or --overwrite)", path)
+            raise InputError(
+                f"existing session was taken with {show(recorded)}, this one with "
+                f"{show(now)} (use another folder or --overwrite)",
+                path,
+            )
     return data
 
 
 # What msf-capture writes: raw frames, stack images, and the stack's other files.
 _FRAME = re.compile(r"^(ambient|\d{3,})\.png$")
 _STACK_IMAGE = re.compile(r"^\d{3,}\.png$")
-_STACK_FILES = (FILENAMES_FILE, LIGHTS_FILE, INTENSITIES_FILE, MASK_FILE, NORMALS_FILE,
-                LEGACY_NORMALS_FILE)
+_STACK_FILES = (
+    FILENAMES_FILE,
+    LIGHTS_FILE,
+    INTENSITIES_FILE,
+    MASK_FILE,
+    NORMALS_FILE,
+    LEGACY_NORMALS_FILE,
+)
 
 
 def _discard(out: Path) -> None:
@@ -217,13 +241,17 @@ def check_folder(out: Path, overwrite: bool) -> None:
     theirs = list_images(out) + (list_images(raw) if raw.is_dir() else [])
     if theirs or (out / FILENAMES_FILE).exists():
         example = theirs[0].name if theirs else FILENAMES_FILE
-        raise InputError(f"the folder holds images msf-capture did not take (e.g. {example}, "
-                         "and no session.json): use another folder, or --overwrite to capture "
-                         "into it anyway", out)
+        raise InputError(
+            f"the folder holds images msf-capture did not take (e.g. {example}, "
+            "and no session.json): use another folder, or --overwrite to capture "
+            "into it anyway",
+            out,
+        )
 
 
-def check_vectors(value: np.ndarray | str | Path | None, count: int, what: str
-                  ) -> np.ndarray | None:
+def check_vectors(
+    value: np.ndarray | str | Path | None, count: int, what: str
+) -> np.ndarray | None:
     """Light directions or intensities for ``count`` lights, validated (and directions made
     unit length), or None."""
     if value is None:
@@ -233,8 +261,9 @@ def check_vectors(value: np.ndarray | str | Path | None, count: int, what: str
     if rows.ndim != 2 or rows.shape[1] != 3:
         raise InputError(f"{what} must have 3 numbers per row, got shape {rows.shape}", src)
     if len(rows) != count:
-        raise InputError(f"{len(rows)} {what} for {count} lights: the file does not belong "
-                         "to this rig", src)
+        raise InputError(
+            f"{len(rows)} {what} for {count} lights: the file does not belong to this rig", src
+        )
     if what == "light directions":
         rows = unit_lights(rows, src)
         check_lights(rows, src)
@@ -243,8 +272,9 @@ def check_vectors(value: np.ndarray | str | Path | None, count: int, what: str
     return rows
 
 
-def check_mask(mask: np.ndarray | str | Path | None, shape: tuple[int, int] | None
-               ) -> np.ndarray | None:
+def check_mask(
+    mask: np.ndarray | str | Path | None, shape: tuple[int, int] | None
+) -> np.ndarray | None:
     """The object mask, readable, not empty and (when the frame size is known) of that size."""
     if mask is None:
         return None
@@ -253,8 +283,11 @@ def check_mask(mask: np.ndarray | str | Path | None, shape: tuple[int, int] | No
     if not arr.any():
         raise InputError("the mask is empty (no pixel > 127)", src)
     if shape is not None and arr.shape != tuple(shape):
-        raise InputError(f"mask is {arr.shape[1]}x{arr.shape[0]} but the camera delivers "
-                         f"{shape[1]}x{shape[0]} frames", src)
+        raise InputError(
+            f"mask is {arr.shape[1]}x{arr.shape[0]} but the camera delivers "
+            f"{shape[1]}x{shape[0]} frames",
+            src,
+        )
     return arr
 
 
@@ -271,15 +304,25 @@ def _frame_shape(camera: Any, raw: Path) -> tuple[int, int] | None:
     return None
 
 
-def capture_stack(camera, lights, out_dir: str | Path, *,
-                  light_directions: np.ndarray | str | Path | None = None,
-                  light_intensities: np.ndarray | str | Path | None = None,
-                  mask: np.ndarray | str | Path | None = None, ambient: bool = True,
-                  subtract_ambient: bool = True, overwrite: bool = False,
-                  max_saturated: float = 0.01, min_level: float = 0.1, strict: bool = False,
-                  progress: bool | None = None, log: Log = print,
-                  linearisation: Linearisation | None = None,
-                  normals_gt: np.ndarray | None = None) -> Path:
+def capture_stack(
+    camera,
+    lights,
+    out_dir: str | Path,
+    *,
+    light_directions: np.ndarray | str | Path | None = None,
+    light_intensities: np.ndarray | str | Path | None = None,
+    mask: np.ndarray | str | Path | None = None,
+    ambient: bool = True,
+    subtract_ambient: bool = True,
+    overwrite: bool = False,
+    max_saturated: float = 0.01,
+    min_level: float = 0.1,
+    strict: bool = False,
+    progress: bool | None = None,
+    log: Log = print,
+    linearisation: Linearisation | None = None,
+    normals_gt: np.ndarray | None = None,
+) -> Path:
     """Capture one frame per light (plus an ambient frame) into ``out_dir``; return it.
 
     camera: ``.capture() -> (H, W, 3) uint8/uint16``, ``.white_level``, ``.info()``, and
@@ -312,10 +355,11 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
     todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
     pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
     if not pending and _finished(out, n) and sess_path.is_file():
-        log(f"stack complete: all {n} frames are already in {raw}; nothing to capture "
-            "(kept as it is; --overwrite captures again)")
-        return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt,
-                            log=log)
+        log(
+            f"stack complete: all {n} frames are already in {raw}; nothing to capture "
+            "(kept as it is; --overwrite captures again)"
+        )
+        return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt, log=log)
     raw.mkdir(parents=True, exist_ok=True)
     session.update(count=n, camera=info, white_level=camera.white_level)
     if pending:  # new frames: a stack built before no longer shows them
@@ -334,20 +378,22 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
     problems = []
     try:
         # disable=None: a bar on a terminal, nothing in a log file
-        for name, i in tqdm(pending, desc="capture", unit="frame",
-                            disable=True if progress is False else None):
+        for name, i in tqdm(
+            pending, desc="capture", unit="frame", disable=True if progress is False else None
+        ):
             if i is None:
                 lights.off()
             else:
                 lights.on(i)
             frame = _to_uint(np.asarray(camera.capture()))
             if mask_arr is not None and mask_arr.shape != frame.shape[:2]:
-                raise InputError(f"mask is {mask_arr.shape[1]}x{mask_arr.shape[0]} but the "
-                                 f"camera delivers {frame.shape[1]}x{frame.shape[0]} frames")
+                raise InputError(
+                    f"mask is {mask_arr.shape[1]}x{mask_arr.shape[0]} but the "
+                    f"camera delivers {frame.shape[1]}x{frame.shape[0]} frames"
+                )
             write_png(raw / name, frame)  # atomic: a crash never leaves half a frame
             if i is not None:
-                chk = exposure_check(frame, camera.white_level, mask_arr, max_saturated,
-                                     min_level)
+                chk = exposure_check(frame, camera.white_level, mask_arr, max_saturated, min_level)
                 session["frames"][name] = {**asdict(chk), "time": time.time()}
                 msg = chk.problems()
                 if msg:
@@ -364,8 +410,7 @@ def capture_stack(camera, lights, out_dir: str | Path, *,
 
 
 def _finished(out: Path, n: int) -> bool:
-    return (out / FILENAMES_FILE).is_file() and all((out / _name(i)).is_file()
-                                                    for i in range(n))
+    return (out / FILENAMES_FILE).is_file() and all((out / _name(i)).is_file() for i in range(n))
 
 
 def _text_changed(path: Path, text: str, log: Log) -> bool:
@@ -398,11 +443,16 @@ def _normals_changed(out: Path, normals: np.ndarray) -> bool:
     return True
 
 
-def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = None,
-                 light_intensities: np.ndarray | str | Path | None = None,
-                 mask: np.ndarray | None = None, subtract_ambient: bool = True,
-                 linearisation: Linearisation | None = None,
-                 normals_gt: np.ndarray | None = None, log: Log = print) -> Path:
+def finish_stack(
+    out: Path,
+    light_directions: np.ndarray | str | Path | None = None,
+    light_intensities: np.ndarray | str | Path | None = None,
+    mask: np.ndarray | None = None,
+    subtract_ambient: bool = True,
+    linearisation: Linearisation | None = None,
+    normals_gt: np.ndarray | None = None,
+    log: Log = print,
+) -> Path:
     """Build the DiLiGenT-layout stack in ``out`` from ``out/raw``.
 
     Images are (re)built unless session.json says they were built from these frames the same
@@ -418,20 +468,29 @@ def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = N
     names = [_name(i) for i in range(n)]
     missing = [nm for nm in names if not (raw / nm).is_file()]
     if missing:
-        raise InputError(f"session incomplete: {len(missing)} frame(s) missing, e.g. "
-                         f"{missing[0]}; run the capture again to resume", raw)
+        raise InputError(
+            f"session incomplete: {len(missing)} frame(s) missing, e.g. "
+            f"{missing[0]}; run the capture again to resume",
+            raw,
+        )
     # no record (a new or overwritten session, or new frames): images on disk are not these
     # frames' (an earlier session's, or the user's), whatever they look like
     built = all(k in session for k in _BUILT_KEYS) and _finished(out, n)
-    if built and session["linearisation"] == lin.record() and \
-            session["ambient_subtracted"] == subtract_ambient:
+    if (
+        built
+        and session["linearisation"] == lin.record()
+        and session["ambient_subtracted"] == subtract_ambient
+    ):
         shape = read_image(out / names[0]).shape[:2]
     else:
         if built:
             log("rebuilding the stack images from raw/ (linearisation or ambient changed)")
         shape = _build_images(out, names, subtract_ambient, lin)
-        session.update(linearisation=lin.record(), ambient_subtracted=subtract_ambient,
-                       stack_white_level=65535.0 if lin.active else session.get("white_level"))
+        session.update(
+            linearisation=lin.record(),
+            ambient_subtracted=subtract_ambient,
+            stack_white_level=65535.0 if lin.active else session.get("white_level"),
+        )
         text = json.dumps(session, indent=1, sort_keys=True)
         write_atomic(sess_path, lambda t: t.write_text(text))
     if _text_changed(out / FILENAMES_FILE, filenames_text(names), log):
@@ -456,8 +515,9 @@ def finish_stack(out: Path, light_directions: np.ndarray | str | Path | None = N
     return out
 
 
-def _build_images(out: Path, names: list[str], subtract_ambient: bool,
-                  lin: Linearisation) -> tuple[int, int]:
+def _build_images(
+    out: Path, names: list[str], subtract_ambient: bool, lin: Linearisation
+) -> tuple[int, int]:
     raw = out / "raw"
     amb_path = raw / "ambient.png"
     amb = read_image(amb_path) if subtract_ambient and amb_path.is_file() else None
@@ -496,8 +556,11 @@ _NUMBERED = re.compile(r"^\d{3,}$")
 def next_take(root: Path) -> Path:
     """``root/001``, ``root/002``, ...: an unfinished last take is resumed, otherwise the
     number after the highest."""
-    taken = sorted((int(p.name), p) for p in root.iterdir()
-                   if p.is_dir() and _NUMBERED.match(p.name)) if root.is_dir() else []
+    taken = (
+        sorted((int(p.name), p) for p in root.iterdir() if p.is_dir() and _NUMBERED.match(p.name))
+        if root.is_dir()
+        else []
+    )
     if taken:
         last = taken[-1][1]
         sess = last / SESSION
@@ -509,10 +572,18 @@ def next_take(root: Path) -> Path:
     return root / "001"
 
 
-def capture_loop(camera, lights, root: str | Path, *, iterations: int | None = None,
-                 model: Model | None = None, load: LoadOptions | None = None,
-                 out_root: Path | None = None, interval: float = 0.0,
-                 **capture: Any) -> Iterator[LoopStep]:
+def capture_loop(
+    camera,
+    lights,
+    root: str | Path,
+    *,
+    iterations: int | None = None,
+    model: Model | None = None,
+    load: LoadOptions | None = None,
+    out_root: Path | None = None,
+    interval: float = 0.0,
+    **capture: Any,
+) -> Iterator[LoopStep]:
     """Capture stack after stack into ``root/001``, ``root/002``, ... (``iterations`` times,
     or until the caller stops iterating / Ctrl-C) and, with a ``model`` (loaded once), run
     each: results in ``out_root/NNN`` (default ``root/NNN-normals``). Yields each step.
@@ -526,8 +597,11 @@ def capture_loop(camera, lights, root: str | Path, *, iterations: int | None = N
         stack = capture_stack(camera, lights, folder, **capture)
         step = LoopStep(int(folder.name), stack)
         if model is not None:
-            out = (out_root / folder.name) if out_root is not None else \
-                root / f"{folder.name}-normals"
+            out = (
+                (out_root / folder.name)
+                if out_root is not None
+                else root / f"{folder.name}-normals"
+            )
             step.result = model(stack, load)
             step.result.save(out, inputs=tuple(load.inputs()) if load else ())
             step.output = out
@@ -535,6 +609,17 @@ def capture_loop(camera, lights, root: str | Path, *, iterations: int | None = N
         yield step
 
 
-__all__ = ["SESSION", "Exposure", "Linearisation", "LoopStep", "capture_loop", "capture_stack",
-           "check_folder", "check_mask", "check_vectors", "exposure_check", "finish_stack",
-           "next_take"]
+__all__ = [
+    "SESSION",
+    "Exposure",
+    "Linearisation",
+    "LoopStep",
+    "capture_loop",
+    "capture_stack",
+    "check_folder",
+    "check_mask",
+    "check_vectors",
+    "exposure_check",
+    "finish_stack",
+    "next_take",
+]

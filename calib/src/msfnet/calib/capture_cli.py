@@ -10,7 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from msfnet.runtime.cliutil import (
+from msfnet.calib.cameras import Camera, SimulatedCamera
+from msfnet.calib.capture import Linearisation, capture_loop, capture_stack, check_folder
+from msfnet.calib.lights import Lights
+from msfnet.common.cli import (
     make_parser,
     nonnegative_float,
     nonnegative_int,
@@ -18,11 +21,7 @@ from msfnet.runtime.cliutil import (
     positive_int,
     run_command,
 )
-from msfnet.runtime.errors import InputError
-
-from msfnet.calib.cameras import Camera, SimulatedCamera
-from msfnet.calib.capture import Linearisation, capture_loop, capture_stack, check_folder
-from msfnet.calib.lights import Lights
+from msfnet.common.errors import InputError
 
 PROG = "msf-capture"
 EXAMPLES = (
@@ -36,53 +35,99 @@ EXAMPLES = (
 )
 
 
-def add_device_arguments(p: argparse.ArgumentParser, lights_flag: str = "--light-rig",
-                         camera_default: str | None = "opencv") -> None:
+def add_device_arguments(
+    p: argparse.ArgumentParser,
+    lights_flag: str = "--light-rig",
+    camera_default: str | None = "opencv",
+) -> None:
     """Camera, light-rig and session options.
 
     ``lights_flag`` names the light back-end option (msf-run uses --lights for files). The
     caller adds --mask and --overwrite, whose meaning it owns.
     """
     g = p.add_argument_group("capture devices")
-    g.add_argument("--camera", choices=("oak", "opencv", "sim"), default=camera_default,
-                   help="camera back-end" + (f" (default {camera_default}); sim: a rendered "
-                                             "sphere, no hardware" if camera_default else ""))
+    g.add_argument(
+        "--camera",
+        choices=("oak", "opencv", "sim"),
+        default=camera_default,
+        help="camera back-end"
+        + (
+            f" (default {camera_default}); sim: a rendered sphere, no hardware"
+            if camera_default
+            else ""
+        ),
+    )
     g.add_argument("--device", default="0", help="OpenCV device index or URL; OAK device id")
-    g.add_argument("--exposure", type=positive_float, help="OpenCV: exposure (driver units); "
-                   "OAK: microseconds (default 10000)")
+    g.add_argument(
+        "--exposure",
+        type=positive_float,
+        help="OpenCV: exposure (driver units); OAK: microseconds (default 10000)",
+    )
     g.add_argument("--iso", type=int, default=100, help="OAK ISO (default 100)")
     g.add_argument("--gain", type=float, help="OpenCV gain")
     g.add_argument("--wb-kelvin", type=int, default=5500, help="locked white balance")
     g.add_argument("--focus", type=float, help="locked focus (OAK lens position 0..255)")
-    g.add_argument("--oak-mode", choices=("raw", "isp"), default="raw",
-                   help="raw: linear Bayer demosaiced on host (default); isp: tone-mapped RGB")
+    g.add_argument(
+        "--oak-mode",
+        choices=("raw", "isp"),
+        default="raw",
+        help="raw: linear Bayer demosaiced on host (default); isp: tone-mapped RGB",
+    )
     g.add_argument("--bayer", default="RGGB", help="OAK raw Bayer pattern (default RGGB)")
-    g.add_argument("--average", type=positive_int, default=1,
-                   help="OpenCV: frames averaged per light")
-    g.add_argument(lights_flag, dest="light_rig", choices=("serial", "manual", "sim"),
-                   default=None, help="light back-end (default: sim with --camera sim, "
-                   "otherwise manual: an operator prompt per light)")
+    g.add_argument(
+        "--average", type=positive_int, default=1, help="OpenCV: frames averaged per light"
+    )
+    g.add_argument(
+        lights_flag,
+        dest="light_rig",
+        choices=("serial", "manual", "sim"),
+        default=None,
+        help="light back-end (default: sim with --camera sim, "
+        "otherwise manual: an operator prompt per light)",
+    )
     g.add_argument("--port", help="serial port of the LED controller, e.g. /dev/ttyUSB0")
     g.add_argument("--baud", type=positive_int, default=115200)
-    g.add_argument("--count", type=positive_int,
-                   help="number of lights (manual; checks serial; sim default 12)")
-    g.add_argument("--settle", type=nonnegative_float, default=0.05,
-                   help="seconds after switching a light")
-    g.add_argument("--sim-scene", choices=("chrome", "matte"), default="matte",
-                   help="simulated scene: a chrome sphere (light calibration) or a matte one")
-    g.add_argument("--light-directions", type=Path, help="light_directions.txt to put in the "
-                   "stack (from msf-calib directions); checked before capturing")
+    g.add_argument(
+        "--count",
+        type=positive_int,
+        help="number of lights (manual; checks serial; sim default 12)",
+    )
+    g.add_argument(
+        "--settle", type=nonnegative_float, default=0.05, help="seconds after switching a light"
+    )
+    g.add_argument(
+        "--sim-scene",
+        choices=("chrome", "matte"),
+        default="matte",
+        help="simulated scene: a chrome sphere (light calibration) or a matte one",
+    )
+    g.add_argument(
+        "--light-directions",
+        type=Path,
+        help="light_directions.txt to put in the "
+        "stack (from msf-calib directions); checked before capturing",
+    )
     g.add_argument("--light-intensities", type=Path, help="light_intensities.txt for the stack")
     g.add_argument("--no-ambient", action="store_true", help="skip the ambient (dark) frame")
-    g.add_argument("--keep-ambient", action="store_true",
-                   help="do not subtract the ambient frame from the stack images")
+    g.add_argument(
+        "--keep-ambient",
+        action="store_true",
+        help="do not subtract the ambient frame from the stack images",
+    )
     g.add_argument("--strict", action="store_true", help="fail on saturated/under-exposed frames")
     lin = g.add_mutually_exclusive_group()
-    lin.add_argument("--srgb", action="store_true",
-                     help="the camera delivers sRGB-encoded frames (webcams, OAK isp): the "
-                     "stack is written linear, 16-bit; recorded in session.json")
-    lin.add_argument("--gamma", type=positive_float, metavar="G",
-                     help="the camera's frames are power-law encoded: linear = value ** G")
+    lin.add_argument(
+        "--srgb",
+        action="store_true",
+        help="the camera delivers sRGB-encoded frames (webcams, OAK isp): the "
+        "stack is written linear, 16-bit; recorded in session.json",
+    )
+    lin.add_argument(
+        "--gamma",
+        type=positive_float,
+        metavar="G",
+        help="the camera's frames are power-law encoded: linear = value ** G",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -90,28 +135,59 @@ def build_parser() -> argparse.ArgumentParser:
         PROG,
         "Capture a photometric stack: one frame per light plus an ambient frame, each written "
         "to OUT/raw as it arrives (run the same command again to resume an interrupted "
-        "session), then the DiLiGenT-layout stack in OUT that msf-run reads.", EXAMPLES)
-    p.add_argument("out_dir", type=Path, nargs="?", metavar="OUT",
-                   help="session / stack folder (or -o OUT)")
-    p.add_argument("-o", "--output", type=Path, metavar="OUT",
-                   help="session / stack folder (same as the positional OUT)")
+        "session), then the DiLiGenT-layout stack in OUT that msf-run reads.",
+        EXAMPLES,
+    )
+    p.add_argument(
+        "out_dir", type=Path, nargs="?", metavar="OUT", help="session / stack folder (or -o OUT)"
+    )
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        metavar="OUT",
+        help="session / stack folder (same as the positional OUT)",
+    )
     add_device_arguments(p)
-    p.add_argument("--mask", type=Path, help="object mask for the stack and exposure checks "
-                   "(checked before capturing; the simulated camera writes its own)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="discard the session already captured (its frames, session.json and "
-                   "the stack built from them; other images stay), or capture into a folder "
-                   "holding other images")
-    p.add_argument("--loop", nargs="?", type=nonnegative_int, const=0, default=None,
-                   metavar="K", help="capture stack after stack into OUT/001, OUT/002, ... "
-                   "(K takes; none or 0: until Ctrl-C); with --run each is run as soon as "
-                   "it is captured, with the model loaded once (results in OUT/NNN-normals, "
-                   "or -o of msf-run's options as their parent)")
-    p.add_argument("--interval", type=float, default=0.0, metavar="S",
-                   help="--loop: seconds to wait between takes (to move the object)")
-    p.add_argument("--run", nargs=argparse.REMAINDER, metavar="MSF_RUN_ARGS",
-                   help="after capturing, run msf-run on the stack; the rest of the command "
-                   "line goes to msf-run (e.g. --run --method l2 -o out/)")
+    p.add_argument(
+        "--mask",
+        type=Path,
+        help="object mask for the stack and exposure checks "
+        "(checked before capturing; the simulated camera writes its own)",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="discard the session already captured (its frames, session.json and "
+        "the stack built from them; other images stay), or capture into a folder "
+        "holding other images",
+    )
+    p.add_argument(
+        "--loop",
+        nargs="?",
+        type=nonnegative_int,
+        const=0,
+        default=None,
+        metavar="K",
+        help="capture stack after stack into OUT/001, OUT/002, ... "
+        "(K takes; none or 0: until Ctrl-C); with --run each is run as soon as "
+        "it is captured, with the model loaded once (results in OUT/NNN-normals, "
+        "or -o of msf-run's options as their parent)",
+    )
+    p.add_argument(
+        "--interval",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="--loop: seconds to wait between takes (to move the object)",
+    )
+    p.add_argument(
+        "--run",
+        nargs=argparse.REMAINDER,
+        metavar="MSF_RUN_ARGS",
+        help="after capturing, run msf-run on the stack; the rest of the command "
+        "line goes to msf-run (e.g. --run --method l2 -o out/)",
+    )
     return p
 
 
@@ -140,19 +216,24 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
         if args.camera != "sim" or rig_name != "sim":
             raise InputError("--camera sim and --light-rig sim go together")
         # calib -> synth, the simulated rig only (see the msfnet package docstring): lazy
+        from msfnet.calib.lights import SimulatedLights, SimulatedRig
         from msfnet.synth.spheres import mirror_scene, ring_lights, sphere_masks, sphere_normals
 
-        from msfnet.calib.lights import SimulatedLights, SimulatedRig
-
         kind = "mirror" if args.sim_scene == "chrome" else "matte"
-        rig = SimulatedRig(mirror_scene(160, 128, 56, kind=kind), ring_lights(args.count or 12),
-                           gain=0.8 if kind == "matte" else 0.02)
-        known = {"light_directions": rig.lights, "light_intensities": rig.intensities,
-                 "mask": np.any(sphere_masks(rig.scene), axis=0),
-                 "normals_gt": sphere_normals(rig.scene),
-                 # a mirror sphere is dark but for a highlight of a few pixels: the
-                 # under-exposure check (99.5th percentile) would fire on every frame
-                 "min_level": 0.0 if kind == "mirror" else 0.1}
+        rig = SimulatedRig(
+            mirror_scene(160, 128, 56, kind=kind),
+            ring_lights(args.count or 12),
+            gain=0.8 if kind == "matte" else 0.02,
+        )
+        known = {
+            "light_directions": rig.lights,
+            "light_intensities": rig.intensities,
+            "mask": np.any(sphere_masks(rig.scene), axis=0),
+            "normals_gt": sphere_normals(rig.scene),
+            # a mirror sphere is dark but for a highlight of a few pixels: the
+            # under-exposure check (99.5th percentile) would fire on every frame
+            "min_level": 0.0 if kind == "mirror" else 0.1,
+        }
         return _SceneCamera(rig, args.sim_scene), SimulatedLights(rig), known
     if rig_name == "serial":
         if not args.port:
@@ -169,33 +250,50 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
     if args.camera == "oak":
         from msfnet.calib.cameras import OakCamera
 
-        cam: Camera = OakCamera(int(args.exposure or 10000), args.iso, args.wb_kelvin,
-                                int(args.focus if args.focus is not None else 120),
-                                args.oak_mode, args.bayer,
-                                device_id=None if args.device == "0" else args.device)
+        cam: Camera = OakCamera(
+            int(args.exposure or 10000),
+            args.iso,
+            args.wb_kelvin,
+            int(args.focus if args.focus is not None else 120),
+            args.oak_mode,
+            args.bayer,
+            device_id=None if args.device == "0" else args.device,
+        )
     else:
         from msfnet.calib.cameras import OpenCVCamera
 
         dev = int(args.device) if args.device.isdigit() else args.device
-        cam = OpenCVCamera(dev, exposure=args.exposure, gain=args.gain,
-                           wb_kelvin=args.wb_kelvin, focus=args.focus, average=args.average)
+        cam = OpenCVCamera(
+            dev,
+            exposure=args.exposure,
+            gain=args.gain,
+            wb_kelvin=args.wb_kelvin,
+            focus=args.focus,
+            average=args.average,
+        )
     return cam, lights, {}
 
 
-def _capture_options(args: argparse.Namespace, known: dict[str, Any], log: Callable[[str], None],
-                     overwrite: bool) -> dict[str, Any]:
+def _capture_options(
+    args: argparse.Namespace, known: dict[str, Any], log: Callable[[str], None], overwrite: bool
+) -> dict[str, Any]:
     """capture_stack's keyword options: the user's files first, then what the rig knows."""
     dirs = args.light_directions
     given_dirs = dirs is not None
     return {
         "light_directions": dirs if given_dirs else known.get("light_directions"),
         # the rig's intensities belong to its true directions only
-        "light_intensities": args.light_intensities if args.light_intensities is not None
+        "light_intensities": args.light_intensities
+        if args.light_intensities is not None
         else (None if given_dirs else known.get("light_intensities")),
         "mask": args.mask if args.mask is not None else known.get("mask"),
-        "normals_gt": known.get("normals_gt"), "min_level": known.get("min_level", 0.1),
-        "ambient": not args.no_ambient, "subtract_ambient": not args.keep_ambient,
-        "overwrite": overwrite, "strict": args.strict, "log": log,
+        "normals_gt": known.get("normals_gt"),
+        "min_level": known.get("min_level", 0.1),
+        "ambient": not args.no_ambient,
+        "subtract_ambient": not args.keep_ambient,
+        "overwrite": overwrite,
+        "strict": args.strict,
+        "log": log,
         "linearisation": Linearisation(args.srgb, args.gamma),
         "progress": None if not args.quiet else False,
     }
@@ -208,8 +306,7 @@ def run_capture(args: argparse.Namespace, out_dir: Path, overwrite: bool = False
     try:
         check_folder(out_dir, overwrite)  # before opening devices (an OAK takes seconds)
         cam, lights, known = _open(args)
-        return capture_stack(cam, lights, out_dir, **_capture_options(args, known, log,
-                                                                       overwrite))
+        return capture_stack(cam, lights, out_dir, **_capture_options(args, known, log, overwrite))
     finally:
         for dev in (lights, cam):
             if dev is not None:
@@ -227,34 +324,49 @@ def _logger(args: argparse.Namespace) -> Callable[[str], None]:
 def _run_loop(args: argparse.Namespace, root: Path) -> int:
     model = load = out_root = None
     if args.run is not None:
-        from msfnet.runtime.run_cli import build_parser as run_parser
-        from msfnet.runtime.run_cli import load_options, open_model
+        from msfnet.runtime.cli.run import build_parser as run_parser
+        from msfnet.runtime.cli.run import load_options, open_model
 
         run_args = run_parser().parse_args(args.run)
         if run_args.stacks or run_args.demo:
-            raise InputError("--loop --run: the stacks are the captured takes; give msf-run "
-                             "options only")
+            raise InputError(
+                "--loop --run: the stacks are the captured takes; give msf-run options only"
+            )
         model, load, out_root = open_model(run_args), load_options(run_args), run_args.output
     log = _logger(args)
     cam = lights = None
     try:
         cam, lights, known = _open(args)
         opts = _capture_options(args, known, log, overwrite=False)
-        steps = capture_loop(cam, lights, root, iterations=args.loop or None, model=model,
-                             load=load, out_root=out_root, interval=args.interval, **opts)
+        steps = capture_loop(
+            cam,
+            lights,
+            root,
+            iterations=args.loop or None,
+            model=model,
+            load=load,
+            out_root=out_root,
+            interval=args.interval,
+            **opts,
+        )
         for step in steps:
-            done = "stack" if (step.stack / "light_directions.txt").exists() else \
-                "images (no light directions yet)"
+            done = (
+                "stack"
+                if (step.stack / "light_directions.txt").exists()
+                else "images (no light directions yet)"
+            )
             line = f"take {step.index:03d}: {step.stack} ({done})"
             if step.result is not None:
                 m = step.result.metrics
-                line += f"; normals -> {step.output}" + (f" (MAE {m.mae_deg:.2f} deg)" if m
-                                                        else "")
+                line += f"; normals -> {step.output}" + (f" (MAE {m.mae_deg:.2f} deg)" if m else "")
             if not args.quiet:
                 print(line, flush=True)
     except KeyboardInterrupt:
-        print(f"{PROG}: loop stopped; finished takes are kept, an unfinished one is resumed "
-              "by the next run", file=sys.stderr)
+        print(
+            f"{PROG}: loop stopped; finished takes are kept, an unfinished one is resumed "
+            "by the next run",
+            file=sys.stderr,
+        )
         return 130
     finally:
         for dev in (lights, cam):
@@ -279,11 +391,14 @@ def _main(args: argparse.Namespace) -> int:
         print(f"{PROG}: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
     if not args.quiet:
-        done = "stack" if (out / "light_directions.txt").exists() else \
-            "images (no light directions yet: run msf-calib directions)"
+        done = (
+            "stack"
+            if (out / "light_directions.txt").exists()
+            else "images (no light directions yet: run msf-calib directions)"
+        )
         print(f"frames -> {out} ({done})")
     if args.run is not None:
-        from msfnet.runtime.run_cli import main as run_main
+        from msfnet.runtime.cli.run import main as run_main
 
         return run_main([str(out), *args.run])
     return 0

@@ -14,7 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.cliutil import (
+from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions
+from msfnet.calib.intensities import estimate_intensities, target_normals
+from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
+from msfnet.common.cli import (
     add_common_flags,
     finite_float,
     int_range,
@@ -22,14 +25,10 @@ from msfnet.runtime.cliutil import (
     positive_float,
     run_command,
 )
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import check_output, staged_files, vectors_text
-from msfnet.runtime.imageio import encode_png, list_images, read_image, read_mask
+from msfnet.common.errors import InputError
+from msfnet.common.files import check_output, staged_files, vectors_text
+from msfnet.common.imageio import encode_png, list_images, read_image, read_mask
 from msfnet.runtime.stack import read_vectors
-
-from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions
-from msfnet.calib.intensities import estimate_intensities, target_normals
-from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 
 PROG = "msf-calib"
 EXCLUDE = ("mask", "normal", "albedo", "ambient", "dark", "diagnostic")
@@ -38,9 +37,13 @@ IMAGE_OUT = (".png", ".tif", ".tiff", ".bmp", ".jpg")  # what the diagnostic may
 
 
 def _named(folder: Path, words: tuple[str, ...]) -> Path | None:
-    hits = sorted(p for p in folder.iterdir() if p.is_file() and
-                  any(w in p.stem.lower() for w in words) and p.suffix.lower() in
-                  (".png", ".tif", ".tiff", ".tga", ".bmp"))
+    hits = sorted(
+        p
+        for p in folder.iterdir()
+        if p.is_file()
+        and any(w in p.stem.lower() for w in words)
+        and p.suffix.lower() in (".png", ".tif", ".tiff", ".tga", ".bmp")
+    )
     return hits[0] if hits else None
 
 
@@ -48,8 +51,9 @@ def _as_rgb(img: np.ndarray) -> np.ndarray:
     return np.repeat(img[:, :, None], 3, axis=2) if img.ndim == 2 else img
 
 
-def load_capture(folder: Path, ambient: Path | None, no_ambient: bool
-                 ) -> tuple[np.ndarray, list[Path], np.ndarray | None]:
+def load_capture(
+    folder: Path, ambient: Path | None, no_ambient: bool
+) -> tuple[np.ndarray, list[Path], np.ndarray | None]:
     if not folder.is_dir():
         raise InputError("images folder not found", folder)
     paths = list_images(folder, exclude=EXCLUDE)
@@ -59,12 +63,16 @@ def load_capture(folder: Path, ambient: Path | None, no_ambient: bool
     first = imgs[0]
     for p, im in zip(paths, imgs, strict=True):
         if im.shape[:2] != first.shape[:2]:
-            raise InputError(f"image size {im.shape[1]}x{im.shape[0]} differs from "
-                             f"{paths[0].name}", p)
+            raise InputError(
+                f"image size {im.shape[1]}x{im.shape[0]} differs from {paths[0].name}", p
+            )
         if im.dtype != first.dtype:
             # the white level (saturation test) comes from the bit depth: one per capture
-            raise InputError(f"image is {im.dtype} but {paths[0].name} is {first.dtype}: one "
-                             "bit depth per capture", p)
+            raise InputError(
+                f"image is {im.dtype} but {paths[0].name} is {first.dtype}: one "
+                "bit depth per capture",
+                p,
+            )
     if len({im.ndim for im in imgs}) > 1:  # grey and colour frames mixed: compare as colour
         imgs = [_as_rgb(im) for im in imgs]
     amb_path = None if no_ambient else (ambient or _named(folder, ("ambient", "dark")))
@@ -73,8 +81,9 @@ def load_capture(folder: Path, ambient: Path | None, no_ambient: bool
         if amb.shape[:2] != first.shape[:2]:
             raise InputError("ambient frame size differs from the images", amb_path)
         if amb.dtype != first.dtype:
-            raise InputError(f"ambient frame is {amb.dtype} but the images are {first.dtype}",
-                             amb_path)
+            raise InputError(
+                f"ambient frame is {amb.dtype} but the images are {first.dtype}", amb_path
+            )
         if amb.ndim != imgs[0].ndim:
             amb = _as_rgb(amb)
             imgs = [_as_rgb(im) for im in imgs]
@@ -87,8 +96,10 @@ def _check_options(args: argparse.Namespace) -> None:
         fx, fy = args.intrinsics[:2]
         if not (fx > 0 and fy > 0):
             # fx = 0 made every view ray NaN and LAPACK spin forever (issue #13)
-            raise InputError(f"--intrinsics: FX and FY must be positive focal lengths in "
-                             f"pixels, got {fx:g} {fy:g}")
+            raise InputError(
+                f"--intrinsics: FX and FY must be positive focal lengths in "
+                f"pixels, got {fx:g} {fy:g}"
+            )
         if args.focal:
             raise InputError("--focal and --intrinsics contradict each other; give one")
 
@@ -104,8 +115,9 @@ def _intrinsics(args: argparse.Namespace, shape: tuple[int, int]) -> Intrinsics 
 def _circles(folder: Path, imgs: np.ndarray, mask: Path | None, spheres: int):
     mask_path = mask or _named(folder, ("mask",))
     if mask_path is not None:
-        return fit_circles_from_mask(read_mask(mask_path, imgs.shape[1:3]),
-                                     source=mask_path), mask_path
+        return fit_circles_from_mask(
+            read_mask(mask_path, imgs.shape[1:3]), source=mask_path
+        ), mask_path
     return fit_circles_from_images(imgs, spheres, source=folder), None
 
 
@@ -118,8 +130,9 @@ def _diagnostic_paths(args: argparse.Namespace, out: Path, captures: int) -> lis
             raise InputError(f"--diagnostic: the name must end in {', '.join(IMAGE_OUT)}", base)
         if captures == 1:
             return [base]
-        return [base.with_name(f"{base.stem}_{k + 1}{base.suffix or '.png'}")
-                for k in range(captures)]
+        return [
+            base.with_name(f"{base.stem}_{k + 1}{base.suffix or '.png'}") for k in range(captures)
+        ]
     suffixes = [""] if captures == 1 else [f"_{k + 1}" for k in range(captures)]
     return [out.with_name(f"{out.stem}_diagnostic{s}.png") for s in suffixes]
 
@@ -131,8 +144,11 @@ def _check_outputs(outputs: list[Path], inputs: list[Path | None], overwrite: bo
     for path in outputs:
         key = path.resolve()
         if key in seen:
-            raise InputError(f"two outputs of this run are the same file ({seen[key]}); choose "
-                             "another --diagnostic or -o", path)
+            raise InputError(
+                f"two outputs of this run are the same file ({seen[key]}); choose "
+                "another --diagnostic or -o",
+                path,
+            )
         seen[key] = path
         check_output(path, inputs, overwrite=overwrite)
 
@@ -179,8 +195,7 @@ def cmd_directions(args: argparse.Namespace) -> int:
         circ, mpath = _circles(folder, imgs, args.mask, args.spheres)
         how = f"mask {mpath.name}" if mpath else "fitted from the images (no mask)"
         for c in circ:
-            _say(args, f"capture {k + 1}: sphere at ({c.cx:.2f}, {c.cy:.2f}) r={c.r:.2f} px, "
-                 f"{how}")
+            _say(args, f"capture {k + 1}: sphere at ({c.cx:.2f}, {c.cy:.2f}) r={c.r:.2f} px, {how}")
         captures.append(imgs)
         circles.append(circ)
         ambients.append(amb)
@@ -193,11 +208,20 @@ def cmd_directions(args: argparse.Namespace) -> int:
         print(f"warning: {w}", file=sys.stderr)
     writers: list[tuple[Path, Callable[[Path], None]]] = [
         (out, _text_writer(vectors_text(res.directions))),
-        (conf_path, _text_writer("".join(f"{c:.4f} {s:.3f}\n" for c, s in zip(
-            res.confidence, res.spread_deg, strict=True))))]
+        (
+            conf_path,
+            _text_writer(
+                "".join(
+                    f"{c:.4f} {s:.3f}\n"
+                    for c, s in zip(res.confidence, res.spread_deg, strict=True)
+                )
+            ),
+        ),
+    ]
     for k, ((imgs, circ), dpath) in enumerate(zip(diag, diag_paths, strict=False)):
-        writers.append((dpath, _png_writer(diagnostic_image(imgs, circ, res.estimates,
-                                                            capture=k), dpath)))
+        writers.append(
+            (dpath, _png_writer(diagnostic_image(imgs, circ, res.estimates, capture=k), dpath))
+        )
     _commit(writers, args.overwrite)
     _say(args, f"{len(res.directions)} light directions -> {out} (x right, y up, z to camera)")
     for i, (d, c) in enumerate(zip(res.directions, res.confidence, strict=True)):
@@ -216,83 +240,137 @@ def cmd_intensities(args: argparse.Namespace) -> int:
     _check_outputs([out], [folder, lights_path, args.mask, args.ambient], args.overwrite)
     normal = np.asarray(args.normal, np.float64)
     if args.target == "plane" and not (np.linalg.norm(normal) > 0 and normal[2] > 0):
-        raise InputError(f"--normal {' '.join(f'{v:g}' for v in normal)}: the plane normal must "
-                         "be non-zero and face the camera (z > 0)")
+        raise InputError(
+            f"--normal {' '.join(f'{v:g}' for v in normal)}: the plane normal must "
+            "be non-zero and face the camera (z > 0)"
+        )
     imgs, paths, amb = load_capture(folder, args.ambient, args.no_ambient)
     lights = read_vectors(lights_path, "light directions").astype(np.float64)
     if len(lights) != len(imgs):
-        raise InputError(f"{len(lights)} light directions for {len(imgs)} images in {folder}",
-                         lights_path)
+        raise InputError(
+            f"{len(lights)} light directions for {len(imgs)} images in {folder}", lights_path
+        )
     if np.any(np.linalg.norm(lights, axis=1) < 1e-6):
         raise InputError("zero-length light direction", lights_path)
     mask_path = args.mask or _named(folder, ("mask",))
     mask = read_mask(mask_path, imgs.shape[1:3]) if mask_path else None
     intr = _intrinsics(args, imgs.shape[1:3])
     if args.target == "sphere":
-        circ = (fit_circles_from_mask(mask, source=mask_path) if mask is not None
-                else fit_circles_from_images(imgs, source=folder))[0]
-        normals, valid = target_normals(imgs.shape[1:3], circle=circ, mask=mask,
-                                        intrinsics=intr)
+        circ = (
+            fit_circles_from_mask(mask, source=mask_path)
+            if mask is not None
+            else fit_circles_from_images(imgs, source=folder)
+        )[0]
+        normals, valid = target_normals(imgs.shape[1:3], circle=circ, mask=mask, intrinsics=intr)
     else:
         normals, valid = target_normals(imgs.shape[1:3], plane_normal=normal, mask=mask)
-    ints, warnings = estimate_intensities(imgs, lights, normals, valid, amb,
-                                          names=[p.name for p in paths])
+    ints, warnings = estimate_intensities(
+        imgs, lights, normals, valid, amb, names=[p.name for p in paths]
+    )
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     _commit([(out, _text_writer(vectors_text(ints)))], args.overwrite)
-    _say(args, f"{len(ints)} RGB light intensities (mean 1) -> {out}"
-         + ("" if amb is not None else " (no ambient frame subtracted)"))
+    _say(
+        args,
+        f"{len(ints)} RGB light intensities (mean 1) -> {out}"
+        + ("" if amb is not None else " (no ambient frame subtracted)"),
+    )
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = make_parser(
-        PROG, "Light directions from mirror-sphere images; RGB light intensities from a matte "
+        PROG,
+        "Light directions from mirror-sphere images; RGB light intensities from a matte "
         "white target. All outputs of a run are written together or not at all.",
-        ("msf-calib directions chrome/ -o light_directions.txt",
-         "msf-calib intensities white/ --lights light_directions.txt -o light_intensities.txt"),
-        common=False)
+        (
+            "msf-calib directions chrome/ -o light_directions.txt",
+            "msf-calib intensities white/ --lights light_directions.txt -o light_intensities.txt",
+        ),
+        common=False,
+    )
     sub = p.add_subparsers(dest="command", required=True, metavar="{directions,intensities}")
 
     def common(sp: argparse.ArgumentParser) -> None:
         add_common_flags(sp)
         sp.add_argument("-o", "--output", type=Path, required=True, help="output text file")
-        sp.add_argument("--mask", type=Path, help="target mask image (default: a file in the "
-                        "folder with 'mask' in its name; else the sphere is fitted from images)")
-        sp.add_argument("--ambient", type=Path, help="dark/ambient frame to subtract (default: a "
-                        "file with 'ambient' or 'dark' in its name)")
+        sp.add_argument(
+            "--mask",
+            type=Path,
+            help="target mask image (default: a file in the "
+            "folder with 'mask' in its name; else the sphere is fitted from images)",
+        )
+        sp.add_argument(
+            "--ambient",
+            type=Path,
+            help="dark/ambient frame to subtract (default: a "
+            "file with 'ambient' or 'dark' in its name)",
+        )
         sp.add_argument("--no-ambient", action="store_true", help="do not subtract any frame")
-        sp.add_argument("--focal", type=positive_float, help="perspective: focal length in "
-                        "pixels, principal point at the image centre (default: orthographic)")
-        sp.add_argument("--intrinsics", type=finite_float, nargs=4,
-                        metavar=("FX", "FY", "CX", "CY"),
-                        help="perspective: full pinhole intrinsics in pixels (FX, FY > 0)")
-        sp.add_argument("--overwrite", action="store_true",
-                        help="replace existing outputs (lights, confidence, diagnostic files)")
+        sp.add_argument(
+            "--focal",
+            type=positive_float,
+            help="perspective: focal length in "
+            "pixels, principal point at the image centre (default: orthographic)",
+        )
+        sp.add_argument(
+            "--intrinsics",
+            type=finite_float,
+            nargs=4,
+            metavar=("FX", "FY", "CX", "CY"),
+            help="perspective: full pinhole intrinsics in pixels (FX, FY > 0)",
+        )
+        sp.add_argument(
+            "--overwrite",
+            action="store_true",
+            help="replace existing outputs (lights, confidence, diagnostic files)",
+        )
 
-    d = sub.add_parser("directions", help="light directions from mirror-sphere images",
-                       description="One x y z row per image (natural file order), DiLiGenT "
-                       "frame, plus <output>_confidence.txt and a diagnostic image. Several "
-                       "folders = several captures of the same lights, averaged. Several blobs "
-                       "in the mask = several spheres, averaged.")
+    d = sub.add_parser(
+        "directions",
+        help="light directions from mirror-sphere images",
+        description="One x y z row per image (natural file order), DiLiGenT "
+        "frame, plus <output>_confidence.txt and a diagnostic image. Several "
+        "folders = several captures of the same lights, averaged. Several blobs "
+        "in the mask = several spheres, averaged.",
+    )
     d.add_argument("images_dir", nargs="+", type=Path, help="folder(s) of mirror-sphere images")
-    d.add_argument("--spheres", type=int_range(1, MAX_SPHERES), default=1,
-                   help="spheres to find when there is no mask (default 1)")
-    d.add_argument("--diagnostic", type=Path, help="diagnostic PNG path (default "
-                   "<output>_diagnostic.png; with several captures, _1, _2, ... are appended)")
+    d.add_argument(
+        "--spheres",
+        type=int_range(1, MAX_SPHERES),
+        default=1,
+        help="spheres to find when there is no mask (default 1)",
+    )
+    d.add_argument(
+        "--diagnostic",
+        type=Path,
+        help="diagnostic PNG path (default "
+        "<output>_diagnostic.png; with several captures, _1, _2, ... are appended)",
+    )
     d.add_argument("--no-diagnostic", action="store_true")
     common(d)
     d.set_defaults(func=cmd_directions)
 
-    i = sub.add_parser("intensities", help="RGB light intensities from a matte white target",
-                       description="One r g b row per image, scaled to mean 1.")
-    i.add_argument("images_dir", type=Path,
-                   help="folder of images of a matte white sphere or plane")
-    i.add_argument("--lights", type=Path, required=True,
-                   help="light_directions.txt for these images")
+    i = sub.add_parser(
+        "intensities",
+        help="RGB light intensities from a matte white target",
+        description="One r g b row per image, scaled to mean 1.",
+    )
+    i.add_argument(
+        "images_dir", type=Path, help="folder of images of a matte white sphere or plane"
+    )
+    i.add_argument(
+        "--lights", type=Path, required=True, help="light_directions.txt for these images"
+    )
     i.add_argument("--target", choices=("sphere", "plane"), default="sphere")
-    i.add_argument("--normal", type=finite_float, nargs=3, default=(0.0, 0.0, 1.0),
-                   metavar=("X", "Y", "Z"), help="plane normal (default 0 0 1, facing camera)")
+    i.add_argument(
+        "--normal",
+        type=finite_float,
+        nargs=3,
+        default=(0.0, 0.0, 1.0),
+        metavar=("X", "Y", "Z"),
+        help="plane normal (default 0 0 1, facing camera)",
+    )
     common(i)
     i.set_defaults(func=cmd_intensities)
     return p

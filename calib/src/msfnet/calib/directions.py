@@ -16,11 +16,10 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from msfnet.runtime.camera import Intrinsics
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.metrics import angular_error_deg
-
 from msfnet.calib.sphere import Circle, finite_lstsq
+from msfnet.common.camera import Intrinsics
+from msfnet.common.errors import InputError
+from msfnet.runtime.evaluate.metrics import angular_error_deg
 
 
 @dataclass
@@ -48,8 +47,9 @@ class DirectionResult:
     warnings: list[str] = field(default_factory=list)
 
 
-def sphere_geometry(circle: Circle, x: np.ndarray, y: np.ndarray,
-                    intrinsics: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
+def sphere_geometry(
+    circle: Circle, x: np.ndarray, y: np.ndarray, intrinsics: Intrinsics | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals and unit view vectors (toward the camera) at pixels on the sphere."""
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
@@ -89,9 +89,14 @@ def _grey(img: np.ndarray) -> np.ndarray:
     return a.mean(axis=-1) if a.ndim == 3 else a
 
 
-def find_highlight(img: np.ndarray, circle: Circle, white_level: float,
-                   intrinsics: Intrinsics | None = None, min_snr: float = 8.0,
-                   level: float = 0.5) -> LightEstimate:
+def find_highlight(
+    img: np.ndarray,
+    circle: Circle,
+    white_level: float,
+    intrinsics: Intrinsics | None = None,
+    min_snr: float = 8.0,
+    level: float = 0.5,
+) -> LightEstimate:
     """The brightest blob on the sphere and the light direction it implies."""
     g = _grey(img)
     h, w = g.shape
@@ -116,8 +121,11 @@ def find_highlight(img: np.ndarray, circle: Circle, white_level: float,
         sums[0] = 0
         blob = labels == int(np.argmax(sums))
     # The strongest other blob (two similar highlights make the answer ambiguous).
-    others = [float(g[labels == k].max()) for k in range(1, count)
-              if not blob[labels == k].any() and (labels == k).sum() >= 2]
+    others = [
+        float(g[labels == k].max())
+        for k in range(1, count)
+        if not blob[labels == k].any() and (labels == k).sum() >= 2
+    ]
     second = (max(others) - bg) / (peak - bg) if others else 0.0
     ys, xs = np.nonzero(blob)
     wts = g[ys, xs] - thr
@@ -132,8 +140,15 @@ def find_highlight(img: np.ndarray, circle: Circle, white_level: float,
     dist = np.hypot(xs - circle.cx, ys - circle.cy)
     rim = bool(np.any(dist > circle.r - 1.5))
     sat = float(np.mean(g[ys, xs] >= 0.99 * white_level))
-    est = LightEstimate(d, float((xs * wts).sum() / wts.sum()), float((ys * wts).sum() / wts.sum()),
-                        float(snr), sat, rim, float(second))
+    est = LightEstimate(
+        d,
+        float((xs * wts).sum() / wts.sum()),
+        float((ys * wts).sum() / wts.sum()),
+        float(snr),
+        sat,
+        rim,
+        float(second),
+    )
     nz = float(np.sum((wts[:, None] * n).sum(0) / wts.sum() * np.array([0, 0, 1.0])))
     c_snr = float(np.clip(np.log10(snr / min_snr), 0.0, 1.0))
     c_rim = 0.2 if rim else float(np.clip(nz / 0.25, 0.0, 1.0))
@@ -150,11 +165,15 @@ def white_level_of(arr: np.ndarray) -> float:
     return float(np.max(arr))
 
 
-def estimate_directions(captures: list[np.ndarray], circles: list[list[Circle]],
-                        intrinsics: Intrinsics | None = None,
-                        ambient: list[np.ndarray | None] | None = None,
-                        white_level: float | None = None, names: list[str] | None = None,
-                        min_snr: float = 8.0) -> DirectionResult:
+def estimate_directions(
+    captures: list[np.ndarray],
+    circles: list[list[Circle]],
+    intrinsics: Intrinsics | None = None,
+    ambient: list[np.ndarray | None] | None = None,
+    white_level: float | None = None,
+    names: list[str] | None = None,
+    min_snr: float = 8.0,
+) -> DirectionResult:
     """Light directions from one or more captures (each (N, H, W[, 3])) of mirror spheres.
 
     ``circles[k]`` lists the spheres of capture k. All captures must have the same N lights.
@@ -183,19 +202,26 @@ def estimate_directions(captures: list[np.ndarray], circles: list[list[Circle]],
     warnings: list[str] = []
     missing = []
     for i, ests in enumerate(per_light):
-        where = lambda e: (f"sphere {e.sphere + 1}" + (f", capture {e.capture + 1}"  # noqa: E731
-                                                       if len(captures) > 1 else ""))
+        where = lambda e: (  # noqa: E731
+            f"sphere {e.sphere + 1}" + (f", capture {e.capture + 1}" if len(captures) > 1 else "")
+        )
         for e in ests:
             if e.direction is None:
-                warnings.append(f"{names[i]}: no highlight on {where(e)} "
-                                f"(peak only {e.snr:.1f} noise levels above the sphere)")
+                warnings.append(
+                    f"{names[i]}: no highlight on {where(e)} "
+                    f"(peak only {e.snr:.1f} noise levels above the sphere)"
+                )
             else:
                 if e.touches_rim:
-                    warnings.append(f"{names[i]}: highlight clipped at the rim of {where(e)}; "
-                                    "direction unreliable")
+                    warnings.append(
+                        f"{names[i]}: highlight clipped at the rim of {where(e)}; "
+                        "direction unreliable"
+                    )
                 if e.second_ratio > 0.5:
-                    warnings.append(f"{names[i]}: a second highlight {e.second_ratio:.0%} as "
-                                    f"bright on {where(e)}; check for stray light")
+                    warnings.append(
+                        f"{names[i]}: a second highlight {e.second_ratio:.0%} as "
+                        f"bright on {where(e)}; check for stray light"
+                    )
         good = [e for e in ests if e.direction is not None]
         if not good:
             missing.append(names[i])
@@ -210,14 +236,20 @@ def estimate_directions(captures: list[np.ndarray], circles: list[list[Circle]],
         if spread[i] > 2.0:
             warnings.append(f"{names[i]}: spheres/captures disagree by up to {spread[i]:.1f} deg")
     if missing:
-        raise InputError(f"no highlight found for {len(missing)} light(s): "
-                         f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''} "
-                         "(light off, sphere mask wrong, or exposure too low)")
+        raise InputError(
+            f"no highlight found for {len(missing)} light(s): "
+            f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''} "
+            "(light off, sphere mask wrong, or exposure too low)"
+        )
     return DirectionResult(dirs, conf, per_light, spread, warnings)
 
 
-def diagnostic_image(images: np.ndarray, circles: list[Circle],
-                     estimates: list[list[LightEstimate]], capture: int = 0) -> np.ndarray:
+def diagnostic_image(
+    images: np.ndarray,
+    circles: list[Circle],
+    estimates: list[list[LightEstimate]],
+    capture: int = 0,
+) -> np.ndarray:
     """8-bit RGB: brightest-over-lights image, sphere outlines, numbered highlight marks
     (green = confident, orange = doubtful, red = rim-clipped or low confidence)."""
     g = _grey(np.max(images, axis=0))  # the max is exact as stored: no float64 stack
@@ -234,22 +266,36 @@ def diagnostic_image(images: np.ndarray, circles: list[Circle],
         return round(((x + 0.5) * up - 0.5) * one), round(((y + 0.5) * up - 0.5) * one)
 
     for c in circles:
-        cv2.circle(vis, pt(c.cx, c.cy), round(c.r * up * one), (60, 140, 255), 1,
-                   cv2.LINE_AA, sh)
+        cv2.circle(vis, pt(c.cx, c.cy), round(c.r * up * one), (60, 140, 255), 1, cv2.LINE_AA, sh)
     for i, ests in enumerate(estimates):
         for e in ests:
             if e.capture != capture or e.direction is None:
                 continue
-            col = ((0, 220, 0) if e.confidence >= 0.5 else (255, 160, 0))
+            col = (0, 220, 0) if e.confidence >= 0.5 else (255, 160, 0)
             if e.touches_rim or e.confidence < 0.2:
                 col = (255, 40, 40)
             p = pt(e.x, e.y)
-            cv2.drawMarker(vis, (p[0] >> sh, p[1] >> sh), col, cv2.MARKER_CROSS, 10, 1,
-                           cv2.LINE_AA)
-            cv2.putText(vis, str(i + 1), ((p[0] >> sh) + 5, (p[1] >> sh) - 5),
-                        cv2.FONT_HERSHEY_SIMPLEX, 0.35 * up, col, 1, cv2.LINE_AA)
+            cv2.drawMarker(vis, (p[0] >> sh, p[1] >> sh), col, cv2.MARKER_CROSS, 10, 1, cv2.LINE_AA)
+            cv2.putText(
+                vis,
+                str(i + 1),
+                ((p[0] >> sh) + 5, (p[1] >> sh) - 5),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.35 * up,
+                col,
+                1,
+                cv2.LINE_AA,
+            )
     return vis
 
 
-__all__ = ["DirectionResult", "Intrinsics", "LightEstimate", "diagnostic_image",
-           "estimate_directions", "find_highlight", "reflect", "sphere_geometry"]
+__all__ = [
+    "DirectionResult",
+    "Intrinsics",
+    "LightEstimate",
+    "diagnostic_image",
+    "estimate_directions",
+    "find_highlight",
+    "reflect",
+    "sphere_geometry",
+]

@@ -10,15 +10,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from msfnet.runtime.errors import InputError
-
 from msfnet.calib.directions import Intrinsics, sphere_geometry
 from msfnet.calib.sphere import Circle
+from msfnet.common.errors import InputError
 
 
-def target_normals(shape: tuple[int, int], *, circle: Circle | None = None,
-                   plane_normal: np.ndarray | None = None, mask: np.ndarray | None = None,
-                   intrinsics: Intrinsics | None = None) -> tuple[np.ndarray, np.ndarray]:
+def target_normals(
+    shape: tuple[int, int],
+    *,
+    circle: Circle | None = None,
+    plane_normal: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    intrinsics: Intrinsics | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Normals (H, W, 3) and valid-pixel mask of a sphere (``circle``) or a plane."""
     h, w = shape
     if circle is not None:
@@ -35,10 +39,16 @@ def target_normals(shape: tuple[int, int], *, circle: Circle | None = None,
     return np.broadcast_to(pn, (h, w, 3)).copy(), valid
 
 
-def estimate_intensities(images: np.ndarray, lights: np.ndarray, normals: np.ndarray,
-                         valid: np.ndarray, ambient: np.ndarray | None = None,
-                         white_level: float | None = None, min_shading: float = 0.15,
-                         names: list[str] | None = None) -> tuple[np.ndarray, list[str]]:
+def estimate_intensities(
+    images: np.ndarray,
+    lights: np.ndarray,
+    normals: np.ndarray,
+    valid: np.ndarray,
+    ambient: np.ndarray | None = None,
+    white_level: float | None = None,
+    min_shading: float = 0.15,
+    names: list[str] | None = None,
+) -> tuple[np.ndarray, list[str]]:
     """(N, 3) relative RGB intensities, mean 1, plus warnings."""
     imgs = np.asarray(images)  # as stored: cast to float64 one light at a time below
     n = len(imgs)
@@ -46,7 +56,8 @@ def estimate_intensities(images: np.ndarray, lights: np.ndarray, normals: np.nda
         raise InputError(f"{len(lights)} light directions for {n} images")
     if white_level is None:
         white_level = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(
-            imgs.dtype, float(np.max(imgs)))
+            imgs.dtype, float(np.max(imgs))
+        )
     names = names or [f"image {i + 1}" for i in range(n)]
     amb = None if ambient is None else np.asarray(ambient, np.float64)
     if amb is not None and amb.ndim == 2:
@@ -63,16 +74,20 @@ def estimate_intensities(images: np.ndarray, lights: np.ndarray, normals: np.nda
         s = normals @ (lights[i] / np.linalg.norm(lights[i]))
         use = valid & unsat & (s > min_shading)
         if use.sum() < 30:
-            raise InputError(f"{names[i]}: fewer than 30 usable lit, unsaturated target pixels "
-                             "(check the mask, the light directions and the exposure)")
+            raise InputError(
+                f"{names[i]}: fewer than 30 usable lit, unsaturated target pixels "
+                "(check the mask, the light directions and the exposure)"
+            )
         sat_share = 1.0 - unsat[valid & (s > min_shading)].mean()
         if sat_share > 0.02:
             warnings.append(f"{names[i]}: {sat_share:.0%} of the lit target is saturated")
         sv = s[use]
         out[i] = (img[use] * sv[:, None]).sum(0) / (sv * sv).sum()
     if np.any(out <= 0):
-        raise InputError("a light came out with zero or negative intensity (ambient frame "
-                         "brighter than the lit image?)")
+        raise InputError(
+            "a light came out with zero or negative intensity (ambient frame "
+            "brighter than the lit image?)"
+        )
     return out / out.mean(), warnings
 
 

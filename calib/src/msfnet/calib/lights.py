@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Protocol
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 
 class Lights(Protocol):
@@ -41,14 +41,22 @@ class SerialPort(Protocol):
 class SerialLights:
     """An LED controller speaking the line protocol above (pyserial, imported lazily)."""
 
-    def __init__(self, port: str | SerialPort, baud: int = 115200, count: int | None = None,
-                 timeout: float = 2.0, settle: float = 0.05, level: int | None = None) -> None:
+    def __init__(
+        self,
+        port: str | SerialPort,
+        baud: int = 115200,
+        count: int | None = None,
+        timeout: float = 2.0,
+        settle: float = 0.05,
+        level: int | None = None,
+    ) -> None:
         if isinstance(port, str):
             try:
                 import serial  # pyserial: the [camera] extra
             except ImportError as exc:
-                raise InputError("the serial light back-end needs pyserial: "
-                                 "pip install 'msfnet[camera]'") from exc
+                raise InputError(
+                    "the serial light back-end needs pyserial: pip install 'msfnet[camera]'"
+                ) from exc
             try:
                 port = serial.Serial(port, baud, timeout=timeout)
             except Exception as exc:  # SerialException, OSError
@@ -62,8 +70,9 @@ class SerialLights:
             raise InputError(f"controller reports {reported} lights but {count} were expected")
         self.count = count if count is not None else (reported or 0)
         if self.count <= 0:
-            raise InputError(f"controller did not report its light count (reply {reply!r}); "
-                             "pass --count")
+            raise InputError(
+                f"controller did not report its light count (reply {reply!r}); pass --count"
+            )
         if level is not None:
             self._command(f"LEVEL {int(level)}")
 
@@ -131,14 +140,26 @@ class SimulatedLights:
 class SimulatedRig:
     """Known lights + a synthetic scene; pair with ``cameras.SimulatedCamera``."""
 
-    def __init__(self, scene, lights, intensities=None, ambient: float = 0.05,
-                 gain: float = 0.8, bit_depth: int = 16, noise: float = 0.0, seed: int = 0):
+    def __init__(
+        self,
+        scene,
+        lights,
+        intensities=None,
+        ambient: float = 0.05,
+        gain: float = 0.8,
+        bit_depth: int = 16,
+        noise: float = 0.0,
+        seed: int = 0,
+    ):
         import numpy as np
 
         self.scene = scene
         self.lights = np.asarray(lights, np.float64)
-        self.intensities = (np.ones((len(self.lights), 3)) if intensities is None
-                            else np.asarray(intensities, np.float64))
+        self.intensities = (
+            np.ones((len(self.lights), 3))
+            if intensities is None
+            else np.asarray(intensities, np.float64)
+        )
         self.ambient = ambient
         self.gain = gain
         self.bit_depth = bit_depth

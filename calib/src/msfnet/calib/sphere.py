@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -65,8 +65,9 @@ def crack_points(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.r_[xs + 0.5, xv.astype(np.float64)], np.r_[ys.astype(np.float64), yv + 0.5]
 
 
-def fit_circles_from_mask(mask: np.ndarray, min_area: int = 200,
-                          source: str | Path | None = None) -> list[Circle]:
+def fit_circles_from_mask(
+    mask: np.ndarray, min_area: int = 200, source: str | Path | None = None
+) -> list[Circle]:
     """One circle per connected blob of the mask (several spheres allowed), left to right.
     ``source``: the mask file, named by the error when there is no sphere."""
     m = np.asarray(mask).astype(np.uint8)
@@ -80,8 +81,9 @@ def fit_circles_from_mask(mask: np.ndarray, min_area: int = 200,
             continue
         circles.append(fit_circle(x, y))
     if not circles:
-        raise InputError("no sphere found in the mask (no blob of at least "
-                         f"{min_area} pixels)", source)
+        raise InputError(
+            f"no sphere found in the mask (no blob of at least {min_area} pixels)", source
+        )
     return sorted(circles, key=lambda c: c.cx)
 
 
@@ -100,8 +102,14 @@ def _refine_edge(grey: np.ndarray, c: Circle, rays: int = 180, band: float = 0.0
     th = np.linspace(0, 2 * np.pi, rays, endpoint=False)
     xs = c.cx + np.cos(th)[:, None] * radii[None]
     ys = c.cy + np.sin(th)[:, None] * radii[None]
-    prof = cv2.remap(g, xs.astype(np.float32), ys.astype(np.float32), cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    prof = cv2.remap(
+        g,
+        xs.astype(np.float32),
+        ys.astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
     grad = np.abs(np.gradient(prof, axis=1))
     px, py, strength = [], [], []
     for i in range(rays):
@@ -131,8 +139,9 @@ def _refine_edge(grey: np.ndarray, c: Circle, rays: int = 180, band: float = 0.0
     return fit
 
 
-def fit_circles_from_images(images: np.ndarray, count: int = 1,
-                            source: str | Path | None = None) -> list[Circle]:
+def fit_circles_from_images(
+    images: np.ndarray, count: int = 1, source: str | Path | None = None
+) -> list[Circle]:
     """Find ``count`` sphere silhouettes in a stack (N, H, W[, 3]) without a mask (``source``:
     where the images came from, named by the error when no sphere is found).
 
@@ -149,19 +158,32 @@ def fit_circles_from_images(images: np.ndarray, count: int = 1,
     blurred = cv2.GaussianBlur(mean, (0, 0), 2.0)
     found = None
     for acc in (40, 30, 20, 12):
-        found = cv2.HoughCircles(blurred, cv2.HOUGH_GRADIENT, dp=1.5, minDist=min(h, w) / 4,
-                                 param1=60, param2=acc, minRadius=int(min(h, w) * 0.08),
-                                 maxRadius=int(min(h, w) * 0.55))
+        found = cv2.HoughCircles(
+            blurred,
+            cv2.HOUGH_GRADIENT,
+            dp=1.5,
+            minDist=min(h, w) / 4,
+            param1=60,
+            param2=acc,
+            minRadius=int(min(h, w) * 0.08),
+            maxRadius=int(min(h, w) * 0.55),
+        )
         if found is not None and found.shape[1] >= count:
             break
     if found is None:
-        raise InputError("could not find the sphere in the images: pass a mask (--mask)",
-                         source)
+        raise InputError("could not find the sphere in the images: pass a mask (--mask)", source)
     # A narrow band keeps inner edges (bright rim reflections) from capturing the fit.
-    circles = [_refine_edge(mean, _refine_edge(mean, Circle(*map(float, f))), band=0.04)
-               for f in found[0, :count]]
+    circles = [
+        _refine_edge(mean, _refine_edge(mean, Circle(*map(float, f))), band=0.04)
+        for f in found[0, :count]
+    ]
     return sorted(circles, key=lambda c: c.cx)
 
 
-__all__ = ["Circle", "crack_points", "fit_circle", "fit_circles_from_images",
-           "fit_circles_from_mask"]
+__all__ = [
+    "Circle",
+    "crack_points",
+    "fit_circle",
+    "fit_circles_from_images",
+    "fit_circles_from_mask",
+]

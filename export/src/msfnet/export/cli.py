@@ -1,9 +1,9 @@
 """msf-export: MSF-Net checkpoint (.pth) -> verified ONNX model with a dynamic light count.
 
-Options and errors work as in every msfnet command (``runtime/cliutil.py``): one line on
+Options and errors work as in every msfnet command (``common/cli.py``): one line on
 stderr, ``msf-export: error: <file or option>: <problem>``, exit 2 for bad arguments or input
 (and failed verification), 130 for Ctrl-C, 128 + n for signal n, 1 for an internal error. A
-traceback is shown only with ``--debug``. The file is written through ``runtime/files.py``.
+traceback is shown only with ``--debug``. The file is written through ``common/files.py``.
 """
 
 from __future__ import annotations
@@ -12,16 +12,27 @@ import argparse
 import sys
 from pathlib import Path
 
-from msfnet.runtime.cliutil import (
+from msfnet.common.cli import (
     int_range,
     make_parser,
     positive_float,
     positive_int,
     run_command,
 )
-from msfnet.runtime.errors import InputError
-
-from msfnet.export.variants import DEFAULT_OPSET, INT8_MEAN_LIMIT_DEG, MAX_OPSET, MIN_OPSET, TOLERANCE_DEG, VARIANT_NAMES, VARIANTS, ExportOptions, StaticShape, Variant, get_variant
+from msfnet.common.errors import InputError
+from msfnet.export.variants import (
+    DEFAULT_OPSET,
+    INT8_MEAN_LIMIT_DEG,
+    MAX_OPSET,
+    MIN_OPSET,
+    TOLERANCE_DEG,
+    VARIANT_NAMES,
+    VARIANTS,
+    ExportOptions,
+    StaticShape,
+    Variant,
+    get_variant,
+)
 
 PROG = "msf-export"
 
@@ -34,8 +45,11 @@ def _static(text: str) -> StaticShape:
 
 
 def _table() -> str:
-    rows = [f"  {v.name:<12} {v.summary}\n  {'':<12} passes: {' -> '.join(v.passes)}\n"
-            f"  {'':<12} verified: {v.rule.describe()}" for v in VARIANTS]
+    rows = [
+        f"  {v.name:<12} {v.summary}\n  {'':<12} passes: {' -> '.join(v.passes)}\n"
+        f"  {'':<12} verified: {v.rule.describe()}"
+        for v in VARIANTS
+    ]
     return "variants:\n" + "\n".join(rows)
 
 
@@ -49,49 +63,102 @@ def build_parser() -> argparse.ArgumentParser:
         "of 4. By default the staged graph (cut at the max-over-lights steps), which msf-run "
         "feeds a few lights at a time: far less memory at many lights; --plain writes one "
         "graph for other runtimes. The file appears only after it passed verification.",
-        verbose=True)
-    p.epilog = (_table() + "\n\nThe flags --static, --plain, --fp16-weights and --int8 pick "
-                "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = "
-                "int8).")
+        verbose=True,
+    )
+    p.epilog = (
+        _table() + "\n\nThe flags --static, --plain, --fp16-weights and --int8 pick "
+        "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = "
+        "int8)."
+    )
     p.add_argument("checkpoint", type=Path, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)")
-    p.add_argument("-o", "--output", type=Path, default=None,
-                   help="output .onnx (default: the checkpoint's name with .onnx)")
-    p.add_argument("--variant", choices=VARIANT_NAMES, default=None,
-                   help="the export variant (default staged, or what the flags below pick); "
-                   "see --list-variants")
-    p.add_argument("--list-variants", action="store_true",
-                   help="print the variants table (passes, verification rule) and exit")
-    p.add_argument("--opset", type=int_range(MIN_OPSET, MAX_OPSET), default=DEFAULT_OPSET,
-                   help=f"ONNX opset, {MIN_OPSET}-{MAX_OPSET} (default {DEFAULT_OPSET}: GELU as "
-                   "Erf, widest runtime support; int8 needs 13 or higher)")
-    p.add_argument("--train-lights", type=positive_int, default=32,
-                   help="light count the model was trained with; stored in the metadata and "
-                   "used by the runtime's sqrt(N / train_lights) scaling (default 32)")
-    p.add_argument("--static", type=_static, default=None, metavar="N,H,W",
-                   help="export fixed shapes (batch 1) for NPUs / OpenVINO / OAK compilers; "
-                   "H and W multiples of 4")
-    p.add_argument("--simplify", action="store_true",
-                   help="simplify the graph with onnxslim (dynamic axes are kept)")
-    p.add_argument("--tolerance", type=positive_float, default=None, metavar="DEG",
-                   help=f"verification limit in degrees (default: the variant's own, "
-                   f"{TOLERANCE_DEG} max vs PyTorch for fp32/fp16, {INT8_MEAN_LIMIT_DEG} mean "
-                   "vs the fp32 graph for int8)")
-    p.add_argument("--int8", action="store_true",
-                   help="write a static int8 QDQ model (transposed convs rewritten as conv + "
-                   "depth-to-space, per-channel weights), calibrated on --calib stacks")
-    p.add_argument("--calib", type=Path, nargs="+", default=None, metavar="STACK",
-                   help="real stacks to calibrate --int8 on (e.g. DiLiGenT/ballPNG "
-                   "psmImages/cat)")
-    p.add_argument("--fp16-weights", action="store_true",
-                   help="store weights as float16 (half the file size; computed in float32, "
-                   "verified against the network with fp16-rounded weights)")
-    p.add_argument("--plain", action="store_true",
-                   help="write one graph (all lights at once) for runtimes other than msf-run: "
-                   "ONNX Runtime, OpenVINO, TensorRT; msf-run runs it too, with more memory")
-    p.add_argument("--staged", action="store_true",
-                   help="the staged graph (the default; kept for older command lines): cut at "
-                   "the three max-over-lights steps, msf-run feeds a few lights at a time, "
-                   "several times less memory per pixel at high light counts; same normals")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        help="output .onnx (default: the checkpoint's name with .onnx)",
+    )
+    p.add_argument(
+        "--variant",
+        choices=VARIANT_NAMES,
+        default=None,
+        help="the export variant (default staged, or what the flags below pick); "
+        "see --list-variants",
+    )
+    p.add_argument(
+        "--list-variants",
+        action="store_true",
+        help="print the variants table (passes, verification rule) and exit",
+    )
+    p.add_argument(
+        "--opset",
+        type=int_range(MIN_OPSET, MAX_OPSET),
+        default=DEFAULT_OPSET,
+        help=f"ONNX opset, {MIN_OPSET}-{MAX_OPSET} (default {DEFAULT_OPSET}: GELU as "
+        "Erf, widest runtime support; int8 needs 13 or higher)",
+    )
+    p.add_argument(
+        "--train-lights",
+        type=positive_int,
+        default=32,
+        help="light count the model was trained with; stored in the metadata and "
+        "used by the runtime's sqrt(N / train_lights) scaling (default 32)",
+    )
+    p.add_argument(
+        "--static",
+        type=_static,
+        default=None,
+        metavar="N,H,W",
+        help="export fixed shapes (batch 1) for NPUs / OpenVINO / OAK compilers; "
+        "H and W multiples of 4",
+    )
+    p.add_argument(
+        "--simplify",
+        action="store_true",
+        help="simplify the graph with onnxslim (dynamic axes are kept)",
+    )
+    p.add_argument(
+        "--tolerance",
+        type=positive_float,
+        default=None,
+        metavar="DEG",
+        help=f"verification limit in degrees (default: the variant's own, "
+        f"{TOLERANCE_DEG} max vs PyTorch for fp32/fp16, {INT8_MEAN_LIMIT_DEG} mean "
+        "vs the fp32 graph for int8)",
+    )
+    p.add_argument(
+        "--int8",
+        action="store_true",
+        help="write a static int8 QDQ model (transposed convs rewritten as conv + "
+        "depth-to-space, per-channel weights), calibrated on --calib stacks",
+    )
+    p.add_argument(
+        "--calib",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="STACK",
+        help="real stacks to calibrate --int8 on (e.g. DiLiGenT/ballPNG psmImages/cat)",
+    )
+    p.add_argument(
+        "--fp16-weights",
+        action="store_true",
+        help="store weights as float16 (half the file size; computed in float32, "
+        "verified against the network with fp16-rounded weights)",
+    )
+    p.add_argument(
+        "--plain",
+        action="store_true",
+        help="write one graph (all lights at once) for runtimes other than msf-run: "
+        "ONNX Runtime, OpenVINO, TensorRT; msf-run runs it too, with more memory",
+    )
+    p.add_argument(
+        "--staged",
+        action="store_true",
+        help="the staged graph (the default; kept for older command lines): cut at "
+        "the three max-over-lights steps, msf-run feeds a few lights at a time, "
+        "several times less memory per pixel at high light counts; same normals",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     return p
 
@@ -102,14 +169,20 @@ def resolve_variant(args: argparse.Namespace) -> Variant:
     from msfnet.export.variants import variant_for
 
     if args.variant is None:
-        return variant_for(static=args.static is not None, staged=args.staged,
-                           plain=args.plain, fp16_weights=args.fp16_weights, int8=args.int8)
+        return variant_for(
+            static=args.static is not None,
+            staged=args.staged,
+            plain=args.plain,
+            fp16_weights=args.fp16_weights,
+            int8=args.int8,
+        )
     chosen = get_variant(args.variant)
-    for flag, given, fits in (("--staged", args.staged, chosen.graph == "staged"),
-                              ("--plain", args.plain, chosen.graph != "staged"),
-                              ("--fp16-weights", args.fp16_weights,
-                               chosen.precision == "fp16-weights"),
-                              ("--int8", args.int8, chosen.precision == "int8")):
+    for flag, given, fits in (
+        ("--staged", args.staged, chosen.graph == "staged"),
+        ("--plain", args.plain, chosen.graph != "staged"),
+        ("--fp16-weights", args.fp16_weights, chosen.precision == "fp16-weights"),
+        ("--int8", args.int8, chosen.precision == "int8"),
+    ):
         if given and not fits:
             raise InputError(f"{flag} contradicts --variant {chosen.name}")
     return chosen
@@ -131,15 +204,27 @@ def _export(args: argparse.Namespace) -> int:
 
     variant = resolve_variant(args)
     if args.calib and not variant.needs_calibration:
-        raise InputError(f"--calib: only the int8 variants are calibrated; {variant.name} "
-                         "would ignore it (add --int8, or drop --calib)")
-    options = ExportOptions(opset=args.opset, train_lights=args.train_lights,
-                            static=args.static, simplify=args.simplify,
-                            tolerance_deg=args.tolerance)
+        raise InputError(
+            f"--calib: only the int8 variants are calibrated; {variant.name} "
+            "would ignore it (add --int8, or drop --calib)"
+        )
+    options = ExportOptions(
+        opset=args.opset,
+        train_lights=args.train_lights,
+        static=args.static,
+        simplify=args.simplify,
+        tolerance_deg=args.tolerance,
+    )
     output = args.output or args.checkpoint.with_suffix(".onnx")
-    result = variants.export_variant(args.checkpoint, variant, output, calib=args.calib,
-                                     options=options, overwrite=args.overwrite,
-                                     log=print if args.verbose and not args.quiet else None)
+    result = variants.export_variant(
+        args.checkpoint,
+        variant,
+        output,
+        calib=args.calib,
+        options=options,
+        overwrite=args.overwrite,
+        log=print if args.verbose and not args.quiet else None,
+    )
     if not args.quiet:
         for line in result.lines():
             print(line)

@@ -14,17 +14,25 @@ from pathlib import Path
 import onnx
 
 import msfnet
+from msfnet.common.files import scratch_folder
+from msfnet.export.onnx_export import (
+    export_proto,
+    export_staged_proto,
+    set_metadata,
+    simplify,
+    store_weights_fp16,
+)
+from msfnet.export.variants import ExportOptions, Variant
 from msfnet.model.checkpoint import sha256_of
 from msfnet.model.network import MSFNet
 from msfnet.runtime.contract import METADATA_KEYS, model_metadata
-from msfnet.runtime.files import scratch_folder
 from msfnet.runtime.stack import Stack
 
-from msfnet.export.onnx_export import export_proto, export_staged_proto, set_metadata, simplify, store_weights_fp16
-from msfnet.export.variants import ExportOptions, Variant
-
-PRECISION_LABELS = {"fp32": "fp32", "fp16-weights": "fp32 (fp16-stored weights)",
-                    "int8": "int8-qdq"}
+PRECISION_LABELS = {
+    "fp32": "fp32",
+    "fp16-weights": "fp32 (fp16-stored weights)",
+    "int8": "int8-qdq",
+}
 
 
 @dataclass
@@ -68,12 +76,19 @@ def _metadata(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProt
     included) in place of whatever the torch export left."""
     assert proto is not None
     static = ctx.options.static
-    set_metadata(proto, model_metadata(
-        train_lights=ctx.options.train_lights, checkpoint_sha256=sha256_of(ctx.checkpoint),
-        version=msfnet.__version__,
-        static_shape=None if static is None else (static.lights, static.height, static.width),
-        precision=PRECISION_LABELS[ctx.variant.precision], staged=ctx.variant.graph == "staged",
-        variant=ctx.variant.name), replace_all=True)
+    set_metadata(
+        proto,
+        model_metadata(
+            train_lights=ctx.options.train_lights,
+            checkpoint_sha256=sha256_of(ctx.checkpoint),
+            version=msfnet.__version__,
+            static_shape=None if static is None else (static.lights, static.height, static.width),
+            precision=PRECISION_LABELS[ctx.variant.precision],
+            staged=ctx.variant.graph == "staged",
+            variant=ctx.variant.name,
+        ),
+        replace_all=True,
+    )
     proto.doc_string = "MSF-Net photometric stereo (msfnet): images + lights -> unit normals"
     return proto
 
@@ -108,26 +123,42 @@ def _quantise_int8(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.Mode
     assert proto is not None
     o = ctx.options
     with scratch_folder(ctx.output) as scratch:
-        qmodel, summary = quantize_model(proto, ctx.stacks, scratch, tile=o.calib_tile,
-                                         lights=o.calib_lights,
-                                         tiles_per_stack=o.calib_tiles_per_stack,
-                                         train_lights=o.train_lights)
-    summary = {"deconvs_rewritten": ctx.notes.get("deconvs_rewritten", 0), **summary,
-               "rewrite": "phases"}
+        qmodel, summary = quantize_model(
+            proto,
+            ctx.stacks,
+            scratch,
+            tile=o.calib_tile,
+            lights=o.calib_lights,
+            tiles_per_stack=o.calib_tiles_per_stack,
+            train_lights=o.train_lights,
+        )
+    summary = {
+        "deconvs_rewritten": ctx.notes.get("deconvs_rewritten", 0),
+        **summary,
+        "rewrite": "phases",
+    }
     ctx.notes["quantization"] = summary
-    set_metadata(qmodel, {METADATA_KEYS["precision"]: PRECISION_LABELS["int8"],
-                          METADATA_KEYS["quantization"]: json.dumps(summary)})
+    set_metadata(
+        qmodel,
+        {
+            METADATA_KEYS["precision"]: PRECISION_LABELS["int8"],
+            METADATA_KEYS["quantization"]: json.dumps(summary),
+        },
+    )
     return qmodel
 
 
-PASSES: dict[str, Pass] = {p.name: p for p in (
-    Pass("torch-export", _torch_export),
-    Pass("torch-export-staged", _torch_export_staged),
-    Pass("metadata", _metadata),
-    Pass("simplify", _simplify),
-    Pass("fp16-storage", _fp16_storage),
-    Pass("rewrite-deconvs", _rewrite_deconvs),
-    Pass("quantise-int8", _quantise_int8, lossy=True),
-)}
+PASSES: dict[str, Pass] = {
+    p.name: p
+    for p in (
+        Pass("torch-export", _torch_export),
+        Pass("torch-export-staged", _torch_export_staged),
+        Pass("metadata", _metadata),
+        Pass("simplify", _simplify),
+        Pass("fp16-storage", _fp16_storage),
+        Pass("rewrite-deconvs", _rewrite_deconvs),
+        Pass("quantise-int8", _quantise_int8, lossy=True),
+    )
+}
 
 __all__ = ["PASSES", "PRECISION_LABELS", "Pass", "PassContext"]

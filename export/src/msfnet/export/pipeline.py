@@ -1,7 +1,7 @@
 """``run_export``: the passes of one variant, one write, verification of the written file, rename.
 
 Order of events (see ``variants.export_variant`` for the public entry point); the file is
-written by ``runtime/files.py`` like every msfnet output:
+written by ``common/files.py`` like every msfnet output:
 1. the target checked (``files.check_output``: not an input, writable, not existing unless
    --overwrite) before any slow work;
 2. checkpoint and calibration stacks loaded (bad input fails here, still before the export);
@@ -24,16 +24,23 @@ from pathlib import Path
 
 import torch
 
-from msfnet.model.checkpoint import load_model
-from msfnet.model.network import MSFNet
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import check_output, write_atomic
-from msfnet.runtime.stack import Stack
-
+from msfnet.common.errors import InputError
+from msfnet.common.files import check_output, write_atomic
 from msfnet.export.onnx_export import STAGED_CHECK_CHUNK, default_checks
 from msfnet.export.passes import PASSES, PassContext
 from msfnet.export.variants import FP32_RULE, ExportOptions, ExportResult, Variant, VerificationRow
-from msfnet.export.verify import compare, file_runner, judge, proto_runner, rendered_cases, tile_cases, torch_runner
+from msfnet.export.verify import (
+    compare,
+    file_runner,
+    judge,
+    proto_runner,
+    rendered_cases,
+    tile_cases,
+    torch_runner,
+)
+from msfnet.model.checkpoint import load_model
+from msfnet.model.network import MSFNet
+from msfnet.runtime.stack import Stack
 
 # zip (torch >= 1.6), or a pickle stream (legacy torch.save starts with a pickled magic number)
 _ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
@@ -54,11 +61,12 @@ def sniff_checkpoint(path: Path) -> None:
         raise InputError(f"cannot read the checkpoint ({exc.strerror or exc})", path) from exc
     if not head:
         raise InputError("empty file, not a PyTorch checkpoint", path)
-    if head in _ZIP_MAGIC or (head[0] == 0x80 and len(head) > 1
-                              and head[1] in _PICKLE_PROTOCOLS):
+    if head in _ZIP_MAGIC or (head[0] == 0x80 and len(head) > 1 and head[1] in _PICKLE_PROTOCOLS):
         return
-    raise InputError("not a PyTorch checkpoint (neither torch.save's zip format nor its "
-                     "legacy pickle format)", path)
+    raise InputError(
+        "not a PyTorch checkpoint (neither torch.save's zip format nor its legacy pickle format)",
+        path,
+    )
 
 
 def load_network(checkpoint: Path, fp16_weights: bool) -> MSFNet:
@@ -84,9 +92,16 @@ def load_stacks(calib: Sequence[str | Path | Stack]) -> list[Stack]:
     return [c if isinstance(c, Stack) else next(loaded) for c in calib]
 
 
-def run_export(checkpoint: Path, variant: Variant, output: Path, *,
-               calib: Sequence[str | Path | Stack], options: ExportOptions, overwrite: bool,
-               log: Callable[[str], None]) -> ExportResult:
+def run_export(
+    checkpoint: Path,
+    variant: Variant,
+    output: Path,
+    *,
+    calib: Sequence[str | Path | Stack],
+    options: ExportOptions,
+    overwrite: bool,
+    log: Callable[[str], None],
+) -> ExportResult:
     calib = list(calib) if variant.needs_calibration else []
     inputs = [checkpoint, *(Path(c) for c in calib if not isinstance(c, Stack))]
     staged_chunk = STAGED_CHECK_CHUNK if variant.graph == "staged" else None
@@ -95,8 +110,11 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
     check_output(output, inputs, overwrite=overwrite)
     model = load_network(checkpoint, variant.precision == "fp16-weights")
     if variant.graph == "staged" and not (model.mfe and model.mff):
-        raise InputError("an ablation checkpoint (msf-train --no-mfe / --no-mff): the staged "
-                         "graph needs the full network; export it with --plain", checkpoint)
+        raise InputError(
+            "an ablation checkpoint (msf-train --no-mfe / --no-mff): the staged "
+            "graph needs the full network; export it with --plain",
+            checkpoint,
+        )
     stacks = load_stacks(calib)
     ctx = PassContext(model, variant, options, checkpoint, output, stacks)
     proto = None
@@ -107,12 +125,19 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
         if step.lossy and reference is None:
             assert proto is not None, f"lossy pass {name} cannot come first"
             reference = proto.SerializeToString()
-            log("checking the fp32 graph against PyTorch (the reference for "
-                f"{variant.name})")
-            reference_rows = compare(proto_runner(reference, staged_chunk, threads),
-                                     torch_runner(model), rendered_cases(checks))
-            judge(reference_rows, FP32_RULE, FP32_RULE.limit_deg,
-                  f"the fp32 graph (reference for {variant.name})", checkpoint)
+            log(f"checking the fp32 graph against PyTorch (the reference for {variant.name})")
+            reference_rows = compare(
+                proto_runner(reference, staged_chunk, threads),
+                torch_runner(model),
+                rendered_cases(checks),
+            )
+            judge(
+                reference_rows,
+                FP32_RULE,
+                FP32_RULE.limit_deg,
+                f"the fp32 graph (reference for {variant.name})",
+                checkpoint,
+            )
         log(f"pass: {name}")
         proto = step.run(proto, ctx)
     assert proto is not None
@@ -134,10 +159,19 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
         if variant.rule.reference == "fp32-graph":
             assert reference is not None
             o = options
-            rows.extend(compare(runner, proto_runner(reference, staged_chunk, threads),
-                                tile_cases(stacks, tile=o.calib_tile, lights=o.calib_lights,
-                                           tiles_per_stack=o.calib_tiles_per_stack,
-                                           train_lights=o.train_lights)))
+            rows.extend(
+                compare(
+                    runner,
+                    proto_runner(reference, staged_chunk, threads),
+                    tile_cases(
+                        stacks,
+                        tile=o.calib_tile,
+                        lights=o.calib_lights,
+                        tiles_per_stack=o.calib_tiles_per_stack,
+                        train_lights=o.train_lights,
+                    ),
+                )
+            )
         else:
             rows.extend(compare(runner, torch_runner(model), rendered_cases(checks)))
         judge(rows, variant.rule, limit, source=checkpoint)
@@ -148,9 +182,16 @@ def run_export(checkpoint: Path, variant: Variant, output: Path, *,
     import onnxruntime  # noqa: F401
 
     write_atomic(output, write_verified, overwrite=overwrite)
-    return ExportResult(path=output, variant=variant.name, rule=variant.rule, limit_deg=limit,
-                        rows=tuple(rows), reference_rows=tuple(reference_rows),
-                        size_bytes=len(data), notes=dict(ctx.notes))
+    return ExportResult(
+        path=output,
+        variant=variant.name,
+        rule=variant.rule,
+        limit_deg=limit,
+        rows=tuple(rows),
+        reference_rows=tuple(reference_rows),
+        size_bytes=len(data),
+        notes=dict(ctx.notes),
+    )
 
 
 def write_file(path: Path, data: bytes, target: Path) -> None:

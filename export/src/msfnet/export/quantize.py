@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 
+from msfnet.common.errors import InputError
 from msfnet.runtime.contract import METADATA_KEYS, TRAIN_LIGHTS
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.preprocess import network_input
+from msfnet.runtime.infer.normalise import network_input
 from msfnet.runtime.stack import Stack, load_stack
 
 CALIB_TILE = 64
@@ -61,10 +61,15 @@ def tile_origins(mask: np.ndarray, tile: int, count: int, seed: int = 0) -> list
     return out
 
 
-def calibration_tiles(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
-                      lights: int = CALIB_LIGHTS, tiles_per_stack: int = CALIB_TILES_PER_STACK,
-                      train_lights: int = TRAIN_LIGHTS, seed: int = 0
-                      ) -> Iterator[tuple[dict[str, np.ndarray], np.ndarray, str]]:
+def calibration_tiles(
+    stacks: Sequence[Stack],
+    *,
+    tile: int = CALIB_TILE,
+    lights: int = CALIB_LIGHTS,
+    tiles_per_stack: int = CALIB_TILES_PER_STACK,
+    train_lights: int = TRAIN_LIGHTS,
+    seed: int = 0,
+) -> Iterator[tuple[dict[str, np.ndarray], np.ndarray, str]]:
     """(feeds, mask (t, t), stack name) per tile; see ``calibration_samples``."""
     for si, stack in enumerate(stacks):
         counts = sorted({min(k, stack.num_lights) for k in (lights, 32, 8)})
@@ -72,18 +77,24 @@ def calibration_tiles(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
             n = counts[ti % len(counts)]
             idx = evenly(stack.num_lights, n)
             rows, cols = slice(y0, y0 + tile), slice(x0, x0 + tile)
-            x, dirs = network_input(stack, rows, cols, lights=idx, train_lights=train_lights,
-                                    shape=(tile, tile))
+            x, dirs = network_input(
+                stack, rows, cols, lights=idx, train_lights=train_lights, shape=(tile, tile)
+            )
             mask = np.zeros((tile, tile), bool)
             crop = stack.mask[rows, cols]
-            mask[:crop.shape[0], :crop.shape[1]] = crop
+            mask[: crop.shape[0], : crop.shape[1]] = crop
             yield {"images": x, "lights": dirs}, mask, stack.name
 
 
-def calibration_samples(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
-                        lights: int = CALIB_LIGHTS, tiles_per_stack: int = CALIB_TILES_PER_STACK,
-                        train_lights: int = TRAIN_LIGHTS,
-                        seed: int = 0) -> Iterator[dict[str, np.ndarray]]:
+def calibration_samples(
+    stacks: Sequence[Stack],
+    *,
+    tile: int = CALIB_TILE,
+    lights: int = CALIB_LIGHTS,
+    tiles_per_stack: int = CALIB_TILES_PER_STACK,
+    train_lights: int = TRAIN_LIGHTS,
+    seed: int = 0,
+) -> Iterator[dict[str, np.ndarray]]:
     """Network feeds {'images': (1,N,3,t,t), 'lights': (1,N,3)} from real stacks.
 
     Normalisation is per pixel, so normalising a crop equals cropping the normalised image.
@@ -91,9 +102,14 @@ def calibration_samples(stacks: Sequence[Stack], *, tile: int = CALIB_TILE,
     stack's count) so the calibrated ranges
     cover the sqrt(N / 32) scaling the runtime applies.
     """
-    for feeds, _mask, _name in calibration_tiles(stacks, tile=tile, lights=lights,
-                                                 tiles_per_stack=tiles_per_stack,
-                                                 train_lights=train_lights, seed=seed):
+    for feeds, _mask, _name in calibration_tiles(
+        stacks,
+        tile=tile,
+        lights=lights,
+        tiles_per_stack=tiles_per_stack,
+        train_lights=train_lights,
+        seed=seed,
+    ):
         yield feeds
 
 
@@ -113,26 +129,30 @@ def load_calibration_stacks(paths: Sequence[str | Path], max_lights: int = 96) -
 
 
 def _is_staged(model: onnx.ModelProto) -> bool:
-    return any(p.key == METADATA_KEYS["graph"] and p.value == "staged"
-               for p in model.metadata_props)
+    return any(
+        p.key == METADATA_KEYS["graph"] and p.value == "staged" for p in model.metadata_props
+    )
 
 
-def staged_samples(src: str | Path | bytes, samples: list[dict[str, np.ndarray]]
-                   ) -> list[dict[str, np.ndarray]]:
+def staged_samples(
+    src: str | Path | bytes, samples: list[dict[str, np.ndarray]]
+) -> list[dict[str, np.ndarray]]:
     """Feeds for a staged graph: each entry point gets its real input, i.e. what the fp32
     graph (a file or its serialised bytes) produces in its earlier stages on the same tile
     (placeholders would calibrate nothing)."""
     import onnxruntime as ort
 
-    from msfnet.runtime.chunked import run_staged
+    from msfnet.runtime.engines.staged_loop import run_staged
 
-    session = ort.InferenceSession(src if isinstance(src, bytes) else str(src),
-                                   providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(
+        src if isinstance(src, bytes) else str(src), providers=["CPUExecutionProvider"]
+    )
     out = []
     for feeds in samples:
         keep: dict[str, np.ndarray] = {}
-        run_staged(session, feeds["images"], feeds["lights"], chunk=feeds["images"].shape[1],
-                   keep=keep)
+        run_staged(
+            session, feeds["images"], feeds["lights"], chunk=feeds["images"].shape[1], keep=keep
+        )
         out.append(keep)
     return out
 
@@ -162,10 +182,18 @@ def fp32_conv_names(model: onnx.ModelProto) -> list[str]:
 CALIBRATION_METHODS = ("minmax", "percentile", "entropy")
 
 
-def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Path, *,
-                   method: str = "minmax", tile: int = CALIB_TILE, lights: int = CALIB_LIGHTS,
-                   tiles_per_stack: int = CALIB_TILES_PER_STACK, train_lights: int = TRAIN_LIGHTS,
-                   reduce_range: bool = False) -> tuple[onnx.ModelProto, dict[str, object]]:
+def quantize_model(
+    model: onnx.ModelProto,
+    stacks: Sequence[Stack],
+    scratch: Path,
+    *,
+    method: str = "minmax",
+    tile: int = CALIB_TILE,
+    lights: int = CALIB_LIGHTS,
+    tiles_per_stack: int = CALIB_TILES_PER_STACK,
+    train_lights: int = TRAIN_LIGHTS,
+    reduce_range: bool = False,
+) -> tuple[onnx.ModelProto, dict[str, object]]:
     """An fp32 msfnet graph whose transposed convs are already rewritten (``rewrite.py``) ->
     int8 QDQ graph, and a summary. onnxruntime's quantiser works on files: they go to
     ``scratch`` (a private folder the caller removes). The ``quantise-int8`` pass
@@ -181,15 +209,24 @@ def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Pat
         quantize_static,
     )
 
-    methods = {"minmax": CalibrationMethod.MinMax, "percentile": CalibrationMethod.Percentile,
-               "entropy": CalibrationMethod.Entropy}
+    methods = {
+        "minmax": CalibrationMethod.MinMax,
+        "percentile": CalibrationMethod.Percentile,
+        "entropy": CalibrationMethod.Entropy,
+    }
     if method not in methods:
         raise InputError(f"calibration method {method!r}: expected one of {', '.join(methods)}")
     if any(n.op_type == "ConvTranspose" for n in model.graph.node):
         raise ValueError("rewrite the transposed convolutions first (rewrite.rewrite_deconvs)")
-    samples = list(calibration_samples(stacks, tile=tile, lights=lights,
-                                       tiles_per_stack=tiles_per_stack,
-                                       train_lights=train_lights))
+    samples = list(
+        calibration_samples(
+            stacks,
+            tile=tile,
+            lights=lights,
+            tiles_per_stack=tiles_per_stack,
+            train_lights=train_lights,
+        )
+    )
     if _is_staged(model):
         samples = staged_samples(model.SerializeToString(), samples)
 
@@ -206,19 +243,31 @@ def quantize_model(model: onnx.ModelProto, stacks: Sequence[Stack], scratch: Pat
     old_tempdir = tempfile.tempdir
     tempfile.tempdir = str(scratch)
     try:
-        quantize_static(str(src), str(dst), Reader(samples),
-                        quant_format=QuantFormat.QDQ, per_channel=True,
-                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                        op_types_to_quantize=QUANT_OPS, calibrate_method=methods[method],
-                        nodes_to_exclude=fp32_conv_names(model), reduce_range=reduce_range,
-                        extra_options={"CalibPercentile": 99.999} if method == "percentile"
-                        else {})
+        quantize_static(
+            str(src),
+            str(dst),
+            Reader(samples),
+            quant_format=QuantFormat.QDQ,
+            per_channel=True,
+            activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8,
+            op_types_to_quantize=QUANT_OPS,
+            calibrate_method=methods[method],
+            nodes_to_exclude=fp32_conv_names(model),
+            reduce_range=reduce_range,
+            extra_options={"CalibPercentile": 99.999} if method == "percentile" else {},
+        )
         qmodel = onnx.load(str(dst))
     finally:
         tempfile.tempdir = old_tempdir
         root.setLevel(level)
     summary: dict[str, object] = {
-        "calibration_samples": len(samples), "calibration_stacks": [s.name for s in stacks],
-        "method": method, "tile": tile, "lights": lights, "reduce_range": reduce_range,
-        "fp32_convs": fp32_conv_names(model)}
+        "calibration_samples": len(samples),
+        "calibration_stacks": [s.name for s in stacks],
+        "method": method,
+        "tile": tile,
+        "lights": lights,
+        "reduce_range": reduce_range,
+        "fp32_convs": fp32_conv_names(model),
+    }
     return qmodel, summary

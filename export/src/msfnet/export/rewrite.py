@@ -58,8 +58,11 @@ def deconv_weight_as_phases(weight: np.ndarray) -> list[np.ndarray]:
     """ConvTranspose weight (Cin, Cout, 4, 4) -> four 2x2 Conv weights (Cout, Cin, 2, 2),
     phase order (a, b) = (0,0), (0,1), (1,0), (1,1): no zero taps, the useful MACs only."""
     wt = weight.transpose(1, 0, 2, 3)
-    return [np.ascontiguousarray(wt[:, :, list(PHASE_TAPS[a])][:, :, :, list(PHASE_TAPS[b])])
-            for a in range(2) for b in range(2)]
+    return [
+        np.ascontiguousarray(wt[:, :, list(PHASE_TAPS[a])][:, :, :, list(PHASE_TAPS[b])])
+        for a in range(2)
+        for b in range(2)
+    ]
 
 
 def _attrs(node: onnx.NodeProto) -> dict[str, Any]:
@@ -71,15 +74,22 @@ def _is_rewritable(node: onnx.NodeProto, inits: dict[str, onnx.TensorProto]) -> 
         return False
     at = _attrs(node)
     shape = list(inits[node.input[1]].dims)
-    return (len(shape) == 4 and shape[2:] == [4, 4] and list(at.get("strides", [1, 1])) == [2, 2]
-            and list(at.get("pads", [0] * 4)) == [1, 1, 1, 1] and at.get("group", 1) == 1
-            and list(at.get("dilations", [1, 1])) == [1, 1]
-            and not any(at.get("output_padding", [])) and "output_shape" not in at
-            and at.get("auto_pad", b"NOTSET") in (b"NOTSET", "NOTSET"))
+    return (
+        len(shape) == 4
+        and shape[2:] == [4, 4]
+        and list(at.get("strides", [1, 1])) == [2, 2]
+        and list(at.get("pads", [0] * 4)) == [1, 1, 1, 1]
+        and at.get("group", 1) == 1
+        and list(at.get("dilations", [1, 1])) == [1, 1]
+        and not any(at.get("output_padding", []))
+        and "output_shape" not in at
+        and at.get("auto_pad", b"NOTSET") in (b"NOTSET", "NOTSET")
+    )
 
 
-def _phase_nodes(node: onnx.NodeProto, weight: np.ndarray, graph: onnx.GraphProto,
-                 base: str) -> list[onnx.NodeProto]:
+def _phase_nodes(
+    node: onnx.NodeProto, weight: np.ndarray, graph: onnx.GraphProto, base: str
+) -> list[onnx.NodeProto]:
     """Four 2x2 convs (asymmetric pads pick each phase's window) -> Concat -> DCR shuffle."""
     nodes, outs = [], []
     for p, w in enumerate(deconv_weight_as_phases(weight)):
@@ -88,18 +98,28 @@ def _phase_nodes(node: onnx.NodeProto, weight: np.ndarray, graph: onnx.GraphProt
         graph.initializer.append(numpy_helper.from_array(w, wname))
         out = f"{node.output[0]}_phase{p}"
         outs.append(out)
-        nodes.append(helper.make_node("Conv", [node.input[0], wname], [out],
-                                      name=f"{base}_phase{p}", kernel_shape=[2, 2],
-                                      pads=[1 - a, 1 - b, a, b], strides=[1, 1]))
+        nodes.append(
+            helper.make_node(
+                "Conv",
+                [node.input[0], wname],
+                [out],
+                name=f"{base}_phase{p}",
+                kernel_shape=[2, 2],
+                pads=[1 - a, 1 - b, a, b],
+                strides=[1, 1],
+            )
+        )
     cat = f"{node.output[0]}_phases"
     nodes.append(helper.make_node("Concat", outs, [cat], name=f"{base}_cat", axis=1))
-    nodes.append(helper.make_node("DepthToSpace", [cat], list(node.output), name=f"{base}_d2s",
-                                  blocksize=2, mode="DCR"))
+    nodes.append(
+        helper.make_node(
+            "DepthToSpace", [cat], list(node.output), name=f"{base}_d2s", blocksize=2, mode="DCR"
+        )
+    )
     return nodes
 
 
-def rewrite_deconvs(model: onnx.ModelProto,
-                    mode: str = "conv3x3") -> tuple[onnx.ModelProto, int]:
+def rewrite_deconvs(model: onnx.ModelProto, mode: str = "conv3x3") -> tuple[onnx.ModelProto, int]:
     """Return a copy of ``model`` with every rewritable ConvTranspose replaced; and the count.
 
     mode "conv3x3": one 3x3 conv to 4*Cout channels + DepthToSpace (CRD): fewest nodes, 9/4
@@ -133,11 +153,27 @@ def rewrite_deconvs(model: onnx.ModelProto,
             bname = f"{node.input[2]}_as_conv"
             graph.initializer.append(numpy_helper.from_array(np.repeat(bias, 4), bname))
             conv_inputs.append(bname)
-        new_nodes.append(helper.make_node("Conv", conv_inputs, [mid], name=f"{base}_conv",
-                                          kernel_shape=[3, 3], pads=[1, 1, 1, 1],
-                                          strides=[1, 1]))
-        new_nodes.append(helper.make_node("DepthToSpace", [mid], list(node.output),
-                                          name=f"{base}_d2s", blocksize=2, mode="CRD"))
+        new_nodes.append(
+            helper.make_node(
+                "Conv",
+                conv_inputs,
+                [mid],
+                name=f"{base}_conv",
+                kernel_shape=[3, 3],
+                pads=[1, 1, 1, 1],
+                strides=[1, 1],
+            )
+        )
+        new_nodes.append(
+            helper.make_node(
+                "DepthToSpace",
+                [mid],
+                list(node.output),
+                name=f"{base}_d2s",
+                blocksize=2,
+                mode="CRD",
+            )
+        )
     del graph.node[:]
     graph.node.extend(new_nodes)
     # drop the now unused ConvTranspose weights

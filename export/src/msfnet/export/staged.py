@@ -4,7 +4,7 @@ Every stage needs the max over *all* lights of the previous stage, so a monolith
 every light's intermediate activations at once (about 1.3-3 KB per pixel and light). Cut at the
 reductions, the runtime can push a few lights at a time through each stage, keep only the
 per-light stage outputs (96 channels at half resolution: 96 B per pixel and light) and take the
-running max itself (``msfnet.runtime.chunked``).
+running max itself (``msfnet.runtime.engines.staged_loop``).
 
 One ONNX file holds four independent entry points sharing one set of weights:
   images (1, n, 3, H, W), lights (1, n, 3)  -> feat1 (n, 96, H/2, W/2)   extractor1
@@ -12,7 +12,7 @@ One ONNX file holds four independent entry points sharing one set of weights:
   feat2_in (n, 96, h, w), max2 (1, 96, h, w) -> feat3                      fusion + extractor3
   max3 (1, 96, h, w)                         -> normals (1, 3, H, W)       regressor
 ONNX Runtime evaluates the whole graph on every call, so a call feeds tiny placeholders
-(``msfnet.runtime.chunked.placeholders``) to the entry points it does not use.
+(``msfnet.runtime.engines.staged_loop.placeholders``) to the entry points it does not use.
 """
 
 from __future__ import annotations
@@ -32,8 +32,16 @@ class StagedGraph(nn.Module):
             raise ValueError("the staged graph needs the full network (mfe and mff on)")
         self.model = model
 
-    def forward(self, images: Tensor, lights: Tensor, feat1_in: Tensor, max1: Tensor,
-                feat2_in: Tensor, max2: Tensor, max3: Tensor) -> tuple[Tensor, ...]:
+    def forward(
+        self,
+        images: Tensor,
+        lights: Tensor,
+        feat1_in: Tensor,
+        max1: Tensor,
+        feat2_in: Tensor,
+        max2: Tensor,
+        max3: Tensor,
+    ) -> tuple[Tensor, ...]:
         m = self.model
         n, h, w = images.shape[1], images.shape[3], images.shape[4]
         light_maps = lights.reshape(n, 3, 1, 1).expand(-1, -1, h, w)

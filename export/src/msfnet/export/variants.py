@@ -7,7 +7,7 @@ go through this table.
 
 The pipeline works on one in-memory ``onnx.ModelProto``: torch export -> metadata -> (simplify)
 -> (fp16 storage | deconv rewrite -> int8 quantisation), then ONE write to a temporary sibling
-of the target (``runtime/files.py``'s ``write_atomic``, as every msfnet output), verification of
+of the target (``common/files.py``'s ``write_atomic``, as every msfnet output), verification of
 exactly that file as ONNX Runtime loads it, and only then an atomic rename into place. Nothing
 of a failed, interrupted or unverified export is left behind.
 
@@ -89,11 +89,15 @@ class VerifyRule:
     unit_norm_tol: float = UNIT_NORM_TOL
 
     def describe(self, limit_deg: float | None = None) -> str:
-        ref = {"pytorch": "PyTorch",
-               "pytorch-fp16-weights": "PyTorch with fp16-rounded weights",
-               "fp32-graph": "the verified fp32 graph"}[self.reference]
-        inputs = {"rendered": "rendered non-Lambertian objects",
-                  "calibration-tiles": "held-out tiles of the calibration stacks"}[self.inputs]
+        ref = {
+            "pytorch": "PyTorch",
+            "pytorch-fp16-weights": "PyTorch with fp16-rounded weights",
+            "fp32-graph": "the verified fp32 graph",
+        }[self.reference]
+        inputs = {
+            "rendered": "rendered non-Lambertian objects",
+            "calibration-tiles": "held-out tiles of the calibration stacks",
+        }[self.inputs]
         limit = self.limit_deg if limit_deg is None else limit_deg
         return f"{self.statistic} <= {limit:g} deg vs {ref}, object pixels of {inputs}"
 
@@ -141,21 +145,65 @@ _INT8 = ("rewrite-deconvs", "quantise-int8")
 
 VARIANTS: tuple[Variant, ...] = (
     Variant("fp32", "dynamic N, H, W; float32", "dynamic", "fp32", _EXPORT, FP32_RULE),
-    Variant("fp16", "weights stored in float16 (half the file), computed in float32",
-            "dynamic", "fp16-weights", (*_EXPORT, "fp16-storage"), FP16_RULE),
-    Variant("static", "fixed N, H, W (batch 1) for NPU / OpenVINO / OAK compilers",
-            "static", "fp32", _EXPORT, FP32_RULE),
-    Variant("static-fp16", "fixed shapes, weights stored in float16",
-            "static", "fp16-weights", (*_EXPORT, "fp16-storage"), FP16_RULE),
-    Variant("staged", "cut at the three max-over-lights steps; msf-run feeds a few lights "
-            "a call", "staged", "fp32", _STAGED, FP32_RULE),
-    Variant("staged-fp16", "staged graph, weights stored in float16",
-            "staged", "fp16-weights", (*_STAGED, "fp16-storage"), FP16_RULE),
-    Variant("int8", "static int8 QDQ of the extractors' convs, calibrated on real stacks",
-            "dynamic", "int8", (*_EXPORT, *_INT8), INT8_RULE, slow=True),
-    Variant("staged-int8", "staged graph, int8 QDQ (each entry point calibrated on the fp32 "
-            "graph's own stage outputs)", "staged", "int8", (*_STAGED, *_INT8), INT8_RULE,
-            slow=True),
+    Variant(
+        "fp16",
+        "weights stored in float16 (half the file), computed in float32",
+        "dynamic",
+        "fp16-weights",
+        (*_EXPORT, "fp16-storage"),
+        FP16_RULE,
+    ),
+    Variant(
+        "static",
+        "fixed N, H, W (batch 1) for NPU / OpenVINO / OAK compilers",
+        "static",
+        "fp32",
+        _EXPORT,
+        FP32_RULE,
+    ),
+    Variant(
+        "static-fp16",
+        "fixed shapes, weights stored in float16",
+        "static",
+        "fp16-weights",
+        (*_EXPORT, "fp16-storage"),
+        FP16_RULE,
+    ),
+    Variant(
+        "staged",
+        "cut at the three max-over-lights steps; msf-run feeds a few lights a call",
+        "staged",
+        "fp32",
+        _STAGED,
+        FP32_RULE,
+    ),
+    Variant(
+        "staged-fp16",
+        "staged graph, weights stored in float16",
+        "staged",
+        "fp16-weights",
+        (*_STAGED, "fp16-storage"),
+        FP16_RULE,
+    ),
+    Variant(
+        "int8",
+        "static int8 QDQ of the extractors' convs, calibrated on real stacks",
+        "dynamic",
+        "int8",
+        (*_EXPORT, *_INT8),
+        INT8_RULE,
+        slow=True,
+    ),
+    Variant(
+        "staged-int8",
+        "staged graph, int8 QDQ (each entry point calibrated on the fp32 "
+        "graph's own stage outputs)",
+        "staged",
+        "int8",
+        (*_STAGED, *_INT8),
+        INT8_RULE,
+        slow=True,
+    ),
 )
 
 VARIANT_NAMES = tuple(v.name for v in VARIANTS)
@@ -171,32 +219,41 @@ def get_variant(name: str | Variant) -> Variant:
     raise ValueError(f"unknown export variant {name!r} (one of {', '.join(VARIANT_NAMES)})")
 
 
-def variant_for(*, static: bool = False, staged: bool = False, plain: bool = False,
-                fp16_weights: bool = False, int8: bool = False) -> Variant:
+def variant_for(
+    *,
+    static: bool = False,
+    staged: bool = False,
+    plain: bool = False,
+    fp16_weights: bool = False,
+    int8: bool = False,
+) -> Variant:
     """The row the flags (--static, --plain, --staged, --fp16-weights, --int8) describe.
 
     The graph is staged unless --static or --plain asks for one graph: msf-run runs the staged
     graph light-chunked, in a fraction of the memory at many lights and as fast or faster on
     whole images; other runtimes need the single graph. ``staged`` is the default, kept so
     older command lines stay valid."""
-    from msfnet.runtime.errors import InputError
+    from msfnet.common.errors import InputError
 
     if staged and static:
-        raise InputError("--staged and --static do not combine (the staged graph's entry "
-                         "points need dynamic shapes)")
+        raise InputError(
+            "--staged and --static do not combine (the staged graph's entry "
+            "points need dynamic shapes)"
+        )
     if staged and plain:
         raise InputError("--staged and --plain contradict each other")
     if int8 and fp16_weights:
-        raise InputError("--int8 and --fp16-weights do not combine (int8 stores its own "
-                         "weights)")
+        raise InputError("--int8 and --fp16-weights do not combine (int8 stores its own weights)")
     graph: Graph = "static" if static else "dynamic" if plain else "staged"
     precision: Precision = "int8" if int8 else "fp16-weights" if fp16_weights else "fp32"
     for v in VARIANTS:
         if v.graph == graph and v.precision == precision:
             return v
-    raise InputError(f"no export variant has a {graph} graph in {precision} (static int8: "
-                     "calibration feeds tiles at several light counts, which a fixed-shape "
-                     "graph cannot take)")
+    raise InputError(
+        f"no export variant has a {graph} graph in {precision} (static int8: "
+        "calibration feeds tiles at several light counts, which a fixed-shape "
+        "graph cannot take)"
+    )
 
 
 @dataclass(frozen=True)
@@ -231,9 +288,11 @@ class VerificationRow:
 
     def line(self) -> str:
         h, w = self.size
-        return (f"N={self.lights:>3} {w}x{h} ({self.source}): max {self.max_deg:.2e} deg, "
-                f"mean {self.mean_deg:.2e} deg over {self.pixels} object px, "
-                f"| |n|-1 | <= {self.norm_error:.1e}")
+        return (
+            f"N={self.lights:>3} {w}x{h} ({self.source}): max {self.max_deg:.2e} deg, "
+            f"mean {self.mean_deg:.2e} deg over {self.pixels} object px, "
+            f"| |n|-1 | <= {self.norm_error:.1e}"
+        )
 
 
 @dataclass(frozen=True)
@@ -265,54 +324,69 @@ class ExportResult:
         return sum(r.mean_deg * r.pixels for r in self.rows) / px if px else math.nan
 
     def lines(self) -> list[str]:
-        out = [f"reference (fp32 graph vs PyTorch, in memory before quantising) {r.line()}"
-               for r in self.reference_rows]
+        out = [
+            f"reference (fp32 graph vs PyTorch, in memory before quantising) {r.line()}"
+            for r in self.reference_rows
+        ]
         q = self.notes.get("quantization")
         if isinstance(q, dict):
-            out.append(f"int8: {q['deconvs_rewritten']} transposed convs rewritten, calibrated "
-                       f"on {q['calibration_samples']} tiles of "
-                       f"{', '.join(q['calibration_stacks'])}")
+            out.append(
+                f"int8: {q['deconvs_rewritten']} transposed convs rewritten, calibrated "
+                f"on {q['calibration_samples']} tiles of "
+                f"{', '.join(q['calibration_stacks'])}"
+            )
         out += [f"verified {self.variant} {r.line()}" for r in self.rows]
         stat = self.max_deg if self.rule.statistic == "max" else self.mean_deg
-        out.append(f"verified {self.variant}: {self.rule.statistic} {stat:.3g} deg; rule "
-                   f"{self.rule.describe(self.limit_deg)} (the written file, loaded by ONNX "
-                   "Runtime)")
+        out.append(
+            f"verified {self.variant}: {self.rule.statistic} {stat:.3g} deg; rule "
+            f"{self.rule.describe(self.limit_deg)} (the written file, loaded by ONNX "
+            "Runtime)"
+        )
         out.append(f"wrote {self.path} ({self.variant}, {self.size_bytes / 1e6:.1f} MB)")
         return out
 
 
-def check_options(variant: Variant, options: ExportOptions, calib: Sequence[object] | None
-                  ) -> None:
+def check_options(variant: Variant, options: ExportOptions, calib: Sequence[object] | None) -> None:
     """Refuse impossible requests before anything slow happens (InputError, one line)."""
-    from msfnet.runtime.errors import InputError
+    from msfnet.common.errors import InputError
 
     if not MIN_OPSET <= options.opset <= MAX_OPSET:
-        raise InputError(f"--opset {options.opset}: supported opsets are "
-                         f"{MIN_OPSET}-{MAX_OPSET}")
+        raise InputError(f"--opset {options.opset}: supported opsets are {MIN_OPSET}-{MAX_OPSET}")
     if variant.needs_calibration and options.opset < MIN_INT8_OPSET:
-        raise InputError(f"--opset {options.opset}: int8 needs opset {MIN_INT8_OPSET} or "
-                         "higher (per-channel quantisation)")
+        raise InputError(
+            f"--opset {options.opset}: int8 needs opset {MIN_INT8_OPSET} or "
+            "higher (per-channel quantisation)"
+        )
     if options.train_lights < 1:
         raise InputError(f"--train-lights must be positive, got {options.train_lights}")
     tol = options.tolerance_deg
     if tol is not None and not (math.isfinite(tol) and tol > 0):
         raise InputError(f"--tolerance must be a positive number of degrees, got {tol}")
     if variant.graph == "staged" and options.static is not None:
-        raise InputError("--staged and --static do not combine (the staged graph's entry "
-                         "points need dynamic shapes)")
+        raise InputError(
+            "--staged and --static do not combine (the staged graph's entry "
+            "points need dynamic shapes)"
+        )
     if variant.needs_shape and options.static is None:
         raise InputError(f"variant {variant.name} needs --static N,H,W")
     if not variant.needs_shape and options.static is not None:
         raise InputError(f"--static N,H,W is for the static variants, not {variant.name}")
     if variant.needs_calibration and not calib:
-        raise InputError(f"{variant.name} needs --calib STACK [STACK ...] (real stacks to "
-                         "calibrate on)")
+        raise InputError(
+            f"{variant.name} needs --calib STACK [STACK ...] (real stacks to calibrate on)"
+        )
 
 
-def export_variant(checkpoint: str | Path, variant: str | Variant, output: str | Path, *,
-                   calib: Sequence[str | Path | Stack] | None = None,
-                   options: ExportOptions | None = None, overwrite: bool = False,
-                   log: Callable[[str], None] | None = None) -> ExportResult:
+def export_variant(
+    checkpoint: str | Path,
+    variant: str | Variant,
+    output: str | Path,
+    *,
+    calib: Sequence[str | Path | Stack] | None = None,
+    options: ExportOptions | None = None,
+    overwrite: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> ExportResult:
     """Export ``checkpoint`` as ``variant`` to ``output``; return how the written file verified.
 
     ``calib``: stack paths (or loaded Stacks) for the int8 variants (ignored by the others, so
@@ -325,13 +399,35 @@ def export_variant(checkpoint: str | Path, variant: str | Variant, output: str |
     v = get_variant(variant)
     opts = options or ExportOptions()
     check_options(v, opts, calib)
-    return run_export(Path(checkpoint), v, Path(output), calib=list(calib or []), options=opts,
-                      overwrite=overwrite, log=log or (lambda _msg: None))
+    return run_export(
+        Path(checkpoint),
+        v,
+        Path(output),
+        calib=list(calib or []),
+        options=opts,
+        overwrite=overwrite,
+        log=log or (lambda _msg: None),
+    )
 
 
-__all__ = ["DEFAULT_OPSET", "FP16_RULE", "FP32_RULE", "INT8_RULE", "MAX_OPSET", "MIN_OPSET",
-           "TOLERANCE_DEG", "VARIANTS", "VARIANT_NAMES", "ExportOptions", "ExportResult",
-           "StaticShape",
-           "Variant", "VerificationRow", "VerifyRule", "check_options", "export_variant",
-           "get_variant", "variant_for"]
-
+__all__ = [
+    "DEFAULT_OPSET",
+    "FP16_RULE",
+    "FP32_RULE",
+    "INT8_RULE",
+    "MAX_OPSET",
+    "MIN_OPSET",
+    "TOLERANCE_DEG",
+    "VARIANTS",
+    "VARIANT_NAMES",
+    "ExportOptions",
+    "ExportResult",
+    "StaticShape",
+    "Variant",
+    "VerificationRow",
+    "VerifyRule",
+    "check_options",
+    "export_variant",
+    "get_variant",
+    "variant_for",
+]

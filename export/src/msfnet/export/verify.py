@@ -17,11 +17,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from msfnet.runtime.contract import TRAIN_LIGHTS
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.metrics import angular_error_deg
-
+from msfnet.common.errors import InputError
 from msfnet.export.variants import VerificationRow, VerifyRule
+from msfnet.runtime.contract import TRAIN_LIGHTS
+from msfnet.runtime.evaluate.metrics import angular_error_deg
 
 if TYPE_CHECKING:
     import torch
@@ -41,8 +40,9 @@ class Case:
     source: str = "rendered"
 
 
-def rendered_cases(checks: Iterable[tuple[int, int, int]], batch: int = 1,
-                   seed: int = 100) -> Iterator[Case]:
+def rendered_cases(
+    checks: Iterable[tuple[int, int, int]], batch: int = 1, seed: int = 100
+) -> Iterator[Case]:
     """Rendered non-Lambertian objects at each (N, H, W), normalised as the runtime does."""
     from msfnet.export.onnx_export import rendered_inputs
 
@@ -51,15 +51,27 @@ def rendered_cases(checks: Iterable[tuple[int, int, int]], batch: int = 1,
         yield Case(images, lights, masks)
 
 
-def tile_cases(stacks: Sequence[Stack], *, tile: int, lights: int, tiles_per_stack: int,
-               train_lights: int = TRAIN_LIGHTS, seed: int = 1000) -> Iterator[Case]:
+def tile_cases(
+    stacks: Sequence[Stack],
+    *,
+    tile: int,
+    lights: int,
+    tiles_per_stack: int,
+    train_lights: int = TRAIN_LIGHTS,
+    seed: int = 1000,
+) -> Iterator[Case]:
     """Calibration-like tiles (inside the stacks' masks, at up to three light counts), taken at
     other places than the calibration's own (different seed)."""
     from msfnet.export.quantize import calibration_tiles
 
-    for feeds, mask, name in calibration_tiles(stacks, tile=tile, lights=lights,
-                                               tiles_per_stack=tiles_per_stack,
-                                               train_lights=train_lights, seed=seed):
+    for feeds, mask, name in calibration_tiles(
+        stacks,
+        tile=tile,
+        lights=lights,
+        tiles_per_stack=tiles_per_stack,
+        train_lights=train_lights,
+        seed=seed,
+    ):
         yield Case(feeds["images"], feeds["lights"], mask[None], source=f"tile of {name}")
 
 
@@ -76,12 +88,16 @@ def torch_runner(model: torch.nn.Module) -> Runner:
 def session_runner(session: object, staged_chunk: int | None = None) -> Runner:
     """An onnxruntime.InferenceSession; ``staged_chunk``: a staged graph, run by the runtime's
     light-chunked loop with that many lights per call (one stack at a time)."""
-    from msfnet.runtime.chunked import run_staged
+    from msfnet.runtime.engines.staged_loop import run_staged
 
     def run(images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         if staged_chunk:
-            return np.concatenate([run_staged(session, images[b:b + 1], lights[b:b + 1],
-                                              staged_chunk) for b in range(len(images))])
+            return np.concatenate(
+                [
+                    run_staged(session, images[b : b + 1], lights[b : b + 1], staged_chunk)
+                    for b in range(len(images))
+                ]
+            )
         return session.run(["normals"], {"images": images, "lights": lights})[0]  # type: ignore[attr-defined]
 
     return run
@@ -103,7 +119,7 @@ def file_runner(path: Path, staged_chunk: int | None, threads: int | None = None
     """The written file exactly as the runtime loads it (metadata and I/O names checked)."""
     import onnx
 
-    from msfnet.runtime.session import create_session
+    from msfnet.runtime.engines.ort_session import create_session
 
     try:
         onnx.checker.check_model(str(path), full_check=True)
@@ -123,8 +139,10 @@ def compare(candidate: Runner, reference: Runner, cases: Iterable[Case]) -> list
         try:
             got = candidate(case.images, case.lights)
         except Exception as exc:  # ORT raises its own Fail/InvalidArgument types
-            raise InputError(f"verification failed: ONNX Runtime cannot run N={n} {w}x{h} "
-                             f"({str(exc).splitlines()[0][:200]})") from exc
+            raise InputError(
+                f"verification failed: ONNX Runtime cannot run N={n} {w}x{h} "
+                f"({str(exc).splitlines()[0][:200]})"
+            ) from exc
         want = reference(case.images, case.lights)
         for b in range(len(case.images)):
             a = got[b].transpose(1, 2, 0)[case.mask[b]]
@@ -133,14 +151,27 @@ def compare(candidate: Runner, reference: Runner, cases: Iterable[Case]) -> list
                 continue
             diff = angular_error_deg(a, r)
             norm_error = np.abs(np.linalg.norm(a.astype(np.float64), axis=-1) - 1.0)
-            rows.append(VerificationRow(
-                lights=n, size=(h, w), max_deg=float(diff.max()), mean_deg=float(diff.mean()),
-                pixels=int(diff.size), norm_error=float(norm_error.max()), source=case.source))
+            rows.append(
+                VerificationRow(
+                    lights=n,
+                    size=(h, w),
+                    max_deg=float(diff.max()),
+                    mean_deg=float(diff.mean()),
+                    pixels=int(diff.size),
+                    norm_error=float(norm_error.max()),
+                    source=case.source,
+                )
+            )
     return rows
 
 
-def judge(rows: Sequence[VerificationRow], rule: VerifyRule, limit_deg: float,
-          what: str = "the exported model", source: Path | None = None) -> None:
+def judge(
+    rows: Sequence[VerificationRow],
+    rule: VerifyRule,
+    limit_deg: float,
+    what: str = "the exported model",
+    source: Path | None = None,
+) -> None:
     """Raise InputError unless every row has unit normals and the rule's statistic is within
     ``limit_deg``. NaN fails every comparison here. ``source``: the checkpoint, named in the
     message."""
@@ -152,7 +183,9 @@ def judge(rows: Sequence[VerificationRow], rule: VerifyRule, limit_deg: float,
             raise InputError(
                 f"verification failed: {what} gives no unit normals on object pixels "
                 f"(| |n| - 1 | up to {r.norm_error:.3g} at N={r.lights} {w}x{h}, "
-                f"{r.source}); degenerate weights (e.g. an all-zero checkpoint)?", source)
+                f"{r.source}); degenerate weights (e.g. an all-zero checkpoint)?",
+                source,
+            )
     if rule.statistic == "max":
         stat = max(r.max_deg for r in rows)
     else:
@@ -160,10 +193,23 @@ def judge(rows: Sequence[VerificationRow], rule: VerifyRule, limit_deg: float,
         stat = sum(r.mean_deg * r.pixels for r in rows) / px
     if not (math.isfinite(stat) and stat <= limit_deg):
         worst = max(r.max_deg for r in rows)
-        raise InputError(f"verification failed: {what} differs from the reference by "
-                         f"{stat:.4g} deg {rule.statistic} (> {limit_deg:g} deg; max "
-                         f"{worst:.4g} deg): {rule.describe(limit_deg)}", source)
+        raise InputError(
+            f"verification failed: {what} differs from the reference by "
+            f"{stat:.4g} deg {rule.statistic} (> {limit_deg:g} deg; max "
+            f"{worst:.4g} deg): {rule.describe(limit_deg)}",
+            source,
+        )
 
 
-__all__ = ["Case", "Runner", "compare", "file_runner", "judge", "proto_runner",
-           "rendered_cases", "session_runner", "tile_cases", "torch_runner"]
+__all__ = [
+    "Case",
+    "Runner",
+    "compare",
+    "file_runner",
+    "judge",
+    "proto_runner",
+    "rendered_cases",
+    "session_runner",
+    "tile_cases",
+    "torch_runner",
+]

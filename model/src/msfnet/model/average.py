@@ -14,9 +14,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from msfnet.runtime.cliutil import make_parser, run_command
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import check_output, same_file
+from msfnet.common.cli import make_parser, run_command
+from msfnet.common.errors import InputError
+from msfnet.common.files import check_output, same_file
 
 if TYPE_CHECKING:
     import torch
@@ -35,7 +35,12 @@ def average_state_dicts(paths: Sequence[str | Path]) -> dict[str, torch.Tensor]:
     """
     import torch
 
-    from msfnet.model.checkpoint import CheckpointError, check_state_dict, network_for, read_state_dict
+    from msfnet.model.checkpoint import (
+        CheckpointError,
+        check_state_dict,
+        network_for,
+        read_state_dict,
+    )
 
     if len(paths) < 2:
         raise ValueError("averaging needs at least two checkpoints")
@@ -53,8 +58,7 @@ def average_state_dicts(paths: Sequence[str | Path]) -> dict[str, torch.Tensor]:
             if not bool(torch.isfinite(value).all()):
                 raise CheckpointError(f"{key} holds NaN or infinite values", path)
             total[key] = total[key] + value.double() if key in total else value.double()
-    return {k: (v / len(paths)).float() if v.is_floating_point() else v
-            for k, v in total.items()}
+    return {k: (v / len(paths)).float() if v.is_floating_point() else v for k, v in total.items()}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -64,14 +68,25 @@ def build_parser() -> argparse.ArgumentParser:
         "(the published {'state_dict': ...} format, for msf-export). Average snapshots of one\n"
         "run (msf-train --snapshot-every) and score the result on real objects before using\n"
         "it; batch-norm statistics are averaged, not re-estimated.",
-        ("msf-average runs/a/snap_0003500.pth runs/a/snap_0004500.pth -o runs/a/avg.pth",
-         "msf-average runs/a/snap_*.pth -o avg.pth --fp16 && msf-export avg.pth -o avg.onnx"))
-    p.add_argument("checkpoints", nargs="+", type=Path, metavar="CKPT",
-                   help="two or more checkpoints of one network variant (.pth), each once")
+        (
+            "msf-average runs/a/snap_0003500.pth runs/a/snap_0004500.pth -o runs/a/avg.pth",
+            "msf-average runs/a/snap_*.pth -o avg.pth --fp16 && msf-export avg.pth -o avg.onnx",
+        ),
+    )
+    p.add_argument(
+        "checkpoints",
+        nargs="+",
+        type=Path,
+        metavar="CKPT",
+        help="two or more checkpoints of one network variant (.pth), each once",
+    )
     p.add_argument("-o", "--output", type=Path, required=True, help="checkpoint to write")
-    p.add_argument("--fp16", action="store_true",
-                   help="store the weights in half precision (half the size; loading casts "
-                        "them back to float32)")
+    p.add_argument(
+        "--fp16",
+        action="store_true",
+        help="store the weights in half precision (half the size; loading casts "
+        "them back to float32)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT")
     return p
 
@@ -83,8 +98,9 @@ def _check_inputs(paths: Sequence[Path]) -> None:
     for i, path in enumerate(paths):
         for earlier in paths[:i]:
             if same_file(path, earlier):  # a missing file: the reader names it later
-                raise InputError(f"the same file as {earlier}, given twice: each checkpoint "
-                                 "counts once", path)
+                raise InputError(
+                    f"the same file as {earlier}, given twice: each checkpoint counts once", path
+                )
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -95,11 +111,14 @@ def _run(args: argparse.Namespace) -> int:
     state = average_state_dicts(args.checkpoints)
     model = network_for(state)
     model.load_state_dict(state, strict=True)
-    save_checkpoint(model, args.output, fp16=args.fp16,
-                    averaged_from=[str(p) for p in args.checkpoints])
+    save_checkpoint(
+        model, args.output, fp16=args.fp16, averaged_from=[str(p) for p in args.checkpoints]
+    )
     if not args.quiet:
-        print(f"wrote {args.output}: the mean of {len(args.checkpoints)} checkpoints' weights"
-              + (" (fp16)" if args.fp16 else ""))
+        print(
+            f"wrote {args.output}: the mean of {len(args.checkpoints)} checkpoints' weights"
+            + (" (fp16)" if args.fp16 else "")
+        )
     return 0
 
 

@@ -17,9 +17,8 @@ from pathlib import Path
 
 import torch
 
-from msfnet.runtime.errors import InputError, first_line
-from msfnet.runtime.files import write_atomic
-
+from msfnet.common.errors import InputError, first_line
+from msfnet.common.files import write_atomic
 from msfnet.model.network import MSFNet
 
 
@@ -53,10 +52,20 @@ def read_torch_file(path: str | Path) -> object:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise CheckpointError(_refusal(path, exc), path) from exc
-    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, KeyError,
-            AttributeError, TypeError, IndexError) as exc:
-        raise CheckpointError(f"not a readable PyTorch checkpoint ({first_line(exc)})",
-                              path) from exc
+    except (
+        RuntimeError,
+        EOFError,
+        OSError,
+        ValueError,
+        zipfile.BadZipFile,
+        KeyError,
+        AttributeError,
+        TypeError,
+        IndexError,
+    ) as exc:
+        raise CheckpointError(
+            f"not a readable PyTorch checkpoint ({first_line(exc)})", path
+        ) from exc
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], int | None]:
@@ -75,10 +84,16 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
 def _tensors(obj: object, path: Path) -> dict[str, torch.Tensor]:
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]
-    if not isinstance(obj, Mapping) or not obj or not all(
-            isinstance(v, torch.Tensor) for v in obj.values()):
-        raise CheckpointError("does not hold a state_dict of tensors (expected "
-                              "{'state_dict': {...}} or a bare state_dict)", path)
+    if (
+        not isinstance(obj, Mapping)
+        or not obj
+        or not all(isinstance(v, torch.Tensor) for v in obj.values())
+    ):
+        raise CheckpointError(
+            "does not hold a state_dict of tensors (expected "
+            "{'state_dict': {...}} or a bare state_dict)",
+            path,
+        )
     return {_strip_prefix(str(k)): v for k, v in obj.items()}
 
 
@@ -93,12 +108,16 @@ def _refusal(path: Path, exc: pickle.UnpicklingError) -> str:
     if not zipfile.is_zipfile(path) and not _is_a_pickle(head):
         return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"
     if re.search(r"unsupported global", text, re.IGNORECASE):  # wording varies by torch
-        return ("holds pickled Python objects, not only tensors; refusing to unpickle it "
-                "(re-save it as a plain state_dict)")
+        return (
+            "holds pickled Python objects, not only tensors; refusing to unpickle it "
+            "(re-save it as a plain state_dict)"
+        )
     reason = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
     detail = reason.group(1).strip()[:120] if reason else first_line(exc, 120)
-    return (f"a pickle that PyTorch's safe reader refuses ({detail}); refusing to unpickle it "
-            "(re-save the state_dict with torch.save's defaults)")
+    return (
+        f"a pickle that PyTorch's safe reader refuses ({detail}); refusing to unpickle it "
+        "(re-save the state_dict with torch.save's defaults)"
+    )
 
 
 def _is_a_pickle(head: bytes) -> bool:
@@ -114,24 +133,35 @@ def _is_a_pickle(head: bytes) -> bool:
 
 def _strip_prefix(key: str) -> str:
     while key.startswith("module."):
-        key = key[len("module."):]
+        key = key[len("module.") :]
     return key
 
 
-def check_state_dict(model: torch.nn.Module, state: Mapping[str, torch.Tensor],
-                     source: str | Path) -> None:
+def check_state_dict(
+    model: torch.nn.Module, state: Mapping[str, torch.Tensor], source: str | Path
+) -> None:
     """Raise CheckpointError listing missing, unexpected and mis-shaped keys."""
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
-    shapes = sorted(f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
-                    for k, v in expected.items() if k in state and state[k].shape != v.shape)
+    shapes = sorted(
+        f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
+        for k, v in expected.items()
+        if k in state and state[k].shape != v.shape
+    )
     # weights must be real floating-point dense tensors (an integer one would load truncated)
-    kinds = sorted(f"{k} {state[k].dtype}{'' if state[k].layout == torch.strided else ' sparse'}"
-                   for k, v in expected.items() if k in state and not _same_kind(state[k], v))
+    kinds = sorted(
+        f"{k} {state[k].dtype}{'' if state[k].layout == torch.strided else ' sparse'}"
+        for k, v in expected.items()
+        if k in state and not _same_kind(state[k], v)
+    )
     problems = []
-    for label, keys in (("missing", missing), ("unexpected", unexpected),
-                        ("mis-shaped", shapes), ("mis-typed", kinds)):
+    for label, keys in (
+        ("missing", missing),
+        ("unexpected", unexpected),
+        ("mis-shaped", shapes),
+        ("mis-typed", kinds),
+    ):
         if keys:
             shown = ", ".join(keys[:6]) + (f", ... (+{len(keys) - 6})" if len(keys) > 6 else "")
             problems.append(f"{len(keys)} {label} key(s): {shown}")
@@ -148,8 +178,10 @@ def _same_kind(got: torch.Tensor, want: torch.Tensor) -> bool:
 def network_for(state: Mapping[str, torch.Tensor]) -> MSFNet:
     """An untrained MSFNet of the variant whose keys ``state`` has (the paper's ablations drop
     the later stages, ``--no-mfe``, or the fusion module, ``--no-mff``)."""
-    return MSFNet(mfe=any(k.startswith("extractor2.") for k in state),
-                  mff=any(k.startswith("fusion.") for k in state))
+    return MSFNet(
+        mfe=any(k.startswith("extractor2.") for k in state),
+        mff=any(k.startswith("fusion.") for k in state),
+    )
 
 
 def load_model(path: str | Path, **options: bool) -> MSFNet:
@@ -162,8 +194,9 @@ def load_model(path: str | Path, **options: bool) -> MSFNet:
     return model.eval()
 
 
-def save_checkpoint(model: torch.nn.Module, path: str | Path, fp16: bool = False,
-                    **extra: object) -> Path:
+def save_checkpoint(
+    model: torch.nn.Module, path: str | Path, fp16: bool = False, **extra: object
+) -> Path:
     """Write ``{'state_dict': ..., 'model': 'MSF_Net', ...}`` atomically (the published layout).
 
     ``fp16``: store floating-point tensors in half precision (half the size; load_state_dict
@@ -173,8 +206,9 @@ def save_checkpoint(model: torch.nn.Module, path: str | Path, fp16: bool = False
     return write_atomic(path, lambda tmp: torch.save(content, tmp))
 
 
-def checkpoint_content(model: torch.nn.Module, fp16: bool = False, **extra: object
-                       ) -> dict[str, object]:
+def checkpoint_content(
+    model: torch.nn.Module, fp16: bool = False, **extra: object
+) -> dict[str, object]:
     """What :func:`save_checkpoint` writes, for a caller that writes it itself."""
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     if fp16:

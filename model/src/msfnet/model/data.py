@@ -5,7 +5,7 @@ Sources hand out ``Stack`` objects (raw images + lights + intensities + mask + n
   batch, so rendering costs a fraction of a training step (each stack serves several crops,
   light subsets and rotations);
 - ``BlobbySource``: the public Blobby / Sculpture photometric-stereo training sets.
-Samples are normalised with ``msfnet.runtime.preprocess.normalise`` itself (crop first: the
+Samples are normalised with ``msfnet.runtime.infer.normalise.normalise`` itself (crop first: the
 normalisation is per pixel, so cropping commutes with it).
 
 ``StepStream`` moves all of this into DataLoader worker processes (for a GPU, which one process
@@ -25,10 +25,10 @@ from typing import Protocol
 import numpy as np
 import torch
 
+from msfnet.common.errors import InputError
+from msfnet.common.imageio import read_image
 from msfnet.runtime.contract import TRAIN_LIGHTS
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.imageio import read_image
-from msfnet.runtime.preprocess import normalise
+from msfnet.runtime.infer.normalise import normalise
 from msfnet.runtime.stack import Stack, as_held, read_normals, unit_lights
 from msfnet.synth.render import RenderOptions, render_stack
 
@@ -43,8 +43,15 @@ class Batch:
 
 # ----------------------------------------------------------------------------- augmentation
 
-def rotate_flip(images: np.ndarray, normals: np.ndarray, mask: np.ndarray, lights: np.ndarray,
-                k: int, flip: bool) -> tuple[np.ndarray, ...]:
+
+def rotate_flip(
+    images: np.ndarray,
+    normals: np.ndarray,
+    mask: np.ndarray,
+    lights: np.ndarray,
+    k: int,
+    flip: bool,
+) -> tuple[np.ndarray, ...]:
     """Rotate the scene k x 90 deg counter-clockwise about the view axis, then mirror left-right.
 
     Both are symmetries of orthographic photometric stereo with isotropic materials, provided
@@ -65,14 +72,15 @@ def rotate_flip(images: np.ndarray, normals: np.ndarray, mask: np.ndarray, light
     return images, normals, mask, lights
 
 
-def random_crop(stack: Stack, crop: int, rng: np.random.Generator,
-                min_fill: float = 0.3, tries: int = 6) -> tuple[int, int]:
+def random_crop(
+    stack: Stack, crop: int, rng: np.random.Generator, min_fill: float = 0.3, tries: int = 6
+) -> tuple[int, int]:
     """Top-left corner of a crop holding at least ``min_fill`` object pixels (best of a few)."""
     h, w = stack.shape
     best, best_fill = (0, 0), -1.0
     for _ in range(tries):
         r, c = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
-        fill = float(stack.mask[r:r + crop, c:c + crop].mean())
+        fill = float(stack.mask[r : r + crop, c : c + crop].mean())
         if fill >= min_fill:
             return r, c
         if fill > best_fill:
@@ -80,22 +88,34 @@ def random_crop(stack: Stack, crop: int, rng: np.random.Generator,
     return best
 
 
-def make_sample(stack: Stack, lights: int, crop: int, rng: np.random.Generator,
-                noise: float = 0.01, calib_jitter: float = 0.02,
-                train_lights: int = TRAIN_LIGHTS) -> tuple[np.ndarray, ...]:
+def make_sample(
+    stack: Stack,
+    lights: int,
+    crop: int,
+    rng: np.random.Generator,
+    noise: float = 0.01,
+    calib_jitter: float = 0.02,
+    train_lights: int = TRAIN_LIGHTS,
+) -> tuple[np.ndarray, ...]:
     """One augmented training sample: (input (N,3,c,c), lights (N,3), normals (3,c,c), mask)."""
     if stack.normals_gt is None:
         raise InputError("training needs ground-truth normals", stack.source or stack.name)
     h, w = stack.shape
     if crop > min(h, w):
-        raise InputError(f"crop {crop} is larger than the stack ({w}x{h})",
-                         stack.source or stack.name)
+        raise InputError(
+            f"crop {crop} is larger than the stack ({w}x{h})", stack.source or stack.name
+        )
     r, c = random_crop(stack, crop, rng)
     idx = rng.choice(stack.num_lights, size=min(lights, stack.num_lights), replace=False)
-    imgs = stack.images[idx, r:r + crop, c:c + crop]
+    imgs = stack.images[idx, r : r + crop, c : c + crop]
     imgs, normals, mask, dirs = rotate_flip(
-        imgs, stack.normals_gt[r:r + crop, c:c + crop], stack.mask[r:r + crop, c:c + crop],
-        stack.lights[idx], int(rng.integers(4)), bool(rng.integers(2)))
+        imgs,
+        stack.normals_gt[r : r + crop, c : c + crop],
+        stack.mask[r : r + crop, c : c + crop],
+        stack.lights[idx],
+        int(rng.integers(4)),
+        bool(rng.integers(2)),
+    )
     imgs = np.array(imgs, np.float32)
     if noise > 0:  # extra sensor-like noise on top of whatever the data already has
         scale = float(np.percentile(imgs, 95)) + 1e-6
@@ -106,8 +126,12 @@ def make_sample(stack: Stack, lights: int, crop: int, rng: np.random.Generator,
     if calib_jitter > 0:  # imperfect intensity calibration, as on real rigs
         ints = ints * np.exp(rng.normal(0, calib_jitter, ints.shape)).astype(np.float32)
     x = normalise(imgs, ints, mask, train_lights)
-    return x, dirs.astype(np.float32), np.ascontiguousarray(normals.transpose(2, 0, 1)), \
-        np.ascontiguousarray(mask)
+    return (
+        x,
+        dirs.astype(np.float32),
+        np.ascontiguousarray(normals.transpose(2, 0, 1)),
+        np.ascontiguousarray(mask),
+    )
 
 
 def collate(samples: list[tuple[np.ndarray, ...]]) -> Batch:
@@ -115,6 +139,7 @@ def collate(samples: list[tuple[np.ndarray, ...]]) -> Batch:
 
 
 # ----------------------------------------------------------------------------- sources
+
 
 class SynthSource:
     """Rendered stacks from a pool; ``refresh`` new ones replace the oldest per batch.
@@ -124,8 +149,15 @@ class SynthSource:
     network trained only on small renders expects too much curvature per pixel).
     """
 
-    def __init__(self, seed: int | Sequence[int], options: RenderOptions, pool: int = 48,
-                 refresh: int = 2, start: int = 0, max_size: int | None = None) -> None:
+    def __init__(
+        self,
+        seed: int | Sequence[int],
+        options: RenderOptions,
+        pool: int = 48,
+        refresh: int = 2,
+        start: int = 0,
+        max_size: int | None = None,
+    ) -> None:
         # A sequence seed gives each DataLoader worker its own stream of objects.
         self.seed = [seed] if isinstance(seed, int) else list(seed)
         self.options, self.refresh = options, refresh
@@ -144,13 +176,18 @@ class SynthSource:
         self.counter += 1
         return stack
 
-    def batch(self, size: int, lights: int, crop: int, rng: np.random.Generator,
-              **augment: float) -> Batch:
+    def batch(
+        self, size: int, lights: int, crop: int, rng: np.random.Generator, **augment: float
+    ) -> Batch:
         for _ in range(self.refresh):
             self.pool[self.counter % len(self.pool)] = self._render()
         picks = rng.choice(len(self.pool), size=size, replace=size > len(self.pool))
-        return collate([make_sample(self.pool[i], lights, crop, rng, **augment)  # type: ignore[arg-type]
-                        for i in picks])
+        return collate(
+            [
+                make_sample(self.pool[i], lights, crop, rng, **augment)  # type: ignore[arg-type]
+                for i in picks
+            ]
+        )
 
 
 def _read_light_list(path: Path) -> tuple[list[str], np.ndarray]:
@@ -184,8 +221,11 @@ def find_blobby_samples(root: str | Path) -> list[tuple[Path, Path]]:
             if lists:
                 pairs.append((normal, lists[0]))
     if not pairs:
-        raise InputError("no '<shape>_normal.png' with material folders (holding an image list "
-                         "'name lx ly lz') found", root)
+        raise InputError(
+            "no '<shape>_normal.png' with material folders (holding an image list "
+            "'name lx ly lz') found",
+            root,
+        )
     return pairs
 
 
@@ -199,13 +239,23 @@ def load_blobby_sample(normal_png: Path, image_list: Path) -> Stack:
         if img.ndim == 2:
             img = np.repeat(img[..., None], 3, axis=2)
         if img.shape[:2] != normals.shape[:2]:
-            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but the normal map is "
-                             f"{normals.shape[1]}x{normals.shape[0]}", image_list.parent / name)
+            raise InputError(
+                f"image is {img.shape[1]}x{img.shape[0]} but the normal map is "
+                f"{normals.shape[1]}x{normals.shape[0]}",
+                image_list.parent / name,
+            )
         imgs.append(img)
     mask = np.linalg.norm(normals, axis=2) > 0.5
-    return Stack(f"{normal_png.parent.name}/{image_list.parent.name}", as_held(np.stack(imgs)),
-                 dirs, np.ones((len(names), 3), np.float32), mask, normals, names,
-                 image_list.parent).validate()
+    return Stack(
+        f"{normal_png.parent.name}/{image_list.parent.name}",
+        as_held(np.stack(imgs)),
+        dirs,
+        np.ones((len(names), 3), np.float32),
+        mask,
+        normals,
+        names,
+        image_list.parent,
+    ).validate()
 
 
 class BlobbySource:
@@ -226,19 +276,25 @@ class BlobbySource:
             self.cache.popitem(last=False)
         return stack
 
-    def batch(self, size: int, lights: int, crop: int, rng: np.random.Generator,
-              **augment: float) -> Batch:
+    def batch(
+        self, size: int, lights: int, crop: int, rng: np.random.Generator, **augment: float
+    ) -> Batch:
         picks = rng.choice(len(self.pairs), size=size, replace=size > len(self.pairs))
-        return collate([make_sample(self.get(int(i)), lights, crop, rng,
-                                    **augment)  # type: ignore[arg-type]
-                        for i in picks])
+        return collate(
+            [
+                make_sample(self.get(int(i)), lights, crop, rng, **augment)  # type: ignore[arg-type]
+                for i in picks
+            ]
+        )
 
 
 # ----------------------------------------------------------------------------- worker stream
 
+
 class Source(Protocol):
-    def batch(self, size: int, lights: int, crop: int, rng: np.random.Generator,
-              **augment: float) -> Batch: ...
+    def batch(
+        self, size: int, lights: int, crop: int, rng: np.random.Generator, **augment: float
+    ) -> Batch: ...
 
 
 @dataclass(frozen=True)
@@ -257,8 +313,13 @@ class SourceSpec:
             return BlobbySource(self.data)
         # Tag 1 keeps worker streams apart from the in-process stream [seed, counter]; the
         # start step makes a resumed run render new objects, as the in-process source does.
-        return SynthSource([self.seed, 1, worker, workers, start_step], self.options,
-                           self.pool, self.refresh, max_size=self.max_size)
+        return SynthSource(
+            [self.seed, 1, worker, workers, start_step],
+            self.options,
+            self.pool,
+            self.refresh,
+            max_size=self.max_size,
+        )
 
 
 @dataclass(frozen=True)
@@ -299,8 +360,15 @@ class StepStream(torch.utils.data.IterableDataset):
             rng = np.random.default_rng([self.plan.seed, 2, step])
             lights, crop = self.plan.lights_and_crop(step, rng)
             b = source.batch(self.plan.batch, lights, crop, rng, noise=self.plan.noise)
-            yield {"images": b.images, "lights": b.lights, "normals": b.normals, "mask": b.mask,
-                   "step": step, "n_lights": lights, "crop": crop}
+            yield {
+                "images": b.images,
+                "lights": b.lights,
+                "normals": b.normals,
+                "mask": b.mask,
+                "step": step,
+                "n_lights": lights,
+                "crop": crop,
+            }
 
 
 def worker_init(_worker_id: int) -> None:
@@ -316,15 +384,27 @@ def worker_init(_worker_id: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
-def make_loader(spec: SourceSpec, plan: StepPlan, start: int, total: int, workers: int,
-                pin_memory: bool = False, prefetch: int = 4) -> torch.utils.data.DataLoader:
+def make_loader(
+    spec: SourceSpec,
+    plan: StepPlan,
+    start: int,
+    total: int,
+    workers: int,
+    pin_memory: bool = False,
+    prefetch: int = 4,
+) -> torch.utils.data.DataLoader:
     """A DataLoader over ``StepStream`` with ``workers`` persistent worker processes (>= 1)."""
     if workers < 1:
         raise ValueError("make_loader needs at least one worker (0 = the in-process source)")
     return torch.utils.data.DataLoader(
-        StepStream(spec, plan, start, total), batch_size=None, num_workers=workers,
-        persistent_workers=True, pin_memory=pin_memory, prefetch_factor=prefetch,
-        worker_init_fn=worker_init)
+        StepStream(spec, plan, start, total),
+        batch_size=None,
+        num_workers=workers,
+        persistent_workers=True,
+        pin_memory=pin_memory,
+        prefetch_factor=prefetch,
+        worker_init_fn=worker_init,
+    )
 
 
 def batch_from_dict(d: dict) -> Batch:

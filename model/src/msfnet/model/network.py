@@ -22,8 +22,9 @@ def conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 def deconv(cin: int, cout: int) -> nn.Sequential:
     """4x4 stride-2 transposed convolution, no bias, + LeakyReLU(0.1): doubles H and W."""
-    return nn.Sequential(nn.ConvTranspose2d(cin, cout, 4, stride=2, padding=1, bias=False),
-                         nn.LeakyReLU(0.1))
+    return nn.Sequential(
+        nn.ConvTranspose2d(cin, cout, 4, stride=2, padding=1, bias=False), nn.LeakyReLU(0.1)
+    )
 
 
 class Extractor1(nn.Module):
@@ -78,10 +79,12 @@ class Fusion(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        self.f_x = nn.Sequential(nn.Conv2d(FEATURES, FEATURES, 1, bias=False),
-                                 nn.BatchNorm2d(FEATURES))
-        self.f_y = nn.Sequential(nn.Conv2d(FEATURES, FEATURES, 1, bias=False),
-                                 nn.BatchNorm2d(FEATURES))
+        self.f_x = nn.Sequential(
+            nn.Conv2d(FEATURES, FEATURES, 1, bias=False), nn.BatchNorm2d(FEATURES)
+        )
+        self.f_y = nn.Sequential(
+            nn.Conv2d(FEATURES, FEATURES, 1, bias=False), nn.BatchNorm2d(FEATURES)
+        )
 
     def forward(self, feats: Tensor, pooled: Tensor) -> Tensor:
         """feats (B*N, C, h, w) per light, pooled (B, C, h, w) max over lights -> (B*N, C, h, w)."""

@@ -1,7 +1,7 @@
 """Torch inference on a whole stack (validation during training, quick checks of checkpoints).
 
 The deployment path is the ONNX runtime; this twin runs a torch MSFNet through the *same* tiling,
-normalisation and stitching code (msfnet.runtime.infer) by wrapping it in the interface of an
+normalisation and stitching code (msfnet.runtime.infer.tiled) by wrapping it in the interface of an
 ONNX session. Usage: ``python -m msfnet.model.predict CHECKPOINT STACK [--max-lights N]``.
 """
 
@@ -16,19 +16,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from msfnet.runtime.contract import INPUT_MULTIPLE, TRAIN_LIGHTS, ModelInfo
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.infer import infer_normals
-from msfnet.runtime.metrics import normal_metrics
-from msfnet.runtime.stack import Stack, load_stack
-from msfnet.runtime.tiling import plan_tiles
-
+from msfnet.common.errors import InputError
 from msfnet.model.network import MSFNet
+from msfnet.runtime.contract import INPUT_MULTIPLE, TRAIN_LIGHTS, ModelInfo
+from msfnet.runtime.evaluate.metrics import normal_metrics
+from msfnet.runtime.infer.tiled import infer_normals
+from msfnet.runtime.infer.tiling import plan_tiles
+from msfnet.runtime.stack import Stack, load_stack
 
 
 def autocast(enabled: bool, device_type: str = "cpu"):
-    return (torch.autocast(device_type, dtype=torch.bfloat16) if enabled
-            else contextlib.nullcontext())
+    return (
+        torch.autocast(device_type, dtype=torch.bfloat16) if enabled else contextlib.nullcontext()
+    )
 
 
 class TorchModel:
@@ -38,13 +38,13 @@ class TorchModel:
     name = "torch"
     chunk = None  # the whole light stack in one call
 
-    def __init__(self, model: MSFNet, bf16: bool = False,
-                 train_lights: int = TRAIN_LIGHTS) -> None:
+    def __init__(self, model: MSFNet, bf16: bool = False, train_lights: int = TRAIN_LIGHTS) -> None:
         self.model = model.eval()
         self.bf16 = bf16
         self.threads: int | None = torch.get_num_threads()
-        self.info = ModelInfo(Path("<torch model>"), train_lights, INPUT_MULTIPLE, None,
-                              self.precision, {})
+        self.info = ModelInfo(
+            Path("<torch model>"), train_lights, INPUT_MULTIPLE, None, self.precision, {}
+        )
 
     @property
     def precision(self) -> str:
@@ -58,13 +58,15 @@ class TorchModel:
         # Inputs go wherever the model lives (a GPU during GPU training's validation).
         device = next(self.model.parameters()).device
         with autocast(self.bf16, device.type):
-            out = self.model(torch.from_numpy(images).to(device),
-                             torch.from_numpy(lights).to(device))
+            out = self.model(
+                torch.from_numpy(images).to(device), torch.from_numpy(lights).to(device)
+            )
         return out.float().cpu().numpy()
 
 
-def predict_normals(model: MSFNet, stack: Stack, bf16: bool = False,
-                    tile: int | None = 128) -> np.ndarray:
+def predict_normals(
+    model: MSFNet, stack: Stack, bf16: bool = False, tile: int | None = 128
+) -> np.ndarray:
     """(H, W, 3) unit normals, zeros outside the mask; ``tile`` None = one window."""
     plan = plan_tiles(stack.mask, tile)
     normals = infer_normals(TorchModel(model, bf16), stack, plan).normals
@@ -76,14 +78,19 @@ def predict_normals(model: MSFNet, stack: Stack, bf16: bool = False,
 def main(argv: list[str] | None = None) -> int:
     from msfnet.model.checkpoint import load_model
 
-    p = argparse.ArgumentParser(prog="python -m msfnet.model.predict",
-                                description="Torch inference of a checkpoint on one stack; "
-                                            "prints MAE/err15/err30 when ground truth exists.")
+    p = argparse.ArgumentParser(
+        prog="python -m msfnet.model.predict",
+        description="Torch inference of a checkpoint on one stack; "
+        "prints MAE/err15/err30 when ground truth exists.",
+    )
     p.add_argument("checkpoint")
     p.add_argument("stack")
     p.add_argument("--max-lights", type=int, default=None)
-    p.add_argument("--fp32", action="store_true",
-                   help="no bf16 autocast (it is only used where the CPU has native bf16)")
+    p.add_argument(
+        "--fp32",
+        action="store_true",
+        help="no bf16 autocast (it is only used where the CPU has native bf16)",
+    )
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--tile", type=int, default=128, help="tile side in pixels (default 128)")
     args = p.parse_args(argv)
@@ -100,9 +107,11 @@ def main(argv: list[str] | None = None) -> int:
     took = time.perf_counter() - t0
     if stack.normals_gt is not None:
         m = normal_metrics(normals, stack.normals_gt, stack.mask)
-        print(f"{stack.name}: {stack.num_lights} lights, MAE {m.mae_deg:.2f} deg, median "
-              f"{m.median_deg:.2f}, err15 {m.err15:.3f}, err30 {m.err30:.3f} "
-              f"({took:.1f} s)")
+        print(
+            f"{stack.name}: {stack.num_lights} lights, MAE {m.mae_deg:.2f} deg, median "
+            f"{m.median_deg:.2f}, err15 {m.err15:.3f}, err30 {m.err30:.3f} "
+            f"({took:.1f} s)"
+        )
     else:
         print(f"{stack.name}: predicted in {took:.1f} s (no ground truth)")
     return 0

@@ -26,24 +26,38 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from msfnet.runtime.cpu import usable_cores
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import staged_files, write_atomic
-from msfnet.runtime.least_squares import least_squares_normals
-from msfnet.runtime.metrics import normal_metrics
-from msfnet.runtime.stack import Stack
-from msfnet.synth.render import RenderOptions, render_set
-
-from msfnet.model.checkpoint import check_state_dict, checkpoint_content, read_checkpoint, read_torch_file, save_checkpoint
-from msfnet.model.data import Batch, BlobbySource, SourceSpec, StepPlan, SynthSource, batch_from_dict, make_loader
+from msfnet.common.cpu import usable_cores
+from msfnet.common.errors import InputError
+from msfnet.common.files import staged_files, write_atomic
+from msfnet.model.checkpoint import (
+    check_state_dict,
+    checkpoint_content,
+    read_checkpoint,
+    read_torch_file,
+    save_checkpoint,
+)
+from msfnet.model.data import (
+    Batch,
+    BlobbySource,
+    SourceSpec,
+    StepPlan,
+    SynthSource,
+    batch_from_dict,
+    make_loader,
+)
 from msfnet.model.network import MSFNet
 from msfnet.model.predict import autocast, predict_normals
 from msfnet.model.train_config import TrainConfig, parse_curriculum
+from msfnet.runtime.evaluate.metrics import normal_metrics
+from msfnet.runtime.infer.least_squares import least_squares_normals
+from msfnet.runtime.stack import Stack
+from msfnet.synth.render import RenderOptions, render_set
 
 STAGE_WEIGHTS = (0.5, 0.5, 1.0)
 
 
 # ----------------------------------------------------------------------------- losses
+
 
 def cosine_loss(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
     """mean(1 - <pred, gt>) over mask pixels; pred, gt (B, 3, H, W), mask (B, H, W)."""
@@ -71,8 +85,14 @@ def gradient_loss(pred: Tensor, gt: Tensor, mask: Tensor) -> Tensor:
     return total / count.clamp_min(1.0)
 
 
-def stage_losses(model: MSFNet, images: Tensor, lights: Tensor, normals: Tensor,
-                 mask: Tensor, grad_weight: float = 0.0) -> list[Tensor]:
+def stage_losses(
+    model: MSFNet,
+    images: Tensor,
+    lights: Tensor,
+    normals: Tensor,
+    mask: Tensor,
+    grad_weight: float = 0.0,
+) -> list[Tensor]:
     """One loss per stage output (1 without MFE, else 3), through the shared regressor: the
     cosine loss, plus ``grad_weight`` x ``gradient_loss`` when that is above 0."""
     out = []
@@ -87,12 +107,19 @@ def stage_losses(model: MSFNet, images: Tensor, lights: Tensor, normals: Tensor,
 
 def later_parameters(model: MSFNet) -> list[Tensor]:
     """Every trainable parameter outside extractor1 (what the middle loss may update under SUS)."""
-    return [p for n, p in model.named_parameters()
-            if not n.startswith("extractor1.") and p.requires_grad]
+    return [
+        p
+        for n, p in model.named_parameters()
+        if not n.startswith("extractor1.") and p.requires_grad
+    ]
 
 
-def backward_losses(model: MSFNet, losses: Sequence[Tensor], sus: bool = True,
-                    weights: Sequence[float] = STAGE_WEIGHTS) -> Tensor:
+def backward_losses(
+    model: MSFNet,
+    losses: Sequence[Tensor],
+    sus: bool = True,
+    weights: Sequence[float] = STAGE_WEIGHTS,
+) -> Tensor:
     """Accumulate gradients of the weighted stage losses; returns the weighted total (detached)."""
     if len(losses) == 1:
         losses[0].backward()
@@ -109,6 +136,7 @@ def backward_losses(model: MSFNet, losses: Sequence[Tensor], sus: bool = True,
 
 
 # ----------------------------------------------------------------------------- config
+
 
 def bf16_available() -> bool:
     """True when bf16 autocast runs on this CPU (AVX512-BF16 / AMX); checked by a tiny conv."""
@@ -128,8 +156,9 @@ def resolve_device(name: str) -> torch.device:
     if name not in ("auto", "cpu", "cuda"):
         raise InputError(f"--device {name!r}: choose auto, cpu or cuda")
     if name == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: torch sees no CUDA GPU (a CPU-only torch build, or "
-                         "no driver)")
+        raise InputError(
+            "--device cuda: torch sees no CUDA GPU (a CPU-only torch build, or no driver)"
+        )
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     return torch.device(name)
@@ -174,7 +203,6 @@ def gpu_utilisation() -> float | None:
 # ----------------------------------------------------------------------------- trainer
 
 
-
 def snapshot_name(step: int) -> str:
     return f"snap_{step:07d}.pth"
 
@@ -215,8 +243,9 @@ class Trainer:
         cuda = self.device.type == "cuda"
         can_bf16 = torch.cuda.is_bf16_supported() if cuda else bf16_available()
         if cfg.precision == "bf16" and not can_bf16:
-            raise InputError(f"--precision bf16: this {self.device.type.upper()}/torch cannot run "
-                             "bf16 autocast")
+            raise InputError(
+                f"--precision bf16: this {self.device.type.upper()}/torch cannot run bf16 autocast"
+            )
         self.bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and can_bf16)
         if cuda:
             # Input shapes repeat (a few light counts x crop sizes): let cuDNN pick kernels;
@@ -235,21 +264,35 @@ class Trainer:
         if resume:
             self._load()
         self.render_options = RenderOptions.preset(
-            cfg.render_preset, size=cfg.render_size, lights=cfg.render_lights,
-            max_depth=cfg.render_max_depth)
+            cfg.render_preset,
+            size=cfg.render_size,
+            lights=cfg.render_lights,
+            max_depth=cfg.render_max_depth,
+        )
         self.source: SynthSource | BlobbySource | None = None
         if self.workers == 0:  # today's in-process source; workers build their own
             if cfg.data == "synth":
                 # Training objects start far from the validation seed space: seeds differ.
-                self.source = SynthSource(cfg.seed, self.render_options, cfg.pool, cfg.refresh,
-                                          start=self.step * cfg.refresh,
-                                          max_size=cfg.render_size_max)
+                self.source = SynthSource(
+                    cfg.seed,
+                    self.render_options,
+                    cfg.pool,
+                    cfg.refresh,
+                    start=self.step * cfg.refresh,
+                    max_size=cfg.render_size_max,
+                )
             else:
                 self.source = BlobbySource(cfg.data)
         val_opts = RenderOptions(size=cfg.val_size, lights=cfg.val_lights)
         self.val_set = list(render_set(cfg.val_seed, cfg.val_objects, val_opts))
-        self.val_ls = float(np.mean([normal_metrics(least_squares_normals(s), _gt(s),
-                                                    s.mask).mae_deg for s in self.val_set]))
+        self.val_ls = float(
+            np.mean(
+                [
+                    normal_metrics(least_squares_normals(s), _gt(s), s.mask).mae_deg
+                    for s in self.val_set
+                ]
+            )
+        )
 
     # -- state
     def _state_paths(self) -> tuple[Path, Path]:
@@ -272,19 +315,28 @@ class Trainer:
         check_state_dict(self.model, tensors, weights)
         self.model.load_state_dict(tensors, strict=True)
         st = read_torch_file(state)
-        if not isinstance(st, dict) or not {"optimizer", "step", "best"} <= set(st) \
-                or not isinstance(st["step"], int) or not isinstance(st["best"], (int, float)):
-            raise InputError("not an msf-train optimiser state (expected optimizer, step, "
-                             "best)", state)
+        if (
+            not isinstance(st, dict)
+            or not {"optimizer", "step", "best"} <= set(st)
+            or not isinstance(st["step"], int)
+            or not isinstance(st["best"], (int, float))
+        ):
+            raise InputError(
+                "not an msf-train optimiser state (expected optimizer, step, best)", state
+            )
         if saved is not None and saved != int(st["step"]):
-            raise InputError(f"last.pth is from step {saved} but last_state.pth from step "
-                             f"{st['step']} (the run was stopped while saving); start a new "
-                             "run with --init on last.pth", self.out)
+            raise InputError(
+                f"last.pth is from step {saved} but last_state.pth from step "
+                f"{st['step']} (the run was stopped while saving); start a new "
+                "run with --init on last.pth",
+                self.out,
+            )
         try:
             self.opt.load_state_dict(st["optimizer"])
         except (ValueError, KeyError, TypeError) as exc:
-            raise InputError(f"the optimiser state does not fit this network ({exc})",
-                             state) from exc
+            raise InputError(
+                f"the optimiser state does not fit this network ({exc})", state
+            ) from exc
         self.step, self.best = int(st["step"]), float(st["best"])
         self.history = self._history_until(self.step)
 
@@ -315,14 +367,24 @@ class Trainer:
 
     # -- data
     def _loader_batches(self, total: int):
-        spec = SourceSpec(self.cfg.data, self.cfg.seed, self.render_options, self.cfg.pool,
-                          self.cfg.refresh, self.cfg.render_size_max)
-        phases = tuple((p.epoch, p.lights_min, p.lights_max, p.crop)
-                       for p in parse_curriculum(self.cfg.curriculum))
-        plan = StepPlan(self.cfg.seed, self.cfg.batch, self.cfg.steps_per_epoch, phases,
-                        self.cfg.noise)
-        loader = make_loader(spec, plan, self.step, total, self.workers,
-                             pin_memory=self.device.type == "cuda")
+        spec = SourceSpec(
+            self.cfg.data,
+            self.cfg.seed,
+            self.render_options,
+            self.cfg.pool,
+            self.cfg.refresh,
+            self.cfg.render_size_max,
+        )
+        phases = tuple(
+            (p.epoch, p.lights_min, p.lights_max, p.crop)
+            for p in parse_curriculum(self.cfg.curriculum)
+        )
+        plan = StepPlan(
+            self.cfg.seed, self.cfg.batch, self.cfg.steps_per_epoch, phases, self.cfg.noise
+        )
+        loader = make_loader(
+            spec, plan, self.step, total, self.workers, pin_memory=self.device.type == "cuda"
+        )
         for d in loader:
             if d["step"] != self.step:  # the round-robin order is what makes this hold
                 raise RuntimeError(f"data loader sent step {d['step']}, expected {self.step}")
@@ -334,17 +396,23 @@ class Trainer:
         while self.step < total:
             phase = cfg.phase(self.epoch)
             lights = int(rng.integers(phase.lights_min, phase.lights_max + 1))
-            yield self.source.batch(cfg.batch, lights, phase.crop, rng, noise=cfg.noise), \
-                lights, phase.crop
+            yield (
+                self.source.batch(cfg.batch, lights, phase.crop, rng, noise=cfg.noise),
+                lights,
+                phase.crop,
+            )
 
     def to_device(self, batch: Batch) -> Batch:
         nb = self.device.type == "cuda"  # from pinned memory, the copy overlaps compute
         normals = batch.normals.to(self.device, non_blocking=nb)
         if self.cfg.channels_last:
             normals = normals.contiguous(memory_format=torch.channels_last)
-        return Batch(batch.images.to(self.device, non_blocking=nb),
-                     batch.lights.to(self.device, non_blocking=nb), normals,
-                     batch.mask.to(self.device, non_blocking=nb))
+        return Batch(
+            batch.images.to(self.device, non_blocking=nb),
+            batch.lights.to(self.device, non_blocking=nb),
+            normals,
+            batch.mask.to(self.device, non_blocking=nb),
+        )
 
     # -- steps
     def train_step(self, batch) -> tuple[float, list[float]]:
@@ -352,15 +420,18 @@ class Trainer:
         images, lights = batch.images, batch.lights
         self.opt.zero_grad(set_to_none=True)
         with autocast(self.bf16, self.device.type):
-            losses = stage_losses(self.model, images, lights, batch.normals, batch.mask,
-                                  self.cfg.grad_loss)
+            losses = stage_losses(
+                self.model, images, lights, batch.normals, batch.mask, self.cfg.grad_loss
+            )
         total = backward_losses(self.model, losses, sus=self.cfg.sus)
         self.opt.step()
         return float(total), [float(x.detach()) for x in losses]
 
     def validate(self) -> float:
-        maes = [normal_metrics(predict_normals(self.model, s, bf16=self.bf16), _gt(s),
-                               s.mask).mae_deg for s in self.val_set]
+        maes = [
+            normal_metrics(predict_normals(self.model, s, bf16=self.bf16), _gt(s), s.mask).mae_deg
+            for s in self.val_set
+        ]
         return float(np.mean(maes))
 
     def log(self, row: dict) -> None:
@@ -403,8 +474,7 @@ class Trainer:
         self.stop_signal = None
         if threading.current_thread() is not threading.main_thread():
             return {}
-        return {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM,
-                                                                    signal.SIGINT)}
+        return {sig: signal.signal(sig, self._on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
 
     def run(self, progress: bool = True, report: bool = True) -> TrainOutcome:
         """Train to the configured end or a SIGTERM / SIGINT. ``progress``: the progress bar;
@@ -413,16 +483,23 @@ class Trainer:
 
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
-        write_atomic(self.out / "config.json",
-                     lambda t: t.write_text(json.dumps(asdict(cfg), indent=1)))
+        write_atomic(
+            self.out / "config.json", lambda t: t.write_text(json.dumps(asdict(cfg), indent=1))
+        )
         total = cfg.epochs * cfg.steps_per_epoch
         last_save = time.monotonic()
-        bar = tqdm(total=total, initial=self.step, desc="train", unit="step", disable=not progress,
-                   mininterval=5.0, dynamic_ncols=True)
+        bar = tqdm(
+            total=total,
+            initial=self.step,
+            desc="train",
+            unit="step",
+            disable=not progress,
+            mininterval=5.0,
+            dynamic_ncols=True,
+        )
         old_handlers = self._install_handlers()
         before = set(multiprocessing.active_children())  # not ours to stop afterwards
-        batches = (self._loader_batches(total) if self.workers > 0 else
-                   self._local_batches(total))
+        batches = self._loader_batches(total) if self.workers > 0 else self._local_batches(total)
         run_loss = None
         # Throughput: per log row and per epoch, wall time, time blocked on data, samples.
         win = {"t": time.perf_counter(), "wait": 0.0, "n": 0}
@@ -454,11 +531,19 @@ class Trainer:
                 if self.step % cfg.log_every == 0:
                     now = time.perf_counter()
                     span = now - win["t"]
-                    row = {"step": self.step, "epoch": epoch, "loss": loss, "stages": parts,
-                           "lights": lights, "crop": crop, "lr": self.lr_at(epoch),
-                           "s_per_step": span / cfg.log_every,
-                           "samples_per_s": win["n"] / span, "data_wait": win["wait"] / span,
-                           "time": time.time()}
+                    row = {
+                        "step": self.step,
+                        "epoch": epoch,
+                        "loss": loss,
+                        "stages": parts,
+                        "lights": lights,
+                        "crop": crop,
+                        "lr": self.lr_at(epoch),
+                        "s_per_step": span / cfg.log_every,
+                        "samples_per_s": win["n"] / span,
+                        "data_wait": win["wait"] / span,
+                        "time": time.time(),
+                    }
                     if self.device.type == "cuda":
                         row["gpu_util"] = gpu_utilisation()
                     self.log(row)
@@ -470,23 +555,38 @@ class Trainer:
                     util = gpu_utilisation() if self.device.type == "cuda" else None
                     if util is not None:
                         speed["gpu_util"] = util
-                    self.log({"step": self.step, "epoch": epoch + 1, "val_mae": mae,
-                              "val_ls_mae": self.val_ls, **speed, "time": time.time()})
+                    self.log(
+                        {
+                            "step": self.step,
+                            "epoch": epoch + 1,
+                            "val_mae": mae,
+                            "val_ls_mae": self.val_ls,
+                            **speed,
+                            "time": time.time(),
+                        }
+                    )
                     gpu = f", GPU {util:.0f} %" if util is not None else ""
                     if report:
-                        bar.write(f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least "
-                                  f"squares {self.val_ls:.2f}), loss {run_loss:.4f}, "
-                                  f"{speed['samples_per_s']:.1f} samples/s, data wait "
-                                  f"{100 * speed['data_wait']:.0f} %{gpu}")
+                        bar.write(
+                            f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least "
+                            f"squares {self.val_ls:.2f}), loss {run_loss:.4f}, "
+                            f"{speed['samples_per_s']:.1f} samples/s, data wait "
+                            f"{100 * speed['data_wait']:.0f} %{gpu}"
+                        )
                     if cfg.snapshot_every and (epoch + 1) % cfg.snapshot_every == 0:
                         # Synthetic validation does not rank real objects reliably: keep
                         # snapshots to select on real validation objects afterwards.
-                        save_checkpoint(self.model, self.out / snapshot_name(self.step),
-                                        step=self.step, val_mae=mae)
+                        save_checkpoint(
+                            self.model,
+                            self.out / snapshot_name(self.step),
+                            step=self.step,
+                            val_mae=mae,
+                        )
                     if mae < self.best:
                         self.best = mae
-                        save_checkpoint(self.model, self.out / "best.pth", step=self.step,
-                                        val_mae=mae)
+                        save_checkpoint(
+                            self.model, self.out / "best.pth", step=self.step, val_mae=mae
+                        )
                     self.save()
                     self.plot()
                     last_save = time.monotonic()

@@ -9,7 +9,7 @@ import sys
 from dataclasses import fields
 from pathlib import Path
 
-from msfnet.runtime.cliutil import (
+from msfnet.common.cli import (
     int_range,
     make_parser,
     nonnegative_float,
@@ -18,11 +18,10 @@ from msfnet.runtime.cliutil import (
     positive_int,
     run_command,
 )
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.files import STAGING_TAG, check_not_input
-from msfnet.synth.render import PRESETS
-
+from msfnet.common.errors import InputError
+from msfnet.common.files import STAGING_TAG, check_not_input
 from msfnet.model.train_config import SNAPSHOT, TrainConfig, parse_curriculum
+from msfnet.synth.render import PRESETS
 
 DEFAULTS = TrainConfig(out="")
 PROG = "msf-train"
@@ -31,8 +30,17 @@ MAX_LIGHTS = 1024
 # What msf-train writes into OUT: --overwrite deletes these and nothing else.
 # (Checkpoints are written through files.write_atomic; the ".*.pth.tmp" names are temporaries
 # of versions before 2026-11-23, left by a kill -9.)
-TRAIN_FILES = ("config.json", "log.jsonl", "last.pth", "last_state.pth", "best.pth", "curve.png",
-               ".last.pth.tmp", ".last_state.pth.tmp", ".best.pth.tmp")
+TRAIN_FILES = (
+    "config.json",
+    "log.jsonl",
+    "last.pth",
+    "last_state.pth",
+    "best.pth",
+    "curve.png",
+    ".last.pth.tmp",
+    ".last_state.pth.tmp",
+    ".best.pth.tmp",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,99 +54,213 @@ def build_parser() -> argparse.ArgumentParser:
         "SIGTERM / SIGINT (Ctrl-C) finish the step, save last.pth and exit with "
         "128 + the signal number (143 / 130), so time-boxed chunks can be chained: "
         "`timeout 600 msf-train ... --resume` repeated.",
-        ("msf-train --out runs/a --epochs 2 --steps-per-epoch 50",
-         "msf-train --out runs/a --resume --epochs 4",
-         "msf-train --out runs/gpu --device cuda --render-preset hard --resume   # chunks"))
-    p.add_argument("-o", "--output", "--out", dest="out", type=Path, required=True,
-                   help="output (run) folder")
-    p.add_argument("--resume", action="store_true",
-                   help="continue from OUT/last.pth with OUT/config.json; options given "
-                        "explicitly (e.g. --epochs) override the stored ones. With nothing "
-                        "to resume in OUT yet, start there (so one command serves every chunk)")
-    p.add_argument("--overwrite", action="store_true",
-                   help="start afresh in an OUT of an earlier msf-train run (only its files are "
-                   "deleted)")
-    p.add_argument("--data", default=d.data,
-                   help="'synth' (built-in renderer, default) or a Blobby/Sculpture root folder")
+        (
+            "msf-train --out runs/a --epochs 2 --steps-per-epoch 50",
+            "msf-train --out runs/a --resume --epochs 4",
+            "msf-train --out runs/gpu --device cuda --render-preset hard --resume   # chunks",
+        ),
+    )
+    p.add_argument(
+        "-o", "--output", "--out", dest="out", type=Path, required=True, help="output (run) folder"
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue from OUT/last.pth with OUT/config.json; options given "
+        "explicitly (e.g. --epochs) override the stored ones. With nothing "
+        "to resume in OUT yet, start there (so one command serves every chunk)",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start afresh in an OUT of an earlier msf-train run (only its files are deleted)",
+    )
+    p.add_argument(
+        "--data",
+        default=d.data,
+        help="'synth' (built-in renderer, default) or a Blobby/Sculpture root folder",
+    )
     p.add_argument("--epochs", type=positive_int, default=d.epochs, help=f"default {d.epochs}")
-    p.add_argument("--steps-per-epoch", type=positive_int, default=d.steps_per_epoch,
-                   help=f"default {d.steps_per_epoch}")
+    p.add_argument(
+        "--steps-per-epoch",
+        type=positive_int,
+        default=d.steps_per_epoch,
+        help=f"default {d.steps_per_epoch}",
+    )
     p.add_argument("--batch", type=positive_int, default=d.batch, help=f"default {d.batch}")
-    p.add_argument("--curriculum", default=d.curriculum,
-                   help="EPOCH:LMIN-LMAX:CROP[,...]: from EPOCH on, each batch uses a random "
-                        "light count in [LMIN, LMAX] and CROPxCROP crops "
-                        f"(default {d.curriculum!r}; one phase = fixed setting)")
-    p.add_argument("--lights", type=int_range(1, MAX_LIGHTS), default=None,
-                   help="shortcut: a fixed light count for every batch (curriculum with one "
-                        "phase; the paper used 32)")
-    p.add_argument("--crop", type=int_range(8, MAX_SIZE), default=None,
-                   help="shortcut: fixed crop size")
-    p.add_argument("--lr", type=positive_float, default=d.lr,
-                   help=f"Adam learning rate (default {d.lr})")
-    p.add_argument("--lr-step", type=positive_int, default=d.lr_step,
-                   help=f"halve the learning rate every this many epochs (default {d.lr_step})")
+    p.add_argument(
+        "--curriculum",
+        default=d.curriculum,
+        help="EPOCH:LMIN-LMAX:CROP[,...]: from EPOCH on, each batch uses a random "
+        "light count in [LMIN, LMAX] and CROPxCROP crops "
+        f"(default {d.curriculum!r}; one phase = fixed setting)",
+    )
+    p.add_argument(
+        "--lights",
+        type=int_range(1, MAX_LIGHTS),
+        default=None,
+        help="shortcut: a fixed light count for every batch (curriculum with one "
+        "phase; the paper used 32)",
+    )
+    p.add_argument(
+        "--crop", type=int_range(8, MAX_SIZE), default=None, help="shortcut: fixed crop size"
+    )
+    p.add_argument(
+        "--lr", type=positive_float, default=d.lr, help=f"Adam learning rate (default {d.lr})"
+    )
+    p.add_argument(
+        "--lr-step",
+        type=positive_int,
+        default=d.lr_step,
+        help=f"halve the learning rate every this many epochs (default {d.lr_step})",
+    )
     p.add_argument("--seed", type=nonnegative_int, default=d.seed)
-    p.add_argument("--threads", type=int_range(1, 1024), default=d.threads,
-                   help=f"torch threads of the training process (default {d.threads})")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default=d.device,
-                   help="auto (default): cuda when torch sees a GPU, else cpu")
-    p.add_argument("--workers", type=nonnegative_int, default=d.workers,
-                   help="processes rendering batches in parallel (DataLoader workers, each with "
-                        "its own object pool and seed stream); 0 = render in the training "
-                        "process. Default: 0 on the CPU, min(cores - 2, 12) with cuda")
-    p.add_argument("--precision", choices=("auto", "bf16", "fp32"), default=d.precision,
-                   help="bf16 autocast where the device supports it natively (auto, default: "
-                        "GPUs with bf16, CPUs with AVX512-BF16/AMX) or fp32")
+    p.add_argument(
+        "--threads",
+        type=int_range(1, 1024),
+        default=d.threads,
+        help=f"torch threads of the training process (default {d.threads})",
+    )
+    p.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default=d.device,
+        help="auto (default): cuda when torch sees a GPU, else cpu",
+    )
+    p.add_argument(
+        "--workers",
+        type=nonnegative_int,
+        default=d.workers,
+        help="processes rendering batches in parallel (DataLoader workers, each with "
+        "its own object pool and seed stream); 0 = render in the training "
+        "process. Default: 0 on the CPU, min(cores - 2, 12) with cuda",
+    )
+    p.add_argument(
+        "--precision",
+        choices=("auto", "bf16", "fp32"),
+        default=d.precision,
+        help="bf16 autocast where the device supports it natively (auto, default: "
+        "GPUs with bf16, CPUs with AVX512-BF16/AMX) or fp32",
+    )
     p.add_argument("--no-channels-last", action="store_true", help="keep NCHW weights")
-    p.add_argument("--no-mfe", action="store_true",
-                   help="ablation: no multi-stage extraction (extractor1 -> max -> regressor)")
-    p.add_argument("--init", metavar="CKPT",
-                   help="start from these weights with a fresh optimiser (e.g. the bundled "
-                   "msfnet_default.pth), instead of random initialisation")
-    p.add_argument("--no-mff", action="store_true",
-                   help="ablation: no fusion module (a stage sees concat(raw, max))")
-    p.add_argument("--no-sus", action="store_true",
-                   help="ablation: no selective update (all stage losses train all modules)")
-    p.add_argument("--grad-loss", type=nonnegative_float, default=d.grad_loss, metavar="W",
-                   help="add W x the L1 distance between predicted and true normal changes "
-                        "from pixel to pixel to each stage loss (default 0: the "
-                        "paper's loss). Experimental: meant to keep 1-3 px relief, it lowered "
-                        "detail in a short CPU fine-tune (docs/training.md)")
-    p.add_argument("--render-size", type=int_range(8, MAX_SIZE), default=d.render_size,
-                   help=f"synthetic object size in pixels (default {d.render_size})")
-    p.add_argument("--render-size-max", type=int_range(8, MAX_SIZE), default=d.render_size_max,
-                   help="draw each synthetic object's size from [--render-size, this]: larger "
-                        "renders are smoother per pixel, like real full-resolution objects")
-    p.add_argument("--render-max-depth", type=positive_float, default=d.render_max_depth,
-                   help="synthetic domes up to this height/radius (default "
-                        f"{d.render_max_depth}; 2 gives a slant histogram like DiLiGenT ball's, "
-                        "with 4x more pixels steeper than 66 deg)")
-    p.add_argument("--render-preset", choices=PRESETS, default=d.render_preset,
-                   help="synthetic data: 'default' renderer or 'hard' (steep rims, folds and "
-                        "cups with inter-reflections, pixel-scale relief, rough / painted / "
-                        "very dark materials, LED rings, mostly 8-bit); validation stays on "
-                        "the default renderer so runs compare")
-    p.add_argument("--val-size", type=int_range(8, MAX_SIZE), default=d.val_size,
-                   help=f"validation object size in pixels (default {d.val_size})")
-    p.add_argument("--render-lights", type=int_range(3, MAX_LIGHTS), default=d.render_lights,
-                   help=f"lights rendered per synthetic object (default {d.render_lights})")
-    p.add_argument("--pool", type=positive_int, default=d.pool,
-                   help=f"synthetic objects kept in memory (default {d.pool})")
-    p.add_argument("--refresh", type=nonnegative_int, default=d.refresh,
-                   help=f"new synthetic objects rendered per batch (default {d.refresh})")
-    p.add_argument("--noise", type=nonnegative_float, default=d.noise,
-                   help="max extra Gaussian noise, fraction of the crop's 95th percentile "
-                        f"(default {d.noise})")
-    p.add_argument("--val-objects", type=positive_int, default=d.val_objects,
-                   help=f"held-out synthetic validation objects (default {d.val_objects})")
-    p.add_argument("--ckpt-minutes", type=positive_float, default=d.ckpt_minutes,
-                   help=f"save last.pth at least this often (default {d.ckpt_minutes})")
-    p.add_argument("--snapshot-every", type=nonnegative_int, default=d.snapshot_every,
-                   metavar="EPOCHS",
-                   help="also keep snap_<step>.pth every this many epochs, to select a model "
-                        "on real objects later (default 0: only last.pth and best.pth)")
-    p.add_argument("--log-every", type=positive_int, default=d.log_every,
-                   help=f"append a log.jsonl row every this many steps (default {d.log_every})")
+    p.add_argument(
+        "--no-mfe",
+        action="store_true",
+        help="ablation: no multi-stage extraction (extractor1 -> max -> regressor)",
+    )
+    p.add_argument(
+        "--init",
+        metavar="CKPT",
+        help="start from these weights with a fresh optimiser (e.g. the bundled "
+        "msfnet_default.pth), instead of random initialisation",
+    )
+    p.add_argument(
+        "--no-mff",
+        action="store_true",
+        help="ablation: no fusion module (a stage sees concat(raw, max))",
+    )
+    p.add_argument(
+        "--no-sus",
+        action="store_true",
+        help="ablation: no selective update (all stage losses train all modules)",
+    )
+    p.add_argument(
+        "--grad-loss",
+        type=nonnegative_float,
+        default=d.grad_loss,
+        metavar="W",
+        help="add W x the L1 distance between predicted and true normal changes "
+        "from pixel to pixel to each stage loss (default 0: the "
+        "paper's loss). Experimental: meant to keep 1-3 px relief, it lowered "
+        "detail in a short CPU fine-tune (docs/training.md)",
+    )
+    p.add_argument(
+        "--render-size",
+        type=int_range(8, MAX_SIZE),
+        default=d.render_size,
+        help=f"synthetic object size in pixels (default {d.render_size})",
+    )
+    p.add_argument(
+        "--render-size-max",
+        type=int_range(8, MAX_SIZE),
+        default=d.render_size_max,
+        help="draw each synthetic object's size from [--render-size, this]: larger "
+        "renders are smoother per pixel, like real full-resolution objects",
+    )
+    p.add_argument(
+        "--render-max-depth",
+        type=positive_float,
+        default=d.render_max_depth,
+        help="synthetic domes up to this height/radius (default "
+        f"{d.render_max_depth}; 2 gives a slant histogram like DiLiGenT ball's, "
+        "with 4x more pixels steeper than 66 deg)",
+    )
+    p.add_argument(
+        "--render-preset",
+        choices=PRESETS,
+        default=d.render_preset,
+        help="synthetic data: 'default' renderer or 'hard' (steep rims, folds and "
+        "cups with inter-reflections, pixel-scale relief, rough / painted / "
+        "very dark materials, LED rings, mostly 8-bit); validation stays on "
+        "the default renderer so runs compare",
+    )
+    p.add_argument(
+        "--val-size",
+        type=int_range(8, MAX_SIZE),
+        default=d.val_size,
+        help=f"validation object size in pixels (default {d.val_size})",
+    )
+    p.add_argument(
+        "--render-lights",
+        type=int_range(3, MAX_LIGHTS),
+        default=d.render_lights,
+        help=f"lights rendered per synthetic object (default {d.render_lights})",
+    )
+    p.add_argument(
+        "--pool",
+        type=positive_int,
+        default=d.pool,
+        help=f"synthetic objects kept in memory (default {d.pool})",
+    )
+    p.add_argument(
+        "--refresh",
+        type=nonnegative_int,
+        default=d.refresh,
+        help=f"new synthetic objects rendered per batch (default {d.refresh})",
+    )
+    p.add_argument(
+        "--noise",
+        type=nonnegative_float,
+        default=d.noise,
+        help="max extra Gaussian noise, fraction of the crop's 95th percentile "
+        f"(default {d.noise})",
+    )
+    p.add_argument(
+        "--val-objects",
+        type=positive_int,
+        default=d.val_objects,
+        help=f"held-out synthetic validation objects (default {d.val_objects})",
+    )
+    p.add_argument(
+        "--ckpt-minutes",
+        type=positive_float,
+        default=d.ckpt_minutes,
+        help=f"save last.pth at least this often (default {d.ckpt_minutes})",
+    )
+    p.add_argument(
+        "--snapshot-every",
+        type=nonnegative_int,
+        default=d.snapshot_every,
+        metavar="EPOCHS",
+        help="also keep snap_<step>.pth every this many epochs, to select a model "
+        "on real objects later (default 0: only last.pth and best.pth)",
+    )
+    p.add_argument(
+        "--log-every",
+        type=positive_int,
+        default=d.log_every,
+        help=f"append a log.jsonl row every this many steps (default {d.log_every})",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -178,14 +300,17 @@ def config_from(args: dict, base: dict) -> TrainConfig:
     if out.data == "synth":
         most = max(p.lights_max for p in parse_curriculum(out.curriculum))
         if most > out.render_lights:  # the sampler would quietly use fewer lights
-            raise InputError(f"the curriculum asks for up to {most} lights but "
-                             f"--render-lights renders {out.render_lights}")
+            raise InputError(
+                f"the curriculum asks for up to {most} lights but "
+                f"--render-lights renders {out.render_lights}"
+            )
         crop = max(p.crop for p in parse_curriculum(out.curriculum))
         if crop > out.render_size:
             raise InputError(f"crop {crop} exceeds --render-size {out.render_size}")
         if out.render_size_max is not None and out.render_size_max < out.render_size:
-            raise InputError(f"--render-size-max {out.render_size_max} is below --render-size "
-                             f"{out.render_size}")
+            raise InputError(
+                f"--render-size-max {out.render_size_max} is below --render-size {out.render_size}"
+            )
     elif not Path(out.data).is_dir():
         raise InputError("--data: not 'synth' and not a folder", out.data)
     return out
@@ -200,8 +325,7 @@ def _stored_config(out: Path, flag: str = "--resume") -> dict:
     msf-train's."""
     stored = out / "config.json"
     if not stored.is_file():
-        raise InputError(f"{flag}: no config.json in the output folder (not an msf-train "
-                         "run)", out)
+        raise InputError(f"{flag}: no config.json in the output folder (not an msf-train run)", out)
     try:
         data = json.loads(stored.read_text())
     except (ValueError, UnicodeDecodeError, RecursionError) as exc:
@@ -209,17 +333,22 @@ def _stored_config(out: Path, flag: str = "--resume") -> dict:
     known = {f.name for f in fields(TrainConfig)}
     if not isinstance(data, dict) or not CORE_KEYS <= set(data) <= known:
         unknown = sorted(set(data) - known) if isinstance(data, dict) else []
-        raise InputError(f"{flag}: config.json is not an msf-train configuration"
-                         + (f" (unknown keys {unknown[:3]})" if unknown else ""), stored)
+        raise InputError(
+            f"{flag}: config.json is not an msf-train configuration"
+            + (f" (unknown keys {unknown[:3]})" if unknown else ""),
+            stored,
+        )
     return data
 
 
 def _ours(path: Path) -> bool:
     """A file msf-train writes in OUT (by name; a folder is never ours)."""
     name = path.name
-    return (path.is_file() and not path.is_symlink()
-            and (name in TRAIN_FILES or STAGING_TAG in name
-                 or SNAPSHOT.fullmatch(name) is not None))
+    return (
+        path.is_file()
+        and not path.is_symlink()
+        and (name in TRAIN_FILES or STAGING_TAG in name or SNAPSHOT.fullmatch(name) is not None)
+    )
 
 
 def _weights_in(out: Path) -> list[str]:
@@ -241,12 +370,17 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
     if args.resume or not out.exists() or not any(out.iterdir()):
         return []
     if not args.overwrite:
-        raise InputError("output folder is not empty (use --resume to continue or "
-                         "--overwrite to start afresh)", out)
+        raise InputError(
+            "output folder is not empty (use --resume to continue or --overwrite to start afresh)",
+            out,
+        )
     foreign = sorted(p.name for p in out.iterdir() if not _ours(p))
     if foreign:
-        raise InputError(f"--overwrite: the folder holds files msf-train did not write (e.g. "
-                         f"{foreign[0]}); refusing to delete them", out)
+        raise InputError(
+            f"--overwrite: the folder holds files msf-train did not write (e.g. "
+            f"{foreign[0]}); refusing to delete them",
+            out,
+        )
     _stored_config(out, "--overwrite")  # names alone do not make it a run of ours
     return sorted(out.iterdir())  # deleted by the caller once every option has been checked
 
@@ -267,16 +401,21 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
     if args.resume and not resume:
         # Nothing saved yet (first chunk, or killed before the first save): start here, from
         # the stored settings if a config.json was written; but never in someone else's folder.
-        foreign = sorted(p.name for p in out.iterdir() if not _ours(p)) \
-            if out.is_dir() else []
+        foreign = sorted(p.name for p in out.iterdir() if not _ours(p)) if out.is_dir() else []
         if foreign:
-            raise InputError(f"--resume: no msf-train run here (no config.json / last.pth) but "
-                             f"other files (e.g. {foreign[0]})", out)
+            raise InputError(
+                f"--resume: no msf-train run here (no config.json / last.pth) but "
+                f"other files (e.g. {foreign[0]})",
+                out,
+            )
         weights = _weights_in(out) if out.is_dir() else []
         if weights:  # e.g. last_state.pth lost: starting over would delete trained weights
-            raise InputError(f"--resume: {', '.join(weights)} but no complete last.pth + "
-                             "last_state.pth pair to continue from; start a new run from "
-                             "those weights with --init in another folder", out)
+            raise InputError(
+                f"--resume: {', '.join(weights)} but no complete last.pth + "
+                "last_state.pth pair to continue from; start a new run from "
+                "those weights with --init in another folder",
+                out,
+            )
         say(f"msf-train: nothing to resume in {out}: starting there")
         base = _stored_config(out) if (out / "config.json").is_file() else {}
         cfg = config_from(_explicit(argv) if base else vars(args), base)
@@ -286,8 +425,11 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         explicit = _explicit(argv)
         for flag, key in (("--no-mfe", "mfe"), ("--no-mff", "mff")):
             if flag.lstrip("-").replace("-", "_") in explicit and stored.get(key, True):
-                raise InputError(f"--resume: {flag} changes the network of the run being "
-                                 "resumed; start a new run instead", out)
+                raise InputError(
+                    f"--resume: {flag} changes the network of the run being "
+                    "resumed; start a new run instead",
+                    out,
+                )
         cfg = config_from(explicit, stored)
     else:
         cfg = config_from(vars(args), {})
@@ -297,19 +439,25 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             path.unlink()
     trainer = Trainer(cfg, resume=resume)
     data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
-    say(f"msf-train: {trainer.device.type}, "
+    say(
+        f"msf-train: {trainer.device.type}, "
         f"{'bf16 autocast' if trainer.bf16 else 'fp32'}, "
         f"{'channels_last' if cfg.channels_last else 'NCHW'}, {cfg.threads} threads, "
         f"{trainer.workers} data workers, data {data}, curriculum {cfg.curriculum}, "
         f"from step {trainer.step}; validation: {len(trainer.val_set)} objects, "
-        f"least squares MAE {trainer.val_ls:.2f} deg")
+        f"least squares MAE {trainer.val_ls:.2f} deg"
+    )
     result = trainer.run(progress=not (args.no_progress or args.quiet), report=not args.quiet)
     if result.stopped is not None:
-        say(f"msf-train: stopped by {signal.Signals(result.stopped).name} at step "
-            f"{result.step}; last.pth saved, continue with --resume")
+        say(
+            f"msf-train: stopped by {signal.Signals(result.stopped).name} at step "
+            f"{result.step}; last.pth saved, continue with --resume"
+        )
         return 128 + result.stopped
-    say(f"msf-train: done at step {result.step}: best held-out MAE "
-        f"{result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})")
+    say(
+        f"msf-train: done at step {result.step}: best held-out MAE "
+        f"{result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})"
+    )
     return 0
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 from msfnet.synth.render import RenderOptions
 
 SNAPSHOT = re.compile(r"snap_\d{7}\.pth")  # what --snapshot-every writes, and nothing else
@@ -32,13 +32,15 @@ def parse_curriculum(spec: str) -> list[Phase]:
             lo, _, hi = lights.partition("-")
             phases.append(Phase(int(e), int(lo), int(hi or lo), int(crop)))
     except ValueError as exc:
-        raise InputError(f"--curriculum {spec!r}: expected EPOCH:LMIN-LMAX:CROP[,...] "
-                         "like 0:8-16:32,4:16-32:32") from exc
+        raise InputError(
+            f"--curriculum {spec!r}: expected EPOCH:LMIN-LMAX:CROP[,...] like 0:8-16:32,4:16-32:32"
+        ) from exc
     phases.sort(key=lambda p: p.epoch)
     for p in phases:
         if p.lights_min < 1 or p.lights_max < p.lights_min or p.crop < 8 or p.crop % 4:
-            raise InputError(f"--curriculum {spec!r}: need 1 <= LMIN <= LMAX and CROP a "
-                             "multiple of 4 (>= 8)")
+            raise InputError(
+                f"--curriculum {spec!r}: need 1 <= LMIN <= LMAX and CROP a multiple of 4 (>= 8)"
+            )
     if not phases or phases[0].epoch != 0:
         raise InputError(f"--curriculum {spec!r}: the first phase must start at epoch 0")
     return phases

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 FORMAT = "msfnet-normals-v1"
 INPUT_MULTIPLE = 4  # the network halves H and W once and doubles back: multiples of 4
@@ -40,8 +40,11 @@ PREPROCESSING_SPEC = {
         "multiply by sqrt(N / train_lights)",
         "multiply by the object mask; zero-pad H and W to multiples of 4 (bottom/right)",
     ],
-    "layout": {"images": "float32 (B, N, 3, H, W) RGB", "lights": "float32 (B, N, 3) unit, "
-               "x right, y up, z to the camera", "normals": "float32 (B, 3, H, W) unit"},
+    "layout": {
+        "images": "float32 (B, N, 3, H, W) RGB",
+        "lights": "float32 (B, N, 3) unit, x right, y up, z to the camera",
+        "normals": "float32 (B, 3, H, W) unit",
+    },
 }
 
 
@@ -55,15 +58,16 @@ class ModelInfo:
     static_shape: tuple[int, int, int] | None  # (N, H, W) for fixed-shape exports
     precision: str
     metadata: dict[str, str]
-    staged: bool = False  # cut at the max-over-lights reductions (runtime/chunked.py)
+    staged: bool = False  # cut at the max-over-lights reductions (runtime/engines/staged_loop.py)
 
 
 MAX_TRAIN_LIGHTS = 10_000  # far beyond any rig; a bigger value is a corrupt or crafted file
 MAX_STATIC_SIDE = 16_384  # px; a static window beyond this would not fit in memory anyway
 
 
-def _positive(meta: Mapping[str, str], key: str, default: int, path: Path,
-              top: int | None = None) -> int:
+def _positive(
+    meta: Mapping[str, str], key: str, default: int, path: Path, top: int | None = None
+) -> int:
     text = meta.get(METADATA_KEYS[key], str(default))
     try:
         value = int(text)
@@ -72,43 +76,72 @@ def _positive(meta: Mapping[str, str], key: str, default: int, path: Path,
     if value < 1:
         raise InputError(f"{METADATA_KEYS[key]} metadata must be positive, got {value}", path)
     if top is not None and value > top:
-        raise InputError(f"{METADATA_KEYS[key]} metadata {value} is beyond any msfnet export "
-                         f"(at most {top})", path)
+        raise InputError(
+            f"{METADATA_KEYS[key]} metadata {value} is beyond any msfnet export (at most {top})",
+            path,
+        )
     return value
 
 
 def read_model_info(path: Path, meta: Mapping[str, str]) -> ModelInfo:
     """Validate a model's metadata; raise InputError if it is not a (sane) msfnet model."""
     if meta.get(METADATA_KEYS["format"]) != FORMAT:
-        raise InputError("not an msfnet model (missing msfnet.format metadata; export it with "
-                         "msf-export)", path)
+        raise InputError(
+            "not an msfnet model (missing msfnet.format metadata; export it with msf-export)", path
+        )
     train_lights = _positive(meta, "train_lights", TRAIN_LIGHTS, path, MAX_TRAIN_LIGHTS)
     multiple = _positive(meta, "input_multiple", INPUT_MULTIPLE, path)
     if INPUT_MULTIPLE % multiple:  # the runtime pads inputs to multiples of INPUT_MULTIPLE
-        raise InputError(f"model needs inputs padded to multiples of {multiple}; this runtime "
-                         f"pads to {INPUT_MULTIPLE}", path)
+        raise InputError(
+            f"model needs inputs padded to multiples of {multiple}; this runtime "
+            f"pads to {INPUT_MULTIPLE}",
+            path,
+        )
     static_text = meta.get(METADATA_KEYS["static_shape"], "")
     try:
         static = tuple(int(v) for v in static_text.split(",")) if static_text else None
     except ValueError as exc:
         raise InputError(f"malformed msfnet.static_shape metadata {static_text!r}", path) from exc
-    if static is not None and (len(static) != 3 or min(static) < 1
-                               or max(static[1:]) > MAX_STATIC_SIDE
-                               or static[1] % INPUT_MULTIPLE or static[2] % INPUT_MULTIPLE):
-        raise InputError(f"malformed msfnet.static_shape metadata {static_text[:40]!r} (expected "
-                         f"N,H,W with H and W multiples of {INPUT_MULTIPLE})", path)
+    if static is not None and (
+        len(static) != 3
+        or min(static) < 1
+        or max(static[1:]) > MAX_STATIC_SIDE
+        or static[1] % INPUT_MULTIPLE
+        or static[2] % INPUT_MULTIPLE
+    ):
+        raise InputError(
+            f"malformed msfnet.static_shape metadata {static_text[:40]!r} (expected "
+            f"N,H,W with H and W multiples of {INPUT_MULTIPLE})",
+            path,
+        )
     graph = meta.get(METADATA_KEYS["graph"], "monolithic")
     if graph not in GRAPHS:
-        raise InputError(f"unknown msfnet.graph {graph!r} (this msfnet reads "
-                         f"{' and '.join(GRAPHS)} exports; upgrade msfnet?)", path)
-    return ModelInfo(path, train_lights, multiple, static,  # type: ignore[arg-type]
-                     meta.get(METADATA_KEYS["precision"], "fp32"), dict(meta),
-                     staged=graph == "staged")
+        raise InputError(
+            f"unknown msfnet.graph {graph!r} (this msfnet reads "
+            f"{' and '.join(GRAPHS)} exports; upgrade msfnet?)",
+            path,
+        )
+    return ModelInfo(
+        path,
+        train_lights,
+        multiple,
+        static,  # type: ignore[arg-type]
+        meta.get(METADATA_KEYS["precision"], "fp32"),
+        dict(meta),
+        staged=graph == "staged",
+    )
 
 
-def model_metadata(*, train_lights: int, checkpoint_sha256: str, version: str,
-                   static_shape: tuple[int, int, int] | None, precision: str,
-                   staged: bool, variant: str | None = None) -> dict[str, str]:
+def model_metadata(
+    *,
+    train_lights: int,
+    checkpoint_sha256: str,
+    version: str,
+    static_shape: tuple[int, int, int] | None,
+    precision: str,
+    staged: bool,
+    variant: str | None = None,
+) -> dict[str, str]:
     """The metadata_props an export writes (the inverse of :func:`read_model_info`), in the
     order msf-export writes them. ``variant``: the export variant's name, written last as
     ``msfnet.variant`` when given (every msf-export file has it; the runtime does not need it).
@@ -120,8 +153,9 @@ def model_metadata(*, train_lights: int, checkpoint_sha256: str, version: str,
         METADATA_KEYS["checkpoint_sha256"]: checkpoint_sha256,
         METADATA_KEYS["version"]: version,
         METADATA_KEYS["input_multiple"]: str(INPUT_MULTIPLE),
-        METADATA_KEYS["static_shape"]: "" if static_shape is None else
-        ",".join(str(v) for v in static_shape),
+        METADATA_KEYS["static_shape"]: ""
+        if static_shape is None
+        else ",".join(str(v) for v in static_shape),
         METADATA_KEYS["precision"]: precision,
         METADATA_KEYS["graph"]: "staged" if staged else "monolithic",
     }

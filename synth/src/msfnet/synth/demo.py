@@ -12,8 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.files import write_atomic
-
+from msfnet.common.files import write_atomic
 from msfnet.synth.render import RenderOptions, render_stack
 
 DEMO_SEED = 20261122
@@ -23,9 +22,13 @@ DEMO_OPTIONS = RenderOptions(size=128, lights=32)
 def demo_arrays() -> dict[str, np.ndarray]:
     """The demo stack as the arrays of its .npz file (images as 16-bit counts)."""
     stack = render_stack(DEMO_SEED, DEMO_OPTIONS, name="demo")
-    return {"images": np.rint(stack.images).astype(np.uint16), "lights": stack.lights,
-            "intensities": stack.intensities, "mask": stack.mask,
-            "normals": np.asarray(stack.normals_gt, np.float32)}
+    return {
+        "images": np.rint(stack.images).astype(np.uint16),
+        "lights": stack.lights,
+        "intensities": stack.intensities,
+        "mask": stack.mask,
+        "normals": np.asarray(stack.normals_gt, np.float32),
+    }
 
 
 def write_demo(path: Path) -> Path:

@@ -9,13 +9,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def cone_lights(n: int, rng: np.random.Generator, max_angle_deg: float = 50.0,
-                min_angle_deg: float = 0.0) -> np.ndarray:
+def cone_lights(
+    n: int, rng: np.random.Generator, max_angle_deg: float = 50.0, min_angle_deg: float = 0.0
+) -> np.ndarray:
     """n unit directions uniform over the spherical cap [min, max] deg from +z, (n, 3) float32."""
     cmin, cmax = np.cos(np.radians(min_angle_deg)), np.cos(np.radians(max_angle_deg))
     cz = rng.uniform(cmax, cmin, n)  # uniform in cos(theta) = uniform area on the cap
     phi = rng.uniform(0, 2 * np.pi, n)
-    s = np.sqrt(1 - cz ** 2)
+    s = np.sqrt(1 - cz**2)
     return np.stack([s * np.cos(phi), s * np.sin(phi), cz], axis=1).astype(np.float32)
 
 
@@ -40,8 +41,12 @@ def rig_lights(n: int, rng: np.random.Generator) -> np.ndarray:
     return cone_lights(n, rng, max_angle)
 
 
-def led_ring_lights(n: int, rng: np.random.Generator, angles_deg: tuple[float, ...] = (30.0,),
-                    jitter_deg: float = 1.0) -> np.ndarray:
+def led_ring_lights(
+    n: int,
+    rng: np.random.Generator,
+    angles_deg: tuple[float, ...] = (30.0,),
+    jitter_deg: float = 1.0,
+) -> np.ndarray:
     """LED ring(s) around the lens: n lights split as evenly as possible over rings at the given
     angles from the view axis (the first rings take the remainder), evenly spaced in azimuth
     with a random rotation per ring and up to ``jitter_deg`` of mounting error. (n, 3) float32.
@@ -60,8 +65,9 @@ def led_ring_lights(n: int, rng: np.random.Generator, angles_deg: tuple[float, .
         polar.append(angle + rng.uniform(-jitter_deg, jitter_deg, count))
         azim.append(az + np.radians(rng.uniform(-jitter_deg, jitter_deg, count)))
     th, ph = np.radians(np.concatenate(polar)), np.concatenate(azim)
-    return np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)],
-                    axis=1).astype(np.float32)
+    return np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=1).astype(
+        np.float32
+    )
 
 
 def ring_rig(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -72,8 +78,11 @@ def ring_rig(n: int, rng: np.random.Generator) -> np.ndarray:
     if rings == 1:
         angles = (rng.uniform(15.0, 55.0),)
     else:
-        angles = tuple(np.sort(rng.uniform(10.0, 60.0, rings))) if rings > 2 else \
-            (rng.uniform(10.0, 30.0), rng.uniform(35.0, 60.0))
+        angles = (
+            tuple(np.sort(rng.uniform(10.0, 60.0, rings)))
+            if rings > 2
+            else (rng.uniform(10.0, 30.0), rng.uniform(35.0, 60.0))
+        )
     return led_ring_lights(n, rng, angles)
 
 

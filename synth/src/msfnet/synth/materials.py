@@ -42,47 +42,77 @@ def random_colour(rng: np.random.Generator, lo: float, hi: float) -> np.ndarray:
     return np.clip(base * tint, 0.005, 0.98)
 
 
-def random_material(rng: np.random.Generator, kinds: tuple[str, ...] = KINDS,
-                    weights: tuple[float, ...] | None = None) -> dict[str, np.ndarray | float]:
-    w = np.asarray(weights if weights is not None else [DEFAULT_WEIGHTS[k] for k in kinds],
-                   float)
+def random_material(
+    rng: np.random.Generator,
+    kinds: tuple[str, ...] = KINDS,
+    weights: tuple[float, ...] | None = None,
+) -> dict[str, np.ndarray | float]:
+    w = np.asarray(weights if weights is not None else [DEFAULT_WEIGHTS[k] for k in kinds], float)
     kind = kinds[int(rng.choice(len(kinds), p=w / w.sum()))]
     rough = rng.uniform(0.15, 0.8)  # perceptual roughness; GGX alpha = rough^2
     if kind == "diffuse":
-        return {"kd": random_colour(rng, 0.2, 0.9), "f0": np.full(3, 0.04), "ks": 0.0,
-                "alpha": rough ** 2}
+        return {
+            "kd": random_colour(rng, 0.2, 0.9),
+            "f0": np.full(3, 0.04),
+            "ks": 0.0,
+            "alpha": rough**2,
+        }
     if kind == "plastic":
-        return {"kd": random_colour(rng, 0.1, 0.85), "f0": np.full(3, 0.04),
-                "ks": rng.uniform(0.3, 2.0), "alpha": rough ** 2}
+        return {
+            "kd": random_colour(rng, 0.1, 0.85),
+            "f0": np.full(3, 0.04),
+            "ks": rng.uniform(0.3, 2.0),
+            "alpha": rough**2,
+        }
     if kind == "metal":
         tint = random_colour(rng, 0.5, 0.95)
-        return {"kd": tint * rng.uniform(0.0, 0.15), "f0": tint, "ks": rng.uniform(0.5, 1.0),
-                "alpha": rng.uniform(0.25, 0.7) ** 2}
+        return {
+            "kd": tint * rng.uniform(0.0, 0.15),
+            "f0": tint,
+            "ks": rng.uniform(0.5, 1.0),
+            "alpha": rng.uniform(0.25, 0.7) ** 2,
+        }
     if kind == "rough":
         # Rough diffuse (plaster, clay, unglazed ceramic): Oren-Nayar with a faint broad sheen.
-        return {"kd": random_colour(rng, 0.25, 0.9), "f0": np.full(3, 0.04),
-                "ks": rng.uniform(0.0, 0.2), "alpha": rng.uniform(0.6, 0.9) ** 2,
-                "sigma": rng.uniform(0.2, 0.7)}
+        return {
+            "kd": random_colour(rng, 0.25, 0.9),
+            "f0": np.full(3, 0.04),
+            "ks": rng.uniform(0.0, 0.2),
+            "alpha": rng.uniform(0.6, 0.9) ** 2,
+            "sigma": rng.uniform(0.2, 0.7),
+        }
     if kind == "paint":
         # Metallic paint: pigment diffuse, a broad tinted lobe from the flakes, and a sharp
         # clear-coat lobe on top.
         tint = random_colour(rng, 0.3, 0.9)
-        return {"kd": tint * rng.uniform(0.1, 0.5), "f0": tint * rng.uniform(0.3, 0.8),
-                "ks": rng.uniform(0.3, 1.0), "alpha": rng.uniform(0.35, 0.65) ** 2,
-                "ks2": rng.uniform(0.5, 2.0),
-                # GGX alpha 0.03-0.1: the coat's highlight is still a pixel or more wide on the
-                # objects rendered here (a sharper one would fall between pixel centres).
-                "alpha2": rng.uniform(0.03, 0.1)}
+        return {
+            "kd": tint * rng.uniform(0.1, 0.5),
+            "f0": tint * rng.uniform(0.3, 0.8),
+            "ks": rng.uniform(0.3, 1.0),
+            "alpha": rng.uniform(0.35, 0.65) ** 2,
+            "ks2": rng.uniform(0.5, 2.0),
+            # GGX alpha 0.03-0.1: the coat's highlight is still a pixel or more wide on the
+            # objects rendered here (a sharper one would fall between pixel centres).
+            "alpha2": rng.uniform(0.03, 0.1),
+        }
     if kind != "dark":
         raise ValueError(f"unknown material {kind!r}; choose from {', '.join(ALL_KINDS)}")
     # dark: little diffuse light, so the specular lobe and noise dominate
-    return {"kd": random_colour(rng, 0.02, 0.1), "f0": np.full(3, 0.04),
-            "ks": rng.uniform(0.5, 2.0), "alpha": rough ** 2}
+    return {
+        "kd": random_colour(rng, 0.02, 0.1),
+        "f0": np.full(3, 0.04),
+        "ks": rng.uniform(0.5, 2.0),
+        "alpha": rough**2,
+    }
 
 
-def material_map(size: int, rng: np.random.Generator, max_materials: int = 3,
-                 kinds: tuple[str, ...] = KINDS,
-                 kind_weights: tuple[float, ...] | None = None) -> MaterialMap:
+def material_map(
+    size: int,
+    rng: np.random.Generator,
+    max_materials: int = 3,
+    kinds: tuple[str, ...] = KINDS,
+    kind_weights: tuple[float, ...] | None = None,
+) -> MaterialMap:
     """Up to ``max_materials`` random materials of ``kinds`` (drawn with ``kind_weights``, one
     per kind; None = DEFAULT_WEIGHTS) blended over a size x size frame."""
     x, y = grid(size)
@@ -100,8 +130,9 @@ def material_map(size: int, rng: np.random.Generator, max_materials: int = 3,
     texture = np.clip(texture, 0.3, 1.7)[..., None]
 
     def blend(key: str, missing: float = 0.0) -> np.ndarray:
-        vals = np.stack([np.broadcast_to(np.asarray(m.get(key, missing), float), (3,))
-                         for m in mats])
+        vals = np.stack(
+            [np.broadcast_to(np.asarray(m.get(key, missing), float), (3,)) for m in mats]
+        )
         return np.einsum("khw,kc->hwc", weights, vals)
 
     def optional(key: str, missing: float) -> np.ndarray | None:
@@ -109,14 +140,26 @@ def material_map(size: int, rng: np.random.Generator, max_materials: int = 3,
         return blend(key, missing)[..., 0] if any(key in m for m in mats) else None
 
     alpha2 = optional("alpha2", 0.01)
-    return MaterialMap(kd=blend("kd") * texture, f0=blend("f0"), ks=blend("ks")[..., 0],
-                       alpha=np.clip(blend("alpha")[..., 0], 0.005, 1.0),
-                       sigma=optional("sigma", 0.0), ks2=optional("ks2", 0.0),
-                       alpha2=None if alpha2 is None else np.clip(alpha2, 0.002, 1.0))
+    return MaterialMap(
+        kd=blend("kd") * texture,
+        f0=blend("f0"),
+        ks=blend("ks")[..., 0],
+        alpha=np.clip(blend("alpha")[..., 0], 0.005, 1.0),
+        sigma=optional("sigma", 0.0),
+        ks2=optional("ks2", 0.0),
+        alpha2=None if alpha2 is None else np.clip(alpha2, 0.002, 1.0),
+    )
 
 
-def _ggx(ks: np.ndarray, nh: np.ndarray, nl: np.ndarray, nv: np.ndarray, vh: np.ndarray,
-         alpha: np.ndarray, f0: np.ndarray | np.float32) -> np.ndarray:
+def _ggx(
+    ks: np.ndarray,
+    nh: np.ndarray,
+    nl: np.ndarray,
+    nv: np.ndarray,
+    vh: np.ndarray,
+    alpha: np.ndarray,
+    f0: np.ndarray | np.float32,
+) -> np.ndarray:
     """ks * GGX lobe D * V * F (without the cosine), (N, H, W, C) for f0 (1|H, W, C)."""
     a2 = (alpha.astype(np.float32) ** 2)[None]
     d = a2 / (np.pi * (nh * nh * (a2 - 1.0) + 1.0) ** 2)
@@ -138,8 +181,9 @@ def oren_nayar(nl: np.ndarray, nv: np.ndarray, lv: np.ndarray, sigma: np.ndarray
     return a + b * np.clip(lv - nlc * nv, 0.0, None) / np.maximum(nlc, nv)
 
 
-def shade(normals: np.ndarray, lights: np.ndarray, mat: MaterialMap,
-          diffuse_only: bool = False) -> np.ndarray:
+def shade(
+    normals: np.ndarray, lights: np.ndarray, mat: MaterialMap, diffuse_only: bool = False
+) -> np.ndarray:
     """Reflected radiance for unit-intensity white lights: (N, H, W, 3), attached shadows included.
 
     Camera looks along -z (orthographic), so the view vector is (0, 0, 1) everywhere.

@@ -17,10 +17,18 @@ import numpy as np
 
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.transforms import area_downscale, downscale_mask, downscale_normals
-
 from msfnet.synth.lights import rig_intensities, rig_lights, ring_rig
 from msfnet.synth.materials import ALL_KINDS, KINDS, material_map, shade
-from msfnet.synth.shapes import ALL_SHAPES, CUP_DEPTH, DEFAULT_MAX_DEPTH, FOLD_DEPTH, SHAPES, fine_relief, make_shape, normals_from_height
+from msfnet.synth.shapes import (
+    ALL_SHAPES,
+    CUP_DEPTH,
+    DEFAULT_MAX_DEPTH,
+    FOLD_DEPTH,
+    SHAPES,
+    fine_relief,
+    make_shape,
+    normals_from_height,
+)
 
 FULL_SCALE = 65535.0  # images are returned in 16-bit counts, as save_stack writes them
 BIT_DEPTHS = (8, 10, 12, 14, 16)
@@ -58,17 +66,24 @@ class RenderOptions:
         """Training preset aimed at the measured failures on real objects: steep rims,
         concavities with inter-reflections, pixel-scale relief, rough / painted / very dark
         materials, LED rings and mostly 8-bit captures. ``overrides`` set any field."""
-        base = cls(shapes=ALL_SHAPES,
-                   # sphere blob bumps creases sculpted relief folds cup
-                   shape_weights=(0.05, 0.14, 0.12, 0.12, 0.17, 0.08, 0.17, 0.15),
-                   materials=ALL_KINDS,
-                   # diffuse plastic metal dark rough paint
-                   material_weights=(0.1, 0.3, 0.15, 0.1, 0.15, 0.2),
-                   steep=0.35, fine_relief=0.5, interreflection=0.5,
-                   very_dark=0.1, ring_rigs=0.25, bit_depths=(8, 8, 8, 10, 12, 16),
-                   # Up to twice as deep as the defaults: harvest's folds bounce ~0.3 of the
-                   # albedo onto walls facing away from the light; the default folds ~0.01.
-                   fold_depth=(0.25, 1.2), cup_depth=(0.5, 1.8))
+        base = cls(
+            shapes=ALL_SHAPES,
+            # sphere blob bumps creases sculpted relief folds cup
+            shape_weights=(0.05, 0.14, 0.12, 0.12, 0.17, 0.08, 0.17, 0.15),
+            materials=ALL_KINDS,
+            # diffuse plastic metal dark rough paint
+            material_weights=(0.1, 0.3, 0.15, 0.1, 0.15, 0.2),
+            steep=0.35,
+            fine_relief=0.5,
+            interreflection=0.5,
+            very_dark=0.1,
+            ring_rigs=0.25,
+            bit_depths=(8, 8, 8, 10, 12, 16),
+            # Up to twice as deep as the defaults: harvest's folds bounce ~0.3 of the
+            # albedo onto walls facing away from the light; the default folds ~0.01.
+            fold_depth=(0.25, 1.2),
+            cup_depth=(0.5, 1.8),
+        )
         return replace(base, **overrides)
 
     @classmethod
@@ -134,13 +149,14 @@ def _near_offsets(near_px: int = NEAR_PX) -> tuple[np.ndarray, np.ndarray]:
     (all of the disk the rings of :func:`_ring_offsets` leave out), each standing for 1 px^2."""
     span = np.arange(-near_px, near_px + 1)
     grid = np.stack(np.meshgrid(span, span, indexing="ij"), -1).reshape(-1, 2)
-    d2 = (grid ** 2).sum(1)
+    d2 = (grid**2).sum(1)
     near = grid[(d2 > 0) & (d2 < (near_px + 0.5) ** 2)]
     return near, np.ones(len(near))
 
 
-def _ring_offsets(inner_px: float, radius_px: float, rng: np.random.Generator,
-                  rings: int = 10, per_ring: int = 12) -> tuple[np.ndarray, np.ndarray]:
+def _ring_offsets(
+    inner_px: float, radius_px: float, rng: np.random.Generator, rings: int = 10, per_ring: int = 12
+) -> tuple[np.ndarray, np.ndarray]:
     """Offsets (K, 2) in pixels, as (row, col) floats, and the image area (px^2) each stands
     for: one sample per sector of log-spaced rings from ``inner_px`` to ``radius_px``, each
     ring randomly turned per object.
@@ -160,8 +176,15 @@ def _ring_offsets(inner_px: float, radius_px: float, rng: np.random.Generator,
     return np.concatenate(offsets), np.concatenate(weights)
 
 
-def _gather(src: np.ndarray, height: np.ndarray, normals: np.ndarray, mask: np.ndarray,
-            offsets: np.ndarray, px_area: np.ndarray, step: float) -> np.ndarray:
+def _gather(
+    src: np.ndarray,
+    height: np.ndarray,
+    normals: np.ndarray,
+    mask: np.ndarray,
+    offsets: np.ndarray,
+    px_area: np.ndarray,
+    step: float,
+) -> np.ndarray:
     """sum over offsets of src(q) cos_p cos_q / (pi r^2) dA_q, (N, H, W, C); ``step`` is the
     pixel pitch in grid units, ``px_area`` the image area (px^2) each offset stands for."""
     size_h, size_w = height.shape
@@ -173,8 +196,7 @@ def _gather(src: np.ndarray, height: np.ndarray, normals: np.ndarray, mask: np.n
     n = np.where(mask[..., None], normals, 0.0).astype(np.float32)
     # A patch's surface area is its image area over n_z (a steep wall shows little area in
     # the image but emits from a lot of surface).
-    emit_area = np.where(mask, step * step / np.clip(n[..., 2], 0.1, None), 0.0).astype(
-        np.float32)
+    emit_area = np.where(mask, step * step / np.clip(n[..., 2], 0.1, None), 0.0).astype(np.float32)
     zp, npad = np.pad(z, pad), np.pad(n, ((pad, pad), (pad, pad), (0, 0)))
     ap = np.pad(emit_area, pad)
     srcp = np.pad(src, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
@@ -209,15 +231,27 @@ def _upsample(arr: np.ndarray, size_h: int, size_w: int) -> np.ndarray:
     channels at a time)."""
     n, h, w, c = arr.shape
     flat = arr.transpose(1, 2, 0, 3).reshape(h, w, n * c)
-    parts = [cv2.resize(np.ascontiguousarray(flat[..., i:i + 128]), (size_w, size_h),
-                        interpolation=cv2.INTER_LINEAR) for i in range(0, n * c, 128)]
+    parts = [
+        cv2.resize(
+            np.ascontiguousarray(flat[..., i : i + 128]),
+            (size_w, size_h),
+            interpolation=cv2.INTER_LINEAR,
+        )
+        for i in range(0, n * c, 128)
+    ]
     up = np.concatenate([p.reshape(size_h, size_w, -1) for p in parts], axis=2)
     return up.reshape(size_h, size_w, n, c).transpose(2, 0, 1, 3)
 
 
-def bounce_light(direct: np.ndarray | None, height: np.ndarray, normals: np.ndarray,
-                 mask: np.ndarray, rng: np.random.Generator, radius: float = 0.6,
-                 max_size: int = 96) -> np.ndarray:
+def bounce_light(
+    direct: np.ndarray | None,
+    height: np.ndarray,
+    normals: np.ndarray,
+    mask: np.ndarray,
+    rng: np.random.Generator,
+    radius: float = 0.6,
+    max_size: int = 96,
+) -> np.ndarray:
     """Irradiance / pi that each pixel receives from the rest of the surface, (N, H, W, C).
 
     ``direct``: (N, H, W, C) outgoing (diffuse) radiance of every pixel under each light; None
@@ -239,14 +273,16 @@ def bounce_light(direct: np.ndarray | None, height: np.ndarray, normals: np.ndar
     gather (measured), small beside the 0.8-2x gain drawn per object."""
     size_h, size_w = height.shape
     step = 2.0 / (size_w - 1)
-    src = (np.ones((1, size_h, size_w, 1), np.float32) if direct is None
-           else direct.astype(np.float32, copy=False))
+    src = (
+        np.ones((1, size_h, size_w, 1), np.float32)
+        if direct is None
+        else direct.astype(np.float32, copy=False)
+    )
     out = _gather(src, height, normals, mask, *_near_offsets(), step)
     rings, ring_area = _ring_offsets(NEAR_PX + 0.5, radius / step, rng)
     k = -(-max(size_h, size_w) // max_size)
     if k == 1:
-        out += _gather(src, height, normals, mask, np.rint(rings).astype(np.intp), ring_area,
-                       step)
+        out += _gather(src, height, normals, mask, np.rint(rings).astype(np.intp), ring_area, step)
     else:
         ph, pw = -size_h % k, -size_w % k
         wide = ((0, ph), (0, pw))
@@ -255,11 +291,13 @@ def bounce_light(direct: np.ndarray | None, height: np.ndarray, normals: np.ndar
         # the block mean of the object's normals (zeros elsewhere), renormalised
         nc = downscale_normals(np.pad(normals * mask[..., None], (*wide, (0, 0))), k)
         mc = downscale_mask(m, k)
-        sc = _masked_mean(np.pad(src, ((0, 0), *wide, (0, 0))).transpose(1, 2, 0, 3), k,
-                          m).transpose(2, 0, 1, 3)
+        sc = _masked_mean(
+            np.pad(src, ((0, 0), *wide, (0, 0))).transpose(1, 2, 0, 3), k, m
+        ).transpose(2, 0, 1, 3)
         # one coarse pixel is k pixels: offsets shrink k times, areas k^2 times, pitch grows
-        far = _gather(sc, hc, nc, mc, np.rint(rings / k).astype(np.intp), ring_area / k ** 2,
-                      step * k)
+        far = _gather(
+            sc, hc, nc, mc, np.rint(rings / k).astype(np.intp), ring_area / k**2, step * k
+        )
         # Upsample with the coarse mask as weight, so rim pixels are not dimmed by the zeros
         # of coarse pixels outside the object.
         weight = _upsample(mc.astype(np.float32)[None, ..., None], size_h + ph, size_w + pw)
@@ -269,8 +307,9 @@ def bounce_light(direct: np.ndarray | None, height: np.ndarray, normals: np.ndar
     return out
 
 
-def sensor(signal: np.ndarray, rng: np.random.Generator,
-           bit_depths: Sequence[int] = BIT_DEPTHS) -> np.ndarray:
+def sensor(
+    signal: np.ndarray, rng: np.random.Generator, bit_depths: Sequence[int] = BIT_DEPTHS
+) -> np.ndarray:
     """Linear signal in [0, 1] (of full well) -> noisy, clipped, quantised values in [0, 1].
 
     The bit depth is drawn uniformly from ``bit_depths`` (8-bit captures, as cheap rigs give,
@@ -278,7 +317,8 @@ def sensor(signal: np.ndarray, rng: np.random.Generator,
     gain = rng.uniform(0.0, 2e-4)  # shot noise variance per unit signal
     read = rng.uniform(0.0, 2e-3)
     noisy = signal + rng.standard_normal(signal.shape, np.float32) * np.sqrt(
-        gain * np.clip(signal, 0, None) + read * read).astype(np.float32)
+        gain * np.clip(signal, 0, None) + read * read
+    ).astype(np.float32)
     levels = float(2 ** int(rng.choice(list(bit_depths))) - 1)
     return np.round(np.clip(noisy, 0.0, 1.0) * levels) / levels
 
@@ -288,9 +328,15 @@ def _chance(rng: np.random.Generator, p: float) -> bool:
     return p > 0 and bool(rng.random() < p)
 
 
-def render_stack(rng: np.random.Generator | int, options: RenderOptions = RenderOptions(),
-                 *, shape: str | None = None, lights: np.ndarray | None = None,
-                 intensities: np.ndarray | None = None, name: str = "synth") -> Stack:
+def render_stack(
+    rng: np.random.Generator | int,
+    options: RenderOptions = RenderOptions(),
+    *,
+    shape: str | None = None,
+    lights: np.ndarray | None = None,
+    intensities: np.ndarray | None = None,
+    name: str = "synth",
+) -> Stack:
     """One random object under one random rig, as a Stack with normals_gt and mask."""
     rng = np.random.default_rng(rng)
     if shape is None:
@@ -298,8 +344,15 @@ def render_stack(rng: np.random.Generator | int, options: RenderOptions = Render
         w = None if w is None or len(w) != len(options.shapes) else np.asarray(w) / np.sum(w)
         shape = options.shapes[int(rng.choice(len(options.shapes), p=w))]
     steep = _chance(rng, options.steep)
-    height, mask = make_shape(shape, options.size, rng, options.max_depth, steep=steep,
-                              fold_depth=options.fold_depth, cup_depth=options.cup_depth)
+    height, mask = make_shape(
+        shape,
+        options.size,
+        rng,
+        options.max_depth,
+        steep=steep,
+        fold_depth=options.fold_depth,
+        cup_depth=options.cup_depth,
+    )
     if _chance(rng, options.fine_relief):
         height = height + fine_relief(options.size, rng)
     normals = normals_from_height(height, mask).astype(np.float32)
@@ -314,8 +367,11 @@ def render_stack(rng: np.random.Generator | int, options: RenderOptions = Render
         dirs = np.asarray(lights, np.float32)
     else:
         dirs = ring_rig(n, rng) if _chance(rng, options.ring_rigs) else rig_lights(n, rng)
-    ints = rig_intensities(len(dirs), rng) if intensities is None else np.asarray(
-        intensities, np.float32)
+    ints = (
+        rig_intensities(len(dirs), rng)
+        if intensities is None
+        else np.asarray(intensities, np.float32)
+    )
     radiance = shade(normals, dirs, mat)  # (N, H, W, 3)
     shadow = cast_shadow_mask(height, mask, dirs)[..., None] if options.cast_shadows else None
     if shadow is not None:
@@ -342,18 +398,29 @@ def render_stack(rng: np.random.Generator | int, options: RenderOptions = Render
         # bright highlights saturate now and then, as they do in real captures.
         ref = float(np.percentile(vals, 99.5)) if vals.size else 1.0
         signal = radiance / max(ref, 1e-8) * rng.uniform(0.4, 1.0)
-    signal = sensor(signal, rng, options.bit_depths) if options.noise else np.clip(
-        signal, 0.0, 1.0)
+    signal = sensor(signal, rng, options.bit_depths) if options.noise else np.clip(signal, 0.0, 1.0)
     images = (signal * FULL_SCALE).astype(np.float32)
-    return Stack(name=f"{name}_{shape}", images=images, lights=dirs.astype(np.float32),
-                 intensities=ints, mask=mask, normals_gt=normals,
-                 filenames=[f"{i + 1:03d}.png" for i in range(len(dirs))]).validate()
+    return Stack(
+        name=f"{name}_{shape}",
+        images=images,
+        lights=dirs.astype(np.float32),
+        intensities=ints,
+        mask=mask,
+        normals_gt=normals,
+        filenames=[f"{i + 1:03d}.png" for i in range(len(dirs))],
+    ).validate()
 
 
-def render_set(seed: int, count: int, options: RenderOptions = RenderOptions(),
-               start: int = 0, shapes: Sequence[str] | None = None) -> Iterator[Stack]:
+def render_set(
+    seed: int,
+    count: int,
+    options: RenderOptions = RenderOptions(),
+    start: int = 0,
+    shapes: Sequence[str] | None = None,
+) -> Iterator[Stack]:
     """Objects ``start .. start+count-1`` of the set seeded ``seed`` (each independent)."""
     for i in range(start, start + count):
         shape = shapes[i % len(shapes)] if shapes else None
-        yield render_stack(np.random.default_rng([seed, i]), options, shape=shape,
-                           name=f"obj{i:04d}")
+        yield render_stack(
+            np.random.default_rng([seed, i]), options, shape=shape, name=f"obj{i:04d}"
+        )

@@ -28,20 +28,33 @@ def grid(size: int) -> tuple[np.ndarray, np.ndarray]:
     return x, y
 
 
-def fourier_noise(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, terms: int,
-                  fmin: float, fmax: float, slope: float = 1.5) -> np.ndarray:
+def fourier_noise(
+    x: np.ndarray,
+    y: np.ndarray,
+    rng: np.random.Generator,
+    terms: int,
+    fmin: float,
+    fmax: float,
+    slope: float = 1.5,
+) -> np.ndarray:
     """Sum of random plane waves, amplitude ~ 1/f^slope: smooth multi-scale relief, unit-ish RMS."""
     f = np.exp(rng.uniform(np.log(fmin), np.log(fmax), terms))
     ang = rng.uniform(0, 2 * np.pi, terms)
     phase = rng.uniform(0, 2 * np.pi, terms)
-    amp = f ** -slope
-    amp /= np.sqrt(np.sum(amp ** 2) / 2)
+    amp = f**-slope
+    amp /= np.sqrt(np.sum(amp**2) / 2)
     u = np.cos(ang)[:, None, None] * x + np.sin(ang)[:, None, None] * y
     return np.einsum("k,khw->hw", amp, np.cos(np.pi * f[:, None, None] * u + phase[:, None, None]))
 
 
-def gaussian_bumps(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, count: int,
-                   amp: tuple[float, float], sigma: tuple[float, float]) -> np.ndarray:
+def gaussian_bumps(
+    x: np.ndarray,
+    y: np.ndarray,
+    rng: np.random.Generator,
+    count: int,
+    amp: tuple[float, float],
+    sigma: tuple[float, float],
+) -> np.ndarray:
     cx, cy = rng.uniform(-0.8, 0.8, (2, count))
     s = rng.uniform(*sigma, count)
     a = rng.uniform(*amp, count) * rng.choice([-1.0, 1.0], count, p=[0.3, 0.7])
@@ -62,8 +75,9 @@ def creases(x: np.ndarray, y: np.ndarray, rng: np.random.Generator, count: int) 
     return out
 
 
-def silhouette(x: np.ndarray, y: np.ndarray, rng: np.random.Generator,
-               wobble: float) -> tuple[np.ndarray, np.ndarray]:
+def silhouette(
+    x: np.ndarray, y: np.ndarray, rng: np.random.Generator, wobble: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Normalised radius rho (< 1 inside) of a star-shaped outline, and the local radius R."""
     theta = np.arctan2(y, x)
     r0 = rng.uniform(0.6, 0.92)
@@ -81,7 +95,7 @@ def dome_profile(rho: np.ndarray, power: float = 2.0) -> np.ndarray:
     Above 2 the top flattens and the sides turn vertical over a wider band, which is what puts
     many pixels at grazing slant (n_z < 0.3) even at small render sizes."""
     if power == 2.0:  # the original expression, so default renders stay bit-identical
-        return np.sqrt(np.clip(1.0 - rho ** 2, 0.0, None))
+        return np.sqrt(np.clip(1.0 - rho**2, 0.0, None))
     return np.clip(1.0 - np.clip(rho, 0.0, None) ** power, 0.0, None) ** (1.0 / power)
 
 
@@ -95,8 +109,9 @@ def _trim_outline(inside: np.ndarray) -> np.ndarray:
     return mask
 
 
-def cloth_folds(x: np.ndarray, y: np.ndarray, rng: np.random.Generator,
-                depth: tuple[float, float] = FOLD_DEPTH) -> np.ndarray:
+def cloth_folds(
+    x: np.ndarray, y: np.ndarray, rng: np.random.Generator, depth: tuple[float, float] = FOLD_DEPTH
+) -> np.ndarray:
     """Harvest-like cloth folds: rounded ridges between deep, narrow, curved valleys.
 
     Along a warped coordinate u, the height is amp * (sin^2 + eps^2)^(g/2) with g < 1: a cusp
@@ -118,11 +133,15 @@ def cloth_folds(x: np.ndarray, y: np.ndarray, rng: np.random.Generator,
     return out
 
 
-def make_shape(kind: str, size: int, rng: np.random.Generator,
-               max_depth: float = DEFAULT_MAX_DEPTH,
-               steep: bool = False,
-               fold_depth: tuple[float, float] = FOLD_DEPTH,
-               cup_depth: tuple[float, float] = CUP_DEPTH) -> tuple[np.ndarray, np.ndarray]:
+def make_shape(
+    kind: str,
+    size: int,
+    rng: np.random.Generator,
+    max_depth: float = DEFAULT_MAX_DEPTH,
+    steep: bool = False,
+    fold_depth: tuple[float, float] = FOLD_DEPTH,
+    cup_depth: tuple[float, float] = CUP_DEPTH,
+) -> tuple[np.ndarray, np.ndarray]:
     """(height (H, W) float64, mask (H, W) bool) for one random shape of ``kind``.
 
     ``max_depth``: the dome's height over its radius is drawn from [0.5, max_depth]; above 1 the
@@ -139,8 +158,9 @@ def make_shape(kind: str, size: int, rng: np.random.Generator,
         return z, np.ones_like(z, bool)
     if kind == "folds" and rng.random() < 0.4:
         # A full-frame patch of folded cloth.
-        return cloth_folds(x, y, rng, fold_depth) + 0.05 * fourier_noise(x, y, rng, 8, 0.5, 3.0), \
-            np.ones_like(x, bool)
+        return cloth_folds(x, y, rng, fold_depth) + 0.05 * fourier_noise(
+            x, y, rng, 8, 0.5, 3.0
+        ), np.ones_like(x, bool)
     if kind not in ALL_SHAPES:
         raise ValueError(f"unknown shape {kind!r}; choose from {', '.join(ALL_SHAPES)}")
     wobble = 0.0 if kind == "sphere" else 1.0
@@ -158,13 +178,12 @@ def make_shape(kind: str, size: int, rng: np.random.Generator,
     r_mid = float(np.median(radius[inside]))
     z = depth * r_mid * dome
     # Detail fades out towards the outline so silhouettes stay clean.
-    fade = np.clip(1.0 - rho ** 2, 0.0, None)
+    fade = np.clip(1.0 - rho**2, 0.0, None)
     if kind == "blob":
         z += fade * (0.06 * fourier_noise(x, y, rng, 8, 1.0, 3.0))
         z += fade * gaussian_bumps(x, y, rng, 3, (0.03, 0.1), (0.15, 0.35))
     elif kind == "bumps":
-        z += fade * gaussian_bumps(x, y, rng, int(rng.integers(6, 20)), (0.02, 0.12),
-                                   (0.04, 0.18))
+        z += fade * gaussian_bumps(x, y, rng, int(rng.integers(6, 20)), (0.02, 0.12), (0.04, 0.18))
     elif kind == "creases":
         z += fade * 0.5 * creases(x, y, rng, int(rng.integers(1, 4)))
     elif kind == "sculpted":
@@ -197,8 +216,9 @@ def make_shape(kind: str, size: int, rng: np.random.Generator,
 RELIEF_KINDS = ("engraving", "scratches", "weave", "lettering")
 
 
-def _segment_profile(size: int, seg: np.ndarray, width: np.ndarray,
-                     weight: np.ndarray | float = 1.0) -> np.ndarray:
+def _segment_profile(
+    size: int, seg: np.ndarray, width: np.ndarray, weight: np.ndarray | float = 1.0
+) -> np.ndarray:
     """max over segments of weight * exp(-(d / w)^2), d = pixel distance to the segment, (H, W).
 
     seg (K, 4) = (r0, c0, r1, c1) in pixels, width (K,) in pixels. Each segment is evaluated
@@ -212,8 +232,11 @@ def _segment_profile(size: int, seg: np.ndarray, width: np.ndarray,
         clo, chi = max(int(min(c0, c1) - pad), 0), min(int(max(c0, c1) + pad) + 2, size)
         if rlo >= rhi or clo >= chi:
             continue  # entirely off the frame
-        rr, cc = np.meshgrid(np.arange(rlo, rhi, dtype=np.float64),
-                             np.arange(clo, chi, dtype=np.float64), indexing="ij")
+        rr, cc = np.meshgrid(
+            np.arange(rlo, rhi, dtype=np.float64),
+            np.arange(clo, chi, dtype=np.float64),
+            indexing="ij",
+        )
         dr, dc = r1 - r0, c1 - c0
         t = np.clip(((rr - r0) * dr + (cc - c0) * dc) / max(dr * dr + dc * dc, 1e-9), 0.0, 1.0)
         d2 = (rr - r0 - t * dr) ** 2 + (cc - c0 - t * dc) ** 2
@@ -222,19 +245,37 @@ def _segment_profile(size: int, seg: np.ndarray, width: np.ndarray,
     return out
 
 
-def _polyline(rng: np.random.Generator, start: np.ndarray, heading: float, steps: int,
-              step_px: float, turn: float) -> np.ndarray:
+def _polyline(
+    rng: np.random.Generator,
+    start: np.ndarray,
+    heading: float,
+    steps: int,
+    step_px: float,
+    turn: float,
+) -> np.ndarray:
     """Segments (steps, 4) of a smoothly turning random walk in pixel coordinates."""
     headings = heading + np.cumsum(rng.normal(0.0, turn, steps))
-    pts = start + np.concatenate([[[0.0, 0.0]], np.cumsum(
-        step_px * np.stack([np.sin(headings), np.cos(headings)], axis=1), axis=0)])
+    pts = start + np.concatenate(
+        [
+            [[0.0, 0.0]],
+            np.cumsum(step_px * np.stack([np.sin(headings), np.cos(headings)], axis=1), axis=0),
+        ]
+    )
     return np.concatenate([pts[:-1], pts[1:]], axis=1)
 
 
 def _engraving(size: int, rng: np.random.Generator) -> np.ndarray:
-    segs = [_polyline(rng, rng.uniform(0, size, 2), rng.uniform(0, 2 * np.pi),
-                      int(rng.integers(6, 20)), rng.uniform(2.0, 6.0), rng.uniform(0.1, 0.5))
-            for _ in range(int(rng.integers(2, 7)))]
+    segs = [
+        _polyline(
+            rng,
+            rng.uniform(0, size, 2),
+            rng.uniform(0, 2 * np.pi),
+            int(rng.integers(6, 20)),
+            rng.uniform(2.0, 6.0),
+            rng.uniform(0.1, 0.5),
+        )
+        for _ in range(int(rng.integers(2, 7)))
+    ]
     seg = np.concatenate(segs)
     width = np.full(len(seg), rng.uniform(0.6, 1.4))
     return -rng.uniform(0.4, 1.5) * _segment_profile(size, seg, width)
@@ -279,8 +320,10 @@ def _lettering(size: int, rng: np.random.Generator) -> np.ndarray:
         w = rng.uniform(0.5, 1.2)
         for g in range(int(rng.integers(3, 12))):
             cell = origin + along * g * 0.8 * height
-            ends = rng.integers(0, 3, (int(rng.integers(2, 5)), 2)), \
-                rng.integers(0, 4, (int(rng.integers(2, 5)), 2))
+            ends = (
+                rng.integers(0, 3, (int(rng.integers(2, 5)), 2)),
+                rng.integers(0, 4, (int(rng.integers(2, 5)), 2)),
+            )
             n = min(len(ends[0]), len(ends[1]))
             for (i0, i1), (j0, j1) in zip(ends[0][:n], ends[1][:n], strict=True):
                 p0 = cell + along * i0 * 0.3 * height + up * j0 * height / 3
@@ -291,14 +334,19 @@ def _lettering(size: int, rng: np.random.Generator) -> np.ndarray:
     return rng.choice([-1.0, 1.0]) * rng.uniform(0.4, 1.5) * prof
 
 
-def fine_relief(size: int, rng: np.random.Generator,
-                kinds: tuple[str, ...] = RELIEF_KINDS) -> np.ndarray:
+def fine_relief(
+    size: int, rng: np.random.Generator, kinds: tuple[str, ...] = RELIEF_KINDS
+) -> np.ndarray:
     """Pixel-scale relief, (size, size) heights in grid units, over a random part of the frame.
 
     One to three of ``kinds`` are drawn; depths are 0.2-1.5 px and widths / periods 1-6 px, so
     the normals tilt by up to ~40 deg over 1-3 px."""
-    makers = {"engraving": _engraving, "scratches": _scratches, "weave": _weave,
-              "lettering": _lettering}
+    makers = {
+        "engraving": _engraving,
+        "scratches": _scratches,
+        "weave": _weave,
+        "lettering": _lettering,
+    }
     picks = rng.choice(len(kinds), size=min(len(kinds), int(rng.integers(1, 4))), replace=False)
     x, y = grid(size)
     z = np.zeros((size, size))
@@ -326,7 +374,7 @@ def normals_from_height(z: np.ndarray, mask: np.ndarray | None = None) -> np.nda
 def sphere_normals(size: int, radius: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
     """Analytic normals and mask of a centred sphere (used by tests and simple samples)."""
     x, y = grid(size)
-    r2 = (x * x + y * y) / radius ** 2
+    r2 = (x * x + y * y) / radius**2
     mask = r2 < 1.0
     n = np.stack([x / radius, y / radius, np.sqrt(np.clip(1 - r2, 0, None))], axis=-1)
     n[~mask] = 0.0

@@ -93,8 +93,12 @@ def _geometry(scene: Scene) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np
     return out
 
 
-def render(scene: Scene, light: np.ndarray | None, intensity: np.ndarray | None = None,
-           ambient: float = 0.0) -> np.ndarray:
+def render(
+    scene: Scene,
+    light: np.ndarray | None,
+    intensity: np.ndarray | None = None,
+    ambient: float = 0.0,
+) -> np.ndarray:
     """Linear radiance image (H, W, 3) float32 for one light (None = lights off)."""
     cam = scene.camera
     geo = _geometry(scene)
@@ -151,8 +155,13 @@ def sphere_normals(scene: Scene, index: int = 0) -> np.ndarray:
     return np.where(inside[..., None], nm / np.maximum(norm, 1e-9), 0.0).astype(np.float32)
 
 
-def expose(radiance: np.ndarray, gain: float, bit_depth: int = 8, noise: float = 0.0,
-           rng: np.random.Generator | None = None) -> np.ndarray:
+def expose(
+    radiance: np.ndarray,
+    gain: float,
+    bit_depth: int = 8,
+    noise: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
     """Radiance -> sensor values: gain, optional read noise (in LSB), clipping, quantisation."""
     top = 255 if bit_depth == 8 else 65535
     x = radiance.astype(np.float64) * gain * top
@@ -161,8 +170,9 @@ def expose(radiance: np.ndarray, gain: float, bit_depth: int = 8, noise: float =
     return np.clip(np.rint(x), 0, top).astype(np.uint8 if bit_depth == 8 else np.uint16)
 
 
-def ring_lights(n: int, elevation_deg: tuple[float, float] = (20.0, 55.0),
-                seed: int = 0) -> np.ndarray:
+def ring_lights(
+    n: int, elevation_deg: tuple[float, float] = (20.0, 55.0), seed: int = 0
+) -> np.ndarray:
     """n unit light directions spread around the view axis (x right, y up, z to camera)."""
     rng = np.random.default_rng(seed)
     az = np.linspace(0, 2 * np.pi, n, endpoint=False) + rng.uniform(-0.2, 0.2, n)
@@ -170,9 +180,16 @@ def ring_lights(n: int, elevation_deg: tuple[float, float] = (20.0, 55.0),
     return np.stack([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)], 1)
 
 
-def mirror_scene(width: int = 240, height: int = 200, radius_px: float = 80.0,
-                 focal: float | None = None, centres_px: list[tuple[float, float]] | None = None,
-                 source_deg: float = 2.0, ss: int = 3, kind: str = "mirror") -> Scene:
+def mirror_scene(
+    width: int = 240,
+    height: int = 200,
+    radius_px: float = 80.0,
+    focal: float | None = None,
+    centres_px: list[tuple[float, float]] | None = None,
+    source_deg: float = 2.0,
+    ss: int = 3,
+    kind: str = "mirror",
+) -> Scene:
     """A scene of one or more spheres given by their image centres and radius in pixels.
 
     Orthographic (scale 1 px/unit) unless ``focal`` is given; then the spheres sit at a distance
@@ -192,5 +209,14 @@ def mirror_scene(width: int = 240, height: int = 200, radius_px: float = 80.0,
     return Scene(cam, spheres, source_deg=source_deg, ss=ss)
 
 
-__all__ = ["Camera", "Scene", "Sphere", "expose", "mirror_scene", "render", "ring_lights",
-           "sphere_masks", "sphere_normals"]
+__all__ = [
+    "Camera",
+    "Scene",
+    "Sphere",
+    "expose",
+    "mirror_scene",
+    "render",
+    "ring_lights",
+    "sphere_masks",
+    "sphere_normals",
+]

@@ -2,10 +2,21 @@
 
 Each offers ``run(images, lights) -> normals``, ``info``, ``name``, ``precision``, ``threads``
 and ``chunk`` (see base.Engine). Which engine and precision to use on this CPU is decided in
-``msfnet.runtime.dispatch``.
+``msfnet.runtime.engines.dispatch``.
 """
 
-from msfnet.runtime.engines.base import ENGINES, PRECISIONS, Engine, SubgraphSession, engine_name, installed_engines, model_precision, precision_name, read_model_file, run_staged_with
+from msfnet.runtime.engines.base import (
+    ENGINES,
+    PRECISIONS,
+    Engine,
+    SubgraphSession,
+    engine_name,
+    installed_engines,
+    model_precision,
+    precision_name,
+    read_model_file,
+    run_staged_with,
+)
 from msfnet.runtime.engines.onnxruntime import OrtEngine, open_onnxruntime
 
 
@@ -16,6 +27,18 @@ def open_openvino(*args, **kwargs):  # type: ignore[no-untyped-def]
     return _open(*args, **kwargs)
 
 
-__all__ = ["ENGINES", "PRECISIONS", "Engine", "OrtEngine", "SubgraphSession", "engine_name",
-           "installed_engines", "model_precision", "open_onnxruntime", "open_openvino",
-           "precision_name", "read_model_file", "run_staged_with"]
+__all__ = [
+    "ENGINES",
+    "PRECISIONS",
+    "Engine",
+    "OrtEngine",
+    "SubgraphSession",
+    "engine_name",
+    "installed_engines",
+    "model_precision",
+    "open_onnxruntime",
+    "open_openvino",
+    "precision_name",
+    "read_model_file",
+    "run_staged_with",
+]

@@ -15,14 +15,18 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from msfnet.runtime.chunked import run_staged
+from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo, read_model_info
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.session import check_io
+from msfnet.runtime.engines.ort_session import check_io
+from msfnet.runtime.engines.staged_loop import run_staged
 
 ENGINES = ("onnxruntime", "openvino")
-ENGINE_ALIASES = {"onnxruntime": "onnxruntime", "ort": "onnxruntime",
-                  "openvino": "openvino", "ov": "openvino"}
+ENGINE_ALIASES = {
+    "onnxruntime": "onnxruntime",
+    "ort": "onnxruntime",
+    "openvino": "openvino",
+    "ov": "openvino",
+}
 PRECISIONS = ("fp32", "bf16", "int8")
 # the Python module that has to be importable for each engine
 ENGINE_MODULES = {"onnxruntime": "onnxruntime", "openvino": "openvino"}
@@ -54,8 +58,7 @@ def engine_name(name: str) -> str:
     """'ort' / 'ov' / full names -> the canonical engine name; InputError if unknown."""
     canonical = ENGINE_ALIASES.get(name.strip().lower())
     if canonical is None:
-        raise InputError(f"--engine {name!r}: expected one of {', '.join(ENGINES)} "
-                         "(or ort, ov)")
+        raise InputError(f"--engine {name!r}: expected one of {', '.join(ENGINES)} (or ort, ov)")
     return canonical
 
 
@@ -107,8 +110,7 @@ def read_model_file(path: str | Path) -> ModelInfo:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"cannot load ONNX model ({first[:200]})", path) from exc
     info = read_model_info(path, dict(sess.get_modelmeta().custom_metadata_map))
-    check_io(path, info, {i.name for i in sess.get_inputs()},
-             {o.name for o in sess.get_outputs()})
+    check_io(path, info, {i.name for i in sess.get_inputs()}, {o.name for o in sess.get_outputs()})
     return info
 
 
@@ -128,12 +130,22 @@ class SubgraphSession:
         return [self._run_output(name, feeds) for name in output_names]
 
 
-def run_staged_with(run_output: RunOutput, images: np.ndarray, lights: np.ndarray,
-                    chunk: int) -> np.ndarray:
+def run_staged_with(
+    run_output: RunOutput, images: np.ndarray, lights: np.ndarray, chunk: int
+) -> np.ndarray:
     """``staged.run_staged`` with any engine's sub-graph runner."""
     return run_staged(SubgraphSession(run_output), images, lights, chunk)
 
 
-__all__ = ["ENGINES", "PRECISIONS", "Engine", "SubgraphSession", "engine_name",
-           "installed_engines", "model_precision", "precision_name", "read_model_file",
-           "run_staged_with"]
+__all__ = [
+    "ENGINES",
+    "PRECISIONS",
+    "Engine",
+    "SubgraphSession",
+    "engine_name",
+    "installed_engines",
+    "model_precision",
+    "precision_name",
+    "read_model_file",
+    "run_staged_with",
+]

@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.session import ModelSession, create_session
 from msfnet.runtime.engines.base import model_precision
+from msfnet.runtime.engines.ort_session import ModelSession, create_session
 
 
 class OrtEngine:
@@ -50,24 +50,40 @@ class OrtEngine:
         return self.session.run(images, lights)
 
     def describe(self) -> dict[str, object]:
-        return {"engine": self.name, "precision": self.precision, "provider": self.provider,
-                "threads": self.threads, "graph": "staged" if self.info.staged else "monolithic",
-                "chunk": self.chunk}
+        return {
+            "engine": self.name,
+            "precision": self.precision,
+            "provider": self.provider,
+            "threads": self.threads,
+            "graph": "staged" if self.info.staged else "monolithic",
+            "chunk": self.chunk,
+        }
 
     def __repr__(self) -> str:
         return f"OrtEngine({self.info.path.name}, {self.precision}, threads={self.threads})"
 
 
-def open_onnxruntime(path: str | Path, *, threads: int | None = None,
-                     precision: str | None = None, provider: str | None = None,
-                     chunk: int | None = None) -> OrtEngine:
+def open_onnxruntime(
+    path: str | Path,
+    *,
+    threads: int | None = None,
+    precision: str | None = None,
+    provider: str | None = None,
+    chunk: int | None = None,
+) -> OrtEngine:
     """Load ``path`` with ONNX Runtime. ``precision``, if given, must be the model's own."""
     engine = OrtEngine(create_session(path, threads=threads, provider=provider))
     if precision is not None and precision != engine.precision:
-        hint = ("OpenVINO (--engine openvino) runs fp32 models in bf16" if precision == "bf16"
-                else "export a model of that precision with msf-export")
-        raise InputError(f"ONNX Runtime runs this {engine.precision} model in "
-                         f"{engine.precision}, not {precision}; {hint}", engine.info.path)
+        hint = (
+            "OpenVINO (--engine openvino) runs fp32 models in bf16"
+            if precision == "bf16"
+            else "export a model of that precision with msf-export"
+        )
+        raise InputError(
+            f"ONNX Runtime runs this {engine.precision} model in "
+            f"{engine.precision}, not {precision}; {hint}",
+            engine.info.path,
+        )
     if chunk is not None:
         engine.set_lights_per_call(chunk)
     return engine

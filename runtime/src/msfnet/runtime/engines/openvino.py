@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
-from msfnet.runtime.chunked import DEFAULT_CHUNK, STAGE_OUTPUTS
+from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo
-from msfnet.runtime.errors import InputError
-from msfnet.runtime.session import default_threads
 from msfnet.runtime.engines.base import model_precision, read_model_file, run_staged_with
+from msfnet.runtime.engines.ort_session import default_threads
+from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK, STAGE_OUTPUTS
 
 # OpenVINO's names for the compute precisions
 _HINTS = {"fp32": "f32", "bf16": "bf16"}
@@ -33,8 +33,7 @@ def import_openvino() -> Any:
     try:
         import openvino
     except ImportError as exc:
-        raise InputError(f"the OpenVINO engine needs the openvino package: {INSTALL_HINT}") \
-            from exc
+        raise InputError(f"the OpenVINO engine needs the openvino package: {INSTALL_HINT}") from exc
     return openvino
 
 
@@ -47,12 +46,21 @@ def _effective(compiled: Any) -> str:
 class OpenVinoEngine:
     name = "openvino"
 
-    def __init__(self, compiled: dict[str, Any], info: ModelInfo, precision: str,
-                 threads: int, chunk: int = DEFAULT_CHUNK, device: str = "CPU",
-                 version: str = "") -> None:
+    def __init__(
+        self,
+        compiled: dict[str, Any],
+        info: ModelInfo,
+        precision: str,
+        threads: int,
+        chunk: int = DEFAULT_CHUNK,
+        device: str = "CPU",
+        version: str = "",
+    ) -> None:
         # output name -> (infer request, names of the inputs it needs)
-        self._requests = {out: (c.create_infer_request(), [i.get_any_name() for i in c.inputs])
-                          for out, c in compiled.items()}
+        self._requests = {
+            out: (c.create_infer_request(), [i.get_any_name() for i in c.inputs])
+            for out, c in compiled.items()
+        }
         self.info = info
         self.precision = precision
         self.threads = threads
@@ -77,10 +85,15 @@ class OpenVinoEngine:
         return self._run_output("normals", {"images": images, "lights": lights})
 
     def describe(self) -> dict[str, object]:
-        return {"engine": self.name, "precision": self.precision, "device": self.device,
-                "threads": self.threads, "openvino": self.version,
-                "graph": "staged" if self.info.staged else "monolithic",
-                "chunk": self.chunk if self.info.staged else None}
+        return {
+            "engine": self.name,
+            "precision": self.precision,
+            "device": self.device,
+            "threads": self.threads,
+            "openvino": self.version,
+            "graph": "staged" if self.info.staged else "monolithic",
+            "chunk": self.chunk if self.info.staged else None,
+        }
 
     def __repr__(self) -> str:
         return f"OpenVinoEngine({self.info.path.name}, {self.precision}, threads={self.threads})"
@@ -107,9 +120,15 @@ def _sub_model(ov: Any, core: Any, path: Path, output: str) -> Any:
     return ov.Model([result], needed, output)
 
 
-def open_openvino(path: str | Path, *, threads: int | None = None, precision: str | None = None,
-                  chunk: int | None = None, device: str = "CPU",
-                  config: dict[str, Any] | None = None) -> OpenVinoEngine:
+def open_openvino(
+    path: str | Path,
+    *,
+    threads: int | None = None,
+    precision: str | None = None,
+    chunk: int | None = None,
+    device: str = "CPU",
+    config: dict[str, Any] | None = None,
+) -> OpenVinoEngine:
     """Compile ``path`` with OpenVINO. ``precision``: fp32 or bf16 for fp32 models (default
     fp32), int8 (the default) for int8 QDQ models, whose non-quantised layers then run fp32.
 
@@ -121,11 +140,13 @@ def open_openvino(path: str | Path, *, threads: int | None = None, precision: st
     own = model_precision(info)
     precision = precision or own
     if own == "int8" and precision != "int8":
-        raise InputError(f"this is an int8 model; precision {precision} needs an fp32 export",
-                         info.path)
+        raise InputError(
+            f"this is an int8 model; precision {precision} needs an fp32 export", info.path
+        )
     if own == "fp32" and precision == "int8":
-        raise InputError("int8 needs an int8 export (msf-export --int8); this model is fp32",
-                         info.path)
+        raise InputError(
+            "int8 needs an int8 export (msf-export --int8); this model is fp32", info.path
+        )
     threads = threads or default_threads()
     if threads < 1:
         raise InputError(f"--threads must be positive, got {threads}")
@@ -139,23 +160,36 @@ def open_openvino(path: str | Path, *, threads: int | None = None, precision: st
     core = ov.Core()
     try:
         if info.staged:
-            compiled = {out: core.compile_model(_sub_model(ov, core, info.path, out), device,
-                                                props) for out in STAGE_OUTPUTS}
+            compiled = {
+                out: core.compile_model(_sub_model(ov, core, info.path, out), device, props)
+                for out in STAGE_OUTPUTS
+            }
         else:
             compiled = {"normals": core.compile_model(str(info.path), device, props)}
     except InputError:
         raise
     except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
         first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
-        raise InputError(f"OpenVINO cannot compile this model for {device} "
-                         f"({type(exc).__name__}: {first})", info.path) from exc
+        raise InputError(
+            f"OpenVINO cannot compile this model for {device} ({type(exc).__name__}: {first})",
+            info.path,
+        ) from exc
     effective = _effective(next(iter(compiled.values())))
     if precision == "bf16" and effective != "bf16":
-        raise InputError("OpenVINO runs bf16 only on CPUs with native bf16 (AVX-512 bf16 or "
-                         f"AMX); here it would compute {effective}: use --precision fp32")
+        raise InputError(
+            "OpenVINO runs bf16 only on CPUs with native bf16 (AVX-512 bf16 or "
+            f"AMX); here it would compute {effective}: use --precision fp32"
+        )
     version = getattr(ov, "__version__", "") or str(ov.get_version())
-    return OpenVinoEngine(compiled, info, precision if precision == "int8" else effective,
-                          threads, chunk or DEFAULT_CHUNK, device, version)
+    return OpenVinoEngine(
+        compiled,
+        info,
+        precision if precision == "int8" else effective,
+        threads,
+        chunk or DEFAULT_CHUNK,
+        device,
+        version,
+    )
 
 
 __all__ = ["INSTALL_HINT", "OpenVinoEngine", "import_openvino", "open_openvino"]

@@ -14,20 +14,29 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.errors import InputError, first_line
-from msfnet.runtime.imageio import IMAGE_SUFFIXES, list_images, read_image, read_mask
+from msfnet.common.errors import InputError, first_line
+from msfnet.common.imageio import IMAGE_SUFFIXES, list_images, read_image, read_mask
 from msfnet.runtime.stack.readers import read_normals, read_vectors, unit_normals
 from msfnet.runtime.stack.select import selection
 from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask
-from msfnet.runtime.stack.types import Stack, as_held, check_intensities, check_lights, held_dtype, unit_lights
+from msfnet.runtime.stack.types import (
+    Stack,
+    as_held,
+    check_intensities,
+    check_lights,
+    held_dtype,
+    unit_lights,
+)
 
 LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_directions.json")
 INTENSITY_NAMES = ("light_intensities.txt", "intensities.txt", "light_intensities.json")
 MASK_NAMES = ("mask.png", "mask.tif", "mask.tiff", "mask.tga", "mask.bmp")
 GT_NAMES = ("Normal_gt.mat", "Normal_gt.npy", "Normal_gt.png", "normal_gt.png", "normals_gt.png")
 # what a STACK argument may be, for the message when it is something else
-STACK_KINDS = ("a folder of images with a lights file (DiLiGenT layout), or an .npz with "
-               "arrays 'images' and 'lights'")
+STACK_KINDS = (
+    "a folder of images with a lights file (DiLiGenT layout), or an .npz with "
+    "arrays 'images' and 'lights'"
+)
 
 
 @dataclass(frozen=True)
@@ -67,8 +76,11 @@ class LoadOptions:
     def describe(self) -> dict[str, object]:
         """The real-camera options in effect, and the image selection when there is one, for
         profile.json."""
-        chosen = {k: v for k, v in (("select", self.select), ("max_lights", self.max_lights))
-                  if v is not None}
+        chosen = {
+            k: v
+            for k, v in (("select", self.select), ("max_lights", self.max_lights))
+            if v is not None
+        }
         return {**self.transforms().describe(), "auto_mask": self.auto_mask, **chosen}
 
 
@@ -76,8 +88,14 @@ def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
     return next((folder / n for n in names if (folder / n).is_file()), None)
 
 
-def check_stack_size(n: int, h: int, w: int, max_memory_mb: float | None,
-                     src: object = None, dtype: np.dtype | type = np.float32) -> None:
+def check_stack_size(
+    n: int,
+    h: int,
+    w: int,
+    max_memory_mb: float | None,
+    src: str | Path | None = None,
+    dtype: np.dtype | type = np.float32,
+) -> None:
     """The loaded stack is N x H x W x 3 values of ``dtype`` (as held: see
     :func:`~.types.held_dtype`): refuse it up front if that alone is over the memory budget (a
     96-image full-resolution stack otherwise fills the memory while decoding, before any later
@@ -85,14 +103,19 @@ def check_stack_size(n: int, h: int, w: int, max_memory_mb: float | None,
     need = n * h * w * 3 * np.dtype(dtype).itemsize / 2**20
     if max_memory_mb is not None and need > max_memory_mb:
         size = f"{need:.0f}" if need >= 1 else f"{need:.2g}"  # "1536", "2", "0.14"
-        raise InputError(f"{n} images of {w}x{h} take {size} MB loaded, above --max-memory "
-                         f"{max_memory_mb:g} MB (use --select/--max-lights or a larger budget)",
-                         src)  # type: ignore[arg-type]
+        raise InputError(
+            f"{n} images of {w}x{h} take {size} MB loaded, above --max-memory "
+            f"{max_memory_mb:g} MB (use --select/--max-lights or a larger budget)",
+            src,
+        )
 
 
-def _read_images(paths: Sequence[Path], threads: int = 4,
-                 transforms: Transforms | None = None,
-                 max_memory_mb: float | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+def _read_images(
+    paths: Sequence[Path],
+    threads: int = 4,
+    transforms: Transforms | None = None,
+    max_memory_mb: float | None = None,
+) -> tuple[np.ndarray, tuple[int, int]]:
     """Decode in parallel (OpenCV releases the GIL), each image reduced by ``transforms`` in
     its thread and copied straight into the stack, so no second stack-sized array is ever
     held; sizes and bit depths must all agree. Returns the images and the stored size.
@@ -109,20 +132,25 @@ def _read_images(paths: Sequence[Path], threads: int = 4,
         return transforms.image(img, path), img.dtype, img.shape[:2]
 
     first, dtype0, shape0 = read(paths[0])
-    check_stack_size(len(paths), first.shape[0], first.shape[1], max_memory_mb,
-                     paths[0].parent, first.dtype)
+    check_stack_size(
+        len(paths), first.shape[0], first.shape[1], max_memory_mb, paths[0].parent, first.dtype
+    )
     out = np.empty((len(paths), first.shape[0], first.shape[1], 3), dtype=first.dtype)
     out[0] = first
 
     def read_into(i: int) -> None:
         img, dtype, shape = read(paths[i])
         if shape != shape0:
-            raise InputError(f"image is {shape[1]}x{shape[0]} but {paths[0].name} is "
-                             f"{shape0[1]}x{shape0[0]}", paths[i])
+            raise InputError(
+                f"image is {shape[1]}x{shape[0]} but {paths[0].name} is {shape0[1]}x{shape0[0]}",
+                paths[i],
+            )
         if dtype != dtype0:
             # an 8-bit image among 16-bit ones is 257x too dark: silently wrong normals
-            raise InputError(f"image is {dtype} but {paths[0].name} is {dtype0}: "
-                             "one bit depth per stack", paths[i])
+            raise InputError(
+                f"image is {dtype} but {paths[0].name} is {dtype0}: one bit depth per stack",
+                paths[i],
+            )
         out[i] = img  # grey (H, W, 1) broadcasts to RGB
 
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
@@ -131,14 +159,17 @@ def _read_images(paths: Sequence[Path], threads: int = 4,
     return out, shape0
 
 
-def _check_float_scale(img: np.ndarray, transforms: Transforms, src: object) -> None:
+def _check_float_scale(img: np.ndarray, transforms: Transforms, src: str | Path | None) -> None:
     """Linearising needs the full-scale value; float images carry none."""
     linear = not (transforms.srgb or transforms.gamma is not None)
     if linear or transforms.white is not None or not np.issubdtype(img.dtype, np.floating):
         return
     if float(np.max(img)) > 1.0:
-        raise InputError("floating-point images with values above 1: give the full-scale "
-                         "value (--white-level) to linearise them", src)  # type: ignore[arg-type]
+        raise InputError(
+            "floating-point images with values above 1: give the full-scale "
+            "value (--white-level) to linearise them",
+            src,
+        )
 
 
 def _finish(stack: Stack, options: LoadOptions) -> Stack:
@@ -153,8 +184,10 @@ def prepare_stack(stack: Stack, options: LoadOptions) -> Stack:
     linearisation, auto-mask (what :func:`load_stack` does while decoding). Lights, mask and
     intensity files in ``options`` are for loaders and are refused here."""
     if options.inputs():
-        raise InputError("lights, intensities and mask files apply when a stack is loaded "
-                         "from disk; this stack is already in memory")
+        raise InputError(
+            "lights, intensities and mask files apply when a stack is loaded "
+            "from disk; this stack is already in memory"
+        )
     keep = selection(stack.num_lights, options.select, options.max_lights)
     if keep != list(range(stack.num_lights)):
         stack = stack.subset(keep)
@@ -167,8 +200,9 @@ def prepare_stack(stack: Stack, options: LoadOptions) -> Stack:
     return _finish(stack, options)
 
 
-def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
-                indices: Sequence[int] | None = None) -> Stack:
+def load_folder(
+    folder: Path, options: LoadOptions = LoadOptions(), indices: Sequence[int] | None = None
+) -> Stack:
     """A DiLiGenT-layout object folder, or any folder of images plus a lights file.
 
     ``indices`` (0-based) picks the images to keep; only those are decoded.
@@ -179,8 +213,11 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
         raise InputError("stack folder not found", folder)
     names_file = folder / "filenames.txt"
     if names_file.is_file():
-        names = [ln.strip() for ln in names_file.read_text(encoding="utf-8-sig").splitlines()
-                 if ln.strip()]
+        names = [
+            ln.strip()
+            for ln in names_file.read_text(encoding="utf-8-sig").splitlines()
+            if ln.strip()
+        ]
         paths = [folder / n for n in names]
     else:
         paths = list_images(folder)
@@ -188,12 +225,15 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
         raise InputError("no images found (expected PNG/TIFF/TGA files or filenames.txt)", folder)
     lights_path = options.lights or _first_existing(folder, LIGHTS_NAMES)
     if lights_path is None:
-        raise InputError("no light directions: expected light_directions.txt or lights.txt "
-                         "(or pass --lights)", folder)
+        raise InputError(
+            "no light directions: expected light_directions.txt or lights.txt (or pass --lights)",
+            folder,
+        )
     light_dirs = read_vectors(lights_path, "light directions")
     if len(light_dirs) != len(paths):
-        raise InputError(f"{len(light_dirs)} light directions for {len(paths)} images in "
-                         f"{folder}", lights_path)
+        raise InputError(
+            f"{len(light_dirs)} light directions for {len(paths)} images in {folder}", lights_path
+        )
     int_path = options.intensities or _first_existing(folder, INTENSITY_NAMES)
     if int_path is not None:
         ints = read_vectors(int_path, "light intensities")
@@ -209,26 +249,40 @@ def load_folder(folder: Path, options: LoadOptions = LoadOptions(),
     check_lights(light_dirs, lights_path)
     t = options.transforms()
     images, hw = _read_images(paths, options.threads, t, options.max_memory_mb)
-    mask_path = None if options.auto_mask else options.mask or _first_existing(
-        folder, MASK_NAMES) or _other_mask(folder)
-    mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3],
-                                                                         bool)
+    mask_path = (
+        None
+        if options.auto_mask
+        else options.mask or _first_existing(folder, MASK_NAMES) or _other_mask(folder)
+    )
+    mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3], bool)
     gt_path = _first_existing(folder, GT_NAMES)
     gt = read_normals(gt_path) if gt_path else None
     if gt is not None:
         if gt.shape[:2] != hw:
-            raise InputError(f"ground truth is {gt.shape[1]}x{gt.shape[0]} but images are "
-                             f"{hw[1]}x{hw[0]}", gt_path)
+            raise InputError(
+                f"ground truth is {gt.shape[1]}x{gt.shape[0]} but images are {hw[1]}x{hw[0]}",
+                gt_path,
+            )
         gt = t.normals(gt)
-    return _finish(Stack(folder.name, images, light_dirs, ints, mask_arr, gt,
-                         [p.name for p in paths], folder), options)
+    return _finish(
+        Stack(folder.name, images, light_dirs, ints, mask_arr, gt, [p.name for p in paths], folder),
+        options,
+    )
 
 
 def _other_mask(folder: Path) -> Path | None:
     """An image named like a mask (``cat.mask.tga``); not a text file or a macOS ``._`` one."""
-    return next((p for p in sorted(folder.iterdir())
-                 if "mask" in p.stem.lower() and p.suffix.lower() in IMAGE_SUFFIXES
-                 and not p.name.startswith(".") and p.is_file()), None)
+    return next(
+        (
+            p
+            for p in sorted(folder.iterdir())
+            if "mask" in p.stem.lower()
+            and p.suffix.lower() in IMAGE_SUFFIXES
+            and not p.name.startswith(".")
+            and p.is_file()
+        ),
+        None,
+    )
 
 
 def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
@@ -244,8 +298,11 @@ def _npz_header(data: np.lib.npyio.NpzFile, key: str) -> tuple[tuple[int, ...], 
     assert data.zip is not None  # np.load of a zip file
     with data.zip.open(f"{key}.npy") as f:
         version = np.lib.format.read_magic(f)
-        read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                else np.lib.format.read_array_header_2_0)
+        read = (
+            np.lib.format.read_array_header_1_0
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0
+        )
         shape, _, dtype = read(f)
         return tuple(shape), np.dtype(dtype)
 
@@ -259,18 +316,25 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic != b"PK\x03\x04":  # np.load would try unpickling anything else
-        raise InputError("not an .npz file (no zip header); expected arrays 'images' and "
-                         "'lights' saved with numpy.savez", path)
+        raise InputError(
+            "not an .npz file (no zip header); expected arrays 'images' and "
+            "'lights' saved with numpy.savez",
+            path,
+        )
     try:
         data = np.load(path, allow_pickle=False)
         files = set(data.files)
         if not {"images", "lights"} <= files:
-            raise InputError("npz stack needs arrays 'images' and 'lights' (it has "
-                             f"{', '.join(sorted(files)) or 'none'})", path)
+            raise InputError(
+                "npz stack needs arrays 'images' and 'lights' (it has "
+                f"{', '.join(sorted(files)) or 'none'})",
+                path,
+            )
         shape, dtype = _npz_header(data, "images")
         if len(shape) in (3, 4):  # before reading it: a zip may inflate to any size
-            check_stack_size(shape[0], shape[1], shape[2], options.max_memory_mb, path,
-                             held_dtype(dtype))
+            check_stack_size(
+                shape[0], shape[1], shape[2], options.max_memory_mb, path, held_dtype(dtype)
+            )
         images = _npz_array(data, "images", path)
         if images.ndim == 4 and images.shape[3] == 1:
             images = images[..., 0]
@@ -280,8 +344,11 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
             raise InputError(f"npz images must be N x H x W (x 3), got {images.shape}", path)
         n, h, w = images.shape[:3]
         lights = _npz_array(data, "lights", path)
-        ints = (_npz_array(data, "intensities", path) if "intensities" in files
-                else np.ones((n, 3), np.float32))
+        ints = (
+            _npz_array(data, "intensities", path)
+            if "intensities" in files
+            else np.ones((n, 3), np.float32)
+        )
         mask = _npz_array(data, "mask", path) if "mask" in files else np.ones((h, w), bool)
         gt = _npz_array(data, "normals", path) if "normals" in files else None
         # float64 values beyond float32's range would become inf below: refuse them here
@@ -301,14 +368,17 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         ints = read_vectors(options.intensities, "light intensities")
     lights_src = options.lights or path
     if lights.ndim != 2 or lights.shape[1] != 3:
-        raise InputError(f"light directions must have 3 numbers per row, got shape "
-                         f"{lights.shape}", lights_src)
+        raise InputError(
+            f"light directions must have 3 numbers per row, got shape {lights.shape}", lights_src
+        )
     if len(lights) != n:
         raise InputError(f"{n} images but {len(lights)} light directions", lights_src)
     ints = np.asarray(ints, np.float32)
     if ints.shape != (n, 3):
-        raise InputError(f"{n} images but light intensities of shape {ints.shape} (expected "
-                         f"{n} x 3)", options.intensities or path)
+        raise InputError(
+            f"{n} images but light intensities of shape {ints.shape} (expected {n} x 3)",
+            options.intensities or path,
+        )
     if options.mask is not None:
         mask = read_mask(options.mask, (h, w))
     elif mask.shape != (h, w):
@@ -317,8 +387,16 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         if gt.shape != (h, w, 3):
             raise InputError(f"npz normals are {gt.shape}, expected {(h, w, 3)}", path)
         gt = unit_normals(gt)
-    stack = Stack(path.stem, images, unit_lights(lights, lights_src), ints,
-                  np.asarray(mask).astype(bool), gt, [], path).validate()
+    stack = Stack(
+        path.stem,
+        images,
+        unit_lights(lights, lights_src),
+        ints,
+        np.asarray(mask).astype(bool),
+        gt,
+        [],
+        path,
+    ).validate()
     # the files are read: the rest is what prepare_stack does to any in-memory stack
     return prepare_stack(stack, replace(options, lights=None, intensities=None, mask=None))
 
@@ -329,23 +407,26 @@ def count_images(folder: Path) -> int:
         return 0
     names_file = folder / "filenames.txt"
     if names_file.is_file():
-        return sum(1 for ln in names_file.read_text(encoding="utf-8-sig").splitlines()
-                   if ln.strip())
+        return sum(
+            1 for ln in names_file.read_text(encoding="utf-8-sig").splitlines() if ln.strip()
+        )
     return len(list_images(folder))
 
 
-def load_stack(path: str | Path, options: LoadOptions | None = None, **overrides: object
-               ) -> Stack:
+def load_stack(path: str | Path, options: LoadOptions | None = None, **overrides: object) -> Stack:
     """Load any supported stack with --select and --max-lights applied (only kept images are
     decoded). Keyword overrides build the options: ``load_stack(p, select="21-96")``."""
     opts = options or LoadOptions()
     if overrides:
-        fields = {k: Path(str(v)) if k in ("lights", "intensities", "mask") and v is not None
-                  else v for k, v in overrides.items()}
-        opts = LoadOptions(**{**opts.__dict__, **fields})  # type: ignore[arg-type]
+        fields = {
+            k: Path(str(v)) if k in ("lights", "intensities", "mask") and v is not None else v
+            for k, v in overrides.items()
+        }
+        opts = LoadOptions(**{**opts.__dict__, **fields})
     path = Path(path)
     if path.suffix.lower() == ".npz":
         return load_npz(path, opts)
     count = count_images(path)
-    return load_folder(path, opts,
-                       selection(count, opts.select, opts.max_lights) if count else None)
+    return load_folder(
+        path, opts, selection(count, opts.select, opts.max_lights) if count else None
+    )

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.errors import InputError, first_line
-from msfnet.runtime.imageio import read_image
+from msfnet.common.errors import InputError, first_line
+from msfnet.common.imageio import read_image
 
 MAX_VECTOR_FILE_BYTES = 64 * 2**20  # a million lights is a few tens of MB of text
 
@@ -19,8 +19,9 @@ def _check_small_file(path: Path, what: str) -> None:
     if not path.is_file():
         raise InputError(f"{what}: not a regular file", path)
     if path.stat().st_size > MAX_VECTOR_FILE_BYTES:
-        raise InputError(f"{what} file is {path.stat().st_size / 2**20:.0f} MB: not a list of "
-                         "numbers", path)
+        raise InputError(
+            f"{what} file is {path.stat().st_size / 2**20:.0f} MB: not a list of numbers", path
+        )
 
 
 def read_vectors(path: Path, what: str) -> np.ndarray:
@@ -34,8 +35,10 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
             if isinstance(data, dict):
                 data = next((v for k, v in data.items() if isinstance(v, list)), None)
             if not isinstance(data, list):
-                raise InputError(f"{what}: expected a JSON list of [x, y, z] rows (or an "
-                                 "object holding one)", path)
+                raise InputError(
+                    f"{what}: expected a JSON list of [x, y, z] rows (or an object holding one)",
+                    path,
+                )
             arr = np.asarray(data, dtype=np.float64)
         else:
             rows = [r.replace(",", " ").split() for r in text.splitlines()]
@@ -44,12 +47,15 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
                 count = rows[0][0]  # a leading count line ("12")
                 rows = rows[1:]
                 if count.isdigit() and int(count) != len(rows):
-                    raise InputError(f"{what}: the first line says {count} rows but "
-                                     f"{len(rows)} follow", path)
+                    raise InputError(
+                        f"{what}: the first line says {count} rows but {len(rows)} follow", path
+                    )
             widths = {len(r) for r in rows}
             if len(widths) > 1:
-                raise InputError(f"cannot parse {what}: rows have {sorted(widths)} numbers "
-                                 "(expected 3 per row)", path)
+                raise InputError(
+                    f"cannot parse {what}: rows have {sorted(widths)} numbers (expected 3 per row)",
+                    path,
+                )
             arr = np.asarray([[float(v) for v in r] for r in rows], dtype=np.float64)
     except (ValueError, TypeError, UnicodeDecodeError, RecursionError) as exc:
         # json.JSONDecodeError is a ValueError; RecursionError: absurdly nested JSON
@@ -61,8 +67,9 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
         raise InputError(f"{what} must have 3 numbers per row, got {cols}", path)
     if not np.all(np.isfinite(arr)):
         rows_bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1)) + 1
-        raise InputError(f"{what} contain NaN or infinite values (row(s) "
-                         f"{rows_bad.tolist()[:5]})", path)
+        raise InputError(
+            f"{what} contain NaN or infinite values (row(s) {rows_bad.tolist()[:5]})", path
+        )
     if np.any(np.abs(arr) > np.finfo(np.float32).max):
         raise InputError(f"{what}: values beyond the float32 range", path)
     return arr.astype(np.float32)

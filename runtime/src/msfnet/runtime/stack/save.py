@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.files import vectors_text, write_atomic, write_text
-from msfnet.runtime.imageio import write_png
+from msfnet.common.files import vectors_text, write_atomic, write_text
+from msfnet.common.imageio import write_png
 from msfnet.runtime.stack.load import GT_NAMES, INTENSITY_NAMES, LIGHTS_NAMES, MASK_NAMES
 from msfnet.runtime.stack.types import Stack
 
@@ -57,8 +57,7 @@ def write_normals(folder: str | Path, normals: np.ndarray) -> Path:
     from scipy.io import savemat
 
     gt = np.asarray(normals, np.float64)
-    return write_atomic(Path(folder) / NORMALS_FILE,
-                        lambda t: savemat(str(t), {"Normal_gt": gt}))
+    return write_atomic(Path(folder) / NORMALS_FILE, lambda t: savemat(str(t), {"Normal_gt": gt}))
 
 
 def write_image(path: str | Path, img: np.ndarray, bit_depth: int = 16) -> Path:
@@ -90,6 +89,18 @@ def save_stack(stack: Stack, folder: str | Path, bit_depth: int = 16) -> Path:
     return folder
 
 
-__all__ = ["FILENAMES_FILE", "INTENSITIES_FILE", "LIGHTS_FILE", "MASK_FILE", "NORMALS_FILE",
-           "filenames_text", "save_stack", "write_filenames", "write_image",
-           "write_intensities", "write_lights", "write_mask", "write_normals"]
+__all__ = [
+    "FILENAMES_FILE",
+    "INTENSITIES_FILE",
+    "LIGHTS_FILE",
+    "MASK_FILE",
+    "NORMALS_FILE",
+    "filenames_text",
+    "save_stack",
+    "write_filenames",
+    "write_image",
+    "write_intensities",
+    "write_lights",
+    "write_mask",
+    "write_normals",
+]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 
 def parse_select(spec: str, n: int) -> list[int]:

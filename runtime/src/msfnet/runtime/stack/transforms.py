@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 from msfnet.runtime.stack.types import as_held
 
 Roi = tuple[int, int, int, int]  # x, y, width, height in pixels of the stored images
@@ -31,7 +31,8 @@ def parse_roi(text: str) -> Roi:
         x, y, w, h = (int(p) for p in parts)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(
-            f"{text!r}: expected four integers x,y,w,h (e.g. 100,80,400,300)") from exc
+            f"{text!r}: expected four integers x,y,w,h (e.g. 100,80,400,300)"
+        ) from exc
     if x < 0 or y < 0 or w < 1 or h < 1:
         raise argparse.ArgumentTypeError(f"{text!r}: x and y must be >= 0, w and h >= 1")
     return x, y, w, h
@@ -41,8 +42,7 @@ def check_roi(roi: Roi, shape: tuple[int, int], src: object = None) -> None:
     x, y, w, h = roi
     ih, iw = shape
     if x + w > iw or y + h > ih:
-        raise InputError(f"--roi {x},{y},{w},{h} reaches past the {iw}x{ih} image",
-                         src)  # type: ignore[arg-type]
+        raise InputError(f"--roi {x},{y},{w},{h} reaches past the {iw}x{ih} image", src)  # type: ignore[arg-type]
 
 
 def crop(arr: np.ndarray, roi: Roi | None) -> np.ndarray:
@@ -50,7 +50,7 @@ def crop(arr: np.ndarray, roi: Roi | None) -> np.ndarray:
     if roi is None:
         return arr
     x, y, w, h = roi
-    return arr[y:y + h, x:x + w]
+    return arr[y : y + h, x : x + w]
 
 
 def area_downscale(arr: np.ndarray, k: int) -> np.ndarray:
@@ -60,9 +60,11 @@ def area_downscale(arr: np.ndarray, k: int) -> np.ndarray:
         return arr.astype(np.float32, copy=False)
     h, w = arr.shape[0] // k, arr.shape[1] // k
     if h == 0 or w == 0:
-        raise InputError(f"--downscale {k}: the image ({arr.shape[1]}x{arr.shape[0]}) is "
-                         f"smaller than one {k}x{k} block")
-    block = arr[:h * k, :w * k].reshape(h, k, w, k, *arr.shape[2:])
+        raise InputError(
+            f"--downscale {k}: the image ({arr.shape[1]}x{arr.shape[0]}) is "
+            f"smaller than one {k}x{k} block"
+        )
+    block = arr[: h * k, : w * k].reshape(h, k, w, k, *arr.shape[2:])
     # float64 accumulation: a 16-bit block sum can exceed float32's exact integer range
     return block.mean(axis=(1, 3), dtype=np.float64).astype(np.float32)
 
@@ -95,12 +97,14 @@ def white_level(dtype: np.dtype) -> float:
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
     """The sRGB EOTF (IEC 61966-2-1) on values normalised to 0..1."""
     v = np.asarray(v, np.float32)
-    return np.where(v <= 0.04045, v / 12.92,
-                    np.power((np.maximum(v, 0.04045) + 0.055) / 1.055, 2.4)).astype(np.float32)
+    return np.where(
+        v <= 0.04045, v / 12.92, np.power((np.maximum(v, 0.04045) + 0.055) / 1.055, 2.4)
+    ).astype(np.float32)
 
 
-def linearise(img: np.ndarray, white: float, srgb: bool = False,
-              gamma: float | None = None) -> np.ndarray:
+def linearise(
+    img: np.ndarray, white: float, srgb: bool = False, gamma: float | None = None
+) -> np.ndarray:
     """Encoded camera values -> linear values in the same units (0..white), float32."""
     if not srgb and gamma is None:
         return img.astype(np.float32, copy=False)
@@ -159,13 +163,13 @@ def valley_threshold(values: np.ndarray, bins: int = 256) -> float:
     t = _otsu_bin(hist, centres)
     x = np.arange(-6, 7)
     smooth = np.convolve(hist, np.exp(-0.5 * (x / 2.0) ** 2), mode="same")
-    lo = int(np.argmax(smooth[:t + 1]))
+    lo = int(np.argmax(smooth[: t + 1]))
     # the upper mode, ignoring the pile-up of clipped (saturated) values in the top bins
     top = bins - 3
-    hi = t + 1 + int(np.argmax(smooth[t + 1:top])) if t + 1 < top else t
+    hi = t + 1 + int(np.argmax(smooth[t + 1 : top])) if t + 1 < top else t
     if hi - lo < 2:
         return float(edges[t + 1])
-    gap = smooth[lo:hi + 1]
+    gap = smooth[lo : hi + 1]
     floor = gap.min() * (1 + 1e-9) + 1e-12
     start = end = int(np.argmax(gap <= floor))
     while end + 1 < len(gap) and gap[end + 1] <= floor:  # a flat (empty) valley: its middle
@@ -197,8 +201,10 @@ def auto_mask(images: np.ndarray, *, min_share: float = 0.1) -> np.ndarray:
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     if count <= 1:
-        raise InputError("--auto-mask found no object: the per-pixel maximum over the stack "
-                         "has no bright region against a dark background (give --mask)")
+        raise InputError(
+            "--auto-mask found no object: the per-pixel maximum over the stack "
+            "has no bright region against a dark background (give --mask)"
+        )
     areas = stats[1:, cv2.CC_STAT_AREA]
     keep = np.flatnonzero(areas >= min_share * areas.max()) + 1
     return np.isin(labels, keep)
@@ -251,10 +257,26 @@ class Transforms:
 
     def describe(self) -> dict[str, object]:
         lin = "srgb" if self.srgb else (f"gamma {self.gamma:g}" if self.gamma else None)
-        return {"roi": list(self.roi) if self.roi else None, "downscale": self.downscale,
-                "linearise": lin}
+        return {
+            "roi": list(self.roi) if self.roi else None,
+            "downscale": self.downscale,
+            "linearise": lin,
+        }
 
 
-__all__ = ["Roi", "Transforms", "area_downscale", "auto_mask", "check_roi", "crop",
-           "downscale_mask", "downscale_normals", "linearise", "otsu_threshold", "parse_roi",
-           "srgb_to_linear", "valley_threshold", "white_level"]
+__all__ = [
+    "Roi",
+    "Transforms",
+    "area_downscale",
+    "auto_mask",
+    "check_roi",
+    "crop",
+    "downscale_mask",
+    "downscale_normals",
+    "linearise",
+    "otsu_threshold",
+    "parse_roi",
+    "srgb_to_linear",
+    "valley_threshold",
+    "white_level",
+]

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.runtime.errors import InputError
+from msfnet.common.errors import InputError
 
 # Light sets whose 3 x 3 moment matrix is worse conditioned than this cannot separate the normal's
 # components (e.g. all lights nearly parallel): least squares and the network both degrade.
@@ -71,9 +71,16 @@ class Stack:
     warnings: list[str] = field(default_factory=list, compare=False)
 
     @classmethod
-    def from_arrays(cls, images: np.ndarray, lights: np.ndarray, *,
-                    mask: np.ndarray | None = None, intensities: np.ndarray | None = None,
-                    normals_gt: np.ndarray | None = None, name: str = "stack") -> Stack:
+    def from_arrays(
+        cls,
+        images: np.ndarray,
+        lights: np.ndarray,
+        *,
+        mask: np.ndarray | None = None,
+        intensities: np.ndarray | None = None,
+        normals_gt: np.ndarray | None = None,
+        name: str = "stack",
+    ) -> Stack:
         """A validated stack from plain arrays: images (N, H, W, 3) or (N, H, W) grey, lights
         (N, 3) any length; mask and intensities optional. uint8/uint16 images are kept as
         they are, any other type becomes float32."""
@@ -83,11 +90,16 @@ class Stack:
         if images.ndim != 4:
             raise InputError(f"images must be N x H x W (x 3), got shape {images.shape}", name)
         n, h, w = images.shape[:3]
-        stack = cls(name, images, unit_lights(np.asarray(lights, np.float32), name),
-                    np.ones((n, 3), np.float32) if intensities is None
-                    else np.asarray(intensities, np.float32),
-                    np.ones((h, w), bool) if mask is None else np.asarray(mask).astype(bool),
-                    None if normals_gt is None else np.asarray(normals_gt, np.float32))
+        stack = cls(
+            name,
+            images,
+            unit_lights(np.asarray(lights, np.float32), name),
+            np.ones((n, 3), np.float32)
+            if intensities is None
+            else np.asarray(intensities, np.float32),
+            np.ones((h, w), bool) if mask is None else np.asarray(mask).astype(bool),
+            None if normals_gt is None else np.asarray(normals_gt, np.float32),
+        )
         return stack.validate()
 
     @property
@@ -101,8 +113,13 @@ class Stack:
     def subset(self, indices: Sequence[int]) -> Stack:
         idx = list(indices)
         names = [self.filenames[i] for i in idx] if self.filenames else []
-        return replace(self, images=self.images[idx], lights=self.lights[idx],
-                       intensities=self.intensities[idx], filenames=names)
+        return replace(
+            self,
+            images=self.images[idx],
+            lights=self.lights[idx],
+            intensities=self.intensities[idx],
+            filenames=names,
+        )
 
     def validate(self) -> Stack:
         """Check shapes and values; raise InputError naming the source. Usable oddities are
@@ -114,13 +131,17 @@ class Stack:
         if n < 3:
             raise InputError(f"photometric stereo needs at least 3 lights, got {n}", src)
         if self.lights.ndim != 2 or self.lights.shape[1] != 3:
-            raise InputError(f"light directions must have 3 numbers per row, got shape "
-                             f"{self.lights.shape}", src)
+            raise InputError(
+                f"light directions must have 3 numbers per row, got shape {self.lights.shape}", src
+            )
         if self.lights.shape[0] != n:
             raise InputError(f"{n} images but {self.lights.shape[0]} light directions", src)
         if self.intensities.shape != (n, 3):
-            raise InputError(f"{n} images but light intensities of shape "
-                             f"{self.intensities.shape} (expected {n} x 3)", src)
+            raise InputError(
+                f"{n} images but light intensities of shape "
+                f"{self.intensities.shape} (expected {n} x 3)",
+                src,
+            )
         check_lights(self.lights, src)
         check_intensities(self.intensities, src)
         if self.mask.shape != self.shape:
@@ -128,21 +149,26 @@ class Stack:
         if not self.mask.any():
             raise InputError("mask is empty", src)
         if self.normals_gt is not None and self.normals_gt.shape != (*self.shape, 3):
-            raise InputError(f"ground-truth normals are {self.normals_gt.shape}, images "
-                             f"{self.shape}", src)
+            raise InputError(
+                f"ground-truth normals are {self.normals_gt.shape}, images {self.shape}", src
+            )
         if self.mask.dtype != np.bool_:
             raise InputError(f"mask must be boolean, got {self.mask.dtype}", src)
         self._check_pixels(src)
         if self.normals_gt is not None:
             gt = self.normals_gt
-            unit = np.isfinite(gt).all(axis=-1) & (np.abs(np.linalg.norm(
-                np.nan_to_num(gt), axis=-1) - 1) < 0.05)
+            unit = np.isfinite(gt).all(axis=-1) & (
+                np.abs(np.linalg.norm(np.nan_to_num(gt), axis=-1) - 1) < 0.05
+            )
             if not (unit & self.mask).any():
-                raise InputError("the ground-truth normals hold no unit vector inside the mask "
-                                 "(all zero, or not normals): nothing to score against", src)
+                raise InputError(
+                    "the ground-truth normals hold no unit vector inside the mask "
+                    "(all zero, or not normals): nothing to score against",
+                    src,
+                )
         return self
 
-    def _check_pixels(self, src: object) -> None:
+    def _check_pixels(self, src: str | Path | None) -> None:
         """Values the estimators cannot use: NaN/inf, negatives, a stack that is black or
         saturated inside the mask (every normal would be a guess) or outside SIGNAL_RANGE; a
         black image among lit ones becomes a warning. One light at a time, so the check needs
@@ -150,67 +176,83 @@ class Stack:
         extremes are taken in their own type (a max cannot overflow)."""
         kind = self.images.dtype.kind
         if kind not in "biuf":
-            raise InputError(f"images have dtype {self.images.dtype}; expected numbers",
-                             src)  # type: ignore[arg-type]
+            raise InputError(f"images have dtype {self.images.dtype}; expected numbers", src)
         n = self.num_lights
         peak, low, mean = np.zeros(n), np.zeros(n), np.zeros(n)
         for i, img in enumerate(self.images):
             if kind == "f" and not np.isfinite(img).all():
-                raise InputError(f"images contain NaN or infinite pixel values (image {i + 1})",
-                                 src)  # type: ignore[arg-type]
+                raise InputError(
+                    f"images contain NaN or infinite pixel values (image {i + 1})", src
+                )
             if kind in "fi" and img.min() < 0:
-                raise InputError(f"images contain negative pixel values (image {i + 1}; "
-                                 "expected linear intensities >= 0)", src)  # type: ignore[arg-type]
+                raise InputError(
+                    f"images contain negative pixel values (image {i + 1}; "
+                    "expected linear intensities >= 0)",
+                    src,
+                )
             inside = img[self.mask]
             peak[i], low[i] = float(inside.max()), float(inside.min())
             mean[i] = float(inside.mean(dtype=np.float64))
         if not peak.any():
-            raise InputError("every image is black (zero) inside the mask: nothing to estimate "
-                             "normals from", src)  # type: ignore[arg-type]
+            raise InputError(
+                "every image is black (zero) inside the mask: nothing to estimate normals from", src
+            )
         # integer images: at the type's full scale; float ones (their scale is unknown): one
         # value everywhere, which is what a clipped stack becomes after --downscale or --srgb
         full = float(np.iinfo(self.images.dtype).max) if kind in "ui" else float(peak.max())
         if (low >= full).all():
-            raise InputError(f"every image is saturated inside the mask (all pixels at {full:g})"
-                             ": no shading to estimate normals from; lower the exposure",
-                             src)  # type: ignore[arg-type]
+            raise InputError(
+                f"every image is saturated inside the mask (all pixels at {full:g})"
+                ": no shading to estimate normals from; lower the exposure",
+                src,
+            )
         ratio = peak[:, None] / self.intensities.astype(np.float64)  # (N, 3)
         top = float(ratio.max())
         lo, hi = SIGNAL_RANGE
         if not lo <= top <= hi:
-            raise InputError(f"brightest pixel / light intensity is {top:.3g}, outside "
-                             f"{lo:g}..{hi:g}: rescale the images or check the intensities' "
-                             "units", src)  # type: ignore[arg-type]
-        self.warnings = self._dark_images(mean / self.intensities.astype(np.float64).mean(
-            axis=1), src)
+            raise InputError(
+                f"brightest pixel / light intensity is {top:.3g}, outside "
+                f"{lo:g}..{hi:g}: rescale the images or check the intensities' "
+                "units",
+                src,
+            )
+        self.warnings = self._dark_images(
+            mean / self.intensities.astype(np.float64).mean(axis=1), src
+        )
 
-    def _dark_images(self, brightness: np.ndarray, src: object) -> list[str]:
+    def _dark_images(self, brightness: np.ndarray, src: str | Path | None) -> list[str]:
         """One warning per image far darker than the stack's typical one (see DARK_IMAGE)."""
         typical = float(np.percentile(brightness, 75))
         if typical <= 0:  # most images black: compare with the brightest instead
             typical = float(brightness.max())
         out = []
         for i in np.flatnonzero(brightness < DARK_IMAGE * typical):
-            where = (f"{src}/{self.filenames[i]}" if self.filenames and isinstance(src, Path)
-                     and src.is_dir() else f"{src}: image {i + 1}")
-            out.append(f"{where}: (nearly) black inside the mask ({brightness[i] / typical:.1%} "
-                       "of a typical image's brightness): a dead light or a missed trigger? "
-                       "It is used as it is (leave it out with --select)")
+            where = (
+                f"{src}/{self.filenames[i]}"
+                if self.filenames and isinstance(src, Path) and src.is_dir()
+                else f"{src}: image {i + 1}"
+            )
+            out.append(
+                f"{where}: (nearly) black inside the mask ({brightness[i] / typical:.1%} "
+                "of a typical image's brightness): a dead light or a missed trigger? "
+                "It is used as it is (leave it out with --select)"
+            )
         return out
 
 
-def unit_lights(lights: np.ndarray, src: object = None) -> np.ndarray:
+def unit_lights(lights: np.ndarray, src: str | Path | None = None) -> np.ndarray:
     """Light directions scaled to unit length (float32); zero or non-finite rows refused."""
     lights = np.asarray(lights, np.float64)
     if lights.ndim != 2 or lights.shape[1] != 3:
-        raise InputError(f"light directions must have 3 numbers per row, got shape "
-                         f"{lights.shape}", src)  # type: ignore[arg-type]
+        raise InputError(
+            f"light directions must have 3 numbers per row, got shape {lights.shape}", src
+        )
     if not np.all(np.isfinite(lights)):
-        raise InputError("light directions contain NaN or infinite values", src)  # type: ignore[arg-type]
+        raise InputError("light directions contain NaN or infinite values", src)
     norms = np.linalg.norm(lights, axis=1)
     if np.any(norms < 1e-6):
         bad = np.flatnonzero(norms < 1e-6) + 1
-        raise InputError(f"zero-length light direction(s) at row(s) {bad.tolist()}", src)  # type: ignore[arg-type]
+        raise InputError(f"zero-length light direction(s) at row(s) {bad.tolist()}", src)
     return (lights / norms[:, None]).astype(np.float32)
 
 
@@ -221,35 +263,43 @@ def light_condition(lights: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s[-1] > 1e-12 * max(s[0], 1e-300) else float("inf")
 
 
-def check_lights(lights: np.ndarray, src: object = None) -> None:
+def check_lights(lights: np.ndarray, src: str | Path | None = None) -> None:
     if not np.all(np.isfinite(lights)):
-        raise InputError("light directions contain NaN or infinite values", src)  # type: ignore[arg-type]
+        raise InputError("light directions contain NaN or infinite values", src)
     norms = np.linalg.norm(lights, axis=1)
     if np.any(np.abs(norms - 1) > 1e-3):
-        raise InputError("light directions must be unit vectors (loaders normalise them)",
-                         src)  # type: ignore[arg-type]
+        raise InputError("light directions must be unit vectors (loaders normalise them)", src)
     cond = light_condition(lights)
     if not cond < MAX_LIGHT_CONDITION:
         what = "rank < 3" if not np.isfinite(cond) else f"condition number {cond:.3g}"
-        raise InputError(f"the light directions do not span 3-D ({what}; e.g. all lights "
-                         "equal or in one plane): normals cannot be recovered", src)  # type: ignore[arg-type]
+        raise InputError(
+            f"the light directions do not span 3-D ({what}; e.g. all lights "
+            "equal or in one plane): normals cannot be recovered",
+            src,
+        )
     if not (lights[:, 2] > 0).any():
         # z is toward the camera: lights all behind the object light nothing the camera sees
         # (typically a file in the z-away convention); the normals would be nonsense
-        raise InputError("no light direction points toward the camera (every z <= 0; "
-                         "expected x right, y up, z toward the camera): flip the sign of z",
-                         src)  # type: ignore[arg-type]
+        raise InputError(
+            "no light direction points toward the camera (every z <= 0; "
+            "expected x right, y up, z toward the camera): flip the sign of z",
+            src,
+        )
 
 
-def check_intensities(intensities: np.ndarray, src: object = None) -> None:
+def check_intensities(intensities: np.ndarray, src: str | Path | None = None) -> None:
     if not np.all(np.isfinite(intensities)) or np.any(intensities <= 0):
         bad = np.flatnonzero(~np.all(np.isfinite(intensities) & (intensities > 0), axis=1)) + 1
-        raise InputError(f"light intensities must be positive and finite; bad row(s) "
-                         f"{bad.tolist()}", src)  # type: ignore[arg-type]
+        raise InputError(
+            f"light intensities must be positive and finite; bad row(s) {bad.tolist()}", src
+        )
     ref = float(np.median(intensities))
     lo, hi = INTENSITY_RANGE
     ratio = intensities / ref
     if np.any(ratio < lo) or np.any(ratio > hi):
         bad = np.flatnonzero(np.any((ratio < lo) | (ratio > hi), axis=1)) + 1
-        raise InputError(f"light intensities span more than {hi / lo:.0e}x (row(s) "
-                         f"{bad.tolist()[:5]}): probably a unit or parsing error", src)  # type: ignore[arg-type]
+        raise InputError(
+            f"light intensities span more than {hi / lo:.0e}x (row(s) "
+            f"{bad.tolist()[:5]}): probably a unit or parsing error",
+            src,
+        )

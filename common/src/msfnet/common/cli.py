@@ -1,0 +1,283 @@
+"""What every msfnet command shares: common flags, validated option types, one-line errors.
+
+:func:`run_command` is the only place where exceptions become exit codes: InputError -> one
+line, exit 2; Ctrl-C -> one line, exit 130; SIGTERM -> exit 143; anything unexpected -> one line
+and exit 1. Tracebacks reach the user only with ``--debug``; so do library warnings (numpy's
+RuntimeWarnings and the like are noise on a user's terminal and would break the one-line rule).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib.util
+import math
+import os
+import re
+import sys
+import warnings
+from collections.abc import Callable, Sequence
+from typing import NoReturn
+
+from msfnet.common.errors import InputError, MsfError, first_line, one_line
+from msfnet.common.files import forget_written, written_outputs
+from msfnet.common.signals import Terminated, install_signal_handlers, restore_signal_handlers
+
+
+def _number(text: str, kind: type) -> float:
+    try:
+        value = kind(text)
+    except (ValueError, OverflowError) as exc:
+        what = "an integer" if kind is int else "a number"
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from exc
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def positive_int(text: str) -> int:
+    value = int(_number(text, int))
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+def nonnegative_int(text: str) -> int:
+    value = int(_number(text, int))
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    value = _number(text, float)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    value = _number(text, float)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    return _number(text, float)
+
+
+def float_range(lo: float, hi: float) -> Callable[[str], float]:
+    def parse(text: str) -> float:
+        value = _number(text, float)
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must lie in {lo:g}..{hi:g}, got {text!r}")
+        return value
+
+    parse.__name__ = f"number {lo:g}..{hi:g}"
+    return parse
+
+
+def int_range(lo: int, hi: int) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        value = int(_number(text, int))
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must lie in {lo}..{hi}, got {text!r}")
+        return value
+
+    parse.__name__ = f"integer {lo}..{hi}"
+    return parse
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors in the ``<prog>: error: <problem>`` form and exit code 2
+    (argparse's own usage dump is noise when one option is wrong). The option leads the
+    problem as a file does: ``msf-x: error: --tile: must be a positive integer, got '0'``
+    (argparse's ``argument `` prefix dropped)."""
+
+    def error(self, message: str) -> NoReturn:
+        message = re.sub(r"^argument ([^:]+): ", r"\1: ", message)
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def make_parser(
+    prog: str,
+    description: str,
+    examples: Sequence[str] = (),
+    *,
+    common: bool = True,
+    verbose: bool = False,
+) -> Parser:
+    """A parser with the flags every command has: --version, -q, --debug (and -v where the
+    command has more to say: ``verbose=True``).
+
+    ``common=False``: only --version here; a command with sub-commands gives each of them the
+    other flags with :func:`add_common_flags`, so they can follow the sub-command's name.
+    """
+    from msfnet import __version__
+
+    epilog = None
+    if examples:
+        epilog = "examples:\n" + "\n".join(f"  {e}" for e in examples)
+    p = Parser(
+        prog=prog,
+        description=description,
+        epilog=epilog,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    if common:
+        add_common_flags(p, verbose=verbose)
+    return p
+
+
+def add_common_flags(p: argparse.ArgumentParser, *, verbose: bool = False) -> None:
+    p.add_argument("-q", "--quiet", action="store_true", help="print errors only")
+    if verbose:  # only where it changes something: a flag that does nothing would mislead
+        p.add_argument("-v", "--verbose", action="store_true", help="print more detail")
+    p.add_argument(
+        "--debug", action="store_true", help="show Python tracebacks instead of one-line errors"
+    )
+
+
+# Optional packages (pyproject.toml's extras) by import name -> the extra that brings them.
+_EXTRAS = {
+    "torch": "export,train",
+    "onnx": "export",
+    "onnxslim": "export",
+    "openvino": "openvino",
+    "depthai": "camera",
+    "serial": "camera",
+    "ray": "ray",
+}
+
+
+def install_hint(module: str) -> str:
+    """How to install the optional package imported as ``module`` (a top-level name)."""
+    extra = _EXTRAS.get(module)
+    if extra is None:
+        return f"pip install {module}"
+    how = f"pip install 'msfnet[{extra}]' (in a checkout: pip install -e '.[{extra}]')"
+    if module == "torch":  # PyPI's default torch for Linux is the multi-GB CUDA build
+        how = (
+            "pip install torch --index-url https://download.pytorch.org/whl/cpu (the CPU "
+            "build), then " + how
+        )
+    return how
+
+
+def _missing_optional(exc: BaseException) -> str | None:
+    """The optional package whose absence raised ``exc``, or None: a module missing inside an
+    installed package (a broken install) or any other missing module stays an internal error."""
+    if not isinstance(exc, ModuleNotFoundError) or not exc.name:
+        return None
+    top = exc.name.partition(".")[0]
+    if top not in _EXTRAS:
+        return None
+    try:
+        present = importlib.util.find_spec(top) is not None
+    except (ImportError, ValueError):
+        present = False
+    return None if present else top
+
+
+def _left_behind() -> str:
+    done = written_outputs()
+    if not done:
+        return "nothing was written"
+    return (
+        f"{len(done)} output(s) were complete and are kept (last: {done[-1]}); nothing "
+        "else was written"
+    )
+
+
+def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
+    """Run a command's body and turn every failure into one line and an exit code."""
+    previous = install_signal_handlers()
+    forget_written()
+    try:
+        return _run_body(prog, body, debug)
+    finally:
+        # in-process callers (tests, the Python API) get their own handlers back
+        restore_signal_handlers(previous)
+
+
+def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
+
+    def fail(message: str, code: int) -> int:
+        print(f"{prog}: {one_line(message)}", file=sys.stderr)
+        return code
+
+    try:
+        with warnings.catch_warnings():
+            if not debug:
+                warnings.simplefilter("ignore")
+            return body()
+    except InputError as exc:
+        if debug:
+            raise
+        return fail(f"error: {exc}", 2)
+    except KeyboardInterrupt:
+        return fail(f"interrupted; {_left_behind()}", 130)
+    except Terminated as exc:
+        return fail(f"terminated (signal {exc.signum}); {_left_behind()}", 128 + exc.signum)
+    except MemoryError:
+        if debug:
+            raise
+        return fail("error: out of memory; lower --max-memory (or --tile)", 2)
+    except BrokenPipeError as exc:
+        if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
+            return fail(f"error: {exc.filename}: {exc.strerror}", 2)
+        # stdout's reader went away (msf-run --json | head): exit quietly like other tools,
+        # and keep Python from complaining again when it flushes stdout at exit
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE
+    except OSError as exc:  # disk full, permission denied, ... on an output
+        if debug:
+            raise
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        if exc.strerror:
+            return fail(f"error: {where}{exc.strerror}", 2)
+        # no errno: e.g. numpy's short write "4752 requested and 1968 written"
+        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", 2)
+    except MsfError as exc:
+        if debug:
+            raise
+        return fail(f"error: {first_line(exc, 500)}", 1)
+    except RecursionError as exc:  # e.g. absurdly nested JSON given as input
+        if debug:
+            raise
+        return fail(f"error: input too deeply nested ({first_line(exc)})", 2)
+    except Exception as exc:
+        if debug:
+            raise
+        missing = _missing_optional(exc)
+        if missing:  # an optional part not installed, not a bug of ours
+            return fail(
+                f"error: needs the Python package {missing!r}, which is not "
+                f"installed: {install_hint(missing)}",
+                2,
+            )
+        return fail(
+            f"internal error: {type(exc).__name__}: {first_line(exc)} (run with "
+            "--debug for the traceback; please report it)",
+            1,
+        )
+
+
+__all__ = [
+    "Parser",
+    "add_common_flags",
+    "finite_float",
+    "float_range",
+    "install_hint",
+    "int_range",
+    "make_parser",
+    "nonnegative_float",
+    "nonnegative_int",
+    "positive_float",
+    "positive_int",
+    "run_command",
+]

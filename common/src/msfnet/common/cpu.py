@@ -1,0 +1,225 @@
+"""What this CPU can do fast: the instruction-set features that decide the engine and precision.
+
+Read at run time (the same wheel runs on AVX2-only, AVX-512 + VNNI/bf16 and AMX machines) with
+py-cpuinfo; if that fails (odd platform, sandbox without subprocesses), /proc/cpuinfo on Linux,
+and otherwise a CpuInfo without features, which simply selects the fp32 path everywhere.
+
+py-cpuinfo probes the CPU in a subprocess, about 1.1 s: a fifth of a full-object msf-run. Its
+answer is kept per boot (``~/.cache/msfnet/cpu-<boot id>.json``; the CPU cannot change without
+a reboot, and every new machine or session boots afresh), so later runs skip the probe.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import platform
+import stat
+from collections.abc import Iterable
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+# The features that matter here, under the names Linux's /proc/cpuinfo uses.
+FEATURES = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "avx_vnni")
+
+
+def _norm(flag: str) -> str:
+    # py-cpuinfo spells some flags both ways ("avx512vnni" and "avx512_vnni"): compare without "_"
+    return flag.lower().replace("_", "").replace(".", "")
+
+
+@dataclass(frozen=True)
+class CpuInfo:
+    model: str
+    vendor: str
+    cores: int  # cores this process may use (affinity), not the socket's
+    avx2: bool = False
+    avx512f: bool = False
+    avx512_vnni: bool = False
+    avx512_bf16: bool = False
+    amx_bf16: bool = False
+    amx_int8: bool = False
+    avx_vnni: bool = False
+    source: str = "none"  # where the flags came from: py-cpuinfo, /proc/cpuinfo or none
+    all_flags: frozenset[str] = field(default_factory=frozenset, repr=False, compare=False)
+
+    @classmethod
+    def from_flags(
+        cls,
+        flags: Iterable[str],
+        model: str = "unknown",
+        vendor: str = "unknown",
+        cores: int = 1,
+        source: str = "given",
+    ) -> CpuInfo:
+        """Build from any iterable of flag names (either spelling); also how tests fake CPUs."""
+        names = [str(f).lower() for f in flags]
+        have = {_norm(f) for f in names}
+        return cls(
+            model=model,
+            vendor=vendor,
+            cores=cores,
+            source=source,
+            all_flags=frozenset(names),
+            **{name: _norm(name) in have for name in FEATURES},
+        )
+
+    @property
+    def has_bf16(self) -> bool:
+        """Native bf16 arithmetic (dot products in hardware, not emulated in fp32)."""
+        return self.avx512_bf16 or self.amx_bf16
+
+    @property
+    def has_vnni(self) -> bool:
+        """Native int8 dot products (VNNI in AVX-512 or AVX, or AMX tiles)."""
+        return self.avx512_vnni or self.avx_vnni or self.amx_int8
+
+    @property
+    def has_amx(self) -> bool:
+        return self.amx_bf16 or self.amx_int8
+
+    def features(self) -> list[str]:
+        """The FEATURES this CPU has, in FEATURES order (for reports)."""
+        return [name for name in FEATURES if getattr(self, name)]
+
+    def as_dict(self) -> dict[str, object]:
+        out: dict[str, object] = {
+            f.name: getattr(self, f.name) for f in fields(self) if f.name != "all_flags"
+        }
+        out.update(has_bf16=self.has_bf16, has_vnni=self.has_vnni, has_amx=self.has_amx)
+        return out
+
+    def summary(self) -> str:
+        feats = " ".join(self.features()) or "no AVX2/AVX-512/VNNI/bf16/AMX"
+        return f"{self.model} ({self.vendor}, {self.cores} cores; {feats})"
+
+
+def usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _from_py_cpuinfo() -> CpuInfo:
+    import cpuinfo
+
+    data = cpuinfo.get_cpu_info()
+    return CpuInfo.from_flags(
+        data.get("flags") or [],
+        model=data.get("brand_raw") or "unknown",
+        vendor=data.get("vendor_id_raw") or "unknown",
+        cores=usable_cores(),
+        source="py-cpuinfo",
+    )
+
+
+def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
+    model = vendor = "unknown"
+    flags: list[str] = []
+    for line in path.read_text().splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "model name" and model == "unknown":
+            model = value.strip()
+        elif key == "vendor_id" and vendor == "unknown":
+            vendor = value.strip()
+        elif key == "flags" and not flags:
+            flags = value.split()
+    return CpuInfo.from_flags(
+        flags, model=model, vendor=vendor, cores=usable_cores(), source="/proc/cpuinfo"
+    )
+
+
+CACHE_MAX_BYTES = 1 << 16
+
+
+def cache_path() -> Path | None:
+    """Where this boot's py-cpuinfo answer is kept; None where no boot id or no home is known."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        xdg = os.environ.get("XDG_CACHE_HOME", "")
+        base = Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache"
+    except (OSError, RuntimeError):  # no boot id; no home (container with an unknown uid)
+        return None
+    if not boot or not all(c.isalnum() or c == "-" for c in boot):
+        return None
+    return base / "msfnet" / f"cpu-{boot}.json"
+
+
+def _read_cache(path: Path) -> CpuInfo | None:
+    """The kept answer, if it is a small regular file holding one (never follows a link or
+    waits on a pipe); anything else means: probe again."""
+    try:
+        flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+        fd = os.open(path, flags)
+    except OSError:
+        return None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > CACHE_MAX_BYTES:
+            return None
+        data = json.loads(os.read(fd, CACHE_MAX_BYTES).decode())
+        flags, model, vendor = data["flags"], data["model"], data["vendor"]
+    except (OSError, ValueError, KeyError, TypeError):  # damaged: probe again
+        return None
+    finally:
+        os.close(fd)
+    if not (
+        isinstance(flags, list)
+        and flags
+        and all(isinstance(f, str) for f in flags)
+        and isinstance(model, str)
+        and isinstance(vendor, str)
+    ):
+        return None
+    return CpuInfo.from_flags(
+        flags, model=model, vendor=vendor, cores=usable_cores(), source="py-cpuinfo"
+    )
+
+
+def _write_cache(path: Path, info: CpuInfo) -> None:
+    """Through the one atomic writer (concurrent writers each put a whole file in place), as no
+    command output; the files of earlier boots are removed."""
+    from msfnet.common.files import write_json
+
+    try:
+        for old in path.parent.glob("cpu-*.json"):
+            if old != path:
+                old.unlink(missing_ok=True)
+        write_json(
+            path,
+            {"flags": sorted(info.all_flags), "model": info.model, "vendor": info.vendor},
+            output=False,
+        )
+    except OSError:  # a read-only home only costs the probe next time
+        pass
+
+
+@functools.lru_cache(maxsize=1)
+def detect_cpu() -> CpuInfo:
+    """This machine's CpuInfo, computed once per process and kept per boot on disk."""
+    cache = cache_path()
+    cached = _read_cache(cache) if cache is not None else None
+    if cached is not None:
+        return cached
+    try:
+        info = _from_py_cpuinfo()
+        if info.all_flags:
+            if cache is not None:
+                _write_cache(cache, info)
+            return info
+    except Exception:  # any failure there (import, subprocess, parsing): use the fallback
+        pass
+    try:
+        return _from_proc_cpuinfo()
+    except OSError:
+        return CpuInfo(
+            model=platform.processor() or platform.machine() or "unknown",
+            vendor="unknown",
+            cores=usable_cores(),
+        )
+
+
+__all__ = ["FEATURES", "CpuInfo", "cache_path", "detect_cpu", "usable_cores"]

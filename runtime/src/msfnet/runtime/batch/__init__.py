@@ -1,0 +1,1 @@
+"""Batches: many stacks through one loaded model, locally or on a Ray cluster."""

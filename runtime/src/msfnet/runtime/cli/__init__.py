@@ -1,0 +1,1 @@
+"""The runtime's commands: msf-run and msf-eval."""

@@ -1,0 +1,409 @@
+"""msf-eval: a model (ONNX, through the runtime) and the least-squares baseline over a benchmark.
+
+ROOT is a benchmark folder with ``objects.txt`` (one object folder per line, optionally followed
+by an image selection such as ``21-96`` for DiLiGenT bear) or, without it, every sub-folder that
+holds a stack; ROOT may also be a single object folder. Objects need ground-truth normals.
+Writes results.json, results.md and <object>/<method>_error.png (+ normals png) to OUTDIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from msfnet.common.cli import make_parser, positive_float, positive_int, run_command
+from msfnet.common.errors import InputError
+from msfnet.common.files import check_output, json_text, staged_folder, writing_as
+from msfnet.runtime.api import Model
+from msfnet.runtime.evaluate.datasets import (
+    PUBLISHED_MAE,
+    PUBLISHED_METHODS,
+    BenchObject,
+    check_unique,
+    find_objects,
+)
+from msfnet.runtime.evaluate.detail_ratio import detail_ratio
+from msfnet.runtime.evaluate.metrics import NormalMetrics
+from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB
+from msfnet.runtime.results.maps import pictures
+from msfnet.runtime.results.outputs import normals_png, write_rgb_png
+from msfnet.runtime.stack import LoadOptions, load_stack
+
+PROG = "msf-eval"
+COLUMNS = ("mae_deg", "err15", "err30")
+
+
+def _fmt(v: object, pct: bool = False) -> str:
+    if not isinstance(v, (int, float)) or v != v:
+        return "-"
+    return f"{v * 100:.1f}" if pct else f"{v:.2f}"
+
+
+@dataclass(frozen=True)
+class MethodScore:
+    """One method on one object: its metrics (with ground truth) and median run time."""
+
+    seconds: float
+    metrics: NormalMetrics | None = None
+
+    def column(self, name: str) -> float | None:
+        return None if self.metrics is None else float(getattr(self.metrics, name))
+
+    def as_dict(self) -> dict[str, object]:
+        return {**(self.metrics.as_dict() if self.metrics else {}), "seconds": self.seconds}
+
+
+@dataclass(frozen=True)
+class ObjectResult:
+    """One object of the benchmark, every method on it."""
+
+    name: str
+    lights: int
+    select: str | None
+    scores: dict[str, MethodScore]  # by method ("msf", "l2")
+    published: dict[str, float] | None = None  # published MAE by method (ground truth only)
+    detail_ratio: float | None = None  # model / least squares high-pass energy (no GT only)
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return self.published is not None
+
+    def as_dict(self) -> dict[str, object]:
+        """results.json's row."""
+        row: dict[str, object] = {
+            "object": self.name,
+            "lights": self.lights,
+            "results": {m: s.as_dict() for m, s in self.scores.items()},
+            "select": self.select,
+        }
+        if self.warnings:
+            row["warnings"] = list(self.warnings)
+        if self.has_ground_truth:
+            row["published"] = self.published
+        else:
+            row["note"] = "no ground truth"
+            if self.detail_ratio is not None:
+                row["detail_ratio"] = self.detail_ratio
+        return row
+
+
+@dataclass(frozen=True)
+class EvalSummary:
+    """What msf-eval measured; ``as_dict`` is results.json."""
+
+    objects: list[str]
+    model: str | None
+    methods: list[str]
+    results: list[ObjectResult]
+    fine_detail: bool = False  # the model ran with --fine-detail
+
+    @property
+    def scored(self) -> list[ObjectResult]:
+        return [r for r in self.results if r.has_ground_truth]
+
+    @property
+    def unscored(self) -> list[ObjectResult]:
+        return [r for r in self.results if not r.has_ground_truth]
+
+    def mean(self) -> dict[str, dict[str, float]]:
+        """Per method, the mean of each column over the objects with ground truth."""
+        out = {}
+        for m in self.methods:
+            scores = [r.scores[m] for r in self.scored if m in r.scores]
+            if scores and all(s.metrics is not None for s in scores):
+                out[m] = {c: float(np.mean([s.column(c) for s in scores])) for c in COLUMNS}
+        return out
+
+    def table(self) -> str:
+        tables = []
+        if self.scored:
+            tables.append(markdown_table(self.scored, self.methods, self.mean()))
+        if self.unscored:
+            tables.append(detail_table(self.unscored))
+        if self.fine_detail:
+            tables.append("msf: with --fine-detail (also run at 2x, fine detail from that run)")
+        return "\n\n".join(tables)
+
+    def warnings(self) -> list[str]:
+        return [w for r in self.results for w in r.warnings]
+
+    def written(self) -> str:
+        """What evaluate() wrote, as the closing line lists it: error maps only for objects
+        with ground truth."""
+        return (
+            "results.json, results.md, normal maps"
+            + (" and error maps" if self.scored else "")
+            + " per object"
+        )
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "objects": self.objects,
+            "model": self.model,
+            "methods": self.methods,
+            "fine_detail": self.fine_detail,
+            "results": [r.as_dict() for r in self.scored + self.unscored],
+            "mean": self.mean(),
+        }
+
+
+def markdown_table(
+    rows: list[ObjectResult], methods: list[str], mean: dict[str, dict[str, float]]
+) -> str:
+    """Objects with ground truth: MAE per method beside the published figures, then err15/30,
+    and a mean row."""
+    published = [
+        p for p in PUBLISHED_METHODS if any(p in PUBLISHED_MAE.get(r.name, {}) for r in rows)
+    ]
+    head = ["object", "lights"] + [f"MAE {m}" for m in methods] + published
+    head += [f"<15° % {m}" for m in methods] + [f"<30° % {m}" for m in methods]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    Cells = dict[str, dict[str, float | None]]
+    table_rows: list[tuple[str, str, Cells]] = [
+        (r.name, str(r.lights), {m: {c: s.column(c) for c in COLUMNS} for m, s in r.scores.items()})
+        for r in rows
+    ]
+    table_rows.append(("**mean**", "", {m: dict(v) for m, v in mean.items()}))
+    for name, lights, res in table_rows:
+        cells = [name, lights]
+        cells += [_fmt(res.get(m, {}).get("mae_deg")) for m in methods]
+        cells += [_fmt(PUBLISHED_MAE.get(name, {}).get(p)) for p in published]
+        cells += [_fmt(res.get(m, {}).get("err15"), True) for m in methods]
+        cells += [_fmt(res.get(m, {}).get("err30"), True) for m in methods]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def detail_table(rows: list[ObjectResult]) -> str:
+    """Objects without ground truth: the model's high-pass energy relative to least squares'."""
+    lines = ["| object | lights | detail msf / l2 |", "|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r.name} | {r.lights} | {_fmt(r.detail_ratio)} |")
+    return "\n".join(lines)
+
+
+def evaluate(
+    objects: list[BenchObject],
+    outdir: Path,
+    *,
+    model: Model | None,
+    use_l2: bool = True,
+    load: LoadOptions | None = None,
+    overwrite: bool = False,
+    progress: bool = False,
+) -> EvalSummary:
+    """Score ``model`` (and least squares) on every object; write the results folder."""
+    load = load or LoadOptions()
+    check_unique(objects)
+    check_output(
+        outdir, [o.folder for o in objects] + load.inputs(), overwrite=overwrite, folder=True
+    )
+    runners: dict[str, Model] = {}
+    if model is not None:
+        runners["msf"] = model
+    if use_l2:
+        runners["l2"] = Model.least_squares(
+            max_memory_mb=model.tiling.max_memory_mb
+            if model is not None
+            else DEFAULT_MAX_MEMORY_MB,
+            maps=None,
+        )  # scoring needs normals only
+    if not runners:
+        raise InputError("nothing to evaluate: both the model and l2 are switched off")
+    methods = list(runners)
+    results = []
+    with staged_folder(outdir, overwrite=overwrite) as tmp:
+        for obj in objects:
+            opts = replace(load, select=load.select or obj.select)
+            stack = load_stack(obj.folder, opts)
+            (tmp / obj.folder.name).mkdir()
+            outs, errors, scores = {}, {}, {}
+            for m, runner in runners.items():
+                res = runner(stack, progress=progress)
+                outs[m] = res.normals
+                write_rgb_png(
+                    tmp / obj.folder.name / f"{m}_normals.png", normals_png(res.normals, stack.mask)
+                )
+                scored = res.metrics is not None and res.error_deg is not None
+                if res.error_deg is not None:
+                    errors[m] = res.error_deg
+                scores[m] = MethodScore(
+                    res.timings.median_s("total"), res.metrics if scored else None
+                )
+            # one colour range for every method of an object, so the pictures compare
+            vmax = max((pictures.error_range(e, stack.mask) for e in errors.values()), default=None)
+            for m, err in errors.items():
+                (tmp / obj.folder.name / f"{m}_error.png").write_bytes(
+                    pictures.png_bytes(pictures.error_picture(err, stack.mask, vmax=vmax))
+                )
+            gt = stack.normals_gt is not None
+            detail = (
+                detail_ratio(outs["msf"], outs["l2"], stack.mask)
+                if not gt and "msf" in outs and "l2" in outs
+                else None
+            )
+            row = ObjectResult(
+                obj.folder.name,
+                stack.num_lights,
+                opts.select,
+                scores,
+                published=PUBLISHED_MAE.get(obj.folder.name, {}) if gt else None,
+                detail_ratio=detail,
+                warnings=tuple(stack.warnings),
+            )
+            results.append(row)
+            if progress:
+                print(
+                    f"{row.name}: "
+                    + ", ".join(
+                        f"{m} {s.metrics.mae_deg:.2f} deg"
+                        for m, s in scores.items()
+                        if s.metrics is not None
+                    ),
+                    file=sys.stderr,
+                )
+        summary = EvalSummary(
+            [str(o.folder) for o in objects],
+            runners["msf"].describe().get("model") if "msf" in runners else None,  # type: ignore[arg-type]
+            methods,
+            results,
+            fine_detail="msf" in runners and "fine_detail" in runners["msf"].describe(),
+        )
+        (tmp / "results.json").write_text(json_text(summary.as_dict()))
+        (tmp / "results.md").write_text(summary.table() + "\n")
+    return summary
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = make_parser(
+        PROG,
+        "Score a model (ONNX via the runtime) and the least-squares baseline on every object "
+        "of a benchmark root (objects.txt, or every object folder). Objects with ground truth: "
+        "MAE / err15 / err30 beside the published figures (DiLiGenT); without: the detail "
+        "ratio (high-pass energy of the model's normals over least squares'). Writes "
+        "results.json, results.md, normal and error maps.",
+        (
+            "msf-eval ../shared/data/DiLiGenT      # ball, bear (21-96), harvest",
+            "msf-eval psmImages/cat psmImages/owl --lights psmImages/lights.txt   # detail only",
+            "msf-eval benchmark/ --onnx my_model.onnx -o eval/mine",
+        ),
+    )
+    p.add_argument(
+        "roots", type=Path, metavar="ROOT", nargs="+", help="benchmark root(s) or object folder(s)"
+    )
+    p.add_argument(
+        "--onnx", type=Path, metavar="MODEL", help="msfnet ONNX model (default: the bundled model)"
+    )
+    p.add_argument("--l2-only", action="store_true", help="only the least-squares baseline")
+    p.add_argument("--no-l2", action="store_true", help="skip the least-squares baseline")
+    p.add_argument(
+        "-o",
+        "--output",
+        "--outdir",
+        dest="output",
+        type=Path,
+        default=None,
+        help="output folder (default ./msf-eval/<root name>/)",
+    )
+    p.add_argument(
+        "--max-lights", type=positive_int, metavar="K", help="use K evenly spaced lights"
+    )
+    p.add_argument(
+        "--lights",
+        type=Path,
+        help="light directions file shared by all objects (e.g. psmImages/lights.txt)",
+    )
+    p.add_argument(
+        "--select",
+        metavar="SPEC",
+        help="image subset for every object (default: "
+        "the benchmark's protocol, e.g. DiLiGenT bear 21-96)",
+    )
+    p.add_argument(
+        "--fine-detail",
+        action="store_true",
+        help="the model with msf-run's --fine-detail (also run at 2x, fine detail "
+        "from that run; about 5x the time)",
+    )
+    p.add_argument("--threads", type=positive_int, metavar="T", help="inference threads")
+    p.add_argument("--provider", default="cpu", metavar="P", help="execution provider")
+    p.add_argument("--tile", type=int, metavar="S", help="tile edge in px (0 = untiled)")
+    p.add_argument(
+        "--max-memory",
+        type=positive_float,
+        default=DEFAULT_MAX_MEMORY_MB,
+        metavar="MB",
+        help=f"memory budget in MB (default {DEFAULT_MAX_MEMORY_MB})",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print results.json's content on stdout instead of the table",
+    )
+    return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    name = args.roots[0].resolve().name if len(args.roots) == 1 else "objects"
+    outdir = args.output or Path("msf-eval") / name
+    if args.l2_only and args.onnx is not None:
+        raise InputError("--l2-only and --onnx contradict each other")
+    objects = [o for root in args.roots for o in find_objects(root)]
+    check_unique(objects)
+    load = LoadOptions(lights=args.lights, select=args.select, max_lights=args.max_lights)
+    check_output(
+        outdir, [*args.roots, args.onnx, *load.inputs()], overwrite=args.overwrite, folder=True
+    )
+    if args.l2_only and args.fine_detail:
+        raise InputError("--l2-only and --fine-detail contradict each other")
+    model = (
+        None
+        if args.l2_only
+        else Model(
+            args.onnx,
+            threads=args.threads,
+            provider=args.provider,
+            tile=args.tile,
+            max_memory_mb=args.max_memory,
+            maps=None,
+            fine_detail=args.fine_detail,
+        )
+    )
+    summary = evaluate(
+        objects,
+        outdir,
+        model=model,
+        use_l2=not args.no_l2,
+        load=load,
+        overwrite=args.overwrite,
+        progress=sys.stderr.isatty() and not args.quiet and not args.json,
+    )
+    if not args.quiet:
+        for line in summary.warnings():
+            print(f"{PROG}: warning: {line}", file=sys.stderr)
+    if args.json:
+        print(json_text({**summary.as_dict(), "output": str(outdir)}), end="")
+    elif not args.quiet:
+        print(summary.table())
+        print(f"wrote {outdir}/ ({summary.written()})")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+
+    def body() -> int:
+        with writing_as(PROG):  # output manifests name their writer
+            return _run(args)
+
+    return run_command(PROG, body, debug=args.debug)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

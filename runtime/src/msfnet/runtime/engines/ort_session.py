@@ -1,0 +1,172 @@
+"""ONNX Runtime session creation for msfnet models, with the metadata check.
+
+Refuses any ONNX file that is not an msfnet export (wrong metadata or I/O names) before it can
+produce garbage normals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from msfnet.common.cpu import usable_cores
+from msfnet.common.errors import InputError, first_line
+from msfnet.runtime.contract import ModelInfo, read_model_info
+from msfnet.runtime.engines.staged_loop import (
+    DEFAULT_CHUNK,
+    STAGE_INPUTS,
+    STAGE_OUTPUTS,
+    run_staged,
+)
+
+PROVIDER_ALIASES = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+    "openvino": "OpenVINOExecutionProvider",
+    "dnnl": "DnnlExecutionProvider",
+    "coreml": "CoreMLExecutionProvider",
+    "directml": "DmlExecutionProvider",
+}
+
+# ONNX Runtime starts every intra-op thread up front: --threads 100000 would exhaust the
+# process's thread limit (or memory) before the first tile.
+MAX_THREADS = 1024
+
+GRAPH_OPT_LEVELS = {
+    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+}
+
+
+@dataclass
+class ModelSession:
+    """An msfnet model in ONNX Runtime (an :class:`~msfnet.runtime.engines.base.Engine`)."""
+
+    session: ort.InferenceSession
+    info: ModelInfo
+    provider: str
+    threads: int | None
+    lights_per_call: int = DEFAULT_CHUNK  # staged models only
+    name: str = "onnxruntime"
+
+    @property
+    def precision(self) -> str:
+        return self.info.precision
+
+    @property
+    def chunk(self) -> int | None:
+        return self.lights_per_call if self.info.staged else None
+
+    def describe(self) -> dict[str, object]:
+        return {
+            "engine": self.name,
+            "precision": self.precision,
+            "provider": self.provider,
+            "threads": self.threads,
+            "chunk": self.chunk,
+        }
+
+    def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W)."""
+        if self.info.staged:
+            return run_staged(self.session, images, lights, self.lights_per_call)
+        return self.session.run(["normals"], {"images": images, "lights": lights})[0]
+
+
+def resolve_provider(name: str | None) -> str:
+    """'cpu', 'cuda', ... or a full ORT provider name; must be installed."""
+    provider = PROVIDER_ALIASES.get((name or "cpu").lower(), name or "CPUExecutionProvider")
+    available = ort.get_available_providers()
+    if provider not in available:
+        raise InputError(
+            f"--provider {name!r}: not available in this onnxruntime build "
+            f"(available: {', '.join(available)})"
+        )
+    return provider
+
+
+def default_threads() -> int:
+    """Threads when none are asked for: the cores this process may use (common/cpu.py)."""
+    return usable_cores()
+
+
+def create_session(
+    path: str | Path,
+    *,
+    threads: int | None = None,
+    provider: str | None = None,
+    graph_opt: str = "all",
+    arena: bool | None = None,
+) -> ModelSession:
+    """Load an msfnet ONNX model; raise InputError if it is missing, corrupt or not msfnet.
+
+    ``arena`` (ONNX Runtime's CPU memory arena), default: on for staged models, off otherwise.
+    Monolithic: with the arena on, a full DiLiGenT ball (96 lights, 4 tiles of 112 px) peaked
+    at 4.4 GB RSS against 2.2 GB off (it grows in doubling chunks and keeps them), at the same
+    speed. Staged: a call's working set is one light chunk, so the arena stays small, and
+    without it the many calls per tile re-allocate and page-fault: 16 lights 64x64 took 1.68 s
+    off vs 1.37 s on (monolithic 1.38 s, same run).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("ONNX model not found", path)
+    if not path.is_file():
+        raise InputError("not a file (expected an .onnx model)", path)
+    if graph_opt not in GRAPH_OPT_LEVELS:
+        raise InputError(
+            f"graph optimisation level {graph_opt!r}: expected one of {', '.join(GRAPH_OPT_LEVELS)}"
+        )
+    threads = threads or default_threads()
+    if not 1 <= threads <= MAX_THREADS:
+        raise InputError(f"--threads must lie in 1..{MAX_THREADS}, got {threads}")
+    prov = resolve_provider(provider)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.graph_optimization_level = GRAPH_OPT_LEVELS[graph_opt]
+    opts.enable_cpu_mem_arena = bool(arena)
+    opts.log_severity_level = 3  # keep ORT's warnings off the user's terminal
+    providers = [prov] if prov == "CPUExecutionProvider" else [prov, "CPUExecutionProvider"]
+    try:
+        sess = ort.InferenceSession(str(path), opts, providers=providers)
+    except Exception as exc:  # ORT raises InvalidProtobuf, Fail, ... for bad files
+        raise InputError(f"cannot load ONNX model ({first_line(exc)})", path) from exc
+    meta = dict(sess.get_modelmeta().custom_metadata_map)
+    info = read_model_info(path, meta)
+    if arena is None and info.staged:  # the default depends on the graph: load it again
+        return create_session(
+            path, threads=threads, provider=provider, graph_opt=graph_opt, arena=True
+        )
+    check_io(path, info, {i.name for i in sess.get_inputs()}, {o.name for o in sess.get_outputs()})
+    return ModelSession(sess, info, prov, threads)
+
+
+def check_io(path: Path, info: ModelInfo, inputs: set[str], outputs: set[str]) -> None:
+    """The graph's inputs and outputs are msfnet's (plain or staged); InputError otherwise."""
+    want_in, want_out = (
+        (set(STAGE_INPUTS), set(STAGE_OUTPUTS))
+        if info.staged
+        else ({"images", "lights"}, {"normals"})
+    )
+    if inputs != want_in or not want_out <= outputs:
+        raise InputError(
+            f"not an msfnet {'staged ' if info.staged else ''}model: inputs "
+            f"{sorted(inputs)}, outputs {sorted(outputs)} (expected "
+            f"{', '.join(sorted(want_in))} -> {', '.join(sorted(want_out))})",
+            path,
+        )
+
+
+__all__ = [
+    "GRAPH_OPT_LEVELS",
+    "ModelSession",
+    "create_session",
+    "default_threads",
+    "resolve_provider",
+]

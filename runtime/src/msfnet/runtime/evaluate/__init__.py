@@ -1,0 +1,1 @@
+"""Evaluation: angular-error metrics, the ground-truth-free detail ratio, benchmark datasets."""

@@ -1,0 +1,98 @@
+"""Public benchmarks: their evaluation protocol and the published figures to compare against.
+
+DiLiGenT (Shi et al., CVPR 2016): 96 lights per object; bear's first 20 images are corrupted and
+the standard protocol (the MSF-Net paper's too) uses images 21-96. Published mean angular errors
+(deg) for the objects we validate on, as listed in the data's SOURCE.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from msfnet.common.errors import InputError
+from msfnet.runtime.stack import LIGHTS_NAMES
+
+PROTOCOL_SELECT = {"bearPNG": "21-96"}  # object folder -> the images the benchmark uses
+PROTOCOL_WHY = {"bearPNG": "DiLiGenT's protocol: bear's first 20 images are corrupted"}
+
+
+def protocol_note(name: str, select: str) -> str:
+    """The line a command prints when a benchmark's selection applies by the folder's name."""
+    why = PROTOCOL_WHY.get(name, "the benchmark's protocol")
+    return f"{name}: using images {select} ({why}); --select overrides"
+
+
+PUBLISHED_MAE: dict[str, dict[str, float]] = {
+    "ballPNG": {"L2 (paper)": 4.10, "PS-FCN": 2.67, "MSF-Net (paper)": 2.27},
+    "bearPNG": {"L2 (paper)": 8.39, "PS-FCN": 7.72, "MSF-Net (paper)": 4.60},
+    "harvestPNG": {"L2 (paper)": 30.62, "PS-FCN": 12.39, "MSF-Net (paper)": 10.80},
+}
+PUBLISHED_METHODS = ("PS-FCN", "MSF-Net (paper)")
+
+
+@dataclass(frozen=True)
+class BenchObject:
+    folder: Path
+    select: str | None  # the benchmark's image selection (e.g. bear 21-96)
+
+
+def find_objects(root: Path) -> list[BenchObject]:
+    """The objects of a benchmark root in benchmark order: those listed in objects.txt (one
+    folder per line, optionally followed by an image selection), the root itself when it is a
+    stack, or every sub-folder holding a stack. Known benchmark objects get their protocol's
+    selection (DiLiGenT bear: 21-96) unless objects.txt says otherwise."""
+    if not root.is_dir():
+        if root.exists():  # e.g. an .npz stack, which msf-run reads but a benchmark is not
+            raise InputError(
+                "a file, not a benchmark: expected a folder with objects.txt, "
+                "object sub-folders, or one object folder (images + "
+                "light_directions.txt); msf-run takes .npz stacks",
+                root,
+            )
+        raise InputError("benchmark root or object folder not found", root)
+    listing = root / "objects.txt"
+    if listing.is_file():
+        out = []
+        for line in listing.read_text(encoding="utf-8-sig").splitlines():
+            parts = line.split("#", 1)[0].split()
+            if not parts:
+                continue
+            folder = root / parts[0]
+            if not folder.is_dir():
+                raise InputError(f"object folder {parts[0]!r} listed but not found", listing)
+            out.append(BenchObject(folder, parts[1] if len(parts) > 1 else None))
+        if not out:
+            raise InputError("objects.txt lists no objects", listing)
+        return out
+    if any((root / n).is_file() for n in LIGHTS_NAMES) or any(root.glob("*.[tT][gG][aA]")):
+        return [BenchObject(root, PROTOCOL_SELECT.get(root.name))]
+    found = [
+        BenchObject(d, PROTOCOL_SELECT.get(d.name))
+        for d in sorted(root.iterdir())
+        if d.is_dir() and any((d / n).is_file() for n in LIGHTS_NAMES)
+    ]
+    if not found:
+        raise InputError(
+            "no object folders (with light_directions.txt or lights.txt) and no objects.txt", root
+        )
+    return found
+
+
+def check_unique(objects: list[BenchObject]) -> None:
+    names = [o.folder.name for o in objects]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise InputError(f"object {dup!r} is listed twice (its results would clash)")
+
+
+__all__ = [
+    "PROTOCOL_SELECT",
+    "PROTOCOL_WHY",
+    "PUBLISHED_MAE",
+    "PUBLISHED_METHODS",
+    "BenchObject",
+    "check_unique",
+    "find_objects",
+    "protocol_note",
+]

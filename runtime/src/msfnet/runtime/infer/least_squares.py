@@ -1,0 +1,105 @@
+"""Classical per-pixel least-squares photometric stereo (``--method l2``), no model needed.
+
+Lambertian model on grey values: I_i = rho * <l_i, n>, with I = mean over RGB of image / light
+intensity. Solves for g = rho * n by least squares over the lights and normalises. Optional
+trimming drops each pixel's darkest (shadow) and brightest (highlight) fractions of lights.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from msfnet.common.errors import InputError
+from msfnet.runtime.infer.normalise import network_lights
+from msfnet.runtime.stack import Stack
+
+# working set per (mask pixel x light): the RGB gather (as held: 12 B float32, 6 B uint16; an
+# integer one's float32 copy lives only while grey is computed), float64 grey and, when
+# trimming, ranks and weights
+BYTES_PER_PIXEL_LIGHT = 64
+MIN_ROWS = 8
+
+
+def least_squares_normals(
+    stack: Stack,
+    trim_shadows: float = 0.0,
+    trim_highlights: float = 0.0,
+    max_memory_mb: float | None = None,
+) -> np.ndarray:
+    """(H, W, 3) float32 unit normals, zeros outside the mask (and where the fit is degenerate).
+
+    ``max_memory_mb``: work in bands of image rows so the working set beside the loaded stack
+    stays within the budget (a 96-light full-frame stack otherwise needs several GB at once).
+    """
+    if not (0 <= trim_shadows < 1 and 0 <= trim_highlights < 1):
+        raise InputError("trim fractions must lie in [0, 1)")
+    h, w = stack.shape
+    rows = h
+    if max_memory_mb is not None:
+        rows = rows_for_memory(max_memory_mb, stack)
+    out = np.zeros((h, w, 3), np.float32)
+    for r0 in range(0, h, rows):
+        band = slice(r0, min(h, r0 + rows))
+        mask = stack.mask[band]
+        if mask.any():
+            unit = _solve(stack.images[:, band][:, mask, :], stack, trim_shadows, trim_highlights)
+            out[band][mask] = unit.T
+    return out
+
+
+def rows_for_memory(max_memory_mb: float, stack: Stack) -> int:
+    """Image rows per band so that the loaded stack plus the band's working set fit in
+    ``max_memory_mb``; InputError (quoting the budget as given) when not even MIN_ROWS fit."""
+    if not (np.isfinite(max_memory_mb) and max_memory_mb > 0):
+        raise InputError(f"--max-memory must be a positive number of MB, got {max_memory_mb}")
+    h, w = stack.shape
+    per_row = w * stack.num_lights * BYTES_PER_PIXEL_LIGHT
+    stack_mb = stack.images.nbytes / 2**20
+    budget = max_memory_mb * 2**20 - stack.images.nbytes
+    rows = int(budget // per_row) if budget > 0 else 0
+    if rows < min(MIN_ROWS, h):
+        need = stack_mb + min(MIN_ROWS, h) * per_row / 2**20
+        raise InputError(
+            f"--max-memory {max_memory_mb:g} MB is too small for least squares on "
+            f"this stack: it takes {stack_mb:.1f} MB loaded and at least "
+            f"{need:.1f} MB in all"
+        )
+    return min(rows, h)
+
+
+def _grey(pixels: np.ndarray, intensities: np.ndarray) -> np.ndarray:
+    """(N, P) float64 grey values of gathered (N, P, 3) pixels divided by the light intensity.
+    Integer pixels are cast first (exact in float32: the numbers a float32 stack gives, and no
+    integer arithmetic); the copy lives only here."""
+    if pixels.dtype.kind != "f":
+        pixels = pixels.astype(np.float32)
+    return (pixels / intensities[:, None, :]).mean(axis=2).astype(np.float64)
+
+
+def _solve(
+    pixels: np.ndarray, stack: Stack, trim_shadows: float, trim_highlights: float
+) -> np.ndarray:
+    """(3, P) unit normals of the gathered mask pixels (N, P, 3)."""
+    lights = network_lights(stack.lights).astype(np.float64)  # (N, 3)
+    n = lights.shape[0]
+    grey = _grey(pixels, stack.intensities)  # (N, P)
+    lo = int(np.floor(trim_shadows * n))
+    hi = n - int(np.floor(trim_highlights * n))
+    if hi - lo < 3:
+        raise InputError(f"trimming leaves {hi - lo} of {n} lights per pixel; at least 3 needed")
+    if lo == 0 and hi == n:
+        g = np.linalg.pinv(lights) @ grey  # (3, P): one solve shared by every pixel
+    else:
+        ranks = np.argsort(np.argsort(grey, axis=0), axis=0)
+        keep = ((ranks >= lo) & (ranks < hi)).astype(np.float64)  # (N, P)
+        a = np.einsum("np,ni,nj->pij", keep, lights, lights)
+        b = np.einsum("np,ni->pi", keep * grey, lights)
+        ok = np.abs(np.linalg.det(a)) > 1e-9
+        g = np.zeros((grey.shape[1], 3))
+        g[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+        g = g.T
+    norm = np.linalg.norm(g, axis=0)
+    return np.where(norm > 1e-12, g / np.maximum(norm, 1e-12), 0.0)
+
+
+__all__ = ["least_squares_normals"]

@@ -1,0 +1,125 @@
+"""Tiled ONNX inference: per tile normalise -> pad -> run -> crop -> stitch.
+
+Normalisation is per pixel (see preprocess.py), so normalising a window of the raw images equals
+cropping the normalised image; only the tile's pixels are ever expanded to float network input,
+which is what bounds memory.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from msfnet.common.errors import InputError, MsfError, first_line
+from msfnet.runtime.infer.normalise import network_input
+from msfnet.runtime.infer.tiling import (
+    DEFAULT_MAX_MEMORY_MB,
+    TilePlan,
+    plan_tiles,
+    tile_size_for_memory,
+)
+from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.stack import Stack
+
+if TYPE_CHECKING:
+    from msfnet.runtime.engines.base import Engine
+
+
+@dataclass
+class InferenceResult:
+    normals: np.ndarray  # (H, W, 3) float32, zeros outside the mask
+    plan: TilePlan
+
+
+def choose_plan(
+    stack: Stack, model: Engine, tile: int | None = None, max_memory_mb: float | None = None
+) -> TilePlan:
+    """``tile``: window edge in px (0 = untiled); otherwise sized from ``max_memory_mb`` and N."""
+    static = model.info.static_shape
+    if static is not None:
+        n, h, w = static
+        if n != stack.num_lights:
+            raise InputError(
+                f"this model was exported for exactly {n} lights (static shape) but "
+                f"the stack has {stack.num_lights}; use --select/--max-lights or a "
+                "dynamic export",
+                model.info.path,
+            )
+        return plan_tiles(stack.mask, None, fixed=(h, w))
+    if tile == 0:
+        return plan_tiles(stack.mask, None)
+    if tile is None:
+        # the budget is for the whole process: the loaded stack already occupies part of it
+        # (its bytes as held: 2 a value for a 16-bit stack, 4 for float32)
+        tile = tile_size_for_memory(
+            max_memory_mb or DEFAULT_MAX_MEMORY_MB,
+            stack.num_lights,
+            model.chunk,
+            stack_mb=stack.images.nbytes / 2**20,
+        )
+    return plan_tiles(stack.mask, tile)
+
+
+def infer_normals(
+    model: Engine,
+    stack: Stack,
+    plan: TilePlan,
+    timer: StageTimer | None = None,
+    progress: bool = False,
+) -> InferenceResult:
+    """Run the plan's tiles through the model and stitch the cores into an (H, W, 3) map."""
+    timer = timer or StageTimer()
+    h, w = stack.shape
+    n = stack.num_lights
+    hp = max(max(t.window[1] for t in plan.tiles), h)
+    wp = max(max(t.window[3] for t in plan.tiles), w)
+    out = np.zeros((hp, wp, 3), np.float32)
+    train_lights = model.info.train_lights
+    bar = None
+    if progress and len(plan.tiles) > 1:
+        from tqdm import tqdm
+
+        bar = tqdm(
+            total=len(plan.tiles), unit="tile", desc="inference", file=sys.stderr, leave=False
+        )
+    for t in plan.tiles:
+        wy0, wy1, wx0, wx1 = t.window
+        with timer("preprocess"):
+            # only the part of the window inside the image holds data; the rest is zero padding
+            x, lights = network_input(
+                stack,
+                slice(wy0, min(wy1, h)),
+                slice(wx0, min(wx1, w)),
+                train_lights=train_lights,
+                shape=(wy1 - wy0, wx1 - wx0),
+            )
+        with timer("inference"):
+            try:
+                y = model.run(x, lights)
+            except MemoryError:
+                raise
+            except Exception as exc:  # engines' own error types (e.g. allocation failure)
+                raise MsfError(
+                    f"{model.info.path}: {model.name} failed on a "
+                    f"{wx1 - wx0}x{wy1 - wy0} tile with {n} lights "
+                    f"({type(exc).__name__}: {first_line(exc)}); try a smaller "
+                    "--tile or --max-memory"
+                ) from exc
+        with timer("postprocess"):
+            cy0, cy1, cx0, cx1 = t.core
+            out[cy0:cy1, cx0:cx1] = y[0, :, cy0 - wy0 : cy1 - wy0, cx0 - wx0 : cx1 - wx0].transpose(
+                1, 2, 0
+            )
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    with timer("postprocess"):
+        normals = out[:h, :w] * stack.mask[:, :, None]
+    return InferenceResult(np.ascontiguousarray(normals, np.float32), plan)
+
+
+__all__ = ["InferenceResult", "choose_plan", "infer_normals"]

@@ -1,0 +1,165 @@
+"""Memory-bounded spatial tiling with a halo, so the stitched normals equal the untiled ones.
+
+Why space and not lights: every stage takes the max over *all* lights, so a light chunk would see
+a different max. Every stage is local in space, so a tile whose halo covers the receptive field
+(19 px before, 18 after, from :func:`msfnet.runtime.infer.flops.receptive_field`) reproduces the
+untiled output in its core. Origins are multiples of 4 so the network's stride-2 grids line up,
+and windows are clipped to the padded image exactly like the untiled input, so edge tiles see the
+same zero padding. Tiles whose core holds no mask pixel are skipped; cores shrink to the mask.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from msfnet.common.errors import InputError
+from msfnet.runtime.contract import INPUT_MULTIPLE as MULTIPLE
+from msfnet.runtime.engines.staged_loop import STORED_BYTES_PER_PIXEL_LIGHT
+from msfnet.runtime.infer.flops import receptive_field
+from msfnet.runtime.infer.normalise import padded_size
+
+HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
+# ONNX Runtime working set per (network-input pixel x light), fp32 CPU provider, arena off (see
+# session.py): measured 1.3 KB at 96 lights and up to 2.65 KB at 16-32 lights (tiles 64-128 px);
+# 3000 B bounds every case measured, so peak RSS stays under --max-memory.
+BYTES_PER_PIXEL_LIGHT = 3000
+BASE_MEMORY_MB = 150  # runtime + ORT session + model, outside the per-tile working set
+DEFAULT_MAX_MEMORY_MB = 4096
+
+
+@dataclass(frozen=True)
+class Tile:
+    """Rectangles as (y0, y1, x0, x1) in padded-image pixels: core (written) and window (run)."""
+
+    core: tuple[int, int, int, int]
+    window: tuple[int, int, int, int]
+
+    @property
+    def pixels(self) -> int:
+        y0, y1, x0, x1 = self.window
+        return (y1 - y0) * (x1 - x0)
+
+
+@dataclass
+class TilePlan:
+    tiles: list[Tile]
+    skipped: int
+    tile_size: int | None  # max window edge; None = untiled
+    halo: int
+
+    @property
+    def pixels(self) -> int:
+        return sum(t.pixels for t in self.tiles)
+
+
+def _down(v: int) -> int:
+    return v // MULTIPLE * MULTIPLE
+
+
+def bytes_per_pixel(lights: int, chunk: int | None = None) -> float:
+    """Working set per window pixel: all lights at once (monolithic graph), or, for a staged
+    graph run ``chunk`` lights at a time, the stored stage outputs plus one chunk's activations."""
+    if chunk is None:
+        return lights * BYTES_PER_PIXEL_LIGHT
+    return lights * STORED_BYTES_PER_PIXEL_LIGHT + min(chunk, lights) * BYTES_PER_PIXEL_LIGHT
+
+
+def tile_size_for_memory(
+    max_memory_mb: float, lights: int, chunk: int | None = None, stack_mb: float = 0.0
+) -> int:
+    """Largest square window (multiple of 4) whose working set fits in ``max_memory_mb`` (the
+    user's budget for the whole run) beside the loaded stack's ``stack_mb``. The constants were
+    measured with ONNX Runtime fp32; OpenVINO bf16 stays below them (full DiLiGenT ball, 96
+    lights, default budget, AMX CPU: 2,148 MB peak with the plain graph and a float32 stack;
+    1,465 MB with the bundled staged graph and the 16-bit stack held as loaded)."""
+    budget = (max_memory_mb - stack_mb - BASE_MEMORY_MB) * 2**20
+    per_pixel = bytes_per_pixel(lights, chunk)
+    side = _down(int(math.sqrt(max(budget, 0) / per_pixel)))
+    smallest = 2 * HALO + MULTIPLE
+    if side < smallest:
+        need = BASE_MEMORY_MB + stack_mb + smallest**2 * per_pixel / 2**20
+        raise InputError(
+            f"--max-memory {max_memory_mb:g} MB is too small for {lights} lights: "
+            f"the loaded stack and the smallest tile ({smallest} px) need about "
+            f"{need:.0f} MB"
+        )
+    return side
+
+
+def _axis_cores(lo: int, hi: int, core_max: int) -> list[tuple[int, int]]:
+    """Split [lo, hi) into equal-ish parts of at most core_max, starts on multiples of 4."""
+    length = hi - lo
+    parts = max(1, -(-length // core_max))
+    step = padded_size(-(-length // parts))
+    return [(a, min(a + step, hi)) for a in range(lo, hi, step)]
+
+
+def _window(c0: int, c1: int, size: int, fixed: int | None, halo: int) -> tuple[int, int]:
+    """Window around core [c0, c1) on an axis of padded length ``size``."""
+    if fixed is None:
+        return max(0, c0 - halo), min(size, c1 + halo)
+    start = min(max(0, c0 - halo), max(0, size - fixed))  # static models: every window the same
+    return start, start + fixed
+
+
+def plan_tiles(
+    mask: np.ndarray, tile: int | None, halo: int = HALO, fixed: tuple[int, int] | None = None
+) -> TilePlan:
+    """Cover the mask with tiles whose windows are at most ``tile`` px (None: one untiled pass).
+
+    ``fixed`` (H, W): every window has exactly this size (static-shape exports); windows that
+    reach past the padded image are zero-filled by the caller.
+    """
+    h, w = mask.shape
+    hp, wp = padded_size(h), padded_size(w)
+    if tile is None and fixed is None:
+        return TilePlan([Tile((0, hp, 0, wp), (0, hp, 0, wp))], 0, None, 0)
+    if fixed is not None:
+        core_y, core_x = fixed[0] - 2 * halo, fixed[1] - 2 * halo
+        tile = max(fixed)
+    else:
+        assert tile is not None
+        if tile % MULTIPLE or tile < 2 * halo + MULTIPLE:
+            raise InputError(
+                f"--tile {tile}: must be a multiple of {MULTIPLE} and at least "
+                f"{2 * halo + MULTIPLE} (2 x {halo} px halo + 4)"
+            )
+        core_y = core_x = tile - 2 * halo
+    if core_y < MULTIPLE or core_x < MULTIPLE:
+        raise InputError(f"static model shape {fixed} is too small for the {halo} px halo")
+    ys, xs = np.nonzero(mask)
+    y0, y1 = _down(int(ys.min())), min(hp, padded_size(int(ys.max()) + 1))
+    x0, x1 = _down(int(xs.min())), min(wp, padded_size(int(xs.max()) + 1))
+    padded_mask = np.zeros((hp, wp), bool)
+    padded_mask[:h, :w] = mask
+    tiles: list[Tile] = []
+    skipped = 0
+    for cy0, cy1 in _axis_cores(y0, y1, core_y):
+        for cx0, cx1 in _axis_cores(x0, x1, core_x):
+            sub = padded_mask[cy0:cy1, cx0:cx1]
+            if not sub.any():
+                skipped += 1
+                continue
+            # shrink the core to the mask inside it: less halo'd area to compute
+            sy, sx = np.nonzero(sub)
+            ky0, ky1 = cy0 + _down(int(sy.min())), min(cy1, cy0 + padded_size(int(sy.max()) + 1))
+            kx0, kx1 = cx0 + _down(int(sx.min())), min(cx1, cx0 + padded_size(int(sx.max()) + 1))
+            wy = _window(ky0, ky1, hp, None if fixed is None else fixed[0], halo)
+            wx = _window(kx0, kx1, wp, None if fixed is None else fixed[1], halo)
+            tiles.append(Tile((ky0, ky1, kx0, kx1), (*wy, *wx)))
+    return TilePlan(tiles, skipped, tile, halo)
+
+
+__all__ = [
+    "BYTES_PER_PIXEL_LIGHT",
+    "DEFAULT_MAX_MEMORY_MB",
+    "HALO",
+    "Tile",
+    "TilePlan",
+    "bytes_per_pixel",
+    "plan_tiles",
+    "tile_size_for_memory",
+]

@@ -1,0 +1,86 @@
+"""Per-pixel RGB albedo from the images, the lights and the estimated normals.
+
+Lambertian model per colour channel c and light i: I_ic = rho_c * e_ic * max(n . l_i, 0), with
+e_ic the light's RGB intensity. Given n, the least-squares albedo over a set K of lights is
+    rho_c = sum_K I_ic s_ic / sum_K s_ic^2,    s_ic = max(n . l_i, 0) * e_ic,
+(the closed form of min_rho sum_K (I_ic - rho_c s_ic)^2, as in Woodham's photometric stereo,
+Optical Engineering 19(1), 1980, once the normal is known). K keeps only observations the model
+can explain: lit (n . l_i above ``min_shading``, which drops attached shadows and grazing light
+where the cosine is least reliable) and unsaturated (value below ``saturation`` in that channel).
+Units: image units per unit light intensity (the images' raw scale, e.g. 0..65535 for 16-bit).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from msfnet.common.errors import InputError
+from msfnet.runtime.results.maps.validate import check_normals
+
+DEFAULT_MIN_SHADING = 0.1
+SATURATION_FRACTION = 0.99  # default: values at >= 99 % of the stack's maximum count as clipped
+CHUNK_PIXELS = 32768  # bounds the (N, chunk, 3) temporaries to a few tens of MB
+
+
+def default_saturation(images: np.ndarray) -> float:
+    """The clipping level assumed when none is given: 99 % of the largest stored value."""
+    top = float(np.max(images)) if images.size else 0.0
+    return SATURATION_FRACTION * top if top > 0 else np.inf
+
+
+def albedo_map(
+    images: np.ndarray,
+    lights: np.ndarray,
+    intensities: np.ndarray,
+    mask: np.ndarray,
+    normals: np.ndarray,
+    *,
+    min_shading: float = DEFAULT_MIN_SHADING,
+    saturation: float | None = None,
+) -> np.ndarray:
+    """Least-squares RGB albedo, (H, W, 3) float32.
+
+    images: (N, H, W, 3) linear values as stored; lights: (N, 3) directions (normalised here);
+    intensities: (N, 3) RGB light intensities; mask: (H, W) bool; normals: (H, W, 3) unit.
+    min_shading: smallest n . l kept (dimensionless cosine).
+    saturation: values at or above it are dropped (default: 99 % of the images' maximum).
+    Pixels outside the mask, with a zero normal, or with no kept light in a channel get 0.
+    """
+    imgs = np.asarray(images)
+    if imgs.ndim != 4 or imgs.shape[3] != 3:
+        raise InputError(f"images must be N x H x W x 3, got shape {imgs.shape}")
+    n_lights, h, w = imgs.shape[:3]
+    unit, valid = check_normals(normals, mask)
+    if unit.shape[:2] != (h, w):
+        raise InputError(f"normals are {unit.shape[:2]} but images are {(h, w)}")
+    dirs = np.asarray(lights, np.float64)
+    ints = np.asarray(intensities, np.float64)
+    if dirs.shape != (n_lights, 3) or ints.shape != (n_lights, 3):
+        raise InputError(
+            f"{n_lights} images need ({n_lights}, 3) lights and intensities, got "
+            f"{dirs.shape} and {ints.shape}"
+        )
+    norms = np.linalg.norm(dirs, axis=1, keepdims=True)
+    if not (np.all(np.isfinite(dirs)) and np.all(norms > 0) and np.all(np.isfinite(ints))):
+        raise InputError("light directions and intensities must be finite, directions non-zero")
+    dirs = dirs / norms
+    sat = default_saturation(imgs) if saturation is None else float(saturation)
+    out = np.zeros((h, w, 3), np.float32)
+    pix = np.flatnonzero(valid.ravel())
+    flat = imgs.reshape(n_lights, h * w, 3)
+    rho = np.zeros((pix.size, 3))
+    for start in range(0, pix.size, CHUNK_PIXELS):
+        sel = pix[start : start + CHUNK_PIXELS]
+        obs = flat[:, sel, :].astype(np.float64)  # (N, P, 3)
+        cos = dirs @ unit.reshape(-1, 3)[sel].T  # (N, P)
+        s = np.where(cos > min_shading, cos, 0.0)[:, :, None] * ints[:, None, :]
+        keep = (s > 0) & (obs < sat) & np.isfinite(obs)
+        s = np.where(keep, s, 0.0)
+        num = np.einsum("npc,npc->pc", np.where(keep, obs, 0.0), s)
+        den = np.einsum("npc,npc->pc", s, s)
+        rho[start : start + sel.size] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    out.reshape(-1, 3)[pix] = rho
+    return out
+
+
+__all__ = ["DEFAULT_MIN_SHADING", "albedo_map", "default_saturation"]

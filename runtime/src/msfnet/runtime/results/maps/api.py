@@ -1,0 +1,339 @@
+"""The inspection-maps entry point: compute every map from one run, write them all.
+
+Wiring into a run is two lines (``stack``: the loaded Stack, ``normals``: the estimate):
+    maps = stack_maps(stack, normals, MapOptions(method="poisson"))
+    files = write_maps(outdir, maps, images=stack.images, error_deg=err, profile=summary)
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from msfnet.common.errors import InputError
+from msfnet.common.files import write_atomic
+from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, albedo_map
+from msfnet.runtime.results.maps.curvature import DEFAULT_SIGMA, curvature_maps
+from msfnet.runtime.results.maps.integrate import (
+    DEFAULT_MIN_NZ,
+    METHODS,
+    Integration,
+    Intrinsics,
+    integrate_normals,
+)
+from msfnet.runtime.results.maps.validate import check_normals
+from msfnet.runtime.stack import Stack
+
+MAP_NAMES = ("albedo", "height", "curvature", "mesh")
+
+
+@dataclass(frozen=True)
+class MapOptions:
+    """What to compute and how.
+
+    maps: any of "albedo", "height", "curvature", "mesh" ("mesh" implies "height").
+    method: integration method, "fc" | "poisson" | "bini" (see maps.integrate).
+    intrinsics: (fx, fy, cx, cy) in pixels for a perspective camera; None = orthographic.
+    depth_ref: perspective only, the median object depth the unknown scale is fixed to
+        (default fx: heights then read in pixels at that distance).
+    min_nz: smallest nz (or |D|) used for slopes, bounding them to 1/min_nz px per px.
+    min_shading, saturation: albedo observation filters (cosine; image units, None = 99 % of
+        the images' maximum).
+    curvature_sigma: Gaussian pre-smoothing of the normals for curvature, in pixels.
+    bini_k, bini_max_iter, bini_tol: "bini" sharpness, rounds and energy tolerance.
+    mesh_max_jump: drop mesh triangles spanning a larger height step (px); None keeps all.
+    """
+
+    maps: tuple[str, ...] = MAP_NAMES
+    method: str = "poisson"
+    intrinsics: Intrinsics | tuple[float, float, float, float] | None = None
+    depth_ref: float | None = None
+    min_nz: float = DEFAULT_MIN_NZ
+    min_shading: float = DEFAULT_MIN_SHADING
+    saturation: float | None = None
+    curvature_sigma: float = DEFAULT_SIGMA
+    bini_k: float = 2.0
+    bini_max_iter: int = 50
+    bini_tol: float = 1e-4
+    mesh_max_jump: float | None = None
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.maps if m not in MAP_NAMES]
+        if unknown:
+            raise InputError(
+                f"unknown map(s) {', '.join(map(repr, unknown))}: expected any of "
+                f"{', '.join(MAP_NAMES)}"
+            )
+        if self.method not in METHODS:
+            raise InputError(
+                f"integration method {self.method!r}: expected one of {', '.join(METHODS)}"
+            )
+        object.__setattr__(self, "maps", tuple(self.maps))
+        object.__setattr__(self, "intrinsics", Intrinsics.coerce(self.intrinsics))
+
+    def wants(self, name: str) -> bool:
+        return name in self.maps or (name == "height" and "mesh" in self.maps)
+
+
+@dataclass
+class InspectionMaps:
+    """Every map of one run; maps not asked for are None. All (H, W[, 3]) float32.
+
+    mask: (H, W) bool, the pixels that had a usable normal (the maps' domain).
+    normals: (H, W, 3) unit normals as given (zeros outside ``mask``).
+    albedo: RGB, image units per unit light intensity, 0 outside the mask.
+    height: z toward the camera in px (perspective: depth_ref units), min 0 per object part,
+        NaN outside. depth: perspective only, depth along the optical axis, NaN outside.
+    curvature: mean curvature in 1/px (convex toward the camera > 0), NaN outside;
+    gaussian_curvature (1/px^2), shape_index ([-1, 1], NaN where planar), curvedness (1/px).
+    integration: method, iterations, timing of the height solve. timings: seconds per map.
+    """
+
+    mask: np.ndarray
+    normals: np.ndarray
+    options: MapOptions
+    albedo: np.ndarray | None = None
+    height: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    curvature: np.ndarray | None = None
+    gaussian_curvature: np.ndarray | None = None
+    shape_index: np.ndarray | None = None
+    curvedness: np.ndarray | None = None
+    integration: Integration | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready facts: options, units, timings, integration details, value ranges."""
+        opts = asdict(self.options)
+        out: dict[str, Any] = {
+            "options": opts,
+            "pixels": int(self.mask.sum()),
+            "timings_s": dict(self.timings),
+            "units": {
+                "albedo": "image units per unit light intensity",
+                "height": "px" if self.options.intrinsics is None else "depth_ref units",
+                "curvature": "1/px",
+                "shape_index": "dimensionless",
+            },
+        }
+        if self.integration is not None:
+            out["integration"] = {
+                "method": self.integration.method,
+                "iterations": self.integration.iterations,
+                "multigrid_builds": self.integration.builds,
+                "seconds": self.integration.seconds,
+            }
+        if self.height is not None and np.isfinite(self.height).any():
+            out["height_range"] = float(np.nanmax(self.height) - np.nanmin(self.height))
+        return out
+
+
+def compute_maps(
+    images: np.ndarray | None,
+    lights: np.ndarray | None,
+    intensities: np.ndarray | None,
+    mask: np.ndarray,
+    normals: np.ndarray,
+    options: MapOptions | None = None,
+) -> InspectionMaps:
+    """Compute the maps ``options.maps`` asks for.
+
+    images (N, H, W, 3), lights (N, 3), intensities (N, 3): only needed for the albedo.
+    mask (H, W) bool; normals (H, W, 3) unit, camera frame (x right, y up, z to the camera).
+    Bad input raises InputError (NaN normals in the mask, shape mismatches, missing images for
+    the albedo). An empty mask is not an error: albedo 0, height and curvature all NaN.
+    """
+    opts = options or MapOptions()
+    unit, valid = check_normals(normals, mask)
+    maps = InspectionMaps(mask=valid, normals=unit.astype(np.float32), options=opts)
+    if opts.wants("albedo"):
+        if images is None or lights is None or intensities is None:
+            raise InputError("the albedo needs the images, lights and intensities")
+        start = time.perf_counter()
+        maps.albedo = albedo_map(
+            images,
+            lights,
+            intensities,
+            valid,
+            unit,
+            min_shading=opts.min_shading,
+            saturation=opts.saturation,
+        )
+        maps.timings["albedo"] = time.perf_counter() - start
+    if opts.wants("height"):
+        start = time.perf_counter()
+        integ = integrate_normals(
+            unit,
+            valid,
+            opts.method,
+            intrinsics=opts.intrinsics,
+            depth_ref=opts.depth_ref,
+            min_nz=opts.min_nz,
+            k=opts.bini_k,
+            max_iter=opts.bini_max_iter,
+            tol=opts.bini_tol,
+        )
+        maps.integration, maps.height, maps.depth = integ, integ.height, integ.depth
+        maps.timings[f"height ({opts.method})"] = time.perf_counter() - start
+    if opts.wants("curvature"):
+        start = time.perf_counter()
+        curv = curvature_maps(unit, valid, sigma=opts.curvature_sigma)
+        maps.curvature, maps.gaussian_curvature = curv.mean, curv.gaussian
+        maps.shape_index, maps.curvedness = curv.shape_index, curv.curvedness
+        maps.timings["curvature"] = time.perf_counter() - start
+    return maps
+
+
+def stack_maps(
+    stack: Stack, normals: np.ndarray, options: MapOptions | None = None
+) -> InspectionMaps:
+    """:func:`compute_maps` for a ``msfnet.runtime.stack.Stack`` and its estimated normals."""
+    return compute_maps(stack.images, stack.lights, stack.intensities, stack.mask, normals, options)
+
+
+def albedo_png(albedo: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W, 3) albedo -> 16-bit RGB with the largest value in the mask at 65535 (relative;
+    the absolute values are in albedo.npy). Zeros outside the mask."""
+    top = float(albedo[mask].max()) if mask.any() else 0.0
+    scale = 65535.0 / top if top > 0 else 0.0
+    img = np.clip(np.rint(albedo * scale), 0, 65535).astype(np.uint16)
+    img[~mask] = 0
+    return img
+
+
+def _npy_writer(arr: np.ndarray) -> Any:
+    return lambda tmp: np.save(tmp, np.ascontiguousarray(arr, np.float32))
+
+
+def _bytes_writer(data: bytes) -> Any:
+    return lambda tmp: tmp.write_bytes(data)
+
+
+def write_maps(
+    folder: str | Path,
+    maps: InspectionMaps,
+    *,
+    images: np.ndarray | None = None,
+    error_deg: np.ndarray | None = None,
+    profile: Mapping[str, object] | None = None,
+    report: bool = True,
+    title: str | None = None,
+    rendered: Mapping[str, bytes] | None = None,
+) -> list[Path]:
+    """Write the computed maps into ``folder`` (created if needed; it may already hold the
+    run's normals.npy etc., which are left alone); returns the written paths.
+
+    albedo.png (16-bit RGB, relative) + albedo.npy; height.npy (float32, NaN outside) +
+    height.png (hill-shaded picture) [+ depth.npy with intrinsics]; curvature.npy (mean, 1/px)
+    + curvature.png + shape_index.npy; mesh.ply; maps.json (options, units, timings) and, with
+    ``report``, report.html (inputs from ``images``, normals, maps, ``error_deg`` (H, W) in
+    degrees, and the latency table from ``profile``, a profile.json summary).
+    ``rendered``: pictures the caller already drew ("normals", "error" PNG bytes), reused
+    instead of drawn twice (matplotlib figures are most of the time spent here).
+    Everything is rendered in memory first, then each file is written through
+    ``msfnet.common.files.write_atomic``: a failure while drawing writes nothing, and no file
+    is ever left half-written.
+    """
+    from msfnet.runtime.results.maps import pictures
+    from msfnet.runtime.results.maps.mesh import albedo_colors, height_mesh, write_ply
+    from msfnet.runtime.results.maps.report import build_report
+
+    folder = Path(folder)
+    m = maps.mask
+    jobs: list[tuple[str, Any]] = []
+    figures: list[tuple[str, bytes]] = []
+    if images is not None:
+        figures.append(
+            (
+                "wide: inputs: maximum over all images and a few of them",
+                pictures.png_bytes(pictures.inputs_picture(images, m)),
+            )
+        )
+    done = dict(rendered or {})
+    figures.append(
+        (
+            "normals",
+            done.get("normals") or pictures.png_bytes(pictures.normals_picture(maps.normals, m)),
+        )
+    )
+    if maps.albedo is not None:
+        jobs.append(("albedo.png", _bytes_writer(pictures.png_bytes(albedo_png(maps.albedo, m)))))
+        jobs.append(("albedo.npy", _npy_writer(maps.albedo)))
+        figures.append(("albedo", pictures.png_bytes(pictures.albedo_picture(maps.albedo, m))))
+    if maps.height is not None:
+        units = "px" if maps.options.intrinsics is None else "depth_ref units"
+        png = pictures.png_bytes(pictures.height_picture(maps.height, m, units=units))
+        jobs += [("height.npy", _npy_writer(maps.height)), ("height.png", _bytes_writer(png))]
+        figures.append((f"height ({maps.options.method})", png))
+        if maps.depth is not None:
+            jobs.append(("depth.npy", _npy_writer(maps.depth)))
+    if maps.curvature is not None:
+        png = pictures.png_bytes(pictures.curvature_picture(maps.curvature, m))
+        jobs += [
+            ("curvature.npy", _npy_writer(maps.curvature)),
+            ("curvature.png", _bytes_writer(png)),
+        ]
+        if maps.shape_index is not None:
+            jobs.append(("shape_index.npy", _npy_writer(maps.shape_index)))
+        figures.append(("mean curvature", png))
+    if error_deg is not None:
+        figures.append(
+            (
+                "angular error vs ground truth",
+                done.get("error") or pictures.png_bytes(pictures.error_picture(error_deg, m)),
+            )
+        )
+    if "mesh" in maps.options.maps and maps.height is not None:
+        colors = None if maps.albedo is None else albedo_colors(maps.albedo, m)
+        mesh = height_mesh(
+            maps.height,
+            m,
+            normals=maps.normals,
+            colors=colors,
+            intrinsics=Intrinsics.coerce(maps.options.intrinsics),
+            depth=maps.depth,
+            max_jump=maps.options.mesh_max_jump,
+        )
+        jobs.append(("mesh.ply", lambda tmp, mesh=mesh: write_ply(tmp, mesh)))
+    summary = maps.summary()
+    jobs.append(("maps.json", _bytes_writer((json.dumps(summary, indent=2) + "\n").encode())))
+    if report:
+        meta: dict[str, object] = {"pixels": summary["pixels"], "method": maps.options.method}
+        if maps.integration is not None:
+            meta["integration iterations"] = maps.integration.iterations
+        if "height_range" in summary:
+            meta["height range"] = f"{summary['height_range']:.1f}"
+        html_text = build_report(
+            title or f"inspection maps: {folder.name}",
+            figures,
+            meta=meta,
+            profile=profile,
+            map_seconds=maps.timings,
+        )
+        jobs.append(("report.html", _bytes_writer(html_text.encode("utf-8"))))
+    written = []
+    for name, writer in jobs:
+        path = folder / name
+        if name == "mesh.ply":
+            writer(path)  # write_ply goes through write_atomic itself
+        else:
+            write_atomic(path, writer)
+        written.append(path)
+    return written
+
+
+__all__ = [
+    "MAP_NAMES",
+    "InspectionMaps",
+    "MapOptions",
+    "albedo_png",
+    "compute_maps",
+    "stack_maps",
+    "write_maps",
+]

@@ -1,0 +1,139 @@
+"""A triangle mesh of the height map, written as binary PLY with the ``plyfile`` library.
+
+One vertex per valid pixel (finite height inside the mask). Each 2 x 2 block of pixels gives
+two triangles when all four are valid and one when three are, so the mesh follows the mask
+border. Orthographic vertices are (col, -row, height) in pixels: x right, y up, z toward the
+camera, the same frame as the normals, so ``normals`` can serve as vertex normals unchanged.
+With intrinsics and a depth map the vertices are the back-projected points
+(d (u - cx)/fx, -d (v - cy)/fy, -d) in that same frame (the camera at the origin looking down
+-z). Triangles are wound counter-clockwise seen from the camera, so their face normals agree
+with the vertex normals. ``max_jump`` drops triangles spanning a larger height difference (a
+depth discontinuity) instead of bridging it with a wall of stretched triangles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msfnet.common.errors import InputError
+from msfnet.common.files import write_atomic
+from msfnet.runtime.results.maps.integrate import Intrinsics
+
+
+@dataclass
+class Mesh:
+    """vertices: (V, 3) float32; faces: (F, 3) int32 vertex indices; normals: (V, 3) float32 or
+    None; colors: (V, 3) uint8 or None."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+
+
+def albedo_colors(albedo: np.ndarray, valid: np.ndarray, percentile: float = 99.5) -> np.ndarray:
+    """(H, W, 3) albedo -> (H, W, 3) uint8, scaled so the ``percentile`` of the valid pixels'
+    largest channel maps to 255 (the absolute scale is in albedo.npy, not in the colours)."""
+    vals = albedo[valid].max(axis=1) if valid.any() else np.zeros(0)
+    top = float(np.percentile(vals, percentile)) if vals.size else 0.0
+    scale = 255.0 / top if top > 0 else 0.0
+    return np.clip(np.rint(np.nan_to_num(albedo) * scale), 0, 255).astype(np.uint8)
+
+
+def height_mesh(
+    height: np.ndarray,
+    mask: np.ndarray,
+    *,
+    normals: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+    intrinsics: Intrinsics | None = None,
+    depth: np.ndarray | None = None,
+    max_jump: float | None = None,
+) -> Mesh:
+    """Triangulate an (H, W) height map over an (H, W) bool mask; see the module docstring.
+
+    normals: (H, W, 3) vertex normals; colors: (H, W, 3) uint8 vertex colours; intrinsics with
+    depth (H, W): back-project (perspective) instead of the orthographic pixel grid.
+    """
+    z = np.asarray(height, np.float64)
+    m = np.asarray(mask, bool)
+    if z.shape != m.shape:
+        raise InputError(f"height is {z.shape} but the mask is {m.shape}")
+    for name, arr in (("normals", normals), ("colors", colors)):
+        if arr is not None and np.shape(arr) != (*m.shape, 3):
+            raise InputError(f"{name} must be {(*m.shape, 3)}, got {np.shape(arr)}")
+    valid = m & np.isfinite(z)
+    h, w = m.shape
+    index = np.full((h, w), -1, np.int64)
+    index[valid] = np.arange(int(valid.sum()))
+    rows, cols = np.nonzero(valid)
+    if intrinsics is not None:
+        if depth is None or np.shape(depth) != m.shape:
+            raise InputError("a perspective mesh needs the depth map beside the intrinsics")
+        dist = np.asarray(depth, np.float64)[valid]
+        verts = np.stack(
+            [
+                dist * (cols - intrinsics.cx) / intrinsics.fx,
+                -dist * (rows - intrinsics.cy) / intrinsics.fy,
+                -dist,
+            ],
+            axis=1,
+        )
+    else:
+        verts = np.stack([cols, -rows, z[valid]], axis=1).astype(np.float64)
+    # corners of every 2 x 2 block: a top-left, b top-right, c bottom-left, d bottom-right
+    a, b = index[:-1, :-1], index[:-1, 1:]
+    c, d = index[1:, :-1], index[1:, 1:]
+    tris = [
+        # all four valid: (a, c, b) and (b, c, d), counter-clockwise seen from +z
+        np.stack([a, c, b], -1)[(a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)],
+        np.stack([b, c, d], -1)[(a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)],
+        # exactly three valid: the one triangle they span
+        np.stack([a, c, b], -1)[(a >= 0) & (b >= 0) & (c >= 0) & (d < 0)],
+        np.stack([b, c, d], -1)[(a < 0) & (b >= 0) & (c >= 0) & (d >= 0)],
+        np.stack([a, c, d], -1)[(a >= 0) & (b < 0) & (c >= 0) & (d >= 0)],
+        np.stack([a, d, b], -1)[(a >= 0) & (b >= 0) & (c < 0) & (d >= 0)],
+    ]
+    faces = np.concatenate(tris, axis=0)
+    if max_jump is not None and faces.size:
+        zv = z[valid][faces]
+        faces = faces[(zv.max(axis=1) - zv.min(axis=1)) <= max_jump]
+    vn = None if normals is None else np.asarray(normals, np.float32)[valid]
+    vc = None if colors is None else np.asarray(colors, np.uint8)[valid]
+    return Mesh(verts.astype(np.float32), faces.astype(np.int32), vn, vc)
+
+
+def write_ply(path: str | Path, mesh: Mesh) -> Path:
+    """Write a binary little-endian PLY through plyfile, atomically (all or nothing)."""
+    from plyfile import PlyData, PlyElement
+
+    fields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    if mesh.normals is not None:
+        fields += [("nx", "f4"), ("ny", "f4"), ("nz", "f4")]
+    if mesh.colors is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    vert = np.empty(len(mesh.vertices), dtype=fields)
+    for i, name in enumerate("xyz"):
+        vert[name] = mesh.vertices[:, i]
+    if mesh.normals is not None:
+        for i, name in enumerate(("nx", "ny", "nz")):
+            vert[name] = mesh.normals[:, i]
+    if mesh.colors is not None:
+        for i, name in enumerate(("red", "green", "blue")):
+            vert[name] = mesh.colors[:, i]
+    face = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
+    face["vertex_indices"] = mesh.faces
+    data = PlyData(
+        [PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")],
+        text=False,
+        byte_order="<",
+    )
+    path = Path(path)
+    write_atomic(path, lambda tmp: data.write(str(tmp)))
+    return path
+
+
+__all__ = ["Mesh", "albedo_colors", "height_mesh", "write_ply"]

@@ -1,0 +1,92 @@
+"""Result files: normals.npy / normals.png, profile.json, metrics.json and error.png.
+
+normals.npy: H x W x 3 float32, camera frame, zeros outside the mask; normals.png: 16-bit RGB,
+(n + 1) / 2, zeros outside the mask; with ground truth, metrics.json (NormalMetrics) and
+error.png (angular error picture with a colour bar, automatic range, blank where not scored).
+Written all together through :func:`msfnet.common.files.staged_folder`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from msfnet.common.files import json_text, staged_folder
+from msfnet.common.imageio import encode_png
+
+if TYPE_CHECKING:
+    from msfnet.runtime.api import Result
+
+
+def normals_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W, 3) unit normals -> 16-bit RGB (n + 1) / 2, zeros outside the mask."""
+    n = np.nan_to_num(np.clip(normals, -1, 1))
+    img = np.rint((n + 1.0) * 0.5 * 65535.0).astype(np.uint16)
+    img[~mask] = 0
+    return img
+
+
+def write_rgb_png(path: Path, rgb: np.ndarray) -> None:
+    """Into a staging folder (callers make the folder atomic)."""
+    encode_png(path, rgb)
+
+
+def fill_result_folder(folder: Path, result: Result, report: bool = True) -> None:
+    """Write a result's files into an (empty, staging) folder: the normals as data and as a
+    picture with a colour-convention sphere, metrics and an error picture with a colour bar
+    (automatic range) when there is ground truth, the profile, and the inspection maps with
+    report.html when they were computed."""
+    from msfnet.runtime.results.maps import pictures, write_maps
+
+    mask = result.stack.mask
+    profile = result.profile()
+    np.save(folder / "normals.npy", np.ascontiguousarray(result.normals, np.float32))
+    write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
+    rendered = {"normals": pictures.png_bytes(pictures.normals_picture(result.normals, mask))}
+    (folder / "normals_view.png").write_bytes(rendered["normals"])
+    if result.metrics is not None and result.error_deg is not None:
+        vmax = pictures.error_range(result.error_deg, mask)
+        (folder / "metrics.json").write_text(
+            json_text({**result.metrics.as_dict(), "error_png_max_deg": vmax})
+        )
+        rendered["error"] = pictures.png_bytes(
+            pictures.error_picture(result.error_deg, mask, vmax=vmax)
+        )
+        (folder / "error.png").write_bytes(rendered["error"])
+    (folder / "profile.json").write_text(json_text(profile))
+    if result.maps is not None:
+        images = result.stack.images if result.stack.images.shape[-1] == 3 else None
+        # the report shows the same two pictures: drawn once (a map's mask equals the stack's)
+        write_maps(
+            folder,
+            result.maps,
+            images=images,
+            error_deg=result.error_deg,
+            profile=profile,
+            report=report,
+            title=f"msfnet: {result.stack.name}",
+            rendered=rendered,
+        )
+
+
+def write_result(
+    result: Result,
+    outdir: Path,
+    *,
+    overwrite: bool = False,
+    report: bool = True,
+    write_mask: bool = False,
+) -> list[Path]:
+    """Write every result file (``write_mask``: mask.png too), or none of them. Returns the
+    final paths."""
+    with staged_folder(outdir, overwrite=overwrite) as tmp:
+        fill_result_folder(tmp, result, report=report)
+        if write_mask:
+            write_rgb_png(tmp / "mask.png", result.stack.mask.astype(np.uint8) * 255)
+        names = sorted(p.name for p in tmp.iterdir())
+    return [outdir / n for n in names]
+
+
+__all__ = ["fill_result_folder", "normals_png", "write_result", "write_rgb_png"]

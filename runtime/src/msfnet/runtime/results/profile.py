@@ -1,0 +1,137 @@
+"""Per-stage latency over repeated runs, peak RSS and achieved GFLOP/s, as JSON and a table."""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+STAGES = ("load", "preprocess", "inference", "postprocess", "maps", "total")
+
+
+class StageTimer:
+    """Accumulates wall time per stage name (a stage may be entered many times, e.g. per tile)."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - start
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, in MB (0 where the OS does not say).
+
+    Linux: VmHWM (see :func:`_linux_hwm_mb`); other POSIX (macOS, BSD): ru_maxrss (bytes on
+    macOS). Windows has no ``resource``: psutil's peak working set. Anywhere else psutil's
+    current RSS, a lower bound of the peak, is better than nothing.
+    """
+    hwm = _linux_hwm_mb()
+    if hwm is not None:
+        return hwm
+    try:
+        import resource
+    except ImportError:
+        return _psutil_peak_mb()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024
+
+
+def _linux_hwm_mb() -> float | None:
+    """Linux: VmHWM of /proc/self/status, this address space's own peak. ru_maxrss survives
+    exec, so a process started from a large parent (a test runner, a notebook) would report the
+    parent's size at fork time as its own peak (measured: 4.2 GB against 2.0 GB)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024  # kB
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def _psutil_peak_mb() -> float:
+    try:
+        import psutil
+    except ImportError:  # a dependency, but keep the profile working without it
+        return 0.0
+    info = psutil.Process().memory_info()
+    # peak_wset exists on Windows only; rss (current) elsewhere
+    return float(getattr(info, "peak_wset", 0) or info.rss) / 2**20
+
+
+@dataclass
+class Profile:
+    runs: list[dict[str, float]] = field(default_factory=list)
+    flops: float = 0.0  # per run, executed by the inference stage (0 for --method l2)
+    info: dict[str, object] = field(default_factory=dict)
+
+    def add(self, timer: StageTimer) -> None:
+        self.runs.append(dict(timer.seconds))
+
+    def median_s(self, stage: str) -> float:
+        return float(np.median([r.get(stage, 0.0) for r in self.runs])) if self.runs else 0.0
+
+    def summary(self) -> dict[str, object]:
+        stages: dict[str, dict[str, float]] = {}
+        for stage in STAGES:
+            vals = np.array([r.get(stage, 0.0) for r in self.runs], np.float64)
+            stages[stage] = {
+                "median_s": float(np.median(vals)),
+                "p90_s": float(np.percentile(vals, 90)),
+                "min_s": float(vals.min()),
+            }
+        infer = stages["inference"]["median_s"]
+        gflops = self.flops / infer / 1e9 if self.flops and infer > 0 else None
+        return {
+            "repeat": len(self.runs),
+            "stages": stages,
+            "peak_rss_mb": peak_rss_mb(),
+            "inference_gflop": self.flops / 1e9,
+            "inference_gflops_per_s": gflops,
+            "runs": self.runs,
+            **self.info,
+        }
+
+    def table(self) -> str:
+        s = self.summary()
+        stages = s["stages"]
+        assert isinstance(stages, dict)
+        lines = [f"{'stage':<12} {'median s':>10} {'p90 s':>10}   (repeat {s['repeat']})"]
+        for stage in STAGES:
+            lines.append(
+                f"{stage:<12} {stages[stage]['median_s']:>10.3f} {stages[stage]['p90_s']:>10.3f}"
+            )
+        lines.append(f"peak RSS     {s['peak_rss_mb']:>10.0f} MB")
+        if s["inference_gflops_per_s"] is not None:
+            lines.append(
+                f"inference    {s['inference_gflops_per_s']:>10.1f} GFLOP/s "
+                f"({s['inference_gflop']:.0f} GFLOP per run)"
+            )
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class BatchStats:
+    """How a stack of a batch was fed to the model (profile.json's "batch")."""
+
+    decode_s: float  # reading and decoding the stack
+    wait_s: float | None = None  # how long the model waited for it (prefetching hides decode)
+    prefetched: bool | None = None  # decoded while the previous stack ran
+    worker: str | None = None  # host:pid of the Ray worker that ran it
+
+    def as_dict(self) -> dict[str, object]:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+__all__ = ["STAGES", "BatchStats", "Profile", "StageTimer", "peak_rss_mb"]

@@ -1,0 +1,168 @@
+"""CPU feature detection (common/cpu.py): flag spellings, fallbacks, caching."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from msfnet.common import cpu as cpu_mod
+from msfnet.common.cpu import CpuInfo, detect_cpu
+
+ZEN3 = ["fpu", "sse4_2", "avx", "avx2", "fma", "f16c"]
+ZEN5 = [*ZEN3, "avx512f", "avx512bw", "avx512vnni", "avx512_bf16"]  # py-cpuinfo mixes spellings
+SAPPHIRE = [
+    *ZEN3,
+    "avx512f",
+    "avx512_vnni",
+    "avx512_bf16",
+    "avx_vnni",
+    "amx_bf16",
+    "amx_int8",
+    "amx_tile",
+]
+
+
+@pytest.mark.parametrize(
+    ("flags", "bf16", "vnni", "amx"),
+    [
+        (ZEN3, False, False, False),
+        (ZEN5, True, True, False),
+        (SAPPHIRE, True, True, True),
+        (["avx2", "avx_vnni"], False, True, False),  # Alder Lake-like: VNNI without AVX-512
+        ([], False, False, False),
+    ],
+)
+def test_derived_features(flags: list[str], bf16: bool, vnni: bool, amx: bool) -> None:
+    info = CpuInfo.from_flags(flags)
+    assert (info.has_bf16, info.has_vnni, info.has_amx) == (bf16, vnni, amx)
+    assert info.avx2 == ("avx2" in flags)
+
+
+def test_both_spellings_are_one_feature() -> None:
+    a = CpuInfo.from_flags(["AVX512VNNI", "avx512bf16"])
+    b = CpuInfo.from_flags(["avx512_vnni", "avx512_bf16"])
+    assert a.avx512_vnni and a.avx512_bf16 and a == b
+    # avx_vnni (VEX) and avx512_vnni (EVEX) are different features
+    assert not CpuInfo.from_flags(["avx_vnni"]).avx512_vnni
+
+
+def test_proc_cpuinfo_fallback_parses_first_processor(tmp_path: Path) -> None:
+    text = (
+        "processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R45\n"
+        "flags\t\t: fpu avx2 avx512f avx512_vnni avx512_bf16\n\n"
+        "processor\t: 1\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R45\n"
+        "flags\t\t: fpu avx2\n"
+    )
+    (tmp_path / "cpuinfo").write_text(text)
+    info = cpu_mod._from_proc_cpuinfo(tmp_path / "cpuinfo")
+    assert (info.model, info.vendor, info.source) == (
+        "AMD EPYC 9R45",
+        "AuthenticAMD",
+        "/proc/cpuinfo",
+    )
+    assert info.has_bf16 and info.has_vnni and not info.has_amx
+
+
+def test_detect_falls_back_when_py_cpuinfo_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    def broken() -> CpuInfo:
+        raise RuntimeError("no cpuid here")
+
+    monkeypatch.setattr(cpu_mod, "_from_py_cpuinfo", broken)
+    monkeypatch.setattr(cpu_mod, "cache_path", lambda: None)  # no answer kept from earlier
+    detect_cpu.cache_clear()
+    try:
+        info = detect_cpu()
+        expected = "/proc/cpuinfo" if Path("/proc/cpuinfo").is_file() else "none"
+        assert info.source == expected and info.cores >= 1
+    finally:
+        detect_cpu.cache_clear()
+
+
+def test_detect_is_cached_and_agrees_with_the_kernel() -> None:
+    info = detect_cpu()
+    assert detect_cpu() is info
+    assert info.cores >= 1 and info.model
+    assert info.summary().startswith(info.model)
+    if sys.platform.startswith("linux") and Path("/proc/cpuinfo").is_file():
+        # two independent readings of the same CPU must agree on every feature that matters
+        assert cpu_mod._from_proc_cpuinfo().features() == info.features()
+
+
+def test_the_probe_is_kept_per_boot_and_a_damaged_copy_is_ignored(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    if cpu_mod.cache_path() is None:
+        pytest.skip("no boot id on this platform: nothing is kept")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    probes: list[int] = []
+    fake = CpuInfo.from_flags(
+        ["avx2", "avx512_bf16", "amx_bf16"],
+        model="Fake Xeon",
+        vendor="GenuineIntel",
+        source="py-cpuinfo",
+    )
+
+    def probe() -> CpuInfo:
+        probes.append(1)
+        return fake
+
+    monkeypatch.setattr(cpu_mod, "_from_py_cpuinfo", probe)
+    try:
+        for _ in range(2):  # two "processes": the second reads the kept answer
+            detect_cpu.cache_clear()
+            info = detect_cpu()
+            assert (info.model, info.features(), info.source) == (
+                "Fake Xeon",
+                ["avx2", "avx512_bf16", "amx_bf16"],
+                "py-cpuinfo",
+            )
+        assert len(probes) == 1
+        path = cpu_mod.cache_path()
+        assert path is not None and path.parent == tmp_path / "msfnet"
+        for damage in ("{not json", '{"flags": [], "model": "x", "vendor": "y"}', "[1, 2]"):
+            path.write_text(damage)
+            detect_cpu.cache_clear()
+            assert detect_cpu().model == "Fake Xeon"  # probed again and rewritten
+        assert len(probes) == 4
+    finally:
+        detect_cpu.cache_clear()
+
+
+def test_no_home_and_odd_cache_files_only_cost_the_probe(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    if cpu_mod.cache_path() is None:
+        pytest.skip("no boot id on this platform: nothing is kept")
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+
+    def no_home() -> Path:
+        raise RuntimeError("Could not determine home directory")
+
+    monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    assert cpu_mod.cache_path() is None  # and detection still works, without a cache
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/dir")  # ignored: not absolute
+    assert cpu_mod.cache_path() is None
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    path = cpu_mod.cache_path()
+    assert path is not None
+    path.parent.mkdir(parents=True)
+    os.mkfifo(path)  # a pipe where the file should be: never waited on
+    assert cpu_mod._read_cache(path) is None
+    path.unlink()
+    target = tmp_path / "elsewhere.json"
+    target.write_text('{"flags": ["amx_bf16"], "model": "x", "vendor": "y"}')
+    path.symlink_to(target)  # a link is not followed
+    assert cpu_mod._read_cache(path) is None
+    path.unlink()
+    (path.parent / "cpu-old-boot.json").write_text("{}")
+    from msfnet.common import files
+
+    files.forget_written()
+    cpu_mod._write_cache(path, CpuInfo.from_flags(["avx2"], model="m", vendor="v"))
+    assert [p.name for p in path.parent.iterdir()] == [path.name]  # earlier boots removed
+    assert files.written_outputs() == []  # a cache, never reported as a command's output
+    info = cpu_mod._read_cache(path)
+    assert info is not None and info.features() == ["avx2"]

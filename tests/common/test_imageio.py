@@ -1,0 +1,130 @@
+"""PNG writing (common/imageio.py): one encoder, RGB in, full bit depth, errors naming the file
+the user knows."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from msfnet.common import imageio
+from msfnet.common.errors import InputError
+from msfnet.common.imageio import encode_png, read_image, write_png
+
+RNG = np.random.default_rng(5)
+IMAGES = {
+    "rgb8": RNG.integers(0, 256, (9, 13, 3), np.uint8),
+    "rgb16": RNG.integers(0, 65536, (9, 13, 3), np.uint16),
+    "grey16": RNG.integers(0, 65536, (9, 13), np.uint16),
+    "strided view": RNG.integers(0, 256, (9, 26, 3), np.uint8)[:, ::2],
+}
+
+
+@pytest.mark.parametrize("name", sorted(IMAGES))
+def test_encode_png_writes_rgb_at_full_bit_depth(name: str, tmp_path: Path) -> None:
+    img = IMAGES[name]
+    path = tmp_path / "a.png"
+    encode_png(path, img)
+    np.testing.assert_array_equal(read_image(path), img)
+    stored = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # files hold BGR, as PNG readers expect
+    np.testing.assert_array_equal(stored[:, :, ::-1] if img.ndim == 3 else stored, img)
+    assert stored.dtype == img.dtype
+
+
+@pytest.mark.parametrize("name", sorted(IMAGES))
+def test_write_png_writes_the_encoders_bytes(name: str, tmp_path: Path) -> None:
+    encode_png(tmp_path / "a.png", IMAGES[name])
+    write_png(tmp_path / "b.png", IMAGES[name])
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+
+
+def test_a_failed_encode_names_the_final_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Staging names mean nothing to the user: the error names ``name``, and write_png (atomic)
+    leaves nothing behind."""
+    monkeypatch.setattr(imageio.cv2, "imwrite", lambda *a, **k: False)
+    with pytest.raises(InputError, match="cannot write image") as exc:
+        encode_png(tmp_path / "staging.png", IMAGES["rgb8"], name=tmp_path / "final.png")
+    assert exc.value.path == tmp_path / "final.png"
+    with pytest.raises(InputError) as exc:
+        write_png(tmp_path / "out.png", IMAGES["rgb8"])
+    assert exc.value.path == tmp_path / "out.png"
+    assert not list(tmp_path.iterdir())
+
+
+# -- damaged input files: one error naming the file, nothing from the decoders on stderr
+
+
+def test_a_png_with_damaged_bytes_is_refused_before_decoding(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "005.png"
+    write_png(path, RNG.integers(0, 65536, (40, 50, 3), np.uint16))
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte inside the image data
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"005\.png: corrupt PNG \(chunk 'IDAT'"):
+        read_image(path)
+    assert capfd.readouterr().err == ""
+
+
+def test_a_jpeg_with_damaged_data_is_refused(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    ok, jpeg = cv2.imencode(".jpg", RNG.integers(0, 256, (32, 32, 3), np.uint8))
+    assert ok
+    data = jpeg.tobytes()
+    path = tmp_path / "005.jpg"
+    path.write_bytes(data[: len(data) // 2] + b"\xff\xd9")  # half the image data lost
+    with pytest.raises(InputError, match=r"005\.jpg: corrupt JPEG \(Corrupt JPEG data"):
+        read_image(path)
+    assert capfd.readouterr().err == ""
+    path.write_bytes(data)  # the intact file reads, and stderr works again afterwards
+    assert read_image(path).shape == (32, 32, 3)
+
+
+def test_padding_before_a_jpeg_end_marker_is_no_damage(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Webcam frames often carry a few bytes before the end marker: every pixel decodes."""
+    img = RNG.integers(0, 256, (32, 32, 3), np.uint8)
+    ok, jpeg = cv2.imencode(".jpg", img)
+    assert ok
+    data = jpeg.tobytes()
+    (tmp_path / "a.jpg").write_bytes(data)
+    (tmp_path / "b.jpg").write_bytes(data[:-2] + b"\x00" * 4 + data[-2:])
+    np.testing.assert_array_equal(read_image(tmp_path / "b.jpg"), read_image(tmp_path / "a.jpg"))
+    assert capfd.readouterr().err == ""
+
+
+def test_other_output_written_while_a_jpeg_decodes_is_not_lost(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """stderr is captured process-wide while libjpeg runs: what is not the decoder's goes
+    back out, also when the file is then refused."""
+    import os
+
+    ok, jpeg = cv2.imencode(".jpg", RNG.integers(0, 256, (32, 32, 3), np.uint8))
+    assert ok
+    data = jpeg.tobytes()
+    path = tmp_path / "bad.jpg"
+    path.write_bytes(data[: len(data) // 2] + b"\xff\xd9")
+    decode = cv2.imread
+
+    def decode_while_someone_writes(*args: object) -> object:
+        os.write(2, b"a line from another thread\n")
+        return decode(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(imageio.cv2, "imread", decode_while_someone_writes)
+    with pytest.raises(InputError, match="corrupt JPEG"):
+        read_image(path)
+    assert capfd.readouterr().err == "a line from another thread\n"
+
+
+def test_hidden_companion_files_are_not_images(tmp_path: Path) -> None:
+    for name in ("001.png", "002.png", "._001.png", ".hidden.png"):
+        (tmp_path / name).write_bytes(b"x")
+    assert [p.name for p in imageio.list_images(tmp_path)] == ["001.png", "002.png"]

@@ -1,0 +1,125 @@
+"""msf-eval over a small benchmark root: model and l2 side by side, JSON + Markdown + error maps."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _runtime_helpers import sphere_stack
+
+from msfnet.runtime.api import Model
+from msfnet.runtime.cli.eval import main
+from msfnet.runtime.evaluate.datasets import find_objects
+from msfnet.runtime.stack import load_stack, save_stack
+
+
+@pytest.fixture
+def bench_root(tmp_path: Path) -> Path:
+    root = tmp_path / "bench"
+    save_stack(sphere_stack(n=6, seed=1, name="a"), root / "objA")
+    save_stack(sphere_stack(n=9, seed=2, name="b"), root / "objB")
+    (root / "objects.txt").write_text("# name [select]\nobjB 4-9\nobjA\n")
+    return root
+
+
+def test_find_objects(bench_root: Path, tmp_path: Path) -> None:
+    found = [(o.folder.name, o.select) for o in find_objects(bench_root)]
+    assert found == [("objB", "4-9"), ("objA", None)]
+    (bench_root / "objects.txt").unlink()
+    assert [o.folder.name for o in find_objects(bench_root)] == ["objA", "objB"]
+    assert [o.folder.name for o in find_objects(bench_root / "objA")] == ["objA"]
+
+
+def test_msf_eval_table(random_onnx: Path, bench_root: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "eval"
+    assert (
+        main(
+            [
+                str(bench_root),
+                "--onnx",
+                str(random_onnx),
+                "-o",
+                str(out),
+                "--tile",
+                "0",
+                "--threads",
+                "2",
+            ]
+        )
+        == 0
+    )
+    res = json.loads((out / "results.json").read_text())
+    assert res["methods"] == ["msf", "l2"]
+    rows = {r["object"]: r for r in res["results"]}
+    assert rows["objB"]["lights"] == 6 and rows["objA"]["lights"] == 6
+    # numbers equal a direct run of each method on the same stack
+    stack_b = load_stack(bench_root / "objB", select="4-9")
+    direct = Model.least_squares()(stack_b).metrics
+    assert direct is not None
+    assert rows["objB"]["results"]["l2"]["mae_deg"] == pytest.approx(direct.mae_deg)
+    assert rows["objB"]["results"]["l2"]["err15"] > 0.9  # Lambertian sphere
+    for obj in ("objA", "objB"):
+        for m in ("msf", "l2"):
+            assert (out / obj / f"{m}_error.png").is_file()
+            assert (out / obj / f"{m}_normals.png").is_file()
+    assert rows["objB"]["results"]["msf"]["mae_deg"] > rows["objB"]["results"]["l2"]["mae_deg"]
+    md = (out / "results.md").read_text()
+    assert md.startswith("| object | lights | MAE msf | MAE l2 |")
+    assert "**mean**" in md and md == capsys.readouterr().out.split("wrote")[0].rstrip() + "\n"
+    # refuses to overwrite without --overwrite
+    assert main([str(bench_root), "--l2-only", "-o", str(out)]) == 2
+    assert main([str(bench_root), "--l2-only", "-o", str(out), "--overwrite"]) == 0
+    assert json.loads((out / "results.json").read_text())["methods"] == ["l2"]
+
+
+def test_objects_without_ground_truth_get_the_detail_ratio(
+    bench_root: Path, tmp_path: Path
+) -> None:
+    """No ground truth: the model's high-pass energy over least squares' (random weights
+    smooth everything away, so the ratio is far below 1)."""
+    import numpy as np
+
+    (bench_root / "objA" / "Normal_gt.mat").unlink()
+    out = tmp_path / "eval"
+    model = Model.least_squares()
+    from msfnet.runtime.cli.eval import evaluate
+
+    summary = evaluate(find_objects(bench_root / "objA"), out, model=model)
+    row = summary.results[0]
+    assert not row.has_ground_truth and row.scores["msf"].metrics is None
+    assert row.detail_ratio == pytest.approx(1.0)  # least squares against itself
+    assert "detail msf / l2" in (out / "results.md").read_text()
+    written = json.loads((out / "results.json").read_text())["results"][0]
+    assert written["note"] == "no ground truth" and np.isfinite(written["detail_ratio"])
+
+
+def test_diligent_protocol_selects_bear_21_96(tmp_path: Path) -> None:
+    root = tmp_path / "DiLiGenT"
+    save_stack(sphere_stack(n=24, name="bear"), root / "bearPNG")
+    save_stack(sphere_stack(n=5, name="ball"), root / "ballPNG")
+    objs = {o.folder.name: o.select for o in find_objects(root)}
+    assert objs == {"ballPNG": None, "bearPNG": "21-96"}
+
+
+def test_closing_line_lists_only_what_was_written(bench_root: Path, tmp_path: Path, capsys) -> None:
+    """Objects without ground truth get normal maps only; the line said "error maps"."""
+    assert main([str(bench_root), "--l2-only", "-o", str(tmp_path / "gt")]) == 0
+    assert "normal maps and error maps per object" in capsys.readouterr().out
+    for obj in ("objA", "objB"):
+        (bench_root / obj / "Normal_gt.mat").unlink()
+    assert main([str(bench_root), "--l2-only", "-o", str(tmp_path / "nogt")]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "normal maps per object" in last and "error" not in last
+    assert not list((tmp_path / "nogt").rglob("*_error.png"))
+
+
+def test_a_stack_file_is_not_a_benchmark(tmp_path: Path, capfd) -> None:
+    """msf-eval x.npz said "benchmark root or object folder not found" for a file there."""
+    npz = tmp_path / "good.npz"
+    np.savez(npz, images=np.ones((3, 4, 4, 3)), lights=np.eye(3))
+    assert main([str(npz), "--l2-only", "-q", "-o", str(tmp_path / "o")]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "good.npz: a file, not a benchmark" in err[0], err
+    assert "msf-run takes .npz" in err[0] and "not found" not in err[0]

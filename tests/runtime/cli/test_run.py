@@ -1,0 +1,182 @@
+"""msf-run end to end on real data: l2 accuracy on ball, tiled ONNX runs, outputs and profile."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from _runtime_helpers import sphere_stack
+
+from msfnet.runtime.api import Model
+from msfnet.runtime.cli.run import main
+
+
+def _check_outputs(out: Path, shape: tuple[int, int], with_gt: bool) -> dict:
+    normals = np.load(out / "normals.npy")
+    assert normals.shape == (*shape, 3) and normals.dtype == np.float32
+    png = cv2.imread(str(out / "normals.png"), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+    assert png.dtype == np.uint16 and png.shape == (*shape, 3)
+    inside = np.any(normals != 0, axis=2)
+    np.testing.assert_allclose(np.linalg.norm(normals[inside], axis=1), 1.0, atol=1e-4)
+    np.testing.assert_allclose(png[inside] / 65535.0 * 2 - 1, normals[inside], atol=2e-5)
+    assert np.all(png[~inside] == 0)
+    profile = json.loads((out / "profile.json").read_text())
+    for stage in ("load", "preprocess", "inference", "postprocess", "total"):
+        assert profile["stages"][stage]["p90_s"] >= profile["stages"][stage]["median_s"] >= 0
+    assert profile["peak_rss_mb"] > 50
+    assert (out / "metrics.json").is_file() == with_gt == (out / "error.png").is_file()
+    return profile
+
+
+def test_l2_on_ball_matches_published(ball_dir: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "ball_l2"
+    assert main(["--method", "l2", str(ball_dir), "-o", str(out), "--repeat", "2"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert abs(metrics["mae_deg"] - 4.1) < 0.3, metrics  # DiLiGenT's L2 baseline: 4.10 deg
+    assert metrics["pixels"] == 15791
+    profile = _check_outputs(out, (512, 612), with_gt=True)
+    assert profile["repeat"] == 2 and len(profile["runs"]) == 2
+    printed = capsys.readouterr().out
+    assert "MAE 4.2" in printed and "p90 s" in printed and "peak RSS" in printed
+    normals = np.load(out / "normals.npy")
+    mask = cv2.imread(str(ball_dir / "mask.png"), cv2.IMREAD_GRAYSCALE) > 127
+    assert np.all(normals[~mask] == 0) and np.all(np.any(normals[mask] != 0, axis=1))
+
+
+def test_onnx_on_ball_tiled(random_onnx: Path, ball_dir: Path, tmp_path: Path, capsys) -> None:
+    """Default-suite version: 8 of the 96 lights, small tiles (the full run is marked slow)."""
+    out = tmp_path / "ball_msf"
+    assert (
+        main(
+            [
+                "--onnx",
+                str(random_onnx),
+                str(ball_dir),
+                "-o",
+                str(out),
+                "--max-lights",
+                "8",
+                "--tile",
+                "96",
+                "--threads",
+                "2",
+            ]
+        )
+        == 0
+    )
+    profile = _check_outputs(out, (512, 612), with_gt=True)
+    assert profile["lights"] == 8
+    assert profile["tiles"]["run"] >= 4 and profile["tiles"]["tile_px"] == 96
+    assert profile["inference_gflops_per_s"] > 0
+    assert "tiles:" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_onnx_on_full_ball_all_lights(random_onnx: Path, ball_dir: Path, tmp_path: Path) -> None:
+    """All 96 lights, default 4096 MB budget; a fresh process so peak RSS is the run's own."""
+    out = tmp_path / "full"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "msfnet.runtime.cli.run",
+            "--onnx",
+            str(random_onnx),
+            str(ball_dir),
+            "-o",
+            str(out),
+            "--threads",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr
+    profile = _check_outputs(out, (512, 612), with_gt=True)
+    assert profile["lights"] == 96
+    assert profile["tiles"]["run"] >= 2  # the budget forces tiling
+    assert profile["peak_rss_mb"] < 4096  # --max-memory default
+
+
+def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
+    stack = sphere_stack(n=6)
+    untiled = Model(random_onnx, tile=0, threads=2)(stack)
+    assert untiled.metrics is not None and untiled.plan is not None
+    assert len(untiled.plan.tiles) == 1 and untiled.profile()["tiles"]["tile_px"] is None
+    l2 = Model.least_squares()(stack)
+    assert l2.metrics is not None and l2.metrics.median_deg < 0.01
+    assert not any(tmp_path.iterdir())  # nothing written until save()
+    files = l2.save(tmp_path / "l2")
+    assert {f.name for f in files} == {
+        "normals.npy",
+        "normals.png",
+        "normals_view.png",
+        "profile.json",
+        "metrics.json",
+        "error.png",
+        "albedo.png",
+        "albedo.npy",
+        "height.npy",
+        "height.png",
+        "curvature.npy",
+        "curvature.png",
+        "shape_index.npy",
+        "mesh.ply",
+        "maps.json",
+        "report.html",
+    }
+    assert l2.maps is not None and l2.maps.height is not None
+    height = np.load(tmp_path / "l2" / "height.npy")
+    assert np.isnan(height[~stack.mask]).all() and np.isfinite(height[stack.mask]).all()
+    # a sphere bulges towards the camera: the centre is higher than the rim
+    h, w = stack.shape
+    rim = height[stack.mask].min()
+    assert height[h // 2, w // 2] - rim > 0.3 * 0.45 * min(h, w)
+    assert "data:image/png;base64," in (tmp_path / "l2" / "report.html").read_text()
+
+
+def test_normals_only_without_maps(tmp_path: Path) -> None:
+    stack = sphere_stack(n=6)
+    res = Model.least_squares(maps=None)(stack)
+    assert res.maps is None
+    names = {f.name for f in res.save(tmp_path / "o")}
+    assert "height.npy" not in names and "normals.npy" in names
+    assert (
+        main(
+            [
+                "--method",
+                "l2",
+                str(_npz(stack, tmp_path)),
+                "-o",
+                str(tmp_path / "cli"),
+                "--maps",
+                "height",
+                "--integration",
+                "fc",
+                "--no-report",
+            ]
+        )
+        == 0
+    )
+    written = {p.name for p in (tmp_path / "cli").iterdir()}
+    assert {"height.npy", "height.png"} <= written
+    assert not {"albedo.png", "curvature.npy", "mesh.ply", "report.html"} & written
+
+
+def _npz(stack, tmp_path: Path) -> Path:
+    path = tmp_path / "sphere.npz"
+    np.savez(
+        path,
+        images=stack.images,
+        lights=stack.lights,
+        intensities=stack.intensities,
+        mask=stack.mask,
+        normals=stack.normals_gt,
+    )
+    return path
