@@ -73,7 +73,8 @@ def build_random_onnx(folder: Path, sensitive: bool = False, staged: bool = Fals
     ``staged``: the same weights as a staged export (``msf-export --staged``).
     """
     torch = pytest.importorskip("torch")
-    from msfnet.export.variants import ExportOptions, export_variant
+    from msfnet.export.pipeline import export_variant
+    from msfnet.export.variants import ExportOptions
     from msfnet.model.checkpoint import save_checkpoint
     from msfnet.model.network import MSFNet
 

@@ -9,12 +9,13 @@ import pytest
 import torch
 from _runtime_helpers import as_float32
 
+from msfnet.export.pipeline import export_variant
 from msfnet.export.quantize import (
     calibration_samples,
     calibration_tiles,
     tile_origins,
 )
-from msfnet.export.variants import ExportOptions, export_variant
+from msfnet.export.variants import ExportOptions
 from msfnet.model.checkpoint import save_checkpoint
 from msfnet.model.network import MSFNet
 from msfnet.runtime.evaluate.metrics import angular_error_deg

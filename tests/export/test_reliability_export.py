@@ -53,12 +53,12 @@ def test_static_foo_is_one_line(ckpt: Path, tmp_path: Path, capfd) -> None:
 
 
 def test_ctrl_c_is_one_line_exit_130(ckpt: Path, tmp_path: Path, monkeypatch, capfd) -> None:
-    import msfnet.export.variants as variants
+    import msfnet.export.pipeline as pipeline
 
     def interrupted(*args: object, **kwargs: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(variants, "export_variant", interrupted)
+    monkeypatch.setattr(pipeline, "export_variant", interrupted)
     try:
         code = _run([str(ckpt), "-o", str(tmp_path / "m.onnx")])
     except KeyboardInterrupt:  # would stop pytest itself

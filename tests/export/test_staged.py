@@ -63,7 +63,8 @@ def test_staged_tiles_are_larger_for_the_same_memory(staged_onnx) -> None:
 
 def test_staged_and_static_do_not_combine(tmp_path) -> None:
     pytest.importorskip("torch")
-    from msfnet.export.variants import ExportOptions, StaticShape, export_variant
+    from msfnet.export.pipeline import export_variant
+    from msfnet.export.variants import ExportOptions, StaticShape
 
     with pytest.raises(InputError, match="--staged and --static"):
         export_variant(

@@ -15,12 +15,12 @@ from msfnet.common.files import STAGING_TAG  # noqa: E402
 from msfnet.export import pipeline  # noqa: E402
 from msfnet.export.cli import main as export_main  # noqa: E402
 from msfnet.export.passes import PASSES  # noqa: E402
+from msfnet.export.pipeline import export_variant  # noqa: E402
 from msfnet.export.variants import (  # noqa: E402
     VARIANTS,
     ExportOptions,
     StaticShape,
     Variant,
-    export_variant,
     variant_for,
 )
 

@@ -215,7 +215,7 @@ def _model(exports: dict[str, Path], key: str) -> Path:
     if key in exports:
         return exports[key]
     pytest.importorskip("torch", reason="exporting the bundled checkpoint needs torch")
-    from msfnet.export.variants import export_variant
+    from msfnet.export.pipeline import export_variant
     from msfnet.model.checkpoint import default_checkpoint_path
 
     folder = exports["_folder"]

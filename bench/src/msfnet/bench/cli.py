@@ -306,7 +306,7 @@ def prepare_models(plan: Plan, workdir: Path, calib: list | None) -> dict:
     random weights, exported into ``workdir`` (a new folder inside the report's staging)."""
     import torch
 
-    from msfnet.export.variants import export_variant
+    from msfnet.export.pipeline import export_variant
     from msfnet.model.checkpoint import save_checkpoint
     from msfnet.model.network import MSFNet
 

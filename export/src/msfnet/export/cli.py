@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from msfnet.export import variants
+    from msfnet.export.pipeline import export_variant  # torch: only once the flags are good
 
     variant = resolve_variant(args)
     if args.calib and not variant.needs_calibration:
@@ -216,7 +216,7 @@ def _export(args: argparse.Namespace) -> int:
         tolerance_deg=args.tolerance,
     )
     output = args.output or args.checkpoint.with_suffix(".onnx")
-    result = variants.export_variant(
+    result = export_variant(
         args.checkpoint,
         variant,
         output,

@@ -6,7 +6,7 @@ The ONNX contract (also in the README):
   output   normals float32 (B, 3, H, W)     unit normals, same frame
   N, H, W (and B) are dynamic unless exported --static; H and W must be multiples of 4.
 
-Every function here works on an ``onnx.ModelProto`` in memory; only ``variants.export_variant``
+Every function here works on an ``onnx.ModelProto`` in memory; only ``pipeline.export_variant``
 writes a file (once, after all passes) and verifies that file (``verify.py``).
 """
 

@@ -1,6 +1,6 @@
 """``run_export``: the passes of one variant, one write, verification of the written file, rename.
 
-Order of events (see ``variants.export_variant`` for the public entry point); the file is
+Order of events (see ``pipeline.export_variant`` for the public entry point); the file is
 written by ``common/files.py`` like every msfnet output:
 1. the target checked (``files.check_output``: not an input, writable, not existing unless
    --overwrite) before any slow work;
@@ -28,7 +28,15 @@ from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, write_atomic
 from msfnet.export.onnx_export import STAGED_CHECK_CHUNK, default_checks
 from msfnet.export.passes import PASSES, PassContext
-from msfnet.export.variants import FP32_RULE, ExportOptions, ExportResult, Variant, VerificationRow
+from msfnet.export.variants import (
+    FP32_RULE,
+    ExportOptions,
+    ExportResult,
+    Variant,
+    VerificationRow,
+    check_options,
+    get_variant,
+)
 from msfnet.export.verify import (
     compare,
     file_runner,
@@ -203,4 +211,35 @@ def write_file(path: Path, data: bytes, target: Path) -> None:
         raise InputError(f"cannot write the output ({exc.strerror or exc})", target) from exc
 
 
-__all__ = ["load_network", "run_export", "sniff_checkpoint"]
+def export_variant(
+    checkpoint: str | Path,
+    variant: str | Variant,
+    output: str | Path,
+    *,
+    calib: Sequence[str | Path | Stack] | None = None,
+    options: ExportOptions | None = None,
+    overwrite: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> ExportResult:
+    """Export ``checkpoint`` as ``variant`` to ``output``; return how the written file verified.
+
+    ``calib``: stack paths (or loaded Stacks) for the int8 variants (ignored by the others, so
+    one call shape fits every row). Raises InputError (one
+    line) for bad input, an unwritable or clashing output, or a failed verification; then
+    ``output`` is untouched and no temporary file remains. ``log``: progress lines.
+    """
+    v = get_variant(variant)
+    opts = options or ExportOptions()
+    check_options(v, opts, calib)
+    return run_export(
+        Path(checkpoint),
+        v,
+        Path(output),
+        calib=list(calib or []),
+        options=opts,
+        overwrite=overwrite,
+        log=log or (lambda _msg: None),
+    )
+
+
+__all__ = ["export_variant", "load_network", "run_export", "sniff_checkpoint"]

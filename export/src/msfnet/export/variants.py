@@ -1,4 +1,4 @@
-"""The export variants as one table, and ``export_variant``: checkpoint -> one verified ONNX file.
+"""The export variants as one table (run by ``pipeline.export_variant``: checkpoint -> ONNX).
 
 Each row of :data:`VARIANTS` names a graph form (dynamic, static or staged) and a precision
 (fp32, fp16-stored weights, int8), the passes that build it and the rule its written file must
@@ -18,7 +18,7 @@ and ``--list-variants`` stay instant; torch, onnx and onnxruntime load when an e
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Literal
 from msfnet.runtime.contract import TRAIN_LIGHTS
 
 if TYPE_CHECKING:
-    from msfnet.runtime.stack import Stack
+    pass
 
 Graph = Literal["dynamic", "static", "staged"]
 Precision = Literal["fp32", "fp16-weights", "int8"]
@@ -377,39 +377,6 @@ def check_options(variant: Variant, options: ExportOptions, calib: Sequence[obje
         )
 
 
-def export_variant(
-    checkpoint: str | Path,
-    variant: str | Variant,
-    output: str | Path,
-    *,
-    calib: Sequence[str | Path | Stack] | None = None,
-    options: ExportOptions | None = None,
-    overwrite: bool = False,
-    log: Callable[[str], None] | None = None,
-) -> ExportResult:
-    """Export ``checkpoint`` as ``variant`` to ``output``; return how the written file verified.
-
-    ``calib``: stack paths (or loaded Stacks) for the int8 variants (ignored by the others, so
-    one call shape fits every row). Raises InputError (one
-    line) for bad input, an unwritable or clashing output, or a failed verification; then
-    ``output`` is untouched and no temporary file remains. ``log``: progress lines.
-    """
-    from msfnet.export.pipeline import run_export
-
-    v = get_variant(variant)
-    opts = options or ExportOptions()
-    check_options(v, opts, calib)
-    return run_export(
-        Path(checkpoint),
-        v,
-        Path(output),
-        calib=list(calib or []),
-        options=opts,
-        overwrite=overwrite,
-        log=log or (lambda _msg: None),
-    )
-
-
 __all__ = [
     "DEFAULT_OPSET",
     "FP16_RULE",
@@ -427,7 +394,6 @@ __all__ = [
     "VerificationRow",
     "VerifyRule",
     "check_options",
-    "export_variant",
     "get_variant",
     "variant_for",
 ]

@@ -9,15 +9,28 @@ Written all together through :func:`msfnet.common.files.staged_folder`.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from msfnet.common.files import json_text, staged_folder
 from msfnet.common.imageio import encode_png
+from msfnet.runtime.evaluate.metrics import NormalMetrics
+from msfnet.runtime.results.maps import InspectionMaps
+from msfnet.runtime.stack import Stack
 
-if TYPE_CHECKING:
-    from msfnet.runtime.api import Result
+
+class Result(Protocol):
+    """What the files are written from (``msfnet.Result`` is one): the writer depends on the
+    data, not on the Model API that produced it."""
+
+    stack: Stack
+    normals: np.ndarray
+    metrics: NormalMetrics | None
+    error_deg: np.ndarray | None
+    maps: InspectionMaps | None
+
+    def profile(self) -> dict[str, object]: ...
 
 
 def normals_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -240,7 +240,7 @@ def write_maps(
     ``msfnet.common.files.write_atomic``: a failure while drawing writes nothing, and no file
     is ever left half-written.
     """
-    from msfnet.runtime.results.maps import pictures
+    import msfnet.runtime.results.maps.pictures as pictures
     from msfnet.runtime.results.maps.mesh import albedo_colors, height_mesh, write_ply
     from msfnet.runtime.results.maps.report import build_report
 
