@@ -12,18 +12,19 @@ from _runtime_helpers import sphere_stack
 from msfnet.common.errors import InputError
 from msfnet.runtime.api import Model
 from msfnet.runtime.batch.ray_cluster import ModelSpec, StackWorker
+from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.stack import LoadOptions, save_stack
 
 
 def test_a_worker_builds_the_engine_and_precision_asked_for(random_onnx: Path) -> None:
-    spec = ModelSpec.from_args(random_onnx, engine="onnxruntime", precision="fp32", threads=1)
+    spec = ModelSpec.of(ModelOptions(random_onnx, engine="onnxruntime", precision="fp32", threads=1))
     described = StackWorker(spec).model.describe()
     assert described["engine"] == "onnxruntime" and described["precision"] == "fp32"
 
 
 def test_a_worker_returns_what_a_local_run_gives(random_onnx: Path, tmp_path: Path) -> None:
     path = save_stack(sphere_stack(n=6, h=24, w=28, seed=3), tmp_path / "s")
-    worker = StackWorker(ModelSpec.from_args(random_onnx, engine="onnxruntime", threads=1))
+    worker = StackWorker(ModelSpec.of(ModelOptions(random_onnx, engine="onnxruntime", threads=1)))
     got = worker.run("s", str(path), LoadOptions())
     assert "error" not in got
     local = Model(random_onnx, engine="onnxruntime", threads=1)(path)
@@ -33,7 +34,7 @@ def test_a_worker_returns_what_a_local_run_gives(random_onnx: Path, tmp_path: Pa
 
 
 def test_a_worker_reports_a_bad_stack_as_text(random_onnx: Path, tmp_path: Path) -> None:
-    worker = StackWorker(ModelSpec.from_args(random_onnx, threads=1))
+    worker = StackWorker(ModelSpec.of(ModelOptions(random_onnx, threads=1)))
     got = worker.run("missing", str(tmp_path / "nothing"), LoadOptions())
     assert "nothing" in got["error"]
 
@@ -41,11 +42,11 @@ def test_a_worker_reports_a_bad_stack_as_text(random_onnx: Path, tmp_path: Path)
 @pytest.mark.parametrize("options", [{"engine": "openvino"}, {"precision": "bf16"}])
 def test_least_squares_refuses_engine_options_before_any_work(options: dict[str, str]) -> None:
     with pytest.raises(InputError, match="--method l2 has no network"):
-        ModelSpec.from_args(None, method="l2", **options)
+        ModelSpec.of(ModelOptions(method="l2", **options))
     with pytest.raises(InputError, match="--method l2 has no network"):
         Model(method="l2", **options)
 
 
 def test_least_squares_refuses_a_model_file(random_onnx: Path) -> None:
     with pytest.raises(InputError, match="needs no model"):
-        ModelSpec.from_args(random_onnx, method="l2")
+        ModelSpec.of(ModelOptions(random_onnx, method="l2"))

@@ -324,15 +324,17 @@ def _logger(args: argparse.Namespace) -> Callable[[str], None]:
 def _run_loop(args: argparse.Namespace, root: Path) -> int:
     model = load = out_root = None
     if args.run is not None:
+        from msfnet.runtime.api import Model
+        from msfnet.runtime.cli.flags import load_options, model_options
         from msfnet.runtime.cli.run import build_parser as run_parser
-        from msfnet.runtime.cli.run import load_options, open_model
 
         run_args = run_parser().parse_args(args.run)
         if run_args.stacks or run_args.demo:
             raise InputError(
                 "--loop --run: the stacks are the captured takes; give msf-run options only"
             )
-        model, load, out_root = open_model(run_args), load_options(run_args), run_args.output
+        model = Model(options=model_options(run_args))
+        load, out_root = load_options(run_args), run_args.output
     log = _logger(args)
     cam = lights = None
     try:

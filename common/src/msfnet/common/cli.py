@@ -10,17 +10,18 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import importlib.util
 import math
 import os
 import re
 import sys
 import warnings
-from collections.abc import Callable, Sequence
-from typing import NoReturn
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NoReturn, TypeVar
 
 from msfnet.common.errors import InputError, MsfError, first_line, one_line
-from msfnet.common.files import forget_written, written_outputs
+from msfnet.common.files import forget_written, writing_as, written_outputs
 from msfnet.common.signals import Terminated, install_signal_handlers, restore_signal_handlers
 
 
@@ -131,6 +132,89 @@ def make_parser(
     return p
 
 
+# ---------------------------------------------------------------- flags from option dataclasses
+
+T = TypeVar("T")
+
+
+@dataclasses.dataclass(frozen=True)
+class Flag:
+    """How one field of an options dataclass appears on a command line. The flag's value is
+    stored under the field's name, so :func:`options_from_args` can build the options back.
+
+    ``name``: the flag (default ``--field-name``); ``action="store_true"`` for booleans;
+    ``type`` converts and validates the text (an ``argparse.ArgumentTypeError`` becomes the
+    usual one-line error)."""
+
+    help: str
+    name: str | None = None
+    aliases: tuple[str, ...] = ()
+    type: Callable[[str], Any] | None = None
+    choices: tuple[str, ...] | None = None
+    metavar: str | tuple[str, ...] | None = None
+    action: str | None = None
+    nargs: int | str | None = None
+
+    def flag_name(self, field_name: str) -> str:
+        return self.name or "--" + field_name.replace("_", "-")
+
+
+def flag(default: Any, help: str, **spec: Any) -> Any:
+    """A dataclass field with its command-line spelling (see :class:`Flag`)."""
+    return dataclasses.field(default=default, metadata={"flag": Flag(help, **spec)})
+
+
+def _flags_of(cls: type, extra: Mapping[str, Flag] | None) -> dict[str, Flag]:
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out = {n: f.metadata["flag"] for n, f in fields.items() if "flag" in f.metadata}
+    for name, spec in (extra or {}).items():
+        if name not in fields:  # a table that drifted from its dataclass: a bug, said at once
+            raise TypeError(f"{cls.__name__} has no field {name!r} for the flag {spec}")
+        out[name] = spec
+    return out
+
+
+def add_flags(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    cls: type,
+    *,
+    flags: Mapping[str, Flag] | None = None,
+    skip: Sequence[str] = (),
+    help_override: Mapping[str, str] | None = None,
+) -> None:
+    """Add one flag per field of the dataclass ``cls`` that has a :class:`Flag` (in its field
+    metadata, or in ``flags`` for dataclasses that do not carry their own), except ``skip``.
+    Defaults come from the dataclass, so a command and the Python API cannot drift apart."""
+    defaults = {f.name: f.default for f in dataclasses.fields(cls)}
+    for name, spec in _flags_of(cls, flags).items():
+        if name in skip:
+            continue
+        kwargs: dict[str, Any] = {"dest": name, "help": (help_override or {}).get(name, spec.help)}
+        if spec.action:
+            kwargs["action"] = spec.action
+        else:
+            default = defaults[name]
+            kwargs["default"] = None if default is dataclasses.MISSING else default
+            for key in ("type", "choices", "metavar", "nargs"):
+                if getattr(spec, key) is not None:
+                    kwargs[key] = getattr(spec, key)
+        parser.add_argument(spec.flag_name(name), *spec.aliases, **kwargs)
+
+
+def options_from_args(
+    cls: type[T],
+    args: argparse.Namespace,
+    *,
+    flags: Mapping[str, Flag] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> T:
+    """The ``cls`` instance the parsed flags describe (fields without a flag keep their
+    defaults; ``overrides`` win). Flags a command did not add keep the defaults too."""
+    values = {n: getattr(args, n) for n in _flags_of(cls, flags) if hasattr(args, n)}
+    values = {n: tuple(v) if isinstance(v, list) else v for n, v in values.items()}
+    return cls(**{**values, **(overrides or {})})
+
+
 def add_common_flags(p: argparse.ArgumentParser, *, verbose: bool = False) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="print errors only")
     if verbose:  # only where it changes something: a flag that does nothing would mislead
@@ -189,6 +273,24 @@ def _left_behind() -> str:
         f"{len(done)} output(s) were complete and are kept (last: {done[-1]}); nothing "
         "else was written"
     )
+
+
+def command_main(
+    prog: str,
+    parser: argparse.ArgumentParser,
+    body: Callable[[argparse.Namespace], int],
+    argv: Sequence[str] | None = None,
+) -> int:
+    """A command's whole ``main``: parse ``argv``, then run ``body(args)`` through
+    :func:`run_command` (one-line errors and exit codes), with every output manifest naming
+    ``prog`` as its writer."""
+    args = parser.parse_args(argv)
+
+    def run() -> int:
+        with writing_as(prog):
+            return body(args)
+
+    return run_command(prog, run, debug=bool(getattr(args, "debug", False)))
 
 
 def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
@@ -268,15 +370,20 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
 
 
 __all__ = [
+    "Flag",
     "Parser",
     "add_common_flags",
+    "add_flags",
+    "command_main",
     "finite_float",
+    "flag",
     "float_range",
     "install_hint",
     "int_range",
     "make_parser",
     "nonnegative_float",
     "nonnegative_int",
+    "options_from_args",
     "positive_float",
     "positive_int",
     "run_command",

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -36,12 +37,12 @@ from msfnet.runtime.infer.estimators import (
 )
 from msfnet.runtime.infer.fine_detail import FineDetailEstimator
 from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
+from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
 from msfnet.runtime.results.profile import BatchStats, Profile, StageTimer
 from msfnet.runtime.stack import LoadOptions, Stack, load_stack, prepare_stack
 
 WEIGHTS = Path(__file__).resolve().parent / "weights"
-DEFAULT_MAPS = MapOptions()  # albedo, height (Poisson), curvature, mesh
 
 
 def default_model_path() -> Path:
@@ -133,31 +134,14 @@ class Result:
         return replace(self, stack=stack)
 
 
-def check_method(
-    method: str, model: object, engine: str | None, precision: str | None, fine_detail: bool = False
-) -> None:
-    """Refuse options that contradict the method (before any work, also for a Ray batch)."""
-    if method not in ("msf", "l2"):
-        raise InputError(f"method {method!r}: expected 'msf' (the network) or 'l2'")
-    if method == "l2" and model is not None:
-        raise InputError("least squares (--method l2) needs no model; drop --onnx")
-    if method == "l2" and (engine or precision):
-        raise InputError(
-            "--engine / --precision choose how the network runs; --method l2 has no network"
-        )
-    if method == "l2" and fine_detail:
-        raise InputError(
-            "--fine-detail runs the network a second time; --method l2 has no "
-            "network (least squares keeps all detail, and its noise)"
-        )
-
-
 class Model:
     """A loaded estimator with its run options: create once, call on many stacks.
 
     ``Model()`` is the bundled network; ``Model("x.onnx", threads=2)`` another msfnet ONNX
-    export (loaded once, here); ``Model.least_squares()`` classical least squares.
-    ``engine`` / ``precision`` pick the execution engine (default: chosen for this CPU);
+    export (loaded once, here); ``Model.least_squares()`` classical least squares. The keyword
+    settings are the fields of :class:`~msfnet.runtime.options.ModelOptions` (``method``,
+    ``engine``, ``precision``, ``threads``, ``provider``, ``tile``, ``max_memory_mb``,
+    ``maps``, ``fine_detail``, ...); ``options=`` passes a whole ModelOptions instead.
     ``fine_detail`` also runs the network at 2x for relief of a few pixels
     (:mod:`msfnet.runtime.infer.fine_detail`).
     Calling it (``model(stack)``, :meth:`predict`) returns a :class:`Result` and writes
@@ -168,33 +152,32 @@ class Model:
         self,
         model: str | Path | Engine | None = None,
         *,
-        method: str = "msf",
-        engine: str | None = None,
-        precision: str | None = None,
-        threads: int | None = None,
-        provider: str | None = None,
-        tile: int | None = None,
-        max_memory_mb: float = DEFAULT_MAX_MEMORY_MB,
-        maps: MapOptions | None = DEFAULT_MAPS,
-        fine_detail: bool = False,
+        options: ModelOptions | None = None,
+        **settings: Any,
     ) -> None:
-        self.tiling = TilingOptions(tile, max_memory_mb)
-        self.maps = maps  # inspection maps computed after the normals (None: normals only)
+        engine_given = model is not None and not isinstance(model, (str, Path))
+        if model is not None and not engine_given:
+            settings["model"] = Path(model)  # type: ignore[arg-type]
+        opts = ModelOptions.of(options, **settings)
+        if engine_given and not opts.is_network:
+            raise InputError("least squares (method='l2') runs no engine; drop the model")
+        self.options = opts
+        self.tiling = TilingOptions(opts.tile, opts.max_memory_mb)
+        self.maps = opts.maps  # inspection maps computed after the normals (None: normals only)
         self.estimator: Estimator
-        check_method(method, model, engine, precision, fine_detail)
-        if method == "l2":
+        if not opts.is_network:
             self.estimator = LeastSquaresEstimator()
-        elif model is not None and not isinstance(model, (str, Path)):
-            self.estimator = NetworkEstimator(model)
+        elif engine_given:
+            self.estimator = NetworkEstimator(model)  # type: ignore[arg-type]
         else:
-            path = Path(model) if model is not None else default_model_path()
-            if model is None and not path.is_file():
+            path = opts.model if opts.model is not None else default_model_path()
+            if opts.model is None and not path.is_file():
                 raise InputError(
                     f"no model given and no bundled model at {path}; export one "
                     "with msf-export, or use least squares (--method l2)"
                 )
-            self.estimator = _open_network(path, engine, precision, threads, provider)
-        if fine_detail and isinstance(self.estimator, NetworkEstimator):
+            self.estimator = _open_network(path, opts)
+        if opts.fine_detail and isinstance(self.estimator, NetworkEstimator):
             self.estimator = FineDetailEstimator(self.estimator)
 
     @classmethod
@@ -202,7 +185,7 @@ class Model:
         cls, *, max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, maps: MapOptions | None = DEFAULT_MAPS
     ) -> Model:
         """Per-pixel least squares (Woodham 1980): no network, the same inputs and outputs."""
-        return cls(method="l2", max_memory_mb=max_memory_mb, maps=maps)
+        return cls(options=ModelOptions(method="l2", max_memory_mb=max_memory_mb, maps=maps))
 
     @property
     def method(self) -> str:
@@ -298,18 +281,19 @@ class Model:
         )
 
 
-def _open_network(
-    path: Path, engine: str | None, precision: str | None, threads: int | None, provider: str | None
-) -> NetworkEstimator:
+def _open_network(path: Path, opts: ModelOptions) -> NetworkEstimator:
     """Pick the engine and precision for this CPU and model (or honour the overrides)."""
     from msfnet.common.cpu import detect_cpu
     from msfnet.runtime.engines import installed_engines
     from msfnet.runtime.engines.dispatch import choose_engine, open_engine
 
-    if provider not in (None, "cpu") and engine is None:
+    engine = opts.engine
+    if opts.provider is not None and engine is None:
         engine = "onnxruntime"  # execution providers are ONNX Runtime's
-    choice = choose_engine(path, detect_cpu(), installed_engines(), engine, precision)
-    return NetworkEstimator(open_engine(choice, threads, provider=provider), choice.reason)
+    choice = choose_engine(path, detect_cpu(), installed_engines(), engine, opts.precision)
+    return NetworkEstimator(
+        open_engine(choice, opts.threads, provider=opts.provider), choice.reason
+    )
 
 
-__all__ = ["Model", "Result", "default_model_path"]
+__all__ = ["DEFAULT_MAPS", "Model", "ModelOptions", "Result", "default_model_path"]

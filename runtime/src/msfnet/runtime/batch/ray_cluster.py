@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.batch.runner import BatchItem, BatchSummary, OnResult, StackRow, row_for
-from msfnet.runtime.results.maps import MapOptions
+from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.profile import BatchStats
 from msfnet.runtime.stack import LoadOptions, load_stack
 
@@ -46,57 +46,30 @@ class ModelSpec:
     """What a worker needs to build the same Model: the options, and the model file's bytes
     (None: the bundled model of the worker's own msfnet install)."""
 
-    method: str = "msf"
-    engine: str | None = None
-    precision: str | None = None
-    onnx_name: str | None = None
+    options: ModelOptions
     onnx_bytes: bytes | None = None
-    threads: int | None = 1
-    provider: str | None = None
-    tile: int | None = None
-    max_memory_mb: float | None = None
-    maps: MapOptions | None = None  # inspection maps computed by the worker
-    fine_detail: bool = False
+
+    @property
+    def onnx_name(self) -> str | None:
+        return None if self.options.model is None else str(self.options.model)
 
     @classmethod
-    def from_args(cls, onnx: Path | None, **options: Any) -> ModelSpec:
-        from msfnet.runtime.api import check_method
-
-        check_method(
-            options.get("method", "msf"),
-            onnx,
-            options.get("engine"),
-            options.get("precision"),
-            bool(options.get("fine_detail")),
-        )
+    def of(cls, options: ModelOptions) -> ModelSpec:
+        """The spec of ``options`` (already checked on creation), the model file read here:
+        the workers may not see the driver's files."""
+        onnx = options.model
         if onnx is not None and not onnx.is_file():
             raise InputError("ONNX model not found", onnx)
-        return cls(
-            onnx_name=None if onnx is None else str(onnx),
-            onnx_bytes=None if onnx is None else onnx.read_bytes(),
-            **options,
-        )
+        return cls(options, None if onnx is None else onnx.read_bytes())
 
     def build(self, folder: Path) -> Model:
         from msfnet.runtime.api import Model
-        from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB
 
         path = None
         if self.onnx_bytes is not None:
             path = folder / Path(self.onnx_name or "model.onnx").name
             path.write_bytes(self.onnx_bytes)
-        return Model(
-            path,
-            method=self.method,
-            engine=self.engine,
-            precision=self.precision,
-            threads=self.threads,
-            provider=self.provider,
-            tile=self.tile,
-            max_memory_mb=self.max_memory_mb or DEFAULT_MAX_MEMORY_MB,
-            maps=self.maps,
-            fine_detail=self.fine_detail,
-        )
+        return Model(options=self.options.replace(model=path))
 
 
 class StackWorker:
@@ -178,7 +151,7 @@ def run_batch_ray(
             ) from exc
     try:
         cpus = float(ray.cluster_resources().get("CPU", 1.0))
-        per_worker = float(spec.threads or 1)
+        per_worker = float(spec.options.threads or 1)
         count = workers or max(1, min(len(items), int(cpus // per_worker)))
         actor_class = ray.remote(num_cpus=per_worker)(StackWorker)
         actors = [actor_class.remote(spec) for _ in range(count)]

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.common.cli import make_parser, positive_float, positive_int, run_command
+from msfnet.common.cli import command_main, make_parser
 from msfnet.common.errors import InputError
-from msfnet.common.files import check_output, json_text, staged_folder, writing_as
+from msfnet.common.files import check_output, json_text, staged_folder
 from msfnet.runtime.api import Model
+from msfnet.runtime.cli.flags import add_load_flags, add_model_flags, load_options, model_options
 from msfnet.runtime.evaluate.datasets import (
     PUBLISHED_MAE,
     PUBLISHED_METHODS,
@@ -296,9 +297,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "roots", type=Path, metavar="ROOT", nargs="+", help="benchmark root(s) or object folder(s)"
     )
-    p.add_argument(
-        "--onnx", type=Path, metavar="MODEL", help="msfnet ONNX model (default: the bundled model)"
-    )
     p.add_argument("--l2-only", action="store_true", help="only the least-squares baseline")
     p.add_argument("--no-l2", action="store_true", help="skip the least-squares baseline")
     p.add_argument(
@@ -310,35 +308,17 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="output folder (default ./msf-eval/<root name>/)",
     )
-    p.add_argument(
-        "--max-lights", type=positive_int, metavar="K", help="use K evenly spaced lights"
-    )
+    add_load_flags(p, ("max_lights", "select"))
     p.add_argument(
         "--lights",
         type=Path,
         help="light directions file shared by all objects (e.g. psmImages/lights.txt)",
     )
-    p.add_argument(
-        "--select",
-        metavar="SPEC",
-        help="image subset for every object (default: "
-        "the benchmark's protocol, e.g. DiLiGenT bear 21-96)",
-    )
-    p.add_argument(
-        "--fine-detail",
-        action="store_true",
-        help="the model with msf-run's --fine-detail (also run at 2x, fine detail "
+    add_model_flags(
+        p,
+        skip=("method",),  # --l2-only / --no-l2 choose the methods here
+        fine_detail="the model with msf-run's --fine-detail (also run at 2x, fine detail "
         "from that run; about 5x the time)",
-    )
-    p.add_argument("--threads", type=positive_int, metavar="T", help="inference threads")
-    p.add_argument("--provider", default="cpu", metavar="P", help="execution provider")
-    p.add_argument("--tile", type=int, metavar="S", help="tile edge in px (0 = untiled)")
-    p.add_argument(
-        "--max-memory",
-        type=positive_float,
-        default=DEFAULT_MAX_MEMORY_MB,
-        metavar="MB",
-        help=f"memory budget in MB (default {DEFAULT_MAX_MEMORY_MB})",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument(
@@ -352,29 +332,20 @@ def build_parser() -> argparse.ArgumentParser:
 def _run(args: argparse.Namespace) -> int:
     name = args.roots[0].resolve().name if len(args.roots) == 1 else "objects"
     outdir = args.output or Path("msf-eval") / name
-    if args.l2_only and args.onnx is not None:
+    if args.l2_only and args.model is not None:
         raise InputError("--l2-only and --onnx contradict each other")
     objects = [o for root in args.roots for o in find_objects(root)]
     check_unique(objects)
-    load = LoadOptions(lights=args.lights, select=args.select, max_lights=args.max_lights)
+    load = load_options(args)
     check_output(
-        outdir, [*args.roots, args.onnx, *load.inputs()], overwrite=args.overwrite, folder=True
+        outdir, [*args.roots, args.model, *load.inputs()], overwrite=args.overwrite, folder=True
     )
     if args.l2_only and args.fine_detail:
         raise InputError("--l2-only and --fine-detail contradict each other")
-    model = (
-        None
-        if args.l2_only
-        else Model(
-            args.onnx,
-            threads=args.threads,
-            provider=args.provider,
-            tile=args.tile,
-            max_memory_mb=args.max_memory,
-            maps=None,
-            fine_detail=args.fine_detail,
-        )
-    )
+    if args.l2_only and (args.engine or args.precision):
+        raise InputError("--l2-only and --engine / --precision contradict each other")
+    options = model_options(args, maps=None)  # scoring needs normals only
+    model = None if args.l2_only else Model(options=options)
     summary = evaluate(
         objects,
         outdir,
@@ -396,13 +367,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-
-    def body() -> int:
-        with writing_as(PROG):  # output manifests name their writer
-            return _run(args)
-
-    return run_command(PROG, body, debug=args.debug)
+    return command_main(PROG, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

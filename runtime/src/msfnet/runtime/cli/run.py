@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from tqdm import tqdm
 
-from msfnet.common.cli import make_parser, positive_float, positive_int, run_command
+from msfnet.common.cli import command_main, make_parser, positive_int
 from msfnet.common.errors import InputError
-from msfnet.common.files import check_output, json_text, numbered_folder, writing_as
+from msfnet.common.files import check_output, json_text, numbered_folder
 from msfnet.runtime.api import Model, Result
 from msfnet.runtime.batch.runner import (
     SUMMARY_FILES,
@@ -21,10 +22,15 @@ from msfnet.runtime.batch.runner import (
     expand_stacks,
     run_batch,
 )
-from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, HALO
-from msfnet.runtime.results.maps import MAP_NAMES, MapOptions
-from msfnet.runtime.results.maps.integrate import METHODS as INTEGRATION_METHODS
-from msfnet.runtime.stack import LoadOptions, Stack, parse_roi
+from msfnet.runtime.cli.flags import (
+    add_load_flags,
+    add_map_flags,
+    add_model_flags,
+    load_options,
+    model_options,
+)
+from msfnet.runtime.options import ModelOptions
+from msfnet.runtime.stack import LoadOptions, Stack
 
 PROG = "msf-run"
 EXAMPLES = (
@@ -65,15 +71,6 @@ def build_parser() -> argparse.ArgumentParser:
         "compare with least squares",
     )
     p.add_argument(
-        "--onnx", type=Path, metavar="MODEL", help="msfnet ONNX model (default: the bundled model)"
-    )
-    p.add_argument(
-        "--method",
-        choices=("msf", "l2"),
-        default="msf",
-        help="msf: the network (default); l2: per-pixel least squares, no model",
-    )
-    p.add_argument(
         "-o",
         "--output",
         "--outdir",
@@ -85,71 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
         "(default ./msf-out/<folder name or 'batch'>[-N]/); an existing non-empty "
         "folder is refused unless --overwrite",
     )
-    p.add_argument(
-        "--lights", type=Path, help="light directions file (txt or json), overrides the stack's"
-    )
-    p.add_argument("--intensities", type=Path, help="light intensities file (txt or json)")
-    p.add_argument("--mask", type=Path, help="mask image (> 127 is object)")
-    p.add_argument(
-        "--select",
-        metavar="SPEC",
-        help="1-based image subset, e.g. 21-96 or "
-        "1,3,5-9 (default: all images, or the benchmark's own selection, e.g. "
-        "DiLiGenT bear 21-96, which a line reports and --select overrides)",
-    )
-    p.add_argument(
-        "--max-lights", type=positive_int, metavar="K", help="use K evenly spaced lights"
-    )
-    p.add_argument(
-        "--threads",
-        type=positive_int,
-        metavar="T",
-        help="inference threads (default: all available cores; 1 per Ray worker)",
-    )
-    p.add_argument(
-        "--engine",
-        choices=("onnxruntime", "openvino"),
-        default=None,
-        help="inference engine (default: chosen for this CPU and the installed "
-        "engines; the choice and its reason are printed and kept in profile.json)",
-    )
-    p.add_argument(
-        "--precision",
-        choices=("fp32", "bf16", "int8"),
-        default=None,
-        help="compute precision (default: the fastest one measured within 0.5 deg "
-        "of fp32 on real data for this CPU; bf16 needs OpenVINO and a CPU with "
-        "native bf16)",
-    )
-    p.add_argument(
-        "--fine-detail",
-        action="store_true",
-        help="keep relief of a few pixels (engravings, scratches, fabric): also run "
-        "the network on the stack enlarged 2x and take the fine detail from that run "
-        "(about 5x the time; the stack and its enlargement, 5x its memory, must fit "
-        "--max-memory; docs/run.md)",
-    )
-    p.add_argument(
-        "--provider",
-        default="cpu",
-        metavar="P",
-        help="ONNX Runtime execution provider: cpu (default), cuda, ... when installed",
-    )
-    p.add_argument(
-        "--tile",
-        type=int,
-        metavar="S",
-        help=f"tile edge in px including the {HALO} px halo (multiple of 4); 0 = no "
-        "tiling; default: the largest tile that fits --max-memory",
-    )
-    p.add_argument(
-        "--max-memory",
-        type=positive_float,
-        default=DEFAULT_MAX_MEMORY_MB,
-        metavar="MB",
-        help="peak memory target in MB (loaded stack + working set), "
-        f"least squares included (default {DEFAULT_MAX_MEMORY_MB})",
-    )
+    add_load_flags(p)
+    add_model_flags(p)
     p.add_argument(
         "--repeat",
         type=positive_int,
@@ -168,74 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="print a machine-readable summary on stdout (one JSON object per "
         "stack, then the batch summary for several)",
     )
-    cam = p.add_argument_group(
-        "real-camera inputs (applied while loading: ROI -> downscale -> linearise -> auto-mask)"
-    )
-    cam.add_argument(
-        "--roi",
-        type=parse_roi,
-        metavar="X,Y,W,H",
-        help="crop images, mask and ground truth to this rectangle (pixels of "
-        "the stored images, origin top-left)",
-    )
-    cam.add_argument(
-        "--downscale",
-        type=positive_int,
-        default=1,
-        metavar="K",
-        help="average each K x K block (integer K; mask: majority of the block)",
-    )
-    lin = cam.add_mutually_exclusive_group()
-    lin.add_argument(
-        "--srgb",
-        action="store_true",
-        help="images are sRGB-encoded (8-bit camera output): linearise them",
-    )
-    lin.add_argument(
-        "--gamma",
-        type=positive_float,
-        metavar="G",
-        help="images are power-law encoded: linear = (value / white) ** G",
-    )
-    cam.add_argument(
-        "--white-level",
-        type=positive_float,
-        metavar="V",
-        help="full-scale value for --srgb / --gamma (default 255 / 65535 by bit "
-        "depth; needed for floating-point images above 1)",
-    )
-    cam.add_argument(
-        "--auto-mask",
-        action="store_true",
-        help="compute the object mask from the stack (object on a dark "
-        "background); written beside the outputs as mask.png",
-    )
-    insp = p.add_argument_group(
-        "inspection maps (written by default: albedo, height, curvature, mesh, report.html)"
-    )
-    insp.add_argument("--no-maps", action="store_true", help="write the normals only")
-    insp.add_argument(
-        "--maps",
-        type=parse_maps,
-        metavar="LIST",
-        help=f"which maps, comma-separated from {','.join(MAP_NAMES)} (default: all)",
-    )
-    insp.add_argument(
-        "--integration",
-        choices=INTEGRATION_METHODS,
-        default="poisson",
-        help="normal integration for the height map: poisson (masked least "
-        "squares, default), bini (keeps depth discontinuities sharp, slower), "
-        "fc (Frankot-Chellappa FFT, full frame)",
-    )
-    insp.add_argument(
-        "--intrinsics",
-        type=float,
-        nargs=4,
-        metavar=("FX", "FY", "CX", "CY"),
-        help="perspective camera (pixels) for the height map; default orthographic",
-    )
-    insp.add_argument("--no-report", action="store_true", help="no report.html")
+    add_load_flags(p, (), camera=True)
+    add_map_flags(p)
     bat = p.add_argument_group("batches")
     bat.add_argument(
         "--no-prefetch",
@@ -267,73 +135,52 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def load_options(args: argparse.Namespace) -> LoadOptions:
-    if args.white_level is not None and not (args.srgb or args.gamma is not None):
-        # linear images need no full scale (normals do not depend on it): refuse, not ignore
-        raise InputError(
-            "--white-level is the full scale for linearising: it applies with "
-            "--srgb or --gamma only"
+@dataclass(frozen=True)
+class RunRequest:
+    """Everything one msf-run invocation asked for, built once from the flags: the model and
+    load options, and what to do with the results."""
+
+    stacks: tuple[Path, ...]
+    demo: bool
+    model: ModelOptions
+    load: LoadOptions
+    output: Path | None = None
+    overwrite: bool = False
+    repeat: int = 1
+    json: bool = False
+    quiet: bool = False
+    report: bool = True
+    prefetch: bool = True
+    ray: str | None = None
+    workers: int | None = None
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> RunRequest:
+        load = load_options(args)
+        return cls(
+            tuple(args.stacks),
+            args.demo,
+            model_options(args),
+            load,
+            output=args.output,
+            overwrite=args.overwrite,
+            repeat=args.repeat,
+            json=args.json,
+            quiet=args.quiet,
+            report=not args.no_report,
+            prefetch=not args.no_prefetch,
+            ray=args.ray,
+            workers=args.workers,
         )
-    return LoadOptions(
-        args.lights,
-        args.intensities,
-        args.mask,
-        args.select,
-        args.max_lights,
-        roi=args.roi,
-        downscale=args.downscale,
-        srgb=args.srgb,
-        gamma=args.gamma,
-        white_level=args.white_level,
-        auto_mask=args.auto_mask,
-        max_memory_mb=args.max_memory,
-    )
+
+    @property
+    def chatty(self) -> bool:
+        return not self.quiet and not self.json
 
 
-def open_model(args: argparse.Namespace, threads: int | None = None) -> Model:
-    """The estimator msf-run's options describe, loaded once (``threads`` overrides
-    --threads)."""
-    from msfnet.runtime.api import Model
-
-    return Model(
-        args.onnx,
-        method=args.method,
-        engine=args.engine,
-        precision=args.precision,
-        threads=threads or args.threads,
-        provider=args.provider,
-        tile=args.tile,
-        max_memory_mb=args.max_memory,
-        maps=map_options(args),
-        fine_detail=args.fine_detail,
-    )
-
-
-def parse_maps(text: str) -> tuple[str, ...]:
-    names = tuple(n.strip() for n in text.split(",") if n.strip())
-    bad = [n for n in names if n not in MAP_NAMES]
-    if bad or not names:
-        raise argparse.ArgumentTypeError(f"expected names from {','.join(MAP_NAMES)}, got {text!r}")
-    return names
-
-
-def map_options(args: argparse.Namespace) -> MapOptions | None:
-    """The inspection maps msf-run's options ask for (None: normals only)."""
-    if args.no_maps and args.maps is not None:
-        raise InputError("--maps and --no-maps contradict each other: give one of them")
-    if args.no_maps:
-        return None
-    intr = tuple(args.intrinsics) if args.intrinsics else None
-    if intr is not None and not (intr[0] > 0 and intr[1] > 0):
-        raise InputError(
-            f"--intrinsics: focal lengths must be positive, got {intr[0]:g}, {intr[1]:g}"
-        )
-    return MapOptions(maps=args.maps or MAP_NAMES, method=args.integration, intrinsics=intr)
-
-
-def print_result(result: Result, outdir: Path, files: list[Path], args: argparse.Namespace) -> None:
+def print_result(result: Result, outdir: Path, files: list[Path], req: RunRequest) -> None:
     p = result.profile()
-    if args.json:
+    if req.json:
         print(
             json_text(
                 {
@@ -347,7 +194,7 @@ def print_result(result: Result, outdir: Path, files: list[Path], args: argparse
             end="",
         )
         return
-    if args.quiet:
+    if req.quiet:
         return
     print(
         f"{result.stack.name}: {p['lights']} lights, {p['width']}x{p['height']}, "
@@ -373,43 +220,42 @@ def print_result(result: Result, outdir: Path, files: list[Path], args: argparse
     print(f"wrote {outdir}/ ({', '.join(f.name for f in files)})")
 
 
-def _print_warnings(result: Result, args: argparse.Namespace) -> None:
+def _print_warnings(result: Result, req: RunRequest) -> None:
     """One line each on stderr, once the outputs are written (a run that then fails gives
     its one error line only)."""
-    if not args.quiet:
+    if not req.quiet:
         for line in result.stack.warnings:
             tqdm.write(f"{PROG}: warning: {line}", file=sys.stderr)
 
 
-def _say(args: argparse.Namespace, line: str | None) -> None:
-    if line and not args.quiet and not args.json:
+def _say(req: RunRequest, line: str | None) -> None:
+    if line and req.chatty:
         print(line)
 
 
-def _run_single(
-    args: argparse.Namespace, src: Path | Stack, load: LoadOptions, item: BatchItem | None = None
-) -> int:
-    if args.workers is not None:
+def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = None) -> int:
+    load = req.load
+    if req.workers is not None:
         raise InputError("--workers is for --ray (workers of a batch on a cluster)")
     name = src.name if isinstance(src, Stack) else src.stem
-    out = args.output if args.output is not None else numbered_folder(Path("msf-out") / name)
-    inputs = [*load.inputs(), args.onnx] + ([src] if isinstance(src, Path) else [])
-    check_output(out, inputs, overwrite=args.overwrite, folder=True)  # before any work
-    model = open_model(args)
-    progress = sys.stderr.isatty() and not args.quiet and not args.json
+    out = req.output if req.output is not None else numbered_folder(Path("msf-out") / name)
+    inputs = [*load.inputs(), req.model.model] + ([src] if isinstance(src, Path) else [])
+    check_output(out, inputs, overwrite=req.overwrite, folder=True)  # before any work
+    model = Model(options=req.model)
+    progress = sys.stderr.isatty() and req.chatty
     if item is not None:
-        _say(args, item.note(load))
+        _say(req, item.note(load))
     result = model(
-        src, item.options(load) if item is not None else load, repeat=args.repeat, progress=progress
+        src, item.options(load) if item is not None else load, repeat=req.repeat, progress=progress
     )
     if item is not None:
         result.input = item.describe_input(load)
     files = result.save(
-        out, overwrite=args.overwrite, inputs=tuple(load.inputs()), report=not args.no_report
+        out, overwrite=req.overwrite, inputs=tuple(load.inputs()), report=req.report
     )
-    _print_warnings(result, args)
-    print_result(result, out, files, args)
-    if args.demo and args.method != "l2" and not args.json and not args.quiet:
+    _print_warnings(result, req)
+    print_result(result, out, files, req)
+    if req.demo and req.model.is_network and req.chatty:
         l2 = Model.least_squares()(result.stack)
         assert l2.metrics is not None
         print(
@@ -419,60 +265,51 @@ def _run_single(
     return 0
 
 
-def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptions) -> int:
-    if args.repeat != 1:
+def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
+    load = req.load
+    if req.repeat != 1:
         raise InputError("--repeat profiles one stack; give a single STACK")
-    if args.workers is not None and args.ray is None:
+    if req.workers is not None and req.ray is None:
         raise InputError("--workers is for --ray")
-    if args.output is not None:
-        root = args.output
+    if req.output is not None:
+        root = req.output
     else:
-        one_folder = len(args.stacks) == 1 and args.stacks[0].is_dir()
-        root = numbered_folder(Path("msf-out") / (args.stacks[0].name if one_folder else "batch"))
+        one_folder = len(req.stacks) == 1 and req.stacks[0].is_dir()
+        root = numbered_folder(Path("msf-out") / (req.stacks[0].name if one_folder else "batch"))
     # Everything is checked, and the model opened, before anything is made: bad input leaves
     # no output, not even an empty folder (the stacks' folders and the summary create it).
-    inputs = [*load.inputs(), args.onnx]
-    check_batch_root(root, [i.name for i in items], args.overwrite)
+    inputs = [*load.inputs(), req.model.model]
+    check_batch_root(root, [i.name for i in items], req.overwrite)
     for item in items:
-        check_output(root / item.name, [*inputs, item.path], overwrite=args.overwrite, folder=True)
+        check_output(root / item.name, [*inputs, item.path], overwrite=req.overwrite, folder=True)
     for name in SUMMARY_FILES:
-        check_output(root / name, [*inputs, *(i.path for i in items)], overwrite=args.overwrite)
+        check_output(root / name, [*inputs, *(i.path for i in items)], overwrite=req.overwrite)
     model = None
-    if args.ray is not None:
+    if req.ray is not None:
         from msfnet.runtime.batch.ray_cluster import ModelSpec, import_ray, run_batch_ray
 
         import_ray()  # not installed: say so now
-        spec = ModelSpec.from_args(
-            args.onnx,
-            method=args.method,
-            engine=args.engine,
-            precision=args.precision,
-            threads=args.threads or 1,
-            provider=args.provider,
-            tile=args.tile,
-            max_memory_mb=args.max_memory,
-            maps=map_options(args),
-            fine_detail=args.fine_detail,
-        )
+        one_thread = req.model.replace(threads=req.model.threads or 1)
+        spec = ModelSpec.of(one_thread)
         # the workers open it far away; a file they would all refuse is refused here, once
-        open_model(args, threads=1)
+        Model(options=one_thread.replace(threads=1))
     else:
-        model = open_model(args)
-    show = not args.quiet and not args.json
+        model = Model(options=req.model)
+    show = req.chatty
     for item in items:
-        _say(args, item.note(load))
+        _say(req, item.note(load))
 
     def report(row: StackRow, result: Result | None) -> None:
         if row.error is not None:
             tqdm.write(f"{PROG}: error: {row.error}", file=sys.stderr)
             return
         if result is not None:
-            _print_warnings(result, args)
-        if args.json and result is not None:
+            _print_warnings(result, req)
+        if req.json and result is not None:
             files = sorted(
                 p.name for p in Path(row.output or ".").iterdir() if not p.name.startswith(".")
             )
-            print_result(result, Path(row.output or "."), [Path(f) for f in files], args)
+            print_result(result, Path(row.output or "."), [Path(f) for f in files], req)
         elif show:
             mae = row.metrics.mae_deg if row.metrics else None
             score = "" if mae is None else f", MAE {mae:.2f} deg"
@@ -489,9 +326,9 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
             items,
             load,
             lambda n: root / n,
-            address=args.ray or None,
-            workers=args.workers,
-            overwrite=args.overwrite,
+            address=req.ray or None,
+            workers=req.workers,
+            overwrite=req.overwrite,
             summary_dir=root,
             on_result=report,
             progress=progress,
@@ -503,16 +340,16 @@ def _run_batch(args: argparse.Namespace, items: list[BatchItem], load: LoadOptio
             items,
             load,
             lambda n: root / n,
-            overwrite=args.overwrite,
-            prefetch=not args.no_prefetch,
+            overwrite=req.overwrite,
+            prefetch=req.prefetch,
             summary_dir=root,
             on_result=report,
             progress=progress,
             inputs=tuple(load.inputs()),
         )
-    if args.json:
+    if req.json:
         print(json_text({"summary": summary.as_dict(), "output": str(root)}), end="")
-    elif not args.quiet:
+    elif not req.quiet:
         print(summary.text())
         print(f"wrote {root}/ (one folder per stack, summary.json, summary.md)")
     if summary.failed:
@@ -534,32 +371,25 @@ def _run(args: argparse.Namespace) -> int:
         )
     if bool(args.stacks) == args.demo:
         raise InputError("give STACK folder(s) or .npz, or --demo, not both or neither")
-    load = load_options(args)
-    map_options(args)  # contradicting map options are refused before any work
-    if args.demo:
+    req = RunRequest.from_args(args)  # every option checked here, before any work
+    if req.demo:
         from msfnet.runtime.demo import demo_stack
 
-        if args.ray is not None:
+        if req.ray is not None:
             raise InputError("--demo runs here; --ray is for stacks on disk")
-        return _run_single(args, demo_stack(), load)
-    items = expand_stacks(args.stacks)
-    if len(items) == 1 and args.ray is None and items[0].path == args.stacks[0]:
-        return _run_single(args, args.stacks[0], load, items[0])
-    return _run_batch(args, items, load)
+        return _run_single(req, demo_stack())
+    items = expand_stacks(list(req.stacks))
+    if len(items) == 1 and req.ray is None and items[0].path == req.stacks[0]:
+        return _run_single(req, req.stacks[0], items[0])
+    return _run_batch(req, items)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-
-    def body() -> int:
-        with writing_as(PROG):  # output manifests name their writer
-            return _run(args)
-
-    return run_command(PROG, body, debug=args.debug)
+    return command_main(PROG, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["build_parser", "load_options", "main", "open_model", "print_result"]
+__all__ = ["RunRequest", "build_parser", "main", "print_result"]

@@ -1,0 +1,177 @@
+"""The option groups msf-run and msf-eval share, generated from the option dataclasses.
+
+Model settings come from :class:`~msfnet.runtime.options.ModelOptions`' own field metadata;
+:class:`~msfnet.runtime.stack.LoadOptions` (a stack-level type that knows nothing of command
+lines) gets its spellings from :data:`LOAD_FLAGS`, checked against its fields when used. Each
+command adds the groups it needs and builds the options once, in :func:`model_options` /
+:func:`load_options`.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+
+from msfnet.common.cli import Flag, add_flags, options_from_args, positive_float, positive_int
+from msfnet.common.errors import InputError
+from msfnet.runtime.options import ModelOptions
+from msfnet.runtime.results.maps import MAP_NAMES, MapOptions
+from msfnet.runtime.results.maps.integrate import METHODS as INTEGRATION_METHODS
+from msfnet.runtime.stack import LoadOptions, parse_roi
+
+LOAD_FLAGS: dict[str, Flag] = {
+    "lights": Flag("light directions file (txt or json), overrides the stack's", type=Path),
+    "intensities": Flag("light intensities file (txt or json)", type=Path),
+    "mask": Flag("mask image (> 127 is object)", type=Path),
+    "select": Flag(
+        "1-based image subset, e.g. 21-96 or 1,3,5-9 (default: all images, or the "
+        "benchmark's own selection, e.g. DiLiGenT bear 21-96, which a line reports and "
+        "--select overrides)",
+        metavar="SPEC",
+    ),
+    "max_lights": Flag("use K evenly spaced lights", type=positive_int, metavar="K"),
+}
+CAMERA_FLAGS: dict[str, Flag] = {
+    "roi": Flag(
+        "crop images, mask and ground truth to this rectangle (pixels of the stored images, "
+        "origin top-left)",
+        type=parse_roi,
+        metavar="X,Y,W,H",
+    ),
+    "downscale": Flag(
+        "average each K x K block (integer K; mask: majority of the block)",
+        type=positive_int,
+        metavar="K",
+    ),
+    "white_level": Flag(
+        "full-scale value for --srgb / --gamma (default 255 / 65535 by bit depth; needed for "
+        "floating-point images above 1)",
+        type=positive_float,
+        metavar="V",
+    ),
+    "auto_mask": Flag(
+        "compute the object mask from the stack (object on a dark background); written beside "
+        "the outputs as mask.png",
+        action="store_true",
+    ),
+}
+LINEARISE_FLAGS: dict[str, Flag] = {
+    "srgb": Flag(
+        "images are sRGB-encoded (8-bit camera output): linearise them", action="store_true"
+    ),
+    "gamma": Flag(
+        "images are power-law encoded: linear = (value / white) ** G",
+        type=positive_float,
+        metavar="G",
+    ),
+}
+
+
+def add_model_flags(
+    parser: argparse.ArgumentParser, *, skip: Sequence[str] = ("maps",), **help_override: str
+) -> None:
+    """Every ModelOptions setting with a flag (maps have their own group: :func:`add_map_flags`)."""
+    add_flags(parser, ModelOptions, skip=(*skip, "maps"), help_override=help_override)
+
+
+def add_load_flags(
+    parser: argparse.ArgumentParser, names: Sequence[str] | None = None, *, camera: bool = False
+) -> None:
+    """The stack-reading flags (``names``: a subset of :data:`LOAD_FLAGS`); ``camera``: the
+    real-camera group too (ROI -> downscale -> linearise -> auto-mask)."""
+    chosen = {n: f for n, f in LOAD_FLAGS.items() if names is None or n in names}
+    add_flags(parser, LoadOptions, flags=chosen)
+    if camera:
+        cam = parser.add_argument_group(
+            "real-camera inputs (applied while loading: ROI -> downscale -> linearise -> auto-mask)"
+        )
+        add_flags(cam, LoadOptions, flags={"roi": CAMERA_FLAGS["roi"]})
+        add_flags(cam, LoadOptions, flags={"downscale": CAMERA_FLAGS["downscale"]})
+        add_flags(cam.add_mutually_exclusive_group(), LoadOptions, flags=LINEARISE_FLAGS)
+        rest = {n: CAMERA_FLAGS[n] for n in ("white_level", "auto_mask")}
+        add_flags(cam, LoadOptions, flags=rest)
+
+
+def parse_maps(text: str) -> tuple[str, ...]:
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in MAP_NAMES]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"expected names from {','.join(MAP_NAMES)}, got {text!r}")
+    return names
+
+
+def add_map_flags(parser: argparse.ArgumentParser) -> None:
+    insp = parser.add_argument_group(
+        "inspection maps (written by default: albedo, height, curvature, mesh, report.html)"
+    )
+    insp.add_argument("--no-maps", action="store_true", help="write the normals only")
+    insp.add_argument(
+        "--maps",
+        type=parse_maps,
+        metavar="LIST",
+        help=f"which maps, comma-separated from {','.join(MAP_NAMES)} (default: all)",
+    )
+    insp.add_argument(
+        "--integration",
+        choices=INTEGRATION_METHODS,
+        default="poisson",
+        help="normal integration for the height map: poisson (masked least squares, default), "
+        "bini (keeps depth discontinuities sharp, slower), fc (Frankot-Chellappa FFT, full "
+        "frame)",
+    )
+    insp.add_argument(
+        "--intrinsics",
+        type=float,
+        nargs=4,
+        metavar=("FX", "FY", "CX", "CY"),
+        help="perspective camera (pixels) for the height map; default orthographic",
+    )
+    insp.add_argument("--no-report", action="store_true", help="no report.html")
+
+
+def map_options(args: argparse.Namespace) -> MapOptions | None:
+    """The inspection maps the flags ask for (None: normals only)."""
+    if getattr(args, "no_maps", True) and getattr(args, "maps", None) is not None:
+        raise InputError("--maps and --no-maps contradict each other: give one of them")
+    if getattr(args, "no_maps", True):
+        return None
+    intr = tuple(args.intrinsics) if args.intrinsics else None
+    if intr is not None and not (intr[0] > 0 and intr[1] > 0):
+        raise InputError(
+            f"--intrinsics: focal lengths must be positive, got {intr[0]:g}, {intr[1]:g}"
+        )
+    return MapOptions(maps=args.maps or MAP_NAMES, method=args.integration, intrinsics=intr)
+
+
+def model_options(args: argparse.Namespace, **overrides: object) -> ModelOptions:
+    """The ModelOptions the flags describe, built once (maps from the map group)."""
+    return options_from_args(ModelOptions, args, overrides={"maps": map_options(args), **overrides})
+
+
+def load_options(args: argparse.Namespace) -> LoadOptions:
+    """The LoadOptions the flags describe, built once."""
+    linear = not (getattr(args, "srgb", False) or getattr(args, "gamma", None) is not None)
+    if getattr(args, "white_level", None) is not None and linear:
+        # linear images need no full scale (normals do not depend on it): refuse, not ignore
+        raise InputError(
+            "--white-level is the full scale for linearising: it applies with "
+            "--srgb or --gamma only"
+        )
+    flags = {**LOAD_FLAGS, **CAMERA_FLAGS, **LINEARISE_FLAGS}
+    budget = {"max_memory_mb": getattr(args, "max_memory_mb", None)}
+    return options_from_args(LoadOptions, args, flags=flags, overrides=budget)
+
+
+__all__ = [
+    "CAMERA_FLAGS",
+    "LINEARISE_FLAGS",
+    "LOAD_FLAGS",
+    "add_load_flags",
+    "add_map_flags",
+    "add_model_flags",
+    "load_options",
+    "map_options",
+    "model_options",
+    "parse_maps",
+]

@@ -1,0 +1,156 @@
+"""How a model runs: one typed options object, built once and passed everywhere.
+
+:class:`ModelOptions` is what ``Model(...)`` takes as keywords, what msf-run and msf-eval build
+from their flags (the flags are generated from the fields: :func:`msfnet.common.cli.add_flags`),
+what a Ray worker receives to build the same model, and what a report records. A new setting is
+one new field here, with its :func:`~msfnet.common.cli.flag` spelling.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+from msfnet.common.cli import flag, positive_float, positive_int
+from msfnet.common.errors import InputError
+from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, HALO
+from msfnet.runtime.results.maps.api import MapOptions
+
+METHODS = ("msf", "l2")
+DEFAULT_MAPS = MapOptions()  # albedo, height (Poisson), curvature, mesh
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """Every setting of a :class:`~msfnet.runtime.api.Model`, checked once on creation.
+
+    ``model``: an msfnet ONNX file (None: the bundled model). ``method``: "msf" the network,
+    "l2" per-pixel least squares. ``engine`` / ``precision``: None = chosen for this CPU.
+    ``maps``: inspection maps computed after the normals (None: normals only).
+    """
+
+    model: Path | None = flag(
+        None,
+        "msfnet ONNX model (default: the bundled model)",
+        name="--onnx",
+        type=Path,
+        metavar="MODEL",
+    )
+    method: str = flag(
+        "msf",
+        "msf: the network (default); l2: per-pixel least squares, no model",
+        choices=METHODS,
+    )
+    engine: str | None = flag(
+        None,
+        "inference engine (default: chosen for this CPU and the installed engines; the "
+        "choice and its reason are printed and kept in profile.json)",
+        choices=("onnxruntime", "openvino"),
+    )
+    precision: str | None = flag(
+        None,
+        "compute precision (default: the fastest one measured within 0.5 deg of fp32 on "
+        "real data for this CPU; bf16 needs OpenVINO and a CPU with native bf16)",
+        choices=("fp32", "bf16", "int8"),
+    )
+    threads: int | None = flag(
+        None,
+        "inference threads (default: all available cores; 1 per Ray worker)",
+        type=positive_int,
+        metavar="T",
+    )
+    provider: str | None = flag(
+        None,
+        "ONNX Runtime execution provider: cpu (default), cuda, ... when installed",
+        metavar="P",
+    )
+    tile: int | None = flag(
+        None,
+        f"tile edge in px including the {HALO} px halo (multiple of 4); 0 = no tiling; "
+        "default: the largest tile that fits --max-memory",
+        type=int,
+        metavar="S",
+    )
+    max_memory_mb: float = flag(
+        DEFAULT_MAX_MEMORY_MB,
+        "peak memory target in MB (loaded stack + working set), least squares included "
+        f"(default {DEFAULT_MAX_MEMORY_MB})",
+        name="--max-memory",
+        type=positive_float,
+        metavar="MB",
+    )
+    fine_detail: bool = flag(
+        False,
+        "keep relief of a few pixels (engravings, scratches, fabric): also run the network "
+        "on the stack enlarged 2x and take the fine detail from that run (about 5x the time; "
+        "the stack and its enlargement, 5x its memory, must fit --max-memory; docs/run.md)",
+        action="store_true",
+    )
+    maps: MapOptions | None = DEFAULT_MAPS  # msf-run builds it from its map flags
+
+    def __post_init__(self) -> None:
+        if self.model is not None and not isinstance(self.model, Path):
+            object.__setattr__(self, "model", Path(self.model))
+        if self.provider == "cpu":
+            object.__setattr__(self, "provider", None)  # the default, spelled out
+        self.check()
+
+    def check(self) -> None:
+        """Refuse settings that contradict each other (before any work, also for a Ray
+        batch): one line each, in the words of the options."""
+        if self.method not in METHODS:
+            raise InputError(f"method {self.method!r}: expected 'msf' (the network) or 'l2'")
+        if self.method == "l2":
+            if self.model is not None:
+                raise InputError(
+                    "least squares (--method l2, method='l2') needs no model; drop --onnx / model"
+                )
+            if self.engine or self.precision:
+                raise InputError(
+                    "engine / precision (--engine / --precision) choose how the network runs; "
+                    "--method l2 has no network"
+                )
+            if self.fine_detail:
+                raise InputError(
+                    "fine detail (--fine-detail, fine_detail=True) runs the network a second "
+                    "time; --method l2 has no network (least squares keeps all detail, and its "
+                    "noise)"
+                )
+        if not self.max_memory_mb > 0:
+            raise InputError(f"max memory {self.max_memory_mb}: must be a positive number of MB")
+
+    @property
+    def is_network(self) -> bool:
+        return self.method == "msf"
+
+    def replace(self, **changes: object) -> ModelOptions:
+        return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
+
+    @classmethod
+    def of(cls, base: ModelOptions | None = None, **settings: object) -> ModelOptions:
+        """``base`` (or the defaults) with ``settings`` changed; unknown names refused in the
+        API's words."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(settings) - names)
+        if unknown:
+            raise InputError(
+                f"unknown model setting(s) {', '.join(unknown)}; the settings are "
+                f"{', '.join(sorted(names))} (msfnet.runtime.options.ModelOptions)"
+            )
+        return (base or cls()).replace(**settings) if settings else (base or cls())
+
+    def describe(self) -> dict[str, object]:
+        """The settings a report records (the model path as given)."""
+        out: dict[str, object] = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.name == "maps":
+                value = None if value is None else list(value.maps)
+            elif isinstance(value, Path):
+                value = str(value)
+            out[f.name] = value
+        return out
+
+
+__all__ = ["DEFAULT_MAPS", "METHODS", "ModelOptions"]
