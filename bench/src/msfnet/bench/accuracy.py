@@ -8,8 +8,8 @@ This is the measurement behind dispatch.py's defaults (a precision is a default 
 ``--models`` holds exports of the bundled checkpoint: fp32.onnx (``msf-export --plain``: the
 plain graph, also the reference), fp32_staged.onnx (``msf-export``), int8.onnx (``--plain
 --int8``), int8_staged.onnx (``--int8``). Without fp32.onnx the bundled model is the reference
-only if it is a plain graph (it is staged since 2026-11-22); paths whose file is missing are
-left out.
+only if it is a plain graph (the bundled one is staged); paths whose file is missing are left
+out.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 
 from msfnet.bench.data import data_root
 from msfnet.bench.workloads import Workload, make_input
-from msfnet.common.cli import make_parser, positive_int, run_command
+from msfnet.common.cli import command_main, make_parser, positive_int
 from msfnet.common.errors import InputError
 from msfnet.runtime.engines import installed_engines
 from msfnet.runtime.engines.dispatch import open_engine
@@ -231,8 +231,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: _run(args), debug=args.debug)
+    return command_main(PROG, build_parser(), _run, argv)
 
 
 __all__ = ["PATHS", "EnginePath", "measure", "model_files", "table"]

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common import cpu
-from msfnet.common.cli import make_parser, positive_int, run_command
+from msfnet.common.cli import command_main, make_parser, positive_int
 from msfnet.common.files import check_output, write_json
 from msfnet.runtime.results.maps.curvature import curvature_maps
 from msfnet.runtime.results.maps.integrate import METHODS, integrate_normals
@@ -165,8 +165,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: _run(args), debug=args.debug)
+    return command_main(PROG, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

@@ -14,12 +14,12 @@ from msfnet.calib.cameras import Camera, SimulatedCamera
 from msfnet.calib.capture import Linearisation, capture_loop, capture_stack, check_folder
 from msfnet.calib.lights import Lights
 from msfnet.common.cli import (
+    command_main,
     make_parser,
     nonnegative_float,
     nonnegative_int,
     positive_float,
     positive_int,
-    run_command,
 )
 from msfnet.common.errors import InputError
 
@@ -407,8 +407,7 @@ def _main(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: _main(args), debug=args.debug)
+    return command_main(PROG, build_parser(), _main, argv)
 
 
 if __name__ == "__main__":

@@ -14,16 +14,21 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions
+from msfnet.calib.directions import (
+    Intrinsics,
+    diagnostic_image,
+    estimate_directions,
+    light_labels,
+)
 from msfnet.calib.intensities import estimate_intensities, target_normals
 from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 from msfnet.common.cli import (
     add_common_flags,
+    command_main,
     finite_float,
     int_range,
     make_parser,
     positive_float,
-    run_command,
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, staged_files, vectors_text
@@ -95,7 +100,7 @@ def _check_options(args: argparse.Namespace) -> None:
     if args.intrinsics:
         fx, fy = args.intrinsics[:2]
         if not (fx > 0 and fy > 0):
-            # fx = 0 made every view ray NaN and LAPACK spin forever (issue #13)
+            # fx = 0 makes every view ray NaN, and LAPACK then spins forever
             raise InputError(
                 f"--intrinsics: FX and FY must be positive focal lengths in "
                 f"pixels, got {fx:g} {fy:g}"
@@ -105,11 +110,33 @@ def _check_options(args: argparse.Namespace) -> None:
 
 
 def _intrinsics(args: argparse.Namespace, shape: tuple[int, int]) -> Intrinsics | None:
+    """The camera the options describe, checked against the images' size: finite but absurd
+    values (``--focal 1e-300``, a principal point at 1e308) wrote NaN light directions."""
     if args.intrinsics:
-        return Intrinsics(*args.intrinsics)
-    if args.focal:
-        return Intrinsics(args.focal, args.focal, (shape[1] - 1) / 2, (shape[0] - 1) / 2)
-    return None
+        intr, option = Intrinsics(*args.intrinsics), "--intrinsics"
+    elif args.focal:
+        intr = Intrinsics(args.focal, args.focal, (shape[1] - 1) / 2, (shape[0] - 1) / 2)
+        option = "--focal"
+    else:
+        return None
+    intr.check_for(shape, option)
+    return intr
+
+
+def _check_result(rows: np.ndarray, what: str, unit: bool) -> None:
+    """What is about to be written: finite, and unit length for directions. A failure here is
+    a case the option checks missed; it must never be written with exit 0."""
+    rows = np.asarray(rows, np.float64)
+    bad = ~np.all(np.isfinite(rows), axis=1)
+    if unit:
+        with np.errstate(invalid="ignore"):
+            bad |= ~(np.abs(np.linalg.norm(rows, axis=1) - 1.0) < 1e-6)
+    if bad.any():
+        camera = " (check --focal / --intrinsics)" if unit else ""
+        raise InputError(
+            f"{what} came out {'non-finite or not unit length' if unit else 'non-finite'} for "
+            f"light(s) {(np.flatnonzero(bad) + 1).tolist()[:6]}{camera}; nothing was written"
+        )
 
 
 def _circles(folder: Path, imgs: np.ndarray, mask: Path | None, spheres: int):
@@ -156,8 +183,13 @@ def _check_outputs(outputs: list[Path], inputs: list[Path | None], overwrite: bo
 def _commit(writers: list[tuple[Path, Callable[[Path], None]]], overwrite: bool) -> None:
     """Write every output or none (staged, renamed together)."""
     with staged_files([p for p, _ in writers], overwrite=overwrite) as temps:
-        for tmp, (_, write) in zip(temps, writers, strict=True):
-            write(tmp)
+        for tmp, (target, write) in zip(temps, writers, strict=True):
+            try:
+                write(tmp)
+            except OSError as exc:  # a full disk: name the output, not its hidden temporary
+                if exc.filename is not None or exc.errno is None:
+                    raise
+                raise OSError(exc.errno, exc.strerror, str(target)) from exc
 
 
 def _text_writer(text: str) -> Callable[[Path], None]:
@@ -204,6 +236,7 @@ def cmd_directions(args: argparse.Namespace) -> int:
     intr = _intrinsics(args, captures[0].shape[1:3])
     names = names or []
     res = estimate_directions(captures, circles, intr, ambients, names=names)
+    _check_result(res.directions, "light directions", unit=True)
     for w in res.warnings:
         print(f"warning: {w}", file=sys.stderr)
     writers: list[tuple[Path, Callable[[Path], None]]] = [
@@ -220,7 +253,15 @@ def cmd_directions(args: argparse.Namespace) -> int:
     ]
     for k, ((imgs, circ), dpath) in enumerate(zip(diag, diag_paths, strict=False)):
         writers.append(
-            (dpath, _png_writer(diagnostic_image(imgs, circ, res.estimates, capture=k), dpath))
+            (
+                dpath,
+                _png_writer(
+                    diagnostic_image(
+                        imgs, circ, res.estimates, capture=k, labels=light_labels(names)
+                    ),
+                    dpath,
+                ),
+            )
         )
     _commit(writers, args.overwrite)
     _say(args, f"{len(res.directions)} light directions -> {out} (x right, y up, z to camera)")
@@ -267,6 +308,7 @@ def cmd_intensities(args: argparse.Namespace) -> int:
     ints, warnings = estimate_intensities(
         imgs, lights, normals, valid, amb, names=[p.name for p in paths]
     )
+    _check_result(ints, "light intensities", unit=False)
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     _commit([(out, _text_writer(vectors_text(ints)))], args.overwrite)
@@ -377,8 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: args.func(args), debug=args.debug)
+    return command_main(PROG, build_parser(), lambda args: args.func(args), argv)
 
 
 if __name__ == "__main__":

@@ -115,7 +115,7 @@ def make_parser(
     ``common=False``: only --version here; a command with sub-commands gives each of them the
     other flags with :func:`add_common_flags`, so they can follow the sub-command's name.
     """
-    from msfnet import __version__
+    from msfnet.common.version import installed_version
 
     epilog = None
     if examples:
@@ -126,7 +126,7 @@ def make_parser(
         epilog=epilog,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    p.add_argument("--version", action="version", version=f"%(prog)s {installed_version()}")
     if common:
         add_common_flags(p, verbose=verbose)
     return p

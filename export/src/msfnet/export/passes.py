@@ -13,8 +13,8 @@ from pathlib import Path
 
 import onnx
 
-import msfnet
 from msfnet.common.files import scratch_folder
+from msfnet.common.version import installed_version
 from msfnet.export.onnx_export import (
     export_proto,
     export_staged_proto,
@@ -81,7 +81,7 @@ def _metadata(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProt
         model_metadata(
             train_lights=ctx.options.train_lights,
             checkpoint_sha256=sha256_of(ctx.checkpoint),
-            version=msfnet.__version__,
+            version=installed_version(),
             static_shape=None if static is None else (static.lights, static.height, static.width),
             precision=PRECISION_LABELS[ctx.variant.precision],
             staged=ctx.variant.graph == "staged",
@@ -106,8 +106,8 @@ def _fp16_storage(proto: onnx.ModelProto | None, _: PassContext) -> onnx.ModelPr
 def _rewrite_deconvs(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
     """ConvTranspose -> four 2x2 phase convs + DepthToSpace (exact in fp32), so they quantise.
 
-    'phases' rather than rewrite.py's 'conv3x3': same accuracy, but no zero-tap work (int8 on
-    workload (b) 1.56x fp32 against 1.28x for 'conv3x3'; same run, bundled model, 2 threads).
+    'phases' rather than rewrite.py's 'conv3x3': same accuracy, but no zero-tap work, so a
+    faster int8 model (docs/benchmark.md, "Measurements behind the code's rules").
     """
     from msfnet.export.rewrite import rewrite_deconvs
 

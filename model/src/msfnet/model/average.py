@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from msfnet.common.cli import make_parser, run_command
+from msfnet.common.cli import command_main, make_parser
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, same_file
 
@@ -123,8 +123,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: _run(args), debug=args.debug)
+    return command_main(PROG, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

@@ -10,13 +10,13 @@ from dataclasses import fields
 from pathlib import Path
 
 from msfnet.common.cli import (
+    command_main,
     int_range,
     make_parser,
     nonnegative_float,
     nonnegative_int,
     positive_float,
     positive_int,
-    run_command,
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import STAGING_TAG, check_not_input
@@ -29,7 +29,7 @@ MAX_SIZE = 4096
 MAX_LIGHTS = 1024
 # What msf-train writes into OUT: --overwrite deletes these and nothing else.
 # (Checkpoints are written through files.write_atomic; the ".*.pth.tmp" names are temporaries
-# of versions before 2026-11-23, left by a kill -9.)
+# that earlier msfnet versions left behind when killed with kill -9.)
 TRAIN_FILES = (
     "config.json",
     "log.jsonl",
@@ -134,6 +134,29 @@ def build_parser() -> argparse.ArgumentParser:
         help="processes rendering batches in parallel (DataLoader workers, each with "
         "its own object pool and seed stream); 0 = render in the training "
         "process. Default: 0 on the CPU, min(cores - 2, 12) with cuda",
+    )
+    p.add_argument(
+        "--render-on",
+        choices=("cpu", "device"),
+        default=d.render_on,
+        help="where synthetic batches are rendered: cpu (default: the numpy renderer, in "
+        "the training process or --workers) or device (the torch renderer on the training "
+        "device itself, as batched tensor operations; no workers; --render-preset applies)",
+    )
+    p.add_argument(
+        "--time-budget",
+        type=positive_float,
+        default=d.time_budget,
+        metavar="SECONDS",
+        help="stop after this many seconds of training (finishing the step, saving last.pth; "
+        "exit 0), e.g. a minute short of a time-boxed session",
+    )
+    p.add_argument(
+        "--snapshot-seconds",
+        type=nonnegative_float,
+        default=d.snapshot_seconds,
+        metavar="SECONDS",
+        help="also keep snap_<step>.pth (fp16, ~4.5 MB) every this many seconds (default 0: none)",
     )
     p.add_argument(
         "--precision",
@@ -297,7 +320,10 @@ def config_from(args: dict, base: dict) -> TrainConfig:
         raise InputError("--epochs, --steps-per-epoch and --batch must be >= 1")
     if out.workers is not None and out.workers < 0:
         raise InputError("--workers must be >= 0")
-    if out.data == "synth":
+    if out.render_on == "device" and out.data != "synth":
+        raise InputError("--render-on device renders synthetic data; drop --data")
+    if out.data == "synth" and out.render_on == "cpu":
+        # (the device renderer draws exactly the crop and lights each step asks for)
         most = max(p.lights_max for p in parse_curriculum(out.curriculum))
         if most > out.render_lights:  # the sampler would quietly use fewer lights
             raise InputError(
@@ -462,8 +488,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command(PROG, lambda: _run(args, argv), debug=args.debug)
+    return command_main(PROG, build_parser(), lambda args: _run(args, argv), argv)
 
 
 if __name__ == "__main__":

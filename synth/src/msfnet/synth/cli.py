@@ -8,11 +8,11 @@ import time
 from pathlib import Path
 
 from msfnet.common.cli import (
+    command_main,
     int_range,
     make_parser,
     nonnegative_int,
     positive_int,
-    run_command,
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, staged_folder
@@ -138,13 +138,11 @@ def run(args: argparse.Namespace) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-
-    def body() -> int:
+    def body(args: argparse.Namespace) -> int:
         run(args)
         return 0
 
-    return run_command(PROG, body, debug=args.debug)
+    return command_main(PROG, build_parser(), body, argv)
 
 
 if __name__ == "__main__":
