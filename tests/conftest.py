@@ -3,11 +3,19 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
 from _runtime_helpers import build_random_onnx
+
+# A background job (`pytest &` in a script, CI runners that start one) begins with SIGINT ignored,
+# and so would every child it starts: a test that sends Ctrl-C would see nothing happen. Python's
+# own handler back here means in-process tests get KeyboardInterrupt and children start with the
+# default disposition (exec resets handled signals; ignored ones it keeps).
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO = Path(__file__).resolve().parents[1]
 # $MSFNET_DATA, else ../shared/data beside the checkout (as in CI)

@@ -41,6 +41,7 @@ RUNTIME_RANK = {
     "results": 3,
     "infer": 4,
     "options": 5,
+    "sources": 5,  # stack sources and decode-ahead, for the API's stream and the batch runner
     "api": 6,
     "batch": 7,
     "cli": 8,

@@ -60,6 +60,7 @@ def test_measure_compares_every_path_with_the_fp32_reference(
     assert len(lines) == 4 and all("deg" in line for line in lines)
 
 
+@pytest.mark.slow
 def test_command_measures_the_exports_in_a_models_folder(
     stack_dir: Path, sensitive_onnx: Path, staged_onnx: Path, tmp_path: Path
 ) -> None:

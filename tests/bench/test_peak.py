@@ -13,6 +13,7 @@ from msfnet.runtime.engines import installed_engines
 
 @pytest.mark.parametrize("dtype", ["fp32", "int8", "qdq"])
 def test_matmul_graphs_compute_a_matmul(dtype: str) -> None:
+    pytest.importorskip("onnx", reason="needs onnx: the [bench] extra")
     import onnxruntime as ort
     from onnx import load_from_string, numpy_helper
 
@@ -38,6 +39,7 @@ def test_matmul_graphs_compute_a_matmul(dtype: str) -> None:
 
 
 def test_ort_peaks_are_measured_at_a_timeable_size() -> None:
+    pytest.importorskip("onnx", reason="needs onnx: the [bench] extra")  # builds the graph
     for dtype in ("fp32", "int8"):
         p = ort_matmul_peak(dtype, threads=1, min_seconds=0.005, max_size=512, repeats=2)
         assert p["engine"] == "onnxruntime" and p["dtype"] == dtype
@@ -46,6 +48,7 @@ def test_ort_peaks_are_measured_at_a_timeable_size() -> None:
 
 @pytest.mark.skipif("openvino" not in installed_engines(), reason="openvino not installed")
 def test_openvino_peak_runs() -> None:
+    pytest.importorskip("onnx", reason="needs onnx: the [bench] extra")  # builds the graph
     p = ov_matmul_peak("fp32", threads=1, min_seconds=0.005, max_size=256, repeats=2)
     assert p["engine"] == "openvino" and p["size"] == 256 and p["gflops"] > 0.1
 

@@ -293,3 +293,13 @@ def test_frames_captured_into_a_built_session_rebuild_its_stack(tmp_path):
     amb = read_image(out / "raw" / "ambient.png").astype(np.int64)
     np.testing.assert_array_equal(read_image(out / "002.png"), (raw - amb).clip(0))
     assert json.loads((out / "session.json").read_text())["ambient_subtracted"] is True
+
+
+def test_a_chrome_frame_with_a_clipped_highlight_is_not_under_exposed() -> None:
+    """A dark chrome sphere with a saturated highlight was reported "under-exposed" (its
+    99.5th percentile is low): more exposure would only clip more."""
+    frame = np.zeros((100, 100, 3), np.uint16)
+    frame[10:14, 10:14] = 65535  # 0.16 % of the frame at the white level
+    chk = exposure_check(frame, 65535.0)
+    assert not chk.too_dark and not any("under" in p for p in chk.problems())
+    assert exposure_check(np.full((100, 100, 3), 100, np.uint16), 65535.0).too_dark  # still seen

@@ -301,8 +301,9 @@ def test_resume_with_other_camera_settings_is_refused(
 def test_a_kill_while_overwrite_discards_leaves_no_resumable_mix(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Killed after session.json went but before every old frame did: a plain re-run refuses
-    the folder (no old frame is resumed into a new session); --overwrite starts over."""
+    """Killed while the old frames go: a plain re-run refuses the folder (no old frame is
+    resumed into a new session); --overwrite, still seeing msf-capture's session (marked as
+    being discarded, removed last), starts over."""
     out = tmp_path / "o"
     assert capture_main([str(out), *SIM, "--count", "4"]) == 0
     real = Path.unlink
@@ -315,9 +316,117 @@ def test_a_kill_while_overwrite_discards_leaves_no_resumable_mix(
     with monkeypatch.context() as m:
         m.setattr(Path, "unlink", unlink)
         assert capture_main([str(out), *SIM, "--count", "4", "--overwrite"]) == 130
-    assert not (out / "session.json").exists() and not (out / "filenames.txt").exists()
+    assert json.loads((out / "session.json").read_text())["discarding"] is True
+    assert not (out / "filenames.txt").exists()
     capsys.readouterr()
     assert capture_main([str(out), *SIM, "--count", "4"]) == 2
-    assert "did not take" in capsys.readouterr().err
+    assert "interrupted" in capsys.readouterr().err
     assert capture_main([str(out), *SIM, "--count", "4", "--overwrite"]) == 0
     assert load_stack(out).num_lights == 4
+
+
+def _tree_bytes(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.mark.parametrize(
+    "theirs", ["001.png", "light_directions.txt", "filenames.txt", "raw/002.png", "mask.png"]
+)
+def test_overwrite_never_replaces_a_stack_it_did_not_capture(
+    theirs: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--overwrite in a folder holding the user's own stack (no session.json) replaced their
+    images and light file, though the help says other images stay: now refused, naming the
+    file, and nothing in the folder changes."""
+    import cv2
+
+    folder = tmp_path / "mine"
+    (folder / "raw").mkdir(parents=True)
+    path = folder / theirs
+    if path.suffix == ".png":
+        cv2.imwrite(str(path), np.full((8, 8), 9, np.uint8))
+    else:
+        path.write_text("the user's own\n")
+    before = _tree_bytes(folder)
+    assert capture_main([str(folder), *SIM, "--count", "4", "--overwrite"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and theirs in err[0] and "not msf-capture's" in err[0], err
+    assert _tree_bytes(folder) == before
+
+
+def test_overwrite_of_its_own_session_keeps_frames_beyond_its_count(tmp_path: Path) -> None:
+    """Only the session's own frame names go: a 013.png the user put beside a 4-light
+    session's frames is not msf-capture's to delete."""
+    import cv2
+
+    out = tmp_path / "o"
+    assert capture_main([str(out), *SIM, "--count", "4"]) == 0
+    extra = out / "raw" / "013.png"
+    cv2.imwrite(str(extra), np.full((4, 4), 5, np.uint8))
+    assert capture_main([str(out), *SIM, "--count", "4", "--overwrite"]) == 0
+    assert extra.is_file()
+
+
+def test_a_second_capture_into_a_busy_folder_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two simultaneous captures into one folder both reported success, one's frames gone.
+    The second, started while the first holds the folder, is refused at once; the first
+    finishes untouched, and the folder is free again afterwards."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "o"
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\n"
+            "from msfnet.common.files import folder_lock\n"
+            "with folder_lock(sys.argv[1], 'msf-capture'):\n"
+            "    print('held', flush=True)\n"
+            "    sys.stdin.readline()\n",
+            str(out),
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        assert capture_main([str(out), *SIM, "--count", "4"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "another msf-capture is working in this folder" in err[0], err
+        assert f"pid {holder.pid}" in err[0]
+        assert not (out / "raw").exists() and not (out / "session.json").exists()
+    finally:
+        assert holder.stdin is not None
+        holder.stdin.write("\n")
+        holder.stdin.close()
+        holder.wait(timeout=30)
+    assert capture_main([str(out), *SIM, "--count", "4"]) == 0
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []  # no lock left
+
+
+def test_a_session_without_a_light_count_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It said "existing session has None lights"."""
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "session.json").write_text('{"frames": {}}')
+    assert capture_main([str(out), *SIM, "--count", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "None" not in err and "no light count" in err
+
+
+def test_loop_messages_never_advise_overwrite(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--loop refuses --overwrite, so its refusals must not suggest it."""
+    root = tmp_path / "takes"
+    (root / "001").mkdir(parents=True)
+    (root / "001" / "session.json").write_text(json.dumps({"count": 6, "frames": {}}))
+    assert capture_main([str(root), *SIM, "--count", "4", "--loop", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "6 lights, this one 4" in err and "--overwrite" not in err, err

@@ -164,7 +164,7 @@ def test_unwritable_diagnostic_leaves_no_lights_file(
 ) -> None:
     """The diagnostic image fails to encode after the lights were computed: no output at all
     (the lights file used to be written first and left behind)."""
-    monkeypatch.setattr("msfnet.common.imageio.cv2.imwrite", lambda *a, **k: False)
+    monkeypatch.setattr("msfnet.common.imageio.cv2.imencode", lambda *a, **k: (False, None))
     out = tmp_path / "res" / "l.txt"
     assert cli.main(["directions", str(chrome), "-o", str(out), "-q"]) == 2
     _one_line(capfd, ["diagnostic"])
@@ -370,3 +370,61 @@ def _lights_file(folder: Path, count: int) -> Path:
     path = folder / "dirs.txt"
     path.write_text("".join(f"{a} {b} {c}\n" for a, b, c in S.ring_lights(count, (15, 55))))
     return path
+
+
+@pytest.mark.parametrize(
+    ("options", "words"),
+    [
+        (["--intrinsics", "500", "500", "1e308", "0"], ["--intrinsics", "principal point"]),
+        (["--focal", "1e-300"], ["--focal", "outside"]),
+        (["--focal", "1e300"], ["--focal", "outside"]),
+        (["--intrinsics", "1e-300", "1e-300", "48", "40"], ["--intrinsics", "outside"]),
+        (["--intrinsics", "500", "1e300", "48", "40"], ["--intrinsics", "FY"]),
+    ],
+)
+@pytest.mark.parametrize("command", ["directions", "intensities"])
+def test_finite_but_absurd_camera_options_write_nothing(
+    command: str, options: list[str], words: list[str], chrome: Path, tmp_path: Path, capfd
+) -> None:
+    """``--intrinsics 500 500 1e308 0`` and ``--focal 1e-300`` wrote NaN light directions with
+    exit 0 (issue #27); ``--focal 1e300`` wrote the same direction for every light. The camera
+    is now checked against the images it is used on, and the result before it is written."""
+    lights = tmp_path / "lights.txt"
+    lights.write_text("".join(f"{0.1 * i} 0.2 0.9\n" for i in range(6)))
+    before = _files(tmp_path)
+    extra = ["--lights", str(lights)] if command == "intensities" else []
+    out = tmp_path / "l.txt"
+    assert cli.main([command, str(chrome), "-o", str(out), *extra, *options]) == 2
+    _one_line(capfd, words)
+    assert _files(tmp_path) == before
+
+
+def test_a_result_that_is_not_unit_length_is_never_written(
+    chrome: Path, tmp_path: Path, monkeypatch, capfd
+) -> None:
+    """The last guard: whatever the options checks miss, NaN directions are refused."""
+    from msfnet.calib import directions
+
+    real = directions.estimate_directions
+
+    def nan_light(*args: object, **kwargs: object) -> directions.DirectionResult:
+        res = real(*args, **kwargs)  # type: ignore[arg-type]
+        res.directions[2] = np.nan
+        return res
+
+    monkeypatch.setattr(cli, "estimate_directions", nan_light)
+    before = _files(tmp_path)
+    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "l.txt")]) == 2
+    _one_line(capfd, ["light directions", "[3]"])
+    assert _files(tmp_path) == before
+
+
+def test_sane_perspective_options_still_work(chrome: Path, tmp_path: Path) -> None:
+    for options in (["--focal", "300"], ["--intrinsics", "300", "280", "50", "38"]):
+        out = tmp_path / "l.txt"
+        assert (
+            cli.main(["directions", str(chrome), "-o", str(out), "-q", "--overwrite", *options])
+            == 0
+        )
+        rows = read_vectors(out, "light directions")
+        np.testing.assert_allclose(np.linalg.norm(rows, axis=1), 1.0, atol=1e-5)

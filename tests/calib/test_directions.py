@@ -147,3 +147,21 @@ def test_cli_directions_on_psm(psm_dir, tmp_path, capsys):
     assert cli.main(["directions", str(folder), "-o", str(out)]) == 2  # no silent clobber
     assert "--overwrite" in capsys.readouterr().err
     assert cli.main(["directions", str(tmp_path / "nope"), "-o", str(tmp_path / "x.txt")]) == 2
+
+
+@pytest.mark.parametrize(
+    ("fill", "cause", "not_said"),
+    [(0, "black", "saturated"), (255, "saturated", "too low")],
+)
+def test_a_frame_without_highlight_is_told_why(fill: int, cause: str, not_said: str) -> None:
+    """A saturated chrome image was said to have "exposure too low"; a black one is said to
+    be black."""
+    from msfnet.common.errors import InputError
+
+    scene = S.mirror_scene(120, 120, 40)
+    imgs = render_stack(scene, S.ring_lights(4, seed=1), gain=1.0)
+    imgs[2] = fill
+    circles = [fit_circles_from_mask(S.sphere_masks(scene)[0])]
+    with pytest.raises(InputError, match="image 3") as exc:
+        estimate_directions([imgs], circles)
+    assert cause in str(exc.value) and not_said not in str(exc.value), str(exc.value)

@@ -91,3 +91,43 @@ def test_integer_images_equal_their_float_copy(rng):
             stack.astype(np.float64), lights, normals, valid, white_level=65535.0
         )
         np.testing.assert_array_equal(got, want)
+
+
+def _matte(n: int = 6) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    lights = S.ring_lights(n, (10, 50), seed=2)
+    scene = S.mirror_scene(120, 110, 45, kind="matte")
+    imgs = np.stack(
+        [
+            S.expose(S.render(scene, l_), 0.5, 16, 2.0, np.random.default_rng(i))
+            for i, l_ in enumerate(lights)
+        ]
+    )
+    mask = S.sphere_masks(scene)[0]
+    normals, valid = target_normals(mask.shape, circle=fit_circles_from_mask(mask)[0])
+    return imgs, lights, normals, valid
+
+
+def test_a_black_image_is_not_blamed_on_an_ambient_frame() -> None:
+    """A black image, with no ambient frame at all, was "ambient frame brighter than the lit
+    image?"; now the light is named and the image called black."""
+    import pytest
+
+    from msfnet.common.errors import InputError
+
+    imgs, lights, normals, valid = _matte()
+    imgs[3] = 0
+    with pytest.raises(InputError) as exc:
+        estimate_intensities(imgs, lights, normals, valid)
+    message = str(exc.value)
+    assert "image 4" in message and "black" in message and "ambient" not in message, message
+
+
+def test_a_saturated_target_is_not_called_under_exposed() -> None:
+    import pytest
+
+    from msfnet.common.errors import InputError
+
+    imgs, lights, normals, valid = _matte()
+    imgs[1] = np.iinfo(imgs.dtype).max
+    with pytest.raises(InputError, match=r"image 2: the lit target is saturated .*lower the exp"):
+        estimate_intensities(imgs, lights, normals, valid)

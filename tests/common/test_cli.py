@@ -112,7 +112,8 @@ FAILURES: dict[str, tuple[BaseException, int, str, str]] = {
         "msf-x: error:",
         "Read-only",
     ),
-    "out of memory": (MemoryError(), 2, "msf-x: error: out of memory", "--max-memory"),
+    # msf-x has no --max-memory: the advice must not name one (test below for msf-run's)
+    "out of memory": (MemoryError(), 2, "msf-x: error: out of memory", "smaller inputs"),
     "internal failure": (MsfError("engine failed\ndetails"), 1, "msf-x: error:", "engine failed"),
     "nested json": (
         RecursionError("maximum recursion depth exceeded"),
@@ -436,3 +437,20 @@ def test_commands_needing_torch_parse_their_options_without_it(module: str) -> N
 
     done = run_without_torch(module, ["--help"])
     assert done.returncode == 0 and "usage:" in done.stdout, done.stderr
+
+
+@pytest.mark.parametrize(
+    ("prog", "advice"),
+    [
+        ("msf-run", "lower --max-memory (or --tile)"),
+        ("msf-calib", "close other programs or give smaller inputs"),
+    ],
+)
+def test_out_of_memory_advice_names_only_options_the_command_has(
+    prog: str, advice: str, capfd
+) -> None:
+    """Every command advised "lower --max-memory (or --tile)", options msf-calib, msf-average
+    or msf-synth do not have."""
+    assert run_command(prog, _raise(MemoryError())) == 2
+    line = capfd.readouterr().err.strip()
+    assert line == f"{prog}: error: out of memory; {advice}"

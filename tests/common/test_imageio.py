@@ -45,7 +45,7 @@ def test_a_failed_encode_names_the_final_file(
 ) -> None:
     """Staging names mean nothing to the user: the error names ``name``, and write_png (atomic)
     leaves nothing behind."""
-    monkeypatch.setattr(imageio.cv2, "imwrite", lambda *a, **k: False)
+    monkeypatch.setattr(imageio.cv2, "imencode", lambda *a, **k: (False, None))
     with pytest.raises(InputError, match="cannot write image") as exc:
         encode_png(tmp_path / "staging.png", IMAGES["rgb8"], name=tmp_path / "final.png")
     assert exc.value.path == tmp_path / "final.png"
@@ -112,13 +112,13 @@ def test_other_output_written_while_a_jpeg_decodes_is_not_lost(
     data = jpeg.tobytes()
     path = tmp_path / "bad.jpg"
     path.write_bytes(data[: len(data) // 2] + b"\xff\xd9")
-    decode = cv2.imread
+    decode = cv2.imdecode
 
     def decode_while_someone_writes(*args: object) -> object:
         os.write(2, b"a line from another thread\n")
         return decode(*args)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(imageio.cv2, "imread", decode_while_someone_writes)
+    monkeypatch.setattr(imageio.cv2, "imdecode", decode_while_someone_writes)
     with pytest.raises(InputError, match="corrupt JPEG"):
         read_image(path)
     assert capfd.readouterr().err == "a line from another thread\n"
@@ -128,3 +128,72 @@ def test_hidden_companion_files_are_not_images(tmp_path: Path) -> None:
     for name in ("001.png", "002.png", "._001.png", ".hidden.png"):
         (tmp_path / name).write_bytes(b"x")
     assert [p.name for p in imageio.list_images(tmp_path)] == ["001.png", "002.png"]
+
+
+# -- sizes from headers, before any decoding (issue #27: memory bombs)
+
+
+@pytest.mark.parametrize(
+    ("suffix", "img", "bits"),
+    [
+        (".png", IMAGES["rgb16"], 16),
+        (".png", IMAGES["rgb8"], 8),
+        (".tif", IMAGES["rgb16"], 16),
+        (".tif", IMAGES["grey16"], 16),
+        (".jpg", IMAGES["rgb8"], 8),
+        (".bmp", IMAGES["rgb8"], 8),
+    ],
+)
+def test_image_header_reads_the_size_without_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, suffix: str, img: np.ndarray, bits: int
+) -> None:
+    path = tmp_path / f"a{suffix}"
+    encode_png(path, img)
+    monkeypatch.setattr(imageio.cv2, "imdecode", lambda *a, **k: pytest.fail("decoded"))
+    header = imageio.image_header(path)
+    assert header is not None and (header.height, header.width, header.bits) == (9, 13, bits)
+
+
+def test_image_header_refuses_a_bomb_from_its_ihdr(tmp_path: Path) -> None:
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", 20_000, 20_000, 8, 0, 0, 0, 0)
+    chunk = struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    path = tmp_path / "bomb.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk)  # no image data needed: never decoded
+    with pytest.raises(InputError, match=r"20000x20000 .* above the 250 MP limit"):
+        imageio.image_header(path)
+    with pytest.raises(InputError, match="above the 250 MP limit"):
+        read_image(path)
+
+
+def test_mask_of_another_size_is_refused_from_its_header(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "mask.png"
+    write_png(path, np.full((30, 40), 255, np.uint8))
+    monkeypatch.setattr(imageio.cv2, "imdecode", lambda *a, **k: pytest.fail("decoded"))
+    with pytest.raises(InputError, match="mask is 40x30 but images are 44x36"):
+        imageio.read_mask(path, (36, 44))
+
+
+def test_array_shapes_of_npy_and_mat_files(tmp_path: Path) -> None:
+    scipy_io = pytest.importorskip("scipy.io")
+    np.save(tmp_path / "n.npy", np.zeros((4, 5, 3), np.float32))
+    assert imageio.array_shape(tmp_path / "n.npy") == (4, 5, 3)
+    for compress in (False, True):
+        path = tmp_path / f"n{compress}.mat"
+        scipy_io.savemat(
+            str(path),
+            {"other": np.ones((2, 2)), "Normal_gt": np.zeros((6, 7, 3))},
+            do_compression=compress,
+        )
+        assert imageio.mat_shapes(path) == {"other": (2, 2), "Normal_gt": (6, 7, 3)}
+        assert imageio.array_shape(path) == (6, 7, 3)  # Normal_gt, wherever it is stored
+    damaged = tmp_path / "cut.mat"
+    damaged.write_bytes((tmp_path / "nTrue.mat").read_bytes()[:150])
+    with pytest.raises(InputError, match=r"damaged \.mat file"):
+        imageio.mat_shapes(damaged)
+    (tmp_path / "v4.mat").write_bytes(bytes(200))  # not level 5: no header to read
+    assert imageio.mat_shapes(tmp_path / "v4.mat") is None

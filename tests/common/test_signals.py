@@ -248,3 +248,78 @@ def test_read_only_output_is_refused_before_any_work(
         assert list(parent.iterdir()) == []
     finally:
         parent.chmod(0o755)
+
+
+# ---------------------------------------------------------------------------- Ctrl-C, one line
+
+STARTUP = """
+import os, signal, sys
+sys.argv[0] = "/usr/local/bin/msf-calib"  # what a console script's argv[0] looks like
+import msfnet  # the first msfnet import: Ctrl-C becomes one line from here on
+os.kill(os.getpid(), signal.SIGINT)  # the user presses Ctrl-C while the command still imports
+import msfnet.calib.cli
+print("not reached")
+"""
+
+DOUBLE = """
+import os, signal, sys, time
+sys.argv[0] = "/usr/local/bin/msf-x"
+from msfnet.common.cli import run_command
+from msfnet.common.files import staged_folder
+
+def body():
+    with staged_folder(sys.argv[1]) as tmp:
+        (tmp / "a.txt").write_text("x")
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(30)
+        finally:  # pressed again while the first one unwinds (the staging is being removed)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+    return 0
+
+code = run_command("msf-x", body)
+os.kill(os.getpid(), signal.SIGINT)  # and once more while the program exits
+time.sleep(0.2)
+sys.exit(code)
+"""
+
+
+def _child(code: str, *args: str) -> subprocess.CompletedProcess[str]:
+    # started with Ctrl-C at its default: a background pytest job ignores SIGINT, and children
+    # would inherit that
+    return subprocess.run(
+        [sys.executable, "-c", code, *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
+def test_ctrl_c_while_a_command_starts_is_one_line() -> None:
+    """It printed Python's 22-57 line traceback of the import that was running."""
+    proc = _child(STARTUP)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines() == [
+        "msf-calib: interrupted while starting; nothing was written"
+    ]
+    assert "not reached" not in proc.stdout
+
+
+def test_a_double_ctrl_c_is_one_line_and_the_cleanup_finishes(tmp_path: Path) -> None:
+    """A second Ctrl-C while the first unwound printed a 17-line traceback (and could cut the
+    removal of the staging short)."""
+    proc = _child(DOUBLE, str(tmp_path / "out"))
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines() == ["msf-x: interrupted; nothing was written"]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_python_program_importing_msfnet_keeps_its_own_ctrl_c() -> None:
+    code = (
+        "import signal, sys\n"
+        "import msfnet.common.cli\n"
+        "sys.exit(0 if signal.getsignal(signal.SIGINT) is signal.default_int_handler else 1)\n"
+    )
+    assert _child(code).returncode == 0

@@ -101,6 +101,7 @@ def test_int8_runs_any_light_count_close_to_fp32(quantised):
         assert np.isfinite(out).all()
 
 
+@pytest.mark.slow
 def test_int8_of_the_trained_model_stays_within_half_a_degree(tmp_path, ball_dir):
     """The accuracy bound with real weights and real data: a trained network's activations
     span ~50x between mask boundary and interior, which random weights do not show (the old

@@ -163,6 +163,7 @@ def test_output_inside_a_calibration_folder_is_refused(
     assert list(stack.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_zero_weight_checkpoint_fails_verification(zero_ckpt: Path, tmp_path: Path, capsys) -> None:
     """All-zero weights give (0, 0, 0) normals in PyTorch and ONNX alike: the angle check
     alone passes (atan2(0, 0) = 0), the unit-normal check must not."""
@@ -272,6 +273,7 @@ def _dead_pid() -> int:
     return proc.pid
 
 
+@pytest.mark.slow
 def test_existing_output_and_staging_of_other_runs(he_ckpt: Path, tmp_path: Path, capsys) -> None:
     """Staging a killed export left (a file and an int8 scratch folder) goes with the next
     export to that target; a running export's (a live pid) and other targets' stay. An existing

@@ -76,6 +76,7 @@ def test_staged_and_static_do_not_combine(tmp_path) -> None:
     assert not (tmp_path / "x.onnx").exists()
 
 
+@pytest.mark.slow
 def test_tiled_staged_run_matches_untiled(staged_onnx) -> None:
     stack = sphere_stack(n=6, h=100, w=96, seed=2)
     model = create_session(staged_onnx, threads=2)

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from _runtime_helpers import as_float32, png_stack
 
+pytest.importorskip("torch", reason="needs torch: the [train] extra")
+
 from msfnet.common.errors import InputError
 from msfnet.common.imageio import write_png
 from msfnet.model.data import BlobbySource, find_blobby_samples, load_blobby_sample, make_sample

@@ -1,4 +1,4 @@
-"""The torch network matches architecture.md: names, shapes, fusion, invariances, reference."""
+"""The torch network matches network-spec.md: names, shapes, fusion, invariances, reference."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ torch = pytest.importorskip("torch")
 from msfnet.model.network import MSFNet, count_parameters  # noqa: E402
 from msfnet.model.reference import per_light_forward  # noqa: E402
 
-# (key, shape) straight from the layer table in docs/architecture.md
+# (key, shape) straight from the layer table in docs/network-spec.md
 EXPECTED = {
     "extractor1.conv1.0.weight": (64, 6, 3, 3),
     "extractor1.conv1.0.bias": (64,),

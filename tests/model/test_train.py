@@ -6,15 +6,16 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
-from msfnet.model.data import collate, make_sample, rotate_flip
-from msfnet.model.network import MSFNet, max_over_lights
-from msfnet.model.train import backward_losses, cosine_loss, gradient_loss, stage_losses
-from msfnet.model.train_cli import main as train_main
-from msfnet.runtime.infer.normalise import normalise
-from msfnet.synth import RenderOptions, render_stack
-from msfnet.synth.shapes import sphere_normals
+torch = pytest.importorskip("torch", reason="needs torch: the [train] extra")
+
+from msfnet.model.data import collate, make_sample, rotate_flip  # noqa: E402
+from msfnet.model.network import MSFNet, max_over_lights  # noqa: E402
+from msfnet.model.train import backward_losses, cosine_loss, gradient_loss, stage_losses  # noqa: E402
+from msfnet.model.train_cli import main as train_main  # noqa: E402
+from msfnet.runtime.infer.normalise import normalise  # noqa: E402
+from msfnet.synth import RenderOptions, render_stack  # noqa: E402
+from msfnet.synth.shapes import sphere_normals  # noqa: E402
 
 torch.set_num_threads(2)
 
@@ -29,6 +30,7 @@ def _grads(model):
     return {n: (None if p.grad is None else p.grad.clone()) for n, p in model.named_parameters()}
 
 
+@pytest.mark.slow
 def test_middle_loss_sends_no_gradient_into_extractor1():
     torch.manual_seed(0)
     model = MSFNet()
@@ -59,6 +61,7 @@ def test_middle_loss_sends_no_gradient_into_extractor1():
     assert model.extractor1.conv1[0].weight.grad.abs().sum() > 0
 
 
+@pytest.mark.slow
 def test_selective_update_equals_detaching_extractor1_for_the_middle_loss():
     torch.manual_seed(1)
     model = MSFNet().double()
@@ -93,6 +96,7 @@ def test_selective_update_equals_detaching_extractor1_for_the_middle_loss():
     assert model.extractor1.conv1[0].weight.grad.abs().sum() > 0  # shallow + deep reach it
 
 
+@pytest.mark.slow
 def test_ablation_switches_change_the_graph():
     full, no_mff, no_mfe = MSFNet(), MSFNet(mff=False), MSFNet(mfe=False)
     bt = _batch(b=1)
@@ -108,6 +112,7 @@ def test_ablation_switches_change_the_graph():
     assert no_mfe.extractor1.conv1[0].weight.grad.abs().sum() > 0
 
 
+@pytest.mark.slow
 def test_loss_falls_in_a_few_steps():
     torch.manual_seed(0)
     model = MSFNet()
@@ -140,6 +145,7 @@ def test_gradient_loss_scores_smoothed_relief_and_ignores_an_offset():
     assert float(gradient_loss(flat, gt, mask)) == 0.0
 
 
+@pytest.mark.slow
 def test_stage_losses_add_the_weighted_gradient_term():
     torch.manual_seed(0)
     model = MSFNet()
@@ -220,6 +226,7 @@ def test_cli_trains_saves_and_resumes(tmp_path, capsys):
     assert torch.load(out / "last_state.pth", weights_only=True)["step"] == 4
 
 
+@pytest.mark.slow
 def test_cli_starts_from_given_weights(tmp_path):
     from msfnet.model.checkpoint import save_checkpoint
 

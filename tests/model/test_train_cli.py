@@ -129,6 +129,14 @@ REFUSED: dict[str, tuple[Callable[[Path], list[str]], list[str]]] = {
         ],
         ["not found"],
     ),
+    "--resume where --out does not exist": (
+        lambda t: ["--out", str(t / "runs" / "mnie"), "--resume"],
+        ["--resume: nothing to resume", "does not exist", "leave out --resume"],
+    ),
+    "--resume on an empty folder": (
+        lambda t: ["--out", str(_empty(t)), "--resume"],
+        ["--resume: nothing to resume", "is empty"],
+    ),
     "a curriculum beyond --render-lights": (
         lambda t: ["--out", str(t / "r"), "--lights", "32", "--render-lights", "8"],
         ["32 lights", "--render-lights"],
@@ -138,6 +146,11 @@ REFUSED: dict[str, tuple[Callable[[Path], list[str]], list[str]]] = {
         ["--data"],
     ),
 }
+
+
+def _empty(t: Path) -> Path:
+    (t / "run").mkdir()
+    return t / "run"
 
 
 def _damaged(t: Path, content: bytes) -> Path:
@@ -204,3 +217,27 @@ def test_without_torch_an_earlier_run_is_left_alone(tmp_path: Path, mode: str) -
     assert len(lines) == 1 and "needs the Python package 'torch'" in lines[0], lines
     assert done.stdout == ""
     assert _files(out) == before
+
+
+def test_the_run_says_how_long_it_will_take(monkeypatch, capsys) -> None:
+    """The defaults are hours on a small CPU: after the first steps msf-train says how many
+    (from the steps it timed, the first left out), before the user has to find out."""
+    from types import SimpleNamespace
+
+    from msfnet.model import train_cli
+    from msfnet.model.train_config import TrainConfig
+
+    clock = iter([100.0, 130.0, 140.0, 150.0, 160.0, 170.0, 180.0])  # 30 s set-up, then 10 s
+    monkeypatch.setattr(train_cli.time, "perf_counter", lambda: next(clock))
+    trainer = SimpleNamespace(step=0, device=SimpleNamespace(type="cpu"))
+    trainer.train_step = lambda batch: setattr(trainer, "step", trainer.step + 1)
+    cfg = TrainConfig(out="x", epochs=20, steps_per_epoch=300, batch=8)
+    train_cli._announce_duration(trainer, cfg)
+    first = capsys.readouterr().out
+    assert "6,000 steps to go (20 epochs x 300 steps of batch 8)" in first
+    for _ in range(6):
+        trainer.train_step(None)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1, lines  # said once
+    # 10 s a step for the 5,995 steps left when it spoke (the 30 s set-up step left out)
+    assert "10 s a step on this cpu: about 16.7 h for the remaining 5,995 steps" in lines[0]

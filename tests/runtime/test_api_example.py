@@ -38,12 +38,18 @@ def test_readme_example_runs_verbatim(
         "the pipeline docstring shows another example"
     )
     save_stack(sphere_stack(n=10, h=36, w=44), tmp_path / "obj")
+    for i in range(2):  # the folder of stacks the example streams over
+        save_stack(sphere_stack(n=6, h=24, w=28, seed=i), tmp_path / "stacks" / f"part{i}")
     monkeypatch.chdir(tmp_path)
     before = _files(tmp_path)
     scope: dict[str, object] = {}
     exec(compile(README_EXAMPLE, "README example", "exec"), scope)
     printed = capsys.readouterr().out
     assert "(36, 44, 3)" in printed and "mae_deg=" in printed
+    streamed = [ln for ln in printed.splitlines() if ln.startswith("part")]
+    assert [ln.split(":")[0] for ln in streamed] == ["part0", "part1"]  # one line per stack
+    view = scope["view"]
+    assert view.dtype == np.uint8 and view.shape[2] == 3  # type: ignore[attr-defined]
     written = _files(tmp_path) - before
     assert {"out", "out/obj", "out/obj/normals.npy", "out/obj/metrics.json"} <= written
     assert all(w.startswith("out") for w in written)  # nothing else, nothing in obj/

@@ -37,9 +37,10 @@ def test_demo_main_job_writes_outputs_and_metrics(tmp_path: Path, capsys) -> Non
     printed = capsys.readouterr().out
     assert "MAE" in printed and "least squares on the same stack" in printed
     metrics = json.loads((out / "metrics.json").read_text())
-    # measured 1.61 deg with OpenVINO bf16, 1.58 with ONNX Runtime fp32 (least squares 4.73),
-    # bundled model of 2026-11-23; the tolerance covers engines, not a worse model
-    assert metrics["mae_deg"] == pytest.approx(1.6, abs=0.3)
+    # the default path fuses least squares' detail where the Lambertian fit holds: measured
+    # 0.91 deg with OpenVINO bf16 (the network alone 1.61, ONNX Runtime fp32 1.58; least
+    # squares 4.73), bundled model of 2026-11-23; the tolerance covers engines
+    assert metrics["mae_deg"] == pytest.approx(0.9, abs=0.3)
     assert metrics["pixels"] > 1000 and metrics["invalid"] == 0
     normals = np.load(out / "normals.npy")
     assert normals.shape == (128, 128, 3)
@@ -52,7 +53,8 @@ def test_bundled_model_beats_least_squares_on_held_out_synthetic_objects() -> No
     from msfnet.synth.render import RenderOptions, render_set
 
     model, ls = [], []
-    net, l2 = Model(threads=2), Model.least_squares()
+    # the network alone (the model card's claim), not the default fused path (1.73 here)
+    net, l2 = Model(threads=2, detail_fusion=False), Model.least_squares()
     for stack in render_set(777, 4, RenderOptions(size=64, lights=24)):
         model.append(net(stack).metrics.mae_deg)  # type: ignore[union-attr]
         ls.append(l2(stack).metrics.mae_deg)  # type: ignore[union-attr]
@@ -66,7 +68,14 @@ def test_bundled_model_beats_least_squares_on_held_out_synthetic_objects() -> No
 CROP_MEASURED = {"ballPNG": (2.27, 3.90), "bearPNG": (6.38, 11.32), "harvestPNG": (21.03, 51.66)}
 
 
-@pytest.mark.parametrize("name", sorted(CROP_MEASURED))
+# ball in the default selection; bear and harvest (the same check, slower objects) with -m slow
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(n, marks=[] if n == "ballPNG" else [pytest.mark.slow])
+        for n in sorted(CROP_MEASURED)
+    ],
+)
 def test_bundled_model_beats_least_squares_on_each_validation_object(name: str) -> None:
     from conftest import SHARED_DATA, _require
 

@@ -28,12 +28,13 @@ def _peak_mb(fn) -> tuple[np.ndarray, float]:
 @pytest.mark.parametrize("budget_mb", [2.5, 3.5, 4.5])
 def test_least_squares_stays_within_the_budget(budget_mb: float) -> None:
     """Peak memory beside the loaded stack stays within --max-memory minus the stack (numpy
-    reports its buffers to tracemalloc), and the normals equal the unbanded ones."""
+    reports its buffers to tracemalloc; nothing else held: in_use_mb=0), and the normals equal
+    the unbanded ones. The whole process is measured in tests/hostile/test_memory.py."""
     stack = sphere_stack(n=24, h=120, w=160)
     stack_mb = stack.images.nbytes / 2**20  # 5.3 MB
     free, unbounded_peak = _peak_mb(lambda: least_squares_normals(stack))
     banded, peak = _peak_mb(
-        lambda: least_squares_normals(stack, max_memory_mb=stack_mb + budget_mb)
+        lambda: least_squares_normals(stack, max_memory_mb=stack_mb + budget_mb, in_use_mb=0)
     )
     out_mb = banded.nbytes / 2**20
     assert peak <= budget_mb + out_mb, (peak, budget_mb)
@@ -45,7 +46,7 @@ def test_least_squares_stays_within_the_budget(budget_mb: float) -> None:
 def test_least_squares_refuses_a_budget_below_the_stack(value: float) -> None:
     stack = sphere_stack(n=24, h=120, w=160)
     with pytest.raises(InputError, match=rf"--max-memory {value:g} MB .* least squares"):
-        rows_for_memory(value, stack)
+        rows_for_memory(value, stack, in_use_mb=0)
 
 
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), 0.0, -1.0])
@@ -63,7 +64,7 @@ def test_folder_loader_refuses_before_decoding(tmp_path: Path, monkeypatch) -> N
     monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
     with pytest.raises(InputError, match=r"8 images of 160x120 take 0.88 MB.*--max-memory 0.5 MB"):
         load_stack(folder, LoadOptions(max_memory_mb=0.5))
-    assert len(decoded) == 1  # only the first, for its size
+    assert decoded == []  # refused from the headers alone
     assert load_stack(folder, LoadOptions(max_memory_mb=0.5, select="1-3")).num_lights == 3
 
 
@@ -88,4 +89,4 @@ def test_msf_run_passes_its_budget_to_the_loader(tmp_path: Path, monkeypatch, ca
     assert (
         main(["--method", "l2", str(folder), "-o", str(tmp_path / "o"), "--max-memory", "0.5"]) == 2
     )  # the 16-bit stack takes 0.88 MB
-    assert len(decoded) == 1, "every image was decoded before the budget was checked"
+    assert decoded == [], "an image was decoded before the budget was checked"

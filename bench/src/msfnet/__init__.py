@@ -21,22 +21,35 @@ from typing import TYPE_CHECKING
 # ``msfnet`` folders of all of them (an installed wheel has just one).
 __path__ = extend_path(__path__, __name__)
 
-__version__ = "0.2.0"
+# An msf-* command's first import: from here on, Ctrl-C while it is still loading (numpy,
+# OpenCV, ONNX Runtime take a second or more) is one line, not a traceback. Standard library
+# only, and a no-op in any other program.
+from msfnet.common.signals import guard_startup as _guard_startup
+
+_guard_startup()
 
 if TYPE_CHECKING:
-    from msfnet.runtime.api import Model, Result
-    from msfnet.runtime.stack import LoadOptions, Stack, load_stack
+    __version__: str
+    from msfnet.runtime.api import Model, Result, load_stack
+    from msfnet.runtime.stack import LoadOptions, Stack
 
 __all__ = ["LoadOptions", "Model", "Result", "Stack", "__version__", "load_stack"]
 
 
 def __getattr__(name: str) -> object:
-    # Lazy, so that `import msfnet.model` (training workers) does not load onnxruntime.
-    if name in ("Model", "Result"):
+    # Lazy, so that `import msfnet.model` (training workers) does not load onnxruntime, and
+    # `from msfnet import Model` does not read package metadata (importlib.metadata: ~0.05 s).
+    if name == "__version__":
+        # written once, in pyproject.toml; read from the install's metadata ("0+unknown"
+        # without one)
+        from msfnet.common.version import installed_version
+
+        return installed_version()
+    if name in ("Model", "Result", "load_stack"):  # load_stack: errors in the API's words
         from msfnet.runtime import api as pipeline
 
         return getattr(pipeline, name)
-    if name in ("LoadOptions", "Stack", "load_stack"):
+    if name in ("LoadOptions", "Stack"):
         from msfnet.runtime import stack
 
         return getattr(stack, name)

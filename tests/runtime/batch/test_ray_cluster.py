@@ -17,7 +17,9 @@ from msfnet.runtime.stack import LoadOptions, save_stack
 
 
 def test_a_worker_builds_the_engine_and_precision_asked_for(random_onnx: Path) -> None:
-    spec = ModelSpec.of(ModelOptions(random_onnx, engine="onnxruntime", precision="fp32", threads=1))
+    spec = ModelSpec.of(
+        ModelOptions(random_onnx, engine="onnxruntime", precision="fp32", threads=1)
+    )
     described = StackWorker(spec).model.describe()
     assert described["engine"] == "onnxruntime" and described["precision"] == "fp32"
 
@@ -43,7 +45,7 @@ def test_a_worker_reports_a_bad_stack_as_text(random_onnx: Path, tmp_path: Path)
 def test_least_squares_refuses_engine_options_before_any_work(options: dict[str, str]) -> None:
     with pytest.raises(InputError, match="--method l2 has no network"):
         ModelSpec.of(ModelOptions(method="l2", **options))
-    with pytest.raises(InputError, match="--method l2 has no network"):
+    with pytest.raises(InputError, match="method='l2' has no network"):  # the API's words
         Model(method="l2", **options)
 
 

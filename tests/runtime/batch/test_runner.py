@@ -24,6 +24,7 @@ def _stacks(root: Path, count: int = 3) -> list[Path]:
     ]
 
 
+@pytest.mark.slow
 def test_batch_equals_single_runs_and_writes_a_summary(
     random_onnx: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -52,6 +53,7 @@ def test_batch_equals_single_runs_and_writes_a_summary(
     assert profile["batch"]["prefetched"] is True and profile["stages"]["load"]["median_s"] > 0
 
 
+@pytest.mark.slow
 def test_folder_of_stacks_and_objects_txt(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -201,6 +203,7 @@ def _bench_root(root: Path) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_benchmark_selection_is_printed_recorded_and_overridable(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -28,6 +28,7 @@ def _json_objects(text: str) -> list[dict]:
     return out
 
 
+@pytest.mark.slow
 def test_auto_mask_roi_and_downscale_flags(tmp_path: Path) -> None:
     stack = sphere_stack(n=8, h=48, w=64)
     # a folder without a usable mask (all ones), the object on a black background

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -65,9 +66,22 @@ def test_msf_eval_table(random_onnx: Path, bench_root: Path, tmp_path: Path, cap
             assert (out / obj / f"{m}_error.png").is_file()
             assert (out / obj / f"{m}_normals.png").is_file()
     assert rows["objB"]["results"]["msf"]["mae_deg"] > rows["objB"]["results"]["l2"]["mae_deg"]
+    # where the numbers came from: results.md's head and results.json (issue #28)
     md = (out / "results.md").read_text()
-    assert md.startswith("| object | lights | MAE msf | MAE l2 |")
-    assert "**mean**" in md and md == capsys.readouterr().out.split("wrote")[0].rstrip() + "\n"
+    head, table = md.split("\n\n", 1)
+    sha = hashlib.sha256(random_onnx.read_bytes()).hexdigest()[:12]
+    assert f"- model: `{random_onnx.name} (sha256 {sha})`" in head
+    prov = res["provenance"]
+    assert f"- engine: `{prov['engine']} {prov['precision']}`" in head
+    assert f"- command: `msf-eval {bench_root} --onnx {random_onnx} -o {out}" in head
+    assert prov["model_sha256"] == sha and prov["input"].endswith("objA")
+    assert table.startswith("| object | lights | MAE msf | MAE l2 |")
+    seen = capsys.readouterr()
+    assert "**mean**" in table and table == seen.out.split("wrote")[0].rstrip() + "\n"
+    # a line per object as it is done, in a pipe too (pytest's stderr is no terminal)
+    done = [ln for ln in seen.err.splitlines() if ln.startswith("msf-eval: [")]
+    assert [ln.split(":")[1] for ln in done] == [" [1/2] objB", " [2/2] objA"], seen.err
+    assert all(" lights, msf " in ln and ", l2 " in ln for ln in done), done
     # refuses to overwrite without --overwrite
     assert main([str(bench_root), "--l2-only", "-o", str(out)]) == 2
     assert main([str(bench_root), "--l2-only", "-o", str(out), "--overwrite"]) == 0

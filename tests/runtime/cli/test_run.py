@@ -33,6 +33,7 @@ def _check_outputs(out: Path, shape: tuple[int, int], with_gt: bool) -> dict:
     return profile
 
 
+@pytest.mark.slow
 def test_l2_on_ball_matches_published(ball_dir: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "ball_l2"
     assert main(["--method", "l2", str(ball_dir), "-o", str(out), "--repeat", "2"]) == 0
@@ -130,6 +131,16 @@ def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
         "mesh.ply",
         "maps.json",
         "report.html",
+        # pixel-registered data and views (results.maps.registered)
+        "local_shape.png",
+        "normals.tif",
+        "gradient_p.tif",
+        "gradient_q.tif",
+        "height.tif",
+        "local_shape.tif",
+        "curvature.tif",
+        "gaussian_curvature.tif",
+        "albedo.tif",
     }
     assert l2.maps is not None and l2.maps.height is not None
     height = np.load(tmp_path / "l2" / "height.npy")

@@ -1,4 +1,5 @@
-"""choose_engine on faked CPUs and installed-engine sets (no model is run here)."""
+"""choose_engine and resolve_device on faked CPUs, installed-engine sets and device lists (no
+model is run here, except where a test says so)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,8 @@ from msfnet.runtime.engines.dispatch import (
 
 ZEN3 = CpuInfo.from_flags(["avx2", "fma"], model="AMD EPYC 7B13", cores=2)
 ZEN5 = CpuInfo.from_flags(["avx2", "avx512f", "avx512_vnni", "avx512_bf16"], model="Zen 5")
+SKYLAKE = CpuInfo.from_flags(["avx2", "avx512f"], model="Xeon (AVX-512, no bf16)")
+ARM = CpuInfo.from_flags(["neon", "asimd", "sve"], model="Cortex-A78", vendor="ARM")
 AMX = CpuInfo.from_flags(
     [
         "avx2",
@@ -50,15 +53,20 @@ INT8, INT8_STAGED = info("int8-qdq"), info("int8-qdq", staged=True)
 @pytest.mark.parametrize(
     ("cpu", "installed", "model", "engine", "precision"),
     [
-        # fp32 models: bf16 through OpenVINO only with native bf16 and OpenVINO installed
-        (ZEN3, BOTH, FP32, "onnxruntime", "fp32"),
+        # fp32 models: bf16 through OpenVINO only with native bf16 and OpenVINO installed;
+        # else OpenVINO fp32 on the classes where it was measured faster (AVX2-only, AMX)
+        (ZEN3, BOTH, FP32, "openvino", "fp32"),
+        (SKYLAKE, BOTH, FP32, "onnxruntime", "fp32"),  # not measured there
+        (ARM, BOTH, FP32, "onnxruntime", "fp32"),
+        (ARM, BOTH, FP32_STAGED, "onnxruntime", "fp32"),
         (ZEN3, ORT, FP32, "onnxruntime", "fp32"),
         (ZEN5, BOTH, FP32, "openvino", "bf16"),
         (ZEN5, ORT, FP32, "onnxruntime", "fp32"),
         (AMX, BOTH, FP32, "openvino", "bf16"),
         (AMX, BOTH, FP16W, "openvino", "bf16"),
         (AMX, BOTH, FP32_STAGED, "openvino", "bf16"),
-        (ZEN3, BOTH, FP32_STAGED, "onnxruntime", "fp32"),
+        (ZEN3, BOTH, FP32_STAGED, "openvino", "fp32"),
+        (ZEN3, ORT, FP32_STAGED, "onnxruntime", "fp32"),
         (AMX, ORT, FP32_STAGED, "onnxruntime", "fp32"),
         # int8 models run int8, through ONNX Runtime by default, with or without VNNI
         (ZEN3, BOTH, INT8, "onnxruntime", "int8"),
@@ -75,6 +83,8 @@ def test_defaults(cpu, installed, model, engine, precision) -> None:
 
 def test_reasons_say_why() -> None:
     assert "no native bf16" in choose_engine(FP32, ZEN3, BOTH).reason
+    assert "1.36x ONNX Runtime fp32" in choose_engine(FP32, ZEN3, BOTH).reason
+    assert "not measured faster" in choose_engine(FP32, ARM, BOTH).reason
     assert "not installed" in choose_engine(FP32, AMX, ORT).reason
     assert "AMX" in choose_engine(FP32, AMX, BOTH).reason
     assert "avx512_bf16" in choose_engine(FP32, ZEN5, BOTH).reason
@@ -88,7 +98,9 @@ def test_reasons_say_why() -> None:
         (ZEN3, FP32, "openvino", None, "openvino", "fp32"),  # OpenVINO without bf16 hardware
         (AMX, FP32, "ov", None, "openvino", "bf16"),  # alias
         (AMX, FP32, "ort", None, "onnxruntime", "fp32"),  # --engine ort keeps fp32
-        (AMX, FP32, None, "fp32", "onnxruntime", "fp32"),
+        (AMX, FP32, None, "fp32", "openvino", "fp32"),  # fp32 on the faster fp32 engine
+        (ARM, FP32, None, "fp32", "onnxruntime", "fp32"),
+        (ZEN3, FP32, "ort", "fp32", "onnxruntime", "fp32"),
         (AMX, FP32, "openvino", "fp32", "openvino", "fp32"),
         (ZEN5, FP32_STAGED, None, "bf16", "openvino", "bf16"),
         (ZEN3, INT8, "openvino", None, "openvino", "int8"),
@@ -127,7 +139,7 @@ def test_a_precision_outside_the_bound_is_no_default(monkeypatch: pytest.MonkeyP
     )
     assert not default_allowed("openvino", "bf16", False)
     choice = choose_engine(FP32, AMX, BOTH)
-    assert (choice.engine, choice.precision) == ("onnxruntime", "fp32")
+    assert (choice.engine, choice.precision) == ("openvino", "fp32")
     assert "accuracy bound" in choice.reason
     # ... but still run bf16 when asked, and the staged graph keeps its own measurement
     assert choose_engine(FP32, AMX, BOTH, None, "bf16").precision == "bf16"
@@ -146,7 +158,7 @@ def test_measurements_back_every_default() -> None:
 def test_choose_from_a_path_reads_metadata(tmp_path: Path) -> None:
     from msfnet.runtime.api import default_model_path
 
-    choice = choose_engine(default_model_path(), ZEN3, BOTH)
+    choice = choose_engine(default_model_path(), ARM, BOTH)
     assert (choice.engine, choice.precision, choice.model) == (
         "onnxruntime",
         "fp32",
@@ -155,7 +167,7 @@ def test_choose_from_a_path_reads_metadata(tmp_path: Path) -> None:
     bogus = tmp_path / "x.onnx"
     bogus.write_bytes(b"not onnx")
     with pytest.raises(InputError, match="cannot load"):
-        choose_engine(bogus, ZEN3, BOTH)
+        choose_engine(bogus, ARM, BOTH)
 
 
 def test_open_engine_needs_a_model() -> None:
@@ -172,3 +184,140 @@ def test_engine_override_reason_points_at_the_faster_path() -> None:
     # every int8 path of the current bundled model is above the bound (dispatch.MEASURED)
     assert "above the 0.5 deg bound" in choose_engine(INT8_STAGED, AMX, BOTH, "openvino").reason
     assert "above" not in choose_engine(FP32, AMX, BOTH).reason  # the bf16 default is within
+
+
+def test_a_precision_outside_the_bound_falls_to_fp32_on_the_faster_engine(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # bf16 out of bound on AMX: fp32 then, on OpenVINO (measured faster there) ...
+    monkeypatch.setitem(
+        MEASURED, ("openvino", "bf16", False), Measured({32: (0.6, 3.0), 96: (0.4, 2.0)})
+    )
+    assert choose_engine(FP32, AMX, BOTH).engine == "openvino"
+    # ... and on ONNX Runtime where no speed-up was measured for the class
+    monkeypatch.setitem(dispatch.OV_FP32_SPEEDUP, "amx", 0.9)
+    assert choose_engine(FP32, AMX, BOTH).engine == "onnxruntime"
+
+
+@pytest.mark.parametrize(
+    ("cpu", "klass"),
+    [(ZEN3, "avx2"), (ZEN5, "avx512-bf16"), (SKYLAKE, "avx512"), (AMX, "amx"), (ARM, "other")],
+)
+def test_cpu_classes(cpu, klass) -> None:
+    assert dispatch.cpu_class(cpu) == klass
+    assert dispatch.ov_fp32_preferred(cpu) == (klass in ("avx2", "amx"))
+
+
+CUDA_ORT = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+CPU_ORT = ["CPUExecutionProvider"]
+
+
+@pytest.mark.parametrize(
+    ("name", "providers", "ov", "engine", "target"),
+    [
+        ("cuda", CUDA_ORT, ["CPU"], "onnxruntime", "CUDAExecutionProvider"),
+        ("TensorRT", CUDA_ORT, [], "onnxruntime", "TensorrtExecutionProvider"),
+        ("gpu", CPU_ORT, ["CPU", "GPU"], "openvino", "GPU"),
+        ("gpu", CPU_ORT, ["CPU", "GPU.0", "GPU.1"], "openvino", "GPU"),
+        ("gpu.1", CPU_ORT, ["CPU", "GPU.0", "GPU.1"], "openvino", "GPU.1"),
+        ("npu", CPU_ORT, ["CPU", "NPU"], "openvino", "NPU"),
+    ],
+)
+def test_devices_resolve_to_their_engine(name, providers, ov, engine, target) -> None:
+    device = dispatch.resolve_device(name, providers, ov)
+    assert device is not None
+    assert (device.engine, device.target) == (engine, target)
+    choice = choose_engine(FP32_STAGED, AMX, BOTH, device=device)
+    # the device's engine, the model's precision (no bf16 off the CPU), said in the reason
+    assert (choice.engine, choice.precision, choice.device) == (engine, "fp32", device)
+    assert f"--device {device.name}" in choice.reason
+    assert choose_engine(INT8, AMX, BOTH, device=device).precision == "int8"
+
+
+def test_cpu_is_no_device() -> None:
+    assert dispatch.resolve_device(None, [], []) is None
+    assert dispatch.resolve_device("CPU", [], []) is None
+
+
+@pytest.mark.parametrize(
+    ("name", "providers", "ov", "message"),
+    [
+        ("cuda", CPU_ORT, ["CPU"], "ONNX Runtime has no CUDAExecutionProvider here"),
+        ("tensorrt", CPU_ORT, ["CPU"], "onnxruntime-gpu built with TensorRT"),
+        ("gpu", CPU_ORT, ["CPU"], "OpenVINO sees no GPU here .devices: CPU."),
+        ("gpu.2", CPU_ORT, ["CPU", "GPU.0", "GPU.1"], "no GPU.2 here"),
+        ("npu", CPU_ORT, [], "none, or OpenVINO is not installed"),
+        ("tpu", CPU_ORT, [], "expected one of cpu, cuda, tensorrt, gpu, npu"),
+        ("cuda.1", CUDA_ORT, [], "expected one of"),
+    ],
+)
+def test_absent_devices_are_one_line_refusals(name, providers, ov, message) -> None:
+    with pytest.raises(InputError, match=message) as err:
+        dispatch.resolve_device(name, providers, ov)
+    assert "\n" not in str(err.value)
+
+
+def test_device_conflicts_are_errors() -> None:
+    cuda = dispatch.Device("cuda", "onnxruntime", "CUDAExecutionProvider")
+    gpu = dispatch.Device("gpu", "openvino", "GPU")
+    with pytest.raises(InputError, match="runs on onnxruntime, not --engine openvino"):
+        choose_engine(FP32, AMX, BOTH, "openvino", device=cuda)
+    with pytest.raises(InputError, match="bf16 is a CPU path"):
+        choose_engine(FP32, AMX, BOTH, None, "bf16", device=gpu)
+    with pytest.raises(InputError, match="openvino is not installed"):
+        choose_engine(FP32, AMX, ORT, device=gpu)
+
+
+def test_this_machine_refuses_absent_devices_in_one_line() -> None:
+    # no GPU or NPU here (CI, this machine): the real availability query says so in one line;
+    # where one is present the device resolves instead
+    for name in ("cuda", "tensorrt", "gpu", "npu"):
+        try:
+            device = dispatch.resolve_device(name)
+        except InputError as exc:
+            assert "\n" not in str(exc) and f"--device {name}" in str(exc)
+        else:
+            assert device is not None and device.name == name
+
+
+def test_open_chosen_falls_back_to_ort_only_for_defaults(monkeypatch: pytest.MonkeyPatch) -> None:
+    from msfnet.runtime.api import default_model_path
+
+    def broken(*args, **kwargs):
+        raise InputError("OpenVINO cannot compile this model for CPU (RuntimeError: test)")
+
+    monkeypatch.setattr("msfnet.runtime.engines.openvino.open_openvino", broken)
+    choice = choose_engine(default_model_path(), ZEN3, BOTH)
+    assert choice.engine == "openvino"
+    engine, reason = dispatch.open_chosen(choice, 1)
+    assert engine.name == "onnxruntime" and engine.precision == "fp32"
+    assert reason.startswith("onnxruntime fp32: fallback, OpenVINO failed")
+    with pytest.raises(InputError, match="cannot compile"):
+        dispatch.open_chosen(choice, 1, requested=True)
+
+
+@pytest.mark.filterwarnings("ignore:Specified provider")
+def test_a_gpu_provider_that_cannot_start_is_no_silent_cpu_run(monkeypatch, tmp_path) -> None:
+    # an onnxruntime build that lists CUDA but cannot start it (no driver): ONNX Runtime itself
+    # would carry on on the CPU; msfnet refuses in one line
+    from _runtime_helpers import tiny_msfnet_onnx
+
+    from msfnet.runtime.engines import ort_session
+
+    listed = [*ort_session.ort.get_available_providers(), "CUDAExecutionProvider"]
+    monkeypatch.setattr(ort_session.ort, "get_available_providers", lambda: listed)
+    device = dispatch.resolve_device("cuda")
+    assert device is not None
+    model = tiny_msfnet_onnx(tmp_path / "tiny.onnx")
+    choice = choose_engine(model, AMX, BOTH, device=device)
+    with pytest.raises(InputError, match="CUDAExecutionProvider is built in but could not start"):
+        open_engine(choice, 1)
+
+
+def test_a_mixed_precision_int8_export_is_said_to_be_within_the_bound() -> None:
+    mixed = ModelInfo(
+        Path("m.onnx"), 32, 4, None, "int8-qdq", {"msfnet.variant": "int8-mixed"}, staged=False
+    )
+    reason = choose_engine(mixed, AMX, BOTH).reason
+    assert "mixed precision" in reason and "within the bound" in reason and "above" not in reason
+    assert "above the 0.5 deg bound" in choose_engine(INT8, AMX, BOTH).reason

@@ -124,7 +124,7 @@ def test_model_info_is_read_without_a_session(tmp_path: Path) -> None:
 
 def test_openvino_missing_is_a_clean_error(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "openvino", None)  # makes `import openvino` fail
-    with pytest.raises(InputError, match=r"msfnet\[openvino\]"):
+    with pytest.raises(InputError, match="pip install openvino"):
         open_engine(EngineChoice("openvino", "fp32", "test", default_model_path()))
 
 
@@ -251,11 +251,12 @@ def _path(engine: str, precision: str, model: str, lights: int = 32, slow: bool 
 
 
 PATHS = [
-    _path("onnxruntime", "fp32", "fp32_staged"),
+    # fp32_staged is exported from the checkpoint first (an export and its verification): slow
+    _path("onnxruntime", "fp32", "fp32_staged", slow=True),
     _path("openvino", "fp32", "fp32"),
-    _path("openvino", "fp32", "fp32_staged"),
+    _path("openvino", "fp32", "fp32_staged", slow=True),
     _path("openvino", "bf16", "fp32"),
-    _path("openvino", "bf16", "fp32_staged"),
+    _path("openvino", "bf16", "fp32_staged", slow=True),
     _path("openvino", "bf16", "fp32", lights=96),
     _path("openvino", "bf16", "fp32_staged", lights=96),
     _path("onnxruntime", "int8", "int8", slow=True),

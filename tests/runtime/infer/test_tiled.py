@@ -37,7 +37,8 @@ def _assert_same_normals(model, held: Stack, tile: int | None) -> None:
     assert np.all(got[~m] == 0)
 
 
-@pytest.mark.parametrize("bits", [8, 16])
+# 16-bit (the real data's depth) by default, 8-bit (the same check) with -m slow
+@pytest.mark.parametrize("bits", [pytest.param(8, marks=pytest.mark.slow), 16])
 def test_network_normals_of_an_integer_stack(bundled, tmp_path: Path, bits: int) -> None:
     held = load_stack(png_stack(tmp_path / "s", bits, n=8, h=60, w=70))
     assert held.images.dtype == (np.uint8 if bits == 8 else np.uint16)

@@ -17,7 +17,7 @@ from msfnet.runtime.stack import load_stack
 
 
 def test_flop_counts_match_layer_table() -> None:
-    # hand count from architecture.md: extractor1 125,568 + 2 x (stage 208,896 + f_x 2,304)
+    # hand count from network-spec.md: extractor1 125,568 + 2 x (stage 208,896 + f_x 2,304)
     assert flops.MACS_PER_LIGHT_PIXEL == 547_968
     assert flops.MACS_PER_PIXEL == 84_320  # regressor 79,712 + two f_y 2,304
     assert flops.inference_flops(96, 100) == pytest.approx(2 * 100 * (96 * 547_968 + 84_320))

@@ -26,7 +26,8 @@ import numpy as np
 
 from msfnet.bench.data import data_root
 from msfnet.bench.workloads import Workload, make_input
-from msfnet.common.cli import command_main, make_parser, positive_int
+from msfnet.common.cli import command_main, make_parser, positive_int, thread_count
+from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
 from msfnet.runtime.engines import installed_engines
 from msfnet.runtime.engines.dispatch import open_engine
@@ -71,6 +72,21 @@ def _timed(
     return out, statistics.median(times) if times else float("nan")
 
 
+def unsupported(path: EnginePath, model: Path, cpu: CpuInfo) -> str | None:
+    """Why ``cpu`` cannot run ``path`` as labelled (None if it can): bf16 without native bf16
+    (OpenVINO would compute fp32 and refuses), full-range int8 weights in ONNX Runtime without
+    VNNI (saturated: wrong numbers, refused by the engine)."""
+    if path.precision == "bf16" and not cpu.has_bf16:
+        return "no native bf16 on this CPU"
+    if path.engine == "onnxruntime" and path.precision == "int8" and not cpu.int8_full_range:
+        from msfnet.runtime.engines.base import read_model_file
+        from msfnet.runtime.engines.onnxruntime import quantised_full_range
+
+        if quantised_full_range(read_model_file(model)):
+            return "full-range int8 weights saturate in ONNX Runtime without VNNI"
+    return None
+
+
 def _to_stderr(line: str) -> None:
     print(line, file=sys.stderr)
 
@@ -84,15 +100,19 @@ def measure(
     repeats: int = 1,
     paths: tuple[EnginePath, ...] = PATHS,
     log: Callable[[str], object] | None = None,
+    cpu: CpuInfo | None = None,
 ) -> list[dict[str, object]]:
     """Rows of (lights, path, mean/max deg vs ORT fp32, median s, x ORT fp32).
 
     ``models``: model key (fp32, fp32_staged, int8, int8_staged) -> ONNX file; ``fp32`` is the
-    reference, and paths whose engine is not installed or whose file is missing are left out.
-    ``log``: a line per measured path (default: stderr)."""
+    reference, and paths whose engine is not installed or whose file is missing are left out,
+    as are paths this CPU (``cpu``, default this machine's) cannot run as labelled (a line says
+    which and why: the others are still measured).
+    ``log``: a line per measured or skipped path (default: stderr)."""
     emit = log or _to_stderr
     from msfnet.runtime.engines.dispatch import EngineChoice
 
+    cpu = cpu or detect_cpu()
     have = installed_engines()
     rows: list[dict[str, object]] = []
     for n in lights:
@@ -117,6 +137,10 @@ def measure(
         for p in paths:
             model = models.get(p.model)
             if p.engine not in have or model is None or not Path(model).is_file():
+                continue
+            why = unsupported(p, Path(model), cpu)
+            if why is not None:
+                emit(f"{n} lights {p.label}: skipped ({why})")
                 continue
             engine = open_engine(EngineChoice(p.engine, p.precision, "measurement", model), threads)
             out, secs = _timed(engine, images, lights_, repeats)
@@ -180,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="light counts, comma-separated (default 32,96)",
     )
     p.add_argument("--size", type=positive_int, default=128, help="crop edge, px (default 128)")
-    p.add_argument("--threads", type=positive_int, default=2, help="threads (default 2)")
+    p.add_argument("--threads", type=thread_count, default=2, help="threads (default 2)")
     p.add_argument(
         "--repeats",
         type=positive_int,
@@ -234,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     return command_main(PROG, build_parser(), _run, argv)
 
 
-__all__ = ["PATHS", "EnginePath", "measure", "model_files", "table"]
+__all__ = ["PATHS", "EnginePath", "measure", "model_files", "table", "unsupported"]
 
 if __name__ == "__main__":
     sys.exit(main())

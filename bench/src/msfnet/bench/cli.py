@@ -42,7 +42,14 @@ from msfnet.bench.workloads import (
 from msfnet.common.cli import make_parser, positive_float, positive_int, run_command
 from msfnet.common.cpu import detect_cpu
 from msfnet.common.errors import InputError
-from msfnet.common.files import check_output, scratch_folder, staged_folder, writing_as
+from msfnet.common.files import (
+    check_output,
+    scratch_folder,
+    staged_folder,
+    write_json,
+    write_text,
+    writing_as,
+)
 from msfnet.runtime.engines import installed_engines
 from msfnet.runtime.engines.dispatch import choose_engine
 from msfnet.runtime.evaluate.metrics import deviation_deg, normal_metrics
@@ -156,6 +163,30 @@ run, never cached between runs, so a report always measures the models it holds.
         help="msf-run --max-memory for workload (d), MB (default: msf-run's own)",
     )
     p.add_argument("--no-e2e", action="store_true", help="skip workload (d)")
+    edge = p.add_argument_group(
+        "torch-free modes (run on an edge install; each writes REPORT.md and report.json)"
+    )
+    edge.add_argument(
+        "--onnx",
+        type=Path,
+        default=None,
+        metavar="MODEL",
+        help="benchmark this msfnet ONNX file on every engine, precision and device this "
+        "machine offers: format | status | size | MAE | ms | peak MB (no torch needed); with "
+        "--ladder / --requirements: the model those measure (default: the bundled model)",
+    )
+    edge.add_argument(
+        "--ladder",
+        action="store_true",
+        help="the speed ladder (msf-run --speed): time, peak memory, MAE on the DiLiGenT "
+        "validation objects at 12 lights and detail ratio, per rung",
+    )
+    edge.add_argument(
+        "--requirements",
+        action="store_true",
+        help="time and peak memory by image size x light count x engine (default engine and "
+        "ONNX Runtime fp32), whole stacks through the runtime; with --quick a small grid",
+    )
     p.add_argument(
         "--overwrite",
         action="store_true",
@@ -271,7 +302,7 @@ def plan_run(args: argparse.Namespace) -> Plan:
     engines = installed_engines()
     for v in [v for v in variants if v in OPENVINO_VARIANTS]:
         if "openvino" not in engines:
-            notes.append(f"{v} skipped: openvino not installed (pip install 'msfnet[openvino]')")
+            notes.append(f"{v} skipped: openvino not installed (pip install openvino)")
             variants.remove(v)
         elif v in BF16_VARIANTS and not detect_cpu().has_bf16:
             notes.append(f"{v} skipped: this CPU has no native bf16 (OpenVINO would run fp32)")
@@ -579,12 +610,77 @@ def published(result: dict, work: Path, final: Path) -> dict:
     return {k: rebase(v) for k, v in result.items()}
 
 
+def _edge_mode(args: argparse.Namespace) -> bool:
+    return args.onnx is not None or args.ladder or args.requirements
+
+
+def _run_edge(args: argparse.Namespace) -> int:
+    """--onnx / --ladder / --requirements: torch-free, inputs checked first, one report folder
+    (REPORT.md, report.json) written as a whole."""
+    from msfnet.bench import edge, ladder
+    from msfnet.runtime.api import default_model_path
+    from msfnet.runtime.engines import read_model_file
+
+    model = args.onnx or default_model_path()
+    read_model_file(model)  # an unreadable or foreign file is one line before any work
+    root = data_root(args.data)
+    stack = args.stack or root / STACK_IN_DATA
+    for name, _ in edge.VALIDATION:
+        if not (root / "DiLiGenT" / name).is_dir():
+            raise InputError("validation object not found (DiLiGenT)", root / "DiLiGenT" / name)
+    check_output(
+        args.report_dir,
+        [model, root, stack],
+        overwrite=args.overwrite,
+        folder=True,
+        command="msf-bench",
+    )
+    threads = max(args.threads)
+    result: dict = {
+        "date": time.strftime("%Y-%m-%d %H:%M %Z"),
+        "machine": machine_description(),
+        "model": str(model),
+        "threads": threads,
+    }
+    sections = []
+    final = args.report_dir
+    with staged_folder(final, overwrite=args.overwrite) as work, scratch_folder(final) as scratch:
+        if args.onnx is not None and not (args.ladder or args.requirements):
+            _say(args, f"measuring {model.name} on every engine and device here ...")
+            rows = edge.onnx_rows(model, root, threads, scratch)
+            result["onnx"] = [edge.asdict(r) for r in rows]
+            sections.append(("Engines and devices", edge.edge_table(rows)))
+        if args.ladder:
+            _say(args, "measuring the speed ladder (each rung in a fresh process) ...")
+            rungs = ladder.ladder_rows(model, root, threads=threads, scratch=scratch)
+            result["ladder"] = [ladder.asdict(r) for r in rungs]
+            sections.append(("Speed ladder (--speed)", ladder.ladder_table(rungs)))
+        if args.requirements:
+            _say(args, "measuring the requirements grid (each cell in a fresh process) ...")
+            reqs = edge.requirement_rows(model, stack, threads, scratch, quick=args.quick)
+            result["requirements"] = [edge.asdict(r) for r in reqs]
+            sections.append(("Requirements", edge.requirements_table(reqs)))
+        m = result["machine"]
+        head = (
+            f"# msf-bench, {result['date']}\n\nCPU: {m['cpu']} ({m['cores']} cores); "
+            f"{threads} threads; onnxruntime {m['onnxruntime']}, openvino {m['openvino']}; "
+            f"model {model.name}\n"
+        )
+        text = head + "".join(f"\n## {t}\n\n{body}\n" for t, body in sections)
+        write_text(work / "REPORT.md", text)
+        write_json(work / "report.json", result)
+    if not args.quiet:
+        print("\n\n".join(body for _, body in sections))
+        print(f"wrote {final / 'REPORT.md'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
 
     def body() -> int:
         with writing_as("msf-bench"):  # the report's manifest names its writer
-            return _run(args)
+            return _run_edge(args) if _edge_mode(args) else _run(args)
 
     return run_command("msf-bench", body, debug=args.debug)
 

@@ -1,7 +1,7 @@
 """Where the benchmark's real data lives, for an installed package as much as for a checkout.
 
-The old default was computed from this file's place in the repository, which points into
-site-packages once installed. Order: the explicit ``--data``, then ``$MSFNET_DATA``, then
+Never derived from this file's place in the repository, which points into site-packages once
+installed. Order: the explicit ``--data``, then ``$MSFNET_DATA``, then
 ``./shared/data`` and ``../shared/data`` relative to the current directory.
 """
 

@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from msfnet.common.cpu import CpuInfo, check_threads, detect_cpu
+
 MIN_SECONDS = 0.15
 MAX_SIZE = 4096
 
@@ -84,6 +86,8 @@ def matmul_peak_gflops(
     """torch: median GFLOP/s of square matmuls in ``dtype`` ('fp32' or 'bf16') at ``threads``."""
     import torch
 
+    check_threads(threads)
+
     torch.set_num_threads(threads)
     tdtype = {"fp32": torch.float32, "bf16": torch.bfloat16}[dtype]
     gen = torch.Generator().manual_seed(0)
@@ -96,25 +100,36 @@ def matmul_peak_gflops(
     return _result("torch", dtype, threads, *_grow_and_time(make, min_seconds, max_size, repeats))
 
 
-def matmul_onnx(n: int, dtype: str) -> bytes:
+def int8_weight_limit(cpu: CpuInfo | None = None) -> int:
+    """The largest |weight| of the int8 graphs: 127 where ONNX Runtime's u8 x s8 kernels are
+    exact with full-range weights (VNNI), else 63 (7 bits, as reduce_range quantises: the
+    16-bit pair sums of the AVX2 kernels cannot saturate, 255 * 64 * 2 < 32768). The speed is
+    the same; the products stay right, so a peak is never timed on wrong arithmetic."""
+    cpu = cpu or detect_cpu()
+    return 127 if cpu.int8_full_range else 63
+
+
+def matmul_onnx(n: int, dtype: str, cpu: CpuInfo | None = None) -> bytes:
     """A one-node ONNX graph Y = A @ B with B a constant (like conv weights, pre-packed by the
     engine): fp32 MatMul, 'int8' MatMulInteger (A uint8, B int8), or 'qdq' (fp32 A quantised
-    and dequantised, int8 B dequantised, then MatMul: the pattern QDQ exports use)."""
+    and dequantised, int8 B dequantised, then MatMul: the pattern QDQ exports use). int8
+    weights lie within :func:`int8_weight_limit` for ``cpu`` (default: this one)."""
     from onnx import TensorProto, helper, numpy_helper
 
     rng = np.random.default_rng(0)
+    top = int8_weight_limit(cpu) if dtype in ("int8", "qdq") else 127
     f32 = TensorProto.FLOAT
     if dtype == "fp32":
         inits = [numpy_helper.from_array(rng.standard_normal((n, n)).astype(np.float32), "B")]
         nodes = [helper.make_node("MatMul", ["A", "B"], ["Y"])]
         a_type, y_type = f32, f32
     elif dtype == "int8":
-        inits = [numpy_helper.from_array(rng.integers(-127, 128, (n, n), dtype=np.int8), "B")]
+        inits = [numpy_helper.from_array(rng.integers(-top, top + 1, (n, n), dtype=np.int8), "B")]
         nodes = [helper.make_node("MatMulInteger", ["A", "B"], ["Y"])]
         a_type, y_type = TensorProto.UINT8, TensorProto.INT32
     elif dtype == "qdq":
         inits = [
-            numpy_helper.from_array(rng.integers(-127, 128, (n, n), dtype=np.int8), "Bq"),
+            numpy_helper.from_array(rng.integers(-top, top + 1, (n, n), dtype=np.int8), "Bq"),
             numpy_helper.from_array(np.array(0.01, np.float32), "b_scale"),
             numpy_helper.from_array(np.array(0, np.int8), "b_zero"),
             numpy_helper.from_array(np.array(0.02, np.float32), "a_scale"),
@@ -158,6 +173,8 @@ def ort_matmul_peak(
     """ONNX Runtime CPU: GFLOP/s (fp32) or GOP/s (int8, MatMulInteger) of its own GEMM."""
     import onnxruntime as ort
 
+    check_threads(threads)
+
     def make(n: int) -> Callable[[], object]:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
@@ -181,6 +198,8 @@ def ov_matmul_peak(
 ) -> dict[str, object]:
     """OpenVINO CPU: fp32 / bf16 (the fp32 graph with the bf16 hint) / int8 (QDQ MatMul)."""
     import openvino as ov
+
+    check_threads(threads)
 
     core = ov.Core()
     hint = "bf16" if dtype == "bf16" else "f32"
@@ -210,6 +229,8 @@ def engine_peaks(
     threads: list[int], engines: set[str], torch_peaks: bool = True
 ) -> list[dict[str, object]]:
     """Every (engine, precision) peak at every thread count, in this process."""
+    for t in threads:  # all refused before the first measurement, not after minutes of them
+        check_threads(t)
     out: list[dict[str, object]] = []
     for t in threads:
         if torch_peaks:
@@ -236,6 +257,7 @@ def merge_peaks(*runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 __all__ = [
     "engine_peaks",
+    "int8_weight_limit",
     "matmul_onnx",
     "matmul_peak_gflops",
     "merge_peaks",

@@ -161,11 +161,12 @@ PATH_VARIANT = {
     (engine, precision, "staged" if v.endswith("-staged") else "monolithic"): v
     for v, (engine, precision) in ENGINE_OF_VARIANT.items()
 }
-FULL_STACK_X, FULL_STACK_MIB = 60.0, 1536.0  # issue #12: >= 60x per-light, <= 1.5 GiB
+# the full-stack targets (docs/benchmark.md): >= 60x the per-light loop, <= 1.5 GiB
+FULL_STACK_X, FULL_STACK_MIB = 60.0, 1536.0
 
 
 def targets(result: dict) -> list[str]:
-    """The speed targets of issue #12, each with its measured figure and met / not met."""
+    """The speed targets (docs/benchmark.md), each with its measured figure and met / not met."""
     rows, out = result["rows"], []
     t = max(r["threads"] for r in rows) if rows else 2
     runs = {r["variant"]: r for r in result.get("e2e") or []}

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -35,7 +36,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.common.errors import InputError
-from msfnet.common.files import vectors_text, write_atomic
+from msfnet.common.files import folder_lock, vectors_text, write_atomic
 from msfnet.common.imageio import list_images, read_image, read_mask, write_png
 from msfnet.runtime.stack import (
     FILENAMES_FILE,
@@ -122,9 +123,12 @@ def exposure_check(
     """Share of saturated pixels and the bright end (99.5th percentile) of the frame."""
     g = frame.max(axis=-1) if frame.ndim == 3 else frame
     vals = g[mask] if mask is not None else g.ravel()
-    sat = float(np.mean(vals >= 0.99 * white_level))
+    at_white = vals >= 0.99 * white_level
+    sat = float(np.mean(at_white))
     p = float(np.percentile(vals, 99.5)) / white_level
-    return Exposure(sat, p, sat > max_saturated, p < min_level)
+    # A frame that reaches the white level anywhere (a chrome sphere's highlight) is not
+    # under-exposed, however dark the rest: more exposure would only clip more.
+    return Exposure(sat, p, sat > max_saturated, p < min_level and not at_white.any())
 
 
 def _name(i: int) -> str:
@@ -145,9 +149,17 @@ def read_session(path: Path) -> dict:
         raise InputError(
             f"session file is damaged ({type(exc).__name__}); delete it to start over", path
         ) from exc
-    if not isinstance(data, dict) or not isinstance(data.get("count", 0), int):
+    if not isinstance(data, dict):
         raise InputError(
             "session file is not an msf-capture session; delete it to start over", path
+        )
+    count = data.get("count")
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        # (a missing count read as "existing session has None lights")
+        raise InputError(
+            f"session file records no light count (count: {json.dumps(count)}); it is damaged "
+            "or not msf-capture's: delete it to start over",
+            path,
         )
     return data
 
@@ -157,16 +169,29 @@ def read_session(path: Path) -> dict:
 _BUILT_KEYS = ("linearisation", "ambient_subtracted", "stack_white_level")
 
 
-def _load_session(path: Path, count: int, camera: dict) -> dict:
+def _instead(overwrite_allowed: bool) -> str:
+    """What to do instead, naming --overwrite only where the caller has it (msf-capture
+    --loop refuses it)."""
+    return "use another folder or --overwrite" if overwrite_allowed else "use another folder"
+
+
+def _load_session(path: Path, count: int, camera: dict, overwrite_allowed: bool = True) -> dict:
     """The session to continue (a new one when there is none), refused when it was taken with
     another light count or other camera settings."""
     if not path.is_file():
         return {"count": count, "frames": {}}
     data = read_session(path)
+    if data.get("discarding"):
+        raise InputError(
+            "an earlier --overwrite was interrupted while discarding this session: run it with "
+            "--overwrite again to start over"
+            + ("" if overwrite_allowed else ", or use another folder"),
+            path,
+        )
     if data.get("count") != count:
         raise InputError(
             f"existing session has {data.get('count')} lights, this one {count} "
-            "(use another folder or --overwrite)",
+            f"({_instead(overwrite_allowed)})",
             path,
         )
     recorded = data.get("camera")
@@ -188,7 +213,7 @@ def _load_session(path: Path, count: int, camera: dict) -> dict:
 
             raise InputError(
                 f"existing session was taken with {show(recorded)}, this one with "
-                f"{show(now)} (use another folder or --overwrite)",
+                f"{show(now)} ({_instead(overwrite_allowed)})",
                 path,
             )
     return data
@@ -208,43 +233,83 @@ _STACK_FILES = (
 
 
 def _discard(out: Path) -> None:
-    """``overwrite``: remove the previous session, and only what msf-capture wrote (frame
-    names in raw/; the stack files where session.json says the folder is msf-capture's), so
-    that nothing of it is read with the new frames.
+    """``overwrite``: remove the previous session, and only what msf-capture wrote (the
+    session's own frame names in raw/, its stack images, the stack files), so that nothing of
+    it is read with the new frames.
 
-    The order makes a kill midway harmless: while the stack goes (filenames.txt first), the
-    old session is intact and a plain re-run rebuilds its stack from its frames; once
-    session.json is gone, left-over frames are refused as foreign (check_folder) until
-    --overwrite, so they are never counted in a new session.
+    session.json is first marked as being discarded and removed last: a kill midway leaves a
+    folder that a plain re-run refuses (no old frame is resumed into a new session) and that
+    --overwrite, still seeing msf-capture's session, finishes discarding.
     """
     sess = out / SESSION
-    if sess.is_file():
-        for name in _STACK_FILES:
-            (out / name).unlink(missing_ok=True)
-        for p in out.iterdir():
-            if _STACK_IMAGE.match(p.name) and p.is_file():
-                p.unlink()
-        sess.unlink()
+    if not sess.is_file():
+        return  # nothing of msf-capture's here (check_folder made sure none of its names are)
+    count = _session_count(sess)
+    if count is not None:
+        text = json.dumps({"count": count, "discarding": True}, indent=1, sort_keys=True)
+        write_atomic(sess, lambda t: t.write_text(text))
+    own = {_name(i) for i in range(count)} | {"ambient.png"} if count else None
+
+    def ours(p: Path, pattern: re.Pattern[str]) -> bool:
+        # the session's own frame names; by pattern only when its count is unreadable
+        return bool(pattern.match(p.name)) and (own is None or p.name in own)
+
+    for name in _STACK_FILES:
+        (out / name).unlink(missing_ok=True)
+    for p in out.iterdir():
+        if ours(p, _STACK_IMAGE) and p.is_file() and not p.is_symlink():
+            p.unlink()
     raw = out / "raw"
     if raw.is_dir():
         for p in raw.iterdir():
-            if _FRAME.match(p.name) and p.is_file():
+            if ours(p, _FRAME) and p.is_file() and not p.is_symlink():
                 p.unlink()
+    sess.unlink()
 
 
-def check_folder(out: Path, overwrite: bool) -> None:
+def _session_count(path: Path) -> int | None:
+    try:
+        return int(read_session(path)["count"])
+    except InputError:
+        return None
+
+
+def _capture_names(out: Path) -> list[Path]:
+    """What lies in ``out`` under a name msf-capture writes (frames in raw/, stack images,
+    the stack's other files)."""
+    raw = out / "raw"
+    found = [p for p in (out / n for n in _STACK_FILES) if os.path.lexists(p)]
+    found += sorted(p for p in out.iterdir() if _STACK_IMAGE.match(p.name))
+    if raw.is_dir():
+        found += sorted(p for p in raw.iterdir() if _FRAME.match(p.name))
+    return found
+
+
+def check_folder(out: Path, overwrite: bool, overwrite_allowed: bool = True) -> None:
     """Refuse a folder holding images msf-capture did not take (no session.json): its files
-    could be mistaken for frames or written over."""
-    if overwrite or not out.is_dir() or (out / SESSION).is_file():
+    could be mistaken for frames or written over. ``overwrite`` captures into it anyway, but
+    never over a file of the user's: one under a name msf-capture writes (001.png,
+    light_directions.txt, raw/001.png ...) is refused even then."""
+    if not out.is_dir() or (out / SESSION).is_file():
+        return
+    if overwrite:
+        clash = _capture_names(out)
+        if clash:
+            raise InputError(
+                f"--overwrite: {clash[0].relative_to(out)} is not msf-capture's (the folder "
+                "has no session.json) and would be replaced; msf-capture replaces only what it "
+                "captured: move it away or use another folder",
+                out,
+            )
         return
     raw = out / "raw"
     theirs = list_images(out) + (list_images(raw) if raw.is_dir() else [])
     if theirs or (out / FILENAMES_FILE).exists():
         example = theirs[0].name if theirs else FILENAMES_FILE
+        how = ", or --overwrite to capture into it anyway" if overwrite_allowed else ""
         raise InputError(
             f"the folder holds images msf-capture did not take (e.g. {example}, "
-            "and no session.json): use another folder, or --overwrite to capture "
-            "into it anyway",
+            f"and no session.json): use another folder{how}",
             out,
         )
 
@@ -322,6 +387,7 @@ def capture_stack(
     log: Log = print,
     linearisation: Linearisation | None = None,
     normals_gt: np.ndarray | None = None,
+    overwrite_allowed: bool = True,
 ) -> Path:
     """Capture one frame per light (plus an ambient frame) into ``out_dir``; return it.
 
@@ -334,16 +400,63 @@ def capture_stack(
     capture for ``msf-calib directions``); the folder is then not yet a stack.
     ``linearisation``: the camera's encoding, undone when the stack is built (recorded in
     session.json). ``progress``: False hides the bar; otherwise it shows on a terminal only.
-    ``normals_gt``: known normals (simulated scenes).
+    ``normals_gt``: known normals (simulated scenes). ``overwrite_allowed=False``: messages
+    do not advise --overwrite (msf-capture --loop has none).
+
+    The folder is held for the whole session (:func:`folder_lock`): a second capture into it
+    is refused at once instead of both reporting success with one's frames gone.
     """
     out = Path(out_dir)
+    with folder_lock(out, "msf-capture"):
+        return _capture(
+            camera,
+            lights,
+            out,
+            light_directions=light_directions,
+            light_intensities=light_intensities,
+            mask=mask,
+            ambient=ambient,
+            subtract_ambient=subtract_ambient,
+            overwrite=overwrite,
+            max_saturated=max_saturated,
+            min_level=min_level,
+            strict=strict,
+            progress=progress,
+            log=log,
+            linearisation=linearisation,
+            normals_gt=normals_gt,
+            overwrite_allowed=overwrite_allowed,
+        )
+
+
+def _capture(
+    camera: Any,
+    lights: Any,
+    out: Path,
+    *,
+    light_directions: np.ndarray | str | Path | None,
+    light_intensities: np.ndarray | str | Path | None,
+    mask: np.ndarray | str | Path | None,
+    ambient: bool,
+    subtract_ambient: bool,
+    overwrite: bool,
+    max_saturated: float,
+    min_level: float,
+    strict: bool,
+    progress: bool | None,
+    log: Log,
+    linearisation: Linearisation | None,
+    normals_gt: np.ndarray | None,
+    overwrite_allowed: bool,
+) -> Path:
+    """:func:`capture_stack`'s work, with the folder held."""
     raw = out / "raw"
     n = int(lights.count)
     if n < 1:
         raise InputError("the light back-end reports no lights")
     lin = linearisation or Linearisation()
     # everything given is checked before the first frame
-    check_folder(out, overwrite)
+    check_folder(out, overwrite, overwrite_allowed)
     dirs = check_vectors(light_directions, n, "light directions")
     ints = check_vectors(light_intensities, n, "light intensities")
     mask_arr = check_mask(mask, _frame_shape(camera, raw))
@@ -351,7 +464,7 @@ def capture_stack(
     if overwrite:
         _discard(out)
     sess_path = out / SESSION
-    session = _load_session(sess_path, n, info)
+    session = _load_session(sess_path, n, info, overwrite_allowed)
     todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
     pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
     if not pending and _finished(out, n) and sess_path.is_file():

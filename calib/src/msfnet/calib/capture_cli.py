@@ -22,6 +22,7 @@ from msfnet.common.cli import (
     positive_int,
 )
 from msfnet.common.errors import InputError
+from msfnet.common.files import folder_lock
 
 PROG = "msf-capture"
 EXAMPLES = (
@@ -86,7 +87,9 @@ def add_device_arguments(
         "otherwise manual: an operator prompt per light)",
     )
     g.add_argument("--port", help="serial port of the LED controller, e.g. /dev/ttyUSB0")
-    g.add_argument("--baud", type=positive_int, default=115200)
+    g.add_argument(
+        "--baud", type=positive_int, default=115200, help="serial speed of --port (default 115200)"
+    )
     g.add_argument(
         "--count",
         type=positive_int,
@@ -303,14 +306,18 @@ def run_capture(args: argparse.Namespace, out_dir: Path, overwrite: bool = False
     """Open the devices named by ``args``, capture (or resume) a session into ``out_dir``."""
     cam = lights = None
     log = _logger(args)
-    try:
-        check_folder(out_dir, overwrite)  # before opening devices (an OAK takes seconds)
-        cam, lights, known = _open(args)
-        return capture_stack(cam, lights, out_dir, **_capture_options(args, known, log, overwrite))
-    finally:
-        for dev in (lights, cam):
-            if dev is not None:
-                dev.close()
+    # held from before the devices open (an OAK takes seconds) to the end: a second capture
+    # into the folder is refused at once
+    with folder_lock(out_dir, PROG):
+        try:
+            check_folder(out_dir, overwrite)
+            cam, lights, known = _open(args)
+            options = _capture_options(args, known, log, overwrite)
+            return capture_stack(cam, lights, out_dir, **options)
+        finally:
+            for dev in (lights, cam):
+                if dev is not None:
+                    dev.close()
 
 
 def _logger(args: argparse.Namespace) -> Callable[[str], None]:
@@ -339,7 +346,7 @@ def _run_loop(args: argparse.Namespace, root: Path) -> int:
     cam = lights = None
     try:
         cam, lights, known = _open(args)
-        opts = _capture_options(args, known, log, overwrite=False)
+        opts = {**_capture_options(args, known, log, overwrite=False), "overwrite_allowed": False}
         steps = capture_loop(
             cam,
             lights,

@@ -329,12 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
             "msf-calib directions chrome/ -o light_directions.txt",
             "msf-calib intensities white/ --lights light_directions.txt -o light_intensities.txt",
         ),
-        common=False,
     )
     sub = p.add_subparsers(dest="command", required=True, metavar="{directions,intensities}")
 
     def common(sp: argparse.ArgumentParser) -> None:
-        add_common_flags(sp)
+        add_common_flags(sp, sub_command=True)  # before or after the sub-command's name
         sp.add_argument("-o", "--output", type=Path, required=True, help="output text file")
         sp.add_argument(
             "--mask",
@@ -389,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="diagnostic PNG path (default "
         "<output>_diagnostic.png; with several captures, _1, _2, ... are appended)",
     )
-    d.add_argument("--no-diagnostic", action="store_true")
+    d.add_argument("--no-diagnostic", action="store_true", help="write no diagnostic image")
     common(d)
     d.set_defaults(func=cmd_directions)
 
@@ -404,7 +403,12 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument(
         "--lights", type=Path, required=True, help="light_directions.txt for these images"
     )
-    i.add_argument("--target", choices=("sphere", "plane"), default="sphere")
+    i.add_argument(
+        "--target",
+        choices=("sphere", "plane"),
+        default="sphere",
+        help="the white target's shape (default sphere; plane: see --normal)",
+    )
     i.add_argument(
         "--normal",
         type=finite_float,

@@ -11,7 +11,9 @@ Output frame (DiLiGenT): x right, y up, z toward the camera.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -36,6 +38,7 @@ class LightEstimate:
     confidence: float = 0.0
     sphere: int = 0
     capture: int = 0
+    peak_level: float = float("nan")  # brightest sphere pixel / white level (no highlight: why)
 
 
 @dataclass
@@ -112,7 +115,13 @@ def find_highlight(
     peak = float(g[inside].max())
     snr = (peak - bg) / noise
     if snr < min_snr:
-        return LightEstimate(None, snr=snr)
+        # why there is none: a sphere at the white level is over-exposed, not dark
+        return LightEstimate(
+            None,
+            snr=snr,
+            saturated=float(np.mean(vals >= 0.99 * white_level)),
+            peak_level=peak / white_level,
+        )
     thr = bg + level * (peak - bg)
     count, labels = cv2.connectedComponents(((g > thr) & inside).astype(np.uint8), connectivity=8)
     blob = labels == labels[py, px]
@@ -239,9 +248,137 @@ def estimate_directions(
         raise InputError(
             f"no highlight found for {len(missing)} light(s): "
             f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''} "
-            "(light off, sphere mask wrong, or exposure too low)"
+            f"({_why_none([per_light[names.index(m)] for m in missing])})"
         )
     return DirectionResult(dirs, conf, per_light, spread, warnings)
+
+
+def light_labels(names: list[str]) -> list[str]:
+    """The number each light goes by in its file name (``chrome.0.tga`` -> ``0``, ``007.png``
+    -> ``7``), so the diagnostic, the printout and the files agree; 1-based positions when
+    the names carry no distinct numbers."""
+    found = [re.search(r"(\d+)\D*$", Path(n).stem) for n in names]
+    numbers = [str(int(m.group(1))) for m in found if m]
+    if len(numbers) == len(names) and len(set(numbers)) == len(numbers):
+        return numbers
+    return [str(i + 1) for i in range(len(names))]
+
+
+Box = tuple[int, int, int, int]  # x0, y0, x1, y1 in pixels, exclusive ends
+
+
+def _overlap(a: Box, b: Box) -> int:
+    return max(0, min(a[2], b[2]) - max(a[0], b[0])) * max(0, min(a[3], b[3]) - max(a[1], b[1]))
+
+
+def _clamped(cx: float, cy: float, w: int, h: int, shape: tuple[int, int]) -> Box:
+    """The w x h box centred on (cx, cy), moved inside a picture of ``shape``."""
+    x0 = min(max(round(cx - w / 2), 0), shape[1] - w)
+    y0 = min(max(round(cy - h / 2), 0), shape[0] - h)
+    return x0, y0, x0 + w, y0 + h
+
+
+def place_labels(
+    points: list[tuple[int, int]],
+    sizes: list[tuple[int, int]],
+    shape: tuple[int, int],
+    marker: int = 5,
+) -> list[Box]:
+    """Boxes for text labels of ``sizes`` (w, h) for marks at ``points``, none covering
+    another label or a mark (``marker`` px either way), in a picture of ``shape``.
+
+    A label goes right beside its mark where that spot is free and nearer its own mark than
+    any other (so it cannot be read as another's); otherwise it is called out to a ring
+    around the whole group, at the mark's own bearing where free (the caller draws a leader
+    line). A cluster of highlights on a chrome sphere otherwise stacks its numbers on one
+    another."""
+    if not points:
+        return []
+    pts = np.asarray(points, np.float64)
+    centre = pts.mean(axis=0)
+    spread = float(np.linalg.norm(pts - centre, axis=1).max())
+    markers: list[Box] = [
+        (int(x) - marker, int(y) - marker, int(x) + marker + 1, int(y) + marker + 1)
+        for x, y in points
+    ]
+    placed: list[Box] = []
+
+    def free(box: Box) -> bool:
+        return all(_overlap(box, o) == 0 for o in placed + markers)
+
+    def own(box: Box, i: int) -> bool:
+        mid = np.array([(box[0] + box[2]) / 2, (box[1] + box[3]) / 2])
+        dist = np.linalg.norm(pts - mid, axis=1)
+        return bool(np.all(dist[i] * 1.5 < np.delete(dist, i)))
+
+    def crosses(p: tuple[int, int], box: Box) -> bool:
+        """Whether the leader line from mark p to box runs through a placed label."""
+        near = (min(max(p[0], box[0]), box[2]), min(max(p[1], box[1]), box[3]))
+        steps = np.linspace(0, 1, 24)[:, None]
+        line = np.asarray(p) + steps * (np.asarray(near) - np.asarray(p))
+        return any(
+            (
+                (line[:, 0] > o[0])
+                & (line[:, 0] < o[2])
+                & (line[:, 1] > o[1])
+                & (line[:, 1] < o[3])
+            ).any()
+            for o in placed
+        )
+
+    bearing = np.arctan2(pts[:, 1] - centre[1], pts[:, 0] - centre[0])
+    boxes: list[Box | None] = [None] * len(points)
+    # first every label that fits beside its own mark, then the others called out
+    for i in range(len(points)):
+        (x, y), (w, h) = points[i], sizes[i]
+        away = float(bearing[i]) if spread > 0 else -np.pi / 4
+        for t in np.radians([0, 45, -45, 90, -90, 135, -135, 180]):
+            r = marker + 2 + max(w, h) / 2
+            box = _clamped(x + r * np.cos(away + t), y + r * np.sin(away + t), w, h, shape)
+            if free(box) and own(box, i):
+                placed.append(box)
+                boxes[i] = box
+                break
+    # callouts round the ring in bearing order, so their leader lines do not cross
+    for i in (int(j) for j in np.argsort(bearing) if boxes[j] is None):
+        (w, h), away = sizes[i], float(bearing[i]) if spread > 0 else -np.pi / 4
+        ring = spread + marker + 10 + max(w, h)
+        found: Box | None = None
+        for strict in (True, False):  # a leader line through a label only if nothing else
+            for extra in (0, max(w, h) + 4, 2 * (max(w, h) + 4)):
+                for t in (sign * a for a in np.radians(np.arange(0, 181, 6)) for sign in (1, -1)):
+                    cand = _clamped(
+                        centre[0] + (ring + extra) * np.cos(away + t),
+                        centre[1] + (ring + extra) * np.sin(away + t),
+                        w,
+                        h,
+                        shape,
+                    )
+                    if free(cand) and not (strict and crosses(points[i], cand)):
+                        found = cand
+                        break
+                if found is not None:
+                    break
+            if found is not None:
+                break
+        if found is None:  # nowhere free (a crowded, tiny picture): the preferred spot
+            found = _clamped(
+                centre[0] + ring * np.cos(away), centre[1] + ring * np.sin(away), w, h, shape
+            )
+        placed.append(found)
+        boxes[i] = found
+    return [b for b in boxes if b is not None]
+
+
+def _why_none(failed: list[list[LightEstimate]]) -> str:
+    """The likely cause when lights have no highlight: a saturated sphere was blamed on too
+    low an exposure."""
+    ests = [e for ests in failed for e in ests]
+    if ests and all(e.saturated > 0.5 for e in ests):
+        return "the sphere is saturated in these images: lower the exposure"
+    if ests and all(e.peak_level < 0.02 for e in ests):
+        return "the sphere is black in these images: light off, or exposure far too low"
+    return "light off, sphere mask wrong, or exposure too low"
 
 
 def diagnostic_image(
@@ -249,9 +386,12 @@ def diagnostic_image(
     circles: list[Circle],
     estimates: list[list[LightEstimate]],
     capture: int = 0,
+    labels: list[str] | None = None,
 ) -> np.ndarray:
-    """8-bit RGB: brightest-over-lights image, sphere outlines, numbered highlight marks
-    (green = confident, orange = doubtful, red = rim-clipped or low confidence)."""
+    """8-bit RGB: brightest-over-lights image, sphere outlines, highlight marks labelled with
+    ``labels`` (default: :func:`light_labels` of nothing, 1-based positions) beside them,
+    decluttered, with a leader line where a label had to move away (green = confident,
+    orange = doubtful, red = rim-clipped or low confidence)."""
     g = _grey(np.max(images, axis=0))  # the max is exact as stored: no float64 stack
     lo, hi = np.percentile(g, [1, 99.9])
     base = np.clip((g - lo) / max(hi - lo, 1e-9), 0, 1) ** 0.5 * 255
@@ -260,6 +400,8 @@ def diagnostic_image(
     vis = cv2.resize(vis, None, fx=up, fy=up, interpolation=cv2.INTER_NEAREST)
     sh = 4  # sub-pixel drawing
     one = 1 << sh
+    labels = labels or [str(i + 1) for i in range(len(estimates))]
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.35 * up
 
     def pt(x: float, y: float) -> tuple[int, int]:
         # pixel centre x of the original lands at (x + 0.5) * up - 0.5 after upscaling
@@ -267,6 +409,7 @@ def diagnostic_image(
 
     for c in circles:
         cv2.circle(vis, pt(c.cx, c.cy), round(c.r * up * one), (60, 140, 255), 1, cv2.LINE_AA, sh)
+    marks: list[tuple[tuple[int, int], str, tuple[int, int, int]]] = []
     for i, ests in enumerate(estimates):
         for e in ests:
             if e.capture != capture or e.direction is None:
@@ -275,17 +418,17 @@ def diagnostic_image(
             if e.touches_rim or e.confidence < 0.2:
                 col = (255, 40, 40)
             p = pt(e.x, e.y)
-            cv2.drawMarker(vis, (p[0] >> sh, p[1] >> sh), col, cv2.MARKER_CROSS, 10, 1, cv2.LINE_AA)
-            cv2.putText(
-                vis,
-                str(i + 1),
-                ((p[0] >> sh) + 5, (p[1] >> sh) - 5),
-                cv2.FONT_HERSHEY_SIMPLEX,
-                0.35 * up,
-                col,
-                1,
-                cv2.LINE_AA,
-            )
+            marks.append(((p[0] >> sh, p[1] >> sh), labels[i], col))
+    sizes = [cv2.getTextSize(text, font, scale, 1)[0] for _, text, _ in marks]
+    boxes = place_labels([m[0] for m in marks], [(int(w), int(h)) for w, h in sizes], vis.shape[:2])
+    for (p, text, col), box in zip(marks, boxes, strict=True):
+        cv2.drawMarker(vis, p, col, cv2.MARKER_CROSS, 10, 1, cv2.LINE_AA)
+        near = (min(max(p[0], box[0]), box[2]), min(max(p[1], box[1]), box[3]))
+        if np.hypot(near[0] - p[0], near[1] - p[1]) > 8:  # moved away: say whose it is
+            cv2.line(vis, p, near, col, 1, cv2.LINE_AA)
+        origin = (box[0], box[3] - 1)
+        cv2.putText(vis, text, origin, font, scale, (0, 0, 0), 3, cv2.LINE_AA)  # legible
+        cv2.putText(vis, text, origin, font, scale, col, 1, cv2.LINE_AA)
     return vis
 
 
@@ -296,6 +439,8 @@ __all__ = [
     "diagnostic_image",
     "estimate_directions",
     "find_highlight",
+    "light_labels",
+    "place_labels",
     "reflect",
     "sphere_geometry",
 ]

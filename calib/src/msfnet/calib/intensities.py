@@ -63,31 +63,46 @@ def estimate_intensities(
     if amb is not None and amb.ndim == 2:
         amb = amb[..., None]
     out = np.zeros((n, 3))
+    black = np.zeros(n, bool)  # nothing lit on the target before any ambient subtraction
     warnings = []
     for i in range(n):
         img = np.asarray(imgs[i], np.float64)
         if img.ndim == 2:  # grey: the same value in every channel
             img = np.repeat(img[..., None], 3, axis=2)
         unsat = np.all(img < 0.99 * white_level, axis=-1)
+        s = normals @ (lights[i] / np.linalg.norm(lights[i]))
+        lit = valid & (s > min_shading)
+        use = lit & unsat
+        if use.sum() < 30:
+            if lit.sum() >= 30:  # lit pixels enough, but at the white level: not too dark
+                raise InputError(
+                    f"{names[i]}: the lit target is saturated ({1 - unsat[lit].mean():.0%} "
+                    "of it at the white level): lower the exposure"
+                )
+            raise InputError(
+                f"{names[i]}: fewer than 30 lit target pixels (check the mask and the light "
+                "directions)"
+            )
+        black[i] = float(img[use].max()) < 0.02 * white_level
         if amb is not None:
             img = img - amb
-        s = normals @ (lights[i] / np.linalg.norm(lights[i]))
-        use = valid & unsat & (s > min_shading)
-        if use.sum() < 30:
-            raise InputError(
-                f"{names[i]}: fewer than 30 usable lit, unsaturated target pixels "
-                "(check the mask, the light directions and the exposure)"
-            )
         sat_share = 1.0 - unsat[valid & (s > min_shading)].mean()
         if sat_share > 0.02:
             warnings.append(f"{names[i]}: {sat_share:.0%} of the lit target is saturated")
         sv = s[use]
         out[i] = (img[use] * sv[:, None]).sum(0) / (sv * sv).sum()
-    if np.any(out <= 0):
-        raise InputError(
-            "a light came out with zero or negative intensity (ambient frame "
-            "brighter than the lit image?)"
-        )
+    bad = np.flatnonzero(np.any(out <= 0, axis=1))
+    if len(bad):
+        which = ", ".join(names[i] for i in bad[:6]) + (" ..." if len(bad) > 6 else "")
+        # the cause said only where it is one: a black image was blamed on an ambient frame
+        # that did not exist
+        if np.all(black[bad]):
+            why = "the target is black in these images: light off, or exposure far too low"
+        elif amb is not None:
+            why = "the ambient frame is brighter than these lit images"
+        else:
+            why = "check the light directions for these images"
+        raise InputError(f"zero or negative intensity for {len(bad)} light(s): {which} ({why})")
     return out / out.mean(), warnings
 
 

@@ -9,6 +9,13 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 
+# Focal lengths a camera can have, per pixel of the image's longer side: 0.01 is a ~179 degree
+# field of view; at 10,000 the sphere fit's rays are parallel to float64 precision (measured
+# on a 160 x 128 chrome capture: 1e7 px still matched orthographic to 0.007 deg, 1e8 px was
+# 23 deg off).
+FOCAL_PER_SIDE = (0.01, 1e4)
+PRINCIPAL_REACH = 10  # image sides the principal point may lie outside the image (shift lenses)
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -38,6 +45,39 @@ class Intrinsics:
         if len(vals) != 4:
             raise InputError(f"intrinsics must be (fx, fy, cx, cy), got {len(vals)} values")
         return cls(*vals)
+
+    def check_for(self, shape: tuple[int, int], option: str = "intrinsics") -> None:
+        """Refuse intrinsics that are finite yet absurd for images of ``shape`` (H, W): the
+        rays through the image must come out finite and unit, and the focal lengths must give
+        a field of view between ~179 and ~0.006 degrees (beyond that, perspective cannot be
+        told from orthographic in float64, and the sphere fit returns one direction for every
+        light). ``option`` names what the user gave (``--focal``, ``--intrinsics``)."""
+        h, w = int(shape[0]), int(shape[1])
+        side = max(h, w, 1)
+        lo, hi = side * FOCAL_PER_SIDE[0], side * FOCAL_PER_SIDE[1]
+        for label, f in (("FX", self.fx), ("FY", self.fy)):
+            if not lo <= f <= hi:
+                what = "the focal length" if self.fx == self.fy else f"{label}"
+                raise InputError(
+                    f"{option}: {what} {f:g} px is outside {lo:g}..{hi:g} px for {w}x{h} "
+                    "images (a field of view between ~0.006 and ~179 degrees); give it in "
+                    "pixels, or leave it out for an orthographic camera"
+                )
+        reach = PRINCIPAL_REACH * side
+        if not (-reach <= self.cx <= w + reach and -reach <= self.cy <= h + reach):
+            raise InputError(
+                f"{option}: the principal point ({self.cx:g}, {self.cy:g}) lies more than "
+                f"{PRINCIPAL_REACH} image sides outside the {w}x{h} image"
+            )
+        xs = np.array([0.0, w - 1.0, 0.0, w - 1.0, (w - 1) / 2])
+        ys = np.array([0.0, 0.0, h - 1.0, h - 1.0, (h - 1) / 2])
+        with np.errstate(all="ignore"):
+            rays = self.rays(xs, ys)
+            unit = np.all(np.isfinite(rays)) and np.allclose(
+                np.linalg.norm(rays, axis=-1), 1.0, atol=1e-9
+            )
+        if not unit:
+            raise InputError(f"{option}: the view rays through the image are not finite")
 
     def rays(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Unit rays from the camera through pixels (camera looks down -z)."""

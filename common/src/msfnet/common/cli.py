@@ -18,11 +18,17 @@ import re
 import sys
 import warnings
 from collections.abc import Callable, Mapping, Sequence
+from contextvars import ContextVar
 from typing import Any, NoReturn, TypeVar
 
 from msfnet.common.errors import InputError, MsfError, first_line, one_line
 from msfnet.common.files import forget_written, writing_as, written_outputs
-from msfnet.common.signals import Terminated, install_signal_handlers, restore_signal_handlers
+from msfnet.common.signals import (
+    Terminated,
+    install_signal_handlers,
+    interrupt_once,
+    restore_signal_handlers,
+)
 
 
 def _number(text: str, kind: type) -> float:
@@ -40,6 +46,17 @@ def positive_int(text: str) -> int:
     value = int(_number(text, int))
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
+def thread_count(text: str) -> int:
+    """A --threads value: an integer in 1..MAX_THREADS (common.cpu), the same in every
+    command."""
+    from msfnet.common.cpu import MAX_THREADS
+
+    value = int(_number(text, int))
+    if not 1 <= value <= MAX_THREADS:
+        raise argparse.ArgumentTypeError(f"must lie in 1..{MAX_THREADS}, got {text!r}")
     return value
 
 
@@ -112,8 +129,9 @@ def make_parser(
     """A parser with the flags every command has: --version, -q, --debug (and -v where the
     command has more to say: ``verbose=True``).
 
-    ``common=False``: only --version here; a command with sub-commands gives each of them the
-    other flags with :func:`add_common_flags`, so they can follow the sub-command's name.
+    ``common=False``: only --version here. A command with sub-commands keeps ``common=True``
+    and gives each sub-command the flags again with ``add_common_flags(sp, sub_command=True)``,
+    so they may come before or after the sub-command's name.
     """
     from msfnet.common.version import installed_version
 
@@ -215,32 +233,55 @@ def options_from_args(
     return cls(**{**values, **(overrides or {})})
 
 
-def add_common_flags(p: argparse.ArgumentParser, *, verbose: bool = False) -> None:
-    p.add_argument("-q", "--quiet", action="store_true", help="print errors only")
+def add_common_flags(
+    p: argparse.ArgumentParser, *, verbose: bool = False, sub_command: bool = False
+) -> None:
+    """-q, --debug (and -v). ``sub_command=True`` for a sub-command's parser when the main
+    parser has them too: there they set nothing unless given, because argparse copies a
+    sub-command's defaults over what the main parser read (``msf-calib -q directions`` would
+    otherwise lose its -q)."""
+    unset: dict[str, Any] = {"default": argparse.SUPPRESS} if sub_command else {}
+    p.add_argument("-q", "--quiet", action="store_true", help="print errors only", **unset)
     if verbose:  # only where it changes something: a flag that does nothing would mislead
-        p.add_argument("-v", "--verbose", action="store_true", help="print more detail")
+        p.add_argument("-v", "--verbose", action="store_true", help="print more detail", **unset)
     p.add_argument(
-        "--debug", action="store_true", help="show Python tracebacks instead of one-line errors"
+        "--debug",
+        action="store_true",
+        help="show Python tracebacks instead of one-line errors",
+        **unset,
     )
 
 
-# Optional packages (pyproject.toml's extras) by import name -> the extra that brings them.
+# Optional packages (pyproject.toml's extras) by import name -> the extras that bring them,
+# the one to name when the command has no extra of its own first.
 _EXTRAS = {
-    "torch": "export,train",
-    "onnx": "export",
-    "onnxslim": "export",
-    "openvino": "openvino",
-    "depthai": "camera",
-    "serial": "camera",
-    "ray": "ray",
+    "torch": ("export,train", "export", "train", "bench"),
+    "onnx": ("export", "bench"),
+    "onnxslim": ("export",),
+    "matplotlib": ("train", "bench"),
+    "openvino": ("openvino",),
+    "depthai": ("camera",),
+    "serial": ("camera",),
+    "ray": ("ray",),
+}
+# the extra each torch-side command is installed with (msf-bench needs [bench], not [export])
+_COMMAND_EXTRA = {
+    "msf-bench": "bench",
+    "msf-export": "export",
+    "msf-train": "train",
+    "msf-average": "train",
+    "msf-capture": "camera",
 }
 
 
-def install_hint(module: str) -> str:
-    """How to install the optional package imported as ``module`` (a top-level name)."""
-    extra = _EXTRAS.get(module)
-    if extra is None:
+def install_hint(module: str, prog: str | None = None) -> str:
+    """How to install the optional package imported as ``module`` (a top-level name): the
+    extra of the command ``prog`` where that extra brings the package."""
+    extras = _EXTRAS.get(module)
+    if extras is None:
         return f"pip install {module}"
+    own = _COMMAND_EXTRA.get(prog or "")
+    extra = own if own in extras else extras[0]
     how = f"pip install 'msfnet[{extra}]' (in a checkout: pip install -e '.[{extra}]')"
     if module == "torch":  # PyPI's default torch for Linux is the multi-GB CUDA build
         how = (
@@ -285,12 +326,27 @@ def command_main(
     :func:`run_command` (one-line errors and exit codes), with every output manifest naming
     ``prog`` as its writer."""
     args = parser.parse_args(argv)
+    typed = (prog, *(sys.argv[1:] if argv is None else argv))
 
     def run() -> int:
         with writing_as(prog):
             return body(args)
 
-    return run_command(prog, run, debug=bool(getattr(args, "debug", False)))
+    token = _command.set(typed)
+    try:
+        return run_command(prog, run, debug=bool(getattr(args, "debug", False)))
+    finally:
+        _command.reset(token)
+
+
+# the running command's line, for reports that say how they were made (also when main(argv)
+# is called in-process, where sys.argv is the host's)
+_command: ContextVar[tuple[str, ...] | None] = ContextVar("msfnet_command", default=None)
+
+
+def current_command() -> tuple[str, ...] | None:
+    """(prog, *argv) of the command running in this context, or None outside one."""
+    return _command.get()
 
 
 def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
@@ -298,10 +354,19 @@ def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
     previous = install_signal_handlers()
     forget_written()
     try:
-        return _run_body(prog, body, debug)
+        with interrupt_once():  # a second Ctrl-C never interrupts the cleanup or the line
+            return _run_body(prog, body, debug)
     finally:
         # in-process callers (tests, the Python API) get their own handlers back
         restore_signal_handlers(previous)
+
+
+_MEMORY_ADVICE = {
+    "msf-run": "lower --max-memory (or --tile)",
+    "msf-eval": "lower --max-memory (or --tile)",
+    "msf-inspect": "lower --max-memory (or --tile)",
+    "msf-bench": "lower --max-memory",
+}
 
 
 def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
@@ -326,7 +391,9 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
     except MemoryError:
         if debug:
             raise
-        return fail("error: out of memory; lower --max-memory (or --tile)", 2)
+        # advice only with the options the command has (msf-calib has no --max-memory)
+        advice = _MEMORY_ADVICE.get(prog, "close other programs or give smaller inputs")
+        return fail(f"error: out of memory; {advice}", 2)
     except BrokenPipeError as exc:
         if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
             return fail(f"error: {exc.filename}: {exc.strerror}", 2)
@@ -359,7 +426,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
         if missing:  # an optional part not installed, not a bug of ours
             return fail(
                 f"error: needs the Python package {missing!r}, which is not "
-                f"installed: {install_hint(missing)}",
+                f"installed: {install_hint(missing, prog)}",
                 2,
             )
         return fail(
@@ -375,6 +442,7 @@ __all__ = [
     "add_common_flags",
     "add_flags",
     "command_main",
+    "current_command",
     "finite_float",
     "flag",
     "float_range",
@@ -387,4 +455,5 @@ __all__ = [
     "positive_float",
     "positive_int",
     "run_command",
+    "thread_count",
 ]

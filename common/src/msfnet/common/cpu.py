@@ -4,9 +4,10 @@ Read at run time (the same wheel runs on AVX2-only, AVX-512 + VNNI/bf16 and AMX 
 py-cpuinfo; if that fails (odd platform, sandbox without subprocesses), /proc/cpuinfo on Linux,
 and otherwise a CpuInfo without features, which simply selects the fp32 path everywhere.
 
-py-cpuinfo probes the CPU in a subprocess, about 1.1 s: a fifth of a full-object msf-run. Its
-answer is kept per boot (``~/.cache/msfnet/cpu-<boot id>.json``; the CPU cannot change without
-a reboot, and every new machine or session boots afresh), so later runs skip the probe.
+py-cpuinfo probes the CPU in a subprocess, a noticeable share of a full-object msf-run
+(docs/benchmark.md). Its answer is kept per boot (``~/.cache/msfnet/cpu-<boot id>.json``; the
+CPU cannot change without a reboot, and every new machine or session boots afresh), so later
+runs skip the probe.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ import stat
 from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+
+from msfnet.common.errors import InputError
 
 # The features that matter here, under the names Linux's /proc/cpuinfo uses.
 FEATURES = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "avx_vnni")
@@ -79,6 +82,14 @@ class CpuInfo:
     def has_amx(self) -> bool:
         return self.amx_bf16 or self.amx_int8
 
+    @property
+    def int8_full_range(self) -> bool:
+        """Whether int8 QDQ models with full-range (8-bit) weights compute exactly in ONNX
+        Runtime here. Without VNNI its u8 x s8 kernels add pairs of products in 16 bits
+        (pmaddubsw), which saturate (255 * 127 * 2 > 32767): hundreds of wrong outputs in a
+        32 x 32 matmul. 7-bit weights (quantised with reduce_range) stay exact on every CPU."""
+        return self.has_vnni
+
     def features(self) -> list[str]:
         """The FEATURES this CPU has, in FEATURES order (for reports)."""
         return [name for name in FEATURES if getattr(self, name)]
@@ -93,6 +104,19 @@ class CpuInfo:
     def summary(self) -> str:
         feats = " ".join(self.features()) or "no AVX2/AVX-512/VNNI/bf16/AMX"
         return f"{self.model} ({self.vendor}, {self.cores} cores; {feats})"
+
+
+# The most threads any command starts: ONNX Runtime and OpenVINO create every thread up front,
+# so --threads 100000 exhausts the process's thread limit (or runs for many minutes) before the
+# first result. Far above any core count this toolkit meets.
+MAX_THREADS = 1024
+
+
+def check_threads(threads: int, option: str = "--threads") -> int:
+    """``threads`` if it lies in 1..MAX_THREADS: the one bound of every command and engine."""
+    if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= MAX_THREADS:
+        raise InputError(f"{option} must be an integer in 1..{MAX_THREADS}, got {threads!r}")
+    return threads
 
 
 def usable_cores() -> int:
@@ -193,8 +217,8 @@ def _write_cache(path: Path, info: CpuInfo) -> None:
             {"flags": sorted(info.all_flags), "model": info.model, "vendor": info.vendor},
             output=False,
         )
-    except OSError:  # a read-only home only costs the probe next time
-        pass
+    except (OSError, InputError):  # a read-only home, or a link or pipe at the cache's name:
+        pass  # only costs the probe next time
 
 
 @functools.lru_cache(maxsize=1)
@@ -222,4 +246,12 @@ def detect_cpu() -> CpuInfo:
         )
 
 
-__all__ = ["FEATURES", "CpuInfo", "cache_path", "detect_cpu", "usable_cores"]
+__all__ = [
+    "FEATURES",
+    "MAX_THREADS",
+    "CpuInfo",
+    "cache_path",
+    "check_threads",
+    "detect_cpu",
+    "usable_cores",
+]

@@ -2,11 +2,22 @@
 
 OpenCV keeps 16 bits (Pillow silently drops to 8 for 16-bit RGB PNGs) but returns BGR and cannot
 read TGA; Pillow reads TGA. So: OpenCV first, Pillow for what OpenCV cannot decode.
+
+One path-to-bytes rule: a file is opened by Python (which takes any name the OS gives, even one
+that is not UTF-8) and its bytes are decoded from memory (``cv2.imdecode``, Pillow on a buffer).
+No path is ever handed to a C library: OpenCV's ``imread``/``imwrite`` crash (SIGSEGV) on a
+name holding a byte that is not UTF-8, such as a Latin-1 ``\xe9``.
+
+One size check before decoding: :func:`image_header` reads an image's size (and, where the
+header tells, its sample depth) without decoding it, and :func:`array_shape` does the same for
+``.npy`` and MATLAB ``.mat`` arrays, so a caller can compare every file of a stack with the
+memory budget and with each other before a single pixel is inflated.
 """
 
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import re
 import struct
@@ -14,7 +25,9 @@ import tempfile
 import threading
 import zlib
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -58,17 +71,91 @@ def list_images(folder: Path, exclude: Iterable[str] = ("mask", "normal", "albed
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read an image as H x W x 3 (RGB) or H x W, in its stored dtype (uint8/uint16/float32)."""
-    path = Path(path)
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image file's header says, read without decoding a pixel."""
+
+    width: int
+    height: int
+    bits: int | None  # bits per sample as decoded (8, 16, 32), None where the header is silent
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height, self.width
+
+
+def _check_file(path: Path) -> None:
     if not path.exists():
         raise InputError("image file not found", path)
     if not path.is_file():
         raise InputError("not a regular file (expected an image)", path)
-    png = _check_header(path)
-    img = None if path.suffix.lower() == ".tga" else _read_with_opencv(path, png)
+
+
+def _png_header(head: bytes) -> ImageHeader | None:
+    """Width, height and bit depth from a PNG's IHDR chunk (always the first)."""
+    if len(head) < 26 or head[12:16] != b"IHDR":
+        return None
+    w, h, depth = struct.unpack(">IIB", head[16:25])
+    return ImageHeader(w, h, 16 if depth == 16 else 8)
+
+
+# Pillow modes whose sample depth is certain (others, e.g. 16-bit RGB TIFF, open as "RGB")
+_MODE_BITS = {"I;16": 16, "I;16B": 16, "I;16L": 16, "I;16N": 16, "I": 32, "F": 32}
+
+
+def _pillow_header(f: BinaryIO) -> ImageHeader | None:
+    from PIL import Image
+
+    Image.MAX_IMAGE_PIXELS = None  # our own limit applies, with our own message
+    try:
+        with Image.open(f) as im:
+            w, h = im.size
+            bits = _MODE_BITS.get(im.mode)
+            if bits is None and im.format in ("JPEG", "BMP", "TGA"):
+                bits = 8
+            elif bits is None and im.format == "TIFF":
+                per_sample = im.tag_v2.get(258)  # BitsPerSample
+                if isinstance(per_sample, tuple) and per_sample:
+                    bits = int(max(per_sample))
+                elif isinstance(per_sample, int):
+                    bits = per_sample
+            return ImageHeader(int(w), int(h), bits)
+    except Exception:  # a format Pillow does not know (EXR, float TIFF): no header to read
+        return None
+
+
+def image_header(path: str | Path) -> ImageHeader | None:
+    """The size of an image from its header (no decoding), None where no header reader knows
+    the format; InputError for a missing file or a size above MAX_PIXELS (a decompression
+    bomb: a few KB of PNG can decode to tens of GB)."""
+    path = Path(path)
+    _check_file(path)
+    with open(path, "rb") as f:  # Python opens any name (see the module notes)
+        head = f.read(32)
+        f.seek(0)
+        header = _png_header(head) if head.startswith(b"\x89PNG") else _pillow_header(f)
+    if header is not None and header.pixels > MAX_PIXELS:
+        w, h = header.width, header.height
+        raise InputError(
+            f"image is {w}x{h} ({w * h / 1e6:.0f} MP), above the "
+            f"{MAX_PIXELS / 1e6:.0f} MP limit: refusing to decode it",
+            path,
+        )
+    return header
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read an image as H x W x 3 (RGB) or H x W, in its stored dtype (uint8/uint16/float32)."""
+    path = Path(path)
+    image_header(path)  # size refused before the file is read or decoded
+    data = _checked_bytes(path)
+    img = None if path.suffix.lower() == ".tga" else _decode_with_opencv(data, path)
     if img is None:
-        img = _read_with_pillow(path)
+        img = _decode_with_pillow(data, path)
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[:, :, :3]
     if img.ndim not in (2, 3) or img.size == 0 or (img.ndim == 3 and img.shape[2] != 3):
@@ -76,28 +163,24 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def _check_complete(path: Path) -> bytes | None:
-    """Refuse PNG and JPEG files that stop before their end marker (truncated copies) and PNG
-    files whose chunks fail their CRC (damaged bytes): libpng would print its own line on
-    stderr before failing, or decode damaged rows. Returns a PNG's bytes (read once: checked
-    here, decoded from memory)."""
+def _checked_bytes(path: Path) -> bytes:
+    """The file's bytes, read once by Python. PNG and JPEG files that stop before their end
+    marker (truncated copies) and PNG files whose chunks fail their CRC (damaged bytes) are
+    refused: libpng would print its own line on stderr before failing, or decode damaged rows."""
     with open(path, "rb") as f:
-        head = f.read(8)
-        f.seek(0, 2)
-        size = f.tell()
-        f.seek(max(0, size - 64))
-        tail = f.read()
+        data = f.read()
+    head, tail = data[:8], data[-64:]
     if head.startswith(b"\x89PNG") and _PNG_END not in tail:
         raise InputError("truncated PNG (the file stops before its end marker)", path)
     if head.startswith(b"\xff\xd8") and _JPEG_END not in tail:
         raise InputError("truncated JPEG (the file stops before its end marker)", path)
-    return _checked_png(path) if head.startswith(b"\x89PNG") else None
+    if head.startswith(b"\x89PNG"):
+        _check_png_chunks(data, path)
+    return data
 
 
-def _checked_png(path: Path) -> bytes:
-    """The file's bytes, every chunk's CRC-32 verified (zlib's, at memory speed: a few ms for
-    a 16-bit frame)."""
-    data = path.read_bytes()
+def _check_png_chunks(data: bytes, path: Path) -> None:
+    """Every chunk's CRC-32 verified (zlib's, at memory speed: a few ms for a 16-bit frame)."""
     pos = 8
     while pos + 12 <= len(data):
         length, kind = struct.unpack(">I4s", data[pos : pos + 8])
@@ -109,7 +192,7 @@ def _checked_png(path: Path) -> bytes:
             name = kind.decode("latin-1")
             raise InputError(f"corrupt PNG (chunk {name!r} at byte {pos} fails its checksum)", path)
         if kind == b"IEND":
-            return data
+            return
         pos = end + 4
     raise InputError("corrupt PNG (no IEND chunk where the chunks end)", path)
 
@@ -145,33 +228,11 @@ def _captured_stderr() -> Iterator[list[str]]:
             text.append(sink.read().decode("utf-8", "replace"))
 
 
-def _check_header(path: Path) -> bytes | None:
-    """Read the size from the header (no decoding) and refuse absurd ones; a PNG's bytes
-    come back (see :func:`_check_complete`)."""
-    png = _check_complete(path)
-    try:
-        from PIL import Image
-
-        Image.MAX_IMAGE_PIXELS = None  # we apply our own limit below, with a clear message
-        with Image.open(path) as im:
-            w, h = im.size
-    except Exception:
-        return png  # not a format Pillow knows: OpenCV will decode it (or report the problem)
-    if w * h > MAX_PIXELS:
-        raise InputError(
-            f"image is {w}x{h} ({w * h / 1e6:.0f} MP), above the "
-            f"{MAX_PIXELS / 1e6:.0f} MP limit: refusing to decode it",
-            path,
-        )
-    return png
-
-
-def _read_with_opencv(path: Path, png: bytes | None = None) -> np.ndarray | None:
-    if png is not None:  # already read and checked
-        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
-    elif path.suffix.lower() in (".jpg", ".jpeg"):
+def _decode_with_opencv(data: bytes, path: Path) -> np.ndarray | None:
+    buf = np.frombuffer(data, np.uint8)
+    if data.startswith(b"\xff\xd8"):
         with _captured_stderr() as said:
-            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
         damage: list[str] = []
         other: list[str] = []
         for line in said[0].splitlines():
@@ -183,17 +244,17 @@ def _read_with_opencv(path: Path, png: bytes | None = None) -> np.ndarray | None
         if damage:
             raise InputError(f"corrupt JPEG ({damage[0].strip()})", path)
     else:
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     if img is not None and img.ndim == 3:
         img = img[:, :, 2::-1] if img.shape[2] >= 3 else img  # BGR(A) -> RGB
     return img
 
 
-def _read_with_pillow(path: Path) -> np.ndarray:
+def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
     try:
         from PIL import Image
 
-        with Image.open(path) as im:
+        with Image.open(io.BytesIO(data)) as im:
             im.load()
             if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr"):
                 im = im.convert("RGB")
@@ -204,8 +265,21 @@ def _read_with_pillow(path: Path) -> np.ndarray:
         ) from exc
 
 
+def check_image_size(path: str | Path, shape: tuple[int, int], what: str = "image") -> None:
+    """Refuse, from the header alone, an image whose size is not ``shape`` (H, W): a mask or a
+    ground-truth PNG is compared with the stack before it is decoded."""
+    header = image_header(path)
+    if header is not None and header.shape != tuple(shape):
+        raise InputError(
+            f"{what} is {header.width}x{header.height} but images are {shape[1]}x{shape[0]}",
+            Path(path),
+        )
+
+
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
     """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 of 255."""
+    if shape is not None:
+        check_image_size(path, shape, "mask")
     img = read_image(path)
     if img.ndim == 3:
         img = img.max(axis=2)
@@ -222,17 +296,149 @@ def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndar
     return mask
 
 
+# -- array files: shapes from their headers
+
+
+def npy_header(f: BinaryIO) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and type of the .npy data that ``f`` (positioned at its magic) holds, without
+    reading the data; ValueError for a damaged header."""
+    version = np.lib.format.read_magic(f)
+    read = (
+        np.lib.format.read_array_header_1_0
+        if version == (1, 0)
+        else np.lib.format.read_array_header_2_0
+    )
+    shape, _fortran, dtype = read(f)
+    return tuple(int(d) for d in shape), np.dtype(dtype)
+
+
+# MATLAB level-5 files: a 128-byte header, then tagged elements (miMATRIX = 14, or the same
+# zlib-compressed as miCOMPRESSED = 15) whose first sub-elements are the array flags, the
+# dimensions and the name.
+_MI_INT8, _MI_INT32, _MI_UINT32, _MI_MATRIX, _MI_COMPRESSED = 1, 5, 6, 14, 15
+_MAT_MAX_VARIABLES = 4096
+
+
+def _mat_tag(buf: bytes, pos: int, order: str) -> tuple[int, int, int, int]:
+    """(type, size, data start, next element) of the element tag at ``pos``; the small format
+    packs size and type into one word and the data into the next four bytes."""
+    kind, size = struct.unpack(order + "II", buf[pos : pos + 8])
+    if kind >> 16:
+        return kind & 0xFFFF, kind >> 16, pos + 4, pos + 8
+    return kind, size, pos + 8, pos + 8 + size + (-size % 8)
+
+
+def _mat_matrix_header(buf: bytes, order: str) -> tuple[str, tuple[int, ...]]:
+    """Name and dimensions of the miMATRIX element at the start of ``buf``."""
+    kind, _size, pos, _next = _mat_tag(buf, 0, order)
+    if kind != _MI_MATRIX:
+        raise ValueError("not a matrix element")
+    _flags, _n, _start, nxt = _mat_tag(buf, pos, order)  # array flags
+    kind, size, start, nxt = _mat_tag(buf, nxt, order)
+    if kind != _MI_INT32 or size % 4:
+        raise ValueError("damaged dimensions")
+    dims = struct.unpack(order + f"{size // 4}i", buf[start : start + size])
+    kind, size, start, _next = _mat_tag(buf, nxt, order)
+    name = buf[start : start + size].decode("latin-1") if kind == _MI_INT8 else ""
+    return name, tuple(int(d) for d in dims)
+
+
+def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:
+    """Every variable of a MATLAB v5 .mat file with its dimensions, from the element headers
+    alone: a compressed element is inflated only as far as its header (a few hundred bytes),
+    never its data. None for files that are not v5 (v7.3 is HDF5, which loaders refuse)."""
+    path = Path(path)
+    out: dict[str, tuple[int, ...]] = {}
+    with open(path, "rb") as f:
+        head = f.read(128)
+        if len(head) < 128 or head[126:128] not in (b"IM", b"MI"):
+            return None
+        order = "<" if head[126:128] == b"IM" else ">"
+        (version,) = struct.unpack(order + "H", head[124:126])
+        if version != 0x0100:
+            return None
+        pos = 128
+        size_total = os.fstat(f.fileno()).st_size
+        while pos + 8 <= size_total and len(out) < _MAT_MAX_VARIABLES:
+            f.seek(pos)
+            tag = f.read(8)
+            kind, size, start, nxt = _mat_tag(tag + b"\0" * 8, 0, order)
+            start, nxt = pos + start, pos + nxt
+            if kind not in (_MI_COMPRESSED, _MI_MATRIX):
+                pos = nxt
+                continue
+            try:
+                if kind == _MI_COMPRESSED:
+                    nxt = start + size  # compressed elements are not padded
+                    body = _inflate_head(f, size, 512)
+                else:
+                    body = tag + f.read(min(size, 512))
+                name, dims = _mat_matrix_header(body, order)
+            except (ValueError, struct.error) as exc:
+                raise InputError(f"damaged .mat file ({first_line(exc)})", path) from exc
+            out[name] = dims
+            pos = nxt
+    return out
+
+
+def _inflate_head(f: BinaryIO, size: int, want: int) -> bytes:
+    """The first ``want`` bytes of a zlib stream of ``size`` bytes at ``f``'s position (the
+    decompressor is told the most it may return: a bomb stays a few hundred bytes here)."""
+    inflater = zlib.decompressobj()
+    out = b""
+    left = size
+    while len(out) < want and left > 0:
+        chunk = f.read(min(left, 4096))
+        if not chunk:
+            break
+        left -= len(chunk)
+        try:
+            out += inflater.decompress(chunk, want - len(out))
+        except zlib.error as exc:
+            raise ValueError(f"damaged compressed element ({exc})") from exc
+    return out
+
+
+def array_shape(path: str | Path) -> tuple[int, ...] | None:
+    """The shape a file's array will have once read, from its header alone: images (H, W, 3),
+    ``.npy`` files, and a ``.mat`` file's ``Normal_gt`` (else its first variable); None where no
+    header says. InputError for a damaged header or an image above MAX_PIXELS."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        try:
+            with open(path, "rb") as f:
+                return npy_header(f)[0]
+        except ValueError as exc:
+            raise InputError(f"damaged .npy header ({first_line(exc)})", path) from exc
+    if suffix == ".mat":
+        shapes = mat_shapes(path)
+        if not shapes:
+            return None
+        return shapes.get("Normal_gt", next(iter(shapes.values())))
+    header = image_header(path)
+    return None if header is None else (header.height, header.width, 3)
+
+
 def encode_png(path: str | Path, img: np.ndarray, name: str | Path | None = None) -> None:
     """Encode an RGB (or grey) uint8/uint16 image at ``path``: the one encoder of every PNG
     writer, meant for a staging path (callers make the write atomic). ``name``: the file the
-    error names (the final one, not the staging path); default ``path``. OpenCV picks the
-    format from ``path``'s suffix, so a staging name keeps the target's (``.png``; msf-calib's
-    diagnostic may also be ``.tif``, ``.bmp`` or ``.jpg``)."""
+    error names (the final one, not the staging path); default ``path``. The format comes from
+    ``path``'s suffix, so a staging name keeps the target's (``.png``; msf-calib's diagnostic
+    may also be ``.tif``, ``.bmp`` or ``.jpg``). Encoded in memory, written by Python (see the
+    module notes on names)."""
     arr = np.asarray(img)
     if arr.ndim == 3:
         arr = arr[:, :, ::-1]  # OpenCV writes BGR
-    if not cv2.imwrite(str(path), np.ascontiguousarray(arr)):
+    suffix = Path(path).suffix.lower() or ".png"
+    try:
+        ok, buf = cv2.imencode(suffix, np.ascontiguousarray(arr))
+    except cv2.error:
+        ok = False
+    if not ok:
         raise InputError("cannot write image", path if name is None else name)
+    with open(path, "wb") as f:
+        f.write(buf.tobytes())
 
 
 def write_png(path: str | Path, img: np.ndarray) -> None:

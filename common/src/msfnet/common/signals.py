@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -27,6 +28,81 @@ class Terminated(BaseException):
 
 def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated(signum)
+
+
+class _Command:
+    """Where the command of this process stands, for the SIGINT handlers below."""
+
+    guarded = False  # an msf-* program: guard_startup took Ctrl-C over
+    started = False  # run_command has taken over Ctrl-C
+    done = False  # ... and has finished: it said what happened
+
+
+def _interrupted_at_startup(signum: int, frame: object) -> None:
+    if _Command.done:  # after the command's own last line, exiting: nothing more to say
+        return
+    prog = os.path.basename(sys.argv[0]) or "msfnet"
+    with contextlib.suppress(OSError):  # os.write: print is not safe inside a handler
+        os.write(2, f"{prog}: interrupted while starting; nothing was written\n".encode())
+    os._exit(130)
+
+
+def guard_startup() -> None:
+    """Ctrl-C while an msfnet command is still importing (seconds: numpy, OpenCV, ONNX Runtime)
+    printed Python's 22-57 line traceback: from the first msfnet import of a command's
+    process on, it is one line and exit 130 instead; :func:`interrupt_once` takes over when
+    the command's body starts. Only in the main process of an ``msf-*`` program, and only
+    where Ctrl-C has its default meaning (a background job's ignored SIGINT stays ignored):
+    a Python program importing msfnet keeps its own Ctrl-C."""
+    if not os.path.basename(sys.argv[0] if sys.argv else "").startswith("msf-"):
+        return
+    if threading.current_thread() is not threading.main_thread():
+        return
+    import multiprocessing
+
+    if multiprocessing.parent_process() is not None:  # a worker started by the command
+        return
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        with contextlib.suppress(ValueError):
+            signal.signal(signal.SIGINT, _interrupted_at_startup)
+            _Command.guarded = True
+
+
+@contextmanager
+def interrupt_once() -> Iterator[None]:
+    """Ctrl-C in the block raises KeyboardInterrupt once; another Ctrl-C while that unwinds
+    (removing staging, printing the one line) is ignored, so the cleanup finishes and no
+    second traceback follows (a double Ctrl-C printed 17 lines). An ignored SIGINT stays
+    ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is signal.SIG_IGN:
+        yield
+        return
+    hit = False
+
+    def on_sigint(signum: int, frame: object) -> None:
+        nonlocal hit
+        if hit:
+            return
+        hit = True
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, on_sigint)
+    outermost = not _Command.started
+    _Command.started = True
+    try:
+        yield
+    finally:
+        if outermost:
+            _Command.started, _Command.done = False, True
+        # An msf-* program only exits after its command: a Ctrl-C now would kill it while
+        # Python shuts down (which puts the default handler back), so it is ignored.
+        after = signal.SIG_IGN if outermost and _Command.guarded else previous
+        with contextlib.suppress(ValueError, TypeError):
+            signal.signal(signal.SIGINT, after)  # type: ignore[arg-type]
 
 
 def install_signal_handlers() -> dict[int, object]:
@@ -79,4 +155,11 @@ def signals_deferred() -> Iterator[None]:
                 os.kill(os.getpid(), pending[0])
 
 
-__all__ = ["Terminated", "install_signal_handlers", "restore_signal_handlers", "signals_deferred"]
+__all__ = [
+    "Terminated",
+    "guard_startup",
+    "install_signal_handlers",
+    "interrupt_once",
+    "restore_signal_handlers",
+    "signals_deferred",
+]

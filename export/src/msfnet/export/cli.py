@@ -53,6 +53,15 @@ def _table() -> str:
     return "variants:\n" + "\n".join(rows)
 
 
+EXAMPLES = (
+    "msf-export checkp_30.pth.tar -o msfnet.onnx        # staged fp32, verified, for msf-run",
+    "msf-export model.pth --plain -o plain.onnx         # one graph, for other runtimes",
+    "msf-export model.pth --variant staged-int8 --calib ballPNG cat/ -o int8.onnx",
+    "msf-export model.pth --static 32,512,512 -o oak.onnx   # fixed shapes for NPU compilers",
+    "msf-export --list-variants                         # fp32, fp16, static, staged, int8...",
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = make_parser(
         PROG,
@@ -63,12 +72,13 @@ def build_parser() -> argparse.ArgumentParser:
         "of 4. By default the staged graph (cut at the max-over-lights steps), which msf-run "
         "feeds a few lights at a time: far less memory at many lights; --plain writes one "
         "graph for other runtimes. The file appears only after it passed verification.",
+        EXAMPLES,
         verbose=True,
     )
     p.epilog = (
         _table() + "\n\nThe flags --static, --plain, --fp16-weights and --int8 pick "
         "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = "
-        "int8)."
+        "int8).\n\n" + (p.epilog or "")
     )
     p.add_argument("checkpoint", type=Path, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)")
     p.add_argument(

@@ -148,6 +148,39 @@ def _quantise_int8(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.Mode
     return qmodel
 
 
+def _quantise_int8_mixed(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
+    """int8, then the most sensitive convs back in fp32 until the graph is within
+    mixed_precision.DEFAULT_TARGET_DEG of fp32 on held-out tiles of the calibration stacks
+    (other tiles than the calibration's own; never validation data unless given as --calib)."""
+    from msfnet.export.mixed_precision import DEFAULT_TARGET_DEG, mixed_precision
+    from msfnet.export.quantize import calibration_tiles
+
+    assert proto is not None
+    qmodel = _quantise_int8(proto, ctx)
+    o = ctx.options
+    tiles = list(
+        calibration_tiles(
+            ctx.stacks,
+            tile=o.calib_tile,
+            lights=min(o.calib_lights, 32),  # sensitivity, not ranges: 8 and 32 lights suffice
+            tiles_per_stack=o.calib_tiles_per_stack,
+            train_lights=o.train_lights,
+            # other tiles than the calibration's (seed 0) and the verification's (seed 1000, in
+            # verify.py), so the written file is checked on tiles the selection never saw
+            seed=2000,
+        )
+    )
+    mixed, report = mixed_precision(
+        proto, qmodel, [t[0] for t in tiles], [t[1] for t in tiles], target_deg=DEFAULT_TARGET_DEG
+    )
+    prior = ctx.notes["quantization"]
+    assert isinstance(prior, dict)
+    summary = {**prior, "mixed_precision": report.as_dict()}
+    ctx.notes["quantization"] = summary
+    set_metadata(mixed, {METADATA_KEYS["quantization"]: json.dumps(summary)})
+    return mixed
+
+
 PASSES: dict[str, Pass] = {
     p.name: p
     for p in (
@@ -158,6 +191,7 @@ PASSES: dict[str, Pass] = {
         Pass("fp16-storage", _fp16_storage),
         Pass("rewrite-deconvs", _rewrite_deconvs),
         Pass("quantise-int8", _quantise_int8, lossy=True),
+        Pass("quantise-int8-mixed", _quantise_int8_mixed, lossy=True),
     )
 }
 

@@ -6,14 +6,13 @@ feeds normalised tiles cut from real stacks (inside their masks), exactly as the
 the network. Only the per-light convolutions of the three extractors are quantised (all but
 the first 6-channel one): they are >99 % of the work at 32 lights. Everything else stays fp32:
 - the regressor (once per pixel, not per light: 0.5 % of the work at 32 lights). Its
-  activations span ~50x between the mask boundary and the interior (raw output norm ~600 vs
-  ~35,000 on ballPNG with the trained model), so one per-tensor int8 scale wipes out the
-  boundary: quantising it gave 1.5 deg mean deviation on ballPNG crops (3.7 deg p99 without);
-- LeakyRelu and DepthToSpace outputs (quantising them: 1.7 and 0.95 deg mean);
+  activations span ~50x between the mask boundary and the interior of a trained model, so one
+  per-tensor int8 scale wipes out the boundary;
+- LeakyRelu and DepthToSpace outputs (quantising them costs accuracy for little speed);
 - the fusion's GELU / sigmoid gate and the max over lights (cheap, and their inputs span ranges
   int8 handles poorly).
-Measured on two 96 x 96 ballPNG crops, 16 lights, bundled model: 0.36 deg mean deviation from
-fp32 (p99 3.3), 1.56x faster than fp32 on workload (b) (same run, 2 threads).
+What each choice cost or saved, and the recipe's deviation from fp32 and speed: docs/export.md
+("int8 export") and docs/benchmark.md ("Measurements behind the code's rules").
 """
 
 from __future__ import annotations
@@ -32,12 +31,37 @@ from msfnet.runtime.infer.normalise import network_input
 from msfnet.runtime.stack import Stack, load_stack
 
 CALIB_TILE = 64
-# Up to 96 lights: the max over more lights reaches larger feature values; calibrated at 16
-# lights, full ballPNG (96) deviated 0.68 deg mean from fp32 on a 128 px crop, at 96: 0.42
+# Up to 96 lights: the max over more lights reaches larger feature values, so a calibration at
+# few lights only leaves many-light stacks further from fp32 (docs/benchmark.md)
 CALIB_LIGHTS = 96
 CALIB_TILES_PER_STACK = 3
 # Convs only: quantised LeakyRelu / DepthToSpace outputs cost accuracy (see the module notes)
 QUANT_OPS = ["Conv"]
+# The least calibration an int8 export accepts: object pixels over all stacks (one full tile's
+# worth; a 1 x 1 stack calibrates every activation range on a single value and zero padding)
+# and lights per stack (the fewest a calibration tile uses, see calibration_tiles).
+MIN_CALIB_PIXELS = CALIB_TILE * CALIB_TILE
+MIN_CALIB_LIGHTS = 8
+
+
+def check_calibration(stacks: Sequence[Stack]) -> None:
+    """Refuse calibration stacks too small to set int8 ranges from, naming the minimum."""
+    if not stacks:
+        raise InputError("--calib: give at least one stack to calibrate on")
+    for s in stacks:
+        if s.num_lights < MIN_CALIB_LIGHTS:
+            raise InputError(
+                f"--calib: {s.num_lights} lights; int8 calibration needs at least "
+                f"{MIN_CALIB_LIGHTS} per stack",
+                s.source or s.name,
+            )
+    pixels = sum(int(np.count_nonzero(s.mask)) for s in stacks)
+    if pixels < MIN_CALIB_PIXELS:
+        sizes = ", ".join(f"{s.name} {s.shape[1]}x{s.shape[0]}" for s in stacks)
+        raise InputError(
+            f"--calib: {pixels} object pixel(s) in all ({sizes}); int8 calibration needs at "
+            f"least {MIN_CALIB_PIXELS} (a {CALIB_TILE} x {CALIB_TILE} tile's worth of object)"
+        )
 
 
 def evenly(n: int, k: int) -> list[int]:
@@ -123,8 +147,7 @@ def load_calibration_stacks(paths: Sequence[str | Path], max_lights: int = 96) -
             parent = p.parent / "lights.txt"
             lights = parent if parent.is_file() else None
         stacks.append(load_stack(p, lights=lights, max_lights=max_lights))
-    if not stacks:
-        raise InputError("--calib: give at least one stack to calibrate on")
+    check_calibration(stacks)
     return stacks
 
 
@@ -192,7 +215,7 @@ def quantize_model(
     lights: int = CALIB_LIGHTS,
     tiles_per_stack: int = CALIB_TILES_PER_STACK,
     train_lights: int = TRAIN_LIGHTS,
-    reduce_range: bool = False,
+    reduce_range: bool | None = None,
 ) -> tuple[onnx.ModelProto, dict[str, object]]:
     """An fp32 msfnet graph whose transposed convs are already rewritten (``rewrite.py``) ->
     int8 QDQ graph, and a summary. onnxruntime's quantiser works on files: they go to
@@ -200,6 +223,10 @@ def quantize_model(
     (``passes.py``) records the int8 precision and this summary in the metadata.
 
     method: 'minmax' (default; robust for this ReLU-like network) or 'percentile' / 'entropy'.
+    reduce_range: 7-bit weights; default: where this CPU lacks VNNI (ONNX Runtime's int8
+    kernels saturate full-range weights there, so the export's own check could not pass, and
+    7-bit weights compute exactly on every CPU; see CpuInfo.int8_full_range). Recorded in the
+    summary, which the runtime reads before running the model on a CPU without VNNI.
     """
     from onnxruntime.quantization import (
         CalibrationDataReader,
@@ -218,6 +245,11 @@ def quantize_model(
         raise InputError(f"calibration method {method!r}: expected one of {', '.join(methods)}")
     if any(n.op_type == "ConvTranspose" for n in model.graph.node):
         raise ValueError("rewrite the transposed convolutions first (rewrite.rewrite_deconvs)")
+    check_calibration(stacks)
+    if reduce_range is None:
+        from msfnet.common.cpu import detect_cpu
+
+        reduce_range = not detect_cpu().int8_full_range
     samples = list(
         calibration_samples(
             stacks,

@@ -195,6 +195,16 @@ VARIANTS: tuple[Variant, ...] = (
         slow=True,
     ),
     Variant(
+        "int8-mixed",
+        "int8 with the convs most sensitive on held-out calibration tiles back in fp32 "
+        "(export/mixed_precision.py)",
+        "dynamic",
+        "int8",
+        (*_EXPORT, "rewrite-deconvs", "quantise-int8-mixed"),
+        INT8_RULE,
+        slow=True,
+    ),
+    Variant(
         "staged-int8",
         "staged graph, int8 QDQ (each entry point calibrated on the fp32 "
         "graph's own stage outputs)",

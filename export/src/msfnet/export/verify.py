@@ -2,9 +2,9 @@
 
 A *runner* maps network inputs ``images (1, N, 3, H, W), lights (1, N, 3)`` to normals
 ``(1, 3, H, W)``: PyTorch, an in-memory ONNX graph, or the written file as the runtime loads it.
-Angles are atan2(|a x b|, a . b) in float64 (``runtime.metrics.angular_error_deg``), over the
-object pixels only (in the background a trained network's raw output is a near-zero vector whose
-direction is ill-conditioned, and the runtime zeroes those pixels anyway).
+Angles are atan2(|a x b|, a . b) in float64 (``runtime.evaluate.metrics.angular_error_deg``),
+over the object pixels only (in the background a trained network's raw output is a near-zero
+vector whose direction is ill-conditioned, and the runtime zeroes those pixels anyway).
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ checks every key and shape against the network before anything is loaded.
 from __future__ import annotations
 
 import hashlib
+import io
 import pickle
 import pickletools
 import re
@@ -203,7 +204,23 @@ def save_checkpoint(
     casts them back to float32 on load, here and in the authors' code).
     """
     content = checkpoint_content(model, fp16, **extra)
-    return write_atomic(path, lambda tmp: torch.save(content, tmp))
+    return write_atomic(path, lambda tmp: torch_save(content, tmp))
+
+
+def torch_save(obj: object, path: str | Path) -> None:
+    """``torch.save`` through memory: torch's own writer turns a full disk (ENOSPC) into a
+    RuntimeError ("unexpected pos ...", also when given a Python file) that no caller can tell
+    from a bug. Serialised first (a checkpoint is a few MB), the bytes are written by Python,
+    whose OSError keeps its errno: the command says "No space left on device" in one line."""
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    try:
+        with open(path, "wb") as f:
+            f.write(buffer.getbuffer())
+    except OSError as exc:
+        if exc.filename is not None or exc.errno is None:
+            raise
+        raise OSError(exc.errno, exc.strerror, str(path)) from exc
 
 
 def checkpoint_content(

@@ -29,7 +29,7 @@ from msfnet.common.errors import InputError
 from msfnet.common.imageio import read_image
 from msfnet.runtime.contract import TRAIN_LIGHTS
 from msfnet.runtime.infer.normalise import normalise
-from msfnet.runtime.stack import Stack, as_held, read_normals, unit_lights
+from msfnet.runtime.stack import MIN_LIGHTS, Stack, as_held, read_normals, unit_lights
 from msfnet.synth.render import RenderOptions, render_stack
 
 
@@ -105,8 +105,15 @@ def make_sample(
         raise InputError(
             f"crop {crop} is larger than the stack ({w}x{h})", stack.source or stack.name
         )
+    count = min(lights, stack.num_lights)
+    if count < MIN_LIGHTS:  # fewer lights cannot determine a normal: nothing to learn from
+        raise InputError(
+            f"a training sample of {count} light(s) (asked {lights}, the stack has "
+            f"{stack.num_lights}): photometric stereo needs at least {MIN_LIGHTS}",
+            stack.source or stack.name,
+        )
     r, c = random_crop(stack, crop, rng)
-    idx = rng.choice(stack.num_lights, size=min(lights, stack.num_lights), replace=False)
+    idx = rng.choice(stack.num_lights, size=count, replace=False)
     imgs = stack.images[idx, r : r + crop, c : c + crop]
     imgs, normals, mask, dirs = rotate_flip(
         imgs,

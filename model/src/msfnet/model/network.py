@@ -1,4 +1,4 @@
-"""MSF-Net, exactly as specified in docs/architecture.md (state-dict names and shapes included).
+"""MSF-Net, exactly as specified in docs/network-spec.md (state-dict names and shapes included).
 
 Read it against the layer table: every attribute name below is a state-dict prefix.
 Lights are folded into the batch axis, (B*N, C, H, W), and "max over lights" is a tensor

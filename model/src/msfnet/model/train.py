@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+import shutil
 import signal
 import threading
 import time
@@ -35,6 +36,7 @@ from msfnet.model.checkpoint import (
     read_checkpoint,
     read_torch_file,
     save_checkpoint,
+    torch_save,
 )
 from msfnet.model.data import (
     Batch,
@@ -92,12 +94,16 @@ def stage_losses(
     normals: Tensor,
     mask: Tensor,
     grad_weight: float = 0.0,
+    preds: list[Tensor] | None = None,
 ) -> list[Tensor]:
     """One loss per stage output (1 without MFE, else 3), through the shared regressor: the
-    cosine loss, plus ``grad_weight`` x ``gradient_loss`` when that is above 0."""
+    cosine loss, plus ``grad_weight`` x ``gradient_loss`` when that is above 0. ``preds``:
+    a list that receives each stage's normal map."""
     out = []
     for m in model.pooled_features(images, lights):
         pred = model.regressor(m)
+        if preds is not None:
+            preds.append(pred)
         loss = cosine_loss(pred, normals, mask)
         if grad_weight > 0:
             loss = loss + grad_weight * gradient_loss(pred, normals, mask)
@@ -177,8 +183,8 @@ def stop_workers(timeout: float = 10.0, spare: Collection[object] = ()) -> int:
     returns how many had to be killed.
 
     Workers ignore SIGTERM (``data.worker_init``), so the terminate() that torch's and
-    multiprocessing's shutdown fall back on cannot stop one that is stuck: on a GPU run with
-    13 workers, one kept the process alive for over 100 s after it had saved. SIGKILL can."""
+    multiprocessing's shutdown fall back on cannot stop one that is stuck, and a stuck worker
+    keeps the process alive long after it has saved. SIGKILL can."""
     deadline = time.monotonic() + timeout
     killed = 0
     for child in multiprocessing.active_children():
@@ -225,12 +231,20 @@ class TrainOutcome:
 
 class Trainer:
     def __init__(self, cfg: TrainConfig, resume: bool = False) -> None:
+        self.created = time.monotonic()  # --time-budget counts from here (setup included)
         self.cfg = cfg
         self.out = Path(cfg.out)
         self.device = resolve_device(cfg.device)
         self.workers = default_workers(self.device) if cfg.workers is None else cfg.workers
         if self.workers < 0:
             raise InputError("--workers must be >= 0")
+        if cfg.render_on not in ("cpu", "device"):
+            raise InputError(f"--render-on {cfg.render_on!r}: choose cpu or device")
+        self.on_device = cfg.render_on == "device"
+        if self.on_device:
+            if cfg.data != "synth":
+                raise InputError("--render-on device renders synthetic data; drop --data")
+            self.workers = 0  # nothing to render on the CPU
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         self.model = MSFNet(mfe=cfg.mfe, mff=cfg.mff)
@@ -270,7 +284,7 @@ class Trainer:
             max_depth=cfg.render_max_depth,
         )
         self.source: SynthSource | BlobbySource | None = None
-        if self.workers == 0:  # today's in-process source; workers build their own
+        if self.workers == 0 and not self.on_device:  # in-process; workers build their own
             if cfg.data == "synth":
                 # Training objects start far from the validation seed space: seeds differ.
                 self.source = SynthSource(
@@ -304,8 +318,8 @@ class Trainer:
         content = checkpoint_content(self.model, step=self.step, epoch=self.epoch)
         optimiser = {"optimizer": self.opt.state_dict(), "step": self.step, "best": self.best}
         with staged_files([weights, state], overwrite=True) as (tmp_weights, tmp_state):
-            torch.save(content, tmp_weights)
-            torch.save(optimiser, tmp_state)
+            torch_save(content, tmp_weights)
+            torch_save(optimiser, tmp_state)
 
     def _load(self) -> None:
         weights, state = self._state_paths()
@@ -402,6 +416,29 @@ class Trainer:
                 phase.crop,
             )
 
+    def _device_batches(self, total: int):
+        """Batches rendered by the torch renderer on the training device: the batch of step
+        s comes from a generator seeded with (seed, s), so a resumed run gets the same data."""
+        from msfnet.synth.torch_render import (
+            TorchRenderOptions,
+            render_batch,
+            step_seed,
+            training_tensors,
+        )
+
+        cfg = self.cfg
+        options = TorchRenderOptions.preset(cfg.render_preset)
+        gen = torch.Generator(device=self.device)
+        while self.step < total:
+            gen.manual_seed(step_seed(cfg.seed, self.step))
+            rng = np.random.default_rng([cfg.seed, 2, self.step])
+            phase = cfg.phase(self.epoch)
+            lights = int(rng.integers(phase.lights_min, phase.lights_max + 1))
+            with torch.no_grad():  # (closed before the yield: grad mode is thread state)
+                rendered = render_batch(cfg.batch, lights, phase.crop, gen, options, self.device)
+                batch = Batch(*training_tensors(rendered, gen))
+            yield batch, lights, phase.crop
+
     def to_device(self, batch: Batch) -> Batch:
         nb = self.device.type == "cuda"  # from pinned memory, the copy overlaps compute
         normals = batch.normals.to(self.device, non_blocking=nb)
@@ -419,13 +456,34 @@ class Trainer:
         self.model.train()
         images, lights = batch.images, batch.lights
         self.opt.zero_grad(set_to_none=True)
+        preds: list[Tensor] = []
         with autocast(self.bf16, self.device.type):
             losses = stage_losses(
-                self.model, images, lights, batch.normals, batch.mask, self.cfg.grad_loss
+                self.model, images, lights, batch.normals, batch.mask, self.cfg.grad_loss, preds
             )
+            if self.cfg.consistency > 0:
+                losses = self._with_consistency(batch, losses, preds)
         total = backward_losses(self.model, losses, sus=self.cfg.sus)
         self.opt.step()
         return float(total), [float(x.detach()) for x in losses]
+
+    def _with_consistency(
+        self, batch: Batch, losses: list[Tensor], preds: list[Tensor]
+    ) -> list[Tensor]:
+        """--consistency: the batch turned one of 7 ways trains too (losses averaged), and the
+        deep loss gains W x the disagreement of the two deep predictions (model.equivariance)."""
+        from msfnet.model.equivariance import consistency_turn, turn_back, turn_batch
+
+        k, flip = consistency_turn(self.cfg.seed, self.step)
+        t = turn_batch(batch, k, flip)
+        turned: list[Tensor] = []
+        t_losses = stage_losses(
+            self.model, t.images, t.lights, t.normals, t.mask, self.cfg.grad_loss, turned
+        )
+        agree = cosine_loss(turn_back(turned[-1], k, flip), preds[-1], batch.mask)
+        out = [(a + b) / 2 for a, b in zip(losses, t_losses, strict=True)]
+        out[-1] = out[-1] + self.cfg.consistency * agree
+        return out
 
     def validate(self) -> float:
         maes = [
@@ -436,8 +494,14 @@ class Trainer:
 
     def log(self, row: dict) -> None:
         self.history.append(row)
-        with open(self.out / "log.jsonl", "a") as f:
-            f.write(json.dumps(row) + "\n")
+        path = self.out / "log.jsonl"
+        try:
+            with open(path, "a") as f:
+                f.write(json.dumps(row) + "\n")
+        except OSError as exc:  # a full disk: one line naming the file, not a bare errno
+            if exc.filename is not None or exc.errno is None:
+                raise
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
 
     def plot(self) -> None:
         try:
@@ -478,7 +542,19 @@ class Trainer:
 
     def run(self, progress: bool = True, report: bool = True) -> TrainOutcome:
         """Train to the configured end or a SIGTERM / SIGINT. ``progress``: the progress bar;
-        ``report``: a line per epoch."""
+        ``report``: a line per epoch.
+
+        A new run that fails before its first save (a full disk, say) leaves nothing: its
+        folder held only this run's files, and none of them can be resumed from."""
+        fresh = not self.out.exists() or not any(self.out.iterdir())
+        try:
+            return self._train(progress, report)
+        except Exception:
+            if fresh and not self._state_paths()[0].exists():
+                shutil.rmtree(self.out, ignore_errors=True)
+            raise
+
+    def _train(self, progress: bool, report: bool) -> TrainOutcome:
         from tqdm import tqdm
 
         cfg = self.cfg
@@ -499,13 +575,25 @@ class Trainer:
         )
         old_handlers = self._install_handlers()
         before = set(multiprocessing.active_children())  # not ours to stop afterwards
-        batches = self._loader_batches(total) if self.workers > 0 else self._local_batches(total)
+        if self.on_device:
+            batches = self._device_batches(total)
+        elif self.workers > 0:
+            batches = self._loader_batches(total)
+        else:
+            batches = self._local_batches(total)
+        # --time-budget: stop like a signal would (save, return) once it is spent
+        deadline = None if cfg.time_budget is None else self.created + cfg.time_budget
+        last_snap = time.monotonic()
         run_loss = None
         # Throughput: per log row and per epoch, wall time, time blocked on data, samples.
         win = {"t": time.perf_counter(), "wait": 0.0, "n": 0}
         ep = dict(win)
         try:
             while self.step < total and self.stop_signal is None:
+                if deadline is not None and time.monotonic() >= deadline:
+                    self.log({"step": self.step, "stopped": "time_budget", "time": time.time()})
+                    self.save()
+                    break
                 epoch = self.epoch
                 for g in self.opt.param_groups:
                     g["lr"] = self.lr_at(epoch)
@@ -525,6 +613,12 @@ class Trainer:
                     acc["n"] += cfg.batch
                 loss, parts = self.train_step(batch)
                 self.step += 1
+                if cfg.snapshot_seconds and time.monotonic() - last_snap >= cfg.snapshot_seconds:
+                    # fp16: small enough to copy out of a time-boxed GPU session
+                    save_checkpoint(
+                        self.model, self.out / snapshot_name(self.step), fp16=True, step=self.step
+                    )
+                    last_snap = time.monotonic()
                 run_loss = loss if run_loss is None else 0.95 * run_loss + 0.05 * loss
                 bar.update(1)
                 bar.set_postfix(loss=f"{run_loss:.4f}", ep=epoch, n=lights, crop=crop)

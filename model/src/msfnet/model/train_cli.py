@@ -6,8 +6,10 @@ import argparse
 import json
 import signal
 import sys
+import time
 from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 from msfnet.common.cli import (
     command_main,
@@ -67,8 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--resume",
         action="store_true",
         help="continue from OUT/last.pth with OUT/config.json; options given "
-        "explicitly (e.g. --epochs) override the stored ones. With nothing "
-        "to resume in OUT yet, start there (so one command serves every chunk)",
+        "explicitly (e.g. --epochs) override the stored ones. A run stopped before its "
+        "first save starts again from its config.json; a missing or empty OUT is refused "
+        "(a mistyped folder would start a new run of hours)",
     )
     p.add_argument(
         "--overwrite",
@@ -114,7 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=d.lr_step,
         help=f"halve the learning rate every this many epochs (default {d.lr_step})",
     )
-    p.add_argument("--seed", type=nonnegative_int, default=d.seed)
+    p.add_argument(
+        "--seed",
+        type=nonnegative_int,
+        default=d.seed,
+        help=f"seed of the synthetic data and the initial weights (default {d.seed})",
+    )
     p.add_argument(
         "--threads",
         type=int_range(1, 1024),
@@ -148,8 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=positive_float,
         default=d.time_budget,
         metavar="SECONDS",
-        help="stop after this many seconds of training (finishing the step, saving last.pth; "
-        "exit 0), e.g. a minute short of a time-boxed session",
+        help="stop this many seconds after the start (setup included), finishing the step "
+        "and saving last.pth (exit 0): e.g. a minute short of a time-boxed session",
     )
     p.add_argument(
         "--snapshot-seconds",
@@ -196,6 +204,15 @@ def build_parser() -> argparse.ArgumentParser:
         "from pixel to pixel to each stage loss (default 0: the "
         "paper's loss). Experimental: meant to keep 1-3 px relief, it lowered "
         "detail in a short CPU fine-tune (docs/training.md)",
+    )
+    p.add_argument(
+        "--consistency",
+        type=nonnegative_float,
+        default=d.consistency,
+        metavar="W",
+        help="also train each batch turned / mirrored one of 7 ways and add W x the "
+        "disagreement of the two predictions mapped back (rotation consistency; about 2x the "
+        "step time; default 0: off)",
     )
     p.add_argument(
         "--render-size",
@@ -322,8 +339,9 @@ def config_from(args: dict, base: dict) -> TrainConfig:
         raise InputError("--workers must be >= 0")
     if out.render_on == "device" and out.data != "synth":
         raise InputError("--render-on device renders synthetic data; drop --data")
-    if out.data == "synth" and out.render_on == "cpu":
-        # (the device renderer draws exactly the crop and lights each step asks for)
+    if out.data == "synth" and out.render_on == "device":
+        pass  # the device renderer draws exactly the crop and lights each step asks for
+    elif out.data == "synth":
         most = max(p.lights_max for p in parse_curriculum(out.curriculum))
         if most > out.render_lights:  # the sampler would quietly use fewer lights
             raise InputError(
@@ -393,6 +411,12 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
         raise InputError("output path exists and is not a folder", out)
     if args.resume and args.overwrite:
         raise InputError("--resume and --overwrite contradict each other")
+    if args.resume and (not out.exists() or not any(out.iterdir())):
+        state = "does not exist" if not out.exists() else "is empty"
+        raise InputError(
+            f"--resume: nothing to resume, the folder {state} (a new run: leave out --resume)",
+            out,
+        )
     if args.resume or not out.exists() or not any(out.iterdir()):
         return []
     if not args.overwrite:
@@ -473,6 +497,8 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         f"from step {trainer.step}; validation: {len(trainer.val_set)} objects, "
         f"least squares MAE {trainer.val_ls:.2f} deg"
     )
+    if not args.quiet:
+        _announce_duration(trainer, cfg)
     result = trainer.run(progress=not (args.no_progress or args.quiet), report=not args.quiet)
     if result.stopped is not None:
         say(
@@ -485,6 +511,53 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         f"{result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})"
     )
     return 0
+
+
+# steps timed for the duration estimate, after the first (set-up, first renders, warm caches)
+ESTIMATE_STEPS = 4
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+def _announce_duration(trainer: Any, cfg: TrainConfig) -> None:
+    """Say what the run asks for, and once a few steps are timed, how long it will take here:
+    the defaults are hours on a small CPU (docs/training.md), which no one should learn from
+    the clock."""
+    from tqdm import tqdm  # its write() keeps the progress bar intact
+
+    total = cfg.epochs * cfg.steps_per_epoch
+    left = total - trainer.step
+    if left <= 0:
+        return
+    print(
+        f"msf-train: {left:,} steps to go ({cfg.epochs} epochs x {cfg.steps_per_epoch} "
+        f"steps of batch {cfg.batch}); the time it takes here follows after "
+        f"{ESTIMATE_STEPS + 1} steps. Ctrl-C or --time-budget stop with last.pth saved, "
+        "--resume continues",
+        flush=True,
+    )
+    step = trainer.train_step
+    times: list[float] = []
+
+    def timed(batch: Any) -> Any:
+        times.append(time.perf_counter())  # a step is the time between starts: data included
+        if len(times) == ESTIMATE_STEPS + 2:
+            per_step = (times[-1] - times[1]) / ESTIMATE_STEPS
+            remaining = per_step * max(0, total - trainer.step)
+            tqdm.write(
+                f"msf-train: {per_step:.2g} s a step on this {trainer.device.type}: "
+                f"about {_duration(remaining)} for the remaining "
+                f"{total - trainer.step:,} steps (validation each epoch not included)"
+            )
+        return step(batch)
+
+    trainer.train_step = timed
 
 
 def main(argv: list[str] | None = None) -> int:

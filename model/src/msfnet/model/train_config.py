@@ -8,6 +8,7 @@ import re
 from dataclasses import dataclass, field
 
 from msfnet.common.errors import InputError
+from msfnet.runtime.stack.types import MIN_LIGHTS
 from msfnet.synth.render import RenderOptions
 
 SNAPSHOT = re.compile(r"snap_\d{7}\.pth")  # what --snapshot-every writes, and nothing else
@@ -37,9 +38,10 @@ def parse_curriculum(spec: str) -> list[Phase]:
         ) from exc
     phases.sort(key=lambda p: p.epoch)
     for p in phases:
-        if p.lights_min < 1 or p.lights_max < p.lights_min or p.crop < 8 or p.crop % 4:
+        if p.lights_min < MIN_LIGHTS or p.lights_max < p.lights_min or p.crop < 8 or p.crop % 4:
             raise InputError(
-                f"--curriculum {spec!r}: need 1 <= LMIN <= LMAX and CROP a multiple of 4 (>= 8)"
+                f"--curriculum {spec!r}: need {MIN_LIGHTS} <= LMIN <= LMAX (photometric "
+                "stereo's fewest lights) and CROP a multiple of 4 (>= 8)"
             )
     if not phases or phases[0].epoch != 0:
         raise InputError(f"--curriculum {spec!r}: the first phase must start at epoch 0")
@@ -63,6 +65,7 @@ class TrainConfig:
     mff: bool = True
     sus: bool = True
     grad_loss: float = 0.0  # weight of gradient_loss beside the cosine loss (0: the paper's)
+    consistency: float = 0.0  # weight of the rotation-consistency term (model.equivariance)
     data: str = "synth"  # "synth" or a Blobby/Sculpture root folder
     init: str | None = None  # start from these weights (fresh optimiser), e.g. the bundled model
     render_size: int = 64
@@ -82,6 +85,11 @@ class TrainConfig:
     log_every: int = 10
     device: str = "auto"  # auto | cpu | cuda
     workers: int | None = None  # DataLoader worker processes; None = default_workers(device)
+    # "cpu": the numpy renderer (in process or in workers); "device": the torch renderer
+    # (msfnet.synth.torch_render) on the training device itself
+    render_on: str = "cpu"
+    time_budget: float | None = None  # stop (and save) this many seconds after the Trainer was made
+    snapshot_seconds: float = 0.0  # also keep snap_<step>.pth (fp16) this often (0: never)
     extra: dict = field(default_factory=dict)
 
     def phase(self, epoch: int) -> Phase:

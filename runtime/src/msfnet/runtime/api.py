@@ -11,6 +11,11 @@ Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any st
     print(result.metrics)                    # MAE / median / err15 / err30 with ground truth
     result.save("out/obj")                   # the files msf-run writes (normals.npy/.png, ...)
 
+    # many stacks, one Result at a time, the next one decoded while this one runs
+    for r in model.stream("stacks/"):        # a folder of stacks, a list, or a capture loop
+        print(r.summary())                   # one line: stack, method, score, seconds
+        view = r.plot()                      # (h, w, 3) uint8 RGB picture of the normals
+
     baseline = Model.least_squares()         # classical least squares, same API
     l2 = baseline.predict(stack.images, stack.lights, mask=stack.mask)  # plain numpy arrays
 
@@ -20,15 +25,22 @@ Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any st
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import json
+import os
+import re
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.files import API_WRITER, current_writer
 from msfnet.runtime.engines.base import Engine
 from msfnet.runtime.evaluate.metrics import NormalMetrics, error_map, normal_metrics
+from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import (
     Estimator,
     LeastSquaresEstimator,
@@ -36,11 +48,15 @@ from msfnet.runtime.infer.estimators import (
     TilingOptions,
 )
 from msfnet.runtime.infer.fine_detail import FineDetailEstimator
+from msfnet.runtime.infer.ladder import reduced_network
 from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
+from msfnet.runtime.infer.tta import TTAEstimator
 from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
 from msfnet.runtime.results.profile import BatchStats, Profile, StageTimer
-from msfnet.runtime.stack import LoadOptions, Stack, load_stack, prepare_stack
+from msfnet.runtime.sources import Decoded, decode_ahead, record_decode, stream_items
+from msfnet.runtime.stack import LoadOptions, Stack, prepare_stack
+from msfnet.runtime.stack import load_stack as read_stack
 
 WEIGHTS = Path(__file__).resolve().parent / "weights"
 
@@ -48,6 +64,71 @@ WEIGHTS = Path(__file__).resolve().parent / "weights"
 def default_model_path() -> Path:
     """The bundled model, shipped with the runtime (msfnet/runtime/weights/msfnet_default.onnx)."""
     return WEIGHTS / "msfnet_default.onnx"
+
+
+# ---------------------------------------------------------------- errors in the API's words
+# The library's messages name command-line flags (what msf-run prints). A Python caller gets
+# the same message with each flag written as the keyword it passes instead: "pass --overwrite"
+# becomes "pass overwrite=True", "--select '1-x'" becomes "select='1-x'".
+
+
+def _keywords() -> dict[str, tuple[str, bool, tuple[str, ...]]]:
+    """Flag -> (keyword, is a switch, the values it takes as words)."""
+    table: dict[str, tuple[str, bool, tuple[str, ...]]] = {
+        "--overwrite": ("overwrite", True, ()),
+        "--repeat": ("repeat", False, ()),
+        "--no-maps": ("maps=None", True, ()),
+    }
+    for f in fields(ModelOptions):
+        spec = f.metadata.get("flag")
+        if spec is not None:
+            switch = spec.action == "store_true"
+            table[spec.flag_name(f.name)] = (f.name, switch, tuple(spec.choices or ()))
+    for f in fields(LoadOptions):
+        switch = f.default is False  # srgb, auto_mask
+        table.setdefault("--" + f.name.replace("_", "-"), (f.name, switch, ()))
+    return table
+
+
+_FLAG = re.compile(
+    r"--([a-z][a-z0-9-]*)((?: (?:'[^']*'|\"[^\"]*\"|-?[\d][\d.,]*))|(?: [a-z0-9]+))?"
+)
+_HAS_KEYWORD = re.compile(r"\b[a-z_]+=")  # a message that already speaks both
+
+
+def api_message(text: str) -> str:
+    """``text`` with every known flag written as its keyword (see above)."""
+    if _HAS_KEYWORD.search(text):
+        return text
+    table = _keywords()
+
+    def keyword(m: re.Match[str]) -> str:
+        flag, value = "--" + m.group(1), m.group(2) or ""
+        if flag not in table:
+            return m.group(0)
+        name, switch, words = table[flag]
+        if switch:
+            return name if "=" in name else f"{name}=True{value}"
+        word = value.strip()
+        if word and (word[0] in "'\"-" or word[0].isdigit()):
+            return f"{name}={word}"
+        if word in words:
+            return f"{name}={word!r}"
+        return f"{name}=...{value}"
+
+    return _FLAG.sub(keyword, text)
+
+
+@contextmanager
+def api_words() -> Iterator[None]:
+    """Re-raise an InputError in the API's words, unless a command (msf-run, ...) is running,
+    which prints its own."""
+    try:
+        yield
+    except InputError as exc:
+        if current_writer() != API_WRITER:
+            raise
+        raise InputError(api_message(exc.message), exc.path) from None
 
 
 @dataclass
@@ -116,14 +197,118 @@ class Result:
 
         folder = Path(folder)
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
-        check_output(folder, src, overwrite=overwrite, folder=True)
-        # an automatic mask is a result the user should be able to inspect and reuse
-        return write_result(
-            self,
-            folder,
-            overwrite=overwrite,
-            report=report,
-            write_mask=self.auto_mask if write_mask is None else write_mask,
+        with api_words():
+            check_output(folder, src, overwrite=overwrite, folder=True)
+            # an automatic mask is a result the user should be able to inspect and reuse
+            return write_result(
+                self,
+                folder,
+                overwrite=overwrite,
+                report=report,
+                write_mask=self.auto_mask if write_mask is None else write_mask,
+            )
+
+    # ------------------------------------------------------------ for a person or a log
+
+    @property
+    def name(self) -> str:
+        return self.stack.name
+
+    def _what_ran(self) -> str:
+        m = self.method
+        if m.get("method") == "l2":
+            return "least squares"
+        return f"msf {m.get('engine')} {m.get('precision')}"
+
+    def summary(self) -> str:
+        """One line: what ran on which stack, the score with ground truth, and the time."""
+        h, w = self.stack.shape
+        parts = [
+            f"{self.name}: {self.stack.num_lights} lights, {w}x{h}, "
+            f"{int(self.stack.mask.sum()):,} px in the mask",
+            self._what_ran(),
+        ]
+        if self.metrics is not None:
+            m = self.metrics
+            parts.append(
+                f"MAE {m.mae_deg:.2f} deg (median {m.median_deg:.2f}, err15 {m.err15 * 100:.1f} %)"
+            )
+        parts.append(f"{self.timings.median_s('total'):.2f} s")
+        if self.stack.warnings:
+            parts.append(f"{len(self.stack.warnings)} warning(s)")
+        return "; ".join(parts)
+
+    def as_dict(self) -> dict[str, object]:
+        """Everything but the arrays, as plain JSON types: profile.json's content, the metrics
+        and the maps' summary."""
+        out: dict[str, object] = {"name": self.name, **self.profile()}
+        out["metrics"] = None if self.metrics is None else self.metrics.as_dict()
+        if self.maps is not None:
+            out["maps"] = self.maps.summary()
+        return out
+
+    def to_json(self, indent: int | None = 2) -> str:
+        """:meth:`as_dict` as JSON text (one line with ``indent=None``, for a log)."""
+        return json.dumps(self.as_dict(), indent=indent, default=_plain)
+
+    def plot(self, what: str = "normals", *, figure: bool = False) -> Any:
+        """A picture of the result: an (h, w, 3) uint8 RGB array (cropped to the object, with
+        a colour bar where it has a scale), or with ``figure=True`` a matplotlib Figure
+        showing it. ``what``: "normals" (with the colour-convention sphere), "error"
+        (angular error; needs ground truth), or a computed map: "albedo", "height",
+        "curvature"."""
+        with api_words():
+            rgb = self._picture(what)
+        if not figure:
+            return rgb
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        h, w = rgb.shape[:2]
+        fig = Figure(figsize=(w / 100, h / 100), dpi=100)
+        FigureCanvasAgg(fig)
+        ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+        ax.imshow(rgb)
+        ax.set_axis_off()
+        return fig
+
+    def _picture(self, what: str) -> np.ndarray:
+        from msfnet.runtime.results.maps import pictures
+
+        mask = self.stack.mask
+        if what == "normals":
+            return pictures.normals_picture(self.normals, mask)
+        if what == "error":
+            if self.error_deg is None:
+                raise InputError(
+                    f"plot('error'): {self.name} has no ground truth, so no error to show"
+                )
+            return pictures.error_picture(self.error_deg, mask)
+        drawers: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+            "albedo": pictures.albedo_picture,
+            "height": pictures.height_picture,
+            "curvature": pictures.curvature_picture,
+        }
+        if what not in drawers:
+            raise InputError(
+                f"plot({what!r}): expected one of normals, error, {', '.join(drawers)}"
+            )
+        values = None if self.maps is None else getattr(self.maps, what, None)
+        if values is None:
+            raise InputError(
+                f"plot({what!r}): no {what} map was computed (Model(maps=MapOptions(...)) "
+                "chooses them; maps=None computes none)"
+            )
+        return drawers[what](values, mask)
+
+    def __repr__(self) -> str:
+        # the arrays (and the stack's images) stay out: a repr is for a console line
+        h, w = self.stack.shape
+        score = "" if self.metrics is None else f", mae_deg={self.metrics.mae_deg:.2f}"
+        maps = "" if self.maps is None else f", maps={list(self.maps.options.maps)}"
+        return (
+            f"Result({self.name!r}, {w}x{h}, lights={self.stack.num_lights}, "
+            f"{self._what_ran()}{score}{maps}, total_s={self.timings.median_s('total'):.2f})"
         )
 
     def without_images(self) -> Result:
@@ -132,6 +317,25 @@ class Result:
         n, h, w = self.stack.images.shape[:3]
         stack = replace(self.stack, images=np.empty((n, h, w, 0), np.float32))
         return replace(self, stack=stack)
+
+
+def _plain(value: object) -> object:
+    """JSON for the odd values of a profile (numpy scalars, paths, tuples)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (Path, os.PathLike)):
+        return str(value)
+    if isinstance(value, (set, frozenset)):
+        return sorted(value)
+    return str(value)
+
+
+def load_stack(path: str | Path, options: LoadOptions | None = None, **overrides: Any) -> Stack:
+    """Read a stack (folder, .npz, ...) as :func:`msfnet.runtime.stack.load_stack` does, with
+    errors in the API's words: ``load_stack("obj/", max_lights=8)``, ``load_stack(p,
+    LoadOptions(lights="lights.txt"))``."""
+    with api_words():
+        return read_stack(path, options, **overrides)
 
 
 class Model:
@@ -155,6 +359,12 @@ class Model:
         options: ModelOptions | None = None,
         **settings: Any,
     ) -> None:
+        with api_words():
+            self._open(model, options, settings)
+
+    def _open(
+        self, model: str | Path | Engine | None, options: ModelOptions | None, settings: Any
+    ) -> None:
         engine_given = model is not None and not isinstance(model, (str, Path))
         if model is not None and not engine_given:
             settings["model"] = Path(model)  # type: ignore[arg-type]
@@ -177,8 +387,18 @@ class Model:
                     "with msf-export, or use least squares (--method l2)"
                 )
             self.estimator = _open_network(path, opts)
+        if isinstance(self.estimator, NetworkEstimator):
+            self.estimator.edge_context = opts.edge_context
+            # --speed: the network on fewer pixels / lights; the detail fusion below gives the
+            # full-resolution detail back (infer.ladder)
+            self.estimator = reduced_network(self.estimator, opts.speed)
         if opts.fine_detail and isinstance(self.estimator, NetworkEstimator):
             self.estimator = FineDetailEstimator(self.estimator)
+        if opts.tta > 1 and self.estimator.method == "msf":
+            # inside detail fusion: the turned copies average the network's part only
+            self.estimator = TTAEstimator(self.estimator, opts.tta)
+        if opts.detail_fusion and self.estimator.method == "msf":
+            self.estimator = DetailFusionEstimator(self.estimator)
 
     @classmethod
     def least_squares(
@@ -215,8 +435,64 @@ class Model:
         ``load``: how to read a path (selection, files, ROI, downscale, linearisation,
         auto-mask); on a Stack already in memory its selection and real-camera options are
         applied to a copy. ``repeat``: run load -> metrics that many times for the latency
-        profile.
+        profile. For many stacks (a folder, a list, a capture loop) see :meth:`stream`.
         """
+        with api_words():
+            if isinstance(stack, (list, tuple)) or not isinstance(stack, (Stack, str, Path)):
+                raise InputError(
+                    f"model(...) runs one stack (a Stack or a path), got "
+                    f"{type(stack).__name__}; for several use model.stream(...), which "
+                    "yields one Result at a time"
+                )
+            return self._run(stack, load, repeat, progress)
+
+    def stream(
+        self,
+        source: str | os.PathLike[str] | Stack | Iterable[str | os.PathLike[str] | Stack],
+        load: LoadOptions | None = None,
+        *,
+        prefetch: bool = True,
+    ) -> Iterator[Result]:
+        """Run many stacks, yielding one :class:`Result` at a time (a generator: nothing is
+        written, and at most two stacks are in memory).
+
+        ``source``: a folder of stacks (sub-folders, an objects.txt, or sub-folders sharing
+        one light file, as msf-run reads it), a single stack path, a Stack, or any iterable
+        of paths and Stacks: a list, or a capture loop that yields each new stack. With
+        ``prefetch`` the next stack is read and decoded in a background thread while the
+        current one runs (so a generator source is advanced from that thread, one item at a
+        time); ``prefetch=False`` does everything in the calling thread. ``load`` applies to
+        every stack, as in ``model(path, load)``. A stack that cannot be read raises
+        InputError at its turn; results already yielded stay valid.
+        """
+        with api_words():
+            opts = load if load is not None else LoadOptions()
+            items, total = stream_items(source)
+            for decoded in decode_ahead(items, opts, prefetch=prefetch, total=total):
+                if decoded.error is not None:
+                    raise decoded.error
+                yield self._run_decoded(decoded, opts)
+
+    def _run_decoded(self, decoded: Decoded, load: LoadOptions) -> Result:
+        """Run a stack that :func:`~msfnet.runtime.sources.decode_ahead` decoded, recording
+        its decoding as ``model(path, load)`` would (streams and batches)."""
+        assert decoded.stack is not None
+        budget = self.tiling
+        if decoded.beside:
+            # the next stack is being decoded beside this one: leave its memory out of the
+            # tile budget (estimated by this stack's size; sequences are rarely mixed)
+            spare = budget.max_memory_mb - decoded.stack.images.nbytes / 2**20
+            self.tiling = replace(budget, max_memory_mb=max(spare, 256.0))
+        try:
+            result = self._run(decoded.stack, None, 1, False)
+        finally:
+            self.tiling = budget
+        record_decode(result, decoded, load)
+        return result
+
+    def _run(
+        self, stack: Stack | str | Path, load: LoadOptions | None, repeat: int, progress: bool
+    ) -> Result:
         if repeat < 1:
             raise InputError(f"--repeat must be at least 1, got {repeat}")
         prof = Profile()
@@ -231,7 +507,7 @@ class Model:
                             prepare_stack(stack, load) if load is not None else stack.validate()
                         )
                     else:
-                        loaded = load_stack(stack, load)
+                        loaded = read_stack(stack, load)
                 est = self.estimator.estimate(loaded, self.tiling, timer, progress)
                 metrics = err = None
                 with timer("postprocess"):
@@ -269,8 +545,8 @@ class Model:
         """Run on numpy arrays: images (N, H, W, 3) or (N, H, W) linear values, lights (N, 3)
         directions (x right, y up, z to the camera); mask (H, W) and intensities (N, 3)
         optional. Writes nothing."""
-        return self(
-            Stack.from_arrays(
+        with api_words():
+            stack = Stack.from_arrays(
                 images,
                 lights,
                 mask=mask,
@@ -278,22 +554,44 @@ class Model:
                 normals_gt=normals_gt,
                 name="array",
             )
-        )
+        return self(stack)
 
 
 def _open_network(path: Path, opts: ModelOptions) -> NetworkEstimator:
     """Pick the engine and precision for this CPU and model (or honour the overrides)."""
     from msfnet.common.cpu import detect_cpu
     from msfnet.runtime.engines import installed_engines
-    from msfnet.runtime.engines.dispatch import choose_engine, open_engine
+    from msfnet.runtime.engines.dispatch import (
+        choose_engine,
+        open_chosen,
+        open_engine,
+        resolve_device,
+    )
 
     engine = opts.engine
     if opts.provider is not None and engine is None:
         engine = "onnxruntime"  # execution providers are ONNX Runtime's
-    choice = choose_engine(path, detect_cpu(), installed_engines(), engine, opts.precision)
-    return NetworkEstimator(
-        open_engine(choice, opts.threads, provider=opts.provider), choice.reason
+    device = resolve_device(opts.device)
+    choice = choose_engine(
+        path, detect_cpu(), installed_engines(), engine, opts.precision, device=device
     )
+    if opts.provider is not None:
+        return NetworkEstimator(
+            open_engine(choice, opts.threads, provider=opts.provider), choice.reason
+        )
+    # a default OpenVINO choice falls back to ONNX Runtime if OpenVINO cannot compile the model
+    asked = bool(opts.engine or opts.precision or opts.device)
+    opened, reason = open_chosen(choice, opts.threads, requested=asked)
+    return NetworkEstimator(opened, reason)
 
 
-__all__ = ["DEFAULT_MAPS", "Model", "ModelOptions", "Result", "default_model_path"]
+__all__ = [
+    "DEFAULT_MAPS",
+    "Model",
+    "ModelOptions",
+    "Result",
+    "api_message",
+    "api_words",
+    "default_model_path",
+    "load_stack",
+]

@@ -8,16 +8,28 @@ one new field here, with its :func:`~msfnet.common.cli.flag` spelling.
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
-from msfnet.common.cli import flag, positive_float, positive_int
+from msfnet.common.cli import flag, positive_float, thread_count
+from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
 from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, HALO
 from msfnet.runtime.results.maps.api import MapOptions
 
 METHODS = ("msf", "l2")
+TTA_COUNTS = (1, 4, 8)  # infer.tta: the plain pass, + half turn and mirrors, + quarter turns
+
+
+def tta_count(text: str) -> int:
+    """--tta's value: 1, 4 or 8."""
+    if text.strip() not in {str(k) for k in TTA_COUNTS}:
+        raise argparse.ArgumentTypeError(f"expected 1, 4 or 8 copies, got {text!r}")
+    return int(text)
+
+
 DEFAULT_MAPS = MapOptions()  # albedo, height (Poisson), curvature, mesh
 
 
@@ -57,7 +69,7 @@ class ModelOptions:
     threads: int | None = flag(
         None,
         "inference threads (default: all available cores; 1 per Ray worker)",
-        type=positive_int,
+        type=thread_count,
         metavar="T",
     )
     provider: str | None = flag(
@@ -86,6 +98,43 @@ class ModelOptions:
         "on the stack enlarged 2x and take the fine detail from that run (about 5x the time; "
         "the stack and its enlargement, 5x its memory, must fit --max-memory; docs/run.md)",
         action="store_true",
+    )
+    detail_fusion: bool = flag(
+        True,
+        "network only, no least-squares detail: by default the network's shape is fused with "
+        "least squares' fine detail (and shape) where the Lambertian fit holds "
+        "(infer.detail_fusion; docs/run.md, Inspection)",
+        name="--no-detail-fusion",
+        action="store_false",
+    )
+    edge_context: bool = flag(
+        True,
+        "zeros beyond the mask everywhere (the published protocol's input): by default the "
+        "network also sees lit surface that continues past a mask edge (infer.tiled)",
+        name="--no-edge-context",
+        action="store_false",
+    )
+    speed: str = flag(
+        "full",
+        "speed ladder (infer.ladder): full = the network on every pixel and light (default); "
+        "balanced = the network at half resolution, least-squares detail at full resolution; "
+        "fast = a third of the resolution on at most 8 lights (time and accuracy per rung: "
+        "docs/benchmark.md)",
+        choices=("full", "balanced", "fast"),
+    )
+    device: str | None = flag(
+        None,
+        "run on an accelerator instead of the CPU: cuda or tensorrt (ONNX Runtime), gpu, "
+        "gpu.N or npu (OpenVINO); refused in one line where it is absent",
+        metavar="D",
+    )
+    tta: int = flag(
+        1,
+        "test-time augmentation: the mean of the network's normals over 4 (half turn and "
+        "mirrors) or 8 (also quarter turns) rotated / mirrored copies of the stack, lights "
+        "turned with it (4x / 8x the inference time; infer.tta, docs/training.md); default 1: off",
+        type=tta_count,
+        metavar="K",
     )
     maps: MapOptions | None = DEFAULT_MAPS  # msf-run builds it from its map flags
 
@@ -117,8 +166,33 @@ class ModelOptions:
                     "time; --method l2 has no network (least squares keeps all detail, and its "
                     "noise)"
                 )
+        if self.method == "l2" and (self.speed != "full" or self.device):
+            raise InputError(
+                "speed / device (--speed / --device) choose how the network runs; "
+                "--method l2 has no network"
+            )
+        if self.speed not in ("full", "balanced", "fast"):
+            raise InputError(f"speed {self.speed!r}: expected full, balanced or fast")
+        if self.speed != "full" and self.fine_detail:
+            raise InputError(
+                f"--speed {self.speed} runs the network at half resolution, --fine-detail at "
+                "twice it: choose one"
+            )
+        if self.device and self.provider:
+            raise InputError(
+                "--device and --provider both pick where ONNX Runtime runs: use --device"
+            )
+        if self.tta not in TTA_COUNTS:
+            raise InputError(f"tta {self.tta!r}: expected 1 (off), 4 or 8 copies")
+        if self.tta > 1 and self.method == "l2":
+            raise InputError(
+                "test-time augmentation (--tta, tta=) averages the network over turned "
+                "copies; least squares (--method l2) gives the same normals for every copy"
+            )
         if not self.max_memory_mb > 0:
             raise InputError(f"max memory {self.max_memory_mb}: must be a positive number of MB")
+        if self.threads is not None:
+            check_threads(self.threads)
 
     @property
     def is_network(self) -> bool:
@@ -153,4 +227,4 @@ class ModelOptions:
         return out
 
 
-__all__ = ["DEFAULT_MAPS", "METHODS", "ModelOptions"]
+__all__ = ["DEFAULT_MAPS", "METHODS", "TTA_COUNTS", "ModelOptions", "tta_count"]

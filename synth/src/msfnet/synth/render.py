@@ -267,10 +267,9 @@ def bounce_light(
 
     The nearest pixels (within ``NEAR_PX``) are gathered one by one at full resolution; the
     rest, which varies slowly across the surface, on a grid 2x (or more) coarser for renders
-    larger than ``max_size``, upsampled with the mask's weight (a 160 px, 40-light cup renders
-    in ~1.1 s instead of ~1.5 s; without inter-reflection 0.2 s). The coarse grid blurs steep
-    walls: on cups and folds of 97-200 px the gathered share is 0.85-1.0 of a full-resolution
-    gather (measured), small beside the 0.8-2x gain drawn per object."""
+    larger than ``max_size``, upsampled with the mask's weight (timings: docs/benchmark.md).
+    The coarse grid blurs steep walls, but what it loses of a full-resolution gather is small
+    beside the 0.8-2x gain drawn per object."""
     size_h, size_w = height.shape
     step = 2.0 / (size_w - 1)
     src = (

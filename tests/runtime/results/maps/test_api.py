@@ -36,6 +36,16 @@ EXPECTED_FILES = {
     "mesh.ply",
     "maps.json",
     "report.html",
+    # pixel-registered data and views (maps.registered)
+    "local_shape.png",
+    "normals.tif",
+    "gradient_p.tif",
+    "gradient_q.tif",
+    "height.tif",
+    "local_shape.tif",
+    "curvature.tif",
+    "gaussian_curvature.tif",
+    "albedo.tif",
 }
 
 

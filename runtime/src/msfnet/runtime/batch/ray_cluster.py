@@ -11,6 +11,7 @@ Ray is imported only here, only when asked for: the edge runtime does not depend
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import socket
 import tempfile
@@ -21,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from msfnet.common.errors import InputError
+from msfnet.common.files import writing_as
 from msfnet.runtime.batch.runner import BatchItem, BatchSummary, OnResult, StackRow, row_for
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.profile import BatchStats
@@ -39,6 +41,16 @@ def import_ray() -> Any:
             "'msfnet[ray]' (on the driver and on every cluster node)"
         ) from exc
     return ray
+
+
+def _check_client() -> None:
+    """A ray:// address goes through Ray's client, which needs gRPC (Ray's ``client`` extra):
+    without it Ray fails with an import error deep inside ``ray.init``."""
+    if importlib.util.find_spec("grpc") is None:
+        raise InputError(
+            "--ray ray://...: a ray:// address needs Ray's client (gRPC), which is not "
+            "installed: pip install 'msfnet[ray]' (it brings ray[client])"
+        )
 
 
 @dataclass(frozen=True)
@@ -86,11 +98,14 @@ class StackWorker:
         constructors do not always survive pickling)."""
         start = time.perf_counter()
         try:
-            stack = load_stack(Path(path), load)
-            decode_s = time.perf_counter() - start
-            t0 = time.perf_counter()
-            result = self.model(stack)
-            compute_s = time.perf_counter() - t0
+            # the driver is msf-run: its errors keep the command's words (flags), not the
+            # Python API's keywords
+            with writing_as("msf-run"):
+                stack = load_stack(Path(path), load)
+                decode_s = time.perf_counter() - start
+                t0 = time.perf_counter()
+                result = self.model(stack)
+                compute_s = time.perf_counter() - t0
         except InputError as exc:
             return {"name": name, "error": str(exc), "where": self.where}
         if self.spec.onnx_name is not None:
@@ -140,6 +155,8 @@ def run_batch_ray(
     from tqdm import tqdm
 
     ray = import_ray()
+    if (address or os.environ.get("RAY_ADDRESS") or "").startswith("ray://"):
+        _check_client()
     started = not ray.is_initialized()
     if started:
         try:
@@ -187,6 +204,8 @@ def run_batch_ray(
                     payload = {"name": item.name, "error": f"Ray worker failed: {exc}"}
                 else:
                     submit(actor)  # a live worker takes the next stack at once
+                if "result" in payload:  # where the selection and lights came from, as locally
+                    payload["result"].input = item.describe_input(opts)
                 method = _record(payload, item, out_for, overwrite, inputs, summary, on_result)
                 if method and not summary.model:
                     summary.model = method

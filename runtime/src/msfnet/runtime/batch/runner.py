@@ -10,114 +10,26 @@ the sum of the stages run one after the other.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import MANIFEST, STAGING_TAG, json_text, write_text
-from msfnet.common.imageio import list_images
-from msfnet.runtime.evaluate.datasets import PROTOCOL_SELECT, find_objects, protocol_note
 from msfnet.runtime.evaluate.metrics import NormalMetrics
-from msfnet.runtime.results.profile import BatchStats
-from msfnet.runtime.stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack, selection
-from msfnet.runtime.stack.load import count_images
+from msfnet.runtime.sources import (
+    BatchItem,
+    StackSource,
+    decode_ahead,
+    expand_stacks,
+)
+from msfnet.runtime.stack import LoadOptions
 
 if TYPE_CHECKING:
     from msfnet.runtime.api import Model, Result
 
 SUMMARY_FILES = ("summary.json", "summary.md")
-
-
-@dataclass(frozen=True)
-class BatchItem:
-    """One stack of a batch: its path and its own image selection, from an objects.txt or
-    from a benchmark's protocol (DiLiGenT bear: 21-96), which --select overrides (as in
-    msf-eval)."""
-
-    path: Path
-    select: str | None = None
-    origin: str = "objects.txt"  # where ``select`` comes from: "objects.txt" or "protocol"
-
-    @property
-    def name(self) -> str:
-        return self.path.stem if self.path.suffix.lower() == ".npz" else self.path.name
-
-    def options(self, load: LoadOptions) -> LoadOptions:
-        if self.select is None or load.select is not None:
-            return load
-        return replace(load, select=self.select)
-
-    def note(self, load: LoadOptions) -> str | None:
-        """The line to print when the benchmark's selection applies (it changes the result,
-        so it is never silent)."""
-        if self.origin != "protocol" or self.select is None or load.select is not None:
-            return None
-        return protocol_note(self.name, self.select)
-
-    def describe_input(self, load: LoadOptions) -> dict[str, object]:
-        """profile.json's "input": the options in effect and where the selection came from."""
-        info = self.options(load).describe()
-        if load.select is not None:
-            info["select_from"] = "--select"
-        elif self.select is not None:
-            info["select_from"] = (
-                "benchmark protocol" if self.origin == "protocol" else "objects.txt"
-            )
-        return info
-
-
-def _is_stack_folder(folder: Path) -> bool:
-    return (
-        (folder / "filenames.txt").is_file()
-        or any((folder / n).is_file() for n in LIGHTS_NAMES)
-        or bool(list_images(folder))
-    )
-
-
-def _protocol_item(folder: Path) -> BatchItem:
-    """A stack folder, with its benchmark's selection when its name is a known object's (as
-    msf-eval does, however the folder is named on the command line) and the selection fits
-    its images: a folder of ours that happens to be called bearPNG but holds 24 images is not
-    DiLiGenT's bear, and runs whole."""
-    select = PROTOCOL_SELECT.get(folder.name)
-    if select is not None:
-        try:
-            selection(count_images(folder), select, None)
-        except InputError:
-            select = None
-    return BatchItem(folder, select, "protocol")
-
-
-def expand_stacks(paths: Sequence[Path]) -> list[BatchItem]:
-    """The stacks named on the command line: a stack folder or .npz stands for itself; a folder
-    with an objects.txt (msf-eval's format, e.g. ``bearPNG 21-96``) or whose sub-folders are
-    stacks stands for those. Names must be unique (they name the output folders)."""
-
-    items: list[BatchItem] = []
-    for path in paths:
-        if path.is_dir() and (path / "objects.txt").is_file():
-            items += [BatchItem(o.folder, o.select) for o in find_objects(path)]
-        elif path.is_dir() and not _is_stack_folder(path):
-            subs = [d for d in sorted(path.iterdir()) if d.is_dir() and _is_stack_folder(d)]
-            if not subs:
-                raise InputError(
-                    "neither a stack (images + light_directions.txt) nor a folder "
-                    "of stacks (sub-folders holding them, or an objects.txt)",
-                    path,
-                )
-            items += [_protocol_item(d) for d in subs]
-        elif path.is_dir():
-            items.append(_protocol_item(path))
-        else:
-            items.append(BatchItem(path))  # an .npz, or a path the loader reports
-    names = [i.name for i in items]
-    dup = next((n for n in names if names.count(n) > 1), None)
-    if dup is not None:
-        raise InputError(f"two stacks are named {dup!r}; their output folders would clash")
-    return items
 
 
 @dataclass
@@ -326,44 +238,9 @@ def row_for(result: Result, output: Path | None) -> StackRow:
 OnResult = Callable[[StackRow, "Result | None"], None]
 
 
-def _decode(item: BatchItem | Stack, load: LoadOptions) -> tuple[Stack, float]:
-    start = time.perf_counter()
-    if isinstance(item, Stack):
-        from msfnet.runtime.stack import prepare_stack
-
-        stack = prepare_stack(item, load)
-    else:
-        stack = load_stack(item.path, item.options(load))
-    return stack, time.perf_counter() - start
-
-
-def _prefetched(
-    items: Sequence[BatchItem | Stack], load: LoadOptions, prefetch: bool
-) -> Iterator[tuple[int, Future[tuple[Stack, float]]]]:
-    """Futures of the decoded stacks, in order. With ``prefetch`` the next stack is submitted
-    when the current one is handed out, so it decodes while the current one runs; without,
-    only after the caller is done with it. One decoding thread: at most two stacks in memory.
-    """
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="msf-decode")
-    try:
-        upcoming = pool.submit(_decode, items[0], load) if items else None
-        for i in range(len(items)):
-            current, upcoming = upcoming, None
-            more = i + 1 < len(items)
-            if prefetch and more:
-                upcoming = pool.submit(_decode, items[i + 1], load)
-            assert current is not None
-            yield i, current
-            if not prefetch and more:
-                upcoming = pool.submit(_decode, items[i + 1], load)
-    finally:
-        # Ctrl-C or an error: do not wait for a stack nobody will use
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
 def run_batch(
     model: Model,
-    items: Sequence[BatchItem | Stack],
+    items: Sequence[StackSource],
     load: LoadOptions,
     out_for: Callable[[str], Path | None],
     *,
@@ -383,7 +260,6 @@ def run_batch(
     from tqdm import tqdm
 
     summary = BatchSummary("local", model.describe(), prefetch=prefetch)
-    budget = model.tiling
     start = time.perf_counter()
     # disable=None: a bar on a terminal, nothing in a log file
     bar = tqdm(
@@ -394,53 +270,30 @@ def run_batch(
         disable=True if progress is False else None,
     )
     try:
-        for i, future in _prefetched(items, load, prefetch):
-            item = items[i]
-            name = item.name
-            waited = time.perf_counter()
-            try:
-                stack, decode_s = future.result()
-            except InputError as exc:
+        for decoded in decode_ahead(items, load, prefetch=prefetch, total=len(items)):
+            item = decoded.item
+            if decoded.stack is None:
+                assert decoded.error is not None
                 row = StackRow(
-                    name,
-                    str(getattr(item, "path", name)),
-                    error=str(exc),
-                    wait_s=time.perf_counter() - waited,
+                    item.name,
+                    str(getattr(item, "path", item.name)),
+                    error=str(decoded.error),
+                    wait_s=decoded.wait_s,
                 )
                 summary.rows.append(row)
                 if on_result:
                     on_result(row, None)
                 bar.update(1)
                 continue
-            wait_s = time.perf_counter() - waited
-            if prefetch and i + 1 < len(items):
-                # the next stack is being decoded beside this one: leave its memory out of the
-                # tile budget (estimated by this stack's size; batches are rarely mixed)
-                model.tiling = replace(
-                    budget,
-                    max_memory_mb=max(budget.max_memory_mb - stack.images.nbytes / 2**20, 256.0),
-                )
-            try:
-                t0 = time.perf_counter()
-                result = model(stack)
-                compute_s = time.perf_counter() - t0
-            finally:
-                model.tiling = budget
-            runs = result.timings.runs
-            if runs:  # the profile shows what the stack cost, decoding included
-                runs[-1]["load"] = decode_s
-                runs[-1]["total"] = runs[-1].get("total", 0.0) + decode_s
-            # what model(path, load) records itself (auto-mask -> mask.png on save)
-            result.input = (
-                item.describe_input(load) if isinstance(item, BatchItem) else load.describe()
-            )
-            result.batch = BatchStats(decode_s, wait_s=wait_s, prefetched=prefetch and i > 0)
-            out = out_for(name)
+            t0 = time.perf_counter()
+            result = model._run_decoded(decoded, load)
+            compute_s = time.perf_counter() - t0
+            out = out_for(item.name)
             t0 = time.perf_counter()
             if out is not None:
                 result.save(out, overwrite=overwrite, inputs=inputs)
             row = row_for(result, out)
-            row.decode_s, row.wait_s, row.compute_s = decode_s, wait_s, compute_s
+            row.decode_s, row.wait_s, row.compute_s = decoded.decode_s, decoded.wait_s, compute_s
             row.save_s = time.perf_counter() - t0
             summary.rows.append(row)
             summary.wall_s = time.perf_counter() - start
@@ -448,7 +301,7 @@ def run_batch(
                 summary.write(summary_dir)
             if on_result:
                 on_result(row, result)
-            del stack, result  # keep at most the next stack in memory
+            del decoded, result  # keep at most the next stack in memory
             bar.update(1)
     finally:
         bar.close()

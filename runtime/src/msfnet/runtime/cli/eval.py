@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -32,6 +33,7 @@ from msfnet.runtime.evaluate.metrics import NormalMetrics
 from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB
 from msfnet.runtime.results.maps import pictures
 from msfnet.runtime.results.outputs import normals_png, write_rgb_png
+from msfnet.runtime.results.provenance import Provenance
 from msfnet.runtime.stack import LoadOptions, load_stack
 
 PROG = "msf-eval"
@@ -102,6 +104,7 @@ class EvalSummary:
     methods: list[str]
     results: list[ObjectResult]
     fine_detail: bool = False  # the model ran with --fine-detail
+    provenance: Provenance | None = None  # input, model + checksum, engine, date, command
 
     @property
     def scored(self) -> list[ObjectResult]:
@@ -150,7 +153,13 @@ class EvalSummary:
             "fine_detail": self.fine_detail,
             "results": [r.as_dict() for r in self.scored + self.unscored],
             "mean": self.mean(),
+            "provenance": self.provenance.as_dict() if self.provenance else None,
         }
+
+    def markdown(self) -> str:
+        """results.md: where the numbers came from, then the tables."""
+        head = f"{self.provenance.markdown()}\n\n" if self.provenance else ""
+        return head + self.table() + "\n"
 
 
 def markdown_table(
@@ -197,8 +206,11 @@ def evaluate(
     load: LoadOptions | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    lines: bool = False,
 ) -> EvalSummary:
-    """Score ``model`` (and least squares) on every object; write the results folder."""
+    """Score ``model`` (and least squares) on every object; write the results folder.
+    ``progress``: tile bars (a terminal); ``lines``: a line on stderr as each object is done
+    (a run over DiLiGenT takes minutes: logs and pipes see it move too)."""
     load = load or LoadOptions()
     check_unique(objects)
     check_output(
@@ -219,8 +231,9 @@ def evaluate(
     methods = list(runners)
     results = []
     with staged_folder(outdir, overwrite=overwrite) as tmp:
-        for obj in objects:
+        for k, obj in enumerate(objects, 1):
             opts = replace(load, select=load.select or obj.select)
+            started = time.perf_counter()
             stack = load_stack(obj.folder, opts)
             (tmp / obj.folder.name).mkdir()
             outs, errors, scores = {}, {}, {}
@@ -258,25 +271,31 @@ def evaluate(
                 warnings=tuple(stack.warnings),
             )
             results.append(row)
-            if progress:
+            if lines:
+                got = [
+                    f"{m} {s.metrics.mae_deg:.2f} deg"
+                    for m, s in scores.items()
+                    if s.metrics is not None
+                ]
+                if detail is not None:
+                    got.append(f"detail msf / l2 {detail:.2f}")
                 print(
-                    f"{row.name}: "
-                    + ", ".join(
-                        f"{m} {s.metrics.mae_deg:.2f} deg"
-                        for m, s in scores.items()
-                        if s.metrics is not None
-                    ),
+                    f"{PROG}: [{k}/{len(objects)}] {row.name}: {row.lights} lights, "
+                    f"{', '.join(got) or 'done'} ({time.perf_counter() - started:.1f} s)",
                     file=sys.stderr,
+                    flush=True,
                 )
+        first = runners["msf"] if "msf" in runners else runners["l2"]
         summary = EvalSummary(
             [str(o.folder) for o in objects],
             runners["msf"].describe().get("model") if "msf" in runners else None,  # type: ignore[arg-type]
             methods,
             results,
             fine_detail="msf" in runners and "fine_detail" in runners["msf"].describe(),
+            provenance=Provenance.of([o.folder for o in objects], first.describe()),
         )
         (tmp / "results.json").write_text(json_text(summary.as_dict()))
-        (tmp / "results.md").write_text(summary.table() + "\n")
+        (tmp / "results.md").write_text(summary.markdown())
     return summary
 
 
@@ -354,6 +373,7 @@ def _run(args: argparse.Namespace) -> int:
         load=load,
         overwrite=args.overwrite,
         progress=sys.stderr.isatty() and not args.quiet and not args.json,
+        lines=not args.quiet,
     )
     if not args.quiet:
         for line in summary.warnings():

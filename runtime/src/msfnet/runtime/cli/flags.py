@@ -13,7 +13,14 @@ import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
-from msfnet.common.cli import Flag, add_flags, options_from_args, positive_float, positive_int
+from msfnet.common.cli import (
+    Flag,
+    add_flags,
+    nonnegative_float,
+    options_from_args,
+    positive_float,
+    positive_int,
+)
 from msfnet.common.errors import InputError
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.maps import MAP_NAMES, MapOptions
@@ -127,6 +134,30 @@ def add_map_flags(parser: argparse.ArgumentParser) -> None:
         metavar=("FX", "FY", "CX", "CY"),
         help="perspective camera (pixels) for the height map; default orthographic",
     )
+    insp.add_argument(
+        "--curvature-sigma",
+        type=nonnegative_float,
+        default=MapOptions.curvature_sigma,
+        metavar="PX",
+        help="smoothing of the normals before curvature, px (default %(default)g; 0 = none)",
+    )
+    insp.add_argument(
+        "--pixel-size",
+        type=positive_float,
+        metavar="MM",
+        help="object-side size of one pixel in mm: the TIFFs then hold mm and 1/mm",
+    )
+    insp.add_argument(
+        "--local-size",
+        type=positive_float,
+        default=MapOptions.local_size_px,
+        metavar="PX",
+        help="characteristic size of the local-shape map (height minus its trend at this "
+        "size), px (default %(default)g)",
+    )
+    insp.add_argument(
+        "--no-tiff", action="store_true", help="no pixel-registered float32 TIFF maps"
+    )
     insp.add_argument("--no-report", action="store_true", help="no report.html")
 
 
@@ -141,7 +172,15 @@ def map_options(args: argparse.Namespace) -> MapOptions | None:
         raise InputError(
             f"--intrinsics: focal lengths must be positive, got {intr[0]:g}, {intr[1]:g}"
         )
-    return MapOptions(maps=args.maps or MAP_NAMES, method=args.integration, intrinsics=intr)
+    return MapOptions(
+        maps=args.maps or MAP_NAMES,
+        method=args.integration,
+        intrinsics=intr,
+        curvature_sigma=getattr(args, "curvature_sigma", MapOptions.curvature_sigma),
+        pixel_size_mm=getattr(args, "pixel_size", None),
+        local_size_px=getattr(args, "local_size", MapOptions.local_size_px),
+        tiff=not getattr(args, "no_tiff", False),
+    )
 
 
 def model_options(args: argparse.Namespace, **overrides: object) -> ModelOptions:

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +34,7 @@ from msfnet.runtime.cli.flags import (
     model_options,
 )
 from msfnet.runtime.options import ModelOptions
+from msfnet.runtime.results.profile import announce, announcing
 from msfnet.runtime.stack import LoadOptions, Stack
 
 PROG = "msf-run"
@@ -228,16 +233,52 @@ def _print_warnings(result: Result, req: RunRequest) -> None:
             tqdm.write(f"{PROG}: warning: {line}", file=sys.stderr)
 
 
+def _terminal() -> bool:
+    return sys.stderr.isatty()
+
+
+@contextmanager
+def stage_status(name: str, enabled: bool) -> Iterator[Callable[[str], None]]:
+    """A status line on stderr naming the step under way and the time so far (a run without
+    tiles is otherwise silent for a minute or two). On a terminal only, and erased when the
+    run ends, so what stays is the result, or one error line."""
+    bar = (
+        tqdm(total=0, bar_format="{desc}", leave=False, file=sys.stderr, dynamic_ncols=True)
+        if enabled
+        else None
+    )
+    started = time.perf_counter()
+
+    def step(what: str) -> None:
+        if bar is not None:
+            took = time.perf_counter() - started
+            bar.set_description_str(f"{PROG}: {name}: {what} ... ({took:.1f} s)", refresh=True)
+
+    try:
+        yield step
+    finally:
+        if bar is not None:
+            bar.close()
+
+
 def _say(req: RunRequest, line: str | None) -> None:
     if line and req.chatty:
         print(line)
+
+
+def _default_name(path: Path, stem: bool = False) -> str:
+    """The name a default output folder takes after its input, from the path made absolute:
+    ``ballPNG/..`` is named after the folder it means, not "..", which sent the output into
+    the current folder."""
+    full = Path(os.path.abspath(path))
+    return (full.stem if stem else full.name) or "stack"
 
 
 def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = None) -> int:
     load = req.load
     if req.workers is not None:
         raise InputError("--workers is for --ray (workers of a batch on a cluster)")
-    name = src.name if isinstance(src, Stack) else src.stem
+    name = src.name if isinstance(src, Stack) else _default_name(src, stem=True)
     out = req.output if req.output is not None else numbered_folder(Path("msf-out") / name)
     inputs = [*load.inputs(), req.model.model] + ([src] if isinstance(src, Path) else [])
     check_output(out, inputs, overwrite=req.overwrite, folder=True)  # before any work
@@ -245,14 +286,20 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
     progress = sys.stderr.isatty() and req.chatty
     if item is not None:
         _say(req, item.note(load))
-    result = model(
-        src, item.options(load) if item is not None else load, repeat=req.repeat, progress=progress
-    )
-    if item is not None:
-        result.input = item.describe_input(load)
-    files = result.save(
-        out, overwrite=req.overwrite, inputs=tuple(load.inputs()), report=req.report
-    )
+    with stage_status(name, enabled=not req.quiet and _terminal()) as step, announcing(step):
+        result = model(
+            src,
+            item.options(load) if item is not None else load,
+            repeat=req.repeat,
+            progress=progress,
+        )
+        if item is not None:
+            result.input = item.describe_input(load)
+        report = req.report and result.maps is not None  # the report shows the maps
+        announce("writing the outputs" + (" and report.html" if report else ""))
+        files = result.save(
+            out, overwrite=req.overwrite, inputs=tuple(load.inputs()), report=req.report
+        )
     _print_warnings(result, req)
     print_result(result, out, files, req)
     if req.demo and req.model.is_network and req.chatty:
@@ -275,7 +322,9 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
         root = req.output
     else:
         one_folder = len(req.stacks) == 1 and req.stacks[0].is_dir()
-        root = numbered_folder(Path("msf-out") / (req.stacks[0].name if one_folder else "batch"))
+        root = numbered_folder(
+            Path("msf-out") / (_default_name(req.stacks[0]) if one_folder else "batch")
+        )
     # Everything is checked, and the model opened, before anything is made: bad input leaves
     # no output, not even an empty folder (the stacks' folders and the summary create it).
     inputs = [*load.inputs(), req.model.model]

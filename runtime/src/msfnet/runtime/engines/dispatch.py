@@ -1,49 +1,28 @@
-"""Which engine and precision run a model on this CPU: ``choose_engine`` decides, ``open_engine``
-loads.
+"""Which engine, precision and device run a model here: ``choose_engine`` decides,
+``open_engine`` loads.
 
-``choose_engine`` is a pure function of the CPU's features (cpu.CpuInfo), the installed engines
-and the model's metadata (fp32 / int8, monolithic / staged), so every rule below is tested on
-faked CPUs. Rules, in order:
+``choose_engine`` is a pure function of the CPU's features (cpu.CpuInfo), the installed engines,
+the model's metadata (fp32 / int8, monolithic / staged) and the requested device, so every rule
+below is tested on faked CPUs and engines. Rules, in order:
 
+0. ``--device`` other than cpu (``resolve_device``): CUDA / TensorRT run through ONNX Runtime's
+   providers, GPU / NPU through OpenVINO's plugins, the model's own precision (fp32 exports in
+   fp32); a device that is not present is an error naming what is, never a silent CPU run.
 1. ``--engine`` / ``--precision`` override. An override that cannot be honoured is an error,
    never a silent substitute: bf16 needs OpenVINO (ONNX Runtime's CPU provider has no bf16 path
    on x86) and a CPU with native bf16; int8 needs an int8 export; an int8 export runs only int8.
-2. int8 models run int8. Default engine: ONNX Runtime (its QLinearConv kernels use VNNI / AMX
-   where present; without them int8 is emulated with AVX2 and still measured 1.56x fp32 on
-   Zen 3). OpenVINO runs them on request (``--engine openvino``).
-3. fp32 models: bf16 through OpenVINO when the CPU has native bf16 (avx512_bf16 or AMX) and
-   OpenVINO is installed; plain and staged graphs alike.
-4. Otherwise fp32 through ONNX Runtime.
+2. int8 models run int8, through ONNX Runtime by default (its int8 kernels use VNNI / AMX where
+   present and still beat fp32 with AVX2 alone); OpenVINO on request.
+3. fp32 models: bf16 through OpenVINO when the CPU has native bf16 (avx512_bf16 or AMX),
+   OpenVINO is installed and bf16 is measured within the accuracy bound (``MEASURED``).
+4. fp32 models otherwise: fp32 through OpenVINO on the CPU classes where it was measured faster
+   than ONNX Runtime fp32 in the same run (``OV_FP32_SPEEDUP``), else ONNX Runtime fp32, the
+   fallback (also whenever OpenVINO is missing or cannot compile the model).
 
-A precision is a *default* only within ACCURACY_BOUND_DEG (0.5 deg) mean of ONNX Runtime fp32
-on real data (MEASURED, checked by ``default_allowed``); a path above it runs only on request.
-Measured with ``python -m msfnet.bench.accuracy --models DIR`` on the AMX machine (Intel Xeon,
-AMX bf16/int8, AVX-512 bf16/VNNI, 2 cores, onnxruntime 1.32, openvino 2026.4), the bundled model
-of 2026-11-23, int8 exports calibrated on psmImages cat, owl and horse (never on the validation
-objects), DiLiGenT ballPNG 128x128 crop centred on the ball, mean / max deg vs ORT fp32 over the
-mask, speed as the same-run ratio to ORT fp32 (median of the timed runs after a warm-up; the
-machine is shared, so ratios, not seconds):
-
-    path (model)                   32 lights        96 lights        x ORT fp32, same run:
-                                   mean / max deg   mean / max deg   32 lights; 96 lights
-    ORT fp32 staged                0.000 / 0.000    0.000 / 0.000     1.05;  1.03
-    ORT int8 (QDQ)       opt-in    0.673 / 2.93     0.917 / 4.89      2.01;  2.02
-    ORT int8 staged      opt-in    0.673 / 2.93     0.917 / 4.89      2.21;  2.24
-    OpenVINO fp32                  0.000 / 0.000    0.000 / 0.000     1.43;  1.32
-    OpenVINO bf16        default   0.093 / 0.331    0.078 / 0.319     6.56;  6.31
-    OpenVINO bf16 staged default   0.091 / 0.329    0.076 / 0.269     5.46;  5.17
-    OpenVINO int8 (QDQ)  opt-in    0.754 / 2.97     1.004 / 4.83      4.21;  3.93
-    OpenVINO int8 staged opt-in    0.673 / 2.93     0.917 / 4.88      4.13;  4.10
-
-(The model of 2026-11-22, measured the same way: int8 0.71 / 0.94 deg mean, bf16 0.08 / 0.07.)
-The CPU-trained model bundled before 2026-11-22 stayed within the bound in int8 (ORT 0.32 / 0.44 deg
-mean); the sharper H100-trained models since 2026-11-22 do not (for that one, calibrating on all
-six psmImages objects made it worse, 0.86 deg on held-out calibration tiles), so int8 is now
-opt-in everywhere and an int8 export runs only when asked for (rule 2: an int8 file is itself
-the request). OpenVINO bf16 is the fastest path and 7-12x closer to fp32 than int8. Plain
-OpenVINO bf16 beat staged in every run so far (here by 1.1-1.35x; 1.5-2x in an earlier
-interleaved run): staged graphs save memory, not time, on this engine. The field notes measured
-OpenVINO bf16 at 3.31x ORT fp32 (0.087 deg mean) on Zen 5 (avx512_bf16, no AMX).
+A reduced precision is a *default* only within ACCURACY_BOUND_DEG (0.5 deg) mean of ONNX Runtime
+fp32 on real data (``MEASURED``, checked by ``default_allowed``); a path above it runs only on
+request. The dated measurements behind both tables (commands, CPUs, models) are in
+docs/benchmark.md, "Dispatch measurements".
 """
 
 from __future__ import annotations
@@ -78,7 +57,7 @@ class Measured:
         return max(mean for mean, _ in self.deg.values())
 
 
-# (engine, precision, staged) -> measurement (the table in the module docstring)
+# (engine, precision, staged) -> measurement (docs/benchmark.md, "Dispatch measurements")
 MEASURED: dict[tuple[str, str, bool], Measured] = {
     ("onnxruntime", "int8", False): Measured({32: (0.673, 2.934), 96: (0.917, 4.886)}),
     ("onnxruntime", "int8", True): Measured({32: (0.673, 2.934), 96: (0.917, 4.886)}),
@@ -98,16 +77,136 @@ def default_allowed(engine: str, precision: str, staged: bool) -> bool:
     return m is not None and m.worst_mean <= ACCURACY_BOUND_DEG
 
 
+def cpu_class(cpu: CpuInfo) -> str:
+    """The CPU class speed measurements are kept for: amx, avx512-bf16, avx512, avx2 or other
+    (no AVX2: old x86 or ARM; nothing measured there)."""
+    if cpu.has_amx:
+        return "amx"
+    if cpu.avx512_bf16:
+        return "avx512-bf16"
+    if cpu.avx512f:
+        return "avx512"
+    return "avx2" if cpu.avx2 else "other"
+
+
+# CPU class -> OpenVINO fp32 over ONNX Runtime fp32, same run, same fp32 model, 2 threads, the
+# median of interleaved runs (docs/benchmark.md, "Dispatch measurements"). Normals identical
+# (0.000 deg). A class missing here keeps ONNX Runtime fp32: nothing was measured there.
+OV_FP32_SPEEDUP: dict[str, float] = {
+    "avx2": 1.36,  # AMD EPYC, AVX2 only (another session; the issue's own run read 1.60)
+    "amx": 1.43,  # Intel Xeon with AMX
+}
+
+
+def ov_fp32_preferred(cpu: CpuInfo) -> bool:
+    """OpenVINO fp32 is the fp32 default on this CPU class: measured faster than ORT fp32."""
+    return OV_FP32_SPEEDUP.get(cpu_class(cpu), 0.0) > 1.0
+
+
+# --device names: where each runs (engine) and that engine's name for it
+DEVICE_TARGETS = {
+    "cpu": ("", ""),  # the CPU rules above
+    "cuda": ("onnxruntime", "CUDAExecutionProvider"),
+    "tensorrt": ("onnxruntime", "TensorrtExecutionProvider"),
+    "gpu": ("openvino", "GPU"),  # Intel integrated / discrete GPU; gpu.1 for the second one
+    "npu": ("openvino", "NPU"),  # Intel NPU (Core Ultra)
+}
+DEVICE_HINTS = {
+    "cuda": "it needs the onnxruntime-gpu package and an NVIDIA GPU with its CUDA libraries",
+    "tensorrt": "it needs onnxruntime-gpu built with TensorRT and NVIDIA's TensorRT libraries",
+    "gpu": "it needs an Intel GPU and its compute runtime (OpenCL / Level Zero driver)",
+    "npu": "it needs an Intel NPU (Core Ultra) and its driver",
+}
+
+
+@dataclass(frozen=True)
+class Device:
+    """A non-CPU device to run on: ``name`` as asked (cuda, tensorrt, gpu, gpu.1, npu), the
+    engine that drives it and that engine's name for it (ORT provider or OpenVINO device)."""
+
+    name: str
+    engine: str
+    target: str
+
+
+def available_devices(engine: str) -> list[str]:
+    """What ``engine`` can run on here: ORT execution providers or OpenVINO device names
+    ([] when the engine is not installed). Imports the engine: call only for a --device."""
+    try:
+        if engine == "onnxruntime":
+            import onnxruntime
+
+            return list(onnxruntime.get_available_providers())
+        from msfnet.runtime.engines.openvino import import_openvino
+
+        return list(import_openvino().Core().available_devices)
+    except (ImportError, InputError):
+        return []
+
+
+def resolve_device(
+    name: str | None,
+    ort_providers: Iterable[str] | None = None,
+    ov_devices: Iterable[str] | None = None,
+) -> Device | None:
+    """``--device`` -> the Device to run on, None for the CPU. ``ort_providers`` /
+    ``ov_devices``: what the engines offer (default: asked, see available_devices; tests pass
+    fakes). InputError, in one line, for an unknown name or a device that is not here."""
+    if name is None:
+        return None
+    asked = name.strip().lower()
+    base, _, index = asked.partition(".")
+    if base not in DEVICE_TARGETS or (
+        index and (base not in ("gpu", "npu") or not index.isdigit())
+    ):
+        raise InputError(
+            f"--device {name!r}: expected one of {', '.join(DEVICE_TARGETS)} (gpu.N for the "
+            "N-th OpenVINO GPU)"
+        )
+    if base == "cpu":
+        return None
+    engine, target = DEVICE_TARGETS[base]
+    if engine == "onnxruntime":
+        have = list(ort_providers if ort_providers is not None else available_devices(engine))
+        if target not in have:
+            raise InputError(
+                f"--device {asked}: ONNX Runtime has no {target} here (providers: "
+                f"{', '.join(have) or 'none'}); {DEVICE_HINTS[base]}"
+            )
+        return Device(asked, engine, target)
+    have = list(ov_devices if ov_devices is not None else available_devices(engine))
+    target = target + (f".{index}" if index else "")
+    # OpenVINO names one GPU "GPU", several "GPU.0", "GPU.1", ...
+    found = [d for d in have if d.upper() == target or d.upper().startswith(target + ".")]
+    if not found:
+        raise InputError(
+            f"--device {asked}: OpenVINO sees no {target} here (devices: "
+            f"{', '.join(have) or 'none, or OpenVINO is not installed'}); {DEVICE_HINTS[base]}"
+        )
+    return Device(asked, engine, found[0] if index else target)
+
+
 @dataclass(frozen=True)
 class EngineChoice:
     engine: str  # onnxruntime | openvino
     precision: str  # fp32 | bf16 | int8
     reason: str  # one line for logs and profile.json: why this engine and precision
     model: Path | None = None  # the model to open (None when decided from a ModelInfo alone)
+    device: Device | None = None  # None: the CPU
 
 
-def _bound_note(engine: str, precision: str, staged: bool) -> str:
+# int8 exports with their sensitive convs in fp32 (msf-export --variant int8-mixed): mean deg
+# from the fp32 graph on DiLiGenT ball / bear / harvest 128 px crops (docs/benchmark.md)
+MIXED_INT8_MEASURED = Measured({12: (0.149, 0.0), 96: (0.381, 0.0)})
+
+
+def _bound_note(engine: str, precision: str, staged: bool, mixed: bool = False) -> str:
     """A warning for the reason string when a path runs that is no default for accuracy."""
+    if mixed:
+        return (
+            f"; mixed precision: measured {MIXED_INT8_MEASURED.worst_mean:.2f} deg mean from "
+            "fp32 on DiLiGenT crops, within the bound"
+        )
     m = MEASURED.get((engine, precision, staged))
     if m is None or m.worst_mean <= ACCURACY_BOUND_DEG:
         return ""
@@ -118,7 +217,8 @@ def _bound_note(engine: str, precision: str, staged: bool) -> str:
 
 
 def _install_hint(engine: str) -> str:
-    return "pip install 'msfnet[openvino]'" if engine == "openvino" else "pip install onnxruntime"
+    # OpenVINO is part of the base install: missing means a trimmed or broken environment
+    return "pip install openvino" if engine == "openvino" else "pip install onnxruntime"
 
 
 def choose_engine(
@@ -127,12 +227,13 @@ def choose_engine(
     installed: Iterable[str],
     requested_engine: str | None = None,
     requested_precision: str | None = None,
+    device: Device | None = None,
 ) -> EngineChoice:
     """Pick the engine and precision for ``model`` on ``cpu`` (rules in the module docstring).
 
     ``model``: an msfnet ONNX path (its metadata is read) or its ModelInfo. ``installed``: engine
-    names importable here (engines.installed_engines()). Raises InputError for overrides that
-    cannot be honoured.
+    names importable here (engines.installed_engines()). ``device``: resolve_device's answer
+    for --device (None: the CPU). Raises InputError for overrides that cannot be honoured.
     """
     info = model if isinstance(model, ModelInfo) else read_model_file(model)
     have = {engine_name(e) for e in installed}
@@ -148,6 +249,29 @@ def choose_engine(
     def pick(engine: str, precision: str, why: str) -> EngineChoice:
         return EngineChoice(engine, precision, f"{engine} {precision}: {why}", info.path)
 
+    if device is not None:  # rule 0: the device decides the engine, the model the precision
+        if want_engine is not None and want_engine != device.engine:
+            raise InputError(
+                f"--device {device.name} runs on {device.engine}, not --engine {want_engine}"
+            )
+        if device.engine not in have:
+            raise InputError(
+                f"--device {device.name}: {device.engine} is not installed "
+                f"({_install_hint(device.engine)})"
+            )
+        if want_prec not in (None, own):
+            raise InputError(
+                f"--precision {want_prec}: on --device {device.name} this {own} model runs "
+                f"{own} (bf16 is a CPU path; int8 needs an int8 export)"
+            )
+        return EngineChoice(
+            device.engine,
+            own,
+            f"{device.engine} {own} on {device.target}: --device {device.name} given",
+            info.path,
+            device,
+        )
+
     # int8 exports: quantised weights and activations, nothing else to choose but the engine
     if own == "int8":
         if want_prec not in (None, "int8"):
@@ -161,14 +285,13 @@ def choose_engine(
             if cpu.has_vnni
             else "no VNNI/AMX: int8 emulated with AVX2, still faster than fp32"
         )
+        mixed = info.metadata.get("msfnet.variant") == "int8-mixed"
         if want_engine is not None:
-            return pick(
-                want_engine,
-                "int8",
-                f"{what}, --engine given ({hw})" + _bound_note(want_engine, "int8", info.staged),
-            )
+            note = _bound_note(want_engine, "int8", info.staged, mixed)
+            return pick(want_engine, "int8", f"{what}, --engine given ({hw})" + note)
         engine = "onnxruntime" if "onnxruntime" in have else "openvino"
-        return pick(engine, "int8", f"{what} ({hw})" + _bound_note(engine, "int8", info.staged))
+        note = _bound_note(engine, "int8", info.staged, mixed)
+        return pick(engine, "int8", f"{what} ({hw})" + note)
 
     # fp32 exports
     if want_prec == "int8":
@@ -197,9 +320,15 @@ def choose_engine(
             "bf16",
             f"{what}, --precision bf16 given" + _bound_note("openvino", "bf16", info.staged),
         )
+    ov_fp32 = "openvino" in have and ov_fp32_preferred(cpu)
+    speedup = OV_FP32_SPEEDUP.get(cpu_class(cpu))
+    ov_why = f"measured {speedup}x ONNX Runtime fp32 on this CPU class ({cpu_class(cpu)})"
     if want_prec == "fp32":
-        engine = want_engine or "onnxruntime"
-        return pick(engine, "fp32", f"{what}, --precision fp32 given")
+        if want_engine is not None:
+            return pick(want_engine, "fp32", f"{what}, --precision fp32 and --engine given")
+        if ov_fp32:
+            return pick("openvino", "fp32", f"{what}, --precision fp32 given; {ov_why}")
+        return pick("onnxruntime", "fp32", f"{what}, --precision fp32 given")
 
     # no precision asked for: the fastest default within the accuracy bound
     bf16_ok = default_allowed("openvino", "bf16", info.staged)
@@ -226,7 +355,15 @@ def choose_engine(
         why = f"CPU has native bf16 but OpenVINO is not installed ({_install_hint('openvino')})"
     else:
         why = "OpenVINO bf16 not measured within the accuracy bound for this graph"
-    return pick("onnxruntime", "fp32", f"{what}; {why}")
+    if ov_fp32:
+        return pick("openvino", "fp32", f"{what}; {why}; {ov_why}")
+    if "openvino" not in have:
+        return pick("onnxruntime", "fp32", f"{what}; {why}")
+    return pick(
+        "onnxruntime",
+        "fp32",
+        f"{what}; {why}; OpenVINO fp32 not measured faster on this CPU class ({cpu_class(cpu)})",
+    )
 
 
 def open_engine(
@@ -238,33 +375,75 @@ def open_engine(
     model: str | Path | None = None,
 ) -> Engine:
     """Load the chosen engine. ``threads``: None = the cores this process may use. ``provider``
-    (ONNX Runtime only): e.g. 'cuda'. ``model`` overrides ``choice.model``."""
+    (ONNX Runtime only): e.g. 'cuda' (``choice.device`` sets it too). ``model`` overrides
+    ``choice.model``."""
     path = model if model is not None else choice.model
     if threads is not None and not 1 <= threads <= 1024:
         raise InputError(f"--threads {threads}: expected 1..1024")
     if path is None:
         raise InputError("open_engine: no model path (give model=... or choose from a path)")
+    device = choice.device
     if choice.engine == "onnxruntime":
         from msfnet.runtime.engines.onnxruntime import open_onnxruntime
 
+        if device is not None:
+            provider = device.target
         return open_onnxruntime(
             path, threads=threads, precision=choice.precision, provider=provider, chunk=chunk
         )
     if choice.engine == "openvino":
         if provider not in (None, "cpu"):
-            raise InputError(f"--provider {provider}: ONNX Runtime only (OpenVINO runs on CPU)")
+            raise InputError(
+                f"--provider {provider}: ONNX Runtime only (use --device for OpenVINO)"
+            )
         from msfnet.runtime.engines.openvino import open_openvino
 
-        return open_openvino(path, threads=threads, precision=choice.precision, chunk=chunk)
+        return open_openvino(
+            path,
+            threads=threads,
+            precision=choice.precision,
+            chunk=chunk,
+            device=device.target if device is not None else "CPU",
+        )
     raise InputError(f"unknown engine {choice.engine!r} (known: {', '.join(ENGINES)})")
+
+
+def open_chosen(
+    choice: EngineChoice,
+    threads: int | None = None,
+    *,
+    chunk: int | None = None,
+    requested: bool = False,
+) -> tuple[Engine, str]:
+    """``open_engine``, with ONNX Runtime fp32 as the fallback for a *default* OpenVINO CPU
+    choice that OpenVINO cannot compile (``requested``: the user named the engine, precision or
+    device, and a failure is theirs to see). Returns the engine and the reason line."""
+    try:
+        return open_engine(choice, threads, chunk=chunk), choice.reason
+    except InputError as exc:
+        if requested or choice.engine != "openvino" or choice.device is not None:
+            raise
+        precision = "int8" if choice.precision == "int8" else "fp32"
+        fallback = EngineChoice("onnxruntime", precision, "", choice.model)
+        engine = open_engine(fallback, threads, chunk=chunk)
+        return engine, f"onnxruntime {precision}: fallback, OpenVINO failed ({exc})"
 
 
 __all__ = [
     "ACCURACY_BOUND_DEG",
+    "DEVICE_TARGETS",
     "MEASURED",
+    "MIXED_INT8_MEASURED",
+    "OV_FP32_SPEEDUP",
+    "Device",
     "EngineChoice",
     "Measured",
+    "available_devices",
     "choose_engine",
+    "cpu_class",
     "default_allowed",
+    "open_chosen",
     "open_engine",
+    "ov_fp32_preferred",
+    "resolve_device",
 ]

@@ -1,5 +1,5 @@
-"""The ONNX Runtime engine: today's ModelSession behind the Engine interface (composition, so
-``session.create_session`` and its callers stay as they are).
+"""The ONNX Runtime engine: an ``ort_session.ModelSession`` behind the Engine interface
+(composition, so ``ort_session.create_session`` and its callers stay as they are).
 
 Precision is the model's own: fp32 exports run fp32, int8 QDQ exports run ONNX Runtime's int8
 kernels (VNNI / AMX where the CPU has them). The CPU provider has no bf16 path on x86.
@@ -7,12 +7,14 @@ kernels (VNNI / AMX where the CPU has them). The CPU provider has no bf16 path o
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
+from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
-from msfnet.runtime.contract import ModelInfo
+from msfnet.runtime.contract import METADATA_KEYS, ModelInfo
 from msfnet.runtime.engines.base import model_precision
 from msfnet.runtime.engines.ort_session import ModelSession, create_session
 
@@ -84,9 +86,39 @@ def open_onnxruntime(
             f"{engine.precision}, not {precision}; {hint}",
             engine.info.path,
         )
+    check_int8_exact(engine.info)
     if chunk is not None:
         engine.set_lights_per_call(chunk)
     return engine
 
 
-__all__ = ["OrtEngine", "open_onnxruntime"]
+def quantised_full_range(info: ModelInfo) -> bool:
+    """Whether an int8 model's weights use all 8 bits (not msf-export's reduce_range): the
+    quantisation summary in its metadata says; a model that does not say is taken as full
+    range (the quantiser's default)."""
+    text = info.metadata.get(METADATA_KEYS["quantization"], "")
+    try:
+        summary = json.loads(text) if text else {}
+    except ValueError:
+        summary = {}
+    return not (isinstance(summary, dict) and summary.get("reduce_range") is True)
+
+
+def check_int8_exact(info: ModelInfo, cpu: CpuInfo | None = None) -> None:
+    """Refuse to run an int8 model where ONNX Runtime would compute wrong numbers: full-range
+    weights on a CPU without VNNI (see CpuInfo.int8_full_range)."""
+    if model_precision(info) != "int8" or not quantised_full_range(info):
+        return
+    cpu = cpu or detect_cpu()
+    if cpu.int8_full_range:
+        return
+    raise InputError(
+        "this int8 model has full-range weights, which ONNX Runtime's int8 kernels saturate "
+        f"on CPUs without VNNI (this one: {' '.join(cpu.features()) or 'no AVX2'}): use "
+        "--engine openvino, an fp32 model, or an int8 export made on this CPU (msf-export "
+        "then quantises to 7-bit weights, exact everywhere)",
+        info.path,
+    )
+
+
+__all__ = ["OrtEngine", "check_int8_exact", "open_onnxruntime", "quantised_full_range"]

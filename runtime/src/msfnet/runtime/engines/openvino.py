@@ -1,14 +1,15 @@
 """The OpenVINO engine: the same msfnet ONNX file, compiled by OpenVINO's CPU plugin.
 
 Why it is here: on CPUs with native bf16 (AVX-512 bf16 or AMX), ``INFERENCE_PRECISION_HINT=bf16``
-runs the fp32 model's convolutions in bf16 (see dispatch.py for the measured speed and
-accuracy); ONNX Runtime's CPU provider has no such path on x86. OpenVINO reads the ONNX file
-directly, with the dynamic N, H, W kept (one compile serves every tile size: compiling for a
-static shape measured no faster here). Staged exports are compiled as four sub-models, one per
-entry point, and run through the same light-chunked loop as ONNX Runtime (chunked.run_staged).
+runs the fp32 model's convolutions in bf16 (speed and accuracy per CPU: docs/benchmark.md);
+ONNX Runtime's CPU provider has no such path on x86. OpenVINO reads the ONNX file directly,
+with the dynamic N, H, W kept (one compile serves every tile size; a static-shape compile was
+no faster). Staged exports are compiled as four sub-models, one per entry point, and run
+through the same light-chunked loop as ONNX Runtime (``staged_loop.run_staged``).
 
-``openvino`` is an optional dependency (``pip install 'msfnet[openvino]'``), imported only when
-an engine is opened.
+``openvino`` is part of the base install (x86-64 and ARM64 wheels), imported only when an engine
+is opened. ``device``: CPU (default), GPU / GPU.N (Intel GPUs, f32 for parity with the CPU) or
+NPU (Intel NPUs, their own f16), chosen through ``--device`` (dispatch.resolve_device).
 """
 
 from __future__ import annotations
@@ -18,15 +19,17 @@ from typing import Any
 
 import numpy as np
 
+from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines.base import model_precision, read_model_file, run_staged_with
-from msfnet.runtime.engines.ort_session import default_threads
+from msfnet.runtime.engines.interrupt import run_interruptible
+from msfnet.runtime.engines.ort_session import check_normals, default_threads
 from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK, STAGE_OUTPUTS
 
 # OpenVINO's names for the compute precisions
 _HINTS = {"fp32": "f32", "bf16": "bf16"}
-INSTALL_HINT = "pip install 'msfnet[openvino]' (or: pip install openvino)"
+INSTALL_HINT = "pip install openvino (part of msfnet's base install)"
 
 
 def import_openvino() -> Any:
@@ -41,6 +44,17 @@ def _effective(compiled: Any) -> str:
     """The precision OpenVINO actually chose (it falls back to f32 where bf16 is emulated)."""
     text = str(compiled.get_property("INFERENCE_PRECISION_HINT")).lower()
     return "bf16" if "bf16" in text or "bfloat16" in text else "fp32"
+
+
+def _device_precision(compiled: Any, asked: str) -> str:
+    """What a GPU / NPU computes: f16 and f32 are named as such; int8 models stay int8."""
+    if asked == "int8":
+        return "int8"
+    try:
+        text = str(compiled.get_property("INFERENCE_PRECISION_HINT")).lower()
+    except Exception:  # a plugin without the property: its documented default
+        return "fp16"
+    return "fp16" if "16" in text else "fp32"
 
 
 class OpenVinoEngine:
@@ -71,18 +85,25 @@ class OpenVinoEngine:
     def _run_output(self, output: str, feeds: Any) -> np.ndarray:
         request, names = self._requests[output]
         # The final normals are copied out of the request, so a result survives the next call.
-        # The stage outputs are not: the light-chunked loop (chunked.run_staged) copies each one
-        # into its feature buffer at once, and a second copy of ~100 MB per stage cost ~0.1 s.
-        return request.infer({n: feeds[n] for n in names}, share_outputs=output != "normals")[0]
+        # The stage outputs are not: the light-chunked loop (staged_loop.run_staged) copies each
+        # one into its feature buffer at once, so a second copy (~100 MB a stage) would be waste.
+        inputs = {n: feeds[n] for n in names}
+        return run_interruptible(  # Ctrl-C cancels the request (see interrupt.py)
+            lambda: request.infer(inputs, share_outputs=output != "normals")[0], request.cancel
+        )
 
     @property
     def chunk(self) -> int | None:
         return self.lights_per_call if self.info.staged else None
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        """Like ONNX Runtime's: every call stoppable by Ctrl-C, the result's shape checked."""
         if self.info.staged:
-            return run_staged_with(self._run_output, images, lights, self.lights_per_call)
-        return self._run_output("normals", {"images": images, "lights": lights})
+            out = run_staged_with(self._run_output, images, lights, self.lights_per_call)
+        else:
+            out = self._run_output("normals", {"images": images, "lights": lights})
+        check_normals(self.info.path, images, out)
+        return out
 
     def describe(self) -> dict[str, object]:
         return {
@@ -148,15 +169,22 @@ def open_openvino(
             "int8 needs an int8 export (msf-export --int8); this model is fp32", info.path
         )
     threads = threads or default_threads()
-    if threads < 1:
-        raise InputError(f"--threads must be positive, got {threads}")
-    props: dict[str, Any] = {
-        "INFERENCE_PRECISION_HINT": _HINTS["fp32" if precision == "int8" else precision],
-        "INFERENCE_NUM_THREADS": threads,
-        "PERFORMANCE_HINT": "LATENCY",
-        "NUM_STREAMS": 1,  # one request at a time: all threads on it
-        **(config or {}),
-    }
+    check_threads(threads)  # OpenVINO, too, starts its threads up front
+    if device.upper().startswith("CPU"):
+        props: dict[str, Any] = {
+            "INFERENCE_PRECISION_HINT": _HINTS["fp32" if precision == "int8" else precision],
+            "INFERENCE_NUM_THREADS": threads,
+            "PERFORMANCE_HINT": "LATENCY",
+            "NUM_STREAMS": 1,  # one request at a time: all threads on it
+        }
+    elif precision == "bf16":
+        raise InputError(f"--precision bf16 is a CPU path; {device} runs the model's precision")
+    elif device.upper().startswith("GPU"):
+        # GPUs default to f16; f32 keeps the parity with CPU fp32 that --device promises
+        props = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
+    else:  # NPU: its own precision (f16 compute), no CPU threading properties
+        props = {"PERFORMANCE_HINT": "LATENCY"}
+    props.update(config or {})
     core = ov.Core()
     try:
         if info.staged:
@@ -175,7 +203,9 @@ def open_openvino(
             info.path,
         ) from exc
     effective = _effective(next(iter(compiled.values())))
-    if precision == "bf16" and effective != "bf16":
+    if not device.upper().startswith("CPU"):
+        effective = _device_precision(next(iter(compiled.values())), precision)
+    elif precision == "bf16" and effective != "bf16":
         raise InputError(
             "OpenVINO runs bf16 only on CPUs with native bf16 (AVX-512 bf16 or "
             f"AMX); here it would compute {effective}: use --precision fp32"

@@ -6,15 +6,17 @@ produce garbage normals.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
-from msfnet.common.cpu import usable_cores
+from msfnet.common.cpu import MAX_THREADS, check_threads, usable_cores
 from msfnet.common.errors import InputError, first_line
 from msfnet.runtime.contract import ModelInfo, read_model_info
+from msfnet.runtime.engines.interrupt import run_interruptible
 from msfnet.runtime.engines.staged_loop import (
     DEFAULT_CHUNK,
     STAGE_INPUTS,
@@ -32,9 +34,6 @@ PROVIDER_ALIASES = {
     "directml": "DmlExecutionProvider",
 }
 
-# ONNX Runtime starts every intra-op thread up front: --threads 100000 would exhaust the
-# process's thread limit (or memory) before the first tile.
-MAX_THREADS = 1024
 
 GRAPH_OPT_LEVELS = {
     "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
@@ -73,10 +72,33 @@ class ModelSession:
         }
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
-        """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W)."""
+        """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W); every
+        call stoppable by Ctrl-C (see :mod:`.interrupt`), the result's shape checked."""
         if self.info.staged:
-            return run_staged(self.session, images, lights, self.lights_per_call)
-        return self.session.run(["normals"], {"images": images, "lights": lights})[0]
+            out = run_staged(_Interruptible(self.session), images, lights, self.lights_per_call)
+        else:
+            out = _Interruptible(self.session).run(
+                ["normals"], {"images": images, "lights": lights}
+            )[0]
+        check_normals(self.info.path, images, out)
+        return out
+
+
+class _Interruptible:
+    """An InferenceSession's ``run`` with a fresh RunOptions per call, whose terminate flag a
+    signal sets (ONNX Runtime checks it before every node, inside Loop bodies too)."""
+
+    def __init__(self, session: ort.InferenceSession) -> None:
+        self._session = session
+
+    def run(self, output_names: list[str], feeds: Mapping[str, np.ndarray]) -> list[np.ndarray]:
+        options = ort.RunOptions()
+        options.log_severity_level = 4  # the "terminate flag" error is ours to report, once
+
+        def stop() -> None:
+            options.terminate = True
+
+        return run_interruptible(lambda: self._session.run(output_names, feeds, options), stop)
 
 
 def resolve_provider(name: str | None) -> str:
@@ -107,11 +129,10 @@ def create_session(
     """Load an msfnet ONNX model; raise InputError if it is missing, corrupt or not msfnet.
 
     ``arena`` (ONNX Runtime's CPU memory arena), default: on for staged models, off otherwise.
-    Monolithic: with the arena on, a full DiLiGenT ball (96 lights, 4 tiles of 112 px) peaked
-    at 4.4 GB RSS against 2.2 GB off (it grows in doubling chunks and keeps them), at the same
-    speed. Staged: a call's working set is one light chunk, so the arena stays small, and
-    without it the many calls per tile re-allocate and page-fault: 16 lights 64x64 took 1.68 s
-    off vs 1.37 s on (monolithic 1.38 s, same run).
+    Monolithic: the arena grows in doubling chunks and keeps them, so it about doubles the peak
+    RSS of a full object at the same speed. Staged: a call's working set is one light chunk, so
+    the arena stays small, and without it the many calls per tile re-allocate and page-fault
+    (slower). Figures: docs/benchmark.md, "Measurements behind the code's rules".
     """
     path = Path(path)
     if not path.exists():
@@ -123,8 +144,7 @@ def create_session(
             f"graph optimisation level {graph_opt!r}: expected one of {', '.join(GRAPH_OPT_LEVELS)}"
         )
     threads = threads or default_threads()
-    if not 1 <= threads <= MAX_THREADS:
-        raise InputError(f"--threads must lie in 1..{MAX_THREADS}, got {threads}")
+    check_threads(threads)  # ONNX Runtime starts every intra-op thread up front
     prov = resolve_provider(provider)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
@@ -133,10 +153,21 @@ def create_session(
     opts.enable_cpu_mem_arena = bool(arena)
     opts.log_severity_level = 3  # keep ORT's warnings off the user's terminal
     providers = [prov] if prov == "CPUExecutionProvider" else [prov, "CPUExecutionProvider"]
+    if (
+        prov == "TensorrtExecutionProvider"
+        and "CUDAExecutionProvider" in ort.get_available_providers()
+    ):
+        # nodes TensorRT cannot take run on CUDA, not on the CPU (ONNX Runtime's advice)
+        providers.insert(1, "CUDAExecutionProvider")
     try:
         sess = ort.InferenceSession(str(path), opts, providers=providers)
     except Exception as exc:  # ORT raises InvalidProtobuf, Fail, ... for bad files
         raise InputError(f"cannot load ONNX model ({first_line(exc)})", path) from exc
+    if sess.get_providers()[0] != prov:  # ORT falls back to the CPU when a GPU cannot start
+        raise InputError(
+            f"{prov} is built in but could not start here (ONNX Runtime ran "
+            f"{sess.get_providers()[0]} instead; check the GPU driver and libraries)"
+        )
     meta = dict(sess.get_modelmeta().custom_metadata_map)
     info = read_model_info(path, meta)
     if arena is None and info.staged:  # the default depends on the graph: load it again
@@ -145,6 +176,21 @@ def create_session(
         )
     check_io(path, info, {i.name for i in sess.get_inputs()}, {o.name for o in sess.get_outputs()})
     return ModelSession(sess, info, prov, threads)
+
+
+def check_normals(path: Path, images: np.ndarray, normals: object) -> None:
+    """A model's answer to images (B, N, 3, H, W) must be normals (B, 3, H, W): a larger one
+    would be cropped silently and a smaller one fail deep in the stitching, so any other shape
+    is one line naming the model file."""
+    want = (images.shape[0], 3, *images.shape[3:5])
+    shape = getattr(normals, "shape", None)
+    if shape is None or tuple(shape) != want:
+        got = "no array" if shape is None else "x".join(str(d) for d in shape)
+        raise InputError(
+            f"the model returned normals of shape {got} for a {want[3]}x{want[2]} input "
+            f"(expected {'x'.join(str(d) for d in want)}): not a working msfnet model",
+            path,
+        )
 
 
 def check_io(path: Path, info: ModelInfo, inputs: set[str], outputs: set[str]) -> None:
@@ -165,7 +211,9 @@ def check_io(path: Path, info: ModelInfo, inputs: set[str], outputs: set[str]) -
 
 __all__ = [
     "GRAPH_OPT_LEVELS",
+    "MAX_THREADS",
     "ModelSession",
+    "check_normals",
     "create_session",
     "default_threads",
     "resolve_provider",

@@ -50,9 +50,12 @@ class Estimator(Protocol):
 class NetworkEstimator:
     method = "msf"
 
-    def __init__(self, engine: Engine, reason: str = "") -> None:
+    def __init__(self, engine: Engine, reason: str = "", edge_context: bool = True) -> None:
         self.engine = engine
         self.reason = reason  # why this engine / precision was chosen (dispatch)
+        # let the network see lit surface beyond a mask edge (tiled.context_mask); False: the
+        # published protocol's zeros beyond the mask everywhere
+        self.edge_context = edge_context
 
     def describe(self) -> dict[str, object]:
         e = self.engine
@@ -62,13 +65,16 @@ class NetworkEstimator:
             **e.describe(),
             "graph": "staged" if e.info.staged else "monolithic",
             "choice": self.reason or None,
+            "edge_context": self.edge_context,
         }
 
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False
     ) -> Estimate:
         plan = choose_plan(stack, self.engine, tiling.tile, tiling.max_memory_mb)
-        normals = infer_normals(self.engine, stack, plan, timer, progress=progress).normals
+        normals = infer_normals(
+            self.engine, stack, plan, timer, progress=progress, edge_context=self.edge_context
+        ).normals
         return Estimate(normals, plan, inference_flops(stack.num_lights, plan.pixels))
 
 

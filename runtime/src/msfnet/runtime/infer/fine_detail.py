@@ -20,7 +20,7 @@ import numpy as np
 from msfnet.common.errors import InputError
 from msfnet.runtime.evaluate.detail_ratio import SIGMA_PX, masked_smooth
 from msfnet.runtime.infer.estimators import Estimate, NetworkEstimator, TilingOptions
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.results.profile import StageTimer, announce
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.readers import unit_normals
 
@@ -93,8 +93,11 @@ class FineDetailEstimator:
         with timer("preprocess"):
             big = enlarge(stack, self.factor, tiling.max_memory_mb)
         left = replace(tiling, max_memory_mb=tiling.max_memory_mb - stack.images.nbytes / 2**20)
+        h, w = big.shape
+        announce(f"fine detail, pass 1 of 2: the network on the stack enlarged to {w}x{h}")
         detail = self.network.estimate(big, left, timer, progress)
         del big
+        announce("fine detail, pass 2 of 2: the network on the stack as it is")
         base = self.network.estimate(stack, tiling, timer, progress)
         with timer("postprocess"):
             fine = shrink(detail.normals, stack.shape)

@@ -1,4 +1,4 @@
-"""Analytic cost and receptive field of MSF-Net, from the layer table of docs/architecture.md.
+"""Analytic cost and receptive field of MSF-Net, from the layer table of docs/network-spec.md.
 
 One table serves both: the FLOP counter (profile, benchmark) and the halo the tiler needs.
 Counts are multiply-accumulates (MAC) of the convolutions, per full-resolution pixel; element-wise

@@ -11,13 +11,24 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.infer.normalise import network_lights
-from msfnet.runtime.stack import Stack
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
+from msfnet.runtime.stack import MIN_LIGHTS, Stack
 
 # working set per (mask pixel x light): the RGB gather (as held: 12 B float32, 6 B uint16; an
 # integer one's float32 copy lives only while grey is computed), float64 grey and, when
-# trimming, ranks and weights
+# trimming, ranks and weights. Measured: 28-34 B plain, 41-47 B trimmed (uint16 / float32).
 BYTES_PER_PIXEL_LIGHT = 64
 MIN_ROWS = 8
+
+
+def memory_in_use_mb() -> float | None:
+    """This process's resident memory now (MB), None where it cannot be read."""
+    try:
+        import psutil
+
+        return float(psutil.Process().memory_info().rss) / 2**20
+    except Exception:  # no psutil, or a platform where it cannot tell
+        return None
 
 
 def least_squares_normals(
@@ -25,18 +36,22 @@ def least_squares_normals(
     trim_shadows: float = 0.0,
     trim_highlights: float = 0.0,
     max_memory_mb: float | None = None,
+    in_use_mb: float | None = None,
 ) -> np.ndarray:
     """(H, W, 3) float32 unit normals, zeros outside the mask (and where the fit is degenerate).
 
-    ``max_memory_mb``: work in bands of image rows so the working set beside the loaded stack
-    stays within the budget (a 96-light full-frame stack otherwise needs several GB at once).
+    ``max_memory_mb``: the whole process's budget; work in bands of image rows so that what the
+    process already holds (the loaded stack, the runtime) plus the output and a band's working
+    set stay within it (a 96-light full-frame stack otherwise needs several GB at once).
+    ``in_use_mb``: what is held besides the stack, default measured (resident memory minus the
+    stack; the runtime's BASE_MEMORY_MB where it cannot be measured).
     """
     if not (0 <= trim_shadows < 1 and 0 <= trim_highlights < 1):
         raise InputError("trim fractions must lie in [0, 1)")
     h, w = stack.shape
     rows = h
     if max_memory_mb is not None:
-        rows = rows_for_memory(max_memory_mb, stack)
+        rows = rows_for_memory(max_memory_mb, stack, in_use_mb)
     out = np.zeros((h, w, 3), np.float32)
     for r0 in range(0, h, rows):
         band = slice(r0, min(h, r0 + rows))
@@ -47,22 +62,28 @@ def least_squares_normals(
     return out
 
 
-def rows_for_memory(max_memory_mb: float, stack: Stack) -> int:
-    """Image rows per band so that the loaded stack plus the band's working set fit in
+def rows_for_memory(max_memory_mb: float, stack: Stack, in_use_mb: float | None = None) -> int:
+    """Image rows per band so that the stack, what else the process holds (``in_use_mb``, see
+    :func:`least_squares_normals`), the output and the band's working set fit in
     ``max_memory_mb``; InputError (quoting the budget as given) when not even MIN_ROWS fit."""
     if not (np.isfinite(max_memory_mb) and max_memory_mb > 0):
         raise InputError(f"--max-memory must be a positive number of MB, got {max_memory_mb}")
     h, w = stack.shape
     per_row = w * stack.num_lights * BYTES_PER_PIXEL_LIGHT
     stack_mb = stack.images.nbytes / 2**20
-    budget = max_memory_mb * 2**20 - stack.images.nbytes
+    if in_use_mb is None:
+        rss = memory_in_use_mb()
+        in_use_mb = BASE_MEMORY_MB if rss is None else max(rss - stack_mb, 0.0)
+    out_mb = h * w * 3 * 4 / 2**20  # the normals returned
+    held_mb = stack_mb + in_use_mb + out_mb
+    budget = (max_memory_mb - held_mb) * 2**20
     rows = int(budget // per_row) if budget > 0 else 0
     if rows < min(MIN_ROWS, h):
-        need = stack_mb + min(MIN_ROWS, h) * per_row / 2**20
+        need = held_mb + min(MIN_ROWS, h) * per_row / 2**20
         raise InputError(
             f"--max-memory {max_memory_mb:g} MB is too small for least squares on "
-            f"this stack: it takes {stack_mb:.1f} MB loaded and at least "
-            f"{need:.1f} MB in all"
+            f"this stack: it takes {stack_mb:.1f} MB loaded, the process "
+            f"{in_use_mb:.0f} MB besides, and at least {need:.1f} MB in all"
         )
     return min(rows, h)
 
@@ -85,8 +106,10 @@ def _solve(
     grey = _grey(pixels, stack.intensities)  # (N, P)
     lo = int(np.floor(trim_shadows * n))
     hi = n - int(np.floor(trim_highlights * n))
-    if hi - lo < 3:
-        raise InputError(f"trimming leaves {hi - lo} of {n} lights per pixel; at least 3 needed")
+    if hi - lo < MIN_LIGHTS:
+        raise InputError(
+            f"trimming leaves {hi - lo} of {n} lights per pixel; at least {MIN_LIGHTS} needed"
+        )
     if lo == 0 and hi == n:
         g = np.linalg.pinv(lights) @ grey  # (3, P): one solve shared by every pixel
     else:

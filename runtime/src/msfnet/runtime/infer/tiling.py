@@ -23,8 +23,8 @@ from msfnet.runtime.infer.normalise import padded_size
 
 HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
 # ONNX Runtime working set per (network-input pixel x light), fp32 CPU provider, arena off (see
-# session.py): measured 1.3 KB at 96 lights and up to 2.65 KB at 16-32 lights (tiles 64-128 px);
-# 3000 B bounds every case measured, so peak RSS stays under --max-memory.
+# engines/ort_session.py): 3000 B bounds every case measured (docs/benchmark.md), so peak RSS
+# stays under --max-memory.
 BYTES_PER_PIXEL_LIGHT = 3000
 BASE_MEMORY_MB = 150  # runtime + ORT session + model, outside the per-tile working set
 DEFAULT_MAX_MEMORY_MB = 4096
@@ -72,9 +72,7 @@ def tile_size_for_memory(
 ) -> int:
     """Largest square window (multiple of 4) whose working set fits in ``max_memory_mb`` (the
     user's budget for the whole run) beside the loaded stack's ``stack_mb``. The constants were
-    measured with ONNX Runtime fp32; OpenVINO bf16 stays below them (full DiLiGenT ball, 96
-    lights, default budget, AMX CPU: 2,148 MB peak with the plain graph and a float32 stack;
-    1,465 MB with the bundled staged graph and the 16-bit stack held as loaded)."""
+    measured with ONNX Runtime fp32; OpenVINO bf16 stays below them (docs/benchmark.md)."""
     budget = (max_memory_mb - stack_mb - BASE_MEMORY_MB) * 2**20
     per_pixel = bytes_per_pixel(lights, chunk)
     side = _down(int(math.sqrt(max(budget, 0) / per_pixel)))

@@ -17,6 +17,7 @@ from msfnet.common.files import json_text, staged_folder
 from msfnet.common.imageio import encode_png
 from msfnet.runtime.evaluate.metrics import NormalMetrics
 from msfnet.runtime.results.maps import InspectionMaps
+from msfnet.runtime.results.provenance import Provenance
 from msfnet.runtime.stack import Stack
 
 
@@ -55,6 +56,9 @@ def fill_result_folder(folder: Path, result: Result, report: bool = True) -> Non
 
     mask = result.stack.mask
     profile = result.profile()
+    if "provenance" not in profile:  # where it came from, in profile.json and report.html
+        src = result.stack.source or result.stack.name
+        profile["provenance"] = Provenance.of(src, profile).as_dict()
     np.save(folder / "normals.npy", np.ascontiguousarray(result.normals, np.float32))
     write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
     rendered = {"normals": pictures.png_bytes(pictures.normals_picture(result.normals, mask))}

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -13,14 +14,45 @@ import numpy as np
 STAGES = ("load", "preprocess", "inference", "postprocess", "maps", "total")
 
 
+# What a person waiting should hear of: the first entry into these stages of a run is
+# announced (see announcing); preprocess / postprocess are too short and too many to say.
+ANNOUNCED = {
+    "load": "reading the stack",
+    "inference": "estimating the normals",
+    "maps": "inspection maps (albedo, height, curvature)",
+}
+_listener: ContextVar[Callable[[str], None] | None] = ContextVar("msfnet_stages", default=None)
+
+
+@contextmanager
+def announcing(say: Callable[[str], None]) -> Iterator[None]:
+    """Within the block, ``say`` hears each long step as it starts (a command prints it, so a
+    run without tiles is not silent for a minute). Per thread and task, like any ContextVar."""
+    token = _listener.set(say)
+    try:
+        yield
+    finally:
+        _listener.reset(token)
+
+
+def announce(step: str) -> None:
+    """Tell whoever listens (see :func:`announcing`) that ``step`` starts; nothing otherwise."""
+    say = _listener.get()
+    if say is not None:
+        say(step)
+
+
 class StageTimer:
-    """Accumulates wall time per stage name (a stage may be entered many times, e.g. per tile)."""
+    """Accumulates wall time per stage name (a stage may be entered many times, e.g. per tile).
+    The first entry into a stage of :data:`ANNOUNCED` is announced."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
 
     @contextmanager
     def __call__(self, stage: str) -> Iterator[None]:
+        if stage in ANNOUNCED and stage not in self.seconds:
+            announce(ANNOUNCED[stage])
         start = time.perf_counter()
         try:
             yield
@@ -134,4 +166,13 @@ class BatchStats:
         return {k: v for k, v in asdict(self).items() if v is not None}
 
 
-__all__ = ["STAGES", "BatchStats", "Profile", "StageTimer", "peak_rss_mb"]
+__all__ = [
+    "ANNOUNCED",
+    "STAGES",
+    "BatchStats",
+    "Profile",
+    "StageTimer",
+    "announce",
+    "announcing",
+    "peak_rss_mb",
+]

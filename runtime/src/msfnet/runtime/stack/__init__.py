@@ -30,7 +30,14 @@ from msfnet.runtime.stack.save import (
 )
 from msfnet.runtime.stack.select import evenly_spaced, parse_select, selection
 from msfnet.runtime.stack.transforms import auto_mask, parse_roi
-from msfnet.runtime.stack.types import Stack, as_held, held_dtype, light_condition, unit_lights
+from msfnet.runtime.stack.types import (
+    MIN_LIGHTS,
+    Stack,
+    as_held,
+    held_dtype,
+    light_condition,
+    unit_lights,
+)
 
 __all__ = [
     "FILENAMES_FILE",
@@ -41,6 +48,7 @@ __all__ = [
     "LIGHTS_NAMES",
     "MASK_FILE",
     "MASK_NAMES",
+    "MIN_LIGHTS",
     "NORMALS_FILE",
     "LoadOptions",
     "Stack",

@@ -15,13 +15,25 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common.errors import InputError, first_line
-from msfnet.common.imageio import IMAGE_SUFFIXES, list_images, read_image, read_mask
+from msfnet.common.imageio import (
+    IMAGE_SUFFIXES,
+    MAX_PIXELS,
+    ImageHeader,
+    array_shape,
+    image_header,
+    list_images,
+    mat_shapes,
+    npy_header,
+    read_image,
+    read_mask,
+)
 from msfnet.runtime.stack.readers import read_normals, read_vectors, unit_normals
 from msfnet.runtime.stack.select import selection
-from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask
+from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask, check_roi
 from msfnet.runtime.stack.types import (
     Stack,
     as_held,
+    as_mask,
     check_intensities,
     check_lights,
     held_dtype,
@@ -60,6 +72,10 @@ class LoadOptions:
     max_memory_mb: float | None = None
 
     def __post_init__(self) -> None:
+        for name in ("lights", "intensities", "mask"):  # LoadOptions(lights="x.txt") works
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, Path):
+                object.__setattr__(self, name, Path(value))
         self.transforms()  # refuse contradictory options before any decoding
         if self.auto_mask and self.mask is not None:
             raise InputError("--auto-mask and --mask both give the mask: choose one")
@@ -110,6 +126,60 @@ def check_stack_size(
         )
 
 
+def _held_size(shape: tuple[int, int], transforms: Transforms, src: Path) -> tuple[int, int]:
+    """(H, W) an image of stored size ``shape`` has once ROI and downscale are applied."""
+    h, w = shape
+    if transforms.roi is not None:
+        check_roi(transforms.roi, shape, src)
+        w, h = transforms.roi[2], transforms.roi[3]
+    k = transforms.downscale
+    return h // k, w // k
+
+
+_BITS_DTYPE: dict[int, np.dtype] = {8: np.dtype(np.uint8), 16: np.dtype(np.uint16)}
+
+
+def check_headers(
+    paths: Sequence[Path], transforms: Transforms, max_memory_mb: float | None
+) -> tuple[int, int] | None:
+    """Every frame's header, before any frame is decoded: sizes (and bit depths, where the
+    headers tell) must agree, the ROI must fit and the stack as held must fit the budget. A
+    frame whose format has no readable header is checked once decoded. Returns the stored size
+    the headers agree on (None if no header was readable)."""
+    headers = [(p, image_header(p)) for p in paths]
+    known = [(p, h) for p, h in headers if h is not None]
+    if not known:
+        return None
+    p0, h0 = known[0]
+    for p, h in known[1:]:
+        if h.shape != h0.shape:
+            raise InputError(
+                f"image is {h.width}x{h.height} but {p0.name} is {h0.width}x{h0.height}", p
+            )
+        if h.bits in _BITS_DTYPE and h0.bits in _BITS_DTYPE and h.bits != h0.bits:
+            raise InputError(
+                f"image is {_BITS_DTYPE[h.bits]} but {p0.name} is {_BITS_DTYPE[h0.bits]}: "
+                "one bit depth per stack",
+                p,
+            )
+    hh, ww = _held_size(h0.shape, transforms, p0)
+    check_stack_size(
+        len(paths), hh, ww, max_memory_mb, p0.parent, _held_from_header(h0, transforms)
+    )
+    return h0.shape
+
+
+def _held_from_header(header: ImageHeader, transforms: Transforms) -> np.dtype:
+    """The type the stack will hold, as far as the header tells: float32 where loading changes
+    values; where the header is silent on depth, uint8 (the smallest: the exact check follows
+    the first decode, so a stack that fits is never refused on a guess)."""
+    if transforms.changes_values:
+        return np.dtype(np.float32)
+    if header.bits is None:
+        return np.dtype(np.uint8)
+    return held_dtype(_BITS_DTYPE.get(header.bits, np.dtype(np.float32)))
+
+
 def _read_images(
     paths: Sequence[Path],
     threads: int = 4,
@@ -118,11 +188,13 @@ def _read_images(
 ) -> tuple[np.ndarray, tuple[int, int]]:
     """Decode in parallel (OpenCV releases the GIL), each image reduced by ``transforms`` in
     its thread and copied straight into the stack, so no second stack-sized array is ever
-    held; sizes and bit depths must all agree. Returns the images and the stored size.
+    held; sizes and bit depths must all agree (checked from the headers before any decoding,
+    and again once decoded). Returns the images and the stored size.
 
     The stack takes the type of the first image as transformed: uint8/uint16 when no value
     changes, else float32 (see ``Transforms.image``)."""
     transforms = transforms or Transforms()
+    check_headers(paths, transforms, max_memory_mb)
 
     def read(path: Path) -> tuple[np.ndarray, np.dtype, tuple[int, int]]:
         img = read_image(path)
@@ -172,11 +244,29 @@ def _check_float_scale(img: np.ndarray, transforms: Transforms, src: str | Path 
         )
 
 
-def _finish(stack: Stack, options: LoadOptions) -> Stack:
-    """The stack-wide last step: the automatic mask."""
-    if options.auto_mask:
-        stack = replace(stack, mask=auto_mask(stack.images))  # never alter a caller's stack
-    return stack.validate()
+# below this overlap the automatic mask and the stack's own are different objects, not two
+# traces of one outline (psmImages and DiLiGenT: 0.91-0.99)
+MASK_AGREEMENT_IOU = 0.9
+
+
+def _finish(stack: Stack, options: LoadOptions, own_mask: str = "mask") -> Stack:
+    """The stack-wide last step: the automatic mask. It replaces the stack's own mask
+    (``own_mask`` names it) with a warning when the two disagree: never silently."""
+    if not options.auto_mask:
+        return stack.validate()
+    found = auto_mask(stack.images)
+    notes = stack.load_warnings
+    if not stack.mask.all():  # an all-ones mask is no mask: nothing to compare with
+        iou = float((found & stack.mask).sum() / max(1, (found | stack.mask).sum()))
+        if iou < MASK_AGREEMENT_IOU:
+            notes = (
+                *notes,
+                f"{stack.source or stack.name}: --auto-mask finds {int(found.sum()):,} px, "
+                f"the stack's {own_mask} {int(stack.mask.sum()):,} px (IoU {iou:.2f}): "
+                "the automatic one is used; leave out --auto-mask to use the stack's own",
+            )
+    # never alter a caller's stack
+    return replace(stack, mask=found, load_warnings=notes).validate()
 
 
 def prepare_stack(stack: Stack, options: LoadOptions) -> Stack:
@@ -219,6 +309,7 @@ def load_folder(
             if ln.strip()
         ]
         paths = [folder / n for n in names]
+        _refuse_repeats(paths, names_file)
     else:
         paths = list_images(folder)
     if not paths:
@@ -249,13 +340,12 @@ def load_folder(
     check_lights(light_dirs, lights_path)
     t = options.transforms()
     images, hw = _read_images(paths, options.threads, t, options.max_memory_mb)
-    mask_path = (
-        None
-        if options.auto_mask
-        else options.mask or _first_existing(folder, MASK_NAMES) or _other_mask(folder)
-    )
+    # read with --auto-mask too: the automatic mask is compared with it (see _finish)
+    mask_path = options.mask or _first_existing(folder, MASK_NAMES) or _other_mask(folder)
     mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3], bool)
     gt_path = _first_existing(folder, GT_NAMES)
+    if gt_path is not None:
+        check_gt_header(gt_path, hw)
     gt = read_normals(gt_path) if gt_path else None
     if gt is not None:
         if gt.shape[:2] != hw:
@@ -267,7 +357,43 @@ def load_folder(
     return _finish(
         Stack(folder.name, images, light_dirs, ints, mask_arr, gt, [p.name for p in paths], folder),
         options,
+        mask_path.name if mask_path else "mask",
     )
+
+
+def _refuse_repeats(paths: Sequence[Path], listing: Path) -> None:
+    """One photo listed twice would count as two lights (one of them with the wrong
+    direction): refused, naming both lines. Names are compared as the files they reach
+    (``./001.png``, ``sub/../001.png`` and a link to it are the same photo)."""
+    seen: dict[Path, int] = {}
+    for line, path in enumerate(paths, 1):
+        key = path.resolve()
+        if key in seen:
+            raise InputError(
+                f"{path.name} is listed twice (lines {seen[key]} and {line}): one photo "
+                "cannot stand for two lights",
+                listing,
+            )
+        seen[key] = line
+
+
+def check_gt_header(path: Path, shape: tuple[int, int]) -> None:
+    """Ground truth compared with the stored image size from its header, before it is read
+    (a 248 MP normal map or a compressed 10 GB .mat variable is refused unopened)."""
+    h, w = shape
+    found = array_shape(path)
+    if found is not None and tuple(found[:2]) != (h, w):
+        size = f"{found[1]}x{found[0]}" if len(found) >= 2 else f"of shape {found}"
+        raise InputError(f"ground truth is {size} but images are {w}x{h}", path)
+    if path.suffix.lower() == ".mat":  # loadmat reads every variable, not only Normal_gt
+        shapes = mat_shapes(path) or {}
+        total = sum(int(np.prod(d, dtype=np.int64)) for d in shapes.values())
+        if total > h * w * 3 + 2**20:
+            raise InputError(
+                f"holds {total:,} values in {len(shapes)} variable(s), far more than "
+                f"the ground truth of {w}x{h} images: refusing to read it",
+                path,
+            )
 
 
 def _other_mask(folder: Path) -> Path | None:
@@ -297,14 +423,37 @@ def _npz_header(data: np.lib.npyio.NpzFile, key: str) -> tuple[tuple[int, ...], 
     data."""
     assert data.zip is not None  # np.load of a zip file
     with data.zip.open(f"{key}.npy") as f:
-        version = np.lib.format.read_magic(f)
-        read = (
-            np.lib.format.read_array_header_1_0
-            if version == (1, 0)
-            else np.lib.format.read_array_header_2_0
+        return npy_header(f)  # type: ignore[arg-type]
+
+
+def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: float | None) -> None:
+    """Every member that will be read, sized from its header before any is inflated: the
+    images against the budget and the pixel limit, the others against what the images allow
+    (a zip member may inflate to any size, whatever its name)."""
+    shape, dtype = _npz_header(data, "images")
+    if dtype.kind not in "biuf":  # complex, strings, objects: not pixel values
+        raise InputError(f"npz array 'images' has dtype {dtype}; expected numbers", path)
+    if len(shape) not in (3, 4):
+        raise InputError(f"npz images must be N x H x W (x 3), got {shape}", path)
+    n, h, w = shape[:3]
+    if h * w > MAX_PIXELS:
+        raise InputError(
+            f"npz images are {w}x{h} ({h * w / 1e6:.0f} MP), above the "
+            f"{MAX_PIXELS / 1e6:.0f} MP limit: refusing to read them",
+            path,
         )
-        shape, _, dtype = read(f)
-        return tuple(shape), np.dtype(dtype)
+    check_stack_size(n, h, w, max_memory_mb, path, held_dtype(dtype))
+    most = {"lights": n * 3, "intensities": n * 3, "mask": h * w, "normals": h * w * 3}
+    for key, limit in most.items():
+        if key not in data.files:
+            continue
+        found, _ = _npz_header(data, key)
+        if int(np.prod(found, dtype=np.int64)) > limit:
+            raise InputError(
+                f"npz array {key!r} is {found}: larger than the {key} of {n} images of "
+                f"{w}x{h} can be; refusing to read it",
+                path,
+            )
 
 
 def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
@@ -330,11 +479,7 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
                 f"{', '.join(sorted(files)) or 'none'})",
                 path,
             )
-        shape, dtype = _npz_header(data, "images")
-        if len(shape) in (3, 4):  # before reading it: a zip may inflate to any size
-            check_stack_size(
-                shape[0], shape[1], shape[2], options.max_memory_mb, path, held_dtype(dtype)
-            )
+        _check_npz_headers(data, path, options.max_memory_mb)  # before anything inflates
         images = _npz_array(data, "images", path)
         if images.ndim == 4 and images.shape[3] == 1:
             images = images[..., 0]
@@ -392,7 +537,7 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         images,
         unit_lights(lights, lights_src),
         ints,
-        np.asarray(mask).astype(bool),
+        as_mask(mask, path),
         gt,
         [],
         path,

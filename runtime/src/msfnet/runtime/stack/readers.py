@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,26 @@ import numpy as np
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.imageio import read_image
 
-MAX_VECTOR_FILE_BYTES = 64 * 2**20  # a million lights is a few tens of MB of text
+# A light file lists one row per light. Real rigs have tens to a few hundred lights; the bounds
+# refuse a wrong file (a point cloud, a log) at once instead of parsing it for minutes and
+# gigabytes (a 57 MB, 1.7-million-row file did, before these checks).
+MAX_LIGHTS = 10_000
+MAX_VECTOR_FILE_BYTES = 4 * 2**20  # 10,000 rows of three long numbers, pretty-printed, fit
+
+# The names a JSON light file may give its rows: an object's other keys are refused, never
+# guessed at (the first list in the file was read whatever its key, so "positions_mm" was taken
+# for directions, 17 deg off, exit 0).
+JSON_KEYS = {
+    "light directions": ("light_directions", "directions", "lights"),
+    "light intensities": ("light_intensities", "intensities"),
+}
+_ALL_KEYS = tuple(k for keys in JSON_KEYS.values() for k in keys)
+
+# A number as people write them in text files; float() also takes "0_5" (as 5.0), "1_000" and
+# non-ASCII digits, which no light file means.
+_NUMBER = re.compile(
+    r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.IGNORECASE | re.ASCII
+)
 
 
 def _check_small_file(path: Path, what: str) -> None:
@@ -18,45 +38,106 @@ def _check_small_file(path: Path, what: str) -> None:
         raise InputError(f"{what} file not found", path)
     if not path.is_file():
         raise InputError(f"{what}: not a regular file", path)
-    if path.stat().st_size > MAX_VECTOR_FILE_BYTES:
+    size = path.stat().st_size
+    if size > MAX_VECTOR_FILE_BYTES:
         raise InputError(
-            f"{what} file is {path.stat().st_size / 2**20:.0f} MB: not a list of numbers", path
+            f"{what} file is {size / 2**20:.1f} MB, more than {MAX_LIGHTS:,} lights take "
+            f"({MAX_VECTOR_FILE_BYTES / 2**20:.0f} MB at most): not a light file?",
+            path,
         )
 
 
+def _too_many(count: int, what: str, path: Path) -> None:
+    if count > MAX_LIGHTS:
+        raise InputError(
+            f"{what}: {count:,} rows, more than the {MAX_LIGHTS:,} lights msfnet accepts: "
+            "not a light file?",
+            path,
+        )
+
+
+def _json_rows(data: object, what: str, path: Path) -> list[object]:
+    """The rows of a JSON light file: a bare list, or the list under one of this kind's
+    names (:data:`JSON_KEYS`) in an object that has no key of another meaning."""
+    if isinstance(data, dict):
+        unknown = sorted(str(k) for k in data if k not in _ALL_KEYS)
+        names = JSON_KEYS.get(what, ())
+        if unknown:
+            raise InputError(
+                f"{what}: unknown key {unknown[0]!r} in the JSON object (a light file names "
+                f"its rows {', '.join(repr(k) for k in _ALL_KEYS)})",
+                path,
+            )
+        present = [k for k in names if k in data]
+        if not present:
+            raise InputError(
+                f"{what}: the JSON object has no {' or '.join(repr(k) for k in names)} key "
+                f"(it has {', '.join(repr(k) for k in data) or 'none'})",
+                path,
+            )
+        if len(present) > 1:
+            raise InputError(
+                f"{what}: the JSON object has both {present[0]!r} and {present[1]!r}; give one",
+                path,
+            )
+        data = data[present[0]]
+    if not isinstance(data, list):
+        raise InputError(
+            f"{what}: expected a JSON list of [x, y, z] rows (or an object holding one under "
+            f"{' or '.join(repr(k) for k in JSON_KEYS.get(what, ()))})",
+            path,
+        )
+    _too_many(len(data), what, path)
+    for i, row in enumerate(data):
+        values = row if isinstance(row, list) else [row]
+        for v in values:
+            # bool is an int to Python; a quoted "0.5" is text: neither is a number here
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise InputError(f"{what}: row {i + 1} holds {v!r}, not a number", path)
+    return data
+
+
+def _text_rows(text: str, what: str, path: Path) -> list[list[float]]:
+    rows = [r.replace(",", " ").split() for r in text.splitlines()]
+    rows = [r for r in rows if r and not r[0].startswith("#")]
+    if rows and len(rows[0]) == 1 and len(rows) > 1 and len(rows[1]) != 1:
+        count = rows[0][0]  # a leading count line ("12")
+        rows = rows[1:]
+        if count.isdigit() and int(count) != len(rows):
+            raise InputError(
+                f"{what}: the first line says {count} rows but {len(rows)} follow", path
+            )
+    _too_many(len(rows), what, path)  # before any number is converted
+    widths = {len(r) for r in rows}
+    if len(widths) > 1:
+        raise InputError(
+            f"cannot parse {what}: rows have {sorted(widths)} numbers (expected 3 per row)",
+            path,
+        )
+    out = []
+    for i, row in enumerate(rows):
+        for token in row:
+            if not _NUMBER.fullmatch(token):
+                raise InputError(
+                    f"cannot parse {what}: row {i + 1}: {token!r} is not a number", path
+                )
+        out.append([float(v) for v in row])
+    return out
+
+
 def read_vectors(path: Path, what: str) -> np.ndarray:
-    """Rows of 3 numbers from txt (optional leading count line) or json (list or {key: list})."""
+    """Rows of 3 numbers from txt (optional leading count line) or JSON (a list of rows, or an
+    object holding one under a name of :data:`JSON_KEYS`): the one reader of light files.
+
+    ``what``: "light directions" or "light intensities" (the JSON names and the messages)."""
     _check_small_file(path, what)
     # utf-8-sig: Windows editors ("UTF-8" in Notepad) start the file with a byte-order mark
     try:
         text = path.read_text(encoding="utf-8-sig")
         if path.suffix.lower() == ".json":
-            data = json.loads(text)
-            if isinstance(data, dict):
-                data = next((v for k, v in data.items() if isinstance(v, list)), None)
-            if not isinstance(data, list):
-                raise InputError(
-                    f"{what}: expected a JSON list of [x, y, z] rows (or an object holding one)",
-                    path,
-                )
-            arr = np.asarray(data, dtype=np.float64)
+            arr = np.asarray(_json_rows(json.loads(text), what, path), dtype=np.float64)
         else:
-            rows = [r.replace(",", " ").split() for r in text.splitlines()]
-            rows = [r for r in rows if r and not r[0].startswith("#")]
-            if rows and len(rows[0]) == 1 and len(rows) > 1 and len(rows[1]) != 1:
-                count = rows[0][0]  # a leading count line ("12")
-                rows = rows[1:]
-                if count.isdigit() and int(count) != len(rows):
-                    raise InputError(
-                        f"{what}: the first line says {count} rows but {len(rows)} follow", path
-                    )
-            widths = {len(r) for r in rows}
-            if len(widths) > 1:
-                raise InputError(
-                    f"cannot parse {what}: rows have {sorted(widths)} numbers (expected 3 per row)",
-                    path,
-                )
-            arr = np.asarray([[float(v) for v in r] for r in rows], dtype=np.float64)
+            arr = np.asarray(_text_rows(text, what, path), dtype=np.float64)
     except (ValueError, TypeError, UnicodeDecodeError, RecursionError) as exc:
         # json.JSONDecodeError is a ValueError; RecursionError: absurdly nested JSON
         raise InputError(f"cannot parse {what}: {first_line(exc)}", path) from exc

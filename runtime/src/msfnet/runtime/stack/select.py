@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.runtime.stack.types import MIN_LIGHTS
 
 
 def parse_select(spec: str, n: int) -> list[int]:
@@ -58,7 +59,7 @@ def selection(n: int, select: str | None, max_lights: int | None) -> list[int]:
     """--select (1-based spec), then --max-lights evenly spread over what is left."""
     keep = parse_select(select, n) if select else list(range(n))
     if max_lights is not None and max_lights < len(keep):
-        if max_lights < 3:
-            raise InputError(f"--max-lights {max_lights}: at least 3 lights are needed")
+        if max_lights < MIN_LIGHTS:
+            raise InputError(f"--max-lights {max_lights}: at least {MIN_LIGHTS} lights are needed")
         keep = [keep[i] for i in evenly_spaced(len(keep), max_lights)]
     return keep

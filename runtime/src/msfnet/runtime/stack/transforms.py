@@ -45,6 +45,29 @@ def check_roi(roi: Roi, shape: tuple[int, int], src: object = None) -> None:
         raise InputError(f"--roi {x},{y},{w},{h} reaches past the {iw}x{ih} image", src)  # type: ignore[arg-type]
 
 
+def halo_roi(
+    roi: Roi, shape: tuple[int, int], halo: int, multiple: int = 1
+) -> tuple[Roi, tuple[int, int, int, int]]:
+    """``roi`` grown by ``halo`` held pixels (``halo * multiple`` stored pixels, ``multiple``
+    being the downscale factor, so blocks stay aligned) on every side, clipped to the image of
+    stored ``shape``; and the original ROI's box (y0, y1, x0, x1) inside the grown crop, in held
+    pixels. Load the grown ROI, run the network with the mask limited to the box (the
+    network then sees the real image around it, as inside an image: see infer.tiled's edge
+    context), and crop the outputs to the box: no rim drawn at the crop's edges."""
+    x, y, w, h = roi
+    ih, iw = shape
+    check_roi(roi, shape)
+    g = halo * multiple
+    left = min(g, x) // multiple * multiple
+    top = min(g, y) // multiple * multiple
+    right = min(g, iw - (x + w))
+    bottom = min(g, ih - (y + h))
+    grown = (x - left, y - top, w + left + right, h + top + bottom)
+    k = multiple
+    box = (top // k, top // k + h // k, left // k, left // k + w // k)
+    return grown, box
+
+
 def crop(arr: np.ndarray, roi: Roi | None) -> np.ndarray:
     """Rows and columns of the ROI from an (H, W, ...) array (a view)."""
     if roi is None:
@@ -177,23 +200,42 @@ def valley_threshold(values: np.ndarray, bins: int = 256) -> float:
     return float(centres[lo + (start + end) // 2])
 
 
+def _step(values: np.ndarray) -> float:
+    """The smallest difference between two distinct values: the quantisation step of
+    integer-coded pixels (also after --srgb or --downscale); ~0 for values with real noise."""
+    distinct = np.unique(values)
+    return float(np.diff(distinct).min()) if distinct.size > 1 else 0.0
+
+
 def auto_mask(images: np.ndarray, *, min_share: float = 0.1) -> np.ndarray:
     """Object mask of a stack shot against a dark background.
 
     Every surface point facing the camera is lit by some light, so the per-pixel maximum over
     the stack (and the colour channels) separates object from background far better than any
-    single image. Otsu's threshold on its logarithm (linear values put the split between
-    highlights and the rest of the object: a shiny object's peak spans decades), moved to the
-    histogram's valley between the two classes (:func:`valley_threshold`), then a
-    morphological open (specks of lit background) and close (dark pits inside the object)
-    with a kernel of ~1 % of the image, then only the connected components of at least
-    ``min_share`` of the largest one's area.
+    single image. The split is made on ``log(peak + typical)``, ``typical`` being the median
+    peak: logarithmic above it (on linear values the split would fall between highlights and
+    the rest of the object: a shiny object's peak spans decades), linear below it (a plain
+    logarithm stretches the backdrop's few dark codes, 0-16 of 255 on psmImages' cloth, into
+    a mode of their own and splits the backdrop instead: IoU 0.21-0.58 with the dataset's
+    masks, against 0.98-0.99 with the offset; DiLiGenT 0.91-0.99 either way). Otsu's
+    threshold, moved to the histogram's valley between the two classes
+    (:func:`valley_threshold`), then a morphological open (specks of lit background) and
+    close (dark pits inside the object) with a kernel of ~1 % of the image, then only the
+    connected components of at least ``min_share`` of the largest one's area.
     """
     peak = images.max(axis=(0, 3)) if images.ndim == 4 else images.max(axis=0)
+    step = 1.0 if peak.dtype.kind in "ui" else _step(peak)
     if peak.dtype.kind != "f":  # integer stacks: the float32 values a float32 stack would give
         peak = peak.astype(np.float32)
-    floor = max(float(peak.max()), 1e-30) * 1e-4  # 80 dB below the brightest pixel
-    level = np.log(np.maximum(peak, floor))
+    # the median is the backdrop's level when the object covers less than half the frame and
+    # an object level otherwise: either way darker values are noise to compress, not to
+    # stretch. At least 8 quantisation steps: on a nearly black 8-bit backdrop (median 1
+    # code) the logarithm parts codes 0, 1, 2 into spikes with empty bins between them, and
+    # the emptiest valley is found there. The last floor, 80 dB below the brightest pixel,
+    # is for a black frame.
+    median = float(np.median(peak))
+    typical = max(median, 8 * step, float(peak.max()) * 1e-4, 1e-30)
+    level = np.log(peak + np.float32(typical))
     mask = (level > valley_threshold(level)).astype(np.uint8)
     size = max(3, (round(min(mask.shape) / 100) // 2) * 2 + 1)  # odd
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
@@ -273,6 +315,7 @@ __all__ = [
     "crop",
     "downscale_mask",
     "downscale_normals",
+    "halo_roi",
     "linearise",
     "otsu_threshold",
     "parse_roi",

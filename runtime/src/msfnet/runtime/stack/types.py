@@ -10,6 +10,10 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 
+# The fewest lights photometric stereo can work with: a normal and an albedo are three unknowns
+# per pixel, so fewer images leave them undetermined. The one minimum of every command (stacks,
+# --max-lights, least-squares trimming, training batches, captures).
+MIN_LIGHTS = 3
 # Light sets whose 3 x 3 moment matrix is worse conditioned than this cannot separate the normal's
 # components (e.g. all lights nearly parallel): least squares and the network both degrade.
 MAX_LIGHT_CONDITION = 1e4
@@ -69,6 +73,9 @@ class Stack:
     # what validate() found suspicious but usable (an image black among lit ones): one line
     # each, for the commands to print and keep in the profile
     warnings: list[str] = field(default_factory=list, compare=False)
+    # what loading found (an automatic mask far from the folder's own): validate() keeps
+    # these at the head of ``warnings``
+    load_warnings: tuple[str, ...] = field(default=(), compare=False)
 
     @classmethod
     def from_arrays(
@@ -84,7 +91,7 @@ class Stack:
         """A validated stack from plain arrays: images (N, H, W, 3) or (N, H, W) grey, lights
         (N, 3) any length; mask and intensities optional. uint8/uint16 images are kept as
         they are, any other type becomes float32."""
-        images = as_held(np.asarray(images))
+        images = as_held(real_array(images, "images", name))
         if images.ndim == 3:
             images = np.repeat(images[..., None], 3, axis=3)
         if images.ndim != 4:
@@ -93,12 +100,14 @@ class Stack:
         stack = cls(
             name,
             images,
-            unit_lights(np.asarray(lights, np.float32), name),
+            unit_lights(real_array(lights, "light directions", name).astype(np.float32), name),
             np.ones((n, 3), np.float32)
             if intensities is None
-            else np.asarray(intensities, np.float32),
-            np.ones((h, w), bool) if mask is None else np.asarray(mask).astype(bool),
-            None if normals_gt is None else np.asarray(normals_gt, np.float32),
+            else real_array(intensities, "light intensities", name).astype(np.float32),
+            np.ones((h, w), bool) if mask is None else as_mask(mask, name),
+            None
+            if normals_gt is None
+            else real_array(normals_gt, "ground-truth normals", name).astype(np.float32),
         )
         return stack.validate()
 
@@ -127,9 +136,14 @@ class Stack:
         src = self.source if self.source is not None else self.name
         if self.images.ndim != 4 or self.images.shape[3] != 3:
             raise InputError(f"images must be N x H x W x 3, got {self.images.shape}", src)
+        for arr, what in (
+            (self.lights, "light directions"),
+            (self.intensities, "light intensities"),
+        ):
+            real_array(arr, what, src)
         n = self.images.shape[0]
-        if n < 3:
-            raise InputError(f"photometric stereo needs at least 3 lights, got {n}", src)
+        if n < MIN_LIGHTS:
+            raise InputError(f"photometric stereo needs at least {MIN_LIGHTS} lights, got {n}", src)
         if self.lights.ndim != 2 or self.lights.shape[1] != 3:
             raise InputError(
                 f"light directions must have 3 numbers per row, got shape {self.lights.shape}", src
@@ -216,9 +230,10 @@ class Stack:
                 "units",
                 src,
             )
-        self.warnings = self._dark_images(
-            mean / self.intensities.astype(np.float64).mean(axis=1), src
-        )
+        self.warnings = [
+            *self.load_warnings,
+            *self._dark_images(mean / self.intensities.astype(np.float64).mean(axis=1), src),
+        ]
 
     def _dark_images(self, brightness: np.ndarray, src: str | Path | None) -> list[str]:
         """One warning per image far darker than the stack's typical one (see DARK_IMAGE)."""
@@ -238,6 +253,33 @@ class Stack:
                 "It is used as it is (leave it out with --select)"
             )
         return out
+
+
+def real_array(values: object, what: str, src: str | Path | None = None) -> np.ndarray:
+    """``values`` as an array of real numbers (bool, integers or floats); complex numbers,
+    strings and objects refused (a cast would drop an imaginary part without a word)."""
+    arr = np.asarray(values)
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"{what} have dtype {arr.dtype}; expected real numbers", src)
+    return arr
+
+
+def as_mask(mask: object, src: str | Path | None = None) -> np.ndarray:
+    """A boolean mask from booleans or from numbers that are exactly 0 or 1; any other value
+    (0.05, 255, NaN) is refused rather than read as "inside" (a grey image is not a mask: use
+    :func:`msfnet.common.imageio.read_mask` for mask images)."""
+    arr = real_array(mask, "mask values", src)
+    if arr.dtype == np.bool_:
+        return arr
+    odd = (arr != 0) & (arr != 1)
+    if odd.any():
+        value = arr[odd].flat[0].item()  # a plain number in the message, not np.float64(...)
+        raise InputError(
+            f"mask holds {value!r} ({int(odd.sum())} value(s) other than 0 and 1): a mask is "
+            "boolean, or numbers that are exactly 0 or 1",
+            src,
+        )
+    return arr.astype(bool)
 
 
 def unit_lights(lights: np.ndarray, src: str | Path | None = None) -> np.ndarray:

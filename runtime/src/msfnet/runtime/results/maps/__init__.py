@@ -8,19 +8,38 @@ and a self-contained HTML report.
 Modules, one job each: ``albedo`` (least-squares RGB albedo), ``integrate`` (normals -> height:
 Frankot-Chellappa, masked Poisson, discontinuity-aware BiNI-style), ``curvature`` (mean
 curvature, shape index), ``mesh`` (PLY via plyfile), ``pictures`` (matplotlib, lazily),
-``report`` (report.html), ``api`` (this entry point). Matplotlib and plyfile are imported only
-when writing.
+``report`` (report.html), ``api`` (this entry point). The names below are resolved on first
+use, and SciPy, matplotlib and plyfile only when a map is computed or written: importing
+msfnet (which names MapOptions) stays quick on an edge box that never asks for maps.
 """
 
-from msfnet.runtime.results.maps.api import (
-    MAP_NAMES,
-    InspectionMaps,
-    MapOptions,
-    compute_maps,
-    stack_maps,
-    write_maps,
-)
-from msfnet.runtime.results.maps.integrate import METHODS, Intrinsics, integrate_normals
+from __future__ import annotations
+
+from importlib import import_module
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from msfnet.runtime.results.maps.api import (
+        MAP_NAMES,
+        InspectionMaps,
+        MapOptions,
+        compute_maps,
+        stack_maps,
+        write_maps,
+    )
+    from msfnet.runtime.results.maps.integrate import METHODS, Intrinsics, integrate_normals
+
+_WHERE = {
+    "MAP_NAMES": "api",
+    "InspectionMaps": "api",
+    "MapOptions": "api",
+    "compute_maps": "api",
+    "stack_maps": "api",
+    "write_maps": "api",
+    "METHODS": "integrate",
+    "Intrinsics": "integrate",
+    "integrate_normals": "integrate",
+}
 
 __all__ = [
     "MAP_NAMES",
@@ -33,3 +52,12 @@ __all__ = [
     "stack_maps",
     "write_maps",
 ]
+
+
+def __getattr__(name: str) -> object:
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value  # resolved once
+    return value

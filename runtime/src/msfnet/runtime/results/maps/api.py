@@ -27,6 +27,16 @@ from msfnet.runtime.results.maps.integrate import (
     Intrinsics,
     integrate_normals,
 )
+from msfnet.runtime.results.maps.registered import (
+    DEFAULT_LOCAL_SIZE_PX,
+    Units,
+    described_png,
+    gradients,
+    grey16_view,
+    local_shape,
+    signed_view,
+    write_tiff,
+)
 from msfnet.runtime.results.maps.validate import check_normals
 from msfnet.runtime.stack import Stack
 
@@ -48,6 +58,11 @@ class MapOptions:
     curvature_sigma: Gaussian pre-smoothing of the normals for curvature, in pixels.
     bini_k, bini_max_iter, bini_tol: "bini" sharpness, rounds and energy tolerance.
     mesh_max_jump: drop mesh triangles spanning a larger height step (px); None keeps all.
+    pixel_size_mm: the object-side size of one pixel; with it the registered TIFFs hold mm
+        (height, local shape) and 1/mm (curvature); None = pixel units.
+    local_size_px: the characteristic size of the local-shape map (height minus its trend
+        smoothed at this many px; see maps.registered).
+    tiff: write the pixel-registered float32 TIFFs (maps.registered).
     """
 
     maps: tuple[str, ...] = MAP_NAMES
@@ -62,8 +77,22 @@ class MapOptions:
     bini_max_iter: int = 50
     bini_tol: float = 1e-4
     mesh_max_jump: float | None = None
+    pixel_size_mm: float | None = None
+    local_size_px: float = DEFAULT_LOCAL_SIZE_PX
+    tiff: bool = True
 
     def __post_init__(self) -> None:
+        for name in ("curvature_sigma", "local_size_px", "pixel_size_mm"):
+            v = getattr(self, name)
+            if v is None and name == "pixel_size_mm":
+                continue
+            ok = (
+                v is not None
+                and np.isfinite(v)
+                and (v >= 0 if name == "curvature_sigma" else v > 0)
+            )
+            if not ok:
+                raise InputError(f"{name.replace('_', ' ')} {v}: must be a positive number")
         unknown = [m for m in self.maps if m not in MAP_NAMES]
         if unknown:
             raise InputError(
@@ -92,6 +121,8 @@ class InspectionMaps:
         NaN outside. depth: perspective only, depth along the optical axis, NaN outside.
     curvature: mean curvature in 1/px (convex toward the camera > 0), NaN outside;
     gaussian_curvature (1/px^2), shape_index ([-1, 1], NaN where planar), curvedness (1/px).
+    gradient_p, gradient_q: dz/d(column), dz/d(row), dimensionless, NaN outside.
+    local_shape: height minus its trend at ``options.local_size_px`` (px), NaN outside.
     integration: method, iterations, timing of the height solve. timings: seconds per map.
     """
 
@@ -105,6 +136,9 @@ class InspectionMaps:
     gaussian_curvature: np.ndarray | None = None
     shape_index: np.ndarray | None = None
     curvedness: np.ndarray | None = None
+    gradient_p: np.ndarray | None = None
+    gradient_q: np.ndarray | None = None
+    local_shape: np.ndarray | None = None
     integration: Integration | None = None
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -121,6 +155,7 @@ class InspectionMaps:
                 "curvature": "1/px",
                 "shape_index": "dimensionless",
             },
+            "registered": self.registered_units(),
         }
         if self.integration is not None:
             out["integration"] = {
@@ -132,6 +167,41 @@ class InspectionMaps:
         if self.height is not None and np.isfinite(self.height).any():
             out["height_range"] = float(np.nanmax(self.height) - np.nanmin(self.height))
         return out
+
+    def registered_units(self) -> dict[str, object]:
+        """The TIFFs' units and conventions (see maps.registered)."""
+        u = Units.of(self.options.pixel_size_mm)
+        return {
+            "pixel_size_mm": self.options.pixel_size_mm,
+            "local_size_px": self.options.local_size_px,
+            "curvature_sigma_px": self.options.curvature_sigma,
+            "height": u.height,
+            "local_shape": u.height,
+            "curvature": u.curvature,
+            "gaussian_curvature": u.gaussian_curvature,
+            "gradient": "dz/dcolumn (p), dz/drow (q), rows down, z to the camera",
+            "normals": "x right, y up, z to the camera",
+            "outside_mask": "NaN (normals: 0)",
+        }
+
+    def physical(self) -> dict[str, np.ndarray]:
+        """The registered data maps in their TIFF units (mm with a pixel size): name -> (H, W)
+        or (H, W, 3) float32. Only maps that were computed."""
+        k = self.options.pixel_size_mm or 1.0
+        out: dict[str, np.ndarray] = {"normals": self.normals}
+        if self.gradient_p is not None and self.gradient_q is not None:
+            out["gradient_p"], out["gradient_q"] = self.gradient_p, self.gradient_q
+        if self.height is not None and self.options.intrinsics is None:
+            out["height"] = self.height * np.float32(k)
+        if self.local_shape is not None:
+            out["local_shape"] = self.local_shape * np.float32(k)
+        if self.curvature is not None:
+            out["curvature"] = self.curvature / np.float32(k)
+        if self.gaussian_curvature is not None:
+            out["gaussian_curvature"] = self.gaussian_curvature / np.float32(k * k)
+        if self.albedo is not None:
+            out["albedo"] = self.albedo
+        return {name: np.asarray(v, np.float32) for name, v in out.items()}
 
 
 def compute_maps(
@@ -152,6 +222,7 @@ def compute_maps(
     opts = options or MapOptions()
     unit, valid = check_normals(normals, mask)
     maps = InspectionMaps(mask=valid, normals=unit.astype(np.float32), options=opts)
+    maps.gradient_p, maps.gradient_q = gradients(unit, valid, opts.min_nz)
     if opts.wants("albedo"):
         if images is None or lights is None or intensities is None:
             raise InputError("the albedo needs the images, lights and intensities")
@@ -181,6 +252,8 @@ def compute_maps(
         )
         maps.integration, maps.height, maps.depth = integ, integ.height, integ.depth
         maps.timings[f"height ({opts.method})"] = time.perf_counter() - start
+        if opts.intrinsics is None:  # a perspective height is log-depth based: no local shape
+            maps.local_shape = local_shape(integ.height, valid, opts.local_size_px)
     if opts.wants("curvature"):
         start = time.perf_counter()
         curv = curvature_maps(unit, valid, sigma=opts.curvature_sigma)
@@ -197,14 +270,80 @@ def stack_maps(
     return compute_maps(stack.images, stack.lights, stack.intensities, stack.mask, normals, options)
 
 
-def albedo_png(albedo: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(H, W, 3) albedo -> 16-bit RGB with the largest value in the mask at 65535 (relative;
-    the absolute values are in albedo.npy). Zeros outside the mask."""
-    top = float(albedo[mask].max()) if mask.any() else 0.0
+ALBEDO_PNG_PERCENTILE = 99.5
+
+
+def albedo_png(
+    albedo: np.ndarray, mask: np.ndarray, percentile: float = ALBEDO_PNG_PERCENTILE
+) -> np.ndarray:
+    """(H, W, 3) albedo -> 16-bit linear RGB with the ``percentile`` of each pixel's
+    brightest channel in the mask at 65535, brighter values clipped (relative; the absolute
+    values are in albedo.npy). Scaled to the one brightest pixel, a specular speck, the rest
+    of harvest sat at ~10 % of full scale: black in a viewer. Zeros outside the mask."""
+    top = float(np.percentile(albedo[mask].max(axis=1), percentile)) if mask.any() else 0.0
     scale = 65535.0 / top if top > 0 else 0.0
-    img = np.clip(np.rint(albedo * scale), 0, 65535).astype(np.uint16)
+    img = np.clip(np.rint(np.nan_to_num(albedo) * scale), 0, 65535).astype(np.uint16)
     img[~mask] = 0
     return img
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    import zlib
+
+    return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+
+_AFTER_IHDR = 8 + 25  # the PNG signature, then IHDR: length, type, 13 bytes, CRC
+
+
+def png_with_text(png: bytes, key: str, text: str) -> bytes:
+    """PNG bytes with a tEXt chunk after the header (what a viewer's image properties show)."""
+    chunk = _png_chunk(b"tEXt", key.encode("latin-1") + b"\0" + text.encode("latin-1"))
+    return png[:_AFTER_IHDR] + chunk + png[_AFTER_IHDR:]
+
+
+def linear_png(png: bytes, note: str) -> bytes:
+    """PNG bytes marked as linear (a gAMA chunk of 1.0: viewers that honour it, browsers
+    among them, show the values as light, not as sRGB codes, which look near-black) and
+    carrying ``note`` as its Description text."""
+    gamma = _png_chunk(b"gAMA", (100000).to_bytes(4, "big"))  # 1 / gamma x 100000
+    marked = png[:_AFTER_IHDR] + gamma + png[_AFTER_IHDR:]
+    return png_with_text(marked, "Description", note)
+
+
+ALBEDO_PNG_NOTE = (
+    f"relative linear albedo (gamma 1.0): the {ALBEDO_PNG_PERCENTILE:g}th percentile of the "
+    "brightest channel in the mask is 65535, brighter pixels clipped; absolute values in "
+    "albedo.npy"
+)
+
+
+def provenance(profile: Mapping[str, object] | None) -> dict[str, object]:
+    """The report header's facts: model, engine, lights file, command and time (from the run's
+    profile.json summary where it says)."""
+    import sys
+    from datetime import datetime, timezone
+
+    p = dict(profile or {})
+    inp = p.get("input")
+    lights = inp.get("lights") if isinstance(inp, Mapping) else None
+    recorded = p.get("provenance")
+    if isinstance(recorded, Mapping):  # the run's own record (results/provenance.py)
+        from msfnet.runtime.results.provenance import Provenance
+
+        facts: dict[str, object] = dict(Provenance.from_dict(recorded).facts())
+        if lights:
+            facts["lights"] = lights
+        return facts
+    engine = " ".join(str(p[k]) for k in ("engine", "precision") if p.get(k))
+    out: dict[str, object] = {
+        "model": p.get("model") or ("none (least squares)" if p.get("method") == "l2" else "-"),
+        "engine": engine or "-",
+        "lights": lights or p.get("stack") or "-",
+        "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv else "-",
+        "time": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
+    }
+    return out
 
 
 def _npy_writer(arr: np.ndarray) -> Any:
@@ -229,9 +368,10 @@ def write_maps(
     """Write the computed maps into ``folder`` (created if needed; it may already hold the
     run's normals.npy etc., which are left alone); returns the written paths.
 
-    albedo.png (16-bit RGB, relative) + albedo.npy; height.npy (float32, NaN outside) +
-    height.png (hill-shaded picture) [+ depth.npy with intrinsics]; curvature.npy (mean, 1/px)
-    + curvature.png + shape_index.npy; mesh.ply; maps.json (options, units, timings) and, with
+    albedo.png (16-bit linear RGB, relative: see :func:`albedo_png`) + albedo.npy;
+    height.npy (float32, NaN outside) + height.png (hill-shaded picture) [+ depth.npy with
+    intrinsics]; curvature.npy (mean, 1/px) + curvature.png + shape_index.npy; mesh.ply;
+    maps.json (options, units, timings) and, with
     ``report``, report.html (inputs from ``images``, normals, maps, ``error_deg`` (H, W) in
     degrees, and the latency table from ``profile``, a profile.json summary).
     ``rendered``: pictures the caller already drew ("normals", "error" PNG bytes), reused
@@ -263,25 +403,50 @@ def write_maps(
         )
     )
     if maps.albedo is not None:
-        jobs.append(("albedo.png", _bytes_writer(pictures.png_bytes(albedo_png(maps.albedo, m)))))
+        png = linear_png(pictures.png_bytes(albedo_png(maps.albedo, m)), ALBEDO_PNG_NOTE)
+        jobs.append(("albedo.png", _bytes_writer(png)))
         jobs.append(("albedo.npy", _npy_writer(maps.albedo)))
         figures.append(("albedo", pictures.png_bytes(pictures.albedo_picture(maps.albedo, m))))
+    # registered views (the input's size; figures with axes only in the report)
     if maps.height is not None:
         units = "px" if maps.options.intrinsics is None else "depth_ref units"
-        png = pictures.png_bytes(pictures.height_picture(maps.height, m, units=units))
-        jobs += [("height.npy", _npy_writer(maps.height)), ("height.png", _bytes_writer(png))]
-        figures.append((f"height ({maps.options.method})", png))
+        figure = pictures.png_bytes(pictures.height_picture(maps.height, m, units=units))
+        view = described_png(
+            pictures.png_bytes(grey16_view(maps.height, m)),
+            "height, min..max in the mask stretched to 1..65535, 0 outside; values in height.tif",
+        )
+        jobs += [("height.npy", _npy_writer(maps.height)), ("height.png", _bytes_writer(view))]
+        figures.append((f"height ({maps.options.method})", figure))
         if maps.depth is not None:
             jobs.append(("depth.npy", _npy_writer(maps.depth)))
+    if maps.local_shape is not None:
+        rgb, top = signed_view(maps.local_shape, m)
+        note = f"local shape, red up / blue down, +-{top:.4g} px full colour; values in .tif"
+        jobs.append(
+            (
+                "local_shape.png",
+                _bytes_writer(described_png(pictures.png_bytes(rgb), note)),
+            )
+        )
     if maps.curvature is not None:
-        png = pictures.png_bytes(pictures.curvature_picture(maps.curvature, m))
+        figure = pictures.png_bytes(pictures.curvature_picture(maps.curvature, m))
+        rgb, top = signed_view(maps.curvature, m)
+        note = f"mean curvature, red convex / blue concave, +-{top:.4g} 1/px full colour"
         jobs += [
             ("curvature.npy", _npy_writer(maps.curvature)),
-            ("curvature.png", _bytes_writer(png)),
+            (
+                "curvature.png",
+                _bytes_writer(described_png(pictures.png_bytes(rgb), note)),
+            ),
         ]
         if maps.shape_index is not None:
             jobs.append(("shape_index.npy", _npy_writer(maps.shape_index)))
-        figures.append(("mean curvature", png))
+        figures.append(("mean curvature", figure))
+    if maps.options.tiff:
+        reg_units = maps.registered_units()
+        for name, data in maps.physical().items():
+            text = f"msfnet {name} ({reg_units.get(name, 'see maps.json')}), float32, registered"
+            jobs.append((f"{name}.tif", lambda tmp, d=data, t=text: write_tiff(tmp, d, t)))
     if error_deg is not None:
         figures.append(
             (
@@ -304,7 +469,8 @@ def write_maps(
     summary = maps.summary()
     jobs.append(("maps.json", _bytes_writer((json.dumps(summary, indent=2) + "\n").encode())))
     if report:
-        meta: dict[str, object] = {"pixels": summary["pixels"], "method": maps.options.method}
+        meta: dict[str, object] = {**provenance(profile), "pixels": summary["pixels"]}
+        meta["height integration"] = maps.options.method
         if maps.integration is not None:
             meta["integration iterations"] = maps.integration.iterations
         if "height_range" in summary:
@@ -334,6 +500,8 @@ __all__ = [
     "MapOptions",
     "albedo_png",
     "compute_maps",
+    "linear_png",
+    "png_with_text",
     "stack_maps",
     "write_maps",
 ]

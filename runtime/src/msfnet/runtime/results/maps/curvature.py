@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from msfnet.runtime.results.maps.validate import check_normals
 
@@ -76,6 +75,8 @@ def smooth_normals(normals: np.ndarray, valid: np.ndarray, sigma: float) -> np.n
     """Gaussian smoothing inside the mask only (normalised convolution), renormalised."""
     if sigma <= 0:
         return normals
+    from scipy import ndimage  # here, not at import: SciPy takes ~0.4 s to import
+
     weight = ndimage.gaussian_filter(valid.astype(np.float64), sigma, mode="constant")
     out = np.empty_like(normals)
     for c in range(3):

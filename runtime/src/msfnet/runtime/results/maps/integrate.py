@@ -27,10 +27,11 @@ Methods
   sides share weight 1 (0.5 each; 1 for the only side at a border). The normal equations form a
   weighted graph Laplacian over the 4-neighbour mask graph (Neumann at the mask border),
   assembled with scipy.sparse and solved by conjugate gradients preconditioned with a
-  smoothed-aggregation multigrid V-cycle (:class:`Multigrid`; about 10 iterations, 3x faster
-  than a sparse LU on 200k pixels). No equation crosses the mask border, so separate objects
-  never pull on each other. The confidence makes grazing normals (whose slopes are the least
-  reliable) count little: a steep feature one pixel wide is outvoted by its flat neighbours.
+  smoothed-aggregation multigrid V-cycle (:class:`Multigrid`; about 10 iterations, faster
+  than a sparse LU on large masks: docs/benchmark.md). No equation crosses the mask border,
+  so separate objects never pull on each other. The confidence makes grazing normals (whose
+  slopes are the least reliable) count little: a steep feature one pixel wide is outvoted by
+  its flat neighbours.
 - ``bini``: discontinuity-aware, after the idea of bilateral normal integration (X. Cao,
   H. Santo, B. Shi, F. Okura, Y. Matsushita, "Bilateral Normal Integration", ECCV 2022): the
   same one-sided equations, but the share of each side is re-estimated from the current surface,
@@ -52,17 +53,19 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as sla
-from scipy import ndimage
-from scipy.special import expit
 
 from msfnet.common.camera import Intrinsics
 from msfnet.common.errors import InputError
 from msfnet.runtime.results.maps.validate import check_normals
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+# SciPy is imported by the functions that solve (~0.4 s): importing msfnet (MapOptions, the
+# constants here) must stay quick on an edge box that may never integrate a height map.
 
 METHODS = ("fc", "poisson", "bini")
 DEFAULT_MIN_NZ = 0.05
@@ -181,6 +184,9 @@ class _Graph:
 
 
 def _graph(valid: np.ndarray) -> _Graph:
+    import scipy.sparse as sp
+    from scipy import ndimage
+
     index = np.full(valid.shape, -1, np.int64)
     p = int(valid.sum())
     index[valid] = np.arange(p)
@@ -208,6 +214,8 @@ def _side_weights(
     w_forward = sigmoid(k * (back^2 - forward^2)) on differences of ``scale * z``. A pixel with
     only one side gives that side the whole weight.
     """
+    from scipy.special import expit
+
     out = []
     for axis in (1, 0):
         # lo/hi: the first and second pixel of each neighbour pair along this axis
@@ -254,6 +262,8 @@ def _system(
 ) -> tuple[sp.csr_matrix, np.ndarray]:
     """Normal equations L z = b of sum_e alpha (dz_e - t_a)^2 + beta (dz_e - t_b)^2, with one
     pixel per component pinned (its diagonal raised) so L is positive definite."""
+    import scipy.sparse as sp
+
     a = alpha + beta
     lap = (g.incidence.T @ sp.diags(a) @ g.incidence).tocsr()
     b = g.incidence.T @ (alpha * t_a + beta * t_b)
@@ -281,6 +291,9 @@ class Multigrid:
     def __init__(
         self, mat: sp.csr_matrix, index: np.ndarray, coarse_size: int = COARSE_SIZE
     ) -> None:
+        import scipy.sparse as sp
+        import scipy.sparse.linalg as sla
+
         self.levels: list[tuple[sp.csr_matrix, sp.csr_matrix, np.ndarray]] = []
         a, grid = mat.tocsr(), index
         while a.shape[0] > coarse_size:
@@ -358,6 +371,8 @@ def _pcg(
 def _solve(mat: sp.csr_matrix, b: np.ndarray, x0: np.ndarray, mg: Multigrid) -> np.ndarray:
     """Solve to CG_RTOL with multigrid-preconditioned CG; should that stall (it has not been
     seen to), fall back to a sparse LU, slower but direct."""
+    import scipy.sparse.linalg as sla
+
     x, relres = _pcg(mat, b, x0, mg, CG_RTOL, SOLVE_ITER)
     if relres <= 10 * CG_RTOL:
         return x
@@ -451,6 +466,8 @@ def _anchor(
     z: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics | None, depth_ref: float | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Fix the free constant per 4-connected component; see the module docstring."""
+    from scipy import ndimage
+
     labels, count = ndimage.label(valid, structure=FOUR_NEIGHBOURS)
     height = np.full(valid.shape, np.nan)
     depth = None if intrinsics is None else np.full(valid.shape, np.nan)

@@ -1,0 +1,397 @@
+"""msf-bench on an edge install: no torch, a given ONNX file (``msf-bench --onnx FILE``), and the
+requirements table (``msf-bench --requirements``).
+
+``--onnx``: every way this machine can run the file (ONNX Runtime in the model's precision,
+OpenVINO fp32, OpenVINO bf16 where the CPU has native bf16, each --device present), one row
+each, in the columns an Ultralytics ``benchmark`` user knows: format | status | size | MAE | ms
+| peak MB. MAE: mean angular error against ground truth on 128 x 128 crops of the DiLiGenT
+validation objects at 12 lights; ms: the median of the timed runs on the ball crop after one
+warm-up; peak MB: the peak RSS of the fresh process that ran the row.
+
+``--requirements``: time and peak memory of a whole stack through the runtime (tiling, memory
+budget, normalisation: what msf-run does) by image size x light count x engine, on the ball's
+images resized to each size with every pixel object (the worst case for a part of that size).
+
+Each row runs in a fresh process (``python -m msfnet.bench.edge SPEC.json``), torch-free.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from msfnet.common.errors import InputError
+
+CROP = 128
+CROP_LIGHTS = 12
+VALIDATION = (("ballPNG", None), ("bearPNG", "21-96"), ("harvestPNG", None))
+REQUIREMENT_SIZES = (128, 256, 512)
+REQUIREMENT_LIGHTS = (12, 32)
+QUICK_SIZES = (64, 128)
+QUICK_LIGHTS = (8,)
+
+
+@dataclass(frozen=True)
+class EdgePath:
+    """One way to run a model: engine, precision and device as dispatch understands them."""
+
+    label: str  # the table's "format" column
+    engine: str
+    precision: str
+    device: str | None = None  # --device name; None = the CPU
+
+
+@dataclass(frozen=True)
+class EdgeRow:
+    format: str
+    status: str  # "ok", or why the row did not run (one line)
+    size_mb: float
+    mae_deg: float | None
+    ms: float | None
+    peak_mb: float | None
+
+
+def edge_paths(model: Path) -> tuple[list[EdgePath], list[EdgeRow]]:
+    """The paths this machine can run ``model`` on, and rows for those it cannot (status says
+    why). Nothing is loaded but the model's metadata."""
+    from msfnet.common.cpu import detect_cpu
+    from msfnet.runtime.engines import installed_engines, model_precision, read_model_file
+    from msfnet.runtime.engines.dispatch import DEVICE_TARGETS, resolve_device
+
+    info = read_model_file(model)
+    own = model_precision(info)
+    have = installed_engines()
+    size = model.stat().st_size / 2**20
+    paths = [EdgePath(f"ONNX Runtime {own}", "onnxruntime", own)]
+    skipped: list[EdgeRow] = []
+    if "openvino" in have:
+        paths.append(EdgePath(f"OpenVINO {own}", "openvino", own))
+        if own == "fp32":
+            if detect_cpu().has_bf16:
+                paths.append(EdgePath("OpenVINO bf16", "openvino", "bf16"))
+            else:
+                skipped.append(
+                    EdgeRow("OpenVINO bf16", "no native bf16 on this CPU", size, *[None] * 3)
+                )
+    else:
+        skipped.append(EdgeRow(f"OpenVINO {own}", "openvino not installed", size, *[None] * 3))
+    for name in DEVICE_TARGETS:
+        if name == "cpu":
+            continue
+        try:
+            device = resolve_device(name)
+        except InputError as exc:
+            # the table's status: the refusal's core ("OpenVINO sees no GPU here"); the
+            # whole line (what it needs) is in report.json
+            skipped.append(EdgeRow(f"--device {name}", f"skipped: {_core(exc)}", size, *[None] * 3))
+            continue
+        assert device is not None
+        paths.append(EdgePath(f"--device {name}", device.engine, own, name))
+    return paths, skipped
+
+
+def _core(exc: InputError) -> str:
+    text = str(exc).split(": ", 1)[-1]
+    return text.split(" (", 1)[0]
+
+
+def validation_crops(data: Path, lights: int = CROP_LIGHTS, size: int = CROP) -> list[dict]:
+    """(images, lights, mask, gt) network inputs: a ``size`` px crop of each validation object
+    centred on its mask, ``lights`` evenly spaced lights (after the protocol's selection)."""
+    from msfnet.runtime.infer.normalise import network_input
+    from msfnet.runtime.stack import load_stack
+
+    crops = []
+    for name, select in VALIDATION:
+        folder = data / "DiLiGenT" / name
+        if not folder.is_dir():
+            raise InputError("validation object not found (DiLiGenT)", folder)
+        stack = load_stack(folder, select=select, max_lights=lights)
+        ys, xs = np.nonzero(stack.mask)
+        h, w = stack.shape
+        y0 = int(np.clip(ys.mean() - size / 2, 0, h - size)) // 4 * 4
+        x0 = int(np.clip(xs.mean() - size / 2, 0, w - size)) // 4 * 4
+        rows, cols = slice(y0, y0 + size), slice(x0, x0 + size)
+        images, lit = network_input(stack, rows, cols)
+        assert stack.normals_gt is not None
+        crops.append(
+            {
+                "name": name,
+                "images": images,
+                "lights": lit,
+                "mask": stack.mask[rows, cols],
+                "gt": stack.normals_gt[rows, cols],
+            }
+        )
+    return crops
+
+
+def _open(spec: dict):  # type: ignore[no-untyped-def]
+    from msfnet.common.cpu import detect_cpu
+    from msfnet.runtime.engines import installed_engines
+    from msfnet.runtime.engines.dispatch import choose_engine, open_engine, resolve_device
+
+    device = resolve_device(spec.get("device"))
+    choice = choose_engine(
+        Path(spec["model"]),
+        detect_cpu(),
+        installed_engines(),
+        spec.get("engine"),
+        spec.get("precision"),
+        device=device,
+    )
+    return open_engine(choice, spec.get("threads"))
+
+
+def measure_path(spec: dict) -> dict:
+    """One --onnx row, in this process."""
+    from msfnet.runtime.evaluate.metrics import normal_metrics
+    from msfnet.runtime.results.profile import peak_rss_mb
+
+    engine = _open(spec)
+    crops = validation_crops(Path(spec["data"]))
+    maes = []
+    for c in crops:
+        out = engine.run(c["images"], c["lights"])[0].transpose(1, 2, 0)
+        maes.append(normal_metrics(out, c["gt"], c["mask"]).mae_deg)
+    parity = None
+    if spec.get("device"):  # an accelerator: verified against ONNX Runtime fp32 on the CPU
+        from msfnet.runtime.engines.dispatch import EngineChoice, open_engine
+        from msfnet.runtime.evaluate.metrics import deviation_deg
+
+        cpu = open_engine(
+            EngineChoice(
+                "onnxruntime",
+                engine.precision if engine.precision == "int8" else "fp32",
+                "parity reference",
+                Path(spec["model"]),
+            ),
+            spec.get("threads"),
+        )
+        devs = [
+            deviation_deg(
+                engine.run(c["images"], c["lights"]), cpu.run(c["images"], c["lights"]), c["mask"]
+            )
+            for c in crops
+        ]
+        parity = (float(np.mean([d[0] for d in devs])), float(max(d[1] for d in devs)))
+    ball = crops[0]
+    engine.run(ball["images"], ball["lights"])  # warm-up at this size
+    times = []
+    for _ in range(int(spec.get("repeats", 3))):
+        t0 = time.perf_counter()
+        engine.run(ball["images"], ball["lights"])
+        times.append(time.perf_counter() - t0)
+    return {
+        "mae_deg": float(np.mean(maes)),
+        "ms": 1e3 * statistics.median(times),
+        "peak_mb": peak_rss_mb(),
+        "parity_deg": parity,
+    }
+
+
+@dataclass(frozen=True)
+class Requirement:
+    size: int  # square image edge, px
+    lights: int
+    engine: str  # engine and precision that ran
+    seconds: float | None
+    peak_mb: float | None
+    status: str = "ok"
+
+
+def measure_requirement(spec: dict) -> dict:
+    """One requirements cell, in this process: the whole stack through the Python API with
+    msf-run's defaults (memory budget, detail fusion; no maps), after a small warm-up."""
+    import cv2
+
+    from msfnet.runtime.api import Model
+    from msfnet.runtime.results.profile import peak_rss_mb
+    from msfnet.runtime.stack import Stack, load_stack
+
+    model = Model(
+        Path(spec["model"]),
+        threads=spec.get("threads"),
+        engine=spec.get("engine"),
+        precision=spec.get("precision"),
+        device=spec.get("device"),
+        maps=None,
+    )
+    size, lights = int(spec["size"]), int(spec["lights"])
+    src = load_stack(Path(spec["stack"]), max_lights=lights)
+    images = np.stack(
+        [cv2.resize(im, (size, size), interpolation=cv2.INTER_AREA) for im in src.images]
+    )
+    stack = Stack.from_arrays(
+        images, src.lights, intensities=src.intensities, mask=np.ones((size, size), bool)
+    )
+    del src
+    model(Stack.from_arrays(images[:, :32, :32], stack.lights, intensities=stack.intensities))
+    t0 = time.perf_counter()
+    model(stack)
+    seconds = time.perf_counter() - t0
+    d = model.describe()
+    return {
+        "seconds": seconds,
+        "peak_mb": peak_rss_mb(),
+        "engine": f"{d['engine']} {d['precision']}",
+    }
+
+
+def run_worker(kind: str, spec: dict, scratch: Path) -> dict:
+    """``spec`` run by ``kind`` (path | requirement) in a fresh process; {"error": line} if it
+    failed."""
+    spec = {**spec, "kind": kind, "result": str(scratch / "edge-result.json")}
+    spec_file = scratch / "edge-spec.json"
+    spec_file.write_text(json.dumps(spec))
+    proc = subprocess.run(
+        [sys.executable, "-m", "msfnet.bench.edge", str(spec_file)],
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode != 0:
+        return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1][:300]}
+    return json.loads(Path(spec["result"]).read_text())
+
+
+def onnx_rows(model: Path, data: Path, threads: int | None, scratch: Path) -> list[EdgeRow]:
+    paths, rows = edge_paths(model)
+    size = model.stat().st_size / 2**20
+    measured = []
+    for p in paths:
+        spec = {
+            "model": str(model),
+            "data": str(data),
+            "threads": threads,
+            "engine": p.engine,
+            "precision": p.precision,
+            "device": p.device,
+        }
+        r = run_worker("path", spec, scratch)
+        if "error" in r:
+            measured.append(EdgeRow(p.label, f"failed: {r['error']}", size, None, None, None))
+        else:
+            measured.append(
+                EdgeRow(
+                    p.label,
+                    _parity_status(r.get("parity_deg")),
+                    size,
+                    r["mae_deg"],
+                    r["ms"],
+                    r["peak_mb"],
+                )
+            )
+    return measured + rows
+
+
+def _parity_status(parity: list[float] | tuple[float, float] | None) -> str:
+    """'ok' for CPU rows; for a device, its agreement with CPU fp32 (mean / max deg), failed
+    above the accuracy bound."""
+    from msfnet.runtime.engines.dispatch import ACCURACY_BOUND_DEG
+
+    if parity is None:
+        return "ok"
+    mean, worst = parity
+    verdict = "ok" if mean <= ACCURACY_BOUND_DEG else "failed"
+    return f"{verdict}: parity {mean:.3f} / {worst:.2f} deg vs CPU fp32"
+
+
+def edge_table(rows: list[EdgeRow]) -> str:
+    """Markdown, Ultralytics' benchmark columns."""
+
+    def num(v: float | None, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
+    lines = [
+        f"| format | status | size (MB) | MAE (deg, {CROP_LIGHTS} lights) | ms ({CROP} px crop) "
+        "| peak MB |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ok = r.status == "ok" or r.status.startswith("ok:")
+        status = ("✅" + r.status[2:]) if ok else f"❌ {r.status}"
+        lines.append(
+            f"| {r.format} | {status} | {r.size_mb:.1f} | {num(r.mae_deg, '.2f')} | "
+            f"{num(r.ms, '.0f')} | {num(r.peak_mb, '.0f')} |"
+        )
+    return "\n".join(lines)
+
+
+def requirement_rows(
+    model: Path,
+    stack: Path,
+    threads: int | None,
+    scratch: Path,
+    *,
+    quick: bool = False,
+    engines: tuple[tuple[str | None, str | None], ...] = ((None, None), ("onnxruntime", "fp32")),
+) -> list[Requirement]:
+    """The grid, each cell in a fresh process; ``engines``: (engine, precision) pairs, None =
+    dispatch's default."""
+    sizes, lights = (
+        (QUICK_SIZES, QUICK_LIGHTS) if quick else (REQUIREMENT_SIZES, REQUIREMENT_LIGHTS)
+    )
+    out = []
+    for engine, precision in engines:
+        for n in lights:
+            for s in sizes:
+                spec = {
+                    "model": str(model),
+                    "stack": str(stack),
+                    "threads": threads,
+                    "engine": engine,
+                    "precision": precision,
+                    "size": s,
+                    "lights": n,
+                }
+                r = run_worker("requirement", spec, scratch)
+                label = r.get("engine", f"{engine or 'default'} {precision or ''}".strip())
+                if "error" in r:
+                    out.append(Requirement(s, n, label, None, None, f"failed: {r['error']}"))
+                else:
+                    out.append(Requirement(s, n, label, r["seconds"], r["peak_mb"]))
+    return out
+
+
+def requirements_table(rows: list[Requirement]) -> str:
+    lines = ["| image | lights | engine | time s | peak MB |", "|---|---|---|---|---|"]
+    for r in rows:
+        if r.status != "ok":
+            lines.append(f"| {r.size}x{r.size} | {r.lights} | {r.engine} | {r.status} | - |")
+            continue
+        assert r.seconds is not None and r.peak_mb is not None
+        lines.append(
+            f"| {r.size}x{r.size} | {r.lights} | {r.engine} | {r.seconds:.2f} | {r.peak_mb:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    spec = json.loads(Path((argv or sys.argv[1:])[0]).read_text())
+    result = measure_path(spec) if spec["kind"] == "path" else measure_requirement(spec)
+    Path(spec["result"]).write_text(json.dumps(result))
+    return 0
+
+
+__all__ = [
+    "EdgePath",
+    "EdgeRow",
+    "Requirement",
+    "asdict",
+    "edge_paths",
+    "edge_table",
+    "onnx_rows",
+    "requirement_rows",
+    "requirements_table",
+    "validation_crops",
+]
+
+if __name__ == "__main__":
+    sys.exit(main())

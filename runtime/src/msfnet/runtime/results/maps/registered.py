@@ -1,0 +1,211 @@
+"""Pixel-registered maps for other vision tools: float32 TIFF data and same-size PNG views.
+
+Every file here has exactly the input's width and height, pixel (r, c) of a map is pixel (r, c)
+of the input images (a figure with axes and a colour bar lives only in report.html). Data files
+are single-page float32 TIFF (uncompressed, so HALCON ``read_image``, OpenCV
+``cv2.imread(..., cv2.IMREAD_UNCHANGED)``, Matrox and Cognex read them as they are); NaN marks
+pixels outside the mask. Views are 16-bit grey (height, local shape) or 8-bit RGB (signed maps
+on a diverging palette), for a person.
+
+Conventions (documented in maps.json too):
+- gradient p = dz/d(column), q = dz/d(row): image axes, rows down (so a surface rising towards
+  the top of the image has q < 0). z is toward the camera.
+- units: with ``pixel_size_mm`` heights are in mm and curvatures in 1/mm (mean) and 1/mm^2
+  (Gaussian), else in px, 1/px and 1/px^2; gradients are dimensionless either way (orthographic:
+  one unit of z is one pixel pitch).
+- local shape: height minus its smooth trend, the trend being a quadric fitted around each
+  pixel with Gaussian weights of ``local_size`` px inside the mask (:func:`local_trend`).
+  Relief narrower than about that size stays, the part's tilt and bow go (Matrox' "local
+  shape", Keyence's "characteristic size").
+- normals.tif and albedo.tif hold three samples per pixel in x, y, z (R, G, B) order; OpenCV's
+  imread returns them reversed (its BGR order), tifffile and HALCON as stored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+DEFAULT_LOCAL_SIZE_PX = 12.0
+TREND_DEGREE = 2  # the local shape's trend: a quadric around each pixel (see local_trend)
+VIEW_PERCENTILE = 99.5  # a view's range: this percentile of |value| (one hot pixel does not set it)
+
+
+@dataclass(frozen=True)
+class Units:
+    """What one unit of each registered map means."""
+
+    height: str
+    curvature: str
+    gaussian_curvature: str
+
+    @classmethod
+    def of(cls, pixel_size_mm: float | None) -> Units:
+        if pixel_size_mm is None:
+            return cls("px", "1/px", "1/px^2")
+        return cls("mm", "1/mm", "1/mm^2")
+
+
+def gradients(
+    normals: np.ndarray, valid: np.ndarray, min_nz: float = 0.05
+) -> tuple[np.ndarray, np.ndarray]:
+    """(p, q) = (dz/dcol, dz/drow) of (H, W, 3) unit normals (x right, y up, z to the camera),
+    float32, NaN outside ``valid``; nz is clipped at ``min_nz`` (slopes bounded by 1/min_nz)."""
+    nz = np.maximum(normals[..., 2].astype(np.float64), min_nz)
+    p = -normals[..., 0] / nz
+    q = normals[..., 1] / nz  # y up, rows down: dz/drow = -dz/dy = ny / nz
+    nan = np.float32(np.nan)
+    return (
+        np.where(valid, p, nan).astype(np.float32),
+        np.where(valid, q, nan).astype(np.float32),
+    )
+
+
+def masked_gaussian(values: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of an (H, W) map using only ``valid`` pixels (normalised
+    convolution); NaN outside ``valid``."""
+    m = valid.astype(np.float32)
+    v = np.where(valid, np.nan_to_num(values), 0.0).astype(np.float32)
+    num = cv2.GaussianBlur(v, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(m, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    return np.where(valid, num / np.maximum(den, 1e-6), np.nan).astype(np.float32)
+
+
+def local_trend(
+    values: np.ndarray, valid: np.ndarray, sigma: float, degree: int = TREND_DEGREE
+) -> np.ndarray:
+    """At each valid pixel, the value there of the polynomial of ``degree`` (1: a plane, 2: a
+    quadric) fitted to the ``valid`` neighbours with Gaussian weights of ``sigma`` px (local
+    polynomial regression, i.e. higher-order normalised convolution). A plain masked Gaussian
+    is off by about slope x sigma at the mask's edge and by curvature x sigma^2 / 2 on a bowed
+    part (0.17 px on a rendered plate: as deep as the scratches looked for); a local quadric
+    follows tilt and bow alike. NaN outside ``valid``."""
+    h, w = values.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    # coordinates scaled to about +-1 over a few sigma: the normal equations stay well posed
+    scale = 3.0 * sigma
+    xs = (xs - w / 2.0) / scale
+    ys = (ys - h / 2.0) / scale
+    basis = [np.ones_like(xs), xs, ys]
+    if degree >= 2:
+        basis += [xs * xs, xs * ys, ys * ys]
+    m = valid.astype(np.float64)
+    z = np.where(valid, np.nan_to_num(values), 0.0).astype(np.float64)
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+
+    k = len(basis)
+    ok = valid & (blur(m) > 1e-9)
+    out = np.full((h, w), np.nan, np.float32)
+    if not ok.any():
+        return out
+    a = np.empty((int(ok.sum()), k, k))
+    b = np.empty((int(ok.sum()), k))
+    for i in range(k):
+        b[:, i] = blur(m * z * basis[i])[ok]
+        for j in range(i, k):
+            a[:, i, j] = a[:, j, i] = blur(m * basis[i] * basis[j])[ok]
+    # a ridge on the non-constant terms: a one-pixel strip has no slope across it
+    ridge = 1e-6 * a[:, 0, 0]
+    for i in range(1, k):
+        a[:, i, i] += ridge
+    coef = np.linalg.solve(a, b[..., None])[..., 0]
+    at = np.stack([f[ok] for f in basis], axis=-1)
+    out[ok] = np.sum(coef * at, axis=1)
+    return out
+
+
+def local_shape(height: np.ndarray, valid: np.ndarray, size_px: float) -> np.ndarray:
+    """Height minus its trend at the characteristic size ``size_px`` (see module notes; the
+    trend is :func:`local_trend`, so a tilted or bowed part reads flat up to its edges)."""
+    if not (np.isfinite(size_px) and size_px > 0):
+        raise ValueError(f"local shape size must be a positive number of px, got {size_px}")
+    ok = valid & np.isfinite(height)
+    trend = local_trend(height, ok, size_px)
+    return np.where(ok, height - trend, np.nan).astype(np.float32)
+
+
+def write_tiff(path: Path, data: np.ndarray, description: str = "") -> None:
+    """A float32 TIFF, (H, W) or (H, W, C) as RGB-like samples, uncompressed."""
+    import tifffile
+
+    arr = np.ascontiguousarray(data, np.float32)
+    photometric = "rgb" if arr.ndim == 3 and arr.shape[2] == 3 else "minisblack"
+    tifffile.imwrite(
+        path,
+        arr,
+        photometric=photometric,
+        description=description or None,
+        metadata=None,
+    )
+
+
+def read_tiff(path: Path) -> np.ndarray:
+    """A TIFF written by :func:`write_tiff` (or any float TIFF) as float32."""
+    import tifffile
+
+    return np.asarray(tifffile.imread(path), np.float32)
+
+
+def described_png(png: bytes, note: str) -> bytes:
+    """PNG bytes with ``note`` as a Description text chunk right after the header (a viewer's
+    image properties show it: what the grey levels or colours mean)."""
+    import zlib
+
+    data = b"Description\0" + note.encode("latin-1", "replace")
+    chunk = len(data).to_bytes(4, "big") + b"tEXt" + data
+    chunk += zlib.crc32(b"tEXt" + data).to_bytes(4, "big")
+    end = 8 + 25  # the signature, then the IHDR chunk (4 + 4 + 13 + 4 bytes)
+    return png[:end] + chunk + png[end:]
+
+
+def grey16_view(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(H, W) uint16: the values' range inside ``valid`` stretched to 1..65535, 0 outside."""
+    ok = valid & np.isfinite(values)
+    out = np.zeros(values.shape, np.uint16)
+    if not ok.any():
+        return out
+    lo, hi = float(np.min(values[ok])), float(np.max(values[ok]))
+    scale = 65534.0 / (hi - lo) if hi > lo else 0.0
+    out[ok] = np.rint(1.0 + (values[ok] - lo) * scale).astype(np.uint16)
+    return out
+
+
+def signed_view(values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, float]:
+    """(H, W, 3) uint8 RGB of a signed map on a blue-white-red palette centred on 0 (red
+    positive), range +-r with r the VIEW_PERCENTILE of |values|; grey outside ``valid``.
+    Returns the picture and r."""
+    ok = valid & np.isfinite(values)
+    out = np.full((*values.shape, 3), 128, np.uint8)
+    if not ok.any():
+        return out, 0.0
+    top = float(np.percentile(np.abs(values[ok]), VIEW_PERCENTILE))
+    top = top if top > 0 else 1e-12
+    t = np.clip(np.nan_to_num(values) / top, -1.0, 1.0)
+    pos, neg = np.clip(t, 0, 1), np.clip(-t, 0, 1)
+    # white at 0, pure red at +r, pure blue at -r
+    r = 255.0 * (1.0 - neg)
+    g = 255.0 * (1.0 - pos - neg)
+    b = 255.0 * (1.0 - pos)
+    rgb = np.stack([r, g, b], axis=-1)
+    out[ok] = np.rint(rgb[ok]).astype(np.uint8)
+    return out, top
+
+
+__all__ = [
+    "DEFAULT_LOCAL_SIZE_PX",
+    "Units",
+    "described_png",
+    "gradients",
+    "grey16_view",
+    "local_shape",
+    "local_trend",
+    "masked_gaussian",
+    "read_tiff",
+    "signed_view",
+    "write_tiff",
+]

@@ -1,0 +1,318 @@
+"""Where stacks come from, and reading the next one while the current one runs.
+
+Shared by the Python API (``Model.stream``) and the batch runner (``msf-run A B C``):
+
+- :func:`expand_stacks`: what a path on the command line (or given to ``stream``) stands for: a
+  stack folder or .npz, or a folder of stacks (sub-folders, an ``objects.txt``, or sub-folders
+  that share one light file at the top, as psmImages does).
+- :func:`decode_ahead`: decoded stacks one at a time, the next one decoded in a background
+  thread while the caller works on the current one. A single stack cannot overlap its own
+  decoding with inference (the normalisation needs every image of a pixel first), but in a
+  sequence of stacks the next one's images can be decoded beside the current inference.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Protocol
+
+from msfnet.common.errors import InputError
+from msfnet.common.imageio import list_images
+from msfnet.runtime.evaluate.datasets import PROTOCOL_SELECT, find_objects, protocol_note
+from msfnet.runtime.results.profile import BatchStats, Profile
+from msfnet.runtime.stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack, selection
+from msfnet.runtime.stack.load import count_images
+
+
+@dataclass(frozen=True)
+class BatchItem:
+    """One stack of a batch: its path and its own image selection, from an objects.txt or
+    from a benchmark's protocol (DiLiGenT bear: 21-96), which --select overrides (as in
+    msf-eval); ``lights``: the light file shared by a folder of stacks (psmImages'
+    ``lights.txt`` at the top), which --lights overrides."""
+
+    path: Path
+    select: str | None = None
+    origin: str = "objects.txt"  # where ``select`` comes from: "objects.txt" or "protocol"
+    lights: Path | None = None
+
+    @property
+    def name(self) -> str:
+        return self.path.stem if self.path.suffix.lower() == ".npz" else self.path.name
+
+    def options(self, load: LoadOptions) -> LoadOptions:
+        """``load`` with this stack's own selection and shared light file, unless the user's
+        options already give them."""
+        changes: dict[str, object] = {}
+        if self.select is not None and load.select is None:
+            changes["select"] = self.select
+        if self.lights is not None and load.lights is None:
+            changes["lights"] = self.lights
+        return replace(load, **changes) if changes else load  # type: ignore[arg-type]
+
+    def note(self, load: LoadOptions) -> str | None:
+        """The line to print when the benchmark's selection applies (it changes the result,
+        so it is never silent)."""
+        if self.origin != "protocol" or self.select is None or load.select is not None:
+            return None
+        return protocol_note(self.name, self.select)
+
+    def describe_input(self, load: LoadOptions) -> dict[str, object]:
+        """profile.json's "input": the options in effect and where the selection and the
+        light file came from."""
+        info = self.options(load).describe()
+        if load.select is not None:
+            info["select_from"] = "--select"
+        elif self.select is not None:
+            info["select_from"] = (
+                "benchmark protocol" if self.origin == "protocol" else "objects.txt"
+            )
+        if self.lights is not None and load.lights is None:
+            info["lights"] = str(self.lights)
+            info["lights_from"] = "the folder of stacks (shared light file)"
+        return info
+
+
+def _has_images(folder: Path) -> bool:
+    return (folder / "filenames.txt").is_file() or bool(list_images(folder))
+
+
+def _lights_file(folder: Path) -> Path | None:
+    return next((folder / n for n in LIGHTS_NAMES if (folder / n).is_file()), None)
+
+
+def _is_stack_folder(folder: Path) -> bool:
+    return _lights_file(folder) is not None or _has_images(folder)
+
+
+def _protocol_item(folder: Path, lights: Path | None = None) -> BatchItem:
+    """A stack folder, with its benchmark's selection when its name is a known object's (as
+    msf-eval does, however the folder is named on the command line) and the selection fits
+    its images: a folder of ours that happens to be called bearPNG but holds 24 images is not
+    DiLiGenT's bear, and runs whole."""
+    select = PROTOCOL_SELECT.get(folder.name)
+    if select is not None:
+        try:
+            selection(count_images(folder), select, None)
+        except InputError:
+            select = None
+    return BatchItem(folder, select, "protocol", lights)
+
+
+def _shared_lights_items(folder: Path) -> list[BatchItem] | None:
+    """A folder with a light file but no images of its own, whose sub-folders hold images
+    (psmImages: ``lights.txt`` at the top, one folder of TGA images per object): a folder of
+    stacks sharing that file. A sub-folder with a light file of its own keeps it. None when
+    ``folder`` is not such a root."""
+    lights = _lights_file(folder)
+    if lights is None or _has_images(folder):
+        return None
+    subs = [d for d in sorted(folder.iterdir()) if d.is_dir() and _has_images(d)]
+    if not subs:
+        return None
+    shared = lights.resolve()  # Ray workers do not share the driver's working directory
+    return [_protocol_item(d, None if _lights_file(d) else shared) for d in subs]
+
+
+def expand_stacks(paths: Sequence[Path]) -> list[BatchItem]:
+    """The stacks named on the command line: a stack folder or .npz stands for itself; a folder
+    with an objects.txt (msf-eval's format, e.g. ``bearPNG 21-96``), whose sub-folders are
+    stacks, or whose sub-folders share its light file stands for those. Names must be unique
+    (they name the output folders)."""
+
+    items: list[BatchItem] = []
+    for path in paths:
+        if path.is_dir() and (path / "objects.txt").is_file():
+            items += [BatchItem(o.folder, o.select) for o in find_objects(path)]
+        elif path.is_dir() and (shared := _shared_lights_items(path)) is not None:
+            items += shared
+        elif path.is_dir() and not _is_stack_folder(path):
+            subs = [d for d in sorted(path.iterdir()) if d.is_dir() and _is_stack_folder(d)]
+            if not subs:
+                raise InputError(
+                    "neither a stack (images + light_directions.txt) nor a folder "
+                    "of stacks (sub-folders holding them, or an objects.txt)",
+                    path,
+                )
+            items += [_protocol_item(d) for d in subs]
+        elif path.is_dir():
+            items.append(_protocol_item(path))
+        else:
+            items.append(BatchItem(path))  # an .npz, or a path the loader reports
+    names = [i.name for i in items]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise InputError(f"two stacks are named {dup!r}; their output folders would clash")
+    return items
+
+
+StackSource = BatchItem | Stack
+
+
+@dataclass
+class Decoded:
+    """One stack of a sequence, decoded (or refused: ``error``), with what it cost."""
+
+    index: int
+    item: StackSource
+    stack: Stack | None
+    error: InputError | None
+    decode_s: float  # decoding + real-camera transforms
+    wait_s: float  # how long the caller waited for it (decoding not hidden)
+    prefetched: bool  # decoded while the caller worked on the previous stack
+    beside: bool  # the next stack may be decoding while this one runs (memory budget)
+
+    def options(self, load: LoadOptions) -> LoadOptions:
+        return self.item.options(load) if isinstance(self.item, BatchItem) else load
+
+    def describe_input(self, load: LoadOptions) -> dict[str, object]:
+        if isinstance(self.item, BatchItem):
+            return self.item.describe_input(load)
+        return load.describe()
+
+
+def _decode(item: StackSource, load: LoadOptions) -> Stack:
+    if isinstance(item, Stack):
+        from msfnet.runtime.stack import prepare_stack
+
+        return prepare_stack(item, load)
+    return load_stack(item.path, item.options(load))
+
+
+_END = object()
+
+
+def _pull(
+    source: Iterator[StackSource], load: LoadOptions
+) -> tuple[object, Stack | None, InputError | None, float]:
+    """The source's next item and its decoded stack. An error of the source itself (a capture
+    loop failing) propagates; a stack that cannot be read comes back as its InputError."""
+    item = next(source, _END)
+    if item is _END:
+        return _END, None, None, 0.0
+    start = time.perf_counter()
+    try:
+        stack = _decode(item, load)  # type: ignore[arg-type]
+    except InputError as exc:
+        return item, None, exc, time.perf_counter() - start
+    return item, stack, None, time.perf_counter() - start
+
+
+def decode_ahead(
+    items: Iterable[StackSource],
+    load: LoadOptions,
+    *,
+    prefetch: bool = True,
+    total: int | None = None,
+) -> Iterator[Decoded]:
+    """The decoded stacks of ``items``, in order, one at a time.
+
+    With ``prefetch`` a background thread advances ``items`` and decodes the next stack as
+    soon as the current one is handed out, so it decodes while the caller works on the
+    current one: at most two stacks are in memory, and ``items`` is never advanced by two
+    threads at once (a capture loop may be a generator). Without, everything happens in the
+    caller's thread when the next stack is asked for. ``total``: the number of items when
+    known (a list), so the last stack is known to have nothing decoding beside it.
+    """
+    source = iter(items)
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="msf-decode") if prefetch else None
+    try:
+        upcoming = pool.submit(_pull, source, load) if pool is not None else None
+        index = 0
+        while True:
+            waited = time.perf_counter()
+            if upcoming is not None:
+                item, stack, error, decode_s = upcoming.result()
+            else:
+                item, stack, error, decode_s = _pull(source, load)
+            wait_s = time.perf_counter() - waited
+            if item is _END:
+                return
+            more = total is None or index + 1 < total
+            if pool is not None:
+                upcoming = pool.submit(_pull, source, load) if more else None
+            yield Decoded(
+                index,
+                item,  # type: ignore[arg-type]
+                stack,
+                error,
+                decode_s,
+                wait_s,
+                prefetched=pool is not None and index > 0,
+                beside=upcoming is not None,
+            )
+            if pool is not None and upcoming is None:
+                return  # the known last one
+            index += 1
+    finally:
+        if pool is not None:
+            # the caller stopped early (break, Ctrl-C, an error): do not wait for a stack
+            # nobody will use longer than its decoding takes
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+class _Timed(Protocol):
+    timings: Profile
+    input: dict[str, object] | None
+    batch: BatchStats | None
+
+
+def record_decode(result: _Timed, decoded: Decoded, load: LoadOptions) -> None:
+    """What ``model(path, load)`` records itself, for a stack decoded ahead: the decoding in
+    the latency profile, the options in effect (auto-mask -> mask.png on save), batch
+    timings."""
+    runs = result.timings.runs
+    if runs:  # the profile shows what the stack cost, decoding included
+        runs[-1]["load"] = decoded.decode_s
+        runs[-1]["total"] = runs[-1].get("total", 0.0) + decoded.decode_s
+    result.input = decoded.describe_input(load)
+    result.batch = BatchStats(
+        decoded.decode_s, wait_s=decoded.wait_s, prefetched=decoded.prefetched
+    )
+
+
+def stream_items(source: object) -> tuple[Iterable[StackSource], int | None]:
+    """What ``Model.stream`` accepts, as stack sources and their count (None: unknown): a path
+    (a stack, or a folder of stacks as msf-run reads it), a Stack, or any iterable of paths
+    and Stacks (a list, a generator, a capture loop)."""
+    if isinstance(source, Stack):
+        return [source], 1
+    if isinstance(source, (str, os.PathLike)):
+        found = expand_stacks([Path(source)])
+        return found, len(found)
+    if isinstance(source, (bytes, dict)) or not isinstance(source, Iterable):
+        raise InputError(
+            f"stream() takes a stack path, a folder of stacks, a Stack, or an iterable of "
+            f"paths and Stacks; got {type(source).__name__}"
+        )
+
+    def each() -> Iterator[StackSource]:
+        for element in source:  # type: ignore[attr-defined]
+            if isinstance(element, Stack):
+                yield element
+            elif isinstance(element, (str, os.PathLike)):
+                path = Path(element)
+                yield _protocol_item(path) if path.is_dir() else BatchItem(path)
+            else:
+                raise InputError(
+                    f"stream(): an element of type {type(element).__name__}; expected a "
+                    "stack path or a Stack"
+                )
+
+    return each(), len(source) if isinstance(source, Sequence) else None
+
+
+__all__ = [
+    "BatchItem",
+    "Decoded",
+    "StackSource",
+    "decode_ahead",
+    "expand_stacks",
+    "record_decode",
+    "stream_items",
+]

@@ -1,0 +1,167 @@
+"""msf-bench's torch-free modes: --onnx (engines and devices table), --ladder, --requirements."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from _runtime_helpers import tiny_msfnet_onnx
+
+from msfnet.bench import edge, ladder
+from msfnet.common import cpu
+from msfnet.common.cpu import CpuInfo
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+def test_edge_table_has_the_ultralytics_columns() -> None:
+    rows = [
+        edge.EdgeRow("OpenVINO bf16", "ok", 4.27, 4.123, 812.4, 567.0),
+        edge.EdgeRow("--device cuda", "skipped: ONNX Runtime has no CUDA", 4.27, None, None, None),
+    ]
+    text = edge.edge_table(rows).splitlines()
+    assert text[0].startswith("| format | status | size (MB) | MAE (deg, 12 lights) | ms")
+    assert text[2] == "| OpenVINO bf16 | ✅ | 4.3 | 4.12 | 812 | 567 |"
+    assert text[3] == "| --device cuda | ❌ skipped: ONNX Runtime has no CUDA | 4.3 | - | - | - |"
+
+
+def test_requirements_and_ladder_tables() -> None:
+    reqs = [
+        edge.Requirement(256, 12, "openvino bf16", 1.234, 456.0),
+        edge.Requirement(512, 32, "onnxruntime fp32", None, None, "failed: MemoryError"),
+    ]
+    lines = edge.requirements_table(reqs).splitlines()
+    assert lines[2] == "| 256x256 | 12 | openvino bf16 | 1.23 | 456 |"
+    assert lines[3] == "| 512x512 | 32 | onnxruntime fp32 | failed: MemoryError | - |"
+    maes = {"ballPNG": 4.0, "bearPNG": 6.0, "harvestPNG": 20.0}
+    rows = [
+        ladder.LadderRow("full", "all", "openvino bf16", 40.0, 2000.0, maes, 0.3),
+        ladder.LadderRow(
+            "balanced", "half", "openvino bf16", 10.0, 1200.0, {**maes, "bearPNG": 6.6}, 0.2
+        ),
+    ]
+    table = ladder.ladder_table(rows).splitlines()
+    assert "| mean MAE | vs full | detail |" in table[0]
+    assert table[2].startswith("| full | openvino bf16 | 40.00 | 1.00 | 2000 | 4.00 | 6.00 | 20.00")
+    # 4x faster, mean MAE 10.2 vs 10.0
+    assert table[3].endswith("| 10.00 | 4.00 | 1200 | 4.00 | 6.60 | 20.00 | 10.20 | +0.20 | 0.20 |")
+
+
+def test_edge_paths_say_why_a_row_cannot_run(tmp_path: Path, monkeypatch) -> None:
+    model = tiny_msfnet_onnx(tmp_path / "tiny.onnx")
+    monkeypatch.setattr(cpu, "detect_cpu", lambda: CpuInfo.from_flags(["avx2"], model="AVX2"))
+    monkeypatch.setattr(
+        "msfnet.runtime.engines.installed_engines", lambda: {"onnxruntime", "openvino"}
+    )
+    paths, skipped = edge.edge_paths(model)
+    assert [p.label for p in paths[:2]] == ["ONNX Runtime fp32", "OpenVINO fp32"]
+    bf16 = next(r for r in skipped if r.format == "OpenVINO bf16")
+    assert bf16.status == "no native bf16 on this CPU"
+    # devices absent here are rows that say so, never errors
+    for row in skipped:
+        if row.format.startswith("--device"):
+            assert row.status.startswith("skipped: ") and "\n" not in row.status
+    monkeypatch.setattr("msfnet.runtime.engines.installed_engines", lambda: {"onnxruntime"})
+    paths, skipped = edge.edge_paths(model)
+    assert [p.label for p in paths if p.device is None] == ["ONNX Runtime fp32"]
+    assert any(r.status == "openvino not installed" for r in skipped)
+
+
+def _torch_blocked_env(tmp_path: Path) -> dict[str, str]:
+    """PYTHONPATH with a `torch` package that refuses to import: blocks torch in msf-bench and
+    in every worker process it starts (torch is installed here)."""
+    import os
+
+    block = tmp_path / "no_torch" / "torch"
+    block.mkdir(parents=True)
+    (block / "__init__.py").write_text("raise ImportError('torch is blocked: edge install')\n")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(block.parent), env.get("PYTHONPATH", "")) if p
+    )
+    return env
+
+
+def test_a_foreign_onnx_file_is_one_line(tmp_path: Path) -> None:
+    bogus = tmp_path / "x.onnx"
+    bogus.write_bytes(b"not onnx")
+    done = subprocess.run(
+        [sys.executable, "-m", "msfnet.bench.cli", "--onnx", str(bogus), "-o", str(tmp_path / "r")],
+        capture_output=True,
+        text=True,
+        env=_torch_blocked_env(tmp_path),
+        timeout=120,
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip().startswith("msf-bench: error: ") and "cannot load" in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.slow
+def test_msf_bench_onnx_runs_without_torch(tmp_path: Path) -> None:
+    if not (SHARED / "DiLiGenT" / "harvestPNG").is_dir():
+        pytest.skip(f"shared data not found: {SHARED}")
+    model = tiny_msfnet_onnx(tmp_path / "tiny.onnx")
+    report = tmp_path / "report"
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "msfnet.bench.cli",
+            "--onnx",
+            str(model),
+            "--data",
+            str(SHARED),
+            "--threads",
+            "1",
+            "-o",
+            str(report),
+        ],
+        capture_output=True,
+        text=True,
+        env=_torch_blocked_env(tmp_path),
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    text = (report / "REPORT.md").read_text()
+    assert "| ONNX Runtime fp32 | ✅ | " in text
+    assert "| OpenVINO fp32 | ✅ | " in text
+    assert "torch" not in done.stderr
+
+
+def test_device_rows_report_their_parity_with_cpu_fp32() -> None:
+    assert edge._parity_status(None) == "ok"
+    good = edge._parity_status((0.012, 0.31))
+    assert good == "ok: parity 0.012 / 0.31 deg vs CPU fp32"
+    assert edge._parity_status((0.8, 4.0)).startswith("failed: parity 0.800")
+    row = edge.EdgeRow("--device cuda", good, 4.27, 4.1, 12.0, 900.0)
+    assert "| --device cuda | ✅: parity 0.012 / 0.31 deg vs CPU fp32 |" in edge.edge_table([row])
+
+
+@pytest.mark.slow
+def test_msf_bench_ladder_and_requirements_run_without_torch(tmp_path: Path) -> None:
+    if not (SHARED / "DiLiGenT" / "harvestPNG").is_dir():
+        pytest.skip(f"shared data not found: {SHARED}")
+    import json
+
+    model = tiny_msfnet_onnx(tmp_path / "tiny.onnx")
+    report = tmp_path / "report"
+    args = ["--onnx", str(model), "--data", str(SHARED), "--threads", "1", "-o", str(report)]
+    done = subprocess.run(
+        [sys.executable, "-m", "msfnet.bench.cli", *args, "--ladder", "--requirements", "--quick"],
+        capture_output=True,
+        text=True,
+        env=_torch_blocked_env(tmp_path),
+        timeout=900,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    data = json.loads((report / "report.json").read_text())
+    assert [r["rung"] for r in data["ladder"]] == ["full", "balanced", "fast"]
+    assert all(set(r["mae_deg"]) == {"ballPNG", "bearPNG", "harvestPNG"} for r in data["ladder"])
+    cells = {(r["size"], r["lights"]) for r in data["requirements"]}
+    assert cells == {(64, 8), (128, 8)}
+    assert all(r["status"] == "ok" and r["peak_mb"] > 0 for r in data["requirements"])
+    assert "## Speed ladder (--speed)" in (report / "REPORT.md").read_text()

@@ -1,0 +1,149 @@
+"""A model that never finishes (issue #27, part B, item 8): Ctrl-C stops it with one line and
+exit code 130. ONNX Runtime held the call until SIGKILL; now every engine call runs where a
+signal can reach it and the engine is told to stop (engines/interrupt.py).
+
+The children start with SIGINT at its default (a background pytest job ignores it, and an
+ignored signal stays ignored across exec)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _runtime_helpers import sphere_stack, tiny_msfnet_onnx
+
+from msfnet.runtime.stack import save_stack
+
+TRIPS = 10**15  # a Loop that would run for years
+
+
+def spinning_model(path: Path) -> Path:
+    """tiny_msfnet_onnx whose normals pass through a Loop of TRIPS iterations (each adds 0)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import TensorProto, helper, numpy_helper
+
+    tiny_msfnet_onnx(path)
+    model = onnx.load(str(path))
+    graph = model.graph
+    graph.node[-1].output[0] = "normals_raw"
+    body = helper.make_graph(
+        [
+            helper.make_node("Identity", ["cond_in"], ["cond_out"]),
+            helper.make_node("Add", ["x_in", "zero_f"], ["x_out"]),
+        ],
+        "spin",
+        [
+            helper.make_tensor_value_info("i", TensorProto.INT64, []),
+            helper.make_tensor_value_info("cond_in", TensorProto.BOOL, []),
+            helper.make_tensor_value_info("x_in", TensorProto.FLOAT, None),
+        ],
+        [
+            helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
+            helper.make_tensor_value_info("x_out", TensorProto.FLOAT, None),
+        ],
+        [numpy_helper.from_array(np.array(0.0, np.float32), "zero_f")],
+    )
+    graph.initializer.extend(
+        [
+            numpy_helper.from_array(np.array(TRIPS, np.int64), "trips"),
+            numpy_helper.from_array(np.array(True), "go"),
+        ]
+    )
+    graph.node.append(
+        helper.make_node("Loop", ["trips", "go", "normals_raw"], ["normals"], body=body)
+    )
+    onnx.save(model, str(path))
+    return path
+
+
+CHILD = """
+import sys
+import numpy as np
+from msfnet.common.cli import run_command
+from msfnet.runtime.engines.dispatch import EngineChoice, open_engine
+
+engine = open_engine(EngineChoice(sys.argv[2], "fp32", "test", sys.argv[1]), 1)
+images = np.ones((1, 4, 3, 8, 8), np.float32)
+lights = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (1, 4, 1))
+
+def body():
+    print("running", flush=True)
+    engine.run(images, lights)
+    return 0
+
+sys.exit(run_command("msf-spin", body))
+"""
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _interrupt(proc: subprocess.Popen, wait_s: float = 30) -> tuple[int, str]:
+    """SIGINT ``proc`` and collect its exit code and stderr; kill it if it does not end."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        _out, err = proc.communicate(timeout=wait_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        pytest.fail(f"Ctrl-C did not stop the inference within {wait_s} s")
+    return proc.returncode, err
+
+
+@pytest.mark.parametrize(
+    "engine",
+    [
+        "onnxruntime",
+        pytest.param("openvino", marks=pytest.mark.slow),  # stops at the grace period's end
+    ],
+)
+def test_ctrl_c_stops_a_model_that_never_finishes(tmp_path: Path, engine: str) -> None:
+    if engine == "openvino":
+        pytest.importorskip("openvino", reason="openvino not installed")
+    model = spinning_model(tmp_path / "spin.onnx")
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(model), engine],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_sigint,
+    )
+    assert proc.stdout is not None
+    assert proc.stdout.readline().strip() == "running", proc.communicate()
+    time.sleep(0.5)  # inside the Loop by now
+    assert proc.poll() is None, "the model finished: it was meant to spin"
+    started = time.monotonic()
+    code, err = _interrupt(proc)
+    assert code == 130, err
+    assert err == "msf-spin: interrupted; nothing was written\n"
+    if engine == "onnxruntime":  # told to terminate: stops at its next node, at once
+        assert time.monotonic() - started < 5
+
+
+@pytest.mark.slow
+def test_msf_run_with_a_spinning_model_stops_on_ctrl_c(tmp_path: Path) -> None:
+    model = spinning_model(tmp_path / "spin.onnx")
+    folder = save_stack(sphere_stack(n=6, h=24, w=28), tmp_path / "s")
+    out = tmp_path / "o"
+    proc = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "msfnet.runtime.cli.run", str(folder), "--onnx", str(model)),
+            *("--engine", "onnxruntime", "--no-maps", "-o", str(out)),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_sigint,
+    )
+    time.sleep(6)  # loaded and spinning (the stack is tiny; msf-run starts in ~2 s)
+    assert proc.poll() is None, proc.communicate()
+    code, err = _interrupt(proc)
+    assert code == 130, err
+    assert err.strip().splitlines()[-1].startswith("msf-run: interrupted"), err
+    assert not out.exists()

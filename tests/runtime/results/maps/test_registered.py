@@ -1,0 +1,117 @@
+"""Pixel-registered maps: float32 TIFFs that round-trip, same-size views, gradients, local shape
+and physical units."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from _runtime_helpers import sphere_stack
+
+from msfnet.runtime.results.maps import MapOptions, stack_maps, write_maps
+from msfnet.runtime.results.maps.registered import (
+    gradients,
+    grey16_view,
+    local_shape,
+    read_tiff,
+    signed_view,
+    write_tiff,
+)
+
+
+def _plane_normals(h: int, w: int, p: float, q: float) -> np.ndarray:
+    """Normals of z = p * col + q * row (rows down; y up: dz/dy = -q)."""
+    n = np.array([-p, q, 1.0]) / np.sqrt(1 + p * p + q * q)
+    return np.broadcast_to(n, (h, w, 3)).astype(np.float32).copy()
+
+
+def test_tiff_round_trip_is_exact(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    grey = rng.normal(size=(17, 23)).astype(np.float32)
+    grey[3, 4] = np.nan
+    rgb = rng.normal(size=(17, 23, 3)).astype(np.float32)
+    write_tiff(tmp_path / "g.tif", grey, "test")
+    write_tiff(tmp_path / "c.tif", rgb)
+    back = read_tiff(tmp_path / "g.tif")
+    assert back.dtype == np.float32 and back.shape == grey.shape
+    assert np.array_equal(back, grey, equal_nan=True)
+    assert np.array_equal(read_tiff(tmp_path / "c.tif"), rgb)
+    # OpenCV reads the same floats (three samples in its BGR order)
+    cv = cv2.imread(str(tmp_path / "c.tif"), cv2.IMREAD_UNCHANGED)
+    assert cv.dtype == np.float32 and np.array_equal(cv[..., ::-1], rgb)
+
+
+def test_gradients_of_a_plane() -> None:
+    n = _plane_normals(8, 9, 0.3, -0.2)
+    valid = np.ones((8, 9), bool)
+    valid[0] = False
+    p, q = gradients(n, valid)
+    assert np.allclose(p[valid], 0.3, atol=1e-6) and np.allclose(q[valid], -0.2, atol=1e-6)
+    assert np.isnan(p[0]).all() and np.isnan(q[0]).all()
+
+
+def test_local_shape_ignores_tilt_and_bow_and_keeps_a_dent() -> None:
+    h, w = 80, 100
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    trend = 0.08 * cols - 0.05 * rows + 0.002 * (cols - 50) ** 2 + 0.001 * (rows - 40) ** 2
+    r = np.hypot(rows - 40, cols - 30)
+    dent = -0.5 * np.where(r < 4, 0.5 * (1 + np.cos(np.pi * r / 4)), 0.0)
+    valid = np.ones((h, w), bool)
+    valid[:, 90:] = False  # a mask edge: the trend must follow the tilt up to it
+    local = local_shape(trend + dent, valid, 12.0)
+    away = valid & (r > 20)  # beyond the dent's pull on the trend
+    assert np.nanmax(np.abs(local[away])) < 0.01  # px: tilt and bow gone, edges included
+    assert local[40, 30] == pytest.approx(-0.5, abs=0.08)
+    assert np.isnan(local[~valid]).all()
+
+
+def test_views_have_the_input_size() -> None:
+    values = np.linspace(-1, 2, 30, dtype=np.float32).reshape(5, 6)
+    valid = np.ones((5, 6), bool)
+    valid[0, 0] = False
+    g = grey16_view(values, valid)
+    assert g.dtype == np.uint16 and g.shape == (5, 6) and g[0, 0] == 0
+    assert g[valid].min() == 1 and g[valid].max() == 65535
+    rgb, top = signed_view(values, valid)
+    assert rgb.dtype == np.uint8 and rgb.shape == (5, 6, 3) and top > 0
+    assert tuple(rgb[-1, -1]) == (255, 0, 0)  # the largest positive value: red
+
+
+def test_write_maps_registered_files_and_units(tmp_path: Path) -> None:
+    stack = sphere_stack(n=8, h=36, w=44)
+    opts = MapOptions(maps=("albedo", "height", "curvature"), pixel_size_mm=0.05)
+    maps = stack_maps(stack, stack.normals_gt, opts)
+    write_maps(tmp_path, maps, report=False)
+    h, w = stack.shape
+    for name in ("height", "local_shape", "curvature", "gaussian_curvature", "gradient_p"):
+        data = read_tiff(tmp_path / f"{name}.tif")
+        assert data.shape == (h, w) and data.dtype == np.float32
+        assert np.array_equal(np.isfinite(data), stack.mask)
+    assert read_tiff(tmp_path / "normals.tif").shape == (h, w, 3)
+    # physical units: heights x pixel size, curvature / pixel size
+    height = read_tiff(tmp_path / "height.tif")
+    m = stack.mask
+    assert np.allclose(height[m], maps.height[m] * 0.05, rtol=1e-6)
+    curv = read_tiff(tmp_path / "curvature.tif")
+    assert np.allclose(curv[m], maps.curvature[m] / 0.05, rtol=1e-5)
+    units = json.loads((tmp_path / "maps.json").read_text())["registered"]
+    assert units["height"] == "mm" and units["curvature"] == "1/mm"
+    # the viewing PNGs are registered too: the input's size, not a figure's
+    for name, dtype, shape in (
+        ("height.png", np.uint16, (h, w)),
+        ("curvature.png", np.uint8, (h, w, 3)),
+        ("local_shape.png", np.uint8, (h, w, 3)),
+    ):
+        img = cv2.imread(str(tmp_path / name), cv2.IMREAD_UNCHANGED)
+        assert img.dtype == dtype and img.shape == shape
+
+
+def test_map_options_refuse_bad_numbers() -> None:
+    from msfnet.common.errors import InputError
+
+    for bad in ({"pixel_size_mm": float("nan")}, {"local_size_px": 0.0}, {"curvature_sigma": -1}):
+        with pytest.raises(InputError, match="must be a positive number"):
+            MapOptions(**bad)  # type: ignore[arg-type]

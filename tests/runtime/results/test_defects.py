@@ -1,0 +1,193 @@
+"""The defect step (results.defects and msf-inspect): every relief defect of a rendered plate
+found, no printed mark reported, a golden reference aligned, bad input refused with exit 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from msfnet.common.errors import InputError
+from msfnet.runtime.api import Model
+from msfnet.runtime.cli.inspect import main as inspect_main
+from msfnet.runtime.results.defects import (
+    DefectOptions,
+    align_shift,
+    find_defects,
+    from_maps,
+    shift_map,
+)
+from msfnet.runtime.results.maps import MapOptions
+from msfnet.synth.plates import PlateOptions, render_plate
+
+DEPTH_PX = 0.06  # below the plate's shallowest measured scratch (0.11 px), 15x the noise s.d.
+MAPS = MapOptions(maps=("albedo", "height", "curvature"))
+
+
+@pytest.fixture(scope="module")
+def plate():
+    return render_plate(PlateOptions(seed=0))
+
+
+@pytest.fixture(scope="module")
+def plate_run(plate, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The plate through least squares (what the default path gives on a matte part, where
+    the Lambertian fit holds everywhere), written as msf-run writes it."""
+    out = tmp_path_factory.mktemp("inspect") / "run"
+    Model.least_squares(maps=MAPS)(plate.stack).save(out)
+    return out
+
+
+def _hits(plate, labels: np.ndarray) -> tuple[set[int], list[int]]:
+    found = {
+        k for k in range(1, len(plate.defect_list) + 1) if (labels[plate.defects == k] > 0).any()
+    }
+    false = [
+        k for k in range(1, int(labels.max()) + 1) if not (plate.defects[labels == k] > 0).any()
+    ]
+    return found, false
+
+
+def test_every_relief_defect_and_no_printed_mark(plate) -> None:
+    result = Model.least_squares(maps=MAPS)(plate.stack)
+    assert result.maps is not None
+    part = from_maps(result.maps, "plate")
+    verdict, labels = find_defects(part, DefectOptions(depth=DEPTH_PX))
+    inside = {
+        d.label for d in plate.defect_list if (plate.stack.mask & (plate.defects == d.label)).any()
+    }
+    found, false = _hits(plate, labels)
+    assert found == inside and len(inside) == 5
+    assert false == []  # nothing else, printed marks included
+    assert not (labels[plate.marks] > 0).any()
+    assert not verdict.passed and verdict.exit_code == 1
+    for r in verdict.regions:
+        # each region's depth is the defect's, as measured in the local shape (px)
+        truth = plate.defect_list[int(np.bincount(plate.defects[labels == r.label]).argmax()) - 1]
+        assert 0.4 * truth.depth <= r.depth <= 1.2 * truth.depth
+        assert r.signed_depth < 0  # scratches and dents go down
+
+
+def test_a_clean_part_passes_and_a_golden_reference_keeps_only_the_defects(plate) -> None:
+    golden = render_plate(PlateOptions(seed=0, relief=False))  # same plate, marks, no defects
+    ls = Model.least_squares(maps=MAPS)
+    clean = from_maps(ls(golden.stack).maps, "golden")  # type: ignore[arg-type]
+    verdict, _ = find_defects(clean, DefectOptions(depth=DEPTH_PX))
+    assert verdict.passed and verdict.exit_code == 0  # marks and all
+    part = from_maps(ls(plate.stack).maps, "part")  # type: ignore[arg-type]
+    verdict, labels = find_defects(part, DefectOptions(depth=DEPTH_PX), reference=clean)
+    found, false = _hits(plate, labels)
+    assert len(found) == 5 and false == []
+    assert verdict.shift is not None and max(map(abs, verdict.shift)) < 0.2
+
+
+def test_reference_alignment_recovers_a_shift() -> None:
+    rng = np.random.default_rng(0)
+    base = cv2_smooth(rng.normal(size=(96, 120)).astype(np.float32))
+    moved = shift_map(base, 3.0, -2.0)
+    dx, dy = align_shift(base, moved)
+    assert dx == pytest.approx(3.0, abs=0.2) and dy == pytest.approx(-2.0, abs=0.2)
+
+
+def cv2_smooth(a: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.GaussianBlur(a, (0, 0), 2.0)
+
+
+def test_cli_verdict_overlay_and_exit_codes(plate, plate_run: Path, tmp_path: Path) -> None:
+    out = tmp_path / "v"
+    assert inspect_main([str(plate_run), "--depth", str(DEPTH_PX), "-o", str(out), "-q"]) == 1
+    verdict = json.loads((out / "verdict.json").read_text())
+    assert verdict["verdict"] == "fail" and verdict["defects"] == 5
+    assert verdict["units"]["depth"] == "px"
+    import cv2
+
+    overlay = cv2.imread(str(out / "overlay.png"), cv2.IMREAD_UNCHANGED)
+    assert overlay.shape == (*plate.stack.shape, 3)
+    # a threshold above every defect: pass, exit 0
+    out2 = tmp_path / "v2"
+    assert inspect_main([str(plate_run), "--depth", "5", "-o", str(out2), "-q"]) == 0
+    assert json.loads((out2 / "verdict.json").read_text())["verdict"] == "pass"
+    # against itself as the golden part: nothing differs
+    out3 = tmp_path / "v3"
+    code = inspect_main(
+        [str(plate_run), "--reference", str(plate_run), "--depth", str(DEPTH_PX), "-o", str(out3)]
+    )
+    assert code == 0
+
+
+def _code(argv: list[str]) -> int:
+    """msf-inspect's exit code, also when argparse refuses a flag (it exits itself)."""
+    try:
+        return inspect_main(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+
+
+@pytest.mark.parametrize(
+    "extra, problem",
+    [
+        (["--depth", "nan"], "--depth"),
+        (["--depth", "inf"], "--depth"),
+        ([], "give a depth threshold"),
+    ],
+)
+def test_cli_bad_thresholds(plate_run: Path, tmp_path: Path, capsys, extra, problem) -> None:
+    out = tmp_path / "bad"
+    assert _code([str(plate_run), "-o", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-inspect: error:") and problem in err[0]
+    assert not out.exists()
+
+
+def test_cli_reference_of_another_size_and_empty_mask(
+    plate_run: Path, tmp_path: Path, capsys
+) -> None:
+    small = render_plate(PlateOptions(height=96, width=128, mask_edge=100))
+    ref = tmp_path / "small"
+    Model.least_squares(maps=MAPS)(small.stack).save(ref)
+    out = tmp_path / "v"
+    code = inspect_main([str(plate_run), "--reference", str(ref), "--depth", "0.1", "-o", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "128x96 but the part is 192x128" in err[0]
+    assert not out.exists()
+    # a run whose mask is empty: the local shape is NaN everywhere
+    from msfnet.runtime.results.maps.registered import read_tiff, write_tiff
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for name in ("maps.json", "curvature.tif", "albedo.tif"):
+        (empty / name).write_bytes((plate_run / name).read_bytes())
+    write_tiff(empty / "local_shape.tif", read_tiff(plate_run / "local_shape.tif") * np.nan)
+    code = inspect_main([str(empty), "--depth", "0.1", "-o", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "mask is empty" in err[0]
+    assert not out.exists()
+
+
+def test_options_refuse_bad_values() -> None:
+    with pytest.raises(InputError, match="positive, finite"):
+        DefectOptions(depth=float("nan"))
+    with pytest.raises(InputError, match="polarity"):
+        DefectOptions(depth=0.1, polarity="sideways")
+
+
+@pytest.mark.slow
+def test_default_path_on_a_stack_finds_every_defect(plate, tmp_path: Path) -> None:
+    """msf-inspect on the stack itself (msf-run's default path: network + detail fusion)."""
+    stack = plate.stack
+    src = tmp_path / "plate.npz"
+    np.savez(src, images=stack.images, lights=stack.lights, mask=stack.mask)
+    out = tmp_path / "v"
+    code = inspect_main([str(src), "--depth", str(DEPTH_PX), "--threads", "2", "-o", str(out)])
+    assert code == 1
+    verdict = json.loads((out / "verdict.json").read_text())
+    assert verdict["defects"] == 5
+    centres = [tuple(r["centroid"]) for r in verdict["regions"]]
+    for x, y in centres:  # each region sits on a defect, none on a printed mark
+        assert plate.defects[round(y), round(x)] > 0 or any(
+            plate.defects[max(0, int(y) - 3) : int(y) + 4, max(0, int(x) - 3) : int(x) + 4].ravel()
+        )

@@ -1,0 +1,165 @@
+"""The Python API for a station and a lab: model.stream over folders, lists and capture loops,
+typed LoadOptions with str paths, errors in the API's words, results a person can read."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _runtime_helpers import sphere_stack
+
+from msfnet import LoadOptions, Model, load_stack
+from msfnet.common.errors import InputError
+from msfnet.runtime.cli.run import main as msf_run
+from msfnet.runtime.stack import Stack, save_stack
+
+
+def _folder_of_stacks(root: Path, count: int = 3) -> list[Path]:
+    return [
+        save_stack(sphere_stack(n=5 + i, h=24 + 4 * i, w=28, seed=i), root / f"s{i}")
+        for i in range(count)
+    ]
+
+
+@pytest.fixture(scope="module")
+def l2() -> Model:
+    return Model.least_squares(maps=None)
+
+
+def test_stream_over_a_folder_equals_one_call_per_stack(l2: Model, tmp_path: Path) -> None:
+    paths = _folder_of_stacks(tmp_path / "stacks")
+    streamed = l2.stream(tmp_path / "stacks")
+    assert isinstance(streamed, Iterator)  # a generator: nothing runs before it is asked
+    results = list(streamed)
+    assert [r.name for r in results] == ["s0", "s1", "s2"]
+    for r, p in zip(results, paths, strict=True):
+        np.testing.assert_array_equal(r.normals, l2(p).normals)
+        assert r.batch is not None and r.timings.runs[-1]["load"] == r.batch.decode_s
+    assert [r.batch.prefetched for r in results if r.batch] == [False, True, True]
+    assert list(tmp_path.glob("**/normals.npy")) == []  # a stream writes nothing
+
+
+def test_stream_takes_a_list_of_paths_and_stacks_with_str_paths(l2: Model, tmp_path: Path) -> None:
+    a, b = _folder_of_stacks(tmp_path, 2)
+    c = sphere_stack(n=6, h=20, w=20, seed=9, name="in-memory")
+    got = list(l2.stream([str(a), c, b], prefetch=False))
+    assert [r.name for r in got] == ["s0", "in-memory", "s1"]
+    np.testing.assert_array_equal(got[1].normals, l2(c).normals)
+
+
+def test_stream_pulls_a_capture_loop_one_stack_ahead_at_most(l2: Model) -> None:
+    pulled: list[int] = []
+    threads: set[str] = set()
+
+    def camera() -> Iterator[Stack]:
+        for i in range(4):
+            pulled.append(i)
+            threads.add(threading.current_thread().name)
+            yield sphere_stack(n=5, h=20, w=22, seed=i, name=f"part{i}")
+
+    names = []
+    for r in l2.stream(camera()):
+        # the current stack, and at most the next one being decoded beside it
+        assert len(pulled) <= len(names) + 2
+        names.append(r.name)
+    assert names == ["part0", "part1", "part2", "part3"]
+    assert len(threads) == 1  # advanced by one thread only, never concurrently
+
+
+def test_stopping_a_stream_early_stops_its_reader(l2: Model) -> None:
+    pulled: list[int] = []
+
+    def endless() -> Iterator[Stack]:
+        i = 0
+        while True:
+            pulled.append(i)
+            yield sphere_stack(n=5, h=20, w=22, seed=i % 3, name=f"p{i}")
+            i += 1
+
+    stream = l2.stream(endless())
+    first = next(stream)
+    stream.close()  # what a `break` out of a for loop does
+    assert first.name == "p0" and len(pulled) <= 2
+    assert not [t for t in threading.enumerate() if t.name.startswith("msf-decode")]
+
+
+def test_a_bad_stack_in_a_stream_raises_at_its_turn(l2: Model, tmp_path: Path) -> None:
+    (good,) = _folder_of_stacks(tmp_path, 1)
+    stream = l2.stream([good, tmp_path / "missing"])
+    assert next(stream).name == "s0"  # the results before it stay valid
+    with pytest.raises(InputError, match="missing"):
+        next(stream)
+
+
+def test_stream_refuses_what_is_no_stack_source(l2: Model) -> None:
+    with pytest.raises(InputError, match="got int"):
+        list(l2.stream(3))  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="an element of type int"):
+        list(l2.stream([3]))  # type: ignore[list-item]
+
+
+def test_calling_a_model_on_a_list_points_to_stream(l2: Model, tmp_path: Path) -> None:
+    with pytest.raises(InputError, match=r"model\.stream"):
+        l2([tmp_path, tmp_path])  # type: ignore[arg-type]
+
+
+def test_load_options_take_str_paths(l2: Model, tmp_path: Path) -> None:
+    path = save_stack(sphere_stack(n=6, h=20, w=24, seed=4), tmp_path / "s")
+    lights = path / "light_directions.txt"
+    opts = LoadOptions(lights=str(lights), mask=str(path / "mask.png"))  # type: ignore[arg-type]
+    assert opts.lights == lights and isinstance(opts.mask, Path)
+    assert opts.inputs() == [lights, path / "mask.png"]
+    np.testing.assert_array_equal(l2(path, opts).normals, l2(path).normals)
+
+
+def test_errors_speak_keywords_in_python_and_flags_in_msf_run(
+    l2: Model, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = save_stack(sphere_stack(n=6, h=20, w=24, seed=4), tmp_path / "s")
+    (path / "light_directions.txt").unlink()
+    with pytest.raises(InputError) as caught:
+        load_stack(path)
+    assert "lights=..." in str(caught.value) and "--lights" not in str(caught.value)
+    assert msf_run([str(path), "--method", "l2", "-o", str(tmp_path / "cli")]) == 2
+    assert "--lights" in capsys.readouterr().err  # the command keeps its flags
+
+    result = l2(save_stack(sphere_stack(n=6, h=20, w=24), tmp_path / "t"))
+    result.save(tmp_path / "out")
+    with pytest.raises(InputError) as caught:
+        result.save(tmp_path / "out")
+    assert "overwrite=True" in str(caught.value) and "--overwrite" not in str(caught.value)
+    result.save(tmp_path / "out", overwrite=True)
+    with pytest.raises(InputError, match=r"select='1-99'"):
+        l2(path, LoadOptions(lights=tmp_path / "t" / "light_directions.txt", select="1-99"))
+
+
+def test_result_reads_as_a_line_json_and_a_picture(random_onnx: Path) -> None:
+    model = Model(random_onnx, engine="onnxruntime", threads=1)
+    stack = sphere_stack(n=6, h=28, w=32, name="ball")
+    result = model(stack)
+    line = result.summary()
+    assert "\n" not in line and line.startswith("ball: 6 lights, 32x28")
+    assert "onnxruntime fp32" in line and "MAE" in line
+    text = repr(result)
+    assert len(text) < 300 and text.startswith("Result('ball', 32x28")
+    data = json.loads(result.to_json())
+    assert data["name"] == "ball" and data["lights"] == 6
+    assert data["metrics"]["mae_deg"] == pytest.approx(result.metrics.mae_deg, abs=1e-9)  # type: ignore[union-attr]
+    assert "\n" not in result.to_json(indent=None)  # one line, for a log
+    for what in ("normals", "error", "height"):
+        picture = result.plot(what)
+        assert picture.dtype == np.uint8 and picture.ndim == 3 and picture.shape[2] == 3
+        assert picture.std() > 0  # not a blank image
+    no_gt = Model.least_squares(maps=None)(replace(stack, normals_gt=None))
+    with pytest.raises(InputError, match="no ground truth"):
+        no_gt.plot("error")
+    with pytest.raises(InputError, match="no height map"):
+        no_gt.plot("height")
+    pytest.importorskip("matplotlib", reason="figures need matplotlib")
+    fig = result.plot(figure=True)
+    assert fig.axes and fig.axes[0].images  # one axes showing the picture
