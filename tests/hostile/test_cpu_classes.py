@@ -140,8 +140,8 @@ def test_int8_export_quantises_to_what_the_cpu_computes_exactly(
 @pytest.mark.parametrize(
     ("shape", "lights", "words"),
     [
-        ((1, 1), 8, r"at least 4096 \(a 64 x 64 tile's worth"),
-        ((40, 40), 8, "at least 4096"),  # a sphere of ~1,100 pixels
+        ((1, 1), 8, r"at least 1024 \(a 32 x 32 patch of object\)"),
+        ((24, 24), 8, "at least 1024"),  # a sphere of ~350 pixels
         ((96, 96), 4, "at least 8 per stack"),
     ],
 )

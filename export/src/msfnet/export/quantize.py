@@ -37,10 +37,11 @@ CALIB_LIGHTS = 96
 CALIB_TILES_PER_STACK = 3
 # Convs only: quantised LeakyRelu / DepthToSpace outputs cost accuracy (see the module notes)
 QUANT_OPS = ["Conv"]
-# The least calibration an int8 export accepts: object pixels over all stacks (one full tile's
-# worth; a 1 x 1 stack calibrates every activation range on a single value and zero padding)
+# The least calibration an int8 export accepts: object pixels over all stacks (a 32 x 32 patch;
+# a 1 x 1 stack calibrated every activation range on one value and the tiles' zero padding)
 # and lights per stack (the fewest a calibration tile uses, see calibration_tiles).
-MIN_CALIB_PIXELS = CALIB_TILE * CALIB_TILE
+MIN_CALIB_SIDE = 32
+MIN_CALIB_PIXELS = MIN_CALIB_SIDE * MIN_CALIB_SIDE
 MIN_CALIB_LIGHTS = 8
 
 
@@ -60,7 +61,7 @@ def check_calibration(stacks: Sequence[Stack]) -> None:
         sizes = ", ".join(f"{s.name} {s.shape[1]}x{s.shape[0]}" for s in stacks)
         raise InputError(
             f"--calib: {pixels} object pixel(s) in all ({sizes}); int8 calibration needs at "
-            f"least {MIN_CALIB_PIXELS} (a {CALIB_TILE} x {CALIB_TILE} tile's worth of object)"
+            f"least {MIN_CALIB_PIXELS} (a {MIN_CALIB_SIDE} x {MIN_CALIB_SIDE} patch of object)"
         )
 
 

@@ -48,8 +48,8 @@ from msfnet.runtime.infer.estimators import (
     TilingOptions,
 )
 from msfnet.runtime.infer.fine_detail import FineDetailEstimator
-from msfnet.runtime.infer.ladder import reduced_network
-from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
+from msfnet.runtime.infer.ladder import RUNGS, reduced_network
+from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, HALO, TilePlan
 from msfnet.runtime.infer.tta import TTAEstimator
 from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
@@ -466,12 +466,26 @@ class Model:
         InputError at its turn; results already yielded stay valid.
         """
         with api_words():
-            opts = load if load is not None else LoadOptions()
+            opts = self._loading(load if load is not None else LoadOptions())
             items, total = stream_items(source)
             for decoded in decode_ahead(items, opts, prefetch=prefetch, total=total):
                 if decoded.error is not None:
                     raise decoded.error
                 yield self._run_decoded(decoded, opts)
+
+    def _loading(self, load: LoadOptions) -> LoadOptions:
+        """``load`` with an ROI grown by the network's halo where the network runs with edge
+        context: it then sees the real image around the ROI, not zeros, and draws no rim at
+        the crop's edges (3-4 deg -> 0.4-1.4 deg within 4 px of them on psmImages). Least
+        squares is per pixel and needs no context; ``edge_context=False`` keeps the published
+        protocol's zeros. Streams and batches load with it too (batch.runner, Ray workers)."""
+        if load.roi is None or load.roi_halo or not self.options.is_network:
+            return load
+        if not self.options.edge_context:
+            return load
+        # --speed balanced / fast run the network on a shrunk stack: its receptive field
+        # spans that many more held pixels
+        return replace(load, roi_halo=HALO * RUNGS[self.options.speed].scale)
 
     def _run_decoded(self, decoded: Decoded, load: LoadOptions) -> Result:
         """Run a stack that :func:`~msfnet.runtime.sources.decode_ahead` decoded, recording
@@ -495,6 +509,8 @@ class Model:
     ) -> Result:
         if repeat < 1:
             raise InputError(f"--repeat must be at least 1, got {repeat}")
+        if load is not None:
+            load = self._loading(load)
         prof = Profile()
         loaded: Stack | None = None
         result: Result | None = None
@@ -509,20 +525,26 @@ class Model:
                     else:
                         loaded = read_stack(stack, load)
                 est = self.estimator.estimate(loaded, self.tiling, timer, progress)
+                normals = est.normals
+                if loaded.roi_box is not None:
+                    # grown by a halo for context: every output is the requested ROI's
+                    y0, y1, x0, x1 = loaded.roi_box
+                    normals = np.ascontiguousarray(normals[y0:y1, x0:x1])
+                    loaded = loaded.inner()
                 metrics = err = None
                 with timer("postprocess"):
                     if loaded.normals_gt is not None:
-                        metrics = normal_metrics(est.normals, loaded.normals_gt, loaded.mask)
-                        err = error_map(est.normals, loaded.normals_gt, loaded.mask)
+                        metrics = normal_metrics(normals, loaded.normals_gt, loaded.mask)
+                        err = error_map(normals, loaded.normals_gt, loaded.mask)
                 maps = None
                 if self.maps is not None:
                     with timer("maps"):
-                        maps = stack_maps(loaded, est.normals, self.maps)
+                        maps = stack_maps(loaded, normals, self.maps)
             prof.add(timer)
             prof.flops = est.flops
             result = Result(
                 loaded,
-                est.normals,
+                normals,
                 self.describe(),
                 prof,
                 metrics,

@@ -101,6 +101,7 @@ class StackWorker:
             # the driver is msf-run: its errors keep the command's words (flags), not the
             # Python API's keywords
             with writing_as("msf-run"):
+                load = self.model._loading(load)  # an ROI grown by the halo
                 stack = load_stack(Path(path), load)
                 decode_s = time.perf_counter() - start
                 t0 = time.perf_counter()

@@ -270,6 +270,7 @@ def run_batch(
         disable=True if progress is False else None,
     )
     try:
+        load = model._loading(load)  # an ROI grown by the network's halo (Model._loading)
         for decoded in decode_ahead(items, load, prefetch=prefetch, total=len(items)):
             item = decoded.item
             if decoded.stack is None:

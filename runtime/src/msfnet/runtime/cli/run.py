@@ -294,7 +294,7 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
             progress=progress,
         )
         if item is not None:
-            result.input = item.describe_input(load)
+            result.input = item.describe_input(model._loading(load))  # the ROI's halo
         report = req.report and result.maps is not None  # the report shows the maps
         announce("writing the outputs" + (" and report.html" if report else ""))
         files = result.save(

@@ -27,9 +27,10 @@ from msfnet.common.imageio import (
     read_image,
     read_mask,
 )
+from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.stack.readers import read_normals, read_vectors, unit_normals
 from msfnet.runtime.stack.select import selection
-from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask, check_roi
+from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask, check_roi, halo_roi
 from msfnet.runtime.stack.types import (
     Stack,
     as_held,
@@ -70,6 +71,11 @@ class LoadOptions:
     auto_mask: bool = False  # mask from the stack itself (Otsu + morphology)
     # refuse, before decoding, a stack whose images alone (as held) exceed this (--max-memory)
     max_memory_mb: float | None = None
+    # grow the ROI by this many held pixels on every side (clipped to the image) and record
+    # the ROI's box on the stack (Stack.roi_box): the network then sees the real image around
+    # the ROI instead of zeros. Model sets it for the network path with edge context and
+    # crops every output back to the ROI; 0: the plain crop.
+    roi_halo: int = 0
 
     def __post_init__(self) -> None:
         for name in ("lights", "intensities", "mask"):  # LoadOptions(lights="x.txt") works
@@ -81,6 +87,8 @@ class LoadOptions:
             raise InputError("--auto-mask and --mask both give the mask: choose one")
         if self.white_level is not None and not self.white_level > 0:
             raise InputError(f"white level {self.white_level}: must be positive")
+        if self.roi_halo < 0:
+            raise InputError(f"ROI halo {self.roi_halo}: must be 0 or more pixels")
 
     def inputs(self) -> list[Path]:
         """The files these options read (never to be written over)."""
@@ -97,7 +105,22 @@ class LoadOptions:
             for k, v in (("select", self.select), ("max_lights", self.max_lights))
             if v is not None
         }
+        if self.roi is not None and self.roi_halo:
+            chosen["roi_halo"] = self.roi_halo
         return {**self.transforms().describe(), "auto_mask": self.auto_mask, **chosen}
+
+    def grown(
+        self, shape: tuple[int, int], src: str | Path | None = None
+    ) -> tuple[Transforms, tuple[int, int, int, int] | None]:
+        """The per-image transforms for images of stored ``shape``, with the ROI grown by
+        ``roi_halo`` (see :func:`~.transforms.halo_roi`), and the requested ROI's box inside
+        the grown crop (None without a halo)."""
+        t = self.transforms()
+        if self.roi is None or self.roi_halo <= 0:
+            return t, None
+        check_roi(self.roi, shape, src)  # the plain ROI's message, naming the file
+        roi, box = halo_roi(self.roi, shape, self.roi_halo, t.downscale, INPUT_MULTIPLE)
+        return replace(t, roi=roi), box
 
 
 def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
@@ -253,7 +276,7 @@ def _finish(stack: Stack, options: LoadOptions, own_mask: str = "mask") -> Stack
     """The stack-wide last step: the automatic mask. It replaces the stack's own mask
     (``own_mask`` names it) with a warning when the two disagree: never silently."""
     if not options.auto_mask:
-        return stack.validate()
+        return _check_box(stack).validate()
     found = auto_mask(stack.images)
     notes = stack.load_warnings
     if not stack.mask.all():  # an all-ones mask is no mask: nothing to compare with
@@ -266,7 +289,19 @@ def _finish(stack: Stack, options: LoadOptions, own_mask: str = "mask") -> Stack
                 "the automatic one is used; leave out --auto-mask to use the stack's own",
             )
     # never alter a caller's stack
-    return replace(stack, mask=found, load_warnings=notes).validate()
+    return _check_box(replace(stack, mask=found, load_warnings=notes)).validate()
+
+
+def _check_box(stack: Stack) -> Stack:
+    """A halo-grown crop keeps its own mask around the ROI: the network sees the object there
+    as a full-image run does (shadowed parts included, which the lit rule of infer.tiled's
+    edge context would drop: 7 % of the halo on psmImages cat). The ROI itself must hold
+    some of the object, as a plain crop must."""
+    if stack.roi_box is not None:
+        y0, y1, x0, x1 = stack.roi_box
+        if not stack.mask[y0:y1, x0:x1].any():
+            raise InputError("mask is empty", stack.source or stack.name)
+    return stack
 
 
 def prepare_stack(stack: Stack, options: LoadOptions) -> Stack:
@@ -281,12 +316,14 @@ def prepare_stack(stack: Stack, options: LoadOptions) -> Stack:
     keep = selection(stack.num_lights, options.select, options.max_lights)
     if keep != list(range(stack.num_lights)):
         stack = stack.subset(keep)
-    t = options.transforms()
+    if options.transforms().active:
+        stack = stack.inner()  # a stack grown for an earlier ROI: only its ROI is kept
+    t, box = options.grown(stack.shape, stack.source or stack.name)
     if t.active:
         _check_float_scale(stack.images, t, stack.source or stack.name)
         images = np.stack([t.image(img, stack.source or stack.name) for img in stack.images])
         gt = None if stack.normals_gt is None else t.normals(stack.normals_gt)
-        stack = replace(stack, images=images, mask=t.mask(stack.mask), normals_gt=gt)
+        stack = replace(stack, images=images, mask=t.mask(stack.mask), normals_gt=gt, roi_box=box)
     return _finish(stack, options)
 
 
@@ -338,7 +375,14 @@ def load_folder(
         paths, light_dirs, ints = [paths[i] for i in keep], light_dirs[keep], ints[keep]
     light_dirs = unit_lights(light_dirs, lights_path)
     check_lights(light_dirs, lights_path)
-    t = options.transforms()
+    t, box = (
+        options.grown(_stored_shape(paths[0]), paths[0])
+        if options.roi_halo
+        else (
+            options.transforms(),
+            None,
+        )
+    )
     images, hw = _read_images(paths, options.threads, t, options.max_memory_mb)
     # read with --auto-mask too: the automatic mask is compared with it (see _finish)
     mask_path = options.mask or _first_existing(folder, MASK_NAMES) or _other_mask(folder)
@@ -354,11 +398,20 @@ def load_folder(
                 gt_path,
             )
         gt = t.normals(gt)
+    stack = Stack(
+        folder.name, images, light_dirs, ints, mask_arr, gt, [p.name for p in paths], folder
+    )
     return _finish(
-        Stack(folder.name, images, light_dirs, ints, mask_arr, gt, [p.name for p in paths], folder),
+        replace(stack, roi_box=box),
         options,
         mask_path.name if mask_path else "mask",
     )
+
+
+def _stored_shape(path: Path) -> tuple[int, int]:
+    """(H, W) of an image as stored: from its header, else decoded (formats without one)."""
+    header = image_header(path)
+    return header.shape if header is not None else read_image(path).shape[:2]
 
 
 def _refuse_repeats(paths: Sequence[Path], listing: Path) -> None:

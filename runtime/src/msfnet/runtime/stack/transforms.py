@@ -46,24 +46,39 @@ def check_roi(roi: Roi, shape: tuple[int, int], src: object = None) -> None:
 
 
 def halo_roi(
-    roi: Roi, shape: tuple[int, int], halo: int, multiple: int = 1
+    roi: Roi, shape: tuple[int, int], halo: int, multiple: int = 1, align: int = 1
 ) -> tuple[Roi, tuple[int, int, int, int]]:
     """``roi`` grown by ``halo`` held pixels (``halo * multiple`` stored pixels, ``multiple``
     being the downscale factor, so blocks stay aligned) on every side, clipped to the image of
     stored ``shape``; and the original ROI's box (y0, y1, x0, x1) inside the grown crop, in held
-    pixels. Load the grown ROI, run the network with the mask limited to the box (the
-    network then sees the real image around it, as inside an image: see infer.tiled's edge
-    context), and crop the outputs to the box: no rim drawn at the crop's edges."""
+    pixels. Load the grown ROI, run the network on it (it then sees the real image around the
+    ROI, as inside an image: see infer.tiled's edge context), and crop the outputs to the box:
+    no rim drawn at the crop's edges.
+
+    ``align``: where it can, the grown crop starts on a multiple of ``align`` held pixels of
+    the image (grown by up to ``align - 1`` more): the network downsamples, so a crop off the
+    grid of a full-image run's tiles (contract.INPUT_MULTIPLE) gives other, equally valid,
+    numbers (0.8 deg apart on psmImages horse).
+    """
     x, y, w, h = roi
     ih, iw = shape
-    check_roi(roi, shape)
-    g = halo * multiple
-    left = min(g, x) // multiple * multiple
-    top = min(g, y) // multiple * multiple
+    check_roi(roi, shape, None)
+    k = multiple
+    g = halo * k
+
+    def before(v: int) -> int:
+        """Stored pixels to add before ``v``: a multiple of k (blocks on the ROI's grid), on
+        the aligned grid where ``v`` itself is on the block grid."""
+        plain = min(g, v) // k * k
+        if v % k == 0 and align > 1:
+            step = align * k
+            return v - (v - plain) // step * step
+        return plain
+
+    left, top = before(x), before(y)
     right = min(g, iw - (x + w))
     bottom = min(g, ih - (y + h))
     grown = (x - left, y - top, w + left + right, h + top + bottom)
-    k = multiple
     box = (top // k, top // k + h // k, left // k, left // k + w // k)
     return grown, box
 

@@ -76,6 +76,11 @@ class Stack:
     # what loading found (an automatic mask far from the folder's own): validate() keeps
     # these at the head of ``warnings``
     load_warnings: tuple[str, ...] = field(default=(), compare=False)
+    # (y0, y1, x0, x1) of the requested --roi inside a crop grown by a halo
+    # (LoadOptions.roi_halo): the estimators run on the grown crop (context for the ROI's
+    # edges) and Model crops every output back to the box (:meth:`inner`). None: the stack
+    # is what was asked for.
+    roi_box: tuple[int, int, int, int] | None = None
 
     @classmethod
     def from_arrays(
@@ -130,6 +135,21 @@ class Stack:
             filenames=names,
         )
 
+    def inner(self) -> Stack:
+        """The stack cropped to ``roi_box`` (images, mask, ground truth; views, no copy):
+        exactly the requested ROI. Itself when there is no box."""
+        if self.roi_box is None:
+            return self
+        y0, y1, x0, x1 = self.roi_box
+        gt = self.normals_gt
+        return replace(
+            self,
+            images=self.images[:, y0:y1, x0:x1],
+            mask=self.mask[y0:y1, x0:x1],
+            normals_gt=None if gt is None else gt[y0:y1, x0:x1],
+            roi_box=None,
+        )
+
     def validate(self) -> Stack:
         """Check shapes and values; raise InputError naming the source. Usable oddities are
         (re)listed in ``warnings``, the only thing it changes."""
@@ -162,6 +182,10 @@ class Stack:
             raise InputError(f"mask is {self.mask.shape} but images are {self.shape}", src)
         if not self.mask.any():
             raise InputError("mask is empty", src)
+        if self.roi_box is not None:
+            y0, y1, x0, x1 = self.roi_box
+            if not (0 <= y0 < y1 <= self.shape[0] and 0 <= x0 < x1 <= self.shape[1]):
+                raise InputError(f"ROI box {self.roi_box} lies outside the {self.shape} stack", src)
         if self.normals_gt is not None and self.normals_gt.shape != (*self.shape, 3):
             raise InputError(
                 f"ground-truth normals are {self.normals_gt.shape}, images {self.shape}", src
