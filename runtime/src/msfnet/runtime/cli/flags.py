@@ -42,7 +42,8 @@ LOAD_FLAGS: dict[str, Flag] = {
 CAMERA_FLAGS: dict[str, Flag] = {
     "roi": Flag(
         "crop images, mask and ground truth to this rectangle (pixels of the stored images, "
-        "origin top-left)",
+        "origin top-left); the network also sees a halo of the image around it, the outputs "
+        "are the rectangle's",
         type=parse_roi,
         metavar="X,Y,W,H",
     ),
