@@ -185,3 +185,20 @@ def run_without_torch(
         timeout=120,
         cwd=cwd,
     )
+
+
+def staging_leftovers(folder: Path) -> list[str]:
+    """Staging files or folders the atomic writer left anywhere below ``folder``."""
+    from msfnet.common.files import STAGING_TAG
+
+    return sorted(p.name for p in folder.rglob("*") if STAGING_TAG in p.name)
+
+
+def msfnet_folder(path: Path, names: tuple[str, ...] = ("a.txt",)) -> Path:
+    """An output folder msfnet wrote (with its manifest), holding ``names``."""
+    from msfnet.common.files import staged_folder
+
+    with staged_folder(path, overwrite=True) as tmp:
+        for n in names:
+            (tmp / n).write_text(n)
+    return path

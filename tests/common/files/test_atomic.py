@@ -11,6 +11,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from _runtime_helpers import msfnet_folder as _msfnet_folder
+from _runtime_helpers import staging_leftovers as _leftovers
 
 from msfnet.common import files
 from msfnet.common.errors import InputError
@@ -24,18 +26,6 @@ from msfnet.common.files import (
     write_text,
     written_outputs,
 )
-
-
-def _leftovers(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.rglob("*") if STAGING_TAG in p.name)
-
-
-def _msfnet_folder(path: Path, names: tuple[str, ...] = ("a.txt",)) -> Path:
-    with staged_folder(path, overwrite=True) as tmp:
-        for n in names:
-            (tmp / n).write_text(n)
-    return path
-
 
 # ---------------------------------------------------------------------------- permissions
 

@@ -8,27 +8,16 @@ import os
 from pathlib import Path
 
 import pytest
+from _runtime_helpers import msfnet_folder as _msfnet_folder
+from _runtime_helpers import staging_leftovers as _leftovers
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import (
-    STAGING_TAG,
     check_output,
     staged_files,
     staged_folder,
     write_atomic,
 )
-
-
-def _leftovers(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.rglob("*") if STAGING_TAG in p.name)
-
-
-def _msfnet_folder(path: Path, names: tuple[str, ...] = ("a.txt",)) -> Path:
-    with staged_folder(path, overwrite=True) as tmp:
-        for n in names:
-            (tmp / n).write_text(n)
-    return path
-
 
 # ---------------------------------------------------------------------------- check_output
 

@@ -8,26 +8,15 @@ import json
 from pathlib import Path
 
 import pytest
+from _runtime_helpers import msfnet_folder as _msfnet_folder
 
 from msfnet.common import files
 from msfnet.common.errors import InputError
 from msfnet.common.files import (
     MANIFEST,
-    STAGING_TAG,
     check_output,
     staged_folder,
 )
-
-
-def _leftovers(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.rglob("*") if STAGING_TAG in p.name)
-
-
-def _msfnet_folder(path: Path, names: tuple[str, ...] = ("a.txt",)) -> Path:
-    with staged_folder(path, overwrite=True) as tmp:
-        for n in names:
-            (tmp / n).write_text(n)
-    return path
 
 
 @pytest.mark.parametrize(

@@ -21,18 +21,6 @@ from msfnet.common.files import (
 )
 from msfnet.common.files.staging import new_staging
 
-
-def _leftovers(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.rglob("*") if STAGING_TAG in p.name)
-
-
-def _msfnet_folder(path: Path, names: tuple[str, ...] = ("a.txt",)) -> Path:
-    with staged_folder(path, overwrite=True) as tmp:
-        for n in names:
-            (tmp / n).write_text(n)
-    return path
-
-
 # ---------------------------------------------------------------------------- stale staging
 
 
