@@ -1,8 +1,8 @@
 """Memory bombs (issue #27, part B, item 7): every array source is sized from its header before
 anything is decoded or inflated, and least squares stays within --max-memory.
 
-Each case runs in a fresh interpreter that reports its peak resident memory
-(``resource.getrusage``) before and after the action: a bomb refused from its header leaves
+Each case runs in a fresh interpreter that reports its peak resident memory (VmHWM: the
+child's own address space) before and after the action: a bomb refused from its header leaves
 the peak where it was, give or take a tolerance for the refusal's own work."""
 
 from __future__ import annotations
@@ -26,11 +26,10 @@ resource = pytest.importorskip("resource", reason="peak memory via resource (POS
 TOLERANCE_MB = 60  # the refusal's own work (headers, imports it triggers), far below any bomb
 
 CHILD = """
-import json, resource, sys
+import json, sys
 from pathlib import Path
 
-def peak_mb():
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+from msfnet.runtime.results.profile import peak_rss_mb as peak_mb  # VmHWM: not the parent's
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.stack import LoadOptions, load_stack
@@ -183,7 +182,7 @@ def test_an_npz_member_other_than_images_is_sized_before_inflating(tmp_path: Pat
 
 
 LEAST_SQUARES = """
-import json, resource, sys
+import json, sys
 import numpy as np
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.infer.least_squares import least_squares_normals
@@ -198,7 +197,9 @@ for i in range(n):
 stack = Stack.from_arrays(images, lights)
 del images
 out = least_squares_normals(stack, trim_shadows=0.2, max_memory_mb=budget)
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+# VmHWM on Linux: ru_maxrss would count the test runner's size at fork time (kept over exec)
+from msfnet.runtime.results.profile import peak_rss_mb
+peak = peak_rss_mb()
 print(json.dumps({"peak": peak, "stack": stack.images.nbytes / 2**20, "ok": bool(out.any())}))
 """
 
