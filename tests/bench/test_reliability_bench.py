@@ -12,7 +12,14 @@ from msfnet.bench import cli
 
 @pytest.mark.parametrize(
     "option",
-    [["--max-memory", "nan"], ["--max-memory", "-1"], ["--threads", "x"], ["--threads", "0"]],
+    [
+        ["--max-memory", "nan"],
+        ["--max-memory", "-1"],
+        ["--threads", "x"],
+        ["--threads", "0"],
+        ["--threads", "100000"],  # once refused only when the peaks started, after minutes
+        ["--threads", "2,1025"],
+    ],
 )
 def test_options_are_refused_before_benchmarking(
     option: list[str], tmp_path, monkeypatch, capfd
@@ -38,3 +45,11 @@ def test_without_torch_nothing_is_written_or_printed_but_one_line(tmp_path) -> N
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "needs the Python package 'torch'" in lines[0], lines
     assert done.stdout == "" and list(tmp_path.iterdir()) == []
+
+
+def test_thread_counts_share_the_one_bound() -> None:
+    from msfnet.common.cpu import MAX_THREADS
+
+    assert cli.thread_counts(f"{MAX_THREADS},1") == [MAX_THREADS, 1]
+    with pytest.raises(Exception, match=f"1..{MAX_THREADS}"):
+        cli.thread_counts(str(MAX_THREADS + 1))

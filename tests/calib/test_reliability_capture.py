@@ -53,3 +53,18 @@ def test_numeric_options_are_validated(option: list[str], tmp_path: Path, capfd)
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "error:" in err[0] and option[0] in err[0], err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("count", ["1", "2"])
+def test_fewer_lights_than_photometric_stereo_needs_are_refused(
+    count: str, tmp_path: Path, capfd
+) -> None:
+    """--count below MIN_LIGHTS (the one constant) is an option error; no frame is taken."""
+    from msfnet.runtime.stack import MIN_LIGHTS
+
+    out = tmp_path / "one"
+    assert _run([str(out), "--camera", "sim", "--light-rig", "sim", "--count", count]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-capture: error: --count: "), err
+    assert f"{MIN_LIGHTS}.." in err[0] and not out.exists()
+    assert _run([str(out), "--camera", "sim", "--count", str(MIN_LIGHTS), "-q"]) == 0

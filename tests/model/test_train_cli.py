@@ -241,3 +241,25 @@ def test_the_run_says_how_long_it_will_take(monkeypatch, capsys) -> None:
     assert len(lines) == 1, lines  # said once
     # 10 s a step for the 5,995 steps left when it spoke (the 30 s set-up step left out)
     assert "10 s a step on this cpu: about 16.7 h for the remaining 5,995 steps" in lines[0]
+
+
+@pytest.mark.parametrize(
+    ("option", "bound"),
+    [(["--threads", "100000"], "1..1024"), (["--lights", "2"], "3..")],
+    ids=["threads", "lights"],
+)
+def test_threads_and_lights_are_bounded_at_parse_time(
+    option: list[str], bound: str, tmp_path: Path, capfd
+) -> None:
+    """--threads shares every command's bound (common.cpu.MAX_THREADS); --lights starts at
+    MIN_LIGHTS, as the curriculum does."""
+    from msfnet.common.cpu import MAX_THREADS
+    from msfnet.runtime.stack import MIN_LIGHTS
+
+    assert (MAX_THREADS, MIN_LIGHTS) == (1024, 3)  # the bounds the messages name
+    with pytest.raises(SystemExit) as exc:
+        train_main(["--out", str(tmp_path / "r"), *option, "--no-progress"])
+    assert exc.value.code == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"msf-train: error: {option[0]}: "), err
+    assert bound in err[0] and not (tmp_path / "r").exists()

@@ -137,3 +137,52 @@ def test_a_stack_file_is_not_a_benchmark(tmp_path: Path, capfd) -> None:
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "good.npz: a file, not a benchmark" in err[0], err
     assert "msf-run takes .npz" in err[0] and "not found" not in err[0]
+
+
+def _shared_lights_root(root: Path) -> Path:
+    """psmImages' layout: stacks in sub-folders, one lights.txt at the top (the same lights)."""
+    for i, name in enumerate(("cat", "owl")):
+        folder = save_stack(sphere_stack(n=6, h=24, w=28 + 4 * i, seed=3), root / name)
+        lights = folder / "light_directions.txt"
+        if i == 0:
+            lights.rename(root / "lights.txt")
+        else:
+            lights.unlink()
+    return root
+
+
+def test_a_root_with_one_shared_light_file_is_a_benchmark_of_its_folders(
+    tmp_path: Path, capsys
+) -> None:
+    """msf-eval psmImages read the root as one object; its objects share the top light file."""
+    root = _shared_lights_root(tmp_path / "psm")
+    objs = find_objects(root)
+    assert [(o.folder.name, o.lights) for o in objs] == [
+        ("cat", (root / "lights.txt").resolve()),
+        ("owl", (root / "lights.txt").resolve()),
+    ]
+    # a sub-folder's own light file wins over the shared one
+    save_stack(sphere_stack(n=6, h=24, w=28, seed=3), root / "own")
+    assert {o.folder.name: o.lights for o in find_objects(root)}["own"] is None
+
+    out = tmp_path / "eval"
+    assert main([str(root), "--l2-only", "-q", "-o", str(out)]) == 0
+    rows = {r["object"]: r for r in json.loads((out / "results.json").read_text())["results"]}
+    assert sorted(rows) == ["cat", "owl", "own"]
+    # the same numbers as one object evaluated with the light file given by hand
+    single = tmp_path / "single"
+    args = [str(root / "owl"), "--lights", str(root / "lights.txt"), "--l2-only", "-q"]
+    assert main([*args, "-o", str(single)]) == 0
+    alone = json.loads((single / "results.json").read_text())["results"][0]
+    assert rows["owl"]["lights"] == alone["lights"] == 6
+    mae = rows["owl"]["results"]["l2"]["mae_deg"]
+    assert mae == pytest.approx(alone["results"]["l2"]["mae_deg"], abs=1e-9)
+    # cat (shared file) and own (its own file) are the same stack: the same error
+    cat, own = (rows[n]["results"]["l2"]["mae_deg"] for n in ("cat", "own"))
+    assert cat == pytest.approx(own, abs=1e-9) and np.isfinite(cat)
+
+
+def test_psmimages_root_is_a_benchmark_of_its_objects(psm_dir: Path) -> None:
+    objs = find_objects(psm_dir)
+    assert len(objs) > 1 and "cat" in {o.folder.name for o in objs}
+    assert {o.lights for o in objs} == {(psm_dir / "lights.txt").resolve()}

@@ -321,3 +321,13 @@ def test_a_mixed_precision_int8_export_is_said_to_be_within_the_bound() -> None:
     reason = choose_engine(mixed, AMX, BOTH).reason
     assert "mixed precision" in reason and "within the bound" in reason and "above" not in reason
     assert "above the 0.5 deg bound" in choose_engine(INT8, AMX, BOTH).reason
+
+
+@pytest.mark.parametrize("threads", [0, 1025, True])
+def test_open_engine_bounds_threads_with_the_shared_constant(threads: int) -> None:
+    """The bound is common.cpu.MAX_THREADS, checked before any file is touched (bool too)."""
+    from msfnet.common.cpu import MAX_THREADS
+
+    choice = dispatch.EngineChoice("onnxruntime", "fp32", "test", Path("missing.onnx"))
+    with pytest.raises(InputError, match=rf"--threads must be an integer in 1\.\.{MAX_THREADS}"):
+        open_engine(choice, threads)

@@ -39,7 +39,7 @@ from msfnet.bench.workloads import (
     make_input,
     time_msf_run,
 )
-from msfnet.common.cli import make_parser, positive_float, positive_int, run_command
+from msfnet.common.cli import make_parser, positive_float, run_command, thread_count
 from msfnet.common.cpu import detect_cpu
 from msfnet.common.errors import InputError
 from msfnet.common.files import (
@@ -67,8 +67,9 @@ MODEL_OF_VARIANT = {
 
 
 def thread_counts(text: str) -> list[int]:
-    """``2,1`` -> [2, 1]; each a positive integer."""
-    return [positive_int(t) for t in text.split(",") if t.strip()] or [positive_int(text)]
+    """``2,1`` -> [2, 1]; each in 1..MAX_THREADS, refused here at parse time rather than when
+    the matmul peaks start (``--threads 100000`` once ran for 15+ minutes before failing)."""
+    return [thread_count(t) for t in text.split(",") if t.strip()] or [thread_count(text)]
 
 
 def build_parser() -> argparse.ArgumentParser:

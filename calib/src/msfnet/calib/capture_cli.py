@@ -15,6 +15,7 @@ from msfnet.calib.capture import Linearisation, capture_loop, capture_stack, che
 from msfnet.calib.lights import Lights
 from msfnet.common.cli import (
     command_main,
+    int_range,
     make_parser,
     nonnegative_float,
     nonnegative_int,
@@ -23,6 +24,8 @@ from msfnet.common.cli import (
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import folder_lock
+from msfnet.runtime.stack import MIN_LIGHTS
+from msfnet.runtime.stack.readers import MAX_LIGHTS
 
 PROG = "msf-capture"
 EXAMPLES = (
@@ -92,8 +95,9 @@ def add_device_arguments(
     )
     g.add_argument(
         "--count",
-        type=positive_int,
-        help="number of lights (manual; checks serial; sim default 12)",
+        # fewer than MIN_LIGHTS photos cannot give a normal: refused before the first frame
+        type=int_range(MIN_LIGHTS, MAX_LIGHTS),
+        help=f"number of lights, at least {MIN_LIGHTS} (manual; checks serial; sim default 12)",
     )
     g.add_argument(
         "--settle", type=nonnegative_float, default=0.05, help="seconds after switching a light"

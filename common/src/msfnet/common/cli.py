@@ -258,7 +258,7 @@ _EXTRAS = {
     "torch": ("export,train", "export", "train", "bench"),
     "onnx": ("export", "bench"),
     "onnxslim": ("export",),
-    "matplotlib": ("train", "bench"),
+    "matplotlib": ("pictures", "train", "bench"),
     "openvino": ("openvino",),
     "depthai": ("camera",),
     "serial": ("camera",),

@@ -19,10 +19,12 @@ from msfnet.common.cli import (
     nonnegative_int,
     positive_float,
     positive_int,
+    thread_count,
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import STAGING_TAG, check_not_input
 from msfnet.model.train_config import SNAPSHOT, TrainConfig, parse_curriculum
+from msfnet.runtime.stack.types import MIN_LIGHTS
 from msfnet.synth.render import PRESETS
 
 DEFAULTS = TrainConfig(out="")
@@ -100,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--lights",
-        type=int_range(1, MAX_LIGHTS),
+        type=int_range(MIN_LIGHTS, MAX_LIGHTS),  # photometric stereo's fewest lights
         default=None,
         help="shortcut: a fixed light count for every batch (curriculum with one "
         "phase; the paper used 32)",
@@ -125,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--threads",
-        type=int_range(1, 1024),
+        type=thread_count,
         default=d.threads,
         help=f"torch threads of the training process (default {d.threads})",
     )

@@ -539,7 +539,11 @@ class Model:
                 maps = None
                 if self.maps is not None:
                     with timer("maps"):
-                        maps = stack_maps(loaded, normals, self.maps)
+                        maps = stack_maps(
+                            loaded, normals, self.maps, max_memory_mb=self.tiling.max_memory_mb
+                        )
+                        if maps.warning:  # a map that did not fit in --max-memory
+                            loaded.warnings.append(maps.warning)
             prof.add(timer)
             prof.flops = est.flops
             result = Result(

@@ -22,10 +22,16 @@ from pathlib import Path
 from typing import Protocol
 
 from msfnet.common.errors import InputError
-from msfnet.common.imageio import list_images
-from msfnet.runtime.evaluate.datasets import PROTOCOL_SELECT, find_objects, protocol_note
+from msfnet.runtime.evaluate.datasets import (
+    PROTOCOL_SELECT,
+    find_objects,
+    has_images,
+    lights_file,
+    protocol_note,
+    shared_lights_root,
+)
 from msfnet.runtime.results.profile import BatchStats, Profile
-from msfnet.runtime.stack import LIGHTS_NAMES, LoadOptions, Stack, load_stack, selection
+from msfnet.runtime.stack import LoadOptions, Stack, load_stack, selection
 from msfnet.runtime.stack.load import count_images
 
 
@@ -78,16 +84,8 @@ class BatchItem:
         return info
 
 
-def _has_images(folder: Path) -> bool:
-    return (folder / "filenames.txt").is_file() or bool(list_images(folder))
-
-
-def _lights_file(folder: Path) -> Path | None:
-    return next((folder / n for n in LIGHTS_NAMES if (folder / n).is_file()), None)
-
-
 def _is_stack_folder(folder: Path) -> bool:
-    return _lights_file(folder) is not None or _has_images(folder)
+    return lights_file(folder) is not None or has_images(folder)
 
 
 def _protocol_item(folder: Path, lights: Path | None = None) -> BatchItem:
@@ -109,14 +107,12 @@ def _shared_lights_items(folder: Path) -> list[BatchItem] | None:
     (psmImages: ``lights.txt`` at the top, one folder of TGA images per object): a folder of
     stacks sharing that file. A sub-folder with a light file of its own keeps it. None when
     ``folder`` is not such a root."""
-    lights = _lights_file(folder)
-    if lights is None or _has_images(folder):
+    shared = shared_lights_root(folder)
+    if shared is None:
         return None
-    subs = [d for d in sorted(folder.iterdir()) if d.is_dir() and _has_images(d)]
-    if not subs:
-        return None
-    shared = lights.resolve()  # Ray workers do not share the driver's working directory
-    return [_protocol_item(d, None if _lights_file(d) else shared) for d in subs]
+    lights, subs = shared
+    resolved = lights.resolve()  # Ray workers do not share the driver's working directory
+    return [_protocol_item(d, None if lights_file(d) else resolved) for d in subs]
 
 
 def expand_stacks(paths: Sequence[Path]) -> list[BatchItem]:

@@ -2,7 +2,8 @@
 
 ROOT is a benchmark folder with ``objects.txt`` (one object folder per line, optionally followed
 by an image selection such as ``21-96`` for DiLiGenT bear) or, without it, every sub-folder that
-holds a stack; ROOT may also be a single object folder. Objects need ground-truth normals.
+holds a stack (sharing ROOT's own light file when ROOT has one but no images: psmImages); ROOT may
+also be a single object folder. Objects need ground-truth normals.
 Writes results.json, results.md and <object>/<method>_error.png (+ normals png) to OUTDIR.
 """
 
@@ -105,6 +106,7 @@ class EvalSummary:
     results: list[ObjectResult]
     fine_detail: bool = False  # the model ran with --fine-detail
     provenance: Provenance | None = None  # input, model + checksum, engine, date, command
+    figures: bool = True  # error pictures drawn (False: no matplotlib, the [pictures] extra)
 
     @property
     def scored(self) -> list[ObjectResult]:
@@ -141,7 +143,7 @@ class EvalSummary:
         with ground truth."""
         return (
             "results.json, results.md, normal maps"
-            + (" and error maps" if self.scored else "")
+            + (" and error maps" if self.scored and self.figures else "")
             + " per object"
         )
 
@@ -214,7 +216,10 @@ def evaluate(
     load = load or LoadOptions()
     check_unique(objects)
     check_output(
-        outdir, [o.folder for o in objects] + load.inputs(), overwrite=overwrite, folder=True
+        outdir,
+        [o.folder for o in objects] + [o.lights for o in objects if o.lights] + load.inputs(),
+        overwrite=overwrite,
+        folder=True,
     )
     runners: dict[str, Model] = {}
     if model is not None:
@@ -230,9 +235,11 @@ def evaluate(
         raise InputError("nothing to evaluate: both the model and l2 are switched off")
     methods = list(runners)
     results = []
+    draw = pictures.can_draw()  # the error pictures need matplotlib; the scores do not
     with staged_folder(outdir, overwrite=overwrite) as tmp:
         for k, obj in enumerate(objects, 1):
-            opts = replace(load, select=load.select or obj.select)
+            # --select / --lights override the benchmark's selection and shared light file
+            opts = replace(load, select=load.select or obj.select, lights=load.lights or obj.lights)
             started = time.perf_counter()
             stack = load_stack(obj.folder, opts)
             (tmp / obj.folder.name).mkdir()
@@ -251,7 +258,7 @@ def evaluate(
                 )
             # one colour range for every method of an object, so the pictures compare
             vmax = max((pictures.error_range(e, stack.mask) for e in errors.values()), default=None)
-            for m, err in errors.items():
+            for m, err in errors.items() if draw else ():
                 (tmp / obj.folder.name / f"{m}_error.png").write_bytes(
                     pictures.png_bytes(pictures.error_picture(err, stack.mask, vmax=vmax))
                 )
@@ -293,6 +300,7 @@ def evaluate(
             results,
             fine_detail="msf" in runners and "fine_detail" in runners["msf"].describe(),
             provenance=Provenance.of([o.folder for o in objects], first.describe()),
+            figures=draw,
         )
         (tmp / "results.json").write_text(json_text(summary.as_dict()))
         (tmp / "results.md").write_text(summary.markdown())
@@ -309,7 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
         "results.json, results.md, normal and error maps.",
         (
             "msf-eval ../shared/data/DiLiGenT      # ball, bear (21-96), harvest",
-            "msf-eval psmImages/cat psmImages/owl --lights psmImages/lights.txt   # detail only",
+            "msf-eval psmImages        # every object, sharing psmImages/lights.txt; detail only",
+            "msf-eval psmImages/cat psmImages/owl --lights psmImages/lights.txt",
             "msf-eval benchmark/ --onnx my_model.onnx -o eval/mine",
         ),
     )
@@ -378,6 +387,8 @@ def _run(args: argparse.Namespace) -> int:
     if not args.quiet:
         for line in summary.warnings():
             print(f"{PROG}: warning: {line}", file=sys.stderr)
+        if summary.scored and not summary.figures:
+            print(f"{PROG}: warning: {pictures.missing_note()}", file=sys.stderr)
     if args.json:
         print(json_text({**summary.as_dict(), "output": str(outdir)}), end="")
     elif not args.quiet:

@@ -233,6 +233,15 @@ def _print_warnings(result: Result, req: RunRequest) -> None:
             tqdm.write(f"{PROG}: warning: {line}", file=sys.stderr)
 
 
+def _warn_without_figures(req: RunRequest) -> None:
+    """One line per command when matplotlib is missing (an install without the [pictures]
+    extra): the figures were skipped, every other output was written."""
+    from msfnet.runtime.results.maps import pictures
+
+    if not req.quiet and not pictures.can_draw():
+        tqdm.write(f"{PROG}: warning: {pictures.missing_note()}", file=sys.stderr)
+
+
 def _terminal() -> bool:
     return sys.stderr.isatty()
 
@@ -301,6 +310,7 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
             out, overwrite=req.overwrite, inputs=tuple(load.inputs()), report=req.report
         )
     _print_warnings(result, req)
+    _warn_without_figures(req)
     print_result(result, out, files, req)
     if req.demo and req.model.is_network and req.chatty:
         l2 = Model.least_squares()(result.stack)
@@ -396,6 +406,8 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
             progress=progress,
             inputs=tuple(load.inputs()),
         )
+    if summary.rows and len(summary.failed) < len(summary.rows):
+        _warn_without_figures(req)  # once for the batch, not once per stack
     if req.json:
         print(json_text({"summary": summary.as_dict(), "output": str(root)}), end="")
     elif not req.quiet:

@@ -31,7 +31,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from msfnet.common.cpu import CpuInfo
+from msfnet.common.cpu import CpuInfo, check_threads
 from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines.base import (
@@ -378,8 +378,8 @@ def open_engine(
     (ONNX Runtime only): e.g. 'cuda' (``choice.device`` sets it too). ``model`` overrides
     ``choice.model``."""
     path = model if model is not None else choice.model
-    if threads is not None and not 1 <= threads <= 1024:
-        raise InputError(f"--threads {threads}: expected 1..1024")
+    if threads is not None:
+        check_threads(threads)  # the one bound (common.cpu.MAX_THREADS) of every engine
     if path is None:
         raise InputError("open_engine: no model path (give model=... or choose from a path)")
     device = choice.device

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from msfnet.common.errors import InputError
+from msfnet.common.imageio import list_images
 from msfnet.runtime.stack import LIGHTS_NAMES
 
 PROTOCOL_SELECT = {"bearPNG": "21-96"}  # object folder -> the images the benchmark uses
@@ -35,13 +36,36 @@ PUBLISHED_METHODS = ("PS-FCN", "MSF-Net (paper)")
 class BenchObject:
     folder: Path
     select: str | None  # the benchmark's image selection (e.g. bear 21-96)
+    lights: Path | None = None  # a light file shared by the root's objects (psmImages)
+
+
+def lights_file(folder: Path) -> Path | None:
+    """The folder's own light file (light_directions.txt or lights.txt), if any."""
+    return next((folder / n for n in LIGHTS_NAMES if (folder / n).is_file()), None)
+
+
+def has_images(folder: Path) -> bool:
+    return (folder / "filenames.txt").is_file() or bool(list_images(folder))
+
+
+def shared_lights_root(folder: Path) -> tuple[Path, list[Path]] | None:
+    """(the shared light file, the stack sub-folders) when ``folder`` has a light file but no
+    images of its own and sub-folders that hold images (psmImages: ``lights.txt`` at the top,
+    one folder of TGA images per object); None otherwise. The one rule for msf-run's batches
+    and msf-eval's benchmarks."""
+    lights = lights_file(folder)
+    if lights is None or has_images(folder):
+        return None
+    subs = [d for d in sorted(folder.iterdir()) if d.is_dir() and has_images(d)]
+    return (lights, subs) if subs else None
 
 
 def find_objects(root: Path) -> list[BenchObject]:
     """The objects of a benchmark root in benchmark order: those listed in objects.txt (one
     folder per line, optionally followed by an image selection), the root itself when it is a
-    stack, or every sub-folder holding a stack. Known benchmark objects get their protocol's
-    selection (DiLiGenT bear: 21-96) unless objects.txt says otherwise."""
+    stack, the sub-folders of a root whose light file they share (psmImages), or every
+    sub-folder holding a stack. Known benchmark objects get their protocol's selection
+    (DiLiGenT bear: 21-96) unless objects.txt says otherwise."""
     if not root.is_dir():
         if root.exists():  # e.g. an .npz stack, which msf-run reads but a benchmark is not
             raise InputError(
@@ -65,7 +89,16 @@ def find_objects(root: Path) -> list[BenchObject]:
         if not out:
             raise InputError("objects.txt lists no objects", listing)
         return out
-    if any((root / n).is_file() for n in LIGHTS_NAMES) or any(root.glob("*.[tT][gG][aA]")):
+    if (shared := shared_lights_root(root)) is not None:
+        lights, subs = shared
+        # a sub-folder with a light file of its own keeps it; resolved: the objects may be
+        # read from another working directory (Ray workers)
+        common = lights.resolve()
+        return [
+            BenchObject(d, PROTOCOL_SELECT.get(d.name), None if lights_file(d) else common)
+            for d in subs
+        ]
+    if lights_file(root) is not None or has_images(root):  # one object (or --lights)
         return [BenchObject(root, PROTOCOL_SELECT.get(root.name))]
     found = [
         BenchObject(d, PROTOCOL_SELECT.get(d.name))
@@ -94,5 +127,8 @@ __all__ = [
     "BenchObject",
     "check_unique",
     "find_objects",
+    "has_images",
+    "lights_file",
     "protocol_note",
+    "shared_lights_root",
 ]

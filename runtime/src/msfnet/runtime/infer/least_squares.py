@@ -12,6 +12,7 @@ import numpy as np
 from msfnet.common.errors import InputError
 from msfnet.runtime.infer.normalise import network_lights
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
+from msfnet.runtime.results.profile import memory_in_use_mb
 from msfnet.runtime.stack import MIN_LIGHTS, Stack
 
 # working set per (mask pixel x light): the RGB gather (as held: 12 B float32, 6 B uint16; an
@@ -19,16 +20,6 @@ from msfnet.runtime.stack import MIN_LIGHTS, Stack
 # trimming, ranks and weights. Measured: 28-34 B plain, 41-47 B trimmed (uint16 / float32).
 BYTES_PER_PIXEL_LIGHT = 64
 MIN_ROWS = 8
-
-
-def memory_in_use_mb() -> float | None:
-    """This process's resident memory now (MB), None where it cannot be read."""
-    try:
-        import psutil
-
-        return float(psutil.Process().memory_info().rss) / 2**20
-    except Exception:  # no psutil, or a platform where it cannot tell
-        return None
 
 
 def least_squares_normals(
@@ -125,4 +116,4 @@ def _solve(
     return np.where(norm > 1e-12, g / np.maximum(norm, 1e-12), 0.0)
 
 
-__all__ = ["least_squares_normals"]
+__all__ = ["least_squares_normals", "memory_in_use_mb"]

@@ -36,8 +36,11 @@ class Result(Protocol):
 
 def normals_png(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(H, W, 3) unit normals -> 16-bit RGB (n + 1) / 2, zeros outside the mask."""
-    n = np.nan_to_num(np.clip(normals, -1, 1))
-    img = np.rint((n + 1.0) * 0.5 * 65535.0).astype(np.uint16)
+    # one float32 work array, changed in place (no float64 H x W x 3 temporaries)
+    n = np.nan_to_num(np.clip(np.asarray(normals, np.float32), -1, 1), copy=False)
+    n += 1.0
+    n *= 0.5 * 65535.0
+    img = np.rint(n, out=n).astype(np.uint16)
     img[~mask] = 0
     return img
 
@@ -61,17 +64,22 @@ def fill_result_folder(folder: Path, result: Result, report: bool = True) -> Non
         profile["provenance"] = Provenance.of(src, profile).as_dict()
     np.save(folder / "normals.npy", np.ascontiguousarray(result.normals, np.float32))
     write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
-    rendered = {"normals": pictures.png_bytes(pictures.normals_picture(result.normals, mask))}
-    (folder / "normals_view.png").write_bytes(rendered["normals"])
+    # the figures need matplotlib (the [pictures] extra); without it everything else is written
+    draw = pictures.can_draw()
+    rendered: dict[str, bytes] = {}
+    if draw:
+        rendered["normals"] = pictures.png_bytes(pictures.normals_picture(result.normals, mask))
+        (folder / "normals_view.png").write_bytes(rendered["normals"])
     if result.metrics is not None and result.error_deg is not None:
-        vmax = pictures.error_range(result.error_deg, mask)
-        (folder / "metrics.json").write_text(
-            json_text({**result.metrics.as_dict(), "error_png_max_deg": vmax})
-        )
-        rendered["error"] = pictures.png_bytes(
-            pictures.error_picture(result.error_deg, mask, vmax=vmax)
-        )
-        (folder / "error.png").write_bytes(rendered["error"])
+        metrics: dict[str, object] = dict(result.metrics.as_dict())
+        if draw:
+            vmax = pictures.error_range(result.error_deg, mask)
+            metrics["error_png_max_deg"] = vmax
+            rendered["error"] = pictures.png_bytes(
+                pictures.error_picture(result.error_deg, mask, vmax=vmax)
+            )
+            (folder / "error.png").write_bytes(rendered["error"])
+        (folder / "metrics.json").write_text(json_text(metrics))
     (folder / "profile.json").write_text(json_text(profile))
     if result.maps is not None:
         images = result.stack.images if result.stack.images.shape[-1] == 3 else None

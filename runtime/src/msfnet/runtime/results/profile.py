@@ -60,6 +60,17 @@ class StageTimer:
             self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - start
 
 
+def memory_in_use_mb() -> float | None:
+    """This process's resident memory now (MB), None where it cannot be read
+    (least squares and the maps size their work to --max-memory with it)."""
+    try:
+        import psutil
+
+        return float(psutil.Process().memory_info().rss) / 2**20
+    except Exception:  # no psutil, or a platform where it cannot tell
+        return None
+
+
 def peak_rss_mb() -> float:
     """Peak resident set size of this process so far, in MB (0 where the OS does not say).
 
@@ -174,5 +185,6 @@ __all__ = [
     "StageTimer",
     "announce",
     "announcing",
+    "memory_in_use_mb",
     "peak_rss_mb",
 ]

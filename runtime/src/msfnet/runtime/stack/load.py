@@ -479,6 +479,25 @@ def _npz_header(data: np.lib.npyio.NpzFile, key: str) -> tuple[tuple[int, ...], 
         return npy_header(f)  # type: ignore[arg-type]
 
 
+def _held_npz_images(images: np.ndarray, path: Path) -> np.ndarray:
+    """Stored images in their held type, converted an image at a time so that only the
+    stored array and the held one exist together (no whole-stack temporaries); float64
+    values beyond float32's range (they would become inf) are refused."""
+    held = held_dtype(images.dtype)
+    if images.dtype == held or images.ndim < 3:
+        return images
+    out = np.empty(images.shape, held)
+    top = float(np.finfo(np.float32).max)
+    for i in range(images.shape[0]):
+        frame = images[i]
+        if frame.dtype.kind == "f" and frame.dtype.itemsize > 4:
+            finite = np.isfinite(frame)
+            if np.abs(frame, where=finite, out=np.zeros(frame.shape)).max(initial=0.0) > top:
+                raise InputError("npz images hold values beyond the float32 range", path)
+        out[i] = frame
+    return out
+
+
 def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: float | None) -> None:
     """Every member that will be read, sized from its header before any is inflated: the
     images against the budget and the pixel limit, the others against what the images allow
@@ -496,6 +515,18 @@ def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: fl
             path,
         )
     check_stack_size(n, h, w, max_memory_mb, path, held_dtype(dtype))
+    held = held_dtype(dtype)
+    if max_memory_mb is not None and dtype != held:
+        # reading holds the stored array (8 B a float64 value) and the held copy beside it
+        stored = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        need = (stored + n * h * w * 3 * held.itemsize) / 2**20
+        if need > max_memory_mb:
+            raise InputError(
+                f"npz images are {dtype} {shape}: reading them holds {need:.0f} MB (the "
+                f"stored array and its {held} copy), above --max-memory {max_memory_mb:g} MB "
+                "(save them as float32 or uint16, or use a larger budget)",
+                path,
+            )
     most = {"lights": n * 3, "intensities": n * 3, "mask": h * w, "normals": h * w * 3}
     for key, limit in most.items():
         if key not in data.files:
@@ -533,10 +564,10 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
                 path,
             )
         _check_npz_headers(data, path, options.max_memory_mb)  # before anything inflates
-        images = _npz_array(data, "images", path)
+        images = _held_npz_images(_npz_array(data, "images", path), path)
         if images.ndim == 4 and images.shape[3] == 1:
             images = images[..., 0]
-        if images.ndim == 3:
+        if images.ndim == 3:  # grey: repeated once held (float64 would triple 8 B a value)
             images = np.repeat(images[..., None], 3, axis=3)
         if images.ndim != 4 or images.shape[3] != 3 or 0 in images.shape:
             raise InputError(f"npz images must be N x H x W (x 3), got {images.shape}", path)
@@ -550,7 +581,7 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         mask = _npz_array(data, "mask", path) if "mask" in files else np.ones((h, w), bool)
         gt = _npz_array(data, "normals", path) if "normals" in files else None
         # float64 values beyond float32's range would become inf below: refuse them here
-        for key, arr in (("images", images), ("lights", lights), ("intensities", ints)):
+        for key, arr in (("lights", lights), ("intensities", ints)):
             if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:
                 big = np.abs(arr[np.isfinite(arr)], dtype=np.float64)
                 if big.size and big.max() > np.finfo(np.float32).max:

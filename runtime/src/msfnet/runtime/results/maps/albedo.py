@@ -20,6 +20,10 @@ from msfnet.runtime.results.maps.validate import check_normals
 DEFAULT_MIN_SHADING = 0.1
 SATURATION_FRACTION = 0.99  # default: values at >= 99 % of the stack's maximum count as clipped
 CHUNK_PIXELS = 32768  # bounds the (N, chunk, 3) temporaries to a few tens of MB
+MIN_CHUNK_PIXELS = 256
+# working set per (pixel x light) of one chunk: the float64 gather, shading, kept-mask and the
+# masked products (measured ~110 B; maps.budget sizes chunks with it)
+BYTES_PER_PIXEL_LIGHT = 128
 
 
 def default_saturation(images: np.ndarray) -> float:
@@ -37,6 +41,7 @@ def albedo_map(
     *,
     min_shading: float = DEFAULT_MIN_SHADING,
     saturation: float | None = None,
+    chunk_pixels: int = CHUNK_PIXELS,
 ) -> np.ndarray:
     """Least-squares RGB albedo, (H, W, 3) float32.
 
@@ -45,12 +50,30 @@ def albedo_map(
     min_shading: smallest n . l kept (dimensionless cosine).
     saturation: values at or above it are dropped (default: 99 % of the images' maximum).
     Pixels outside the mask, with a zero normal, or with no kept light in a channel get 0.
+    chunk_pixels: pixels solved at once (the working set is about
+    ``chunk_pixels * N * BYTES_PER_PIXEL_LIGHT`` bytes; maps.budget sizes it to --max-memory).
     """
     imgs = np.asarray(images)
     if imgs.ndim != 4 or imgs.shape[3] != 3:
         raise InputError(f"images must be N x H x W x 3, got shape {imgs.shape}")
-    n_lights, h, w = imgs.shape[:3]
     unit, valid = check_normals(normals, mask)
+    return checked_albedo(
+        imgs, lights, intensities, valid, unit, min_shading, saturation, chunk_pixels
+    )
+
+
+def checked_albedo(
+    imgs: np.ndarray,
+    lights: np.ndarray,
+    intensities: np.ndarray,
+    valid: np.ndarray,
+    unit: np.ndarray,
+    min_shading: float = DEFAULT_MIN_SHADING,
+    saturation: float | None = None,
+    chunk_pixels: int = CHUNK_PIXELS,
+) -> np.ndarray:
+    """:func:`albedo_map` of normals already through ``check_normals`` (no second copy)."""
+    n_lights, h, w = imgs.shape[:3]
     if unit.shape[:2] != (h, w):
         raise InputError(f"normals are {unit.shape[:2]} but images are {(h, w)}")
     dirs = np.asarray(lights, np.float64)
@@ -68,9 +91,9 @@ def albedo_map(
     out = np.zeros((h, w, 3), np.float32)
     pix = np.flatnonzero(valid.ravel())
     flat = imgs.reshape(n_lights, h * w, 3)
-    rho = np.zeros((pix.size, 3))
-    for start in range(0, pix.size, CHUNK_PIXELS):
-        sel = pix[start : start + CHUNK_PIXELS]
+    chunk = max(int(chunk_pixels), MIN_CHUNK_PIXELS)
+    for start in range(0, pix.size, chunk):
+        sel = pix[start : start + chunk]
         obs = flat[:, sel, :].astype(np.float64)  # (N, P, 3)
         cos = dirs @ unit.reshape(-1, 3)[sel].T  # (N, P)
         s = np.where(cos > min_shading, cos, 0.0)[:, :, None] * ints[:, None, :]
@@ -78,9 +101,9 @@ def albedo_map(
         s = np.where(keep, s, 0.0)
         num = np.einsum("npc,npc->pc", np.where(keep, obs, 0.0), s)
         den = np.einsum("npc,npc->pc", s, s)
-        rho[start : start + sel.size] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-    out.reshape(-1, 3)[pix] = rho
+        rho = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+        out.reshape(-1, 3)[sel] = rho  # written as it comes: no (P, 3) float64 beside it
     return out
 
 
-__all__ = ["DEFAULT_MIN_SHADING", "albedo_map", "default_saturation"]
+__all__ = ["DEFAULT_MIN_SHADING", "albedo_map", "checked_albedo", "default_saturation"]

@@ -18,7 +18,8 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import write_atomic
-from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, albedo_map
+from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, checked_albedo
+from msfnet.runtime.results.maps.budget import MapsBudget
 from msfnet.runtime.results.maps.curvature import DEFAULT_SIGMA, curvature_maps
 from msfnet.runtime.results.maps.integrate import (
     DEFAULT_MIN_NZ,
@@ -141,6 +142,8 @@ class InspectionMaps:
     local_shape: np.ndarray | None = None
     integration: Integration | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    skipped: tuple[str, ...] = ()  # maps asked for that did not fit in --max-memory
+    warning: str | None = None  # the one line saying so
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready facts: options, units, timings, integration details, value ranges."""
@@ -157,6 +160,8 @@ class InspectionMaps:
             },
             "registered": self.registered_units(),
         }
+        if self.skipped:
+            out["skipped"] = {"maps": list(self.skipped), "why": self.warning}
         if self.integration is not None:
             out["integration"] = {
                 "method": self.integration.method,
@@ -187,21 +192,33 @@ class InspectionMaps:
     def physical(self) -> dict[str, np.ndarray]:
         """The registered data maps in their TIFF units (mm with a pixel size): name -> (H, W)
         or (H, W, 3) float32. Only maps that were computed."""
-        k = self.options.pixel_size_mm or 1.0
-        out: dict[str, np.ndarray] = {"normals": self.normals}
+        return {name: self.physical_map(name) for name in self.physical_names()}
+
+    def physical_names(self) -> list[str]:
+        """The names :meth:`physical` gives, without making any of the maps."""
+        names = ["normals"]
         if self.gradient_p is not None and self.gradient_q is not None:
-            out["gradient_p"], out["gradient_q"] = self.gradient_p, self.gradient_q
+            names += ["gradient_p", "gradient_q"]
         if self.height is not None and self.options.intrinsics is None:
-            out["height"] = self.height * np.float32(k)
-        if self.local_shape is not None:
-            out["local_shape"] = self.local_shape * np.float32(k)
-        if self.curvature is not None:
-            out["curvature"] = self.curvature / np.float32(k)
-        if self.gaussian_curvature is not None:
-            out["gaussian_curvature"] = self.gaussian_curvature / np.float32(k * k)
-        if self.albedo is not None:
-            out["albedo"] = self.albedo
-        return {name: np.asarray(v, np.float32) for name, v in out.items()}
+            names.append("height")
+        for name in ("local_shape", "curvature", "gaussian_curvature", "albedo"):
+            if getattr(self, name) is not None:
+                names.append(name)
+        return names
+
+    def physical_map(self, name: str) -> np.ndarray:
+        """One map of :meth:`physical` (made on demand: the writer holds one at a time)."""
+        k = self.options.pixel_size_mm or 1.0
+        scale = {
+            "height": np.float32(k),
+            "local_shape": np.float32(k),
+            "curvature": np.float32(1.0 / k),
+            "gaussian_curvature": np.float32(1.0 / (k * k)),
+        }
+        values = self.normals if name == "normals" else getattr(self, name)
+        if name in scale and scale[name] != 1:
+            return np.asarray(values * scale[name], np.float32)
+        return np.asarray(values, np.float32)
 
 
 def compute_maps(
@@ -211,6 +228,8 @@ def compute_maps(
     mask: np.ndarray,
     normals: np.ndarray,
     options: MapOptions | None = None,
+    *,
+    max_memory_mb: float | None = None,
 ) -> InspectionMaps:
     """Compute the maps ``options.maps`` asks for.
 
@@ -218,26 +237,58 @@ def compute_maps(
     mask (H, W) bool; normals (H, W, 3) unit, camera frame (x right, y up, z to the camera).
     Bad input raises InputError (NaN normals in the mask, shape mismatches, missing images for
     the albedo). An empty mask is not an error: albedo 0, height and curvature all NaN.
+    ``max_memory_mb``: the whole process's budget (see maps.budget): a map whose working set
+    does not fit beside what the process holds is skipped before its work starts, named in
+    ``skipped`` and in the one-line ``warning``.
     """
     opts = options or MapOptions()
-    unit, valid = check_normals(normals, mask)
+    if opts.wants("albedo") and (images is None or lights is None or intensities is None):
+        raise InputError("the albedo needs the images, lights and intensities")
+    m = np.asarray(mask, bool)
+    budget = MapsBudget(
+        max_memory_mb,
+        int(m.size),
+        int(np.count_nonzero(m)),
+        0 if images is None else int(images.shape[0]),
+    )
+    wanted = [n for n in ("albedo", "height", "curvature", "mesh") if opts.wants(n)]
+    skipped: list[str] = []
+    needs: dict[str, float] = {}
+
+    def fits(name: str) -> bool:
+        if budget.fits(name, opts.method):
+            return True
+        spare = (budget.spare_mb() or 0.0) - budget.write_reserve_mb()
+        needs[name] = budget.need_mb(name, opts.method) - spare
+        skipped.append(name)
+        return False
+
+    if not fits("base"):  # not even the checked normals: no map at all
+        needs.update({n: needs["base"] for n in wanted})
+        skipped[:] = wanted
+        shape = np.asarray(normals).shape
+        maps = InspectionMaps(m, np.asarray(normals, np.float32).reshape(shape), opts)
+        maps.skipped = tuple(skipped)
+        maps.warning = budget.skipped_line(skipped, needs, every=True)
+        return maps
+    unit, valid = check_normals(normals, m)
     maps = InspectionMaps(mask=valid, normals=unit.astype(np.float32), options=opts)
     maps.gradient_p, maps.gradient_q = gradients(unit, valid, opts.min_nz)
-    if opts.wants("albedo"):
-        if images is None or lights is None or intensities is None:
-            raise InputError("the albedo needs the images, lights and intensities")
+    if opts.wants("albedo") and fits("albedo"):
+        assert images is not None and lights is not None and intensities is not None
         start = time.perf_counter()
-        maps.albedo = albedo_map(
-            images,
+        maps.albedo = checked_albedo(
+            np.asarray(images),
             lights,
             intensities,
             valid,
             unit,
             min_shading=opts.min_shading,
             saturation=opts.saturation,
+            chunk_pixels=budget.albedo_chunk(),
         )
         maps.timings["albedo"] = time.perf_counter() - start
-    if opts.wants("height"):
+    if opts.wants("height") and fits("height"):
         start = time.perf_counter()
         integ = integrate_normals(
             unit,
@@ -254,20 +305,43 @@ def compute_maps(
         maps.timings[f"height ({opts.method})"] = time.perf_counter() - start
         if opts.intrinsics is None:  # a perspective height is log-depth based: no local shape
             maps.local_shape = local_shape(integ.height, valid, opts.local_size_px)
-    if opts.wants("curvature"):
+        del integ
+    elif "mesh" in wanted and "height" in skipped:
+        skipped.append("mesh")  # a mesh is the height's
+        needs["mesh"] = needs["height"]
+    if opts.wants("curvature") and fits("curvature"):
         start = time.perf_counter()
         curv = curvature_maps(unit, valid, sigma=opts.curvature_sigma)
         maps.curvature, maps.gaussian_curvature = curv.mean, curv.gaussian
         maps.shape_index, maps.curvedness = curv.shape_index, curv.curvedness
         maps.timings["curvature"] = time.perf_counter() - start
+        del curv
+    del unit  # the float64 copy: the writes that follow need room
+    if "mesh" in wanted and maps.height is not None:
+        fits("mesh")
+    if skipped:
+        maps.skipped = tuple(skipped)
+        maps.warning = budget.skipped_line(skipped, needs, every=False)
     return maps
 
 
 def stack_maps(
-    stack: Stack, normals: np.ndarray, options: MapOptions | None = None
+    stack: Stack,
+    normals: np.ndarray,
+    options: MapOptions | None = None,
+    *,
+    max_memory_mb: float | None = None,
 ) -> InspectionMaps:
     """:func:`compute_maps` for a ``msfnet.runtime.stack.Stack`` and its estimated normals."""
-    return compute_maps(stack.images, stack.lights, stack.intensities, stack.mask, normals, options)
+    return compute_maps(
+        stack.images,
+        stack.lights,
+        stack.intensities,
+        stack.mask,
+        normals,
+        options,
+        max_memory_mb=max_memory_mb,
+    )
 
 
 ALBEDO_PNG_PERCENTILE = 99.5
@@ -376,7 +450,8 @@ def write_maps(
     degrees, and the latency table from ``profile``, a profile.json summary).
     ``rendered``: pictures the caller already drew ("normals", "error" PNG bytes), reused
     instead of drawn twice (matplotlib figures are most of the time spent here).
-    Everything is rendered in memory first, then each file is written through
+    The pictures are rendered in memory first; the data files (TIFFs, mesh) are made one at
+    a time as each is written (held one at a time within --max-memory); each goes through
     ``msfnet.common.files.write_atomic``: a failure while drawing writes nothing, and no file
     is ever left half-written.
     """
@@ -388,7 +463,8 @@ def write_maps(
     m = maps.mask
     jobs: list[tuple[str, Any]] = []
     figures: list[tuple[str, bytes]] = []
-    if images is not None:
+    draw = pictures.can_draw()  # without matplotlib ([pictures]) no figures, all else written
+    if images is not None and draw:
         figures.append(
             (
                 "wide: inputs: maximum over all images and a few of them",
@@ -396,27 +472,31 @@ def write_maps(
             )
         )
     done = dict(rendered or {})
-    figures.append(
-        (
-            "normals",
-            done.get("normals") or pictures.png_bytes(pictures.normals_picture(maps.normals, m)),
+    if draw:
+        figures.append(
+            (
+                "normals",
+                done.get("normals")
+                or pictures.png_bytes(pictures.normals_picture(maps.normals, m)),
+            )
         )
-    )
     if maps.albedo is not None:
         png = linear_png(pictures.png_bytes(albedo_png(maps.albedo, m)), ALBEDO_PNG_NOTE)
         jobs.append(("albedo.png", _bytes_writer(png)))
         jobs.append(("albedo.npy", _npy_writer(maps.albedo)))
-        figures.append(("albedo", pictures.png_bytes(pictures.albedo_picture(maps.albedo, m))))
+        if draw:
+            figures.append(("albedo", pictures.png_bytes(pictures.albedo_picture(maps.albedo, m))))
     # registered views (the input's size; figures with axes only in the report)
     if maps.height is not None:
         units = "px" if maps.options.intrinsics is None else "depth_ref units"
-        figure = pictures.png_bytes(pictures.height_picture(maps.height, m, units=units))
+        if draw:
+            figure = pictures.png_bytes(pictures.height_picture(maps.height, m, units=units))
+            figures.append((f"height ({maps.options.method})", figure))
         view = described_png(
             pictures.png_bytes(grey16_view(maps.height, m)),
             "height, min..max in the mask stretched to 1..65535, 0 outside; values in height.tif",
         )
         jobs += [("height.npy", _npy_writer(maps.height)), ("height.png", _bytes_writer(view))]
-        figures.append((f"height ({maps.options.method})", figure))
         if maps.depth is not None:
             jobs.append(("depth.npy", _npy_writer(maps.depth)))
     if maps.local_shape is not None:
@@ -429,7 +509,9 @@ def write_maps(
             )
         )
     if maps.curvature is not None:
-        figure = pictures.png_bytes(pictures.curvature_picture(maps.curvature, m))
+        if draw:
+            figure = pictures.png_bytes(pictures.curvature_picture(maps.curvature, m))
+            figures.append(("mean curvature", figure))
         rgb, top = signed_view(maps.curvature, m)
         note = f"mean curvature, red convex / blue concave, +-{top:.4g} 1/px full colour"
         jobs += [
@@ -441,36 +523,48 @@ def write_maps(
         ]
         if maps.shape_index is not None:
             jobs.append(("shape_index.npy", _npy_writer(maps.shape_index)))
-        figures.append(("mean curvature", figure))
     if maps.options.tiff:
         reg_units = maps.registered_units()
-        for name, data in maps.physical().items():
+        for name in maps.physical_names():
             text = f"msfnet {name} ({reg_units.get(name, 'see maps.json')}), float32, registered"
-            jobs.append((f"{name}.tif", lambda tmp, d=data, t=text: write_tiff(tmp, d, t)))
-    if error_deg is not None:
+            jobs.append(
+                (
+                    f"{name}.tif",
+                    lambda tmp, n=name, t=text: write_tiff(tmp, maps.physical_map(n), t),
+                )
+            )
+    if error_deg is not None and draw:
         figures.append(
             (
                 "angular error vs ground truth",
                 done.get("error") or pictures.png_bytes(pictures.error_picture(error_deg, m)),
             )
         )
-    if "mesh" in maps.options.maps and maps.height is not None:
-        colors = None if maps.albedo is None else albedo_colors(maps.albedo, m)
-        mesh = height_mesh(
-            maps.height,
-            m,
-            normals=maps.normals,
-            colors=colors,
-            intrinsics=Intrinsics.coerce(maps.options.intrinsics),
-            depth=maps.depth,
-            max_jump=maps.options.mesh_max_jump,
-        )
-        jobs.append(("mesh.ply", lambda tmp, mesh=mesh: write_ply(tmp, mesh)))
+    if "mesh" in maps.options.maps and maps.height is not None and "mesh" not in maps.skipped:
+
+        def mesh_writer(tmp: Path) -> None:
+            # built when its turn comes and dropped after: one output held at a time
+            assert maps.height is not None
+            colors = None if maps.albedo is None else albedo_colors(maps.albedo, m)
+            mesh = height_mesh(
+                maps.height,
+                m,
+                normals=maps.normals,
+                colors=colors,
+                intrinsics=Intrinsics.coerce(maps.options.intrinsics),
+                depth=maps.depth,
+                max_jump=maps.options.mesh_max_jump,
+            )
+            write_ply(tmp, mesh)
+
+        jobs.append(("mesh.ply", mesh_writer))
     summary = maps.summary()
     jobs.append(("maps.json", _bytes_writer((json.dumps(summary, indent=2) + "\n").encode())))
     if report:
         meta: dict[str, object] = {**provenance(profile), "pixels": summary["pixels"]}
         meta["height integration"] = maps.options.method
+        if not draw:
+            meta["figures"] = pictures.missing_note()
         if maps.integration is not None:
             meta["integration iterations"] = maps.integration.iterations
         if "height_range" in summary:

@@ -9,6 +9,7 @@ are drawn light grey. An empty mask gives a picture that says so instead of a bl
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -25,6 +26,25 @@ ERROR_MIN_RANGE_DEG = 5.0
 
 
 # ----------------------------------------------------------------------------- helpers
+
+
+@functools.cache
+def can_draw() -> bool:
+    """Whether matplotlib (the ``[pictures]`` extra) can be imported. Without it the figures
+    are skipped and every other output (data, registered maps, mesh, profile) is still
+    written: a headless station does not need 65 MB of plotting library to measure."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def missing_note() -> str:
+    """The one line saying that figures were not drawn and how to get them."""
+    from msfnet.common.cli import install_hint
+
+    return f"figures not drawn (they need matplotlib): {install_hint('matplotlib')}"
 
 
 def nice_ceiling(value: float) -> float:
@@ -68,18 +88,25 @@ def error_range(
     return min(180.0, max(minimum, scale_ceiling(top)))
 
 
+SHOWN_PX = 1000  # samples shown along a picture's longer side: twice its ~500 px width
+
+
 def crop_box(mask: np.ndarray, margin: float = 0.06) -> tuple[slice, slice]:
-    """Row and column slices of the mask's bounding box grown by ``margin`` of its size."""
+    """Row and column slices of the mask's bounding box grown by ``margin`` of its size,
+    every k-th pixel where the box is longer than SHOWN_PX: a picture ~500 px wide shows no
+    more, and drawing a full-resolution crop held several float64 copies of a large image
+    (hundreds of MB beyond --max-memory)."""
     if not mask.any():
         return slice(None), slice(None)
-    rows, cols = np.nonzero(mask)
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
     h, w = mask.shape
-    pad_r = math.ceil(margin * float(rows.max() - rows.min() + 1)) + 1
-    pad_c = math.ceil(margin * float(cols.max() - cols.min() + 1)) + 1
-    return (
-        slice(max(rows.min() - pad_r, 0), min(rows.max() + pad_r + 1, h)),
-        slice(max(cols.min() - pad_c, 0), min(cols.max() + pad_c + 1, w)),
-    )
+    pad_r = math.ceil(margin * float(rows[-1] - rows[0] + 1)) + 1
+    pad_c = math.ceil(margin * float(cols[-1] - cols[0] + 1)) + 1
+    r0, r1 = max(rows[0] - pad_r, 0), min(rows[-1] + pad_r + 1, h)
+    c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, w)
+    step = max(1, math.ceil(max(r1 - r0, c1 - c0) / SHOWN_PX))
+    return slice(int(r0), int(r1), step), slice(int(c0), int(c1), step)
 
 
 def _figure(shape: tuple[int, int], colorbar: bool) -> tuple[Any, Any, Any]:
@@ -105,7 +132,11 @@ def _figure(shape: tuple[int, int], colorbar: bool) -> tuple[Any, Any, Any]:
 
 def _render(fig: Any) -> np.ndarray:
     fig.canvas.draw()
-    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    # a figure's artists form reference cycles that keep the arrays they show (float64
+    # frames) until a garbage collection: dropped now, within --max-memory
+    fig.clear()
+    return rgb
 
 
 def _empty(title: str) -> np.ndarray:
@@ -118,7 +149,7 @@ def _empty(title: str) -> np.ndarray:
 
 
 def _rgb_on_background(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    out = np.empty(rgb.shape, np.float64)
+    out = np.empty(rgb.shape, np.float32)  # display values: float32 is plenty
     out[:] = BACKGROUND
     out[mask] = np.clip(rgb[mask], 0.0, 1.0)
     return out
@@ -135,7 +166,8 @@ def _scalar_picture(
     label: str,
     rgb: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Colour-mapped (or precomputed ``rgb``) picture of a scalar map with a colour bar."""
+    """Colour-mapped (or precomputed ``rgb``, of the ``crop_box(mask)`` crop only) picture of
+    a scalar map with a colour bar."""
     from matplotlib import colormaps
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
@@ -144,7 +176,7 @@ def _scalar_picture(
     m = mask[rs, cs]
     norm = Normalize(vmin=vmin, vmax=vmax)
     cm = colormaps[cmap]
-    rgb = cm(norm(np.nan_to_num(values[rs, cs])))[..., :3] if rgb is None else rgb[rs, cs]
+    rgb = cm(norm(np.nan_to_num(values[rs, cs])))[..., :3] if rgb is None else rgb
     fig, ax, cax = _figure(m.shape, colorbar=True)
     ax.imshow(_rgb_on_background(rgb, m), interpolation="nearest")
     ax.set_title(title, fontsize=10)
@@ -216,28 +248,29 @@ def height_picture(height: np.ndarray, mask: np.ndarray, *, units: str = "px") -
     lo, hi = float(vals.min()), float(vals.max())
     if hi - lo <= 1e-9:
         hi = lo + 1.0  # a flat (or one-pixel) object: any range shows it in one colour
-    filled = np.where(valid, height, lo)
     rs, cs = crop_box(valid)
-    crop = filled[rs, cs]
+    crop = np.where(valid[rs, cs], height[rs, cs], lo)
     if min(crop.shape) < 2:  # hill shading needs a slope: one row or column is just coloured
         shade = colormaps["viridis"](Normalize(lo, hi)(crop))[..., :3]
     else:
-        shade = LightSource(azdeg=315, altdeg=45).shade(
+        shade = LightSource(
+            azdeg=315, altdeg=45
+        ).shade(
             crop,
             cmap=colormaps["viridis"],
             norm=Normalize(lo, hi),
             blend_mode="soft",
             vert_exag=1.0,
+            dx=float(cs.step or 1),  # a subsampled crop: slopes per original pixel
+            dy=float(rs.step or 1),
         )[..., :3]
-    full = np.zeros((*height.shape, 3))
-    full[rs, cs] = shade
     return _scalar_picture(
         height,
         valid,
         cmap="viridis",
         vmin=lo,
         vmax=hi,
-        rgb=full,
+        rgb=shade,
         title=f"height (hill-shaded), range {hi - lo:.1f} {units}",
         label=f"height toward camera ({units})",
     )
@@ -247,14 +280,15 @@ CURVATURE_CMAP = "RdBu_r"  # diverging: blue concave, white flat, red convex
 
 
 def curvature_colors(
-    mean: np.ndarray, mask: np.ndarray, percentile: float = 99.0
+    mean: np.ndarray, mask: np.ndarray, percentile: float = 99.0, *, top: float | None = None
 ) -> tuple[np.ndarray, float]:
     """(H, W, 3) RGB in [0, 1] of a mean-curvature map on the diverging map centred on 0, and
-    the symmetric range r used (-r .. +r, the ``percentile`` of |H| in the mask)."""
+    the symmetric range r used (-r .. +r, the ``percentile`` of |H| in the mask, or ``top``)."""
     from matplotlib import colormaps
 
-    valid = mask & np.isfinite(mean)
-    top = symmetric_range(mean[valid], percentile)
+    if top is None:
+        valid = mask & np.isfinite(mean)
+        top = symmetric_range(mean[valid], percentile)
     scaled = np.clip(np.nan_to_num(mean) / top, -1.0, 1.0) * 0.5 + 0.5
     return colormaps[CURVATURE_CMAP](scaled)[..., :3], top
 
@@ -267,7 +301,9 @@ def curvature_picture(
     valid = mask & np.isfinite(mean)
     if not valid.any():
         return _empty("mean curvature")
-    rgb, top = curvature_colors(mean, valid, percentile)
+    top = symmetric_range(mean[valid], percentile)
+    rs, cs = crop_box(valid)
+    rgb, _ = curvature_colors(mean[rs, cs], valid[rs, cs], percentile, top=top)
     return _scalar_picture(
         mean,
         valid,
@@ -318,7 +354,8 @@ def inputs_picture(
     FigureCanvasAgg(fig)
     for k, (name, img) in enumerate(panels):
         ax = fig.add_axes((k / cols + 0.01, 0.05 / height, 1 / cols - 0.02, panel_h / height))
-        ax.imshow(np.clip(img / top, 0, 1) ** (1 / 2.2), interpolation="nearest")
+        shown = np.clip(img.astype(np.float32) / np.float32(top), 0, 1, dtype=np.float32)
+        ax.imshow(shown ** np.float32(1 / 2.2), interpolation="nearest")
         ax.set_title(name, fontsize=9)
         ax.set_axis_off()
     return _render(fig)
@@ -335,6 +372,7 @@ def png_bytes(rgb: np.ndarray) -> bytes:
 
 __all__ = [
     "albedo_picture",
+    "can_draw",
     "crop_box",
     "curvature_colors",
     "curvature_picture",
@@ -343,6 +381,7 @@ __all__ = [
     "height_picture",
     "inputs_picture",
     "legend_sphere",
+    "missing_note",
     "nice_ceiling",
     "normals_picture",
     "png_bytes",

@@ -54,14 +54,15 @@ def gradients(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(p, q) = (dz/dcol, dz/drow) of (H, W, 3) unit normals (x right, y up, z to the camera),
     float32, NaN outside ``valid``; nz is clipped at ``min_nz`` (slopes bounded by 1/min_nz)."""
-    nz = np.maximum(normals[..., 2].astype(np.float64), min_nz)
-    p = -normals[..., 0] / nz
-    q = normals[..., 1] / nz  # y up, rows down: dz/drow = -dz/dy = ny / nz
-    nan = np.float32(np.nan)
-    return (
-        np.where(valid, p, nan).astype(np.float32),
-        np.where(valid, q, nan).astype(np.float32),
-    )
+    # float32 throughout (the maps are float32): no float64 H x W temporaries
+    nz = np.maximum(normals[..., 2], min_nz).astype(np.float32)
+    p = np.divide(normals[..., 0], nz, dtype=np.float32)
+    np.negative(p, out=p)
+    q = np.divide(normals[..., 1], nz, dtype=np.float32)  # rows down: dz/drow = ny / nz
+    del nz
+    p[~valid] = np.nan
+    q[~valid] = np.nan
+    return p, q
 
 
 def masked_gaussian(values: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:

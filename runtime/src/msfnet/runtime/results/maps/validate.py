@@ -36,17 +36,22 @@ def check_normals(normals: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np
     if n.ndim != 3 or n.shape[2] != 3:
         raise InputError(f"normals must be H x W x 3, got shape {n.shape}")
     m = check_mask(mask, n.shape[:2])
-    n = n.astype(np.float64)
-    bad = m & ~np.all(np.isfinite(n), axis=2)
+    # one float64 copy, then worked on in place: an H x W x 3 float64 array is 24 B a pixel,
+    # and the maps run within --max-memory beside the loaded stack
+    n = np.array(n, dtype=np.float64)
+    bad = m & ~np.isfinite(n).all(axis=2)
     if bad.any():
         raise InputError(
             f"normals contain NaN or infinite values at {int(bad.sum())} of "
             f"{int(m.sum())} mask pixels"
         )
-    n = np.where(m[..., None], n, 0.0)  # whatever lies outside the mask is ignored
-    norm = np.linalg.norm(n, axis=2)
+    del bad
+    n[~m] = 0.0  # whatever lies outside the mask is ignored
+    norm = np.sqrt(np.einsum("hwc,hwc->hw", n, n))
     valid = m & (norm > MIN_NORM)
-    unit = np.where(valid[..., None], n / np.maximum(norm, MIN_NORM)[..., None], 0.0)
+    n /= np.maximum(norm, MIN_NORM)[..., None]
+    n[~valid] = 0.0
+    unit = n
     return unit, valid
 
 
