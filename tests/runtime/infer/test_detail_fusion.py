@@ -8,12 +8,8 @@ import pytest
 from scipy import ndimage
 
 from msfnet.common.errors import InputError
-from msfnet.runtime.infer.detail_fusion import (
-    FusionOptions,
-    fuse_detail,
-    lambertian_residual,
-    lambertian_validity,
-)
+from msfnet.runtime.infer.detail_fusion import FusionOptions, fuse_detail, validity
+from msfnet.runtime.infer.robust_least_squares import robust_least_squares
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.readers import unit_normals
 
@@ -62,7 +58,7 @@ def test_shapes_are_checked() -> None:
         FusionOptions(sigma=float("nan"))
 
 
-def _lambertian_stack(specular: bool) -> Stack:
+def _lambertian_stack(broken: bool) -> Stack:
     n = _field(5, 32, 32)
     k = np.arange(12)
     th = np.radians(35.0)
@@ -75,20 +71,22 @@ def _lambertian_stack(specular: bool) -> Stack:
         axis=1,
     ).astype(np.float32)
     shading = np.clip(np.einsum("hwc,nc->nhw", n, lights), 0, None) * 0.5
-    if specular:
-        shading[3, :, :16] += 0.8  # a highlight under one light on the left half
+    shading[3, :, :16] += 0.8  # a highlight under one light: the robust fit drops it
+    if broken:  # the left half unlike any Lambertian surface: nothing to trust there
+        shading[:, :, :16] = np.random.default_rng(6).uniform(0.0, 1.0, (12, 32, 16))
     images = np.repeat(shading[..., None], 3, axis=3).astype(np.float32)
     return Stack.from_arrays(images, lights)
 
 
-def test_validity_sees_a_highlight() -> None:
-    plain = lambertian_residual(_lambertian_stack(False))
-    assert plain.max() < 1e-4  # exact Lambertian data, every light lit: no residual
-    stack = _lambertian_stack(True)
-    v = lambertian_validity(stack)
-    assert v.residual[:, :16].min() > 0.2 and v.residual[:, 20:].max() < 1e-4
-    assert v.detail[:, :12].max() < 0.05 and v.detail[:, 20:].min() > 0.99
-    assert v.shape[:, :12].max() < v.detail[:, :12].max() + 1e-6  # stricter
+def test_validity_trusts_the_robust_fit_and_not_a_broken_model() -> None:
+    stack = _lambertian_stack(broken=False)
+    v = validity(robust_least_squares(stack), stack.mask)
+    assert v.detail.min() > 0.99  # the highlight is dropped, not distrusted
+    stack = _lambertian_stack(broken=True)
+    v = validity(robust_least_squares(stack), stack.mask)
+    assert v.detail[:, :12].mean() < 0.15 and v.detail[:, :12].max() < 0.3
+    assert v.detail[:, 20:].min() > 0.99
+    assert v.shape[:, :12].max() < 0.05 and v.shape[:, :12].max() <= v.detail[:, :12].max()
     # smooth: no jump from 0 to 1 between neighbours
     assert np.abs(np.diff(v.detail, axis=1)).max() < 0.5
 

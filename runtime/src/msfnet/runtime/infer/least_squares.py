@@ -53,14 +53,20 @@ def least_squares_normals(
     return out
 
 
-def rows_for_memory(max_memory_mb: float, stack: Stack, in_use_mb: float | None = None) -> int:
+def rows_for_memory(
+    max_memory_mb: float,
+    stack: Stack,
+    in_use_mb: float | None = None,
+    bytes_per_pixel_light: int = BYTES_PER_PIXEL_LIGHT,
+) -> int:
     """Image rows per band so that the stack, what else the process holds (``in_use_mb``, see
-    :func:`least_squares_normals`), the output and the band's working set fit in
-    ``max_memory_mb``; InputError (quoting the budget as given) when not even MIN_ROWS fit."""
+    :func:`least_squares_normals`), the output and the band's working set (``bytes_per_pixel_light``
+    per pixel and light) fit in ``max_memory_mb``; InputError (quoting the budget as given) when
+    not even MIN_ROWS fit."""
     if not (np.isfinite(max_memory_mb) and max_memory_mb > 0):
         raise InputError(f"--max-memory must be a positive number of MB, got {max_memory_mb}")
     h, w = stack.shape
-    per_row = w * stack.num_lights * BYTES_PER_PIXEL_LIGHT
+    per_row = w * stack.num_lights * bytes_per_pixel_light
     stack_mb = stack.images.nbytes / 2**20
     if in_use_mb is None:
         rss = memory_in_use_mb()
@@ -79,7 +85,7 @@ def rows_for_memory(max_memory_mb: float, stack: Stack, in_use_mb: float | None 
     return min(rows, h)
 
 
-def _grey(pixels: np.ndarray, intensities: np.ndarray) -> np.ndarray:
+def grey_values(pixels: np.ndarray, intensities: np.ndarray) -> np.ndarray:
     """(N, P) float64 grey values of gathered (N, P, 3) pixels divided by the light intensity.
     Integer pixels are cast first (exact in float32: the numbers a float32 stack gives, and no
     integer arithmetic); the copy lives only here."""
@@ -94,7 +100,7 @@ def _solve(
     """(3, P) unit normals of the gathered mask pixels (N, P, 3)."""
     lights = network_lights(stack.lights).astype(np.float64)  # (N, 3)
     n = lights.shape[0]
-    grey = _grey(pixels, stack.intensities)  # (N, P)
+    grey = grey_values(pixels, stack.intensities)  # (N, P)
     lo = int(np.floor(trim_shadows * n))
     hi = n - int(np.floor(trim_highlights * n))
     if hi - lo < MIN_LIGHTS:
@@ -116,4 +122,4 @@ def _solve(
     return np.where(norm > 1e-12, g / np.maximum(norm, 1e-12), 0.0)
 
 
-__all__ = ["least_squares_normals", "memory_in_use_mb"]
+__all__ = ["grey_values", "least_squares_normals", "memory_in_use_mb", "rows_for_memory"]
