@@ -454,3 +454,35 @@ def test_out_of_memory_advice_names_only_options_the_command_has(
     assert run_command(prog, _raise(MemoryError())) == 2
     line = capfd.readouterr().err.strip()
     assert line == f"{prog}: error: out of memory; {advice}"
+
+
+def test_command_main_check_runs_after_parsing_and_before_the_body(capsys) -> None:
+    """The ``check`` hook: a rule argparse cannot state fails as a usage error (one line, exit
+    2, also with --debug) and the body never runs; a kept rule lets the body run as usual."""
+    calls: list[str] = []
+
+    def parser() -> argparse.ArgumentParser:
+        p = make_parser("msf-x", "test")
+        p.add_argument("name", nargs="?")
+        p.add_argument("--list", action="store_true")
+        return p
+
+    def check(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+        calls.append("check")
+        if args.name is None and not args.list:
+            p.error("the following arguments are required: name")
+
+    def body(args: argparse.Namespace) -> int:
+        calls.append("body")
+        return 7
+
+    for argv in ([], ["--debug"]):
+        with pytest.raises(SystemExit) as exc:
+            cliutil.command_main("msf-x", parser(), body, argv, check=check)
+        assert exc.value.code == 2
+        assert capsys.readouterr().err == (
+            "msf-x: error: the following arguments are required: name\n"
+        )
+    assert calls == ["check", "check"]
+    assert cliutil.command_main("msf-x", parser(), body, ["--list"], check=check) == 7
+    assert calls == ["check", "check", "check", "body"]

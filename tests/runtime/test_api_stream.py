@@ -4,6 +4,7 @@ typed LoadOptions with str paths, errors in the API's words, results a person ca
 from __future__ import annotations
 
 import json
+import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import replace
@@ -163,3 +164,18 @@ def test_result_reads_as_a_line_json_and_a_picture(random_onnx: Path) -> None:
     pytest.importorskip("matplotlib", reason="figures need matplotlib")
     fig = result.plot(figure=True)
     assert fig.axes and fig.axes[0].images  # one axes showing the picture
+
+
+def test_a_figure_without_matplotlib_says_what_to_install(monkeypatch) -> None:
+    """matplotlib is an optional extra: plot() without it is one InputError naming the extra
+    to install, not a bare ModuleNotFoundError; a user's mistake is still said first."""
+    result = Model.least_squares(maps=None)(sphere_stack(n=6, h=16, w=16, name="ball"))
+    mpl = [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]
+    for name in {"matplotlib", *mpl}:
+        monkeypatch.setitem(sys.modules, name, None)  # importing it raises ModuleNotFoundError
+    for figure in (False, True):
+        with pytest.raises(InputError, match=r"matplotlib, which is not installed") as exc:
+            result.plot(figure=figure)
+        assert "\n" not in str(exc.value) and "msfnet[pictures]" in str(exc.value)
+    with pytest.raises(InputError, match="expected one of normals"):
+        result.plot("nothing")

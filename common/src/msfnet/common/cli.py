@@ -321,11 +321,20 @@ def command_main(
     parser: argparse.ArgumentParser,
     body: Callable[[argparse.Namespace], int],
     argv: Sequence[str] | None = None,
+    *,
+    check: Callable[[argparse.ArgumentParser, argparse.Namespace], None] | None = None,
 ) -> int:
     """A command's whole ``main``: parse ``argv``, then run ``body(args)`` through
     :func:`run_command` (one-line errors and exit codes), with every output manifest naming
-    ``prog`` as its writer."""
+    ``prog`` as its writer.
+
+    ``check(parser, args)``: rules between flags that argparse cannot state (msf-export's
+    checkpoint is required unless --list-variants), run right after parsing; it reports with
+    ``parser.error``, so a broken rule reads and exits as any other usage error, before any
+    body code runs."""
     args = parser.parse_args(argv)
+    if check is not None:
+        check(parser, args)
     typed = (prog, *(sys.argv[1:] if argv is None else argv))
 
     def run() -> int:

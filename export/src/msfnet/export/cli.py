@@ -13,11 +13,11 @@ import sys
 from pathlib import Path
 
 from msfnet.common.cli import (
+    command_main,
     int_range,
     make_parser,
     positive_float,
     positive_int,
-    run_command,
 )
 from msfnet.common.errors import InputError
 from msfnet.export.variants import (
@@ -198,15 +198,21 @@ def resolve_variant(args: argparse.Namespace) -> Variant:
     return chosen
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def _check_args(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    # the checkpoint is optional only for --list-variants: a parse error like argparse's own
+    if not args.list_variants and args.checkpoint is None:
+        parser.error("the following arguments are required: checkpoint")
+
+
+def _body(args: argparse.Namespace) -> int:
     if args.list_variants:
         print(_table())
         return 0
-    if args.checkpoint is None:
-        parser.error("the following arguments are required: checkpoint")
-    return run_command(PROG, lambda: _export(args), debug=args.debug)
+    return _export(args)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return command_main(PROG, build_parser(), _body, argv, check=_check_args)
 
 
 def _export(args: argparse.Namespace) -> int:

@@ -11,26 +11,19 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from msfnet.common.cli import (
-    command_main,
-    int_range,
-    make_parser,
-    nonnegative_float,
-    nonnegative_int,
-    positive_float,
-    positive_int,
-    thread_count,
-)
+from msfnet.common.cli import add_flags, command_main, int_range, make_parser
 from msfnet.common.errors import InputError
 from msfnet.common.files import STAGING_TAG, check_not_input
-from msfnet.model.train_config import SNAPSHOT, TrainConfig, parse_curriculum
+from msfnet.model.train_config import (
+    MAX_LIGHTS,
+    MAX_SIZE,
+    SNAPSHOT,
+    TrainConfig,
+    parse_curriculum,
+)
 from msfnet.runtime.stack.types import MIN_LIGHTS
-from msfnet.synth.render import PRESETS
 
-DEFAULTS = TrainConfig(out="")
 PROG = "msf-train"
-MAX_SIZE = 4096
-MAX_LIGHTS = 1024
 # What msf-train writes into OUT: --overwrite deletes these and nothing else.
 # (Checkpoints are written through files.write_atomic; the ".*.pth.tmp" names are temporaries
 # that earlier msfnet versions left behind when killed with kill -9.)
@@ -48,7 +41,6 @@ TRAIN_FILES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    d = DEFAULTS
     p = make_parser(
         PROG,
         "Train MSF-Net with three stage losses (0.5:0.5:1) and the selective update "
@@ -80,26 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="start afresh in an OUT of an earlier msf-train run (only its files are deleted)",
     )
-    p.add_argument(
-        "--data",
-        default=d.data,
-        help="'synth' (built-in renderer, default) or a Blobby/Sculpture root folder",
-    )
-    p.add_argument("--epochs", type=positive_int, default=d.epochs, help=f"default {d.epochs}")
-    p.add_argument(
-        "--steps-per-epoch",
-        type=positive_int,
-        default=d.steps_per_epoch,
-        help=f"default {d.steps_per_epoch}",
-    )
-    p.add_argument("--batch", type=positive_int, default=d.batch, help=f"default {d.batch}")
-    p.add_argument(
-        "--curriculum",
-        default=d.curriculum,
-        help="EPOCH:LMIN-LMAX:CROP[,...]: from EPOCH on, each batch uses a random "
-        "light count in [LMIN, LMAX] and CROPxCROP crops "
-        f"(default {d.curriculum!r}; one phase = fixed setting)",
-    )
+    add_flags(p, TrainConfig)  # the run's settings: one flag per TrainConfig field
+    # shortcuts that rewrite --curriculum (config_from), so no field of their own
     p.add_argument(
         "--lights",
         type=int_range(MIN_LIGHTS, MAX_LIGHTS),  # photometric stereo's fewest lights
@@ -110,205 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--crop", type=int_range(8, MAX_SIZE), default=None, help="shortcut: fixed crop size"
     )
-    p.add_argument(
-        "--lr", type=positive_float, default=d.lr, help=f"Adam learning rate (default {d.lr})"
-    )
-    p.add_argument(
-        "--lr-step",
-        type=positive_int,
-        default=d.lr_step,
-        help=f"halve the learning rate every this many epochs (default {d.lr_step})",
-    )
-    p.add_argument(
-        "--seed",
-        type=nonnegative_int,
-        default=d.seed,
-        help=f"seed of the synthetic data and the initial weights (default {d.seed})",
-    )
-    p.add_argument(
-        "--threads",
-        type=thread_count,
-        default=d.threads,
-        help=f"torch threads of the training process (default {d.threads})",
-    )
-    p.add_argument(
-        "--device",
-        choices=("auto", "cpu", "cuda"),
-        default=d.device,
-        help="auto (default): cuda when torch sees a GPU, else cpu",
-    )
-    p.add_argument(
-        "--workers",
-        type=nonnegative_int,
-        default=d.workers,
-        help="processes rendering batches in parallel (DataLoader workers, each with "
-        "its own object pool and seed stream); 0 = render in the training "
-        "process. Default: 0 on the CPU, min(cores - 2, 12) with cuda",
-    )
-    p.add_argument(
-        "--render-on",
-        choices=("cpu", "device"),
-        default=d.render_on,
-        help="where synthetic batches are rendered: cpu (default: the numpy renderer, in "
-        "the training process or --workers) or device (the torch renderer on the training "
-        "device itself, as batched tensor operations; no workers; --render-preset applies)",
-    )
-    p.add_argument(
-        "--time-budget",
-        type=positive_float,
-        default=d.time_budget,
-        metavar="SECONDS",
-        help="stop this many seconds after the start (setup included), finishing the step "
-        "and saving last.pth (exit 0): e.g. a minute short of a time-boxed session",
-    )
-    p.add_argument(
-        "--snapshot-seconds",
-        type=nonnegative_float,
-        default=d.snapshot_seconds,
-        metavar="SECONDS",
-        help="also keep snap_<step>.pth (fp16, ~4.5 MB) every this many seconds (default 0: none)",
-    )
-    p.add_argument(
-        "--precision",
-        choices=("auto", "bf16", "fp32"),
-        default=d.precision,
-        help="bf16 autocast where the device supports it natively (auto, default: "
-        "GPUs with bf16, CPUs with AVX512-BF16/AMX) or fp32",
-    )
-    p.add_argument("--no-channels-last", action="store_true", help="keep NCHW weights")
-    p.add_argument(
-        "--no-mfe",
-        action="store_true",
-        help="ablation: no multi-stage extraction (extractor1 -> max -> regressor)",
-    )
-    p.add_argument(
-        "--init",
-        metavar="CKPT",
-        help="start from these weights with a fresh optimiser (e.g. the bundled "
-        "msfnet_default.pth), instead of random initialisation",
-    )
-    p.add_argument(
-        "--no-mff",
-        action="store_true",
-        help="ablation: no fusion module (a stage sees concat(raw, max))",
-    )
-    p.add_argument(
-        "--no-sus",
-        action="store_true",
-        help="ablation: no selective update (all stage losses train all modules)",
-    )
-    p.add_argument(
-        "--grad-loss",
-        type=nonnegative_float,
-        default=d.grad_loss,
-        metavar="W",
-        help="add W x the L1 distance between predicted and true normal changes "
-        "from pixel to pixel to each stage loss (default 0: the "
-        "paper's loss). Experimental: meant to keep 1-3 px relief, it lowered "
-        "detail in a short CPU fine-tune (docs/training.md)",
-    )
-    p.add_argument(
-        "--consistency",
-        type=nonnegative_float,
-        default=d.consistency,
-        metavar="W",
-        help="also train each batch turned / mirrored one of 7 ways and add W x the "
-        "disagreement of the two predictions mapped back (rotation consistency; about 2x the "
-        "step time; default 0: off)",
-    )
-    p.add_argument(
-        "--render-size",
-        type=int_range(8, MAX_SIZE),
-        default=d.render_size,
-        help=f"synthetic object size in pixels (default {d.render_size})",
-    )
-    p.add_argument(
-        "--render-size-max",
-        type=int_range(8, MAX_SIZE),
-        default=d.render_size_max,
-        help="draw each synthetic object's size from [--render-size, this]: larger "
-        "renders are smoother per pixel, like real full-resolution objects",
-    )
-    p.add_argument(
-        "--render-max-depth",
-        type=positive_float,
-        default=d.render_max_depth,
-        help="synthetic domes up to this height/radius (default "
-        f"{d.render_max_depth}; 2 gives a slant histogram like DiLiGenT ball's, "
-        "with 4x more pixels steeper than 66 deg)",
-    )
-    p.add_argument(
-        "--render-preset",
-        choices=PRESETS,
-        default=d.render_preset,
-        help="synthetic data: 'default' renderer or 'hard' (steep rims, folds and "
-        "cups with inter-reflections, pixel-scale relief, rough / painted / "
-        "very dark materials, LED rings, mostly 8-bit); validation stays on "
-        "the default renderer so runs compare",
-    )
-    p.add_argument(
-        "--val-size",
-        type=int_range(8, MAX_SIZE),
-        default=d.val_size,
-        help=f"validation object size in pixels (default {d.val_size})",
-    )
-    p.add_argument(
-        "--render-lights",
-        type=int_range(3, MAX_LIGHTS),
-        default=d.render_lights,
-        help=f"lights rendered per synthetic object (default {d.render_lights})",
-    )
-    p.add_argument(
-        "--pool",
-        type=positive_int,
-        default=d.pool,
-        help=f"synthetic objects kept in memory (default {d.pool})",
-    )
-    p.add_argument(
-        "--refresh",
-        type=nonnegative_int,
-        default=d.refresh,
-        help=f"new synthetic objects rendered per batch (default {d.refresh})",
-    )
-    p.add_argument(
-        "--noise",
-        type=nonnegative_float,
-        default=d.noise,
-        help="max extra Gaussian noise, fraction of the crop's 95th percentile "
-        f"(default {d.noise})",
-    )
-    p.add_argument(
-        "--val-objects",
-        type=positive_int,
-        default=d.val_objects,
-        help=f"held-out synthetic validation objects (default {d.val_objects})",
-    )
-    p.add_argument(
-        "--ckpt-minutes",
-        type=positive_float,
-        default=d.ckpt_minutes,
-        help=f"save last.pth at least this often (default {d.ckpt_minutes})",
-    )
-    p.add_argument(
-        "--snapshot-every",
-        type=nonnegative_int,
-        default=d.snapshot_every,
-        metavar="EPOCHS",
-        help="also keep snap_<step>.pth every this many epochs, to select a model "
-        "on real objects later (default 0: only last.pth and best.pth)",
-    )
-    p.add_argument(
-        "--log-every",
-        type=positive_int,
-        default=d.log_every,
-        help=f"append a log.jsonl row every this many steps (default {d.log_every})",
-    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
-
-
-# CLI option -> TrainConfig field (where the names differ)
-RENAME = {"no_channels_last": "channels_last", "no_mfe": "mfe", "no_mff": "mff", "no_sus": "sus"}
 
 
 def _explicit(argv: list[str] | None) -> dict:
@@ -324,9 +101,7 @@ def config_from(args: dict, base: dict) -> TrainConfig:
     cfg = dict(base)
     names = {f.name for f in fields(TrainConfig)}
     for key, value in args.items():
-        if key in RENAME:
-            cfg[RENAME[key]] = not value
-        elif key in names:
+        if key in names:  # the flags store under the field names (--no-mfe: mfe=False)
             cfg[key] = str(value) if key == "out" else value
     if args.get("lights") is not None or args.get("crop") is not None:
         phase = parse_curriculum(cfg["curriculum"])[0]
@@ -476,7 +251,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         stored = _stored_config(out)
         explicit = _explicit(argv)
         for flag, key in (("--no-mfe", "mfe"), ("--no-mff", "mff")):
-            if flag.lstrip("-").replace("-", "_") in explicit and stored.get(key, True):
+            if key in explicit and stored.get(key, True):
                 raise InputError(
                     f"--resume: {flag} changes the network of the run being "
                     "resumed; start a new run instead",

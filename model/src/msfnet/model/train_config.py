@@ -7,9 +7,18 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
+from msfnet.common.cli import (
+    flag,
+    int_range,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+    thread_count,
+)
 from msfnet.common.errors import InputError
 from msfnet.runtime.stack.types import MIN_LIGHTS
-from msfnet.synth.render import RenderOptions
+from msfnet.synth.render import PRESETS, RenderOptions
 
 SNAPSHOT = re.compile(r"snap_\d{7}\.pth")  # what --snapshot-every writes, and nothing else
 
@@ -48,48 +57,202 @@ def parse_curriculum(spec: str) -> list[Phase]:
     return phases
 
 
+# Upper bounds that keep a mistyped number from asking for terabytes before anything runs.
+MAX_SIZE = 4096
+MAX_LIGHTS = 1024
+
+
 @dataclass
 class TrainConfig:
-    out: str
-    epochs: int = 20
-    steps_per_epoch: int = 300
-    batch: int = 8
-    curriculum: str = "0:16-32:32"
-    lr: float = 1e-3
-    lr_step: int = 5  # halve the learning rate every lr_step epochs
-    seed: int = 0
-    threads: int = 2
-    precision: str = "auto"  # auto | bf16 | fp32
-    channels_last: bool = True
-    mfe: bool = True
-    mff: bool = True
-    sus: bool = True
-    grad_loss: float = 0.0  # weight of gradient_loss beside the cosine loss (0: the paper's)
-    consistency: float = 0.0  # weight of the rotation-consistency term (model.equivariance)
-    data: str = "synth"  # "synth" or a Blobby/Sculpture root folder
-    init: str | None = None  # start from these weights (fresh optimiser), e.g. the bundled model
-    render_size: int = 64
-    render_size_max: int | None = None  # sizes drawn from [render_size, render_size_max]
-    render_max_depth: float = RenderOptions.max_depth
-    render_preset: str = "default"  # "default" or "hard" (msfnet.synth RenderOptions.preset)
-    render_lights: int = 40
-    pool: int = 48
-    refresh: int = 2
-    noise: float = 0.01
-    val_objects: int = 8
-    val_size: int = 64
+    """One training run's settings. The fields with a ``flag`` are msf-train's options: the
+    command line is generated from them (common.cli.add_flags), so the two cannot drift apart.
+    ``%(default)s`` in a help text is argparse's: it prints the field's default."""
+
+    out: str  # -o/--output/--out: written by hand in train_cli (a required Path)
+    epochs: int = flag(20, "default %(default)s", type=positive_int)
+    steps_per_epoch: int = flag(300, "default %(default)s", type=positive_int)
+    batch: int = flag(8, "default %(default)s", type=positive_int)
+    curriculum: str = flag(
+        "0:16-32:32",
+        "EPOCH:LMIN-LMAX:CROP[,...]: from EPOCH on, each batch uses a random light count in "
+        "[LMIN, LMAX] and CROPxCROP crops (default %(default)r; one phase = fixed setting)",
+    )
+    lr: float = flag(1e-3, "Adam learning rate (default %(default)s)", type=positive_float)
+    lr_step: int = flag(
+        5, "halve the learning rate every this many epochs (default %(default)s)", type=positive_int
+    )
+    seed: int = flag(
+        0,
+        "seed of the synthetic data and the initial weights (default %(default)s)",
+        type=nonnegative_int,
+    )
+    threads: int = flag(
+        2, "torch threads of the training process (default %(default)s)", type=thread_count
+    )
+    precision: str = flag(
+        "auto",
+        "bf16 autocast where the device supports it natively (auto, default: GPUs with bf16, "
+        "CPUs with AVX512-BF16/AMX) or fp32",
+        choices=("auto", "bf16", "fp32"),
+    )
+    channels_last: bool = flag(
+        True, "keep NCHW weights", name="--no-channels-last", action="store_false"
+    )
+    mfe: bool = flag(
+        True,
+        "ablation: no multi-stage extraction (extractor1 -> max -> regressor)",
+        name="--no-mfe",
+        action="store_false",
+    )
+    mff: bool = flag(
+        True,
+        "ablation: no fusion module (a stage sees concat(raw, max))",
+        name="--no-mff",
+        action="store_false",
+    )
+    sus: bool = flag(
+        True,
+        "ablation: no selective update (all stage losses train all modules)",
+        name="--no-sus",
+        action="store_false",
+    )
+    # weight of gradient_loss beside the cosine loss (0: the paper's)
+    grad_loss: float = flag(
+        0.0,
+        "add W x the L1 distance between predicted and true normal changes from pixel to pixel "
+        "to each stage loss (default 0: the paper's loss). Experimental: meant to keep 1-3 px "
+        "relief, it lowered detail in a short CPU fine-tune (docs/training.md)",
+        type=nonnegative_float,
+        metavar="W",
+    )
+    # weight of the rotation-consistency term (model.equivariance)
+    consistency: float = flag(
+        0.0,
+        "also train each batch turned / mirrored one of 7 ways and add W x the disagreement of "
+        "the two predictions mapped back (rotation consistency; about 2x the step time; "
+        "default 0: off)",
+        type=nonnegative_float,
+        metavar="W",
+    )
+    data: str = flag(
+        "synth", "'synth' (built-in renderer, default) or a Blobby/Sculpture root folder"
+    )
+    # start from these weights (fresh optimiser), e.g. the bundled model
+    init: str | None = flag(
+        None,
+        "start from these weights with a fresh optimiser (e.g. the bundled msfnet_default.pth), "
+        "instead of random initialisation",
+        metavar="CKPT",
+    )
+    render_size: int = flag(
+        64,
+        "synthetic object size in pixels (default %(default)s)",
+        type=int_range(8, MAX_SIZE),
+    )
+    # sizes drawn from [render_size, render_size_max]
+    render_size_max: int | None = flag(
+        None,
+        "draw each synthetic object's size from [--render-size, this]: larger renders are "
+        "smoother per pixel, like real full-resolution objects",
+        type=int_range(8, MAX_SIZE),
+    )
+    render_max_depth: float = flag(
+        RenderOptions.max_depth,
+        "synthetic domes up to this height/radius (default %(default)s; 2 gives a slant "
+        "histogram like DiLiGenT ball's, with 4x more pixels steeper than 66 deg)",
+        type=positive_float,
+    )
+    # "default" or "hard" (msfnet.synth RenderOptions.preset)
+    render_preset: str = flag(
+        "default",
+        "synthetic data: 'default' renderer or 'hard' (steep rims, folds and cups with "
+        "inter-reflections, pixel-scale relief, rough / painted / very dark materials, LED "
+        "rings, mostly 8-bit); validation stays on the default renderer so runs compare",
+        choices=PRESETS,
+    )
+    render_lights: int = flag(
+        40,
+        "lights rendered per synthetic object (default %(default)s)",
+        type=int_range(3, MAX_LIGHTS),
+    )
+    pool: int = flag(
+        48, "synthetic objects kept in memory (default %(default)s)", type=positive_int
+    )
+    refresh: int = flag(
+        2,
+        "new synthetic objects rendered per batch (default %(default)s)",
+        type=nonnegative_int,
+    )
+    noise: float = flag(
+        0.01,
+        "max extra Gaussian noise, fraction of the crop's 95th percentile (default %(default)s)",
+        type=nonnegative_float,
+    )
+    val_objects: int = flag(
+        8,
+        "held-out synthetic validation objects (default %(default)s)",
+        type=positive_int,
+    )
+    val_size: int = flag(
+        64,
+        "validation object size in pixels (default %(default)s)",
+        type=int_range(8, MAX_SIZE),
+    )
     val_lights: int = 32
     val_seed: int = 999_999
-    ckpt_minutes: float = 10.0
-    snapshot_every: int = 0  # keep snap_<step>.pth every this many epochs (0: none)
-    log_every: int = 10
-    device: str = "auto"  # auto | cpu | cuda
-    workers: int | None = None  # DataLoader worker processes; None = default_workers(device)
+    ckpt_minutes: float = flag(
+        10.0, "save last.pth at least this often (default %(default)s)", type=positive_float
+    )
+    # keep snap_<step>.pth every this many epochs (0: none)
+    snapshot_every: int = flag(
+        0,
+        "also keep snap_<step>.pth every this many epochs, to select a model on real objects "
+        "later (default 0: only last.pth and best.pth)",
+        type=nonnegative_int,
+        metavar="EPOCHS",
+    )
+    log_every: int = flag(
+        10,
+        "append a log.jsonl row every this many steps (default %(default)s)",
+        type=positive_int,
+    )
+    device: str = flag(
+        "auto",
+        "auto (default): cuda when torch sees a GPU, else cpu",
+        choices=("auto", "cpu", "cuda"),
+    )
+    # DataLoader worker processes; None = default_workers(device)
+    workers: int | None = flag(
+        None,
+        "processes rendering batches in parallel (DataLoader workers, each with its own object "
+        "pool and seed stream); 0 = render in the training process. Default: 0 on the CPU, "
+        "min(cores - 2, 12) with cuda",
+        type=nonnegative_int,
+    )
     # "cpu": the numpy renderer (in process or in workers); "device": the torch renderer
     # (msfnet.synth.torch_render) on the training device itself
-    render_on: str = "cpu"
-    time_budget: float | None = None  # stop (and save) this many seconds after the Trainer was made
-    snapshot_seconds: float = 0.0  # also keep snap_<step>.pth (fp16) this often (0: never)
+    render_on: str = flag(
+        "cpu",
+        "where synthetic batches are rendered: cpu (default: the numpy renderer, in the "
+        "training process or --workers) or device (the torch renderer on the training device "
+        "itself, as batched tensor operations; no workers; --render-preset applies)",
+        choices=("cpu", "device"),
+    )
+    # stop (and save) this many seconds after the Trainer was made
+    time_budget: float | None = flag(
+        None,
+        "stop this many seconds after the start (setup included), finishing the step and "
+        "saving last.pth (exit 0): e.g. a minute short of a time-boxed session",
+        type=positive_float,
+        metavar="SECONDS",
+    )
+    # also keep snap_<step>.pth (fp16) this often (0: never)
+    snapshot_seconds: float = flag(
+        0.0,
+        "also keep snap_<step>.pth (fp16, ~4.5 MB) every this many seconds (default 0: none)",
+        type=nonnegative_float,
+        metavar="SECONDS",
+    )
     extra: dict = field(default_factory=dict)
 
     def phase(self, epoch: int) -> Phase:

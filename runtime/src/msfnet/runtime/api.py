@@ -131,6 +131,22 @@ def api_words() -> Iterator[None]:
         raise InputError(api_message(exc.message), exc.path) from None
 
 
+@contextmanager
+def _needs_matplotlib() -> Iterator[None]:
+    """Pictures are drawn with matplotlib, an optional extra: its absence is one InputError
+    naming the extra (as a missing engine is), not a bare ModuleNotFoundError."""
+    try:
+        yield
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").partition(".")[0] != "matplotlib":
+            raise
+        from msfnet.common.cli import install_hint
+
+        raise InputError(
+            f"plot() draws with matplotlib, which is not installed: {install_hint('matplotlib')}"
+        ) from exc
+
+
 @dataclass
 class Result:
     """Everything one run produced, as arrays; serialised only by :meth:`save`."""
@@ -256,13 +272,15 @@ class Result:
         a colour bar where it has a scale), or with ``figure=True`` a matplotlib Figure
         showing it. ``what``: "normals" (with the colour-convention sphere), "error"
         (angular error; needs ground truth), or a computed map: "albedo", "height",
-        "curvature"."""
-        with api_words():
-            rgb = self._picture(what)
-        if not figure:
-            return rgb
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
+        "curvature". Drawn with matplotlib (the ``[pictures]`` extra): without it, an
+        InputError that says how to install it."""
+        with _needs_matplotlib():
+            with api_words():
+                rgb = self._picture(what)
+            if not figure:
+                return rgb
+            from matplotlib.backends.backend_agg import FigureCanvasAgg
+            from matplotlib.figure import Figure
 
         h, w = rgb.shape[:2]
         fig = Figure(figsize=(w / 100, h / 100), dpi=100)
