@@ -87,8 +87,10 @@ def test_validity_trusts_the_robust_fit_and_not_a_broken_model() -> None:
     assert v.detail[:, :12].mean() < 0.15 and v.detail[:, :12].max() < 0.3
     assert v.detail[:, 20:].min() > 0.99
     assert v.shape[:, :12].max() < 0.05 and v.shape[:, :12].max() <= v.detail[:, :12].max()
-    # smooth: no jump from 0 to 1 between neighbours
-    assert np.abs(np.diff(v.detail, axis=1)).max() < 0.5
+    # the trust rises over a few pixels out of the broken half (no switch from 0 to 1 at the
+    # boundary), while a broken pixel never borrows its good neighbours' weight
+    assert v.detail[:, 16].max() < 0.75 and v.detail[:, 17].max() < 0.9
+    assert v.detail[:, 18].min() > 0.9
 
 
 @pytest.mark.slow
@@ -97,7 +99,7 @@ def test_default_path_on_the_plates(glossy: bool) -> None:
     """The issue's targets on a plate cut by the mask (bundled model, default path): the error
     within 4 px of the mask edge <= 1.5x the interior's; matte: the scratch curvature contrast
     at least 0.8x least squares'; glossy: mean error below least squares'. (Measured: matte
-    0.05 deg with a ratio ~1.0 and contrast 1.0x; glossy 1.97 vs 2.10 deg, ratio ~1.1.)"""
+    0.05 deg with a ratio ~0.96 and contrast 1.0x; glossy 1.98 vs 2.10 deg, ratio ~1.14.)"""
     from msfnet.runtime.api import Model
     from msfnet.runtime.results.maps.curvature import curvature_maps
     from msfnet.synth.plates import PlateOptions, render_plate
@@ -124,3 +126,79 @@ def test_default_path_on_the_plates(glossy: bool) -> None:
         return abs(np.nanmean(c[scratches]) - np.nanmean(c[background])) / np.nanstd(c[background])
 
     assert contrast(fused) >= 0.8 * contrast(ls)
+
+
+def _noisy_stack(seed: int, h: int = 96, w: int = 80) -> tuple[Stack, np.ndarray]:
+    """A gently curved Lambertian part with 1-2 px relief, 12 ring lights, 1 % noise."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    z = 0.002 * ((x - w / 2) ** 2 + (y - h / 2) ** 2) + 0.6 * np.sin(x / 1.3) * np.sin(y / 1.7)
+    gy, gx = np.gradient(z)
+    n = unit_normals(np.dstack([-gx, -gy, np.ones_like(z)]).astype(np.float32))
+    k = np.arange(12)
+    th = np.radians(35.0)
+    lights = np.stack(
+        [
+            np.sin(th) * np.cos(k * np.pi / 6),
+            np.sin(th) * np.sin(k * np.pi / 6),
+            np.full(12, np.cos(th)),
+        ],
+        axis=1,
+    ).astype(np.float32)
+    shading = np.clip(np.einsum("hwc,nc->nhw", n, lights), 0, None) * 0.5
+    shading += 0.005 * rng.normal(size=shading.shape)
+    images = np.repeat(np.clip(shading, 0, None)[..., None], 3, axis=3).astype(np.float32)
+    return Stack.from_arrays(images, lights), n
+
+
+def test_bands_give_the_whole_image_fusion() -> None:
+    from msfnet.runtime.infer.detail_fusion import fuse_in_bands
+
+    stack, truth = _noisy_stack(11)
+    fit = robust_least_squares(stack)
+    net = _masked_smooth_field(truth, stack.mask)
+    whole = fuse_in_bands(net, fit, stack.mask)
+    for rows in (7, 32):
+        banded = fuse_in_bands(net, fit, stack.mask, rows=rows)
+        assert _angle(banded, whole)[stack.mask].max() < 1e-3
+
+
+def _masked_smooth_field(n: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A network stand-in: the truth without its fine relief (a Gaussian of 3 px)."""
+    import cv2
+
+    return unit_normals(cv2.GaussianBlur(n, (0, 0), 3.0) * mask[..., None])
+
+
+def test_default_split_passes_the_detail_band_whole() -> None:
+    """With every pixel valid, the fused map keeps the detail check's band (2 px) of the robust
+    fit: at least 0.9 of its high-pass energy at the default 3 px split. A split at the check's
+    own scale (2 px) hands over only part of the band (measured 0.84-0.90 on psmImages)."""
+    from msfnet.runtime.evaluate.detail_ratio import highpass_energy
+
+    stack, truth = _noisy_stack(12)
+    fit = robust_least_squares(stack)
+    net = _masked_smooth_field(truth, stack.mask)
+    one = np.ones(stack.mask.shape, np.float32)
+    ref = highpass_energy(fit.normals, stack.mask)
+    default = fuse_detail(net, fit.normals, one, stack.mask, FusionOptions().sigma)
+    narrow = fuse_detail(net, fit.normals, one, stack.mask, 2.0)
+    assert highpass_energy(default, stack.mask) >= 0.9 * ref
+    assert highpass_energy(narrow, stack.mask) < highpass_energy(default, stack.mask) - 0.02 * ref
+
+
+def test_a_failed_fit_lends_no_trust_to_its_pixel() -> None:
+    """A speck black under every light (fit residual 1) inside a well-fitted part: the weights
+    there stay ~0 (smoothing does not lift them) and the fused normal is the network's."""
+    stack, truth = _noisy_stack(13)
+    images = stack.images.copy()
+    images[:, 40, 40] = 0.0
+    stack = Stack.from_arrays(images, stack.lights)
+    fit = robust_least_squares(stack)
+    v = validity(fit, stack.mask)
+    assert fit.residual[40, 40] == 1.0
+    assert v.detail[40, 40] < 1e-3 and v.shape[40, 40] < 1e-3
+    assert np.median(v.detail[stack.mask]) > 0.5  # the rest of the part is trusted
+    net = _masked_smooth_field(truth, stack.mask)
+    fused = fuse_detail(net, fit.normals, v.detail, stack.mask, 3.0, v.shape)
+    assert _angle(fused[40:41, 40:41], net[40:41, 40:41]).max() < 2.0

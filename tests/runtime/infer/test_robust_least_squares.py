@@ -104,7 +104,76 @@ def test_bands_give_the_same_fit_and_nothing_outside_the_mask(
     whole = robust_least_squares(stack)
     monkeypatch.setattr(robust, "rows_for_memory", eight_rows)
     banded = robust_least_squares(stack, max_memory_mb=500)  # 8 bands of 8 rows
-    assert asked == [robust.BYTES_PER_PIXEL_LIGHT]
+    # the per-pixel part (the 3 x 3 systems) spread over the lights: 56 + ceil(400 / 12)
+    assert asked == [robust.BYTES_PER_PIXEL_LIGHT + 34]
     assert np.allclose(whole.normals, banded.normals, atol=1e-6)
     assert np.allclose(whole.residual, banded.residual, atol=1e-6)
     assert not whole.normals[~mask].any() and not whole.residual[~mask].any()
+
+
+def test_no_redundancy_is_no_trust() -> None:
+    """Three lights fit any three values exactly: a residual of 0 would claim a perfect fit,
+    so a pixel without a fourth usable observation gets residual 1."""
+    n = _normals(6, 8, 8)
+    lights = _ring(3)
+    shading = np.einsum("hwc,nc->nhw", n, lights) * 0.5
+    fit = robust_least_squares(_stack(shading, lights))
+    assert np.all(fit.residual == 1.0)
+    four = _ring(4)
+    shading = np.einsum("hwc,nc->nhw", n, four) * 0.5
+    fit = robust_least_squares(_stack(shading, four))
+    assert fit.residual.max() < 1e-4  # exact data with one spare light: trusted
+
+
+def test_clipped_observations_are_not_used() -> None:
+    """uint8 pixels at 255 under some lights: the fit uses the others; a patch clipped under
+    every light has no usable observation and no fit."""
+    n, lights = _normals(7, 16, 16), _ring()
+    shading = np.einsum("hwc,nc->nhw", n, lights) * 200.0
+    shading[2, :, :8] = 255.0  # clipped under one light on the left half
+    shading[:, 12:, 12:] = 255.0  # clipped under every light
+    images = np.repeat(np.clip(np.round(shading), 0, 255)[..., None], 3, axis=3).astype(np.uint8)
+    fit = robust_least_squares(Stack.from_arrays(images, lights))
+    err = _angle(fit.normals, n)
+    assert err[:12, :8].max() < 0.6  # only 8-bit rounding left
+    assert np.all(fit.residual[12:, 12:] == 1.0) and not fit.normals[12:, 12:].any()
+
+
+def test_attached_shadows_fit_the_clamped_model() -> None:
+    """Normals tilted so that several ring lights are behind the surface (zero shading): the
+    clamped model explains them, so the fit is exact and its residual small."""
+    rng = np.random.default_rng(8)
+    n = rng.normal(0, 0.08, (16, 16, 3)).astype(np.float32)
+    n[..., 0] += 0.9
+    n[..., 2] += 0.5
+    n = unit_normals(n)
+    lights = _ring(12, 60.0)
+    shading = np.clip(np.einsum("hwc,nc->nhw", n, lights), 0, None) * 0.5
+    assert (shading == 0).sum(axis=0).min() >= 2  # every pixel has attached shadows
+    fit = robust_least_squares(_stack(shading, lights))
+    assert _angle(fit.normals, n).max() < 0.05
+    assert fit.residual.max() < 1e-3
+    plain = _angle(least_squares_normals(_stack(shading, lights)), n)
+    assert plain.mean() > 2.0  # what the unclamped plain fit makes of them
+
+
+def test_plain_noise_stays_plain_least_squares_noise() -> None:
+    """Gaussian noise, every light lit, no outlier: the robust fit's normals scatter as plain
+    least squares' do (a weighted solve alone would add its weights' own noise: ~9 % more
+    high-pass energy at 12 lights)."""
+    from msfnet.runtime.evaluate.detail_ratio import highpass_energy
+
+    rng = np.random.default_rng(9)
+    lights = _ring()
+    y, x = np.mgrid[0:96, 0:96]
+    n = np.dstack([(x - 48) / 300, (y - 48) / 300, np.ones((96, 96))]).astype(np.float32)
+    n = unit_normals(n)
+    mask = np.ones((96, 96), bool)
+    for noise in (0.005, 0.02):
+        shading = np.einsum("hwc,nc->nhw", n, lights) * 0.6
+        shading = shading + noise * rng.normal(size=shading.shape)
+        stack = _stack(shading.astype(np.float32), lights)
+        ratio = highpass_energy(robust_least_squares(stack).normals, mask) / highpass_energy(
+            least_squares_normals(stack), mask
+        )
+        assert 0.97 < ratio < 1.05, (noise, ratio)

@@ -19,10 +19,10 @@ check's scale (evaluate/detail_ratio.py, 2 px): a split at the check's own scale
 part of that band (a Gaussian split is gradual), capping the detail kept at 0.84-0.90 of least
 squares' even with w = 1 everywhere; at 3 px the band passes whole.
 
-Measured (docs/run.md, "Inspection"), network alone -> fused: DiLiGenT ball / bear / harvest
-2.15 / 4.89 / 17.83 -> 1.96 / 4.85 / 17.42 deg (msf-eval); psmImages detail ratio 0.61 / 0.58 /
-0.65 -> 0.92 / 0.95 / 0.88; a rendered matte plate 3.40 -> 0.05 deg (the network's rim at true
-silhouettes goes too), glossy plate 4.45 -> 1.80 deg (least squares 2.10).
+Measured (docs/run.md, "Detail fusion"), network alone -> fused: DiLiGenT ball / bear /
+harvest 2.15 / 4.89 / 17.83 -> 1.81 / 4.74 / 17.40 deg (msf-eval); psmImages detail ratio 0.61
+/ 0.58 / 0.65 -> 0.96 / 0.95 / 0.89; a rendered matte plate 3.40 -> 0.05 deg (the network's
+rim at true silhouettes goes too), glossy plate 4.45 -> 1.98 deg (least squares 2.10).
 
 Call it directly (``fuse_detail``; e.g. a half-resolution network upsampled to full size plus a
 full-resolution robust solve) or through :class:`DetailFusionEstimator`, which runs both on one
@@ -38,23 +38,30 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.infer.estimators import Estimate, Estimator, TilingOptions
-from msfnet.runtime.infer.robust_least_squares import RobustFit, robust_least_squares
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.infer.robust_least_squares import RobustFit, band_rows, robust_least_squares
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
+from msfnet.runtime.results.profile import StageTimer, memory_in_use_mb
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.readers import unit_normals
 
 DEFAULT_SIGMA = 3.0  # px: 1.5x the detail check's scale (evaluate.detail_ratio.SIGMA_PX)
-# Relative residuals of the robust fit at which the detail / shape weights are exp(-1).
-# Its residual medians: a rendered matte plate 0.001, DiLiGenT ball 0.016, bear 0.030, harvest
-# 0.155, psmImages cat / owl / horse 0.034 / 0.035 / 0.049 (the shadowed undersides 0.3-1).
-# Chosen on DiLiGenT (MAE) and psmImages (detail ratio) together, sigma 3 (docs/run.md,
-# Inspection): detail scale 0.2 -> 1.919 / 4.835 / 17.307 deg and 0.90 / 0.94 / 0.86; 0.25 ->
-# 1.956 / 4.854 / 17.415 and 0.92 / 0.95 / 0.88; 0.3 -> 1.985 / 4.867 / 17.546 and 0.94 / 0.97 /
-# 0.89 (the plain fit at sigma 2, scale 0.2, the previous default: 1.960 / 4.886 / 17.399 and
-# 0.78 / 0.79 / 0.82). Shape scale 0.03 (0.02 / 0.05 moved bear by -0.04 / +0.17 deg).
+# Relative residuals of the robust fit (per degree of freedom) at which the detail / shape
+# weights are exp(-1). Chosen on DiLiGenT (MAE) and psmImages (detail ratio) together, split
+# 3 px (docs/run.md, Detail fusion): detail scale 0.2 -> 1.81 / 4.73 / 17.27 deg and 0.92 /
+# 0.92 / 0.85; 0.25 -> 1.81 / 4.74 / 17.40 and 0.96 / 0.95 / 0.89; 0.3 -> 1.81 / 4.76 / 17.59
+# and 1.00 / 0.98 / 0.91 (the plain fit at 2 px, scale 0.2, the previous default: 1.96 / 4.89
+# / 17.40 and 0.78 / 0.79 / 0.82). 0.25 keeps every DiLiGenT object at or below both the
+# network alone and the previous default. Shape scale 0.03 (0.04 moved ball / bear by +0.04 /
+# +0.08 deg).
 DEFAULT_RESIDUAL_SCALE = 0.25
 DEFAULT_SHAPE_SCALE = 0.03
 WEIGHT_SMOOTH_PX = 1.5  # the weight map's own smoothing: no pixel-to-pixel switching
+# Fusion in row bands: the working set per pixel of a band (the weights, both low-passes, the
+# sum and its normalisation; measured ~160 B with tracemalloc, kept with a margin), the band's
+# context on either side in sigmas (OpenCV's float Gaussian reaches 4 sigma), the least rows.
+FUSION_BYTES_PER_PIXEL = 200
+FUSION_HALO_SIGMAS = 4.5
+MIN_FUSION_ROWS = 32
 
 
 @dataclass(frozen=True)
@@ -132,12 +139,15 @@ def _weight(residual: np.ndarray, mask: np.ndarray, scale: float) -> np.ndarray:
     m = mask.astype(np.float32)
     smooth = cv2.GaussianBlur(raw * m, (0, 0), WEIGHT_SMOOTH_PX)
     norm = cv2.GaussianBlur(m, (0, 0), WEIGHT_SMOOTH_PX)
-    return np.where(mask, smooth / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+    # never above the pixel's own weight: smoothing must not lend trust to a pixel whose fit
+    # failed (a dark speck, no redundancy left), only ease the rise from it
+    weight = np.minimum(smooth / np.maximum(norm, 1e-6), raw)
+    return np.where(mask, weight, 0.0).astype(np.float32)
 
 
 def validity(fit: RobustFit, mask: np.ndarray, options: FusionOptions | None = None) -> Validity:
     """The weights exp(-(residual / scale)^2) of a robust fit, smoothed over WEIGHT_SMOOTH_PX
-    inside the mask."""
+    inside the mask and capped at each pixel's own (a failed fit has residual 1: weight ~0)."""
     o = options or FusionOptions()
     return Validity(
         _weight(fit.residual, mask, o.residual_scale), _weight(fit.residual, mask, o.shape_scale)
@@ -146,9 +156,8 @@ def validity(fit: RobustFit, mask: np.ndarray, options: FusionOptions | None = N
 
 class DetailFusionEstimator:
     """The network (any network estimator: plain, fine detail) and the robust least-squares fit
-    on the same stack, fused by :func:`fuse_detail` with :func:`validity` weights. Costs one
-    robust solve on top of the network (DiLiGenT, 96 lights, 2 cores: 1.4-3 s against 6-16 s
-    of network)."""
+    on the same stack, fused by :func:`fuse_in_bands` (:func:`validity` weights). Costs one
+    robust solve on top of the network (docs/run.md, Detail fusion)."""
 
     method = "msf"
 
@@ -169,14 +178,54 @@ class DetailFusionEstimator:
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False
     ) -> Estimate:
+        rows = band_rows(stack, tiling.max_memory_mb)  # a budget too small fails before the network
         base = self.network.estimate(stack, tiling, timer, progress)
         with timer("postprocess"):
-            fit = robust_least_squares(stack, tiling.max_memory_mb)
-            v = validity(fit, stack.mask, self.options)
-            normals = fuse_detail(
-                base.normals, fit.normals, v.detail, stack.mask, self.options.sigma, v.shape
+            fit = robust_least_squares(stack, rows=rows)
+            normals = fuse_in_bands(
+                base.normals, fit, stack.mask, self.options, _fusion_rows(stack, tiling)
             )
         return Estimate(normals, base.plan, base.flops)
+
+
+def _fusion_rows(stack: Stack, tiling: TilingOptions) -> int:
+    """Rows per fusion band: what the process may still take under the budget over
+    FUSION_BYTES_PER_PIXEL per pixel, at least MIN_FUSION_ROWS (None budget: the whole image)."""
+    h, w = stack.shape
+    if tiling.max_memory_mb is None:
+        return h
+    held = memory_in_use_mb()
+    room_mb = tiling.max_memory_mb - (held if held is not None else BASE_MEMORY_MB)
+    rows = int(room_mb * 2**20 // (w * FUSION_BYTES_PER_PIXEL)) if room_mb > 0 else 0
+    return int(np.clip(rows, MIN_FUSION_ROWS, h))
+
+
+def fuse_in_bands(
+    normals_net: np.ndarray,
+    fit: RobustFit,
+    mask: np.ndarray,
+    options: FusionOptions | None = None,
+    rows: int | None = None,
+) -> np.ndarray:
+    """:func:`validity` + :func:`fuse_detail` in bands of ``rows`` image rows, each computed
+    with FUSION_HALO_SIGMAS x sigma rows of context on either side (the Gaussians' reach), so
+    the result is the whole image's and the working set one band's."""
+    o = options or FusionOptions()
+    h = mask.shape[0]
+    rows = h if rows is None else max(1, rows)
+    halo = int(np.ceil(FUSION_HALO_SIGMAS * max(o.sigma, WEIGHT_SMOOTH_PX)))
+    out = np.zeros(normals_net.shape, np.float32)
+    for r0 in range(0, h, rows):
+        r1 = min(h, r0 + rows)
+        a, b = max(0, r0 - halo), min(h, r1 + halo)
+        m = mask[a:b]
+        if not m[r0 - a : r1 - a].any():
+            continue
+        part = RobustFit(fit.normals[a:b], fit.residual[a:b])
+        v = validity(part, m, o)
+        fused = fuse_detail(normals_net[a:b], part.normals, v.detail, m, o.sigma, v.shape)
+        out[r0:r1] = fused[r0 - a : r1 - a]
+    return out
 
 
 __all__ = [
@@ -187,5 +236,6 @@ __all__ = [
     "FusionOptions",
     "Validity",
     "fuse_detail",
+    "fuse_in_bands",
     "validity",
 ]

@@ -1,19 +1,30 @@
-"""Robust per-pixel least squares: the Lambertian fit with shadows and highlights down-weighted.
+"""Robust per-pixel least squares: the Lambertian fit with shadows and highlights dropped.
 
 Plain least squares (infer/least_squares.py) weighs every light alike, so one highlight or a
 cast shadow at a pixel tilts its normal, and the tilt changes from pixel to pixel along a shadow
 edge: false detail exactly where an inspection user looks. Here each pixel's fit is re-solved a
-few times with Tukey's biweight on its residuals (iteratively reweighted least squares, starting
-from the plain solution): observations far from the current fit, measured in the pixel's own
-robust spread (1.4826 x the median absolute residual), count less and beyond ``TUKEY_C`` spreads
-not at all. Where every light fits, all weights stay near 1 and the result is plain least
-squares, noise included; where a few lights break the model, they drop out.
+few times with Tukey's biweight on its residuals (iteratively reweighted least squares, from the
+plain solution), then solved once more, unweighted, on the observations within ``KEEP_SPREADS``
+robust spreads. So where every light fits, the result is plain least squares with its noise and
+no more (a weighted solve would add the weights' own noise); where a few lights break the model
+they drop out. Details that matter:
+
+- the model is clamped, I = max(0, l . g): a light behind the surface (l . g <= 0) that reads
+  dark is an attached shadow, consistent with the model but no equation for g, so it gets no
+  weight in the solve and counts as explained;
+- the spread is the pixel's median absolute residual x 1.4826, corrected for the three fitted
+  unknowns, floored at the stack's typical relative noise (measured once on a sample of pixels)
+  times the pixel's median brightness: a dozen residuals give a noisy spread, and the floor keeps
+  plain noise from being mistaken for outliers;
+- observations at an integer image's full scale are clipped, never used;
+- the residual is the root-mean-square misfit per degree of freedom (kept observations minus 3)
+  relative to the kept observations' RMS brightness, and 1 (no trust) where fewer than
+  MIN_LIGHTS + 1 observations remain, so a pixel with no redundancy (3 lights, or 3 left after
+  rejection) can never look like a perfect fit.
 
 The detail fusion (infer/detail_fusion.py) takes its fine detail and its validity from this fit.
-Measured against plain least squares (its own MAE, 96 lights): DiLiGenT ball 4.29 -> 2.87,
-bear 9.06 -> 7.44, harvest 30.5 -> 28.5 deg; on psmImages (12 lights) its high-pass energy is
-1.08-1.12x plain least squares' (it does not add noise where the fit holds); 0.5-2.8 s on a
-96-light DiLiGenT object (2 cores).
+Measured against plain least squares (its own MAE, 96 lights) and its high-pass energy on
+psmImages: see docs/run.md, "Detail fusion".
 """
 
 from __future__ import annotations
@@ -28,34 +39,43 @@ from msfnet.runtime.stack import MIN_LIGHTS, Stack
 
 TUKEY_C = 4.685  # spreads at which an observation's weight reaches 0 (95 % Gaussian efficiency)
 ITERATIONS = 3  # reweighting passes after the plain solve (the fits barely move after the third)
-# The robust spread never falls below this share of the pixel's brightest value: on exact data
-# the median residual is ~0 and every rounding error would otherwise count as an outlier.
-SPREAD_FLOOR = 0.005
-MIN_WEIGHT = 0.05  # an observation counts as kept above this weight
-# working set per (mask pixel x light) of a reweighting pass: the gather, float64 grey values
-# and their float32 copy, fit, residuals, weights and the median's partitioned copy (measured
-# 37 B with tracemalloc plus 6-12 B of gather; kept with a margin)
-BYTES_PER_PIXEL_LIGHT = 64
+KEEP_SPREADS = 3.0  # the final unweighted solve keeps observations within this many spreads
+# the spread's floor never falls below this share of the brightness: float32 rounding (1e-7)
+# must not make exact data look noisy, while real noise (uint16 quantisation of a dark pixel:
+# ~1e-3) stays above it
+MIN_RELATIVE_NOISE = 1e-4
+NOISE_QUANTILE = 0.5
+NOISE_SAMPLE = 20_000  # pixels sampled (evenly) to measure the stack's typical relative noise
+# working set of a band: per (mask pixel x light) the gather and usable mask, float64 grey
+# values, their float32 copy, fit, residuals, weights and the median's sorted copy; per pixel
+# the 3 x 3 systems and their solves (measured with tracemalloc, gather included: 440-460 B a
+# pixel at 3-4 lights, 750 at 12, 5,030 at 96; kept with a margin of 15-40 %)
+BYTES_PER_PIXEL_LIGHT = 56
+BYTES_PER_PIXEL = 400
 
 
 @dataclass(frozen=True)
 class RobustFit:
-    """(H, W, 3) float32 unit ``normals`` and (H, W) float32 relative ``residual`` of the fit
-    over the observations it kept (sqrt(sum w r^2 / sum w I^2)); zeros outside the mask, the
-    residual 1 where a pixel is black under every light."""
+    """(H, W, 3) float32 unit ``normals`` and (H, W) float32 relative ``residual`` (module
+    notes); zeros outside the mask; normals zero and residual 1 where no fit exists (a pixel
+    black under every light, or fewer than MIN_LIGHTS + 1 usable observations)."""
 
     normals: np.ndarray
     residual: np.ndarray
 
 
-def robust_least_squares(stack: Stack, max_memory_mb: float | None = None) -> RobustFit:
+def robust_least_squares(
+    stack: Stack, max_memory_mb: float | None = None, rows: int | None = None
+) -> RobustFit:
     """The robust fit of every mask pixel, in bands of rows within ``max_memory_mb`` (the whole
-    process's budget, as :func:`~msfnet.runtime.infer.least_squares.least_squares_normals`)."""
+    process's budget, as :func:`~msfnet.runtime.infer.least_squares.least_squares_normals`);
+    ``rows``: the band height, when the caller has already worked it out (:func:`band_rows`)."""
     h, w = stack.shape
     lights = network_lights(stack.lights).astype(np.float64)
-    rows = h
-    if max_memory_mb is not None:
-        rows = rows_for_memory(max_memory_mb, stack, bytes_per_pixel_light=BYTES_PER_PIXEL_LIGHT)
+    if rows is None:
+        rows = band_rows(stack, max_memory_mb)
+    full = float(np.iinfo(stack.images.dtype).max) if stack.images.dtype.kind in "ui" else None
+    noise = stack_noise(stack, lights, full)
     normals = np.zeros((h, w, 3), np.float32)
     residual = np.zeros((h, w), np.float32)
     for r0 in range(0, h, rows):
@@ -63,52 +83,133 @@ def robust_least_squares(stack: Stack, max_memory_mb: float | None = None) -> Ro
         mask = stack.mask[band]
         if not mask.any():
             continue
-        grey = grey_values(stack.images[:, band][:, mask, :], stack.intensities)
-        g, res = tukey_fit(grey, lights)
+        pixels = stack.images[:, band][:, mask, :]
+        usable = None if full is None else _unclipped(pixels, full)
+        g, res = tukey_fit(grey_values(pixels, stack.intensities), lights, noise, usable)
         norm = np.linalg.norm(g, axis=0)
         normals[band][mask] = np.where(norm > 1e-12, g / np.maximum(norm, 1e-12), 0.0).T
-        residual[band][mask] = res
+        residual[band][mask] = np.where(norm > 1e-12, res, 1.0)
     return RobustFit(normals, residual)
 
 
-def _weighted_solve(weights: np.ndarray, grey: np.ndarray, lights: np.ndarray) -> np.ndarray:
-    """(3, P) solutions of sum_i w_i (I_i - l_i . g)^2 per pixel: the 3 x 3 normal equations
-    built by two float32 matrix products (outer products of the lights flattened to 9
-    columns), solved in float64."""
+def band_rows(stack: Stack, max_memory_mb: float | None) -> int:
+    """Rows per band of :func:`robust_least_squares` within ``max_memory_mb`` (None: the whole
+    image); InputError when not even a few rows fit (callers ask before slow work)."""
+    if max_memory_mb is None:
+        return stack.shape[0]
+    per_light = BYTES_PER_PIXEL_LIGHT + -(-BYTES_PER_PIXEL // stack.num_lights)
+    return rows_for_memory(max_memory_mb, stack, bytes_per_pixel_light=per_light)
+
+
+def _unclipped(pixels: np.ndarray, full: float) -> np.ndarray:
+    """(N, P) bool: observations with no channel at the integer type's full scale."""
+    return np.asarray(~(pixels >= full).any(axis=2))
+
+
+def stack_noise(stack: Stack, lights: np.ndarray, full: float | None = None) -> float:
+    """The stack's typical relative noise: the median over evenly sampled mask pixels of each
+    one's robust spread (no floor) over its median brightness."""
+    ys, xs = np.nonzero(stack.mask)
+    pick = np.linspace(0, len(ys) - 1, min(NOISE_SAMPLE, len(ys))).astype(np.int64)
+    pixels = stack.images[:, ys[pick], xs[pick], :]
+    usable = None if full is None else _unclipped(pixels, full)
+    grey = grey_values(pixels, stack.intensities)
+    _, _, spread, bright = _iterate(grey.astype(np.float32), lights, 0.0, usable)
+    ok = bright > 0
+    return float(np.quantile(spread[ok] / bright[ok], NOISE_QUANTILE)) if ok.any() else 0.0
+
+
+def _solve(
+    weights: np.ndarray, grey: np.ndarray, lights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(3, P) solutions of sum_i w_i (I_i - l_i . g)^2 per pixel and where the system was
+    regular: the 3 x 3 normal equations from two float32 matrix products (outer products of the
+    lights flattened to 9 columns), solved in float64 in closed form (the adjugate: rows of
+    cross products; 5x faster than a batched LAPACK solve of 3 x 3 systems)."""
     outer = (lights[:, :, None] * lights[:, None, :]).reshape(len(lights), 9)
     a = (weights.T @ outer.astype(np.float32)).astype(np.float64).reshape(-1, 3, 3)
     b = ((weights * grey).T @ lights.astype(np.float32)).astype(np.float64)
-    ok = np.abs(np.linalg.det(a)) > 1e-12
-    g = np.zeros_like(b)
-    g[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
-    return g.T
+    c0 = np.cross(a[:, 1], a[:, 2])
+    c1 = np.cross(a[:, 2], a[:, 0])
+    c2 = np.cross(a[:, 0], a[:, 1])
+    det = np.einsum("pi,pi->p", a[:, 0], c0)
+    scale = np.einsum("pij,pij->p", a, a) ** 1.5  # det relative to the system's size
+    ok = np.abs(det) > 1e-9 * scale
+    inv_det = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    # A symmetric: its inverse is [c0, c1, c2] / det (cofactor rows)
+    g = np.stack([np.einsum("pi,pi->p", c, b) for c in (c0, c1, c2)], axis=0) * inv_det
+    return g.astype(np.float32), ok
 
 
-def tukey_fit(grey: np.ndarray, lights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """g = albedo x normal, (3, P), and the relative residual, (P,), of each pixel's robust fit.
+def _median_of(values: np.ndarray, include: np.ndarray) -> np.ndarray:
+    """(P,) median over axis 0 of the ``include``d entries of (N, P) ``values`` (inf where
+    none is included)."""
+    ordered = np.sort(np.where(include, values, np.float32(np.inf)), axis=0)
+    count = include.sum(axis=0)
+    n = len(values)
+    lo = np.take_along_axis(ordered, (np.maximum(count - 1, 0) // 2)[None, :], axis=0)[0]
+    hi = np.take_along_axis(ordered, np.minimum(count // 2, n - 1)[None, :], axis=0)[0]
+    return np.where(count > 0, (lo + hi) / 2, np.float32(np.inf)).astype(np.float32)
 
-    grey: (N, P) observations; lights: (N, 3). The reweighting runs in float32 (half the
-    memory traffic of float64: 1.5x faster on a 96-light DiLiGenT object, normals within 0.03
-    deg). A pixel whose reweighting would keep fewer than MIN_LIGHTS + 1 observations stays at
-    its previous solution and weights."""
-    g = (np.linalg.pinv(lights.astype(np.float64)) @ grey).astype(np.float32)  # plain solution
-    grey = grey.astype(np.float32)
+
+def _iterate(
+    grey: np.ndarray, lights: np.ndarray, noise: float, usable: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The reweighting passes: (g (3, P), clamped residuals (N, P), spread (P,), median
+    brightness (P,)), all float32."""
+    n = len(lights)
+    use = np.ones(grey.shape, np.float32) if usable is None else usable.astype(np.float32)
     lights32 = lights.astype(np.float32)
-    floor = (SPREAD_FLOOR * grey.max(axis=0) + 1e-12).astype(np.float32)
-    weights = np.ones_like(grey)
+    g, _ = _solve(use, grey, lights)
+    bright = np.median(grey, axis=0)  # clipped observations read bright: still a brightness
+    floor = np.float32(max(noise, MIN_RELATIVE_NOISE)) * bright + np.float32(1e-12)
+    correction = np.float32(np.sqrt(n / max(n - 3, 1)))
+    spread = floor
     for _ in range(ITERATIONS):
-        r = grey - lights32 @ g
-        spread = np.maximum(np.float32(1.4826) * np.median(np.abs(r), axis=0), floor)
+        pred = lights32 @ g
+        r = grey - np.maximum(pred, 0.0)  # the clamped model: attached shadows fit
+        # the spread of the observations in the solve: attached shadows fit trivially (r = 0)
+        # and would shrink it until every lit observation looked like an outlier
+        mad = _median_of(np.abs(r), (pred > 0) & (use > 0))
+        spread = np.maximum(np.float32(1.4826) * correction * mad, floor)
         u = r / (np.float32(TUKEY_C) * spread)
-        new = np.maximum(1.0 - u * u, 0.0, dtype=np.float32) ** 2
-        enough = (new > MIN_WEIGHT).sum(axis=0) > MIN_LIGHTS
-        weights = np.where(enough, new, weights)
-        g = np.where(enough, _weighted_solve(weights, grey, lights).astype(np.float32), g)
-    r = grey - lights32 @ g
-    num = np.sqrt(np.sum(weights * r * r, axis=0))
-    den = np.sqrt(np.sum(weights * grey * grey, axis=0))
-    residual = np.where(den > 0, num / np.maximum(den, 1e-30), 1.0).astype(np.float32)
+        w = np.maximum(1.0 - u * u, 0.0, dtype=np.float32) ** 2 * use * (pred > 0)
+        enough = (w > 0.05).sum(axis=0) > MIN_LIGHTS
+        new, ok = _solve(w, grey, lights)
+        g = np.where(enough & ok, new, g)
+    r = grey - np.maximum(lights32 @ g, 0.0)
+    return g, r, spread, bright
+
+
+def tukey_fit(
+    grey: np.ndarray,
+    lights: np.ndarray,
+    noise: float = 0.0,
+    usable: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """g = albedo x normal, (3, P) float64, and the relative residual, (P,) float32, of each
+    pixel's robust fit (module notes).
+
+    grey: (N, P) observations; lights: (N, 3); noise: the stack's typical relative noise
+    (:func:`stack_noise`; 0: no floor but rounding); usable: (N, P) bool, False for clipped
+    observations (None: all usable)."""
+    grey = grey.astype(np.float32)
+    use = np.ones(grey.shape, bool) if usable is None else usable
+    g, r, spread, _ = _iterate(grey, lights, noise, usable)
+    pred = lights.astype(np.float32) @ g
+    explained = use & (np.abs(r) <= KEEP_SPREADS * spread)
+    keep = explained & (pred > 0)  # attached shadows are explained but hold no equation
+    final, ok = _solve(keep.astype(np.float32), grey, lights)
+    enough = ok & (keep.sum(axis=0) > MIN_LIGHTS)
+    g = np.where(enough, final, g)
+    r = grey - np.maximum(lights.astype(np.float32) @ g, 0.0)
+    count = explained.sum(axis=0)
+    misfit = np.sum(np.where(explained, r * r, 0.0), axis=0) / np.maximum(count - 3, 1)
+    level = np.sum(np.where(explained, grey * grey, 0.0), axis=0) / np.maximum(count, 1)
+    residual = np.where(
+        enough & (level > 0), np.sqrt(misfit / np.maximum(level, 1e-30)), 1.0
+    ).astype(np.float32)
     return g.astype(np.float64), residual
 
 
-__all__ = ["RobustFit", "robust_least_squares", "tukey_fit"]
+__all__ = ["RobustFit", "band_rows", "robust_least_squares", "stack_noise", "tukey_fit"]
