@@ -28,7 +28,7 @@ docs/benchmark.md, "Dispatch measurements".
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from msfnet.common.cpu import CpuInfo, check_threads
@@ -37,6 +37,7 @@ from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines.base import (
     ENGINES,
     Engine,
+    ModelFile,
     engine_name,
     model_precision,
     precision_name,
@@ -193,6 +194,8 @@ class EngineChoice:
     reason: str  # one line for logs and profile.json: why this engine and precision
     model: Path | None = None  # the model to open (None when decided from a ModelInfo alone)
     device: Device | None = None  # None: the CPU
+    # the read of ``model`` the choice was made from: open_engine opens from it (no second read)
+    file: ModelFile | None = field(default=None, compare=False, repr=False)
 
 
 # int8 exports with their sensitive convs in fp32 (msf-export --variant int8-mixed): mean deg
@@ -221,8 +224,50 @@ def _install_hint(engine: str) -> str:
     return "pip install openvino" if engine == "openvino" else "pip install onnxruntime"
 
 
+def likely_engine(
+    cpu: CpuInfo,
+    installed: Iterable[str],
+    requested_engine: str | None = None,
+    requested_precision: str | None = None,
+    device: Device | None = None,
+) -> str:
+    """The engine ``choose_engine`` will pick before the model's metadata is known: the rules
+    with an fp32 model (the bundled one; int8 exports are the exception), so that engine reads
+    the file and compiles that same read. A wrong guess costs one more read, never a wrong
+    choice: the choice itself is made from the metadata."""
+    have = {engine_name(e) for e in installed}
+    if "openvino" not in have:
+        return "onnxruntime"
+    if device is not None:
+        return device.engine
+    if requested_engine is not None:
+        return engine_name(requested_engine)
+    if requested_precision is not None and precision_name(requested_precision) == "int8":
+        return "onnxruntime"  # an int8 export: ONNX Runtime's by default
+    if requested_precision is not None and precision_name(requested_precision) == "bf16":
+        return "openvino"
+    return "openvino" if cpu.has_bf16 or ov_fp32_preferred(cpu) else "onnxruntime"
+
+
+def read_for(path: str | Path, engine: str) -> ModelFile:
+    """Read ``path`` with ``engine``'s reader: OpenVINO's keeps its graph for the OpenVINO
+    engine to compile; ONNX Runtime's gives the metadata alone (its sessions read the file
+    themselves). An OpenVINO that cannot be imported or cannot read the file leaves it to ONNX
+    Runtime, whose refusals are the one-line errors of every path."""
+    if engine == "openvino":
+        from msfnet.runtime.engines.openvino import import_openvino, read_openvino
+
+        try:
+            import_openvino()
+        except InputError:  # a broken install: open_chosen falls back to ONNX Runtime
+            pass
+        else:
+            return read_openvino(path)
+    return ModelFile(read_model_file(path))
+
+
 def choose_engine(
-    model: str | Path | ModelInfo,
+    model: str | Path | ModelInfo | ModelFile,
     cpu: CpuInfo,
     installed: Iterable[str],
     requested_engine: str | None = None,
@@ -231,11 +276,23 @@ def choose_engine(
 ) -> EngineChoice:
     """Pick the engine and precision for ``model`` on ``cpu`` (rules in the module docstring).
 
-    ``model``: an msfnet ONNX path (its metadata is read) or its ModelInfo. ``installed``: engine
+    ``model``: an msfnet ONNX path (read once, by the engine ``likely_engine`` expects; the
+    choice keeps the read for open_engine), a ModelFile or a ModelInfo. ``installed``: engine
     names importable here (engines.installed_engines()). ``device``: resolve_device's answer
     for --device (None: the CPU). Raises InputError for overrides that cannot be honoured.
     """
-    info = model if isinstance(model, ModelInfo) else read_model_file(model)
+    installed = list(installed)
+    if isinstance(model, ModelInfo):
+        file = ModelFile(model)
+    elif isinstance(model, ModelFile):
+        file = model
+    else:
+        try:
+            reader = likely_engine(cpu, installed, requested_engine, requested_precision, device)
+        except InputError:  # an unknown engine or precision name: refused below, as ever
+            reader = "onnxruntime"
+        file = read_for(model, reader)
+    info = file.info
     have = {engine_name(e) for e in installed}
     want_engine = engine_name(requested_engine) if requested_engine else None
     want_prec = precision_name(requested_precision) if requested_precision else None
@@ -247,7 +304,7 @@ def choose_engine(
         raise InputError(f"--engine {want_engine}: not installed ({_install_hint(want_engine)})")
 
     def pick(engine: str, precision: str, why: str) -> EngineChoice:
-        return EngineChoice(engine, precision, f"{engine} {precision}: {why}", info.path)
+        return EngineChoice(engine, precision, f"{engine} {precision}: {why}", info.path, file=file)
 
     if device is not None:  # rule 0: the device decides the engine, the model the precision
         if want_engine is not None and want_engine != device.engine:
@@ -270,6 +327,7 @@ def choose_engine(
             f"{device.engine} {own} on {device.target}: --device {device.name} given",
             info.path,
             device,
+            file,
         )
 
     # int8 exports: quantised weights and activations, nothing else to choose but the engine
@@ -376,8 +434,10 @@ def open_engine(
 ) -> Engine:
     """Load the chosen engine. ``threads``: None = the cores this process may use. ``provider``
     (ONNX Runtime only): e.g. 'cuda' (``choice.device`` sets it too). ``model`` overrides
-    ``choice.model``."""
+    ``choice.model``. The model file is not read again where the choice was made from a read
+    of it (``choice.file``)."""
     path = model if model is not None else choice.model
+    file = choice.file if path is not None and Path(path) == choice.model else None
     if threads is not None:
         check_threads(threads)  # the one bound (common.cpu.MAX_THREADS) of every engine
     if path is None:
@@ -389,7 +449,12 @@ def open_engine(
         if device is not None:
             provider = device.target
         return open_onnxruntime(
-            path, threads=threads, precision=choice.precision, provider=provider, chunk=chunk
+            path,
+            threads=threads,
+            precision=choice.precision,
+            provider=provider,
+            chunk=chunk,
+            info=file.info if file is not None else None,
         )
     if choice.engine == "openvino":
         if provider not in (None, "cpu"):
@@ -404,6 +469,7 @@ def open_engine(
             precision=choice.precision,
             chunk=chunk,
             device=device.target if device is not None else "CPU",
+            file=file,
         )
     raise InputError(f"unknown engine {choice.engine!r} (known: {', '.join(ENGINES)})")
 
@@ -424,7 +490,7 @@ def open_chosen(
         if requested or choice.engine != "openvino" or choice.device is not None:
             raise
         precision = "int8" if choice.precision == "int8" else "fp32"
-        fallback = EngineChoice("onnxruntime", precision, "", choice.model)
+        fallback = EngineChoice("onnxruntime", precision, "", choice.model, file=choice.file)
         engine = open_engine(fallback, threads, chunk=chunk)
         return engine, f"onnxruntime {precision}: fallback, OpenVINO failed ({exc})"
 
@@ -442,8 +508,10 @@ __all__ = [
     "choose_engine",
     "cpu_class",
     "default_allowed",
+    "likely_engine",
     "open_chosen",
     "open_engine",
     "ov_fp32_preferred",
+    "read_for",
     "resolve_device",
 ]

@@ -72,9 +72,13 @@ def open_onnxruntime(
     precision: str | None = None,
     provider: str | None = None,
     chunk: int | None = None,
+    info: ModelInfo | None = None,
 ) -> OrtEngine:
-    """Load ``path`` with ONNX Runtime. ``precision``, if given, must be the model's own."""
-    engine = OrtEngine(create_session(path, threads=threads, provider=provider))
+    """Load ``path`` with ONNX Runtime. ``precision``, if given, must be the model's own.
+    ``info``: the file's metadata, read already (it decides the memory arena before the one
+    load; the session still checks its own metadata and I/O)."""
+    arena = info.staged if info is not None else None
+    engine = OrtEngine(create_session(path, threads=threads, provider=provider, arena=arena))
     if precision is not None and precision != engine.precision:
         hint = (
             "OpenVINO (--engine openvino) runs fp32 models in bf16"

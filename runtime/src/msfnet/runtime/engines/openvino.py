@@ -10,10 +10,17 @@ through the same light-chunked loop as ONNX Runtime (``staged_loop.run_staged``)
 ``openvino`` is part of the base install (x86-64 and ARM64 wheels), imported only when an engine
 is opened. ``device``: CPU (default), GPU / GPU.N (Intel GPUs, f32 for parity with the CPU) or
 NPU (Intel NPUs, their own f16), chosen through ``--device`` (dispatch.resolve_device).
+
+Start-up: OpenVINO parses the file once (``read_openvino``); the msfnet metadata comes from that
+parse (ONNX metadata_props are the graph's ``rt_info["framework"]``), and the staged sub-models
+are cut from it, so this path starts no ONNX Runtime session. ``import openvino`` itself pulls
+in ``openvino.tools.ovc`` and its telemetry (~0.1 s): the package's ``__init__`` does that for
+every ``openvino.*`` import, so no narrower import avoids it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -21,10 +28,16 @@ import numpy as np
 
 from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
-from msfnet.runtime.contract import ModelInfo
-from msfnet.runtime.engines.base import model_precision, read_model_file, run_staged_with
+from msfnet.runtime.contract import ModelInfo, read_model_info
+from msfnet.runtime.engines.base import (
+    ModelFile,
+    model_file_path,
+    model_precision,
+    read_model_file,
+    run_staged_with,
+)
 from msfnet.runtime.engines.interrupt import run_interruptible
-from msfnet.runtime.engines.ort_session import check_normals, default_threads
+from msfnet.runtime.engines.ort_session import check_io, check_normals, default_threads
 from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK, STAGE_OUTPUTS
 
 # OpenVINO's names for the compute precisions
@@ -120,11 +133,64 @@ class OpenVinoEngine:
         return f"OpenVinoEngine({self.info.path.name}, {self.precision}, threads={self.threads})"
 
 
-def _sub_model(ov: Any, core: Any, path: Path, output: str) -> Any:
+def _framework_metadata(graph: Any) -> dict[str, str] | None:
+    """The ONNX file's metadata_props as OpenVINO's ONNX reader keeps them (``rt_info``), or None
+    where this OpenVINO does not expose them (or the file has none)."""
+    try:
+        framework = graph.get_rt_info()["framework"]
+        if not isinstance(framework, Mapping):
+            return None
+        return {str(k): str(v.astype(str)) for k, v in framework.items()}
+    except Exception:  # older OpenVINO: no such key, or values it will not give as text
+        return None
+
+
+def _names(ports: Any) -> set[str]:
+    """Every tensor name of a graph's inputs or outputs (OpenVINO may give a tensor aliases)."""
+    return {name for port in ports for name in port.get_names()}
+
+
+def _read_onnx(ov: Any, path: Path) -> Any:
+    """OpenVINO's graph of an ONNX file, through its ONNX reader alone: ``Core.read_model`` would
+    offer a file that is not ONNX to every reader, and the TensorFlow one prints parse errors
+    on stderr. Raises whatever OpenVINO raises for a file it cannot read."""
+    onnx = ov.frontend.FrontEndManager().load_by_framework("onnx")
+    if not onnx.supported(str(path)):
+        raise ValueError("not an ONNX file")
+    return onnx.convert(onnx.load(str(path)))
+
+
+def read_openvino(path: str | Path) -> ModelFile:
+    """Read an msfnet ONNX file with OpenVINO: its checked metadata and the graph to compile.
+
+    The metadata checks are ``read_model_file``'s (contract.read_model_info, then the graph's
+    input and output names). Where OpenVINO cannot read the file, does not expose its metadata
+    or finds it wanting, ``read_model_file`` (ONNX Runtime) has the last word: so this reader
+    refuses exactly what that one refuses, in the same line, and costs an ONNX Runtime session
+    only then. InputError if openvino is missing, or the file is missing, corrupt or not msfnet.
+    """
+    path = model_file_path(path)
+    ov = import_openvino()
+    try:
+        graph = _read_onnx(ov, path)
+    except Exception:  # not ONNX, or nothing OpenVINO parses: ONNX Runtime says which
+        return ModelFile(read_model_file(path))
+    meta = _framework_metadata(graph)
+    if meta is not None:
+        try:
+            info = read_model_info(path, meta)
+            check_io(path, info, _names(graph.inputs), _names(graph.outputs))
+            return ModelFile(info, graph)
+        except InputError:
+            pass  # ONNX Runtime's verdict below, word for word
+    return ModelFile(read_model_file(path), graph)
+
+
+def _sub_model(ov: Any, model: Any, output: str) -> Any:
     """The part of a staged graph that computes ``output``, with only the inputs it uses (so a
-    call computes one stage, and no placeholders are fed)."""
-    model = core.read_model(str(path))
-    result = next(r for r in model.get_results() if r.input_value(0).get_any_name() == output)
+    call computes one stage, and no placeholders are fed). The four sub-models share ``model``'s
+    nodes; compiling copies them, so one read of the file serves all four."""
+    result = next(r for r in model.get_results() if output in r.input_value(0).get_names())
     # the parameters this output depends on: walk the graph upwards from the result
     needed, stack, seen = [], [result], set()
     while stack:
@@ -149,15 +215,20 @@ def open_openvino(
     chunk: int | None = None,
     device: str = "CPU",
     config: dict[str, Any] | None = None,
+    file: ModelFile | None = None,
 ) -> OpenVinoEngine:
     """Compile ``path`` with OpenVINO. ``precision``: fp32 or bf16 for fp32 models (default
     fp32), int8 (the default) for int8 QDQ models, whose non-quantised layers then run fp32.
+    ``file``: ``path`` already read (by ``read_openvino``, or ONNX Runtime's metadata alone),
+    so it is not read again.
 
     Raises InputError when openvino is missing, the file is not an msfnet model, or bf16 is
     asked for on a CPU where OpenVINO does not run bf16 natively.
     """
     ov = import_openvino()
-    info = read_model_file(path)
+    if file is None:
+        file = read_openvino(path)
+    info = file.info
     own = model_precision(info)
     precision = precision or own
     if own == "int8" and precision != "int8":
@@ -187,13 +258,16 @@ def open_openvino(
     props.update(config or {})
     core = ov.Core()
     try:
+        graph = file.openvino_graph
+        if graph is None:  # read by ONNX Runtime (or unreadable to OpenVINO: fails here)
+            graph = _read_onnx(ov, info.path)
         if info.staged:
             compiled = {
-                out: core.compile_model(_sub_model(ov, core, info.path, out), device, props)
+                out: core.compile_model(_sub_model(ov, graph, out), device, props)
                 for out in STAGE_OUTPUTS
             }
         else:
-            compiled = {"normals": core.compile_model(str(info.path), device, props)}
+            compiled = {"normals": core.compile_model(graph, device, props)}
     except InputError:
         raise
     except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
@@ -222,4 +296,4 @@ def open_openvino(
     )
 
 
-__all__ = ["INSTALL_HINT", "OpenVinoEngine", "import_openvino", "open_openvino"]
+__all__ = ["INSTALL_HINT", "OpenVinoEngine", "import_openvino", "open_openvino", "read_openvino"]
