@@ -29,10 +29,13 @@ psmImages: see docs/run.md, "Detail fusion".
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
+from msfnet.common.cpu import usable_cores
 from msfnet.runtime.infer.least_squares import grey_values, rows_for_memory
 from msfnet.runtime.infer.normalise import network_lights
 from msfnet.runtime.stack import MIN_LIGHTS, Stack
@@ -45,6 +48,8 @@ KEEP_SPREADS = 3.0  # the final unweighted solve keeps observations within this 
 # ~1e-3) stays above it
 MIN_RELATIVE_NOISE = 1e-4
 NOISE_QUANTILE = 0.5
+MAX_WORKERS = 4  # threads for the fit: its array loops scale to about this many cores
+MIN_PIXELS_PER_WORKER = 4096  # below this a thread costs more than it saves
 NOISE_SAMPLE = 20_000  # pixels sampled (evenly) to measure the stack's typical relative noise
 # working set of a band: per (mask pixel x light) the gather and usable mask, float64 grey
 # values, their float32 copy, fit, residuals, weights and the median's sorted copy; per pixel
@@ -85,11 +90,34 @@ def robust_least_squares(
             continue
         pixels = stack.images[:, band][:, mask, :]
         usable = None if full is None else _unclipped(pixels, full)
-        g, res = tukey_fit(grey_values(pixels, stack.intensities), lights, noise, usable)
+        g, res = _fit_parallel(grey_values(pixels, stack.intensities), lights, noise, usable)
         norm = np.linalg.norm(g, axis=0)
         normals[band][mask] = np.where(norm > 1e-12, g / np.maximum(norm, 1e-12), 0.0).T
         residual[band][mask] = np.where(norm > 1e-12, res, 1.0)
     return RobustFit(normals, residual)
+
+
+def _fit_parallel(
+    grey: np.ndarray, lights: np.ndarray, noise: float, usable: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`tukey_fit` on the band's pixels split among the CPUs this process may use (numpy
+    releases the GIL in its array loops; the network has finished, so the cores are free). The
+    pieces together hold what the band holds: the memory budget is unchanged."""
+    workers = min(usable_cores(), MAX_WORKERS, max(1, grey.shape[1] // MIN_PIXELS_PER_WORKER))
+    if workers == 1:
+        return tukey_fit(grey, lights, noise, usable)
+    cuts = np.linspace(0, grey.shape[1], workers + 1).astype(int)
+    parts = [slice(a, b) for a, b in pairwise(cuts)]
+    with ThreadPoolExecutor(workers) as pool:
+        done = list(
+            pool.map(
+                lambda p: tukey_fit(
+                    grey[:, p], lights, noise, None if usable is None else usable[:, p]
+                ),
+                parts,
+            )
+        )
+    return np.concatenate([g for g, _ in done], axis=1), np.concatenate([r for _, r in done])
 
 
 def band_rows(stack: Stack, max_memory_mb: float | None) -> int:
