@@ -177,3 +177,16 @@ def test_plain_noise_stays_plain_least_squares_noise() -> None:
             least_squares_normals(stack), mask
         )
         assert 0.97 < ratio < 1.05, (noise, ratio)
+
+
+def test_split_among_cores_gives_the_serial_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    import msfnet.runtime.infer.robust_least_squares as robust
+
+    rng = np.random.default_rng(10)
+    lights = _ring().astype(np.float64)
+    grey = np.abs(rng.normal(0.5, 0.2, (12, 3 * robust.MIN_PIXELS_PER_WORKER)))
+    usable = rng.random(grey.shape) > 0.05
+    monkeypatch.setattr(robust, "usable_cores", lambda: 3)
+    g, res = robust._fit_parallel(grey, lights, 0.01, usable)
+    g1, res1 = robust.tukey_fit(grey, lights, 0.01, usable)
+    assert np.array_equal(g, g1) and np.array_equal(res, res1)
