@@ -1,9 +1,10 @@
 """The speed ladder (``--speed``): one option trades time for accuracy in measured rungs.
 
 The network costs ~1.1 MFLOP per pixel per light (infer/flops.py), so its time scales with
-pixels x lights; least squares costs almost nothing (0.15 s on a 12-light 512 x 340 part). The
-rungs below the default cut the network's pixels and lights and give the fine detail back from a
-full-resolution least-squares solve where its Lambertian fit holds (infer/detail_fusion.py):
+pixels x lights; a least-squares fit costs little (plain 0.15 s, robust ~0.3 s on a 12-light
+512 x 340 part). The rungs below the default cut the network's pixels and lights and give the
+fine detail back from a full-resolution robust least-squares fit where its Lambertian model
+holds (infer/detail_fusion.py):
 
     full      the network on every pixel and light (the default)
     balanced  the network at half resolution (1/4 of the pixels), upsampled; full-resolution
