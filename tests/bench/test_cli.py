@@ -245,3 +245,80 @@ def test_a_quick_run_writes_one_complete_report(
     capfd.readouterr()
     assert cli.main(argv) == 2  # an earlier report: --overwrite needed
     assert "--overwrite" in _one_error(capfd)
+
+
+def test_lights_times_msf_run_and_the_per_light_loop_on_the_same_whole_image(
+    stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """--quick --lights 4 on the 16-light 72 x 72 stack: (d) runs msf-run --max-lights 4 and
+    the published per-light forward on the whole 4-light image (really, with random weights).
+    Stand-ins for what other tests cover: the exports, the matmul peaks, the (a)-(c) cells and
+    msf-run itself (a fake that records its light count); cells run in this process."""
+    import numpy as np
+    import torch
+
+    from msfnet.bench import workloads
+    from msfnet.model.checkpoint import save_checkpoint
+    from msfnet.model.network import MSFNet
+    from msfnet.runtime.stack import load_stack
+
+    def models(plan, workdir: Path, calib) -> dict:
+        workdir.mkdir()
+        torch.manual_seed(0)
+        save_checkpoint(MSFNet().eval(), workdir / "r.pth")
+        return {
+            "checkpoint": str(workdir / "r.pth"),
+            "random_weights": True,
+            "fp32": "f",
+            "fp32_staged": "s",
+        }
+
+    gt = load_stack(stack).normals_gt
+    max_lights: list[int | None] = []
+
+    def msf_run(stack_dir, onnx, outdir: Path, threads, budget, lights, extra) -> dict:
+        max_lights.append(lights)
+        outdir.mkdir(parents=True, exist_ok=True)
+        np.save(outdir / "normals.npy", gt)
+        prof = {"engine": "openvino", "stages": {"inference": {"median_s": 0.01}}}
+        return {"wall_s": 0.05, "peak_rss_mb": 100.0, "profile": prof, "command": "msf-run S"}
+
+    def in_process(spec: dict, tmp: Path) -> dict:
+        return workloads.run_cell(spec)
+
+    monkeypatch.setattr(cli, "prepare_models", models)
+    monkeypatch.setattr(cli, "engine_peaks", lambda threads, engines: [])
+    monkeypatch.setattr(cli, "merge_peaks", lambda a, b: [])
+    monkeypatch.setattr(cli, "schedule", lambda quick, variants, threads: [])
+    monkeypatch.setattr(cli, "time_msf_run", msf_run)
+    monkeypatch.setattr(cli, "run_cell_subprocess", in_process)
+    out = tmp_path / "report"
+    argv = [a for a in _argv(stack, out, "--lights", "4") if a != "--no-e2e"]
+    assert cli.main(argv) == 0, capfd.readouterr().err
+    assert max_lights and set(max_lights) == {4}  # every (d) row: msf-run --max-lights 4
+    data = json.loads((out / "report.json").read_text())
+    (row,) = [r for r in data["rows"] if r["workload"] == "d"]
+    assert (row["variant"], row["lights"], row["pixels"], row["threads"]) == (
+        "per-light",
+        4,
+        72 * 72,
+        1,
+    )
+    assert len(row["times_s"]) == 1 and row["median_s"] > 0  # --quick: one timed run
+    default = next(r for r in data["e2e"] if r["variant"] == "default")
+    assert default["per_light_measured"] and default["lights"] == 4
+    assert abs(default["x_vs_per_light"] - row["median_s"] / 0.05) < 1e-9
+    assert abs(default["x_vs_per_light_inference"] - row["median_s"] / 0.01) < 1e-9
+    assert "the default command on 4 lights" in (out / "REPORT.md").read_text()
+
+
+def test_lights_needs_workload_d_and_enough_lights(
+    stack: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(cli, "bench", _unreached)
+    assert cli.main(_argv(stack, tmp_path / "r", "--lights", "8")) == 2  # with --no-e2e
+    assert "drop --no-e2e" in _one_error(capfd)
+    with pytest.raises(SystemExit) as exc:
+        cli.main(_argv(stack, tmp_path / "r", "--lights", "2"))
+    assert exc.value.code == 2 and "--lights" in capfd.readouterr().err
+    assert list(tmp_path.iterdir()) == []

@@ -175,3 +175,78 @@ def test_openvino_bf16_variants_are_scheduled_on_every_workload():
             assert (wl.key, v, 2) in keys
     assert ("c", "per-light", 2) not in keys  # extrapolated, too slow to run
     assert ("b", "ov-bf16-staged", 1) not in keys  # 1 thread on big inputs: shipped ORT only
+
+
+def _lights_result(bf16: bool, measured: bool) -> dict:
+    """A --lights 8 report: (d) on 8 lights of a 100 x 50 image, default command 0.5 s with a
+    0.2 s inference stage; the per-light loop 30 s on that whole image (``measured``), else
+    only a (b) crop run to extrapolate from (8 s at 32 lights, 16384 px)."""
+    rows = [_row("b", "per-light", 2, 8.0, 32, 16384)]
+    if measured:
+        rows.append({**_row("d", "per-light", 2, 30.0, 8, 5000), "times_s": [29.0, 31.0]})
+    return {
+        "date": "d",
+        "quick": False,
+        "elapsed_s": 1.0,
+        "rows": rows,
+        "lights": 8,
+        "machine": {
+            "cpu": "x",
+            "cores": 2,
+            "isa_flags": [],
+            "cpu_features": {"avx2": True, "avx512_bf16": bf16, "amx_bf16": False},
+            "platform": "p",
+            "python": "3",
+            "onnxruntime": "1",
+        },
+        "peaks": [],
+        "models": {"random_weights": True, "checkpoint": "c"},
+        "variants": {},
+        "e2e": [
+            {
+                "variant": "default",
+                "threads": 2,
+                "lights": 8,
+                "height": 50,
+                "width": 100,
+                "walls_s": [0.6, 0.5, 0.4],
+                "median_s": 0.5,
+                "inference_s": 0.2,
+                "peak_rss_mb": 300.0,
+                "command": "msf-run STACK --max-lights 8",
+            }
+        ],
+    }
+
+
+def test_lights_runs_compare_with_the_per_light_loop_measured_on_the_same_input(tmp_path):
+    write_report(_lights_result(bf16=True, measured=True), tmp_path)
+    run = json.loads((tmp_path / "report.json").read_text())["e2e"][0]
+    # the whole-image row, not the (b) crop scaled (8 s * 8/32 * 5000/16384 = 0.61 s)
+    assert run["per_light_measured"] and run["per_light_estimate_s"] == 30.0
+    assert run["x_vs_per_light"] == 60.0  # 30 s / 0.5 s end to end
+    assert abs(run["x_vs_per_light_inference"] - 150.0) < 1e-9  # 30 s / 0.2 s inference
+    md = (tmp_path / "REPORT.md").read_text()
+    assert (
+        "60.0x the per-light loop (30.0 s, measured on the same whole 8-light image); "
+        "msf-run's inference stage alone 0.20 s, 150.0x; peak RSS 300 MiB: target >= 60x "
+        "on a CPU with native bf16 **met**" in md
+    )
+    assert "(median of 29.0, 31.0)" in md and "the per-light loop on (d)'s input" in md
+
+
+def test_lights_target_depends_on_native_bf16_and_marks_extrapolation(tmp_path):
+    write_report(_lights_result(bf16=False, measured=False), tmp_path)
+    run = json.loads((tmp_path / "report.json").read_text())["e2e"][0]
+    assert not run["per_light_measured"]
+    assert abs(run["per_light_estimate_s"] - 8.0 * 8 / 32 * 5000 / 16384) < 1e-9
+    md = (tmp_path / "REPORT.md").read_text()
+    assert "extrapolated from (b) to the whole 8-light image" in md
+    assert "target >= 30x on a CPU without native bf16 **not met**" in md
+    assert "| ~1.2 | 0.20 | ~3.1 |" in md  # x per-light, inference s, inference only
+
+
+def test_the_whole_image_row_is_never_scaled_to_other_sizes():
+    rows = [_row("d", "per-light", 2, 30.0, 8, 5000)]
+    assert per_light_estimate(rows, 8, 5000, 2) == (30.0, True)
+    assert per_light_estimate(rows, 32, 16384, 2) is None  # crops: no (a)-(c) run to scale

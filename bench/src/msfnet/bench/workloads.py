@@ -90,6 +90,17 @@ def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
     return {"images": images, "lights": lights, "mask": stack.mask[rows, cols]}
 
 
+def full_input(stack_dir: Path, lights: int) -> dict[str, np.ndarray]:
+    """The whole image on ``lights`` evenly spaced lights (the lights msf-run --max-lights
+    keeps), zero-padded to multiples of 4 and untiled: the input the published code runs on."""
+    from msfnet.runtime.stack import load_stack
+
+    stack = load_stack(stack_dir, max_lights=lights)
+    h, w = stack.mask.shape
+    images, dirs = network_input(stack, shape=(-(-h // 4) * 4, -(-w // 4) * 4))
+    return {"images": images, "lights": dirs, "mask": stack.mask}
+
+
 def _max_rss_mb() -> float:
     """Peak RSS of this process (VmHWM on Linux: see msfnet.runtime.results.profile.peak_rss_mb)."""
     from msfnet.runtime.results.profile import peak_rss_mb
@@ -244,6 +255,7 @@ __all__ = [
     "WORKLOADS",
     "Workload",
     "asdict",
+    "full_input",
     "make_input",
     "run_cell",
     "time_msf_run",
