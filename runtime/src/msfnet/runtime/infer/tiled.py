@@ -56,12 +56,14 @@ def context_mask(stack: Stack, halo: int = HALO) -> np.ndarray:
     ys, xs = np.nonzero(mask)
     step = max(1, ys.size // CONTEXT_SAMPLE)
     ys, xs = ys[::step], xs[::step]
-    grey = np.empty((stack.num_lights, int(ring.sum())), np.float32)
+    ry, rx = np.nonzero(ring)
+    grey = np.empty((stack.num_lights, ry.size), np.float32)
     inside = np.empty((stack.num_lights, ys.size), np.float32)
     for i in range(stack.num_lights):  # one light at a time: never the whole stack as float
-        img = stack.images[i].astype(np.float32) / stack.intensities[i]
-        g = img.mean(axis=2)
-        grey[i], inside[i] = g[ring], g[ys, xs]
+        # only the ring's and the sample's pixels are converted (a tenth of a DiLiGenT image)
+        scale = 1.0 / stack.intensities[i].astype(np.float32)
+        grey[i] = (stack.images[i, ry, rx].astype(np.float32) * scale).mean(axis=1)
+        inside[i] = (stack.images[i, ys, xs].astype(np.float32) * scale).mean(axis=1)
     level = float(np.median(np.percentile(inside, 75, axis=0)))
     if level <= 0:
         return mask
