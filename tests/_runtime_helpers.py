@@ -14,6 +14,20 @@ import pytest
 from msfnet.runtime.stack import Stack
 
 
+def ring_lights(n: int = 12, tilt_deg: float = 35.0) -> np.ndarray:
+    """(n, 3) float32 unit directions of an LED ring ``tilt_deg`` off the camera axis."""
+    k = np.arange(n)
+    th = np.radians(tilt_deg)
+    return np.stack(
+        [
+            np.sin(th) * np.cos(2 * np.pi * k / n),
+            np.sin(th) * np.sin(2 * np.pi * k / n),
+            np.full(n, np.cos(th)),
+        ],
+        axis=1,
+    ).astype(np.float32)
+
+
 def sphere_stack(
     n: int = 8, h: int = 36, w: int = 44, seed: int = 0, name: str = "sphere"
 ) -> Stack:

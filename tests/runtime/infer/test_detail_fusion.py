@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _runtime_helpers import ring_lights
 from scipy import ndimage
 
 from msfnet.common.errors import InputError
@@ -60,16 +61,7 @@ def test_shapes_are_checked() -> None:
 
 def _lambertian_stack(broken: bool) -> Stack:
     n = _field(5, 32, 32)
-    k = np.arange(12)
-    th = np.radians(35.0)
-    lights = np.stack(
-        [
-            np.sin(th) * np.cos(k * np.pi / 6),
-            np.sin(th) * np.sin(k * np.pi / 6),
-            np.full(12, np.cos(th)),
-        ],
-        axis=1,
-    ).astype(np.float32)
+    lights = ring_lights()
     shading = np.clip(np.einsum("hwc,nc->nhw", n, lights), 0, None) * 0.5
     shading[3, :, :16] += 0.8  # a highlight under one light: the robust fit drops it
     if broken:  # the left half unlike any Lambertian surface: nothing to trust there
@@ -135,16 +127,7 @@ def _noisy_stack(seed: int, h: int = 96, w: int = 80) -> tuple[Stack, np.ndarray
     z = 0.002 * ((x - w / 2) ** 2 + (y - h / 2) ** 2) + 0.6 * np.sin(x / 1.3) * np.sin(y / 1.7)
     gy, gx = np.gradient(z)
     n = unit_normals(np.dstack([-gx, -gy, np.ones_like(z)]).astype(np.float32))
-    k = np.arange(12)
-    th = np.radians(35.0)
-    lights = np.stack(
-        [
-            np.sin(th) * np.cos(k * np.pi / 6),
-            np.sin(th) * np.sin(k * np.pi / 6),
-            np.full(12, np.cos(th)),
-        ],
-        axis=1,
-    ).astype(np.float32)
+    lights = ring_lights()
     shading = np.clip(np.einsum("hwc,nc->nhw", n, lights), 0, None) * 0.5
     shading += 0.005 * rng.normal(size=shading.shape)
     images = np.repeat(np.clip(shading, 0, None)[..., None], 3, axis=3).astype(np.float32)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _runtime_helpers import ring_lights
 
 from msfnet.runtime.infer.least_squares import least_squares_normals
 from msfnet.runtime.infer.robust_least_squares import robust_least_squares, tukey_fit
@@ -16,19 +17,6 @@ def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a, b = a.astype(np.float64), b.astype(np.float64)
     cross = np.linalg.norm(np.cross(a, b), axis=-1)
     return np.degrees(np.arctan2(cross, np.sum(a * b, axis=-1)))
-
-
-def _ring(n: int = 12, tilt_deg: float = 35.0) -> np.ndarray:
-    k = np.arange(n)
-    th = np.radians(tilt_deg)
-    return np.stack(
-        [
-            np.sin(th) * np.cos(2 * np.pi * k / n),
-            np.sin(th) * np.sin(2 * np.pi * k / n),
-            np.full(n, np.cos(th)),
-        ],
-        axis=1,
-    ).astype(np.float32)
 
 
 def _normals(seed: int, h: int = 24, w: int = 32) -> np.ndarray:
@@ -43,7 +31,7 @@ def _stack(shading: np.ndarray, lights: np.ndarray) -> Stack:
 
 
 def test_equals_plain_least_squares_where_every_light_fits() -> None:
-    n, lights = _normals(1), _ring()
+    n, lights = _normals(1), ring_lights()
     shading = np.einsum("hwc,nc->nhw", n, lights) * 0.6  # every light lit: no clamping
     assert shading.min() > 0
     stack = _stack(shading, lights)
@@ -55,7 +43,7 @@ def test_equals_plain_least_squares_where_every_light_fits() -> None:
 
 
 def test_highlight_and_cast_shadow_drop_out() -> None:
-    n, lights = _normals(2), _ring()
+    n, lights = _normals(2), ring_lights()
     shading = np.einsum("hwc,nc->nhw", n, lights) * 0.5
     shading[3, :, :16] += 0.8  # a highlight under light 4 on the left half
     shading[7, 8:, :] = 0.0  # a cast shadow under light 8 on the lower rows
@@ -71,9 +59,9 @@ def test_highlight_and_cast_shadow_drop_out() -> None:
 def test_residual_is_high_where_the_model_fails_and_one_on_black() -> None:
     rng = np.random.default_rng(3)
     grey = rng.uniform(0.0, 1.0, (12, 500))  # no normal explains these
-    _, residual = tukey_fit(grey, _ring().astype(np.float64))
+    _, residual = tukey_fit(grey, ring_lights().astype(np.float64))
     assert np.median(residual) > 0.15
-    n, lights = _normals(4, 8, 8), _ring()
+    n, lights = _normals(4, 8, 8), ring_lights()
     shading = np.einsum("hwc,nc->nhw", n, lights) * 0.5
     shading[:, 0, 0] = 0.0  # black under every light
     fit = robust_least_squares(_stack(shading, lights))
@@ -92,7 +80,7 @@ def test_bands_give_the_same_fit_and_nothing_outside_the_mask(
         asked.append(bytes_per_pixel_light)
         return 8
 
-    n, lights = _normals(5, 64, 48), _ring()
+    n, lights = _normals(5, 64, 48), ring_lights()
     shading = np.einsum("hwc,nc->nhw", n, lights) * 0.5 + 0.02 * np.random.default_rng(5).random(
         (12, 64, 48)
     )
@@ -115,11 +103,11 @@ def test_no_redundancy_is_no_trust() -> None:
     """Three lights fit any three values exactly: a residual of 0 would claim a perfect fit,
     so a pixel without a fourth usable observation gets residual 1."""
     n = _normals(6, 8, 8)
-    lights = _ring(3)
+    lights = ring_lights(3)
     shading = np.einsum("hwc,nc->nhw", n, lights) * 0.5
     fit = robust_least_squares(_stack(shading, lights))
     assert np.all(fit.residual == 1.0)
-    four = _ring(4)
+    four = ring_lights(4)
     shading = np.einsum("hwc,nc->nhw", n, four) * 0.5
     fit = robust_least_squares(_stack(shading, four))
     assert fit.residual.max() < 1e-4  # exact data with one spare light: trusted
@@ -128,7 +116,7 @@ def test_no_redundancy_is_no_trust() -> None:
 def test_clipped_observations_are_not_used() -> None:
     """uint8 pixels at 255 under some lights: the fit uses the others; a patch clipped under
     every light has no usable observation and no fit."""
-    n, lights = _normals(7, 16, 16), _ring()
+    n, lights = _normals(7, 16, 16), ring_lights()
     shading = np.einsum("hwc,nc->nhw", n, lights) * 200.0
     shading[2, :, :8] = 255.0  # clipped under one light on the left half
     shading[:, 12:, 12:] = 255.0  # clipped under every light
@@ -147,7 +135,7 @@ def test_attached_shadows_fit_the_clamped_model() -> None:
     n[..., 0] += 0.9
     n[..., 2] += 0.5
     n = unit_normals(n)
-    lights = _ring(12, 60.0)
+    lights = ring_lights(12, 60.0)
     shading = np.clip(np.einsum("hwc,nc->nhw", n, lights), 0, None) * 0.5
     assert (shading == 0).sum(axis=0).min() >= 2  # every pixel has attached shadows
     fit = robust_least_squares(_stack(shading, lights))
@@ -164,7 +152,7 @@ def test_plain_noise_stays_plain_least_squares_noise() -> None:
     from msfnet.runtime.evaluate.detail_ratio import highpass_energy
 
     rng = np.random.default_rng(9)
-    lights = _ring()
+    lights = ring_lights()
     y, x = np.mgrid[0:96, 0:96]
     n = np.dstack([(x - 48) / 300, (y - 48) / 300, np.ones((96, 96))]).astype(np.float32)
     n = unit_normals(n)
@@ -183,7 +171,7 @@ def test_split_among_cores_gives_the_serial_fit(monkeypatch: pytest.MonkeyPatch)
     import msfnet.runtime.infer.robust_least_squares as robust
 
     rng = np.random.default_rng(10)
-    lights = _ring().astype(np.float64)
+    lights = ring_lights().astype(np.float64)
     grey = np.abs(rng.normal(0.5, 0.2, (12, 3 * robust.MIN_PIXELS_PER_WORKER)))
     usable = rng.random(grey.shape) > 0.05
     monkeypatch.setattr(robust, "usable_cores", lambda: 3)
