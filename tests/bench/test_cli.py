@@ -322,3 +322,18 @@ def test_lights_needs_workload_d_and_enough_lights(
         cli.main(_argv(stack, tmp_path / "r", "--lights", "2"))
     assert exc.value.code == 2 and "--lights" in capfd.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_warm_model_times_the_default_path_per_stack(stack: Path) -> None:
+    """The (d) table's `default-warm` row: the bundled model opened once in its own process,
+    a warm-up call, then timed calls on the stack path (no files)."""
+    from msfnet.bench.workloads import time_warm_model
+
+    before = _tree(stack)
+    warm = time_warm_model(stack, 1, None, max_lights=4, repeats=2)
+    assert len(warm["walls_s"]) == 2 and all(w > 0 for w in warm["walls_s"])
+    assert warm["profile"]["lights"] == 4 and warm["profile"]["engine"]
+    assert warm["peak_rss_mb"] > 50
+    assert warm["mae"] is not None and 0 <= warm["mae"] < 90  # the sphere's ground truth
+    assert _tree(stack) == before  # nothing written beside the inputs

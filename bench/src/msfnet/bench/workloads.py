@@ -237,6 +237,55 @@ def time_msf_run(
     }
 
 
+# One process, the model opened once: a warm-up call, then timed calls of the whole per-stack
+# work a stream or a station loop repeats (load -> normals, metrics; no files written).
+_WARM_WORKER = """
+import json, sys, time
+from msfnet import Model
+from msfnet.runtime.stack.load import LoadOptions
+from msfnet.bench.workloads import _max_rss_mb
+spec = json.loads(sys.argv[1])
+budget = {} if spec["max_memory_mb"] is None else {"max_memory_mb": spec["max_memory_mb"]}
+model = Model(threads=spec["threads"], maps=None, **budget)
+load = LoadOptions(max_lights=spec["max_lights"]) if spec["max_lights"] else None
+model(spec["stack"], load)
+walls = []
+for _ in range(spec["repeats"]):
+    t = time.perf_counter()
+    result = model(spec["stack"], load)
+    walls.append(time.perf_counter() - t)
+print(json.dumps({"walls_s": walls, "profile": result.profile(), "peak_rss_mb": _max_rss_mb(),
+                  "mae": None if result.metrics is None else result.metrics.mae_deg}))
+"""
+
+
+def time_warm_model(
+    stack_dir: Path,
+    threads: int,
+    max_memory_mb: float | None,
+    max_lights: int | None = None,
+    repeats: int = 3,
+) -> dict:
+    """The default path in one warm process (``Model`` opened once, a warm-up call, then
+    ``repeats`` timed calls on the stack path: loading, inference, fusion, metrics; no files):
+    the per-stack time of a stream or a station loop, without process start and compile."""
+    import subprocess
+
+    spec = {
+        "stack": str(stack_dir),
+        "threads": threads,
+        "max_memory_mb": max_memory_mb,
+        "max_lights": max_lights,
+        "repeats": repeats,
+    }
+    proc = subprocess.run(
+        [sys.executable, "-c", _WARM_WORKER, json.dumps(spec)], capture_output=True, text=True
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"warm model run failed ({proc.returncode}): {proc.stderr[-400:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def main(argv: list[str] | None = None) -> int:
     spec_path = Path((argv or sys.argv[1:])[0])
     spec = json.loads(spec_path.read_text())
@@ -259,6 +308,7 @@ __all__ = [
     "make_input",
     "run_cell",
     "time_msf_run",
+    "time_warm_model",
 ]
 
 if __name__ == "__main__":
