@@ -630,13 +630,7 @@ def end_to_end(
                 "median_s": float(np.median([x["wall_s"] for x in walls])),
                 "peak_rss_mb": max(x["peak_rss_mb"] for x in walls),
                 "command": w["command"],
-                "engine": prof.get("engine"),
-                "precision": prof.get("precision"),
-                "graph": prof.get("graph"),
-                "choice": prof.get("choice"),
-                "tiles": prof.get("tiles"),
-                "stages": prof.get("stages"),
-                "inference_gflops_per_s": prof.get("inference_gflops_per_s"),
+                **_what_ran(prof),
                 # msf-run's own inference stage (its profile), median over the runs: the ratio
                 # without process start, loading, engine compile and writing
                 "inference_s": _median_stage([x["profile"] for x in walls], "inference"),
@@ -671,16 +665,26 @@ def _warm_row(
         "median_s": float(np.median(warm["walls_s"])),
         "peak_rss_mb": warm["peak_rss_mb"],
         "command": "Model(threads=...) opened once, then model(stack) per call (no files)",
-        "engine": prof.get("engine"),
-        "precision": prof.get("precision"),
-        "graph": prof.get("graph"),
-        "choice": prof.get("choice"),
-        "tiles": prof.get("tiles"),
-        "stages": prof.get("stages"),
-        "inference_gflops_per_s": prof.get("inference_gflops_per_s"),
+        **_what_ran(prof),
         "inference_s": _median_stage([prof], "inference"),
         "mae_vs_gt_deg": warm["mae"],
     }
+
+
+PROFILE_FIELDS = (
+    "engine",
+    "precision",
+    "graph",
+    "choice",
+    "tiles",
+    "stages",
+    "inference_gflops_per_s",
+)
+
+
+def _what_ran(profile: dict) -> dict:
+    """The (d) row's fields taken from a run's profile (engine, graph, tiles, stage times)."""
+    return {k: profile.get(k) for k in PROFILE_FIELDS}
 
 
 def _median_stage(profiles: list[dict], stage: str) -> float | None:
