@@ -76,8 +76,11 @@ def test_bands_give_the_same_fit_and_nothing_outside_the_mask(
 
     asked: list[int] = []
 
-    def eight_rows(budget: float, stack: Stack, bytes_per_pixel_light: int) -> int:
+    def eight_rows(
+        budget: float, stack: Stack, bytes_per_pixel_light: int, **counted: object
+    ) -> int:
         asked.append(bytes_per_pixel_light)
+        assert counted["output_bytes_per_pixel"] == 16  # normals and residual, whole image
         return 8
 
     n, lights = _normals(5, 64, 48), ring_lights()
@@ -92,7 +95,7 @@ def test_bands_give_the_same_fit_and_nothing_outside_the_mask(
     whole = robust_least_squares(stack)
     monkeypatch.setattr(robust, "rows_for_memory", eight_rows)
     banded = robust_least_squares(stack, max_memory_mb=500)  # 8 bands of 8 rows
-    # the per-pixel part (the 3 x 3 systems) spread over the lights: 56 + ceil(400 / 12)
+    # the per-pixel part (the 3 x 3 systems) spread over the lights: 72 + ceil(400 / 12)
     assert asked == [robust.BYTES_PER_PIXEL_LIGHT + 34]
     assert np.allclose(whole.normals, banded.normals, atol=1e-6)
     assert np.allclose(whole.residual, banded.residual, atol=1e-6)

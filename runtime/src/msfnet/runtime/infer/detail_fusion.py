@@ -178,7 +178,15 @@ class DetailFusionEstimator:
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False
     ) -> Estimate:
-        rows = band_rows(stack, tiling.max_memory_mb)  # a budget too small fails before the network
+        # a budget too small fails before the network: the network's output and the fused
+        # normals (12 B a pixel each) are held beside the fit's own whole-image results
+        h, w = stack.shape
+        rows = band_rows(
+            stack,
+            tiling.max_memory_mb,
+            reserve_mb=2 * h * w * 12 / 2**20,
+            what="the detail fusion (--no-detail-fusion runs without it)",
+        )
         base = self.network.estimate(stack, tiling, timer, progress)
         with timer("postprocess"):
             fit = robust_least_squares(stack, rows=rows)
@@ -195,7 +203,8 @@ def _fusion_rows(stack: Stack, tiling: TilingOptions) -> int:
     if tiling.max_memory_mb is None:
         return h
     held = memory_in_use_mb()
-    room_mb = tiling.max_memory_mb - (held if held is not None else BASE_MEMORY_MB)
+    out_mb = h * w * 12 / 2**20  # the fused normals, filled band by band
+    room_mb = tiling.max_memory_mb - (held if held is not None else BASE_MEMORY_MB) - out_mb
     rows = int(room_mb * 2**20 // (w * FUSION_BYTES_PER_PIXEL)) if room_mb > 0 else 0
     return int(np.clip(rows, MIN_FUSION_ROWS, h))
 

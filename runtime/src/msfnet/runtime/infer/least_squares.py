@@ -58,11 +58,17 @@ def rows_for_memory(
     stack: Stack,
     in_use_mb: float | None = None,
     bytes_per_pixel_light: int = BYTES_PER_PIXEL_LIGHT,
+    output_bytes_per_pixel: int = 12,
+    reserve_mb: float = 0.0,
+    what: str = "least squares",
 ) -> int:
     """Image rows per band so that the stack, what else the process holds (``in_use_mb``, see
     :func:`least_squares_normals`), the output and the band's working set (``bytes_per_pixel_light``
     per pixel and light) fit in ``max_memory_mb``; InputError (quoting the budget as given) when
-    not even MIN_ROWS fit."""
+    not even MIN_ROWS fit. ``output_bytes_per_pixel``: the whole-image results the caller
+    returns (normals: 12); ``reserve_mb``: what the caller will hold besides while the bands
+    run (e.g. a network's output, computed after this check); ``what``: the step the message
+    names."""
     if not (np.isfinite(max_memory_mb) and max_memory_mb > 0):
         raise InputError(f"--max-memory must be a positive number of MB, got {max_memory_mb}")
     h, w = stack.shape
@@ -71,14 +77,14 @@ def rows_for_memory(
     if in_use_mb is None:
         rss = memory_in_use_mb()
         in_use_mb = BASE_MEMORY_MB if rss is None else max(rss - stack_mb, 0.0)
-    out_mb = h * w * 3 * 4 / 2**20  # the normals returned
-    held_mb = stack_mb + in_use_mb + out_mb
+    out_mb = h * w * output_bytes_per_pixel / 2**20  # the whole-image results returned
+    held_mb = stack_mb + in_use_mb + out_mb + reserve_mb
     budget = (max_memory_mb - held_mb) * 2**20
     rows = int(budget // per_row) if budget > 0 else 0
     if rows < min(MIN_ROWS, h):
         need = held_mb + min(MIN_ROWS, h) * per_row / 2**20
         raise InputError(
-            f"--max-memory {max_memory_mb:g} MB is too small for least squares on "
+            f"--max-memory {max_memory_mb:g} MB is too small for {what} on "
             f"this stack: it takes {stack_mb:.1f} MB loaded, the process "
             f"{in_use_mb:.0f} MB besides, and at least {need:.1f} MB in all"
         )

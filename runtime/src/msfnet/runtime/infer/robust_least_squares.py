@@ -54,9 +54,12 @@ NOISE_SAMPLE = 20_000  # pixels sampled (evenly) to measure the stack's typical 
 # working set of a band: per (mask pixel x light) the gather and usable mask, float64 grey
 # values, their float32 copy, fit, residuals, weights and the median's sorted copy; per pixel
 # the 3 x 3 systems and their solves (measured with tracemalloc, gather included: 440-460 B a
-# pixel at 3-4 lights, 750 at 12, 5,030 at 96; kept with a margin of 15-40 %)
-BYTES_PER_PIXEL_LIGHT = 56
+# pixel at 3-4 lights, 750 at 12, 5,030 at 96). The margin covers the allocator's slack with
+# the band split among threads: peaks measured within 1-3 % of the budget (96 lights, 612 x
+# 512; tests/runtime/infer/test_detail_fusion_memory.py)
+BYTES_PER_PIXEL_LIGHT = 72
 BYTES_PER_PIXEL = 400
+OUTPUT_BYTES_PER_PIXEL = 16  # the whole-image float32 normals (12) and residual (4)
 
 
 @dataclass(frozen=True)
@@ -80,7 +83,7 @@ def robust_least_squares(
     if rows is None:
         rows = band_rows(stack, max_memory_mb)
     full = float(np.iinfo(stack.images.dtype).max) if stack.images.dtype.kind in "ui" else None
-    noise = stack_noise(stack, lights, full)
+    noise = stack_noise(stack, lights, full, max_pixels=rows * w)  # a band's worth at most
     normals = np.zeros((h, w, 3), np.float32)
     residual = np.zeros((h, w), np.float32)
     for r0 in range(0, h, rows):
@@ -120,13 +123,27 @@ def _fit_parallel(
     return np.concatenate([g for g, _ in done], axis=1), np.concatenate([r for _, r in done])
 
 
-def band_rows(stack: Stack, max_memory_mb: float | None) -> int:
+def band_rows(
+    stack: Stack,
+    max_memory_mb: float | None,
+    reserve_mb: float = 0.0,
+    what: str = "robust least squares",
+) -> int:
     """Rows per band of :func:`robust_least_squares` within ``max_memory_mb`` (None: the whole
-    image); InputError when not even a few rows fit (callers ask before slow work)."""
+    image), its whole-image normals and residual counted, and ``reserve_mb`` held besides (a
+    network's output when asked before the network runs); InputError when not even a few rows
+    fit (callers ask before slow work)."""
     if max_memory_mb is None:
         return stack.shape[0]
     per_light = BYTES_PER_PIXEL_LIGHT + -(-BYTES_PER_PIXEL // stack.num_lights)
-    return rows_for_memory(max_memory_mb, stack, bytes_per_pixel_light=per_light)
+    return rows_for_memory(
+        max_memory_mb,
+        stack,
+        bytes_per_pixel_light=per_light,
+        output_bytes_per_pixel=OUTPUT_BYTES_PER_PIXEL,
+        reserve_mb=reserve_mb,
+        what=what,
+    )
 
 
 def _unclipped(pixels: np.ndarray, full: float) -> np.ndarray:
@@ -134,11 +151,18 @@ def _unclipped(pixels: np.ndarray, full: float) -> np.ndarray:
     return np.asarray(~(pixels >= full).any(axis=2))
 
 
-def stack_noise(stack: Stack, lights: np.ndarray, full: float | None = None) -> float:
-    """The stack's typical relative noise: the median over evenly sampled mask pixels of each
-    one's robust spread (no floor) over its median brightness."""
+def stack_noise(
+    stack: Stack,
+    lights: np.ndarray,
+    full: float | None = None,
+    max_pixels: int = NOISE_SAMPLE,
+) -> float:
+    """The stack's typical relative noise: the median over evenly sampled mask pixels (at most
+    NOISE_SAMPLE and ``max_pixels``: one band's working set) of each one's robust spread (no
+    floor) over its median brightness."""
     ys, xs = np.nonzero(stack.mask)
-    pick = np.linspace(0, len(ys) - 1, min(NOISE_SAMPLE, len(ys))).astype(np.int64)
+    count = max(1, min(NOISE_SAMPLE, max_pixels, len(ys)))
+    pick = np.linspace(0, len(ys) - 1, count).astype(np.int64)
     pixels = stack.images[:, ys[pick], xs[pick], :]
     usable = None if full is None else _unclipped(pixels, full)
     grey = grey_values(pixels, stack.intensities)
