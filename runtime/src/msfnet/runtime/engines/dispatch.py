@@ -224,6 +224,18 @@ def _install_hint(engine: str) -> str:
     return "pip install openvino" if engine == "openvino" else "pip install onnxruntime"
 
 
+# What likely_engine assumes before a file is read: the bundled kind of export (fp32, staged).
+_FP32_GUESS = ModelInfo(
+    path=Path("model.onnx"),
+    train_lights=32,
+    input_multiple=4,
+    static_shape=None,
+    precision="fp32",
+    metadata={},
+    staged=True,
+)
+
+
 def likely_engine(
     cpu: CpuInfo,
     installed: Iterable[str],
@@ -231,22 +243,18 @@ def likely_engine(
     requested_precision: str | None = None,
     device: Device | None = None,
 ) -> str:
-    """The engine ``choose_engine`` will pick before the model's metadata is known: the rules
-    with an fp32 model (the bundled one; int8 exports are the exception), so that engine reads
-    the file and compiles that same read. A wrong guess costs one more read, never a wrong
-    choice: the choice itself is made from the metadata."""
-    have = {engine_name(e) for e in installed}
-    if "openvino" not in have:
+    """The engine ``choose_engine`` will pick before the model's metadata is known: its own
+    rules applied to an fp32 staged export (the bundled kind; int8 exports are the exception),
+    so that engine reads the file and compiles that same read. A wrong guess costs one more
+    read, never a wrong choice: the choice itself is made from the metadata; requests the
+    rules refuse are left to ONNX Runtime's reader, whose refusals word every error."""
+    try:
+        choice = choose_engine(
+            _FP32_GUESS, cpu, installed, requested_engine, requested_precision, device
+        )
+    except InputError:
         return "onnxruntime"
-    if device is not None:
-        return device.engine
-    if requested_engine is not None:
-        return engine_name(requested_engine)
-    if requested_precision is not None and precision_name(requested_precision) == "int8":
-        return "onnxruntime"  # an int8 export: ONNX Runtime's by default
-    if requested_precision is not None and precision_name(requested_precision) == "bf16":
-        return "openvino"
-    return "openvino" if cpu.has_bf16 or ov_fp32_preferred(cpu) else "onnxruntime"
+    return choice.engine
 
 
 def read_for(path: str | Path, engine: str) -> ModelFile:
@@ -287,10 +295,7 @@ def choose_engine(
     elif isinstance(model, ModelFile):
         file = model
     else:
-        try:
-            reader = likely_engine(cpu, installed, requested_engine, requested_precision, device)
-        except InputError:  # an unknown engine or precision name: refused below, as ever
-            reader = "onnxruntime"
+        reader = likely_engine(cpu, installed, requested_engine, requested_precision, device)
         file = read_for(model, reader)
     info = file.info
     have = {engine_name(e) for e in installed}
