@@ -166,7 +166,7 @@ def stack_noise(
     pixels = stack.images[:, ys[pick], xs[pick], :]
     usable = None if full is None else _unclipped(pixels, full)
     grey = grey_values(pixels, stack.intensities)
-    _, _, spread, bright = _iterate(grey.astype(np.float32), lights, 0.0, usable)
+    _, spread, bright = _iterate(grey.astype(np.float32), lights, 0.0, usable)
     ok = bright > 0
     return float(np.quantile(spread[ok] / bright[ok], NOISE_QUANTILE)) if ok.any() else 0.0
 
@@ -206,9 +206,8 @@ def _median_of(values: np.ndarray, include: np.ndarray) -> np.ndarray:
 
 def _iterate(
     grey: np.ndarray, lights: np.ndarray, noise: float, usable: np.ndarray | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The reweighting passes: (g (3, P), clamped residuals (N, P), spread (P,), median
-    brightness (P,)), all float32."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reweighting passes: (g (3, P), spread (P,), median brightness (P,)), all float32."""
     n = len(lights)
     use = np.ones(grey.shape, np.float32) if usable is None else usable.astype(np.float32)
     lights32 = lights.astype(np.float32)
@@ -229,8 +228,7 @@ def _iterate(
         enough = (w > 0.05).sum(axis=0) > MIN_LIGHTS
         new, ok = _solve(w, grey, lights)
         g = np.where(enough & ok, new, g)
-    r = grey - np.maximum(lights32 @ g, 0.0)
-    return g, r, spread, bright
+    return g, spread, bright
 
 
 def tukey_fit(
@@ -247,14 +245,16 @@ def tukey_fit(
     observations (None: all usable)."""
     grey = grey.astype(np.float32)
     use = np.ones(grey.shape, bool) if usable is None else usable
-    g, r, spread, _ = _iterate(grey, lights, noise, usable)
-    pred = lights.astype(np.float32) @ g
+    g, spread, _ = _iterate(grey, lights, noise, usable)
+    lights32 = lights.astype(np.float32)
+    pred = lights32 @ g
+    r = grey - np.maximum(pred, 0.0)
     explained = use & (np.abs(r) <= KEEP_SPREADS * spread)
     keep = explained & (pred > 0)  # attached shadows are explained but hold no equation
     final, ok = _solve(keep.astype(np.float32), grey, lights)
     enough = ok & (keep.sum(axis=0) > MIN_LIGHTS)
     g = np.where(enough, final, g)
-    r = grey - np.maximum(lights.astype(np.float32) @ g, 0.0)
+    r = grey - np.maximum(lights32 @ g, 0.0)
     count = explained.sum(axis=0)
     misfit = np.sum(np.where(explained, r * r, 0.0), axis=0) / np.maximum(count - 3, 1)
     level = np.sum(np.where(explained, grey * grey, 0.0), axis=0) / np.maximum(count, 1)
