@@ -13,6 +13,43 @@ import pytest
 
 from msfnet.runtime.stack import Stack
 
+# The bundled checkpoint in a checkout, found without importing the model part (it needs torch)
+BUNDLED_CHECKPOINT = (
+    Path(__file__).resolve().parents[1]
+    / "model"
+    / "src"
+    / "msfnet"
+    / "model"
+    / "weights"
+    / "msfnet_default.pth"
+)
+
+# What a run with the default inspection maps writes beside the normals (results.maps and
+# results.maps.registered)
+MAP_FILES = frozenset(
+    {
+        "albedo.png",
+        "albedo.npy",
+        "height.npy",
+        "height.png",
+        "curvature.npy",
+        "curvature.png",
+        "shape_index.npy",
+        "mesh.ply",
+        "maps.json",
+        "report.html",
+        "local_shape.png",
+        "normals.tif",
+        "gradient_p.tif",
+        "gradient_q.tif",
+        "height.tif",
+        "local_shape.tif",
+        "curvature.tif",
+        "gaussian_curvature.tif",
+        "albedo.tif",
+    }
+)
+
 
 def ring_lights(n: int = 12, tilt_deg: float = 35.0) -> np.ndarray:
     """(n, 3) float32 unit directions of an LED ring ``tilt_deg`` off the camera axis."""

@@ -23,22 +23,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _runtime_helpers import sphere_stack
+from _runtime_helpers import BUNDLED_CHECKPOINT, sphere_stack
 
 from msfnet.common.files import STAGING_TAG
 from msfnet.common.imageio import write_png
 from msfnet.runtime.stack import save_stack
 from msfnet.synth import spheres as S
 
-CHECKPOINT = (
-    Path(__file__).resolve().parents[2]
-    / "model"
-    / "src"
-    / "msfnet"
-    / "model"
-    / "weights"
-    / "msfnet_default.pth"
-)
+CHECKPOINT = BUNDLED_CHECKPOINT
 
 
 def _main(command: str) -> Callable[[list[str]], int]:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _runtime_helpers import BUNDLED_CHECKPOINT
 
 from msfnet.runtime.api import Model, default_model_path
 from msfnet.runtime.cli.run import main as run_main
@@ -106,15 +107,7 @@ def test_the_bundled_onnx_was_exported_from_the_bundled_checkpoint() -> None:
     import hashlib
 
     onnx = pytest.importorskip("onnx")
-    checkpoint = (
-        Path(__file__).resolve().parents[2]
-        / "model"
-        / "src"
-        / "msfnet"
-        / "model"
-        / "weights"
-        / "msfnet_default.pth"
-    )
+    checkpoint = BUNDLED_CHECKPOINT
     if not checkpoint.is_file():
         pytest.skip("no checkout: the wheel ships only the ONNX file")
     meta = {

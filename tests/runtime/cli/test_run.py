@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from _runtime_helpers import sphere_stack
+from _runtime_helpers import MAP_FILES, sphere_stack
 
 from msfnet.runtime.api import Model
 from msfnet.runtime.cli.run import main
@@ -121,27 +121,7 @@ def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
         "profile.json",
         "metrics.json",
         "error.png",
-        "albedo.png",
-        "albedo.npy",
-        "height.npy",
-        "height.png",
-        "curvature.npy",
-        "curvature.png",
-        "shape_index.npy",
-        "mesh.ply",
-        "maps.json",
-        "report.html",
-        # pixel-registered data and views (results.maps.registered)
-        "local_shape.png",
-        "normals.tif",
-        "gradient_p.tif",
-        "gradient_q.tif",
-        "height.tif",
-        "local_shape.tif",
-        "curvature.tif",
-        "gaussian_curvature.tif",
-        "albedo.tif",
-    }
+    } | MAP_FILES
     assert l2.maps is not None and l2.maps.height is not None
     height = np.load(tmp_path / "l2" / "height.npy")
     assert np.isnan(height[~stack.mask]).all() and np.isfinite(height[stack.mask]).all()

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from _runtime_helpers import sphere_stack
+from _runtime_helpers import MAP_FILES, sphere_stack
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.results.maps import (
@@ -25,28 +25,7 @@ from msfnet.runtime.results.maps import (
 )
 from msfnet.runtime.results.maps import api as maps_api
 
-EXPECTED_FILES = {
-    "albedo.png",
-    "albedo.npy",
-    "height.npy",
-    "height.png",
-    "curvature.npy",
-    "curvature.png",
-    "shape_index.npy",
-    "mesh.ply",
-    "maps.json",
-    "report.html",
-    # pixel-registered data and views (maps.registered)
-    "local_shape.png",
-    "normals.tif",
-    "gradient_p.tif",
-    "gradient_q.tif",
-    "height.tif",
-    "local_shape.tif",
-    "curvature.tif",
-    "gaussian_curvature.tif",
-    "albedo.tif",
-}
+EXPECTED_FILES = MAP_FILES
 
 
 @pytest.fixture(scope="module")
