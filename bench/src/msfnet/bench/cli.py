@@ -15,9 +15,7 @@ models it holds, and no run writes outside its own staging folder.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -27,6 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.bench.data import ENV_VAR, data_root
+from msfnet.bench.edge import run_module
 from msfnet.bench.peak import engine_peaks, merge_peaks
 from msfnet.bench.report import write_report
 from msfnet.bench.workloads import (
@@ -430,16 +429,7 @@ def schedule(quick: bool, variants: list[str], threads: list[int]):
 
 
 def run_cell_subprocess(spec: dict, tmp: Path) -> dict:
-    spec_file = tmp / "spec.json"
-    spec_file.write_text(json.dumps(spec))
-    proc = subprocess.run(
-        [sys.executable, "-m", "msfnet.bench.workloads", str(spec_file)],
-        capture_output=True,
-        text=True,
-    )
-    if proc.returncode != 0:
-        return {"error": proc.stderr.strip().splitlines()[-1][:300] if proc.stderr else "failed"}
-    return json.loads(Path(spec["result"]).read_text())
+    return run_module("msfnet.bench.workloads", spec, tmp / "spec.json")
 
 
 def accuracy(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:

@@ -245,20 +245,23 @@ def measure_requirement(spec: dict) -> dict:
     }
 
 
-def run_worker(kind: str, spec: dict, scratch: Path) -> dict:
-    """``spec`` run by ``kind`` (path | requirement) in a fresh process; {"error": line} if it
-    failed."""
-    spec = {**spec, "kind": kind, "result": str(scratch / "edge-result.json")}
-    spec_file = scratch / "edge-spec.json"
+def run_module(module: str, spec: dict, spec_file: Path) -> dict:
+    """``python -m module spec_file`` in a fresh process (its peak memory its own); the worker
+    writes its answer to ``spec["result"]``. {"error": its last stderr line} if it failed."""
     spec_file.write_text(json.dumps(spec))
     proc = subprocess.run(
-        [sys.executable, "-m", "msfnet.bench.edge", str(spec_file)],
-        capture_output=True,
-        text=True,
+        [sys.executable, "-m", module, str(spec_file)], capture_output=True, text=True
     )
     if proc.returncode != 0:
         return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1][:300]}
     return json.loads(Path(spec["result"]).read_text())
+
+
+def run_worker(kind: str, spec: dict, scratch: Path) -> dict:
+    """``spec`` run by ``kind`` (path | requirement) in a fresh process; {"error": line} if it
+    failed."""
+    spec = {**spec, "kind": kind, "result": str(scratch / "edge-result.json")}
+    return run_module("msfnet.bench.edge", spec, scratch / "edge-spec.json")
 
 
 def onnx_rows(model: Path, data: Path, threads: int | None, scratch: Path) -> list[EdgeRow]:
