@@ -34,6 +34,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import write_atomic
+from msfnet.common.matfile import mat_shapes
 
 # Refuse images above this many pixels from the header, before decoding (a decompression bomb:
 # a few KB of PNG that decodes to tens of GB). 250 MP is ~10x a large industrial sensor.
@@ -310,93 +311,6 @@ def npy_header(f: BinaryIO) -> tuple[tuple[int, ...], np.dtype]:
     )
     shape, _fortran, dtype = read(f)
     return tuple(int(d) for d in shape), np.dtype(dtype)
-
-
-# MATLAB level-5 files: a 128-byte header, then tagged elements (miMATRIX = 14, or the same
-# zlib-compressed as miCOMPRESSED = 15) whose first sub-elements are the array flags, the
-# dimensions and the name.
-_MI_INT8, _MI_INT32, _MI_UINT32, _MI_MATRIX, _MI_COMPRESSED = 1, 5, 6, 14, 15
-_MAT_MAX_VARIABLES = 4096
-
-
-def _mat_tag(buf: bytes, pos: int, order: str) -> tuple[int, int, int, int]:
-    """(type, size, data start, next element) of the element tag at ``pos``; the small format
-    packs size and type into one word and the data into the next four bytes."""
-    kind, size = struct.unpack(order + "II", buf[pos : pos + 8])
-    if kind >> 16:
-        return kind & 0xFFFF, kind >> 16, pos + 4, pos + 8
-    return kind, size, pos + 8, pos + 8 + size + (-size % 8)
-
-
-def _mat_matrix_header(buf: bytes, order: str) -> tuple[str, tuple[int, ...]]:
-    """Name and dimensions of the miMATRIX element at the start of ``buf``."""
-    kind, _size, pos, _next = _mat_tag(buf, 0, order)
-    if kind != _MI_MATRIX:
-        raise ValueError("not a matrix element")
-    _flags, _n, _start, nxt = _mat_tag(buf, pos, order)  # array flags
-    kind, size, start, nxt = _mat_tag(buf, nxt, order)
-    if kind != _MI_INT32 or size % 4:
-        raise ValueError("damaged dimensions")
-    dims = struct.unpack(order + f"{size // 4}i", buf[start : start + size])
-    kind, size, start, _next = _mat_tag(buf, nxt, order)
-    name = buf[start : start + size].decode("latin-1") if kind == _MI_INT8 else ""
-    return name, tuple(int(d) for d in dims)
-
-
-def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:
-    """Every variable of a MATLAB v5 .mat file with its dimensions, from the element headers
-    alone: a compressed element is inflated only as far as its header (a few hundred bytes),
-    never its data. None for files that are not v5 (v7.3 is HDF5, which loaders refuse)."""
-    path = Path(path)
-    out: dict[str, tuple[int, ...]] = {}
-    with open(path, "rb") as f:
-        head = f.read(128)
-        if len(head) < 128 or head[126:128] not in (b"IM", b"MI"):
-            return None
-        order = "<" if head[126:128] == b"IM" else ">"
-        (version,) = struct.unpack(order + "H", head[124:126])
-        if version != 0x0100:
-            return None
-        pos = 128
-        size_total = os.fstat(f.fileno()).st_size
-        while pos + 8 <= size_total and len(out) < _MAT_MAX_VARIABLES:
-            f.seek(pos)
-            tag = f.read(8)
-            kind, size, start, nxt = _mat_tag(tag + b"\0" * 8, 0, order)
-            start, nxt = pos + start, pos + nxt
-            if kind not in (_MI_COMPRESSED, _MI_MATRIX):
-                pos = nxt
-                continue
-            try:
-                if kind == _MI_COMPRESSED:
-                    nxt = start + size  # compressed elements are not padded
-                    body = _inflate_head(f, size, 512)
-                else:
-                    body = tag + f.read(min(size, 512))
-                name, dims = _mat_matrix_header(body, order)
-            except (ValueError, struct.error) as exc:
-                raise InputError(f"damaged .mat file ({first_line(exc)})", path) from exc
-            out[name] = dims
-            pos = nxt
-    return out
-
-
-def _inflate_head(f: BinaryIO, size: int, want: int) -> bytes:
-    """The first ``want`` bytes of a zlib stream of ``size`` bytes at ``f``'s position (the
-    decompressor is told the most it may return: a bomb stays a few hundred bytes here)."""
-    inflater = zlib.decompressobj()
-    out = b""
-    left = size
-    while len(out) < want and left > 0:
-        chunk = f.read(min(left, 4096))
-        if not chunk:
-            break
-        left -= len(chunk)
-        try:
-            out += inflater.decompress(chunk, want - len(out))
-        except zlib.error as exc:
-            raise ValueError(f"damaged compressed element ({exc})") from exc
-    return out
 
 
 def array_shape(path: str | Path) -> tuple[int, ...] | None:

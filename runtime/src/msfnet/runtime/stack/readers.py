@@ -10,6 +10,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.imageio import read_image
+from msfnet.common.matfile import mat_array, mat_shapes
 
 # A light file lists one row per light. Real rigs have tens to a few hundred lights; the bounds
 # refuse a wrong file (a point cloud, a log) at once instead of parsing it for minutes and
@@ -163,17 +164,29 @@ def unit_normals(n: np.ndarray) -> np.ndarray:
     return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
 
+def _mat_normals(path: Path) -> np.ndarray:
+    """A .mat file's ``Normal_gt``, else its first variable. Read by :func:`mat_array` (a
+    plain numeric array, the usual case: no SciPy import, ~0.6 s); anything else by SciPy."""
+    # loadmat's names for what is not a variable start with "_" (an unnamed element, such as
+    # MATLAB's subsystem data, becomes "__function_workspace__")
+    names = [k for k in mat_shapes(path) or {} if k and not k.startswith("_")]
+    key = "Normal_gt" if "Normal_gt" in names else names[0] if names else None
+    found = None if key is None else mat_array(path, key)
+    if found is not None:
+        return found
+    from scipy.io import loadmat
+
+    mat = loadmat(str(path))
+    keys = [k for k in mat if not k.startswith("_")]
+    return np.asarray(mat["Normal_gt" if "Normal_gt" in mat else keys[0]])
+
+
 def read_normals(path: Path) -> np.ndarray:
     """Ground-truth normals (H, W, 3) from .mat (key Normal_gt), .npy or an 8/16-bit PNG."""
     suffix = path.suffix.lower()
     try:
         if suffix == ".mat":
-            from scipy.io import loadmat
-
-            mat = loadmat(str(path))
-            keys = [k for k in mat if not k.startswith("_")]
-            key = "Normal_gt" if "Normal_gt" in mat else keys[0]
-            n = np.asarray(mat[key], dtype=np.float32)
+            n = np.asarray(_mat_normals(path), dtype=np.float32)
         elif suffix == ".npy":
             n = np.load(path, allow_pickle=False).astype(np.float32)
         else:

@@ -1,0 +1,341 @@
+"""MATLAB level-5 ``.mat`` files read without SciPy (importing ``scipy.io`` costs ~0.6 s).
+
+Two readers, both of which trust no size a file declares:
+
+- :func:`mat_shapes`: every variable's name and dimensions, from the element headers alone (a
+  compressed element is inflated only as far as its header).
+- :func:`mat_array`: one variable's values, for the common case only (a full, real, numeric
+  array); None for anything else, so that callers fall back to ``scipy.io.loadmat``.
+
+The layout: a 128-byte header (text, version 0x0100, the byte-order mark ``IM`` or ``MI``), then
+tagged elements. A variable is a miMATRIX element, or the same zlib-compressed inside a
+miCOMPRESSED one; its sub-elements are the array flags (class, complex, logical), the
+dimensions, the name, then the real part (and the imaginary part when complex). The values are
+stored column-major, and may be stored in a narrower type than their class (MATLAB keeps a double
+array of small integers as miUINT8, say).
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+from msfnet.common.errors import InputError, first_line
+
+# Element (data) types of the format
+_MI_INT8, _MI_INT32, _MI_UINT32, _MI_MATRIX, _MI_COMPRESSED = 1, 5, 6, 14, 15
+_MAT_MAX_VARIABLES = 4096
+
+# How numbers may be stored, by element type
+_STORED = {
+    1: "i1",
+    2: "u1",
+    3: "i2",
+    4: "u2",
+    5: "i4",
+    6: "u4",
+    7: "f4",
+    9: "f8",
+    12: "i8",
+    13: "u8",
+}
+# The numeric classes (the array flags' low byte) and the type each reads as
+_CLASSES = {
+    6: "f8",  # double
+    7: "f4",  # single
+    8: "i1",
+    9: "u1",
+    10: "i2",
+    11: "u2",
+    12: "i4",
+    13: "u4",
+    14: "i8",
+    15: "u8",
+}
+_COMPLEX, _LOGICAL = 0x0800, 0x0200
+
+# One variable holds at most this many values: a normal map at imageio.MAX_PIXELS (250 MP) times
+# three. A damaged or hostile header can declare 2**31 x 2**31 values; refused before any
+# allocation.
+MAX_VALUES = 750_000_000
+
+# How much of each variable is read (inflated) to list it: flags, dimensions and a name take a
+# few dozen bytes in files MATLAB writes. The variable read in full may have a longer header.
+_SCAN_BYTES = 512
+_HEAD_BYTES = 4096
+
+
+def _mat_tag(buf: bytes, pos: int, order: str) -> tuple[int, int, int, int]:
+    """(type, size, data start, next element) of the element tag at ``pos``; the small format
+    packs size and type into one word and the data into the next four bytes."""
+    kind, size = struct.unpack(order + "II", buf[pos : pos + 8])
+    if kind >> 16:
+        return kind & 0xFFFF, kind >> 16, pos + 4, pos + 8
+    return kind, size, pos + 8, pos + 8 + size + (-size % 8)
+
+
+@dataclass(frozen=True)
+class _MatrixHeader:
+    """The sub-elements of a miMATRIX element before its values."""
+
+    name: str
+    dims: tuple[int, ...]
+    flags: int  # class in the low byte, then the complex / global / logical bits
+    data: int  # offset of the real part's tag from the start of the miMATRIX tag
+
+
+def _matrix_header(buf: bytes, order: str) -> _MatrixHeader:
+    """Flags, dimensions and name of the miMATRIX element at the start of ``buf``; ValueError
+    (or struct.error) where they are damaged or cut off."""
+    kind, _size, pos, _next = _mat_tag(buf, 0, order)
+    if kind != _MI_MATRIX:
+        raise ValueError("not a matrix element")
+    kind, size, start, nxt = _mat_tag(buf, pos, order)  # array flags
+    if kind != _MI_UINT32 or size < 4:
+        raise ValueError("damaged array flags")
+    (flags,) = struct.unpack(order + "I", buf[start : start + 4])
+    kind, size, start, nxt = _mat_tag(buf, nxt, order)
+    if kind != _MI_INT32 or size % 4:
+        raise ValueError("damaged dimensions")
+    dims = struct.unpack(order + f"{size // 4}i", buf[start : start + size])
+    kind, size, start, nxt = _mat_tag(buf, nxt, order)
+    name = buf[start : start + size].decode("latin-1") if kind == _MI_INT8 else ""
+    return _MatrixHeader(name, tuple(int(d) for d in dims), flags, nxt)
+
+
+def _inflate_head(f: BinaryIO, size: int, want: int) -> bytes:
+    """The first ``want`` bytes of a zlib stream of ``size`` bytes at ``f``'s position (the
+    decompressor is told the most it may return: a bomb stays a few hundred bytes here)."""
+    inflater = zlib.decompressobj()
+    out = b""
+    left = size
+    while len(out) < want and left > 0:
+        chunk = f.read(min(left, 4096))
+        if not chunk:
+            break
+        left -= len(chunk)
+        try:
+            out += inflater.decompress(chunk, want - len(out))
+        except zlib.error as exc:
+            raise ValueError(f"damaged compressed element ({exc})") from exc
+    return out
+
+
+@dataclass(frozen=True)
+class _Variable:
+    """Where one variable's element lies in the file, and its header."""
+
+    kind: int  # _MI_MATRIX or _MI_COMPRESSED
+    tag: int  # file offset of the element's tag
+    size: int  # the bytes its tag declares
+    header: _MatrixHeader
+
+
+def _byte_order(f: BinaryIO) -> str | None:
+    """``<`` or ``>`` for a level-5 file (``f`` left after its 128-byte header), else None."""
+    head = f.read(128)
+    if len(head) < 128 or head[126:128] not in (b"IM", b"MI"):
+        return None
+    order = "<" if head[126:128] == b"IM" else ">"
+    (version,) = struct.unpack(order + "H", head[124:126])
+    return order if version == 0x0100 else None
+
+
+def _variables(f: BinaryIO, order: str, path: Path) -> Iterator[_Variable]:
+    """Every variable's element, in file order, read as far as its header."""
+    pos = 128
+    size_total = os.fstat(f.fileno()).st_size
+    count = 0
+    while pos + 8 <= size_total and count < _MAT_MAX_VARIABLES:
+        f.seek(pos)
+        tag = f.read(8)
+        kind, size, start, nxt = _mat_tag(tag + b"\0" * 8, 0, order)
+        start, nxt = pos + start, pos + nxt
+        if kind not in (_MI_COMPRESSED, _MI_MATRIX):
+            pos = nxt
+            continue
+        try:
+            if kind == _MI_COMPRESSED:
+                nxt = start + size  # compressed elements are not padded
+                body = _inflate_head(f, size, _SCAN_BYTES)
+            else:
+                body = tag + f.read(min(size, _SCAN_BYTES))
+            header = _matrix_header(body, order)
+        except (ValueError, struct.error) as exc:
+            raise InputError(f"damaged .mat file ({first_line(exc)})", path) from exc
+        yield _Variable(kind, pos, size, header)
+        count += 1
+        pos = nxt
+
+
+def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:
+    """Every variable of a MATLAB v5 .mat file with its dimensions, from the element headers
+    alone: a compressed element is inflated only as far as its header (a few hundred bytes),
+    never its data. None for files that are not v5 (v7.3 is HDF5, which loaders refuse)."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        order = _byte_order(f)
+        if order is None:
+            return None
+        return {v.header.name: v.header.dims for v in _variables(f, order, path)}
+
+
+def mat_array(path: str | Path, name: str) -> np.ndarray | None:
+    """Variable ``name`` of a MATLAB v5 .mat file, with the shape and values
+    ``scipy.io.loadmat(path)[name]`` gives, in the dtype of its MATLAB class (a double array
+    stored as miUINT8 comes back float64, as ``loadmat(..., mat_dtype=True)`` returns it) and
+    native byte order.
+
+    Only full, real, numeric arrays (double, single, int8 ... uint64) are read; None for
+    anything else (sparse, complex, logical, char, cell, struct, a v4 or v7.3/HDF5 file, a name
+    the file lacks), for callers to fall back to ``scipy.io.loadmat``. Where a name occurs twice
+    the last one counts, as in loadmat. InputError for a damaged file: a size beyond the file or
+    the data, or more than :data:`MAX_VALUES` values."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        order = _byte_order(f)
+        if order is None:
+            return None
+        found = None
+        for variable in _variables(f, order, path):
+            if variable.header.name == name:
+                found = variable
+        if found is None:
+            return None
+        try:
+            return _read_values(f, found, order, path)
+        except (ValueError, struct.error) as exc:
+            raise InputError(f"damaged .mat file ({first_line(exc)})", path) from exc
+
+
+def _read_values(f: BinaryIO, variable: _Variable, order: str, path: Path) -> np.ndarray | None:
+    header = variable.header
+    flags = header.flags
+    if flags & (_COMPLEX | _LOGICAL) or flags & 0xFF not in _CLASSES:
+        return None
+    if header.data + 8 > _HEAD_BYTES:  # thousands of dimensions or a long name: not ours
+        return None
+    if any(d < 0 for d in header.dims):
+        raise ValueError(f"negative dimension in {header.dims}")
+    count = 1
+    for d in header.dims:  # Python ints: no overflow, checked as they grow
+        count *= d
+        if count > MAX_VALUES:
+            raise InputError(
+                f"variable {header.name!r} is {'x'.join(map(str, header.dims))}, more than "
+                f"{MAX_VALUES:,} values: refusing to read it",
+                path,
+            )
+    start = variable.tag + 8
+    if start + variable.size > os.fstat(f.fileno()).st_size:
+        raise ValueError(
+            f"variable {header.name!r} declares {variable.size:,} bytes, past the file's end"
+        )
+    if variable.kind == _MI_COMPRESSED:
+        f.seek(start)
+        stream: _Stream = _Inflated(f.read(variable.size))
+    else:  # the plain element, from its tag (the offsets in the header count from there)
+        f.seek(variable.tag)
+        stream = _Plain(f, variable.size + 8)
+    head = stream.read(header.data + 8)
+    if len(head) < header.data + 8:
+        raise ValueError(f"variable {header.name!r} ends before its values")
+    _kind, matrix_size, _start, _next = _mat_tag(head, 0, order)
+    kind, size, data, nxt = _mat_tag(head, header.data, order)
+    stored = _STORED.get(kind)
+    if stored is None:
+        return None
+    small = nxt - data == 4  # the small format: the values sit in the tag's second word
+    itemsize = int(stored[1])
+    if size != count * itemsize or (small and size > 4) or data + size > 8 + matrix_size:
+        raise ValueError(
+            f"variable {header.name!r}: {size:,} bytes of values for "
+            f"{'x'.join(map(str, header.dims))} numbers of {itemsize} bytes"
+        )
+    if small:
+        raw = head[-4:][:size]
+    else:
+        raw = stream.read(size)
+        if len(raw) != size:
+            raise ValueError(
+                f"variable {header.name!r} is cut off ({len(raw):,} of {size:,} bytes)"
+            )
+    if not stream.finish():
+        return None
+    values = np.frombuffer(raw, np.dtype(order + stored))
+    # astype copies (the result is writable) and turns the stored type into the class's, in
+    # native byte order; MATLAB's column-major order is a Fortran-order reshape (no copy)
+    wanted = np.dtype(_CLASSES[flags & 0xFF])
+    return values.astype(wanted).reshape(header.dims, order="F")
+
+
+class _Stream:
+    """The bytes of one miMATRIX element, from its tag on."""
+
+    def read(self, n: int) -> bytes:
+        raise NotImplementedError
+
+    def finish(self) -> bool:
+        """Whether the element ends as a numeric array does after its values (a plain one:
+        nothing to check)."""
+        return True
+
+
+class _Plain(_Stream):
+    def __init__(self, f: BinaryIO, size: int) -> None:
+        self._f, self._left = f, size
+
+    def read(self, n: int) -> bytes:
+        data = self._f.read(min(n, self._left))
+        self._left -= len(data)
+        return data
+
+
+class _Inflated(_Stream):
+    """A miCOMPRESSED element's zlib stream, inflated on demand: no call returns more than it
+    was asked for (``max_length``), so a bomb costs no memory."""
+
+    def __init__(self, compressed: bytes) -> None:
+        self._z = zlib.decompressobj()
+        self._tail = compressed
+
+    def read(self, n: int) -> bytes:
+        parts: list[bytes] = []
+        got = 0
+        while got < n and not self._z.eof:
+            part = self._inflate(n - got)
+            if not part:  # the input is spent (a cut-off stream)
+                break
+            parts.append(part)
+            got += len(part)
+        return parts[0] if len(parts) == 1 else b"".join(parts)
+
+    def finish(self) -> bool:
+        # Inflate the little that follows the values (padding) to the stream's end, where zlib
+        # checks its Adler-32 sum: damaged bytes that still inflate are caught (as loadmat's
+        # verify_compressed_data_integrity does). More than padding: not a plain numeric
+        # array after all, left to loadmat.
+        extra = 0
+        while not self._z.eof:
+            part = self._inflate(64)
+            if not part:
+                raise ValueError("compressed variable is cut off")
+            extra += len(part)
+            if extra >= 64:
+                return False
+        return True
+
+    def _inflate(self, most: int) -> bytes:
+        try:
+            part = self._z.decompress(self._tail, most)
+        except zlib.error as exc:
+            raise ValueError(f"damaged compressed variable ({exc})") from exc
+        self._tail = self._z.unconsumed_tail
+        return part
