@@ -25,7 +25,6 @@ from msfnet.runtime.engines import (
     installed_engines,
     open_onnxruntime,
     read_model_file,
-    run_staged_with,
 )
 from msfnet.runtime.engines.dispatch import (
     ACCURACY_BOUND_DEG,
@@ -35,7 +34,7 @@ from msfnet.runtime.engines.dispatch import (
     open_engine,
 )
 from msfnet.runtime.engines.ort_session import create_session
-from msfnet.runtime.engines.staged_loop import run_staged
+from msfnet.runtime.engines.staged_loop import STAGE_INPUTS, placeholders, run_staged, run_stages
 from msfnet.runtime.evaluate.metrics import deviation_deg
 from msfnet.runtime.infer.normalise import network_input
 from msfnet.runtime.infer.tiled import infer_normals
@@ -128,22 +127,67 @@ def test_openvino_missing_is_a_clean_error(monkeypatch: pytest.MonkeyPatch) -> N
         open_engine(EngineChoice("openvino", "fp32", "test", default_model_path()))
 
 
-def test_staged_loop_is_shared_through_a_callable(staged_onnx) -> None:
-    """run_staged_with(callable) is run_staged itself: same result, every output requested
-    through the callable, never a copy of the loop."""
-    stack = sphere_stack(n=11, h=20, w=24, seed=5)
+def test_staged_loop_is_shared_through_stage_calls(staged_onnx) -> None:
+    """run_stages(stage, final), the loop run_staged (ONNX Runtime) uses, with its shifting
+    buffer: bit for bit what a plain loop (a buffer of N lights, copies, a max over it) gives
+    for every chunk size, the stages called chunk by chunk in the loop's order (the second
+    stage backwards, so no chunk is overwritten before it is read)."""
+    stack = sphere_stack(n=11, h=20, w=26, seed=5)
     x, lights = network_input(stack)
     sess = create_session(staged_onnx, threads=2).session
-    calls: list[str] = []
+    base = placeholders()
 
-    def run_output(name, feeds):
-        calls.append(name)
-        return sess.run([name], dict(feeds))[0]
+    def plain_loop(chunk: int) -> np.ndarray:
+        parts = [slice(i, i + chunk) for i in range(0, 11, chunk)]
+        feats = np.concatenate(
+            [
+                sess.run(["feat1"], {**base, "images": x[:, s], "lights": lights[:, s]})[0]
+                for s in parts
+            ]
+        )
+        for name, feat_in, max_in in (("feat2", "feat1_in", "max1"), ("feat3", "feat2_in", "max2")):
+            pooled = feats.max(axis=0, keepdims=True)
+            feats = np.concatenate(
+                [sess.run([name], {**base, feat_in: feats[s], max_in: pooled})[0] for s in parts]
+            )
+        return sess.run(["normals"], {**base, "max3": feats.max(axis=0, keepdims=True)})[0]
 
-    got = run_staged_with(run_output, x, lights, chunk=4)
-    assert np.array_equal(got, run_staged(sess, x, lights, chunk=4))
-    # 3 chunks through each of the three per-light stages, then the regressor once
-    assert calls == ["feat1"] * 3 + ["feat2"] * 3 + ["feat3"] * 3 + ["normals"]
+    for chunk in (1, 4, 11, 16):
+        calls: list[tuple[str, int]] = []
+
+        def stage(name, feeds, out, calls=calls):
+            calls.append((name, out.shape[0]))
+            out[...] = sess.run([name], {**base, **feeds})[0]
+            return out.max(axis=0, keepdims=True)
+
+        def final(pooled):
+            return sess.run(["normals"], {**base, "max3": pooled})[0]
+
+        got = run_stages(stage, final, x, lights, chunk=chunk)
+        assert np.array_equal(got, plain_loop(chunk)), chunk
+        sizes = [min(chunk, 11 - i) for i in range(0, 11, chunk)]
+        expected = (
+            [("feat1", k) for k in sizes]
+            + [("feat2", k) for k in sizes[::-1]]
+            + [("feat3", k) for k in sizes]
+        )
+        assert calls == expected, chunk
+
+
+def test_staged_loop_keeps_every_entry_points_real_input(staged_onnx) -> None:
+    """keep= (int8 calibration) holds each stage's per-light input in light order, whichever
+    half of the shifting buffer it sat in: as one call over all lights gives (a light out of
+    place would differ by whole units)."""
+    stack = sphere_stack(n=9, h=16, w=16, seed=2)
+    x, lights = network_input(stack)
+    sess = create_session(staged_onnx, threads=2).session
+    one: dict[str, np.ndarray] = {}
+    run_staged(sess, x, lights, chunk=9, keep=one)
+    chunked: dict[str, np.ndarray] = {}
+    run_staged(sess, x, lights, chunk=2, keep=chunked)
+    assert set(one) == set(chunked) == set(STAGE_INPUTS)
+    for name in STAGE_INPUTS:  # ONNX Runtime's convolutions round per batch size: ~1e-6
+        np.testing.assert_allclose(one[name], chunked[name], rtol=1e-4, atol=1e-5, err_msg=name)
 
 
 @needs_openvino

@@ -9,13 +9,11 @@ from msfnet.runtime.engines.base import (
     ENGINES,
     PRECISIONS,
     Engine,
-    SubgraphSession,
     engine_name,
     installed_engines,
     model_precision,
     precision_name,
     read_model_file,
-    run_staged_with,
 )
 from msfnet.runtime.engines.onnxruntime import OrtEngine, open_onnxruntime
 
@@ -32,7 +30,6 @@ __all__ = [
     "PRECISIONS",
     "Engine",
     "OrtEngine",
-    "SubgraphSession",
     "engine_name",
     "installed_engines",
     "model_precision",
@@ -40,5 +37,4 @@ __all__ = [
     "open_openvino",
     "precision_name",
     "read_model_file",
-    "run_staged_with",
 ]

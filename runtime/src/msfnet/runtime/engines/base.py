@@ -1,4 +1,4 @@
-"""What every engine offers, and the pieces the engines share (model metadata, staged loop).
+"""What every engine offers, and the pieces the engines share (model metadata).
 
 An engine runs an msfnet ONNX file: ``run(images (1, N, 3, H, W), lights (1, N, 3)) -> normals
 (1, 3, H, W)``, all float32, and describes itself with ``name``, ``precision``, ``info``
@@ -9,7 +9,6 @@ An engine runs an msfnet ONNX file: ``run(images (1, N, 3, H, W), lights (1, N, 
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -19,7 +18,6 @@ import numpy as np
 from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.ort_session import check_io
-from msfnet.runtime.engines.staged_loop import run_staged
 
 ENGINES = ("onnxruntime", "openvino")
 ENGINE_ALIASES = {
@@ -134,40 +132,15 @@ def read_model_file(path: str | Path) -> ModelInfo:
     return info
 
 
-RunOutput = Callable[[str, Mapping[str, np.ndarray]], np.ndarray]
-
-
-class SubgraphSession:
-    """A 'compute this output from these feeds' callable, seen through the one method of an
-    ONNX Runtime session that ``staged.run_staged`` calls, so every engine shares that
-    light-chunked loop instead of a copy of it. The feeds include placeholders for inputs the
-    output does not need; the callable ignores what it does not use."""
-
-    def __init__(self, run_output: RunOutput) -> None:
-        self._run_output = run_output
-
-    def run(self, output_names: list[str], feeds: Mapping[str, np.ndarray]) -> list[np.ndarray]:
-        return [self._run_output(name, feeds) for name in output_names]
-
-
-def run_staged_with(
-    run_output: RunOutput, images: np.ndarray, lights: np.ndarray, chunk: int
-) -> np.ndarray:
-    """``staged.run_staged`` with any engine's sub-graph runner."""
-    return run_staged(SubgraphSession(run_output), images, lights, chunk)
-
-
 __all__ = [
     "ENGINES",
     "PRECISIONS",
     "Engine",
     "ModelFile",
-    "SubgraphSession",
     "engine_name",
     "installed_engines",
     "model_file_path",
     "model_precision",
     "precision_name",
     "read_model_file",
-    "run_staged_with",
 ]

@@ -61,10 +61,12 @@ def _down(v: int) -> int:
 
 def bytes_per_pixel(lights: int, chunk: int | None = None) -> float:
     """Working set per window pixel: all lights at once (monolithic graph), or, for a staged
-    graph run ``chunk`` lights at a time, the stored stage outputs plus one chunk's activations."""
+    graph run ``chunk`` lights at a time, the stored stage outputs (with one chunk's spare room,
+    staged_loop.run_stages) plus one chunk's activations."""
     if chunk is None:
         return lights * BYTES_PER_PIXEL_LIGHT
-    return lights * STORED_BYTES_PER_PIXEL_LIGHT + min(chunk, lights) * BYTES_PER_PIXEL_LIGHT
+    per_call = min(chunk, lights)
+    return (lights + per_call) * STORED_BYTES_PER_PIXEL_LIGHT + per_call * BYTES_PER_PIXEL_LIGHT
 
 
 def tile_size_for_memory(
