@@ -26,6 +26,7 @@ Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any st
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from collections.abc import Callable, Iterable, Iterator
@@ -503,7 +504,7 @@ class Model:
             return load
         # --speed balanced / fast run the network on a shrunk stack: its receptive field
         # spans that many more held pixels
-        return replace(load, roi_halo=HALO * RUNGS[self.options.speed].scale)
+        return replace(load, roi_halo=math.ceil(HALO * RUNGS[self.options.speed].scale))
 
     def _run_decoded(self, decoded: Decoded, load: LoadOptions) -> Result:
         """Run a stack that :func:`~msfnet.runtime.sources.decode_ahead` decoded, recording

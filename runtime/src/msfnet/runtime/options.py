@@ -117,7 +117,7 @@ class ModelOptions:
     speed: str = flag(
         "full",
         "speed ladder (infer.ladder): full = the network on every pixel and light (default); "
-        "balanced = the network at half resolution, least-squares detail at full resolution; "
+        "balanced = the network at 2/5 of the resolution, least-squares detail at full resolution; "
         "fast = a third of the resolution on at most 8 lights (time and accuracy per rung: "
         "docs/benchmark.md)",
         choices=("full", "balanced", "fast"),
@@ -175,8 +175,8 @@ class ModelOptions:
             raise InputError(f"speed {self.speed!r}: expected full, balanced or fast")
         if self.speed != "full" and self.fine_detail:
             raise InputError(
-                f"--speed {self.speed} runs the network at half resolution, --fine-detail at "
-                "twice it: choose one"
+                f"--speed {self.speed} runs the network at a reduced resolution, --fine-detail "
+                "at twice the full one: choose one"
             )
         if self.device and self.provider:
             raise InputError(

@@ -7,12 +7,12 @@ fine detail back from a full-resolution robust least-squares fit where its Lambe
 holds (infer/detail_fusion.py):
 
     full      the network on every pixel and light (the default)
-    balanced  the network at half resolution (1/4 of the pixels), upsampled; full-resolution
-              detail from least squares where the fit holds
+    balanced  the network at 2/5 of the resolution (1/6.25 of the pixels), upsampled;
+              full-resolution detail from least squares where the fit holds. Half resolution
+              measured 2.3-2.7x faster than full with OpenVINO fp32 at AVX2 (the target was
+              3x), 2/5 3.3x at +0.32 deg (12 lights, DiLiGenT; docs/benchmark.md)
     fast      the network at a third of the resolution (1/9 of the pixels) on at most
-              FAST_LIGHTS evenly spaced lights (least squares still uses them all); at 12
-              lights half resolution on 8 lights measured no faster than balanced (the
-              engine's per-call costs dominate there), so this rung also shrinks further
+              FAST_LIGHTS evenly spaced lights (least squares still uses them all)
 
 Each rung is an estimator (infer/estimators.py): ``reduced_network`` is the network as a rung
 runs it, and Model adds the detail fusion as it does for the full network (its default);
@@ -22,6 +22,7 @@ per rung are in docs/benchmark.md (``msf-bench --ladder``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -51,7 +52,7 @@ class Rung:
     (None: all lights) and whether least squares gives the full-resolution detail back."""
 
     name: str
-    scale: int  # the network runs on the stack shrunk by this factor
+    scale: float  # the network runs on the stack shrunk by this factor
     max_lights: int | None
     detail: bool
     summary: str
@@ -60,7 +61,7 @@ class Rung:
 RUNGS: dict[str, Rung] = {
     "full": Rung("full", 1, None, True, "network on every pixel and light"),
     "balanced": Rung(
-        "balanced", 2, None, True, "network at half resolution + least-squares detail"
+        "balanced", 2.5, None, True, "network at 2/5 of the resolution + least-squares detail"
     ),
     "fast": Rung(
         "fast",
@@ -81,14 +82,14 @@ def rung(name: str) -> Rung:
     return found
 
 
-def shrink_stack(stack: Stack, scale: int) -> Stack:
+def shrink_stack(stack: Stack, scale: float) -> Stack:
     """The stack at 1/``scale`` resolution (area average, any size: the last row / column may
     average fewer pixels), in the images' own dtype; a pixel is object where at least half of
     its area is."""
     if scale == 1:
         return stack
     h, w = stack.shape
-    size = (max(1, -(-w // scale)), max(1, -(-h // scale)))
+    size = (max(1, math.ceil(w / scale)), max(1, math.ceil(h / scale)))
     images = np.stack([cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in stack.images])
     if images.ndim == 3:  # cv2 drops a trailing channel of 1
         images = images[..., None]
@@ -126,14 +127,14 @@ class ReducedNetwork(NetworkEstimator):
     def describe(self) -> dict[str, object]:
         return {**self.network.describe(), "speed": self.rung.name, "speed_rung": self.rung.summary}
 
-    def reduced(self, stack: Stack) -> tuple[Stack, int]:
+    def reduced(self, stack: Stack) -> tuple[Stack, float]:
         """The stack the network sees, and the scale actually used (1 where the stack is too
         small to shrink)."""
         r = self.rung
         small = stack
         if r.max_lights is not None and stack.num_lights > r.max_lights:
             small = small.subset(evenly_spaced(stack.num_lights, r.max_lights))
-        scale = r.scale if min(stack.shape) // r.scale >= MIN_REDUCED_PX else 1
+        scale = r.scale if min(stack.shape) / r.scale >= MIN_REDUCED_PX else 1
         return shrink_stack(small, scale), scale
 
     def estimate(
