@@ -167,15 +167,17 @@ def test_result_reads_as_a_line_json_and_a_picture(random_onnx: Path) -> None:
 
 
 def test_a_figure_without_matplotlib_says_what_to_install(monkeypatch) -> None:
-    """matplotlib is an optional extra: plot() without it is one InputError naming the extra
-    to install, not a bare ModuleNotFoundError; a user's mistake is still said first."""
+    """matplotlib is an optional extra: plot(figure=True) without it is one InputError naming
+    the extra to install, not a bare ModuleNotFoundError; the picture itself needs no
+    matplotlib; a user's mistake is still said first."""
     result = Model.least_squares(maps=None)(sphere_stack(n=6, h=16, w=16, name="ball"))
     mpl = [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]
     for name in {"matplotlib", *mpl}:
         monkeypatch.setitem(sys.modules, name, None)  # importing it raises ModuleNotFoundError
-    for figure in (False, True):
-        with pytest.raises(InputError, match=r"matplotlib, which is not installed") as exc:
-            result.plot(figure=figure)
-        assert "\n" not in str(exc.value) and "msfnet[pictures]" in str(exc.value)
+    rgb = result.plot()  # drawn with numpy, OpenCV and Pillow
+    assert rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3
+    with pytest.raises(InputError, match=r"matplotlib, which is not installed") as exc:
+        result.plot(figure=True)
+    assert "\n" not in str(exc.value) and "msfnet[pictures]" in str(exc.value)
     with pytest.raises(InputError, match="expected one of normals"):
         result.plot("nothing")

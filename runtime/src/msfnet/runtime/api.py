@@ -134,8 +134,9 @@ def api_words() -> Iterator[None]:
 
 @contextmanager
 def _needs_matplotlib() -> Iterator[None]:
-    """Pictures are drawn with matplotlib, an optional extra: its absence is one InputError
-    naming the extra (as a missing engine is), not a bare ModuleNotFoundError."""
+    """``plot(figure=True)`` wraps the picture in a matplotlib Figure, an optional extra: its
+    absence is one InputError naming the extra (as a missing engine is), not a bare
+    ModuleNotFoundError."""
     try:
         yield
     except ModuleNotFoundError as exc:
@@ -144,7 +145,8 @@ def _needs_matplotlib() -> Iterator[None]:
         from msfnet.common.cli import install_hint
 
         raise InputError(
-            f"plot() draws with matplotlib, which is not installed: {install_hint('matplotlib')}"
+            f"plot(figure=True) needs matplotlib, which is not installed: "
+            f"{install_hint('matplotlib')}"
         ) from exc
 
 
@@ -273,8 +275,9 @@ class Result:
         a colour bar where it has a scale), or with ``figure=True`` a matplotlib Figure
         showing it. ``what``: "normals" (with the colour-convention sphere), "error"
         (angular error; needs ground truth), or a computed map: "albedo", "height",
-        "curvature". Drawn with matplotlib (the ``[pictures]`` extra): without it, an
-        InputError that says how to install it."""
+        "curvature". Drawn with numpy, OpenCV and Pillow (results.maps.pictures); only
+        ``figure=True`` needs matplotlib (the ``[pictures]`` extra): without it, an InputError
+        that says how to install it."""
         with _needs_matplotlib():
             with api_words():
                 rgb = self._picture(what)

@@ -106,7 +106,7 @@ class EvalSummary:
     results: list[ObjectResult]
     fine_detail: bool = False  # the model ran with --fine-detail
     provenance: Provenance | None = None  # input, model + checksum, engine, date, command
-    figures: bool = True  # error pictures drawn (False: no matplotlib, the [pictures] extra)
+    figures: bool = True  # error pictures drawn (False: Pillow, their text, would not import)
 
     @property
     def scored(self) -> list[ObjectResult]:
@@ -235,7 +235,7 @@ def evaluate(
         raise InputError("nothing to evaluate: both the model and l2 are switched off")
     methods = list(runners)
     results = []
-    draw = pictures.can_draw()  # the error pictures need matplotlib; the scores do not
+    draw = pictures.can_draw()  # the error pictures need Pillow; the scores do not
     with staged_folder(outdir, overwrite=overwrite) as tmp:
         for k, obj in enumerate(objects, 1):
             # --select / --lights override the benchmark's selection and shared light file

@@ -234,8 +234,8 @@ def _print_warnings(result: Result, req: RunRequest) -> None:
 
 
 def _warn_without_figures(req: RunRequest) -> None:
-    """One line per command when matplotlib is missing (an install without the [pictures]
-    extra): the figures were skipped, every other output was written."""
+    """One line per command when the pictures cannot be drawn (Pillow, their text, missing):
+    the figures were skipped, every other output was written."""
     from msfnet.runtime.results.maps import pictures
 
     if not req.quiet and not pictures.can_draw():

@@ -64,7 +64,7 @@ def fill_result_folder(folder: Path, result: Result, report: bool = True) -> Non
         profile["provenance"] = Provenance.of(src, profile).as_dict()
     np.save(folder / "normals.npy", np.ascontiguousarray(result.normals, np.float32))
     write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
-    # the figures need matplotlib (the [pictures] extra); without it everything else is written
+    # the figures need Pillow (their text); without it everything else is written
     draw = pictures.can_draw()
     rendered: dict[str, bytes] = {}
     if draw:

@@ -7,9 +7,9 @@ and a self-contained HTML report.
 
 Modules, one job each: ``albedo`` (least-squares RGB albedo), ``integrate`` (normals -> height:
 Frankot-Chellappa, masked Poisson, discontinuity-aware BiNI-style), ``curvature`` (mean
-curvature, shape index), ``mesh`` (PLY via plyfile), ``pictures`` (matplotlib, lazily),
+curvature, shape index), ``mesh`` (PLY via plyfile), ``pictures`` (numpy, OpenCV, Pillow),
 ``report`` (report.html), ``api`` (this entry point). The names below are resolved on first
-use, and SciPy, matplotlib and plyfile only when a map is computed or written: importing
+use, and SciPy and plyfile only when a map is computed or written: importing
 msfnet (which names MapOptions) stays quick on an edge box that never asks for maps.
 """
 

@@ -449,7 +449,7 @@ def write_maps(
     ``report``, report.html (inputs from ``images``, normals, maps, ``error_deg`` (H, W) in
     degrees, and the latency table from ``profile``, a profile.json summary).
     ``rendered``: pictures the caller already drew ("normals", "error" PNG bytes), reused
-    instead of drawn twice (matplotlib figures are most of the time spent here).
+    instead of drawn twice.
     The pictures are rendered in memory first; the data files (TIFFs, mesh) are made one at
     a time as each is written (held one at a time within --max-memory); each goes through
     ``msfnet.common.files.write_atomic``: a failure while drawing writes nothing, and no file
@@ -463,7 +463,7 @@ def write_maps(
     m = maps.mask
     jobs: list[tuple[str, Any]] = []
     figures: list[tuple[str, bytes]] = []
-    draw = pictures.can_draw()  # without matplotlib ([pictures]) no figures, all else written
+    draw = pictures.can_draw()  # without Pillow no figures, all else written
     if images is not None and draw:
         figures.append(
             (

@@ -36,10 +36,11 @@ HEIGHT_PER_MASK_PIXEL = {"poisson": 560, "bini": 620, "fc": 0}
 CURVATURE_PER_PIXEL = 150
 MESH_PER_MASK_PIXEL = 120
 ALBEDO_OUT_PER_PIXEL = 12
-# what writing the results takes after the maps: matplotlib, its fonts and renderer on the
-# first pictures (70-86 MB measured, when not yet imported) and the largest one-at-a-time
-# output's temporaries (the 16-bit normals picture, ~20 B per pixel)
-WRITE_RESERVE_MB = 90
+# what writing the results takes after the maps: Pillow's drawing, its font and the first
+# pictures (16 MB resident growth measured for ball's four pictures, when not yet imported;
+# matplotlib took 70-86 MB) and the largest one-at-a-time output's temporaries (the 16-bit
+# normals picture, ~20 B per pixel)
+WRITE_RESERVE_MB = 20
 WRITE_PER_PIXEL = 32
 ALBEDO_OUT_PER_PIXEL = 12
 
@@ -75,7 +76,7 @@ class MapsBudget:
         """Kept free for writing the results once the maps are computed."""
         import sys
 
-        drawn = "matplotlib.backends.backend_agg" in sys.modules
+        drawn = "PIL.ImageDraw" in sys.modules  # imported by the first picture drawn
         return (0.0 if drawn else WRITE_RESERVE_MB) + WRITE_PER_PIXEL * self.pixels / MB
 
     def spare_mb(self) -> float | None:
