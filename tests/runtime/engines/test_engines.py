@@ -174,6 +174,32 @@ def test_staged_loop_is_shared_through_stage_calls(staged_onnx) -> None:
         assert calls == expected, chunk
 
 
+def test_staged_loop_buffer_is_what_tiling_budgets(staged_onnx) -> None:
+    """tiling.bytes_per_pixel counts N + min(chunk, N) stored lights: with fewer lights than a
+    chunk the buffer was N + chunk (11 rows for 3 lights at the default 8), with the same
+    normals as a plain loop."""
+    stack = sphere_stack(n=3, h=16, w=20, seed=4)
+    x, lights = network_input(stack)
+    sess = create_session(staged_onnx, threads=2).session
+    base = placeholders()
+    rows: set[int] = set()
+
+    def stage(name, feeds, out):
+        rows.add(out.base.shape[0])
+        out[...] = sess.run([name], {**base, **feeds})[0]
+        return out.max(axis=0, keepdims=True)
+
+    def final(pooled):
+        return sess.run(["normals"], {**base, "max3": pooled})[0]
+
+    for chunk, want in ((8, 6), (3, 6), (2, 5)):
+        rows.clear()
+        got = run_stages(stage, final, x, lights, chunk=chunk)
+        assert rows == {want}, (chunk, rows)
+        # ONNX Runtime's convolutions round per batch size: ~1e-6 apart
+        np.testing.assert_allclose(got, run_staged(sess, x, lights, chunk=1), atol=1e-5)
+
+
 def test_staged_loop_keeps_every_entry_points_real_input(staged_onnx) -> None:
     """keep= (int8 calibration) holds each stage's per-light input in light order, whichever
     half of the shifting buffer it sat in: as one call over all lights gives (a light out of
@@ -205,6 +231,55 @@ def test_openvino_fp32_keeps_shapes_dynamic(sensitive_onnx, staged_onnx, staged)
         x, lights = network_input(stack)
         mean, mx = deviation_deg(engine.run(x, lights), ref.run(x, lights), stack.mask)
         assert mean < FP32_TOL_MEAN_DEG and mx < FP32_TOL_MAX_DEG, (n, h, w, mean, mx)
+
+
+@needs_openvino
+def test_openvino_keeps_no_feature_buffer_after_a_staged_run(staged_onnx, sensitive_onnx) -> None:
+    """The stage requests write into the loop's buffer through set_output_tensor, and an
+    OpenVINO Tensor holds its numpy array: unless released, the buffer ((N + chunk) lights of
+    features, hundreds of MB at 96 lights) outlived run() and the next tile's buffer sat next
+    to it, twice what tiling budgets. Released, and a second run still agrees with the first."""
+    import gc
+    import weakref
+
+    engine = open_engine(EngineChoice("openvino", "fp32", "test", staged_onnx), 2, chunk=3)
+    stack = sphere_stack(n=7, h=20, w=24, seed=1)
+    x, lights = network_input(stack)
+    buffers: list[weakref.ref] = []
+    stage = engine._run_stage  # type: ignore[attr-defined]
+
+    def spy(output, feeds, out):
+        buffers.append(weakref.ref(out.base))
+        return stage(output, feeds, out)
+
+    engine._run_stage = spy  # type: ignore[attr-defined]
+    first = engine.run(x, lights)
+    gc.collect()
+    assert buffers and all(ref() is None for ref in buffers)
+    small = sphere_stack(n=2, h=12, w=14, seed=2)  # fewer lights than a chunk, odd half size
+    engine.run(*network_input(small))
+    assert np.array_equal(engine.run(x, lights), first)
+    calls = 0
+
+    def interrupted(output, feeds, out):  # Ctrl-C in the middle of the second stage
+        nonlocal calls
+        calls += 1
+        if calls == 5:
+            raise KeyboardInterrupt
+        return stage(output, feeds, out)
+
+    engine._run_stage = interrupted  # type: ignore[attr-defined]
+    with pytest.raises(KeyboardInterrupt):
+        engine.run(x, lights)
+    assert np.array_equal(engine.run(x, lights), first)  # no stale tensor read after it
+    # the monolithic graph's request reads the caller's images in place, too
+    whole = open_engine(EngineChoice("openvino", "fp32", "test", sensitive_onnx), 2)
+    images = x.copy()
+    whole.run(images, lights)
+    held = weakref.ref(images)
+    del images
+    gc.collect()
+    assert held() is None
 
 
 # ---------------------------------------------------------------- the ball crop

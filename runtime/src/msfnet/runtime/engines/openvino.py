@@ -20,6 +20,7 @@ every ``openvino.*`` import, so no narrower import avoids it.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -37,7 +38,12 @@ from msfnet.runtime.engines.base import (
 )
 from msfnet.runtime.engines.interrupt import run_interruptible
 from msfnet.runtime.engines.ort_session import check_io, check_normals, default_threads
-from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK, STAGE_OUTPUTS, run_stages
+from msfnet.runtime.engines.staged_loop import (
+    DEFAULT_CHUNK,
+    STAGE_OUTPUTS,
+    placeholders,
+    run_stages,
+)
 
 # OpenVINO's names for the compute precisions
 _HINTS = {"fp32": "f32", "bf16": "bf16"}
@@ -122,6 +128,25 @@ class OpenVinoEngine:
             out[...] = result[0]
         return out.max(axis=0, keepdims=True)
 
+    def _release_arrays(self) -> None:
+        """Point every request away from the arrays of the run just done. A Tensor made from a
+        numpy array holds that array, and a request keeps its last tensors: the stage requests'
+        inputs and outputs are views of the loop's feature buffer (hundreds of MB at 96
+        lights), which would outlive the run and sit beside the next tile's, twice what tiling
+        budgets. A request still busy (a cancelled call that did not stop) keeps them: it
+        still reads and writes there."""
+        spare = placeholders()
+        cpu = self.device.upper().startswith("CPU")
+        for output, (request, names) in self._requests.items():
+            with contextlib.suppress(AttributeError):  # an OpenVINO without the attribute
+                # OpenVINO's Python wrapper also keeps the last shared inputs itself
+                request._inputs_data = None
+            with contextlib.suppress(Exception):  # a busy request refuses: it keeps them
+                for index, name in enumerate(names):
+                    request.set_input_tensor(index, self._ov.Tensor(spare[name]))
+                if output != "normals" and cpu:  # the outputs _run_stage set
+                    request.set_output_tensor(0, self._ov.Tensor(spare["max1"]))
+
     def _final(self, pooled: np.ndarray) -> np.ndarray:
         return self._run_output("normals", {"max3": pooled})
 
@@ -132,9 +157,15 @@ class OpenVinoEngine:
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """Like ONNX Runtime's: every call stoppable by Ctrl-C, the result's shape checked."""
         if self.info.staged:
-            out = run_stages(self._run_stage, self._final, images, lights, self.lights_per_call)
+            try:
+                out = run_stages(self._run_stage, self._final, images, lights, self.lights_per_call)
+            finally:
+                self._release_arrays()
         else:
-            out = self._run_output("normals", {"images": images, "lights": lights})
+            try:
+                out = self._run_output("normals", {"images": images, "lights": lights})
+            finally:
+                self._release_arrays()
         check_normals(self.info.path, images, out)
         return out
 

@@ -56,13 +56,13 @@ def run_stages(
     """images (1, N, 3, H, W), lights (1, N, 3) -> normals (1, 3, H, W), ``chunk`` lights a
     stage call, through any engine's ``stage`` and ``final`` calls.
 
-    The per-light outputs live in one buffer of N + chunk lights, and each chunk's next-stage
-    output is written where the chunk before it (in the stage's order) has just been read: one
-    stage runs upwards, shifting every chunk by ``chunk`` lights into the spare room, the next
-    downwards, back. So an engine that can write into a given array (OpenVINO) writes straight
-    into the buffer: no copy of the 0.3-1 GB a stage that a buffer of N lights would need at 96
-    lights (OpenVINO bf16: 1.19-1.25x faster, engines.openvino). Each stage's max over lights
-    is gathered chunk by chunk.
+    The per-light outputs live in one buffer of N + min(chunk, N) lights, and each chunk's
+    next-stage output is written where the chunk before it (in the stage's order) has just been
+    read: one stage runs upwards, shifting every chunk by min(chunk, N) lights into the spare
+    room, the next downwards, back. So an engine that can write into a given array (OpenVINO)
+    writes straight into the buffer: no copy of the 0.3-1 GB a stage that a buffer of N lights
+    would need at 96 lights (OpenVINO bf16: 1.19-1.25x faster, engines.openvino). Each stage's
+    max over lights is gathered chunk by chunk.
     ``keep``: if given, filled with the real input of every entry point (all lights, in light
     order), as int8 calibration needs them.
     """
@@ -70,20 +70,21 @@ def run_stages(
         raise ValueError("staged inference runs one stack at a time (batch 1)")
     n = images.shape[1]
     spans = [(i, min(chunk, n - i)) for i in range(0, n, chunk)]
+    step = min(chunk, n)  # the largest span: the spare room a shift needs (tiling budgets it)
     # the stages run at half resolution (stride-2 convolutions, padding 1: ceil(H / 2)); an
     # engine given another shape fails loudly (its result does not fit ``out``)
-    feats = np.empty((n + chunk, FEATURES, *_half(images.shape[-2:])), np.float32)
+    feats = np.empty((n + step, FEATURES, *_half(images.shape[-2:])), np.float32)
     pooled: np.ndarray | None = None
     for start, size in spans:
         s = slice(start, start + size)
         m = stage("feat1", {"images": images[:, s], "lights": lights[:, s]}, feats[s])
         pooled = _running_max(pooled, m)
     assert pooled is not None
-    offset = 0  # where light 0's features are now: 0 or ``chunk``
+    offset = 0  # where light 0's features are now: 0 or ``step``
     for output, feat_in, max_in in (("feat2", "feat1_in", "max1"), ("feat3", "feat2_in", "max2")):
         if keep is not None:
             keep.update({feat_in: feats[offset : offset + n].copy(), max_in: pooled})
-        shift = chunk if offset == 0 else -chunk
+        shift = step if offset == 0 else -step
         order = spans[::-1] if shift > 0 else spans  # never write over a chunk not yet read
         new: np.ndarray | None = None
         for start, size in order:
