@@ -197,6 +197,32 @@ def test_a_cut_file_is_refused_in_one_line(tmp_path: Path, compress: bool) -> No
     assert refused >= (len(data) - 128 - 40) // 37  # every cut past the first tag
 
 
+@pytest.mark.parametrize("compress", [False, True])
+def test_numbers_stored_as_no_number_type_are_damage_not_loadmats(
+    tmp_path: Path, compress: bool
+) -> None:
+    """A numeric variable whose values' tag names no number type (0, a reserved type, a
+    matrix) is a damaged file: handed to loadmat such files crashed the process (SciPy 1.x
+    segfaults in read_var_array on several of them, found by flipping bytes), so it is
+    refused in one line instead of left to loadmat."""
+    arr = _values("u1", (4, 7), seed=3)
+    path = tmp_path / "flipped.mat"
+    whole = tmp_path / "whole.mat"
+    sio.savemat(whole, {"Normal_gt": arr}, do_compression=False)
+    data = bytearray(whole.read_bytes())
+    at = data.index(b"Normal_gt") + 16  # name padded to 16 bytes, then the values' tag
+    assert struct.unpack("<I", data[at : at + 4])[0] == 2  # miUINT8
+    for kind in (0, 8, 10, 11, 14, 514):
+        data[at : at + 4] = struct.pack("<I", kind)
+        element = bytes(data[128:])
+        if compress:
+            element = _compressed(element, "<")
+        path.write_bytes(bytes(data[:128]) + element)
+        with pytest.raises(InputError, match=r"damaged \.mat file") as info:
+            mat_array(path, "Normal_gt")
+        assert "\n" not in str(info.value), kind
+
+
 def test_damaged_compressed_bytes_are_caught_by_the_checksum(tmp_path: Path) -> None:
     arr = _values("f8", (16, 16), seed=5)
     whole = tmp_path / "whole.mat"
@@ -322,3 +348,37 @@ def test_read_normals_falls_back_to_loadmat(tmp_path: Path) -> None:
     sio.savemat(logical, {"mask": normals > 0})  # loadmat: uint8 0/1
     want = unit_normals((normals > 0).astype(np.float32))
     np.testing.assert_array_equal(read_normals(logical), want)
+
+
+def test_a_variable_that_cannot_be_normals_never_reaches_loadmat(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The fallback is where a hostile file can still crash the process (loadmat segfaults on
+    e.g. a complex flag without its imaginary part): a variable whose dimensions (from the
+    headers alone) are not H x W x 3 is refused before it, whatever its class."""
+    from msfnet.runtime.stack.readers import read_normals
+
+    def no_loadmat(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("loadmat was called")
+
+    monkeypatch.setattr(sio, "loadmat", no_loadmat)
+    path = tmp_path / "complex.mat"
+    for value in (np.array([[1 + 2j, 3 - 1j]]), "text", np.ones((4, 5, 2), complex)):
+        sio.savemat(path, {"Normal_gt": value})
+        with pytest.raises(InputError, match=r"must be H x W x 3, got \("):
+            read_normals(path)
+
+
+def test_more_variables_than_it_lists_is_refused(tmp_path: Path) -> None:
+    """Variables past the listing's bound were dropped without a word: a Normal_gt after
+    them was not found, and read_normals took the first variable instead."""
+    from msfnet.runtime.stack.readers import read_normals
+
+    filler = _matrix("x", np.zeros((1, 1)), "<")
+    normals = _matrix("Normal_gt", _values("f8", (2, 2, 3), seed=8), "<")
+    first = _matrix("first", np.ones((2, 2, 3)), "<")
+    path = _v5_file(tmp_path / "many.mat", [first] + [filler] * 4100 + [normals], "<")
+    with pytest.raises(InputError, match="more than 4,096 variables"):
+        mat_shapes(path)
+    with pytest.raises(InputError, match="more than 4,096 variables"):
+        read_normals(path)

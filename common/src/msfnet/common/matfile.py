@@ -153,7 +153,7 @@ def _variables(f: BinaryIO, order: str, path: Path) -> Iterator[_Variable]:
     pos = 128
     size_total = os.fstat(f.fileno()).st_size
     count = 0
-    while pos + 8 <= size_total and count < _MAT_MAX_VARIABLES:
+    while pos + 8 <= size_total:
         f.seek(pos)
         tag = f.read(8)
         kind, size, start, nxt = _mat_tag(tag + b"\0" * 8, 0, order)
@@ -161,6 +161,8 @@ def _variables(f: BinaryIO, order: str, path: Path) -> Iterator[_Variable]:
         if kind not in (_MI_COMPRESSED, _MI_MATRIX):
             pos = nxt
             continue
+        if count == _MAT_MAX_VARIABLES:  # stopping short would hide the later ones
+            raise InputError(f"more than {_MAT_MAX_VARIABLES:,} variables: refusing it", path)
         try:
             if kind == _MI_COMPRESSED:
                 nxt = start + size  # compressed elements are not padded
@@ -197,7 +199,8 @@ def mat_array(path: str | Path, name: str) -> np.ndarray | None:
     anything else (sparse, complex, logical, char, cell, struct, a v4 or v7.3/HDF5 file, a name
     the file lacks), for callers to fall back to ``scipy.io.loadmat``. Where a name occurs twice
     the last one counts, as in loadmat. InputError for a damaged file: a size beyond the file or
-    the data, or more than :data:`MAX_VALUES` values."""
+    the data, values of no number type (loadmat can crash on those), or more than
+    :data:`MAX_VALUES` values."""
     path = Path(path)
     with open(path, "rb") as f:
         order = _byte_order(f)
@@ -250,8 +253,8 @@ def _read_values(f: BinaryIO, variable: _Variable, order: str, path: Path) -> np
     _kind, matrix_size, _start, _next = _mat_tag(head, 0, order)
     kind, size, data, nxt = _mat_tag(head, header.data, order)
     stored = _STORED.get(kind)
-    if stored is None:
-        return None
+    if stored is None:  # a numeric class holds numbers: damage, and loadmat can crash on it
+        raise ValueError(f"variable {header.name!r}: values of element type {kind}, no number")
     small = nxt - data == 4  # the small format: the values sit in the tag's second word
     itemsize = int(stored[1])
     if size != count * itemsize or (small and size > 4) or data + size > 8 + matrix_size:

@@ -169,8 +169,13 @@ def _mat_normals(path: Path) -> np.ndarray:
     plain numeric array, the usual case: no SciPy import, ~0.6 s); anything else by SciPy."""
     # loadmat's names for what is not a variable start with "_" (an unnamed element, such as
     # MATLAB's subsystem data, becomes "__function_workspace__")
-    names = [k for k in mat_shapes(path) or {} if k and not k.startswith("_")]
+    shapes = mat_shapes(path) or {}
+    names = [k for k in shapes if k and not k.startswith("_")]
     key = "Normal_gt" if "Normal_gt" in names else names[0] if names else None
+    # refused from its header: what is not H x W x 3 never reaches loadmat, which a damaged
+    # file can crash (a segfault, not an exception)
+    if key is not None and (len(shapes[key]) != 3 or shapes[key][2] != 3):
+        raise InputError(f"ground-truth normals must be H x W x 3, got {shapes[key]}", path)
     found = None if key is None else mat_array(path, key)
     if found is not None:
         return found
