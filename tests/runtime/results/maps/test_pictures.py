@@ -253,7 +253,9 @@ def test_bitmap_font_fallback_still_draws(monkeypatch: pytest.MonkeyPatch) -> No
     is used and the pictures still draw."""
     from PIL import ImageFont
 
-    real = ImageFont.load_default
+    # Pillow >= 10.1's load_default() is itself FreeType where FreeType is there: the bitmap
+    # font a Pillow without FreeType gives is load_default_imagefont()
+    real = getattr(ImageFont, "load_default_imagefont", ImageFont.load_default)
 
     def no_sizes(size: float | None = None) -> object:
         if size is not None:
@@ -263,9 +265,12 @@ def test_bitmap_font_fallback_still_draws(monkeypatch: pytest.MonkeyPatch) -> No
     monkeypatch.setattr(ImageFont, "load_default", no_sizes)
     pictures._font.cache_clear()
     try:
+        assert not isinstance(pictures._font(14), ImageFont.FreeTypeFont)
         mask = _disc()
         _is_picture(pictures.error_picture(np.where(mask, 3.0, 0.0), mask))
         _is_picture(pictures.normals_picture(np.dstack([mask * 0.0] * 2 + [mask * 1.0]), mask))
+        ramp = np.where(mask, np.linspace(-0.3, 0.3, mask.shape[1])[None, :], np.nan)
+        _is_picture(pictures.curvature_picture(ramp, mask))  # negative tick labels
     finally:
         pictures._font.cache_clear()
 
