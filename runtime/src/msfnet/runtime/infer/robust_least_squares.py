@@ -162,6 +162,8 @@ def stack_noise(
     NOISE_SAMPLE and ``max_pixels``: one band's working set) of each one's robust spread (no
     floor) over its median brightness."""
     ys, xs = np.nonzero(stack.mask)
+    if not len(ys):  # Stack refuses an empty mask; a caller's own mask may still be one
+        return 0.0
     count = max(1, min(NOISE_SAMPLE, max_pixels, len(ys)))
     pick = np.linspace(0, len(ys) - 1, count).astype(np.int64)
     pixels = stack.images[:, ys[pick], xs[pick], :]
