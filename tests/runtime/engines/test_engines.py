@@ -234,28 +234,6 @@ def test_openvino_fp32_keeps_shapes_dynamic(sensitive_onnx, staged_onnx, staged)
 
 
 @needs_openvino
-def test_openvino_gives_back_each_stages_memory_when_the_next_starts(staged_onnx) -> None:
-    """Each stage is its own compiled model holding its activations: a stage's memory is
-    released as soon as the next stage starts, the last one's when the run ends, and a run
-    after the releases computes exactly what the first did (the calls allocate again)."""
-    stack = sphere_stack(n=7, h=16, w=20, seed=3)
-    x, lights = network_input(stack)
-    engine = open_engine(EngineChoice("openvino", "fp32", "test", staged_onnx), 2, chunk=3)
-    released: list[str] = []
-    real = engine._release_stage
-
-    def spy(output: str) -> None:
-        released.append(output)
-        real(output)
-
-    engine._release_stage = spy  # type: ignore[method-assign]
-    first = engine.run(x, lights)
-    assert released == ["feat1", "feat2", "feat3"]
-    assert np.array_equal(engine.run(x, lights), first)
-    assert released == ["feat1", "feat2", "feat3"] * 2
-
-
-@needs_openvino
 def test_openvino_keeps_no_feature_buffer_after_a_staged_run(staged_onnx, sensitive_onnx) -> None:
     """The stage requests write into the loop's buffer through set_output_tensor, and an
     OpenVINO Tensor holds its numpy array: unless released, the buffer ((N + chunk) lights of

@@ -90,7 +90,6 @@ class OpenVinoEngine:
         ov: Any = None,
     ) -> None:
         self._ov = ov  # the openvino module (its Tensor wraps the loop's buffer)
-        self._stage: str | None = None  # the stage whose calls are running (staged graphs)
         # output name -> (infer request, names of the inputs it needs)
         self._requests = {
             out: (c.create_infer_request(), [i.get_any_name() for i in c.inputs])
@@ -117,9 +116,6 @@ class OpenVinoEngine:
         feature buffer): 1.19-1.25x faster at 96 lights than copying it there (bf16, 188-320 px
         tiles, interleaved runs). The chunk's max is taken here by numpy: a ReduceMax added to
         the graph as a second output cost OpenVINO more than it saved."""
-        if self._stage not in (None, output):  # the stage before is done for this tile
-            self._release_stage(self._stage)
-        self._stage = output
         request, names = self._requests[output]
         inputs = {n: feeds[n] for n in names}
         direct = self.device.upper().startswith("CPU") and out.flags.c_contiguous
@@ -132,17 +128,6 @@ class OpenVinoEngine:
             out[...] = result[0]
         return out.max(axis=0, keepdims=True)
 
-    def _release_stage(self, output: str) -> None:
-        """Give back a finished stage's working memory. Each stage is its own compiled model,
-        and OpenVINO keeps each one's activations (a chunk of lights at the tile's size)
-        after its calls: three stages held three such arenas though one runs at a time. Full
-        ball, 96 lights: peak 1,730 -> 1,268-1,280 MiB with fp32, 1,312 -> 1,073 MiB with
-        bf16, identical normals (the next call allocates again)."""
-        release = getattr(self._requests[output][0].get_compiled_model(), "release_memory", None)
-        if release is not None:  # where this OpenVINO has it
-            with contextlib.suppress(Exception):  # a request still busy (Ctrl-C) keeps it
-                release()
-
     def _release_arrays(self) -> None:
         """Point every request away from the arrays of the run just done. A Tensor made from a
         numpy array holds that array, and a request keeps its last tensors: the stage requests'
@@ -150,9 +135,6 @@ class OpenVinoEngine:
         lights), which would outlive the run and sit beside the next tile's, twice what tiling
         budgets. A request still busy (a cancelled call that did not stop) keeps them: it
         still reads and writes there."""
-        if self._stage is not None:
-            self._release_stage(self._stage)
-            self._stage = None
         spare = placeholders()
         cpu = self.device.upper().startswith("CPU")
         for output, (request, names) in self._requests.items():
