@@ -156,16 +156,13 @@ class OpenVinoEngine:
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """Like ONNX Runtime's: every call stoppable by Ctrl-C, the result's shape checked."""
-        if self.info.staged:
-            try:
+        try:
+            if self.info.staged:
                 out = run_stages(self._run_stage, self._final, images, lights, self.lights_per_call)
-            finally:
-                self._release_arrays()
-        else:
-            try:
+            else:
                 out = self._run_output("normals", {"images": images, "lights": lights})
-            finally:
-                self._release_arrays()
+        finally:
+            self._release_arrays()
         check_normals(self.info.path, images, out)
         return out
 
