@@ -164,6 +164,12 @@ def unit_normals(n: np.ndarray) -> np.ndarray:
     return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
 
+def _normals_name(names: list[str]) -> str:
+    """The variable that holds the normals: ``Normal_gt``, else the first (IndexError when
+    there is none)."""
+    return "Normal_gt" if "Normal_gt" in names else names[0]
+
+
 def _mat_normals(path: Path) -> np.ndarray:
     """A .mat file's ``Normal_gt``, else its first variable. Read by :func:`mat_array` (a
     plain numeric array, the usual case: no SciPy import, ~0.6 s); anything else by SciPy."""
@@ -171,7 +177,7 @@ def _mat_normals(path: Path) -> np.ndarray:
     # MATLAB's subsystem data, becomes "__function_workspace__")
     shapes = mat_shapes(path) or {}
     names = [k for k in shapes if k and not k.startswith("_")]
-    key = "Normal_gt" if "Normal_gt" in names else names[0] if names else None
+    key = _normals_name(names) if names else None
     # refused from its header: what is not H x W x 3 never reaches loadmat, which a damaged
     # file can crash (a segfault, not an exception)
     if key is not None and (len(shapes[key]) != 3 or shapes[key][2] != 3):
@@ -182,8 +188,7 @@ def _mat_normals(path: Path) -> np.ndarray:
     from scipy.io import loadmat
 
     mat = loadmat(str(path))
-    keys = [k for k in mat if not k.startswith("_")]
-    return np.asarray(mat["Normal_gt" if "Normal_gt" in mat else keys[0]])
+    return np.asarray(mat[_normals_name([k for k in mat if not k.startswith("_")])])
 
 
 def read_normals(path: Path) -> np.ndarray:
