@@ -8,7 +8,9 @@ import subprocess
 import sys
 import tracemalloc
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pytest
@@ -382,3 +384,98 @@ def test_more_variables_than_it_lists_is_refused(tmp_path: Path) -> None:
         mat_shapes(path)
     with pytest.raises(InputError, match="more than 4,096 variables"):
         read_normals(path)
+
+
+# ---------------------------------------------------------------- which variable, parsed once
+
+
+def test_normals_variable_is_normal_gt_else_the_first_real_variable() -> None:
+    from msfnet.common.matfile import normals_variable
+
+    assert normals_variable({"a": (1,), "Normal_gt": (2,)}) == "Normal_gt"
+    assert normals_variable({"": (1,), "_x": (1,), "b": (2,), "c": (3,)}) == "b"
+    assert normals_variable({"__function_workspace__": (1,), "_x": (2,)}) is None
+    assert normals_variable({}) is None
+
+
+@pytest.mark.parametrize("skipped", ["", "_x"])
+def test_header_check_and_read_take_the_same_variable(tmp_path: Path, skipped: str) -> None:
+    """An unnamed or "_" first element is no variable to the reader (nor to loadmat): the
+    header check took its shape all the same (imageio.array_shape used the first element),
+    so it refused a good file or passed a wrong one. Both now look at the second element."""
+    from msfnet.common.imageio import array_shape
+    from msfnet.runtime.stack.load import check_gt_header
+    from msfnet.runtime.stack.readers import read_normals, unit_normals
+
+    decoy = _values("f8", (9, 8, 3), seed=9)
+    normals = _values("f8", (4, 5, 3), seed=10)
+    for compress in (False, True):
+        elements = [_matrix(skipped, decoy, "<"), _matrix("n", normals, "<")]
+        if compress:
+            elements = [_compressed(e, "<") for e in elements]
+        path = _v5_file(tmp_path / f"gt{compress}.mat", elements, "<")
+        assert array_shape(path) == (4, 5, 3)
+        mat = check_gt_header(path, (4, 5))
+        assert mat is not None and mat.normals == "n"
+        with pytest.raises(InputError, match="ground truth is 5x4 but images are 8x9"):
+            check_gt_header(path, (9, 8))
+        want = unit_normals(normals.astype(np.float32))
+        np.testing.assert_array_equal(read_normals(path, mat), want)
+        np.testing.assert_array_equal(read_normals(path), want)
+    # only "_" elements: no variable for the header check, and none for the reader either
+    path = _v5_file(tmp_path / "none.mat", [_matrix(skipped, decoy, "<")], "<")
+    assert array_shape(path) is None
+    with pytest.raises(InputError, match="cannot read ground-truth normals"):
+        read_normals(path)
+
+
+def _count_parses(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    """Every parse of a .mat file's element headers, by path, from now on."""
+    from msfnet.common import matfile
+
+    parses: list[Path] = []
+    real = matfile._variables
+
+    def counted(f: BinaryIO, order: str, path: Path) -> Iterator[object]:
+        parses.append(path)
+        return real(f, order, path)
+
+    monkeypatch.setattr(matfile, "_variables", counted)
+    return parses
+
+
+def test_read_normals_parses_the_headers_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from msfnet.common.matfile import mat_directory
+    from msfnet.runtime.stack.readers import read_normals, unit_normals
+
+    normals = _values("f8", (6, 5, 3), seed=11)
+    path = tmp_path / "gt.mat"
+    sio.savemat(path, {"other": np.ones((2, 2)), "Normal_gt": normals}, do_compression=True)
+    want = unit_normals(normals.astype(np.float32))
+    parses = _count_parses(monkeypatch)
+    np.testing.assert_array_equal(read_normals(path), want)
+    assert parses == [path]  # was three: the shape check, the listing, the read
+    mat = mat_directory(path)
+    np.testing.assert_array_equal(read_normals(path, mat), want)
+    assert parses == [path, path]  # the given parse is reused
+    with pytest.raises(ValueError, match="given to read"):
+        read_normals(tmp_path / "other.mat", mat)
+
+
+def test_a_directory_of_a_changed_file_is_not_trusted(tmp_path: Path) -> None:
+    """A file replaced after its headers were parsed is parsed again before a read: the old
+    offsets would point into the new file's data."""
+    import os
+
+    from msfnet.common.matfile import mat_directory
+
+    path = tmp_path / "gt.mat"
+    sio.savemat(path, {"Normal_gt": np.zeros((2, 2, 3))})
+    mat = mat_directory(path)
+    assert mat is not None
+    new = _values("f8", (3, 4, 3), seed=12)
+    sio.savemat(tmp_path / "new.mat", {"pad": np.ones((7, 7)), "Normal_gt": new})
+    os.replace(tmp_path / "new.mat", path)
+    _same(mat.array("Normal_gt"), new)

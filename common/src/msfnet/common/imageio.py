@@ -34,7 +34,8 @@ import numpy as np
 
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import write_atomic
-from msfnet.common.matfile import mat_shapes
+from msfnet.common.matfile import mat_directory
+from msfnet.common.matfile import mat_shapes as mat_shapes  # re-exported for older callers
 
 # Refuse images above this many pixels from the header, before decoding (a decompression bomb:
 # a few KB of PNG that decodes to tens of GB). 250 MP is ~10x a large industrial sensor.
@@ -315,8 +316,10 @@ def npy_header(f: BinaryIO) -> tuple[tuple[int, ...], np.dtype]:
 
 def array_shape(path: str | Path) -> tuple[int, ...] | None:
     """The shape a file's array will have once read, from its header alone: images (H, W, 3),
-    ``.npy`` files, and a ``.mat`` file's ``Normal_gt`` (else its first variable); None where no
-    header says. InputError for a damaged header or an image above MAX_PIXELS."""
+    ``.npy`` files, and a ``.mat`` file's normals variable (``Normal_gt``, else its first
+    variable, skipping unnamed and "_" ones: :func:`msfnet.common.matfile.normals_variable`,
+    the variable the reader reads); None where no header says. InputError for a damaged header
+    or an image above MAX_PIXELS."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix == ".npy":
@@ -326,10 +329,8 @@ def array_shape(path: str | Path) -> tuple[int, ...] | None:
         except ValueError as exc:
             raise InputError(f"damaged .npy header ({first_line(exc)})", path) from exc
     if suffix == ".mat":
-        shapes = mat_shapes(path)
-        if not shapes:
-            return None
-        return shapes.get("Normal_gt", next(iter(shapes.values())))
+        directory = mat_directory(path)
+        return None if directory is None else directory.normals_shape
     header = image_header(path)
     return None if header is None else (header.height, header.width, 3)
 

@@ -1,11 +1,15 @@
 """MATLAB level-5 ``.mat`` files read without SciPy (importing ``scipy.io`` costs ~0.6 s).
 
-Two readers, both of which trust no size a file declares:
+Readers that trust no size a file declares:
 
-- :func:`mat_shapes`: every variable's name and dimensions, from the element headers alone (a
-  compressed element is inflated only as far as its header).
-- :func:`mat_array`: one variable's values, for the common case only (a full, real, numeric
-  array); None for anything else, so that callers fall back to ``scipy.io.loadmat``.
+- :func:`mat_directory`: one parse of every variable's element header (a compressed element is
+  inflated only as far as its header), kept as a :class:`MatDirectory` that later reads reuse:
+  a ground truth's headers are checked, then its values read, from one parse.
+- :func:`mat_shapes`: every variable's name and dimensions.
+- :func:`mat_array` / :meth:`MatDirectory.array`: one variable's values, for the common case
+  only (a full, real, numeric array); None for anything else, so that callers fall back to
+  ``scipy.io.loadmat``.
+- :func:`normals_variable`: the one rule for which variable holds ground-truth normals.
 
 The layout: a 128-byte header (text, version 0x0100, the byte-order mark ``IM`` or ``MI``), then
 tagged elements. A variable is a miMATRIX element, or the same zlib-compressed inside a
@@ -20,7 +24,7 @@ from __future__ import annotations
 import os
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -177,16 +181,104 @@ def _variables(f: BinaryIO, order: str, path: Path) -> Iterator[_Variable]:
         pos = nxt
 
 
-def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:
-    """Every variable of a MATLAB v5 .mat file with its dimensions, from the element headers
-    alone: a compressed element is inflated only as far as its header (a few hundred bytes),
-    never its data. None for files that are not v5 (v7.3 is HDF5, which loaders refuse)."""
+# The variable DiLiGenT (and msfnet's own writers) keep ground-truth normals in
+NORMALS_VARIABLE = "Normal_gt"
+
+
+def normals_variable(shapes: Mapping[str, object]) -> str | None:
+    """The variable of a .mat file that holds ground-truth normals: ``Normal_gt``, else the
+    first variable in file order; None where there is none. Names that are empty or start with
+    "_" are skipped: they are not variables to loadmat (an unnamed element, such as MATLAB's
+    subsystem data, becomes ``__function_workspace__``), so a file whose first element is one
+    of them has its second element's shape checked and its second element read.
+
+    ``shapes`` is keyed by name in file order (:attr:`MatDirectory.shapes`, or what
+    ``scipy.io.loadmat`` returns)."""
+    names = [k for k in shapes if k and not k.startswith("_")]
+    if not names:
+        return None
+    return NORMALS_VARIABLE if NORMALS_VARIABLE in names else names[0]
+
+
+def _stamp(f: BinaryIO) -> tuple[int, int, int, int]:
+    st = os.fstat(f.fileno())
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+
+@dataclass(frozen=True)
+class MatDirectory:
+    """A level-5 .mat file's variables as one parse of their element headers found them.
+
+    Passed from a header check to the read that follows, so that the file is parsed once. The
+    file is not held open: :meth:`array` reopens it, and parses it again only where it is no
+    longer the file that was parsed (another inode, size or modification time: an atomic
+    writer's replacement or an edit in place), so a stale directory never misplaces a read."""
+
+    path: Path
+    order: str  # "<" or ">"
+    variables: tuple[_Variable, ...]
+    stamp: tuple[int, int, int, int]  # (device, inode, size, mtime ns) before the parse
+
+    @property
+    def shapes(self) -> dict[str, tuple[int, ...]]:
+        """Every variable's name and dimensions, in file order (a name that occurs twice: its
+        first place, its last dimensions, as loadmat keeps it)."""
+        return {v.header.name: v.header.dims for v in self.variables}
+
+    @property
+    def normals(self) -> str | None:
+        """The variable that holds ground-truth normals (:func:`normals_variable`)."""
+        return normals_variable(self.shapes)
+
+    @property
+    def normals_shape(self) -> tuple[int, ...] | None:
+        """The dimensions of :attr:`normals`; None where the file has no variable."""
+        key = self.normals
+        return None if key is None else self.shapes[key]
+
+    def array(self, name: str) -> np.ndarray | None:
+        """Variable ``name``'s values, as :func:`mat_array` reads them, from this parse."""
+        with open(self.path, "rb") as f:
+            directory = self if _stamp(f) == self.stamp else _directory(f, self.path)
+            return None if directory is None else directory._read(f, name)
+
+    def _read(self, f: BinaryIO, name: str) -> np.ndarray | None:
+        found = None
+        for variable in self.variables:
+            if variable.header.name == name:
+                found = variable  # the last one counts, as in loadmat
+        if found is None:
+            return None
+        try:
+            return _read_values(f, found, self.order, self.path)
+        except (ValueError, struct.error) as exc:
+            raise InputError(f"damaged .mat file ({first_line(exc)})", self.path) from exc
+
+
+def _directory(f: BinaryIO, path: Path) -> MatDirectory | None:
+    """The directory of the file open as ``f`` (at its start); None where it is not v5."""
+    stamp = _stamp(f)  # before the parse: a change during it shows at the next read
+    order = _byte_order(f)
+    if order is None:
+        return None
+    return MatDirectory(path, order, tuple(_variables(f, order, path)), stamp)
+
+
+def mat_directory(path: str | Path) -> MatDirectory | None:
+    """Every variable's element header of a MATLAB v5 .mat file, parsed once: a compressed
+    element is inflated only as far as its header (a few hundred bytes), never its data. None
+    for files that are not v5 (v7.3 is HDF5, which loaders refuse); InputError for a damaged
+    one or one of more than 4,096 variables."""
     path = Path(path)
     with open(path, "rb") as f:
-        order = _byte_order(f)
-        if order is None:
-            return None
-        return {v.header.name: v.header.dims for v in _variables(f, order, path)}
+        return _directory(f, path)
+
+
+def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:
+    """Every variable of a MATLAB v5 .mat file with its dimensions, from the element headers
+    alone (:func:`mat_directory`). None for files that are not v5."""
+    directory = mat_directory(path)
+    return None if directory is None else directory.shapes
 
 
 def mat_array(path: str | Path, name: str) -> np.ndarray | None:
@@ -200,22 +292,11 @@ def mat_array(path: str | Path, name: str) -> np.ndarray | None:
     the file lacks), for callers to fall back to ``scipy.io.loadmat``. Where a name occurs twice
     the last one counts, as in loadmat. InputError for a damaged file: a size beyond the file or
     the data, values of no number type (loadmat can crash on those), or more than
-    :data:`MAX_VALUES` values."""
+    :data:`MAX_VALUES` values. With the headers already parsed, :meth:`MatDirectory.array`."""
     path = Path(path)
     with open(path, "rb") as f:
-        order = _byte_order(f)
-        if order is None:
-            return None
-        found = None
-        for variable in _variables(f, order, path):
-            if variable.header.name == name:
-                found = variable
-        if found is None:
-            return None
-        try:
-            return _read_values(f, found, order, path)
-        except (ValueError, struct.error) as exc:
-            raise InputError(f"damaged .mat file ({first_line(exc)})", path) from exc
+        directory = _directory(f, path)
+        return None if directory is None else directory._read(f, name)
 
 
 def _read_values(f: BinaryIO, variable: _Variable, order: str, path: Path) -> np.ndarray | None:

@@ -22,11 +22,11 @@ from msfnet.common.imageio import (
     array_shape,
     image_header,
     list_images,
-    mat_shapes,
     npy_header,
     read_image,
     read_mask,
 )
+from msfnet.common.matfile import MatDirectory, mat_directory
 from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.stack.readers import read_normals, read_vectors, unit_normals
 from msfnet.runtime.stack.select import selection
@@ -388,9 +388,9 @@ def load_folder(
     mask_path = options.mask or _first_existing(folder, MASK_NAMES) or _other_mask(folder)
     mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3], bool)
     gt_path = _first_existing(folder, GT_NAMES)
+    gt = None
     if gt_path is not None:
-        check_gt_header(gt_path, hw)
-    gt = read_normals(gt_path) if gt_path else None
+        gt = read_normals(gt_path, check_gt_header(gt_path, hw))  # one parse of a .mat
     if gt is not None:
         if gt.shape[:2] != hw:
             raise InputError(
@@ -430,16 +430,22 @@ def _refuse_repeats(paths: Sequence[Path], listing: Path) -> None:
         seen[key] = line
 
 
-def check_gt_header(path: Path, shape: tuple[int, int]) -> None:
+def check_gt_header(path: Path, shape: tuple[int, int]) -> MatDirectory | None:
     """Ground truth compared with the stored image size from its header, before it is read
-    (a 248 MP normal map or a compressed 10 GB .mat variable is refused unopened)."""
+    (a 248 MP normal map or a compressed 10 GB .mat variable is refused unopened). Returns a
+    v5 .mat file's parsed headers, for :func:`read_normals` to read from; None otherwise."""
     h, w = shape
-    found = array_shape(path)
+    mat = None
+    if path.suffix.lower() == ".mat":  # the variable read_normals reads (normals_variable)
+        mat = mat_directory(path)
+        found = None if mat is None else mat.normals_shape
+    else:
+        found = array_shape(path)
     if found is not None and tuple(found[:2]) != (h, w):
         size = f"{found[1]}x{found[0]}" if len(found) >= 2 else f"of shape {found}"
         raise InputError(f"ground truth is {size} but images are {w}x{h}", path)
-    if path.suffix.lower() == ".mat":  # loadmat reads every variable, not only Normal_gt
-        shapes = mat_shapes(path) or {}
+    if mat is not None:  # loadmat reads every variable, not only Normal_gt
+        shapes = mat.shapes
         total = sum(int(np.prod(d, dtype=np.int64)) for d in shapes.values())
         if total > h * w * 3 + 2**20:
             raise InputError(
@@ -447,6 +453,7 @@ def check_gt_header(path: Path, shape: tuple[int, int]) -> None:
                 f"the ground truth of {w}x{h} images: refusing to read it",
                 path,
             )
+    return mat
 
 
 def _other_mask(folder: Path) -> Path | None:

@@ -10,7 +10,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.imageio import read_image
-from msfnet.common.matfile import mat_array, mat_shapes
+from msfnet.common.matfile import MatDirectory, mat_directory, normals_variable
 
 # A light file lists one row per light. Real rigs have tens to a few hundred lights; the bounds
 # refuse a wrong file (a point cloud, a log) at once instead of parsing it for minutes and
@@ -164,39 +164,42 @@ def unit_normals(n: np.ndarray) -> np.ndarray:
     return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
 
-def _normals_name(names: list[str]) -> str:
-    """The variable that holds the normals: ``Normal_gt``, else the first (IndexError when
-    there is none)."""
-    return "Normal_gt" if "Normal_gt" in names else names[0]
-
-
-def _mat_normals(path: Path) -> np.ndarray:
-    """A .mat file's ``Normal_gt``, else its first variable. Read by :func:`mat_array` (a
-    plain numeric array, the usual case: no SciPy import, ~0.6 s); anything else by SciPy."""
-    # loadmat's names for what is not a variable start with "_" (an unnamed element, such as
-    # MATLAB's subsystem data, becomes "__function_workspace__")
-    shapes = mat_shapes(path) or {}
-    names = [k for k in shapes if k and not k.startswith("_")]
-    key = _normals_name(names) if names else None
-    # refused from its header: what is not H x W x 3 never reaches loadmat, which a damaged
-    # file can crash (a segfault, not an exception)
-    if key is not None and (len(shapes[key]) != 3 or shapes[key][2] != 3):
-        raise InputError(f"ground-truth normals must be H x W x 3, got {shapes[key]}", path)
-    found = None if key is None else mat_array(path, key)
+def _mat_normals(path: Path, mat: MatDirectory | None) -> np.ndarray:
+    """A .mat file's normals variable (:func:`normals_variable`). Read by
+    :meth:`MatDirectory.array` (a plain numeric array, the usual case: no SciPy import, ~0.6 s);
+    anything else by SciPy. ``mat``: the file's headers where already parsed."""
+    if mat is None:
+        mat = mat_directory(path)
+    key = None if mat is None else mat.normals
+    found = None
+    if mat is not None and key is not None:
+        dims = mat.shapes[key]
+        # refused from its header: what is not H x W x 3 never reaches loadmat, which a damaged
+        # file can crash (a segfault, not an exception)
+        if len(dims) != 3 or dims[2] != 3:
+            raise InputError(f"ground-truth normals must be H x W x 3, got {dims}", path)
+        found = mat.array(key)
     if found is not None:
         return found
     from scipy.io import loadmat
 
-    mat = loadmat(str(path))
-    return np.asarray(mat[_normals_name([k for k in mat if not k.startswith("_")])])
+    variables = loadmat(str(path))
+    key = normals_variable(variables)
+    if key is None:
+        raise InputError("cannot read ground-truth normals (the file holds no variable)", path)
+    return np.asarray(variables[key])
 
 
-def read_normals(path: Path) -> np.ndarray:
-    """Ground-truth normals (H, W, 3) from .mat (key Normal_gt), .npy or an 8/16-bit PNG."""
+def read_normals(path: Path, mat: MatDirectory | None = None) -> np.ndarray:
+    """Ground-truth normals (H, W, 3) from .mat (key Normal_gt), .npy or an 8/16-bit PNG.
+    ``mat``: a .mat file's headers where a header check parsed them already
+    (:func:`~msfnet.common.matfile.mat_directory`), so that they are not parsed again."""
+    if mat is not None and mat.path != path:
+        raise ValueError(f"headers of {mat.path} given to read {path}")
     suffix = path.suffix.lower()
     try:
         if suffix == ".mat":
-            n = np.asarray(_mat_normals(path), dtype=np.float32)
+            n = np.asarray(_mat_normals(path, mat), dtype=np.float32)
         elif suffix == ".npy":
             n = np.load(path, allow_pickle=False).astype(np.float32)
         else:
