@@ -12,7 +12,15 @@ from msfnet.runtime.engines.ort_session import create_session
 from msfnet.runtime.evaluate.metrics import angular_error_deg
 from msfnet.runtime.infer import flops
 from msfnet.runtime.infer.tiled import infer_normals
-from msfnet.runtime.infer.tiling import HALO, plan_tiles, tile_size_for_memory
+from msfnet.runtime.infer.tiling import (
+    BASE_MEMORY_MB,
+    BYTES_PER_PIXEL_LIGHT,
+    HALO,
+    activation_bytes,
+    bytes_per_pixel,
+    plan_tiles,
+    tile_size_for_memory,
+)
 from msfnet.runtime.stack import load_stack
 
 
@@ -58,6 +66,30 @@ def test_tile_size_from_memory() -> None:
     assert tile_size_for_memory(4096, 8) > big
     with pytest.raises(InputError, match="too small"):
         tile_size_for_memory(200, 96)
+
+
+def test_tiles_are_sized_with_the_engines_measured_working_set() -> None:
+    """OpenVINO fp32 holds more per pixel-light than the ONNX Runtime bound the model started
+    from (full ball at --max-memory 1600 peaked at 1,752 MiB with one 192 px window): its
+    measured figure gives smaller windows under the same budget; engines and precisions never
+    measured keep the bound."""
+    assert activation_bytes("openvino", "fp32") >= activation_bytes("onnxruntime", "fp32")
+    assert activation_bytes("onnxruntime", "fp32") > BYTES_PER_PIXEL_LIGHT
+    assert activation_bytes("openvino", "int8") == BYTES_PER_PIXEL_LIGHT
+    assert activation_bytes("openvino", "bf16") == BYTES_PER_PIXEL_LIGHT
+    stack_mb = 96 * 512 * 612 * 3 * 2 / 2**20  # the full ball, 16-bit
+    ov = tile_size_for_memory(1700, 96, 8, stack_mb, activation_bytes("openvino", "fp32"))
+    bound = tile_size_for_memory(1700, 96, 8, stack_mb)
+    assert ov < bound
+    # the ball's mask needs a 184 px window: planned whole under the bound, tiled for OpenVINO
+    # fp32 (whose measured peak with the whole window was over the budget)
+    assert ov < 184 <= bound
+    need = (
+        BASE_MEMORY_MB
+        + stack_mb
+        + ov**2 * bytes_per_pixel(96, 8, activation_bytes("openvino", "fp32")) / 2**20
+    )
+    assert need <= 1700
 
 
 def _crop(stack, y0, y1, x0, x1):

@@ -20,6 +20,7 @@ from msfnet.runtime.infer.tiling import (
     DEFAULT_MAX_MEMORY_MB,
     HALO,
     TilePlan,
+    activation_bytes,
     plan_tiles,
     tile_size_for_memory,
 )
@@ -112,6 +113,7 @@ def choose_plan(
             stack.num_lights,
             model.chunk,
             stack_mb=stack.images.nbytes / 2**20,
+            activation=activation_bytes(model.name, model.precision),
         )
     return plan_tiles(stack.mask, tile)
 

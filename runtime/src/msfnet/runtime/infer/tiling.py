@@ -22,11 +22,19 @@ from msfnet.runtime.infer.flops import receptive_field
 from msfnet.runtime.infer.normalise import padded_size
 
 HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
-# ONNX Runtime working set per (network-input pixel x light), fp32 CPU provider, arena off (see
-# engines/ort_session.py): 3000 B bounds every case measured (docs/benchmark.md), so peak RSS
-# stays under --max-memory.
+# Activations per (network-input pixel x light of one call): 3000 B, first measured with ONNX
+# Runtime fp32 (arena off, engines/ort_session.py), stays the bound for what has not been
+# measured since. Measured whole-process peaks (msf-run on the full ball, one window, 16-96
+# lights; docs/benchmark.md, "--max-memory is exceeded by OpenVINO fp32") put ONNX Runtime fp32
+# at 3,300-3,530 and OpenVINO fp32 at ~3,560 (its three stage models each keep their
+# activations), OpenVINO bf16 at ~2,000 (kept at the bound); the figures below add a margin
+# for run-to-run spread (the same command's peak moved by 55 MiB), so peak RSS stays under
+# --max-memory.
 BYTES_PER_PIXEL_LIGHT = 3000
-BASE_MEMORY_MB = 150  # runtime + ORT session + model, outside the per-tile working set
+ACTIVATION_BYTES = {("onnxruntime", "fp32"): 3600, ("openvino", "fp32"): 3700}
+# runtime + engine + model, outside the per-tile working set: a 16 x 16 px ROI of ball peaked
+# at 246-288 MiB (ONNX Runtime, OpenVINO bf16 and fp32)
+BASE_MEMORY_MB = 300
 DEFAULT_MAX_MEMORY_MB = 4096
 
 
@@ -59,24 +67,36 @@ def _down(v: int) -> int:
     return v // MULTIPLE * MULTIPLE
 
 
-def bytes_per_pixel(lights: int, chunk: int | None = None) -> float:
+def activation_bytes(engine: str, precision: str) -> int:
+    """Activations per (window pixel x light of one call) for ``engine`` at ``precision``: the
+    measured figure where there is one, else the BYTES_PER_PIXEL_LIGHT bound."""
+    return ACTIVATION_BYTES.get((engine, precision), BYTES_PER_PIXEL_LIGHT)
+
+
+def bytes_per_pixel(
+    lights: int, chunk: int | None = None, activation: int = BYTES_PER_PIXEL_LIGHT
+) -> float:
     """Working set per window pixel: all lights at once (monolithic graph), or, for a staged
     graph run ``chunk`` lights at a time, the stored stage outputs (with one chunk's spare room,
-    staged_loop.run_stages) plus one chunk's activations."""
+    staged_loop.run_stages) plus one chunk's activations (``activation`` bytes a pixel-light)."""
     if chunk is None:
-        return lights * BYTES_PER_PIXEL_LIGHT
+        return lights * activation
     per_call = min(chunk, lights)
-    return (lights + per_call) * STORED_BYTES_PER_PIXEL_LIGHT + per_call * BYTES_PER_PIXEL_LIGHT
+    return (lights + per_call) * STORED_BYTES_PER_PIXEL_LIGHT + per_call * activation
 
 
 def tile_size_for_memory(
-    max_memory_mb: float, lights: int, chunk: int | None = None, stack_mb: float = 0.0
+    max_memory_mb: float,
+    lights: int,
+    chunk: int | None = None,
+    stack_mb: float = 0.0,
+    activation: int = BYTES_PER_PIXEL_LIGHT,
 ) -> int:
     """Largest square window (multiple of 4) whose working set fits in ``max_memory_mb`` (the
-    user's budget for the whole run) beside the loaded stack's ``stack_mb``. The constants were
-    measured with ONNX Runtime fp32; OpenVINO bf16 stays below them (docs/benchmark.md)."""
+    user's budget for the whole run) beside the loaded stack's ``stack_mb``; ``activation``:
+    the engine's bytes a pixel-light (:func:`activation_bytes`)."""
     budget = (max_memory_mb - stack_mb - BASE_MEMORY_MB) * 2**20
-    per_pixel = bytes_per_pixel(lights, chunk)
+    per_pixel = bytes_per_pixel(lights, chunk, activation)
     side = _down(int(math.sqrt(max(budget, 0) / per_pixel)))
     smallest = 2 * HALO + MULTIPLE
     if side < smallest:
@@ -154,11 +174,13 @@ def plan_tiles(
 
 
 __all__ = [
+    "ACTIVATION_BYTES",
     "BYTES_PER_PIXEL_LIGHT",
     "DEFAULT_MAX_MEMORY_MB",
     "HALO",
     "Tile",
     "TilePlan",
+    "activation_bytes",
     "bytes_per_pixel",
     "plan_tiles",
     "tile_size_for_memory",
