@@ -73,3 +73,23 @@ def staged_onnx(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.getbasetemp() / "runtime_model"
     folder.mkdir(exist_ok=True)
     return build_random_onnx(folder, sensitive=True, staged=True)
+
+
+@pytest.fixture
+def mat_parses(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
+    """Every parse of a .mat file's element headers during the test, by path (the helper
+    common.matfile._variables counted)."""
+    from collections.abc import Iterator
+    from typing import BinaryIO
+
+    from msfnet.common import matfile
+
+    parses: list[Path] = []
+    real = matfile._variables
+
+    def counted(f: BinaryIO, order: str, path: Path) -> Iterator[object]:
+        parses.append(path)
+        return real(f, order, path)
+
+    monkeypatch.setattr(matfile, "_variables", counted)
+    return parses

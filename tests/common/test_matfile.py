@@ -8,9 +8,7 @@ import subprocess
 import sys
 import tracemalloc
 import zlib
-from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO
 
 import numpy as np
 import pytest
@@ -429,24 +427,7 @@ def test_header_check_and_read_take_the_same_variable(tmp_path: Path, skipped: s
         read_normals(path)
 
 
-def _count_parses(monkeypatch: pytest.MonkeyPatch) -> list[Path]:
-    """Every parse of a .mat file's element headers, by path, from now on."""
-    from msfnet.common import matfile
-
-    parses: list[Path] = []
-    real = matfile._variables
-
-    def counted(f: BinaryIO, order: str, path: Path) -> Iterator[object]:
-        parses.append(path)
-        return real(f, order, path)
-
-    monkeypatch.setattr(matfile, "_variables", counted)
-    return parses
-
-
-def test_read_normals_parses_the_headers_once(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_read_normals_parses_the_headers_once(tmp_path: Path, mat_parses: list[Path]) -> None:
     from msfnet.common.matfile import mat_directory
     from msfnet.runtime.stack.readers import read_normals, unit_normals
 
@@ -454,7 +435,8 @@ def test_read_normals_parses_the_headers_once(
     path = tmp_path / "gt.mat"
     sio.savemat(path, {"other": np.ones((2, 2)), "Normal_gt": normals}, do_compression=True)
     want = unit_normals(normals.astype(np.float32))
-    parses = _count_parses(monkeypatch)
+    mat_parses.clear()  # savemat and the expected values did not parse
+    parses = mat_parses
     np.testing.assert_array_equal(read_normals(path), want)
     assert parses == [path]  # was three: the shape check, the listing, the read
     mat = mat_directory(path)
@@ -465,8 +447,9 @@ def test_read_normals_parses_the_headers_once(
 
 
 def test_a_directory_of_a_changed_file_is_not_trusted(tmp_path: Path) -> None:
-    """A file replaced after its headers were parsed is parsed again before a read: the old
-    offsets would point into the new file's data."""
+    """A file replaced after its headers were parsed is refused at the read: the old offsets
+    would point into the new file's data, and a parse made then would skip the checks made on
+    the first one."""
     import os
 
     from msfnet.common.matfile import mat_directory
@@ -478,4 +461,59 @@ def test_a_directory_of_a_changed_file_is_not_trusted(tmp_path: Path) -> None:
     new = _values("f8", (3, 4, 3), seed=12)
     sio.savemat(tmp_path / "new.mat", {"pad": np.ones((7, 7)), "Normal_gt": new})
     os.replace(tmp_path / "new.mat", path)
-    _same(mat.array("Normal_gt"), new)
+    with pytest.raises(InputError, match="changed after its headers were read"):
+        mat.array("Normal_gt")
+    again = mat_directory(path)  # a new parse reads the new file
+    assert again is not None
+    _same(again.array("Normal_gt"), new)
+
+
+def test_a_ground_truth_replaced_after_its_header_check_is_refused(tmp_path: Path) -> None:
+    """The header check's parse is what the read trusts (image size, H x W x 3, the total a
+    loadmat may read): a file replaced in between is refused, not read unchecked."""
+    import os
+
+    from msfnet.runtime.stack.load import check_gt_header
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.mat"
+    sio.savemat(path, {"Normal_gt": _values("f8", (4, 5, 3), seed=13)})
+    mat = check_gt_header(path, (4, 5))
+    assert mat is not None
+    # passes none of the checks: another size, and 2 channels
+    sio.savemat(tmp_path / "new.mat", {"Normal_gt": np.ones((300, 200, 2))})
+    os.replace(tmp_path / "new.mat", path)
+    with pytest.raises(InputError, match="changed after its headers were read"):
+        read_normals(path, mat)
+    with pytest.raises(InputError, match="changed after its headers were read"):
+        mat.array("Normal_gt")
+
+
+def test_the_loadmat_fallback_reads_the_file_that_was_checked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A variable the fast reader leaves to SciPy (logical here) is read by loadmat from the
+    handle whose file was checked: a replacement by name just before loadmat opens it is not
+    what gets read."""
+    import os
+
+    import scipy.io
+
+    from msfnet.runtime.stack.load import check_gt_header
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.mat"
+    checked = np.zeros((4, 5, 3), bool)
+    checked[..., 2] = True
+    sio.savemat(path, {"Normal_gt": checked})
+    mat = check_gt_header(path, (4, 5))
+    assert mat is not None and mat.array("Normal_gt") is None  # left to loadmat
+    real = scipy.io.loadmat
+
+    def swapped_first(source: object, *args: object, **kwargs: object) -> object:
+        sio.savemat(tmp_path / "new.mat", {"Normal_gt": -np.ones((4, 5, 3))})
+        os.replace(tmp_path / "new.mat", path)
+        return real(source, *args, **kwargs)
+
+    monkeypatch.setattr(scipy.io, "loadmat", swapped_first)
+    np.testing.assert_array_equal(read_normals(path, mat)[..., 2], np.ones((4, 5), np.float32))

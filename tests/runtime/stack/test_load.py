@@ -5,10 +5,8 @@ the type actually held."""
 from __future__ import annotations
 
 import tracemalloc
-from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
-from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -210,23 +208,14 @@ def test_only_an_image_named_like_a_mask_is_the_mask(tmp_path: Path) -> None:
 
 
 def test_a_folder_load_parses_its_mat_ground_truth_once(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, mat_parses: list[Path]
 ) -> None:
     """The header check before the read hands its parse to read_normals: one parse of the
     .mat headers per load (there were four: two in the check, two in the read)."""
-    from msfnet.common import matfile
-
     folder = png_stack(tmp_path / "s", 8, n=4)
     gt = folder / "Normal_gt.mat"
     assert gt.is_file()
-    parses: list[Path] = []
-    real = matfile._variables
-
-    def counted(f: BinaryIO, order: str, path: Path) -> Iterator[object]:
-        parses.append(path)
-        return real(f, order, path)
-
-    monkeypatch.setattr(matfile, "_variables", counted)
+    mat_parses.clear()  # writing the stack did not parse; from here on, the load
     stack = load_stack(folder)
-    assert parses == [gt]
+    assert mat_parses == [gt]
     assert stack.normals_gt is not None and stack.normals_gt.shape == (36, 44, 3)

@@ -25,6 +25,7 @@ import os
 import struct
 import zlib
 from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -210,9 +211,10 @@ class MatDirectory:
     """A level-5 .mat file's variables as one parse of their element headers found them.
 
     Passed from a header check to the read that follows, so that the file is parsed once. The
-    file is not held open: :meth:`array` reopens it, and parses it again only where it is no
-    longer the file that was parsed (another inode, size or modification time: an atomic
-    writer's replacement or an edit in place), so a stale directory never misplaces a read."""
+    file is not held open: :meth:`reopen` opens it again and refuses it where it is no longer
+    the file that was parsed (another inode, size or modification time: an atomic writer's
+    replacement or an edit in place). Refused, not parsed again: what a caller checked
+    (sizes, shapes) was this parse, and a new one would reach the read unchecked."""
 
     path: Path
     order: str  # "<" or ">"
@@ -236,11 +238,25 @@ class MatDirectory:
         key = self.normals
         return None if key is None else self.shapes[key]
 
-    def array(self, name: str) -> np.ndarray | None:
-        """Variable ``name``'s values, as :func:`mat_array` reads them, from this parse."""
+    @contextmanager
+    def reopen(self) -> Iterator[BinaryIO]:
+        """The parsed file, open for reading (binary); InputError where the path now names
+        another file or the file changed. Read through this handle (``scipy.io.loadmat``
+        takes it too), not by name: the name may be replaced again after the check."""
         with open(self.path, "rb") as f:
-            directory = self if _stamp(f) == self.stamp else _directory(f, self.path)
-            return None if directory is None else directory._read(f, name)
+            if _stamp(f) != self.stamp:
+                raise InputError(
+                    "the file changed after its headers were read (replaced or written to "
+                    "meanwhile): run again once it is complete",
+                    self.path,
+                )
+            yield f
+
+    def array(self, name: str) -> np.ndarray | None:
+        """Variable ``name``'s values, as :func:`mat_array` reads them, from this parse
+        (InputError where the file changed since: :meth:`reopen`)."""
+        with self.reopen() as f:
+            return self._read(f, name)
 
     def _read(self, f: BinaryIO, name: str) -> np.ndarray | None:
         found = None

@@ -50,7 +50,7 @@ from msfnet.runtime.infer.estimators import (
 )
 from msfnet.runtime.infer.fine_detail import FineDetailEstimator
 from msfnet.runtime.infer.ladder import RUNGS, reduced_network
-from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, HALO, TilePlan
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO, TilePlan
 from msfnet.runtime.infer.tta import TTAEstimator
 from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
@@ -518,7 +518,8 @@ class Model:
             # the next stack is being decoded beside this one: leave its memory out of the
             # tile budget (estimated by this stack's size; sequences are rarely mixed)
             spare = budget.max_memory_mb - decoded.stack.images.nbytes / 2**20
-            self.tiling = replace(budget, max_memory_mb=max(spare, 256.0))
+            # a floor above the runtime's own base (tiling.BASE_MEMORY_MB), never below it
+            self.tiling = replace(budget, max_memory_mb=max(spare, BASE_MEMORY_MB + 256.0))
         try:
             result = self._run(decoded.stack, None, 1, False)
         finally:

@@ -181,9 +181,13 @@ def _mat_normals(path: Path, mat: MatDirectory | None) -> np.ndarray:
         found = mat.array(key)
     if found is not None:
         return found
-    from scipy.io import loadmat
+    import scipy.io
 
-    variables = loadmat(str(path))
+    if mat is None:  # not level 5 (v4; v7.3 is refused by loadmat itself)
+        variables = scipy.io.loadmat(str(path))
+    else:  # the checked file itself: a replacement by name since is refused or not seen
+        with mat.reopen() as f:
+            variables = scipy.io.loadmat(f)
     key = normals_variable(variables)
     if key is None:
         raise InputError("cannot read ground-truth normals (the file holds no variable)", path)
