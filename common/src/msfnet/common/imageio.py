@@ -35,7 +35,6 @@ import numpy as np
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import write_atomic
 from msfnet.common.matfile import mat_directory
-from msfnet.common.matfile import mat_shapes as mat_shapes  # re-exported for older callers
 
 # Refuse images above this many pixels from the header, before decoding (a decompression bomb:
 # a few KB of PNG that decodes to tens of GB). 250 MP is ~10x a large industrial sensor.

@@ -17,7 +17,6 @@ import numpy as np
 from msfnet.common.errors import InputError, MsfError, first_line
 from msfnet.runtime.infer.normalise import network_input
 from msfnet.runtime.infer.tiling import (
-    BYTES_PER_PIXEL_LIGHT,
     DEFAULT_MAX_MEMORY_MB,
     HALO,
     TilePlan,
@@ -114,14 +113,7 @@ def choose_plan(
             stack.num_lights,
             model.chunk,
             stack_mb=stack.images.nbytes / 2**20,
-            # the engines' figures were measured on staged calls; plain graphs stay under the
-            # bound (ball, 32 lights, 80 px windows: ONNX Runtime fp32 ~2,650 B, OpenVINO fp32
-            # ~1,400), and the staged figures would shrink their windows for nothing
-            activation=(
-                activation_bytes(model.name, model.precision)
-                if model.chunk is not None
-                else BYTES_PER_PIXEL_LIGHT
-            ),
+            activation=activation_bytes(model.name, model.precision, model.chunk is not None),
         )
     return plan_tiles(stack.mask, tile)
 

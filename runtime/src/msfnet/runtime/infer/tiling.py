@@ -67,11 +67,16 @@ def _down(v: int) -> int:
     return v // MULTIPLE * MULTIPLE
 
 
-def activation_bytes(engine: str, precision: str) -> int:
-    """Activations per (window pixel x light of one call of a staged graph) for ``engine`` at
-    ``precision``: the measured figure where there is one, else the BYTES_PER_PIXEL_LIGHT
-    bound. Names are matched without case, and an export's label by its leading precision
-    (a ModelSession reports "int8-qdq" or "fp32 (fp16-stored weights)", not "int8" / "fp32")."""
+def activation_bytes(engine: str, precision: str, staged: bool = True) -> int:
+    """Activations per (window pixel x light of one call) for ``engine`` at ``precision``: for a
+    staged graph the measured figure where there is one, else the BYTES_PER_PIXEL_LIGHT bound.
+    The figures were measured on staged calls; plain graphs stay under the bound (ball, 32
+    lights, 80 px windows: ONNX Runtime fp32 ~2,650 B, OpenVINO fp32 ~1,400), so they keep it
+    (the staged figures would shrink their windows for nothing). Names are matched without
+    case, and an export's label by its leading precision (a ModelSession reports "int8-qdq" or
+    "fp32 (fp16-stored weights)", not "int8" / "fp32")."""
+    if not staged:
+        return BYTES_PER_PIXEL_LIGHT
     label = precision.strip().lower()
     known = next((p for p in ("fp32", "bf16", "int8") if label.startswith(p)), label)
     return ACTIVATION_BYTES.get((engine.strip().lower(), known), BYTES_PER_PIXEL_LIGHT)
