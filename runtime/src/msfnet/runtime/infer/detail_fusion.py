@@ -13,15 +13,19 @@ leaks in from outside the mask) and ``high = n - low(n)``. ``ls`` is the *robust
 (infer/robust_least_squares.py: shadows and highlights down-weighted per pixel), ``w`` (detail
 weight) and ``s`` (shape weight) in [0, 1] its *validity* (:func:`validity`): near 1 where its
 relative residual is at the noise level, falling smoothly to 0 where even the robust fit breaks;
-``s`` falls off sooner (a biased fit hurts the shape more than its detail). Smooth weights, not
-a binary switch, so no seam is drawn where the fit goes bad. ``sigma`` sits above the detail
+``s`` falls off sooner (a biased fit hurts the shape more than its detail). The detail weight
+is exp(-(r / scale)^4): flat while the residual is a few per cent (noise, a mild gloss: the
+fit's detail is still the surface's), steep once the fit breaks (shadow edges, inter-reflection),
+which a Gaussian exp(-(r / scale)^2) cannot do at once: trusting more at small residuals meant
+trusting more at large ones too. Smooth weights, not a binary switch, so no seam is drawn where
+the fit goes bad. ``sigma`` sits above the detail
 check's scale (evaluate/detail_ratio.py, 2 px): a split at the check's own scale hands over only
 part of that band (a Gaussian split is gradual), capping the detail kept at 0.84-0.90 of least
 squares' even with w = 1 everywhere; at 3 px the band passes whole.
 
 Measured (docs/run.md, "Detail fusion"), network alone -> fused: DiLiGenT ball / bear /
-harvest 2.15 / 4.89 / 17.83 -> 1.81 / 4.74 / 17.40 deg (msf-eval); psmImages detail ratio 0.61
-/ 0.58 / 0.65 -> 0.96 / 0.95 / 0.89; a rendered matte plate 3.40 -> 0.05 deg (the network's
+harvest 2.15 / 4.89 / 17.83 -> 1.81 / 4.76 / 17.27 deg (msf-eval); psmImages detail ratio 0.61
+/ 0.58 / 0.65 -> 0.99 / 0.98 / 0.92; a rendered matte plate 3.40 -> 0.05 deg (the network's
 rim at true silhouettes goes too), glossy plate 4.45 -> 1.98 deg (least squares 2.10).
 
 Call it directly (``fuse_detail``; e.g. a half-resolution network upsampled to full size plus a
@@ -46,15 +50,19 @@ from msfnet.runtime.stack.readers import unit_normals
 
 DEFAULT_SIGMA = 3.0  # px: 1.5x the detail check's scale (evaluate.detail_ratio.SIGMA_PX)
 # Relative residuals of the robust fit (per degree of freedom) at which the detail / shape
-# weights are exp(-1). Chosen on DiLiGenT (MAE) and psmImages (detail ratio) together, split
-# 3 px (docs/run.md, Detail fusion): detail scale 0.2 -> 1.81 / 4.73 / 17.27 deg and 0.92 /
-# 0.92 / 0.85; 0.25 -> 1.81 / 4.74 / 17.40 and 0.96 / 0.95 / 0.89; 0.3 -> 1.81 / 4.76 / 17.59
-# and 1.00 / 0.98 / 0.91 (the plain fit at 2 px, scale 0.2, the previous default: 1.96 / 4.89
-# / 17.40 and 0.78 / 0.79 / 0.82). 0.25 keeps every DiLiGenT object at or below both the
-# network alone and the previous default. Shape scale 0.03 (0.04 moved ball / bear by +0.04 /
-# +0.08 deg).
-DEFAULT_RESIDUAL_SCALE = 0.25
+# weights are exp(-1), and the powers of their fall-off. Chosen on DiLiGenT (MAE) and psmImages
+# (detail ratio) together, split 3 px (docs/run.md, Detail fusion). With power 2 (a Gaussian),
+# scale 0.25 -> 1.81 / 4.74 / 17.40 deg and 0.96 / 0.95 / 0.89; 0.3 -> 1.81 / 4.76 / 17.59 and
+# 1.00 / 0.98 / 0.91: more detail on 12-light captures cost harvest. Power 4 trusts the few-per-
+# cent residuals of a mild gloss and drops a broken fit faster: 0.18 -> 1.81 / 4.75 / 17.26 and
+# 0.98 / 0.97 / 0.91; 0.19 -> 1.81 / 4.76 / 17.27 and 0.99 / 0.98 / 0.92; 0.22 -> 1.81 / 4.77 /
+# 17.33 and 1.02 / 1.00 / 0.94 (power 3, 0.2: 17.28 and 0.97 / 0.97 / 0.90; power 6, 0.16:
+# 17.27 and 0.98 / 0.98 / 0.92: a flat optimum). Shape: scale 0.03, power 2 (power 4 moved
+# ball by +0.05 deg; scale 0.04 ball / bear by +0.04 / +0.08).
+DEFAULT_RESIDUAL_SCALE = 0.19
 DEFAULT_SHAPE_SCALE = 0.03
+DETAIL_POWER = 4
+SHAPE_POWER = 2
 WEIGHT_SMOOTH_PX = 1.5  # the weight map's own smoothing: no pixel-to-pixel switching
 # Fusion in row bands: the working set per pixel of a band (the weights, both low-passes, the
 # sum and its normalisation; measured ~160 B with tracemalloc, kept with a margin), the band's
@@ -134,8 +142,8 @@ class Validity:
     shape: np.ndarray
 
 
-def _weight(residual: np.ndarray, mask: np.ndarray, scale: float) -> np.ndarray:
-    raw = np.exp(-((residual / scale) ** 2)).astype(np.float32)
+def _weight(residual: np.ndarray, mask: np.ndarray, scale: float, power: int) -> np.ndarray:
+    raw = np.exp(-((residual / scale) ** power)).astype(np.float32)
     m = mask.astype(np.float32)
     smooth = cv2.GaussianBlur(raw * m, (0, 0), WEIGHT_SMOOTH_PX)
     norm = cv2.GaussianBlur(m, (0, 0), WEIGHT_SMOOTH_PX)
@@ -146,11 +154,13 @@ def _weight(residual: np.ndarray, mask: np.ndarray, scale: float) -> np.ndarray:
 
 
 def validity(fit: RobustFit, mask: np.ndarray, options: FusionOptions | None = None) -> Validity:
-    """The weights exp(-(residual / scale)^2) of a robust fit, smoothed over WEIGHT_SMOOTH_PX
-    inside the mask and capped at each pixel's own (a failed fit has residual 1: weight ~0)."""
+    """The weights exp(-(residual / scale)^power) of a robust fit (DETAIL_POWER for the detail,
+    SHAPE_POWER for the shape), smoothed over WEIGHT_SMOOTH_PX inside the mask and capped at
+    each pixel's own (a failed fit has residual 1: weight ~0)."""
     o = options or FusionOptions()
     return Validity(
-        _weight(fit.residual, mask, o.residual_scale), _weight(fit.residual, mask, o.shape_scale)
+        _weight(fit.residual, mask, o.residual_scale, DETAIL_POWER),
+        _weight(fit.residual, mask, o.shape_scale, SHAPE_POWER),
     )
 
 
@@ -170,8 +180,9 @@ class DetailFusionEstimator:
         return {
             **self.network.describe(),
             "detail_fusion": (
-                f"robust least squares where its Lambertian residual is small (detail scale "
-                f"{o.residual_scale:g}, shape scale {o.shape_scale:g}, sigma {o.sigma:g} px)"
+                f"robust least squares where its Lambertian residual r is small (detail weight "
+                f"exp(-(r/{o.residual_scale:g})^{DETAIL_POWER}), shape weight "
+                f"exp(-(r/{o.shape_scale:g})^{SHAPE_POWER}), sigma {o.sigma:g} px)"
             ),
         }
 
