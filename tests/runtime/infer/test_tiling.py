@@ -11,6 +11,7 @@ import pytest
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.engines.ort_session import create_session
+from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK
 from msfnet.runtime.evaluate.metrics import angular_error_deg
 from msfnet.runtime.infer import flops
 from msfnet.runtime.infer.tiled import infer_normals
@@ -88,6 +89,9 @@ def test_tiles_are_sized_with_the_engines_measured_working_set() -> None:
     assert old_model < 1600  # why the old plan ran it whole at 1600
     ov = tile_size_for_memory(1600, 96, 8, stack_mb, ov_fp32)
     assert ov < 184 <= tile_size_for_memory(1700, 96, 8, stack_mb)
+    # the default chunk of 4 lights (the same window measured 1,229-1,235 MiB, 2026-12-02)
+    assert DEFAULT_CHUNK == 4
+    assert BASE_MEMORY_MB + stack_mb + 184**2 * bytes_per_pixel(96, 4, ov_fp32) / 2**20 >= 1235
 
 
 def _crop(stack, y0, y1, x0, x1):
