@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK
 from msfnet.runtime.infer.flops import inference_flops
 from msfnet.runtime.infer.normalise import network_input
 
@@ -47,10 +48,14 @@ QUICK_WORKLOADS = (Workload("a", 16, 64), Workload("b", 8, 64))
 # variant -> what it runs; "precision" is what the variant asks for
 VARIANTS = {
     "ort-fp32": "ONNX Runtime CPU, fp32 model (untiled)",
-    "ort-fp32-staged": "ONNX Runtime CPU, staged fp32 model (msf-export --staged), 8 lights a call",
+    "ort-fp32-staged": (
+        f"ONNX Runtime CPU, staged fp32 model (msf-export --staged), {DEFAULT_CHUNK} lights a call"
+    ),
     "ort-int8": "ONNX Runtime CPU, int8 QDQ model (extractor convs, calibrated on real stacks)",
     "ov-bf16": "OpenVINO CPU, fp32 model with INFERENCE_PRECISION_HINT=bf16 (native bf16 only)",
-    "ov-bf16-staged": "OpenVINO CPU, staged fp32 model in bf16, four sub-models, 8 lights a call",
+    "ov-bf16-staged": (
+        f"OpenVINO CPU, staged fp32 model in bf16, four sub-models, {DEFAULT_CHUNK} lights a call"
+    ),
     "torch-fp32": "PyTorch eager fp32, lights folded into the batch",
     "per-light": "PyTorch per-light loop (published style: recomputes stages)",
 }
