@@ -335,19 +335,75 @@ def test_read_normals_does_not_import_scipy_io(tmp_path: Path) -> None:
 
 
 def test_read_normals_falls_back_to_loadmat(tmp_path: Path) -> None:
-    """A level-4 file (no v5 header) and a first variable of a class mat_array leaves alone:
-    read by SciPy as before, with the same key choice (Normal_gt, else the first variable)."""
+    """A first variable of a class mat_array leaves alone: read by SciPy as before, with the
+    same key choice (Normal_gt, else the first variable)."""
     from msfnet.runtime.stack.readers import read_normals, unit_normals
 
     normals = _values("f8", (4, 3, 3), seed=7)
-    v4 = tmp_path / "v4.mat"
-    sio.savemat(v4, {"Normal_gt": normals.reshape(4, 9)}, format="4")  # level 4: 2-D only
-    with pytest.raises(InputError, match=r"must be H x W x 3, got \(4, 9\)"):  # but read
-        read_normals(v4)
     logical = tmp_path / "logical.mat"
     sio.savemat(logical, {"mask": normals > 0})  # loadmat: uint8 0/1
     want = unit_normals((normals > 0).astype(np.float32))
     np.testing.assert_array_equal(read_normals(logical), want)
+
+
+def _v73_head() -> bytes:
+    return b"MATLAB 7.3 MAT-file".ljust(124, b" ") + struct.pack("<H", 0x0200) + b"IM"
+
+
+@pytest.mark.parametrize(
+    ("make", "what"),
+    [
+        ("v4", "a MATLAB v4 file"),
+        ("v4 big-endian", "a MATLAB v4 file"),
+        ("v4 truncated", "a MATLAB v4 file"),
+        ("v7.3", r"a MATLAB v7.3 file \(HDF5\)"),
+        ("garbage", "not a MATLAB .mat file"),
+        ("empty", "an empty file"),
+    ],
+)
+def test_a_mat_file_that_is_not_level_5_never_reaches_loadmat(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, make: str, what: str
+) -> None:
+    """Level 4 has no header to check before loadmat parses it (a damaged or hostile v4 file
+    is what can make loadmat misbehave) and holds only 2-D matrices, never an H x W x 3 map:
+    refused from its first bytes in one line, as v7.3 (HDF5) and anything else is."""
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.mat"
+    sio.savemat(path, {"Normal_gt": _values("f8", (4, 9), seed=7)}, format="4")
+    data = path.read_bytes()
+    if make == "v4 big-endian":  # MOPT 1000: IEEE big-endian, double, full matrix
+        data = struct.pack(">5i", 1000, 4, 9, 0, 10) + b"Normal_gt\0" + b"\0" * 288
+    elif make == "v4 truncated":
+        data = data[:40]
+    elif make == "v7.3":
+        data = _v73_head() + b"\x89HDF\r\n\x1a\n" + b"\0" * 64
+    elif make == "garbage":
+        data = b"\xff" * 300
+    elif make == "empty":
+        data = b""
+    path.write_bytes(data)
+
+    def no_loadmat(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("loadmat was called")
+
+    monkeypatch.setattr(sio, "loadmat", no_loadmat)
+    with pytest.raises(InputError, match=f"{what}, not a MATLAB v5 .mat file") as info:
+        read_normals(path)
+    assert "\n" not in str(info.value) and str(info.value).startswith(str(path))
+
+
+def test_not_v5_names_what_a_file_is() -> None:
+    from msfnet.common.matfile import not_v5
+
+    assert not_v5(struct.pack("<5i", 0, 2, 3, 0, 2) + b"a\0") == "a MATLAB v4 file"
+    assert not_v5(struct.pack("<5i", 51, 1, 3, 0, 2) + b"a\0") == "a MATLAB v4 file"  # text
+    assert not_v5(_v73_head()) == "a MATLAB v7.3 file (HDF5)"
+    head = _v73_head()[:124] + struct.pack("<H", 0x0300) + b"IM"
+    assert not_v5(head) == "a .mat file of unknown version 0x0300"
+    assert not_v5(b"\x89PNG\r\n\x1a\n" + b"\0" * 40) == "not a MATLAB .mat file"
+    assert not_v5(b"\0" * 10) == "not a MATLAB .mat file"  # too short for a v4 header
+    assert not_v5(b"") == "an empty file"
 
 
 def test_a_variable_that_cannot_be_normals_never_reaches_loadmat(

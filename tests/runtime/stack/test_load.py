@@ -144,7 +144,7 @@ def test_max_memory_counts_the_type_held(
 
     decoded: list[Path] = []
     real = load.read_image
-    monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
+    monkeypatch.setattr(load, "read_image", lambda p, *a: decoded.append(p) or real(p, *a))
     with pytest.raises(InputError, match=rf"take {said} MB loaded, above --max-memory 0.1 MB"):
         load_stack(folder, LoadOptions(max_memory_mb=0.1, **options))
     assert decoded == []  # refused from the headers, before decoding any image
@@ -219,3 +219,38 @@ def test_a_folder_load_parses_its_mat_ground_truth_once(
     stack = load_stack(folder)
     assert mat_parses == [gt]
     assert stack.normals_gt is not None and stack.normals_gt.shape == (36, 44, 3)
+
+
+def test_a_frame_replaced_after_the_header_check_is_refused_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Headers are all read before any frame is decoded; a frame swapped for one of another
+    size in between must be refused from its own header, not decoded into the stack."""
+    import msfnet.runtime.stack.load as load_module
+
+    folder = png_stack(tmp_path / "s", 16)
+    frames = sorted(folder.glob("0*.png"))
+    assert len(frames) >= 2
+    original = load_module.check_headers
+
+    def check_then_swap(*args, **kwargs):  # type: ignore[no-untyped-def]
+        stored = original(*args, **kwargs)
+        cv2.imwrite(str(frames[1]), np.zeros((20, 30, 3), np.uint16))
+        return stored
+
+    import msfnet.common.imageio as imageio
+
+    decoded: list[Path] = []
+    decode = imageio._decode_with_opencv
+
+    def recording_decode(data: bytes, path: Path) -> np.ndarray | None:
+        decoded.append(Path(path))
+        return decode(data, path)
+
+    monkeypatch.setattr(load_module, "check_headers", check_then_swap)
+    monkeypatch.setattr(imageio, "_decode_with_opencv", recording_decode)
+    with pytest.raises(InputError) as err:
+        load_stack(folder)
+    line = str(err.value)
+    assert "\n" not in line and frames[1].name in line and "30x20" in line
+    assert frames[0] in decoded and frames[1] not in decoded  # refused from its header

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 from pathlib import Path
 
@@ -105,3 +106,215 @@ def test_a_huge_file_is_refused_by_its_size(tmp_path: Path) -> None:
         f.truncate(MAX_VECTOR_FILE_BYTES + 1)  # sparse: no time spent writing it
     with pytest.raises(InputError, match="MB"):
         read_vectors(path, "light directions")
+
+
+# ---------------------------------------------------------------- ground truth: check, then read
+
+
+def _normals(h: int, w: int, seed: int) -> np.ndarray:
+    n = np.random.default_rng(seed).normal(size=(h, w, 3))
+    n[..., 2] = np.abs(n[..., 2]) + 0.1
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def _one_line(info: pytest.ExceptionInfo[InputError], path: Path) -> str:
+    text = str(info.value)
+    assert "\n" not in text and text.startswith(f"{path}: ")
+    return text
+
+
+def _write_normal_png(path: Path, n: np.ndarray) -> None:
+    from msfnet.common.imageio import write_png
+
+    write_png(path, np.round((n + 1) / 2 * 65535).astype(np.uint16))
+
+
+def test_an_npy_replaced_after_its_header_check_is_refused_from_the_read(tmp_path: Path) -> None:
+    """check_gt_header looked at one file; read_normals opens the name again. Given the
+    shape, the read checks the header of what it reads: a replacement of another size (here
+    far bigger) is refused before its values are read."""
+    from msfnet.runtime.stack.readers import check_gt_header, read_normals
+
+    path = tmp_path / "Normal_gt.npy"
+    np.save(path, _normals(4, 5, seed=1))
+    assert check_gt_header(path, (4, 5)) is None
+    np.save(tmp_path / "new.npy", np.zeros((400, 500, 3)))
+    os.replace(tmp_path / "new.npy", path)
+    with pytest.raises(InputError, match="ground truth is 500x400 but images are 5x4") as info:
+        read_normals(path, shape=(4, 5))
+    _one_line(info, path)
+
+
+def test_an_npy_is_read_from_the_handle_whose_header_was_checked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The file replaced by name just after its header was parsed: the values read are the
+    checked file's (one handle), not the replacement's."""
+    from msfnet.runtime.stack.readers import read_normals, unit_normals
+
+    path = tmp_path / "Normal_gt.npy"
+    checked = _normals(4, 5, seed=2)
+    np.save(path, checked)
+    real = np.lib.format.read_array_header_1_0
+
+    def swap_after(f: object, *args: object, **kwargs: object) -> object:
+        header = real(f, *args, **kwargs)  # type: ignore[arg-type]
+        np.save(tmp_path / "new.npy", -checked)
+        os.replace(tmp_path / "new.npy", path)
+        return header
+
+    monkeypatch.setattr(np.lib.format, "read_array_header_1_0", swap_after)
+    got = read_normals(path, shape=(4, 5))
+    np.testing.assert_allclose(got, unit_normals(checked.astype(np.float32)), atol=1e-6)
+    assert np.load(path)[0, 0, 2] < 0  # the swap did happen
+
+
+@pytest.mark.parametrize(
+    ("array", "message"),
+    [
+        (np.ones((4, 5, 3), complex), r"must be numbers, got a \.npy array of dtype complex128"),
+        (np.array([[["a"] * 3] * 5] * 4), r"must be numbers, got a \.npy array of dtype <U1"),
+        (np.zeros((4, 5), [("x", "f4"), ("y", "f4")]), "must be numbers"),
+        (np.ones((4, 5, 2)), r"must be H x W x 3, got \(4, 5, 2\)"),
+        (np.ones((60,)), r"must be H x W x 3, got \(60,\)"),
+    ],
+)
+def test_an_npy_of_the_wrong_kind_is_refused_from_its_header(
+    tmp_path: Path, array: np.ndarray, message: str
+) -> None:
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.npy"
+    np.save(path, array)
+    with pytest.raises(InputError, match=message) as info:
+        read_normals(path)
+    _one_line(info, path)
+
+
+def test_an_npy_of_objects_is_never_unpickled(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import pickle
+
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.npy"
+    np.save(path, np.full((4, 5, 3), 0.5, object), allow_pickle=True)
+
+    def no_unpickling(*_args: object, **_kwargs: object) -> None:
+        raise AssertionError("unpickled")
+
+    monkeypatch.setattr(pickle, "load", no_unpickling)
+    monkeypatch.setattr(pickle, "loads", no_unpickling)
+    with pytest.raises(InputError, match=r"must be numbers, got a \.npy array of dtype object"):
+        read_normals(path)
+
+
+def test_a_truncated_or_damaged_npy_is_refused(tmp_path: Path) -> None:
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.npy"
+    np.save(path, _normals(4, 5, seed=3))
+    data = path.read_bytes()
+    path.write_bytes(data[:-8])  # one float64 short
+    with pytest.raises(InputError, match=r"truncated \.npy file \(472 of the 480 bytes") as info:
+        read_normals(path, shape=(4, 5))
+    _one_line(info, path)
+    path.write_bytes(data[:40])  # cut inside the header
+    with pytest.raises(InputError, match=r"damaged \.npy header") as info:
+        read_normals(path)
+    _one_line(info, path)
+
+
+@pytest.mark.parametrize("layout", ["big-endian", "fortran", "float16", "int16"])
+def test_npy_layouts_read_as_numpy_reads_them(tmp_path: Path, layout: str) -> None:
+    from msfnet.runtime.stack.readers import read_normals, unit_normals
+
+    n = _normals(4, 5, seed=4)
+    array = {
+        "big-endian": n.astype(">f8"),
+        "fortran": np.asfortranarray(n),
+        "float16": n.astype(np.float16),
+        "int16": np.round(n * 1000).astype(np.int16),
+    }[layout]
+    path = tmp_path / "Normal_gt.npy"
+    np.save(path, array)
+    want = unit_normals(np.load(path, allow_pickle=False).astype(np.float32))
+    np.testing.assert_array_equal(read_normals(path, shape=(4, 5)), want)
+
+
+def test_a_png_replaced_after_its_header_check_is_refused_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from msfnet.common import imageio
+    from msfnet.runtime.stack.readers import check_gt_header, read_normals
+
+    path = tmp_path / "Normal_gt.png"
+    _write_normal_png(path, _normals(4, 5, seed=5))
+    assert check_gt_header(path, (4, 5)) is None
+    _write_normal_png(tmp_path / "new.png", _normals(40, 50, seed=6))
+    os.replace(tmp_path / "new.png", path)
+
+    def no_decoding(*_args: object) -> None:
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(imageio, "_decode_with_opencv", no_decoding)
+    with pytest.raises(InputError, match="ground truth is 50x40 but images are 5x4") as info:
+        read_normals(path, shape=(4, 5))
+    _one_line(info, path)
+
+
+def test_a_png_is_decoded_from_the_handle_whose_header_was_checked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Replaced by name just after its header was read: what is decoded is the checked file
+    (a bomb swapped in there would have skipped the pixel limit)."""
+    from msfnet.common import imageio
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.png"
+    checked = _normals(4, 5, seed=7)
+    _write_normal_png(path, checked)
+    real = imageio._png_header
+
+    def swap_after(head: bytes) -> object:
+        header = real(head)
+        _write_normal_png(tmp_path / "new.png", _normals(40, 50, seed=8))
+        os.replace(tmp_path / "new.png", path)
+        return header
+
+    monkeypatch.setattr(imageio, "_png_header", swap_after)
+    got = read_normals(path, shape=(4, 5))
+    np.testing.assert_allclose(got, checked, atol=1e-4)  # 16-bit quantisation: ~3e-5
+    assert imageio.image_header(path) is not None
+
+
+def test_a_load_whose_ground_truth_changes_after_the_check_fails_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Through load_stack: the .npy ground truth swapped between check_gt_header and the read
+    for one of another size whose values are still being written (cut short). Refused from
+    the header the read parses, before any value is read (reading by name again, as before,
+    failed on the short values instead, with numpy's reshape message)."""
+    from _runtime_helpers import png_stack
+
+    from msfnet.runtime.stack import load, load_stack
+
+    folder = png_stack(tmp_path / "s", 8, n=4)  # 36 x 44
+    (folder / "Normal_gt.mat").unlink()
+    gt = folder / "Normal_gt.npy"
+    np.save(gt, _normals(36, 44, seed=9))
+    real = load.check_gt_header
+
+    def swap_after(path: Path, shape: tuple[int, int]) -> object:
+        found = real(path, shape)
+        np.save(tmp_path / "new.npy", _normals(72, 88, seed=10))
+        partial = (tmp_path / "new.npy").read_bytes()[:4096]
+        (tmp_path / "new.npy").write_bytes(partial)
+        os.replace(tmp_path / "new.npy", gt)
+        return found
+
+    monkeypatch.setattr(load, "check_gt_header", swap_after)
+    with pytest.raises(InputError, match="ground truth is 88x72 but images are 44x36") as info:
+        load_stack(folder)
+    _one_line(info, gt)

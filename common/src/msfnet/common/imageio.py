@@ -136,9 +136,15 @@ def image_header(path: str | Path) -> ImageHeader | None:
     path = Path(path)
     _check_file(path)
     with open(path, "rb") as f:  # Python opens any name (see the module notes)
-        head = f.read(32)
-        f.seek(0)
-        header = _png_header(head) if head.startswith(b"\x89PNG") else _pillow_header(f)
+        return _header(f, path)
+
+
+def _header(f: BinaryIO, path: Path) -> ImageHeader | None:
+    """:func:`image_header` of the file open as ``f`` (read from its start, left there)."""
+    head = f.read(32)
+    f.seek(0)
+    header = _png_header(head) if head.startswith(b"\x89PNG") else _pillow_header(f)
+    f.seek(0)
     if header is not None and header.pixels > MAX_PIXELS:
         w, h = header.width, header.height
         raise InputError(
@@ -149,11 +155,21 @@ def image_header(path: str | Path) -> ImageHeader | None:
     return header
 
 
-def read_image(path: str | Path) -> np.ndarray:
-    """Read an image as H x W x 3 (RGB) or H x W, in its stored dtype (uint8/uint16/float32)."""
+def read_image(
+    path: str | Path, shape: tuple[int, int] | None = None, what: str = "image"
+) -> np.ndarray:
+    """Read an image as H x W x 3 (RGB) or H x W, in its stored dtype (uint8/uint16/float32).
+    ``shape``: the (H, W) it must have, compared from its header before it is decoded (a
+    mask or ground truth against the stack; ``what`` names it in the message)."""
     path = Path(path)
-    image_header(path)  # size refused before the file is read or decoded
-    data = _checked_bytes(path)
+    _check_file(path)
+    # One handle for the header check and the bytes decoded: a file replaced by name between
+    # the two would reach the decoder unchecked (a bomb past the pixel limit, say)
+    with open(path, "rb") as f:
+        header = _header(f, path)  # size refused before the file is read or decoded
+        if shape is not None:
+            _same_size(header, shape, what, path)
+        data = _checked_bytes(f.read(), path)
     img = None if path.suffix.lower() == ".tga" else _decode_with_opencv(data, path)
     if img is None:
         img = _decode_with_pillow(data, path)
@@ -161,15 +177,16 @@ def read_image(path: str | Path) -> np.ndarray:
         img = img[:, :, :3]
     if img.ndim not in (2, 3) or img.size == 0 or (img.ndim == 3 and img.shape[2] != 3):
         raise InputError(f"unsupported image shape {img.shape}", path)
+    if shape is not None:  # formats without a header reader: compared once decoded
+        _same_size(ImageHeader(img.shape[1], img.shape[0], None), shape, what, path)
     return np.ascontiguousarray(img)
 
 
-def _checked_bytes(path: Path) -> bytes:
-    """The file's bytes, read once by Python. PNG and JPEG files that stop before their end
-    marker (truncated copies) and PNG files whose chunks fail their CRC (damaged bytes) are
-    refused: libpng would print its own line on stderr before failing, or decode damaged rows."""
-    with open(path, "rb") as f:
-        data = f.read()
+def _checked_bytes(data: bytes, path: Path) -> bytes:
+    """A file's bytes (read once, by Python), checked. PNG and JPEG files that stop before
+    their end marker (truncated copies) and PNG files whose chunks fail their CRC (damaged
+    bytes) are refused: libpng would print its own line on stderr before failing, or decode
+    damaged rows."""
     head, tail = data[:8], data[-64:]
     if head.startswith(b"\x89PNG") and _PNG_END not in tail:
         raise InputError("truncated PNG (the file stops before its end marker)", path)
@@ -269,19 +286,20 @@ def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
 def check_image_size(path: str | Path, shape: tuple[int, int], what: str = "image") -> None:
     """Refuse, from the header alone, an image whose size is not ``shape`` (H, W): a mask or a
     ground-truth PNG is compared with the stack before it is decoded."""
-    header = image_header(path)
+    _same_size(image_header(path), shape, what, Path(path))
+
+
+def _same_size(header: ImageHeader | None, shape: tuple[int, int], what: str, path: Path) -> None:
     if header is not None and header.shape != tuple(shape):
         raise InputError(
             f"{what} is {header.width}x{header.height} but images are {shape[1]}x{shape[0]}",
-            Path(path),
+            path,
         )
 
 
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
     """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 of 255."""
-    if shape is not None:
-        check_image_size(path, shape, "mask")
-    img = read_image(path)
+    img = read_image(path, shape, "mask")
     if img.ndim == 3:
         img = img.max(axis=2)
     if img.dtype == np.uint16:
@@ -290,10 +308,6 @@ def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndar
         mask = img > 0.5
     else:
         mask = img > 127
-    if shape is not None and mask.shape != tuple(shape):
-        raise InputError(
-            f"mask is {mask.shape[1]}x{mask.shape[0]} but images are {shape[1]}x{shape[0]}", path
-        )
     return mask
 
 

@@ -10,6 +10,8 @@ Readers that trust no size a file declares:
   only (a full, real, numeric array); None for anything else, so that callers fall back to
   ``scipy.io.loadmat``.
 - :func:`normals_variable`: the one rule for which variable holds ground-truth normals.
+- :func:`not_v5`: what a file that is not level 5 is (v4, v7.3/HDF5, no .mat), for the
+  message that refuses it.
 
 The layout: a 128-byte header (text, version 0x0100, the byte-order mark ``IM`` or ``MI``), then
 tagged elements. A variable is a miMATRIX element, or the same zlib-compressed inside a
@@ -288,6 +290,27 @@ def mat_directory(path: str | Path) -> MatDirectory | None:
     path = Path(path)
     with open(path, "rb") as f:
         return _directory(f, path)
+
+
+def not_v5(head: bytes) -> str:
+    """What a file that :func:`mat_directory` does not take (not level 5) is, from its first
+    128 bytes: a phrase for the message that refuses it ("a MATLAB v4 file", ...)."""
+    if len(head) >= 128 and head[126:128] in (b"IM", b"MI"):
+        order = "<" if head[126:128] == b"IM" else ">"
+        (version,) = struct.unpack(order + "H", head[124:126])
+        if version == 0x0200:
+            return "a MATLAB v7.3 file (HDF5)"
+        return f"a .mat file of unknown version {version:#06x}"
+    if len(head) >= 20:
+        # A level-4 file starts straight with a variable's header of five int32 words, the
+        # first the type code MOPT (machine 0-4, O always 0, precision 0-5, matrix type 0-2)
+        # in either byte order: what loadmat looks at to tell v4 from v5.
+        for order in "<>":
+            (mopt,) = struct.unpack(order + "i", head[:4])
+            digits = (mopt // 100 % 10, mopt // 10 % 10, mopt % 10)  # O, P, T
+            if 0 <= mopt < 5000 and digits[0] == 0 and digits[1] <= 5 and digits[2] <= 2:
+                return "a MATLAB v4 file"
+    return "not a MATLAB .mat file" if head else "an empty file"
 
 
 def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:

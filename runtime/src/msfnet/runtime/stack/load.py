@@ -19,16 +19,19 @@ from msfnet.common.imageio import (
     IMAGE_SUFFIXES,
     MAX_PIXELS,
     ImageHeader,
-    array_shape,
     image_header,
     list_images,
     npy_header,
     read_image,
     read_mask,
 )
-from msfnet.common.matfile import MatDirectory, mat_directory
 from msfnet.runtime.contract import INPUT_MULTIPLE
-from msfnet.runtime.stack.readers import read_normals, read_vectors, unit_normals
+from msfnet.runtime.stack.readers import (
+    check_gt_header,
+    read_normals,
+    read_vectors,
+    unit_normals,
+)
 from msfnet.runtime.stack.select import selection
 from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask, check_roi, halo_roi
 from msfnet.runtime.stack.types import (
@@ -217,10 +220,12 @@ def _read_images(
     The stack takes the type of the first image as transformed: uint8/uint16 when no value
     changes, else float32 (see ``Transforms.image``)."""
     transforms = transforms or Transforms()
-    check_headers(paths, transforms, max_memory_mb)
+    stored = check_headers(paths, transforms, max_memory_mb)
 
     def read(path: Path) -> tuple[np.ndarray, np.dtype, tuple[int, int]]:
-        img = read_image(path)
+        # the size the headers agreed on, checked again from the handle that is decoded: a
+        # frame replaced since its header was read is refused before its pixels are decoded
+        img = read_image(path, stored)
         if img.ndim == 2:
             img = img[:, :, None]
         _check_float_scale(img, transforms, path)
@@ -390,14 +395,8 @@ def load_folder(
     gt_path = _first_existing(folder, GT_NAMES)
     gt = None
     if gt_path is not None:
-        gt = read_normals(gt_path, check_gt_header(gt_path, hw))  # one parse of a .mat
-    if gt is not None:
-        if gt.shape[:2] != hw:
-            raise InputError(
-                f"ground truth is {gt.shape[1]}x{gt.shape[0]} but images are {hw[1]}x{hw[0]}",
-                gt_path,
-            )
-        gt = t.normals(gt)
+        # one parse of a .mat; an .npy or image checked from the handle read
+        gt = t.normals(read_normals(gt_path, check_gt_header(gt_path, hw), shape=hw))
     stack = Stack(
         folder.name, images, light_dirs, ints, mask_arr, gt, [p.name for p in paths], folder
     )
@@ -428,32 +427,6 @@ def _refuse_repeats(paths: Sequence[Path], listing: Path) -> None:
                 listing,
             )
         seen[key] = line
-
-
-def check_gt_header(path: Path, shape: tuple[int, int]) -> MatDirectory | None:
-    """Ground truth compared with the stored image size from its header, before it is read
-    (a 248 MP normal map or a compressed 10 GB .mat variable is refused unopened). Returns a
-    v5 .mat file's parsed headers, for :func:`read_normals` to read from; None otherwise."""
-    h, w = shape
-    mat = None
-    if path.suffix.lower() == ".mat":  # the variable read_normals reads (normals_variable)
-        mat = mat_directory(path)
-        found = None if mat is None else mat.normals_shape
-    else:
-        found = array_shape(path)
-    if found is not None and tuple(found[:2]) != (h, w):
-        size = f"{found[1]}x{found[0]}" if len(found) >= 2 else f"of shape {found}"
-        raise InputError(f"ground truth is {size} but images are {w}x{h}", path)
-    if mat is not None:  # loadmat reads every variable, not only Normal_gt
-        shapes = mat.shapes
-        total = sum(int(np.prod(d, dtype=np.int64)) for d in shapes.values())
-        if total > h * w * 3 + 2**20:
-            raise InputError(
-                f"holds {total:,} values in {len(shapes)} variable(s), far more than "
-                f"the ground truth of {w}x{h} images: refusing to read it",
-                path,
-            )
-    return mat
 
 
 def _other_mask(folder: Path) -> Path | None:

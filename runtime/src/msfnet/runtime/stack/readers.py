@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 from pathlib import Path
 
 import numpy as np
 
 from msfnet.common.errors import InputError, first_line
-from msfnet.common.imageio import read_image
-from msfnet.common.matfile import MatDirectory, mat_directory, normals_variable
+from msfnet.common.imageio import MAX_PIXELS, array_shape, read_image
+from msfnet.common.matfile import MatDirectory, mat_directory, normals_variable, not_v5
 
 # A light file lists one row per light. Real rigs have tens to a few hundred lights; the bounds
 # refuse a wrong file (a point cloud, a log) at once instead of parsing it for minutes and
@@ -164,15 +165,71 @@ def unit_normals(n: np.ndarray) -> np.ndarray:
     return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
 
+def check_gt_header(path: Path, shape: tuple[int, int]) -> MatDirectory | None:
+    """Ground truth compared with the stored image size from its header, before it is read
+    (a 248 MP normal map or a compressed 10 GB .mat variable is refused unopened). Returns a
+    v5 .mat file's parsed headers, for :func:`read_normals` to read from; None otherwise.
+
+    An early refusal only: :func:`read_normals` given the same ``shape`` checks again the file
+    it reads (a .npy or image header from its own handle; a .mat file must still be the one
+    parsed here)."""
+    if path.suffix.lower() == ".mat":  # the variable read_normals reads (normals_variable)
+        mat = mat_directory(path)
+        if mat is not None:
+            _check_mat_header(mat, shape)
+        return mat
+    found = array_shape(path)
+    if found is not None:
+        _same_size(found, shape, path)
+    return None
+
+
+def _same_size(found: tuple[int, ...], shape: tuple[int, int], path: Path) -> None:
+    h, w = shape
+    if tuple(found[:2]) != (h, w):
+        size = f"{found[1]}x{found[0]}" if len(found) >= 2 else f"of shape {found}"
+        raise InputError(f"ground truth is {size} but images are {w}x{h}", path)
+
+
+def _check_mat_header(mat: MatDirectory, shape: tuple[int, int]) -> None:
+    found = mat.normals_shape
+    if found is not None:
+        _same_size(found, shape, mat.path)
+    # loadmat (the fallback) reads every variable, not only the normals
+    shapes = mat.shapes
+    total = sum(int(np.prod(d, dtype=np.int64)) for d in shapes.values())
+    h, w = shape
+    if total > h * w * 3 + 2**20:
+        raise InputError(
+            f"holds {total:,} values in {len(shapes)} variable(s), far more than "
+            f"the ground truth of {w}x{h} images: refusing to read it",
+            mat.path,
+        )
+
+
 def _mat_normals(path: Path, mat: MatDirectory | None) -> np.ndarray:
     """A .mat file's normals variable (:func:`normals_variable`). Read by
     :meth:`MatDirectory.array` (a plain numeric array, the usual case: no SciPy import, ~0.6 s);
-    anything else by SciPy. ``mat``: the file's headers where already parsed."""
+    anything else by SciPy, from the handle of the file whose headers were checked. ``mat``:
+    the file's headers where already parsed."""
     if mat is None:
         mat = mat_directory(path)
-    key = None if mat is None else mat.normals
+    if mat is None:
+        # Level 4 and v7.3 are refused, not handed to loadmat unchecked. Neither is in use:
+        # DiLiGenT's Normal_gt.mat files (ball, bear, harvest here; its L2 baseline too) and
+        # msfnet's writers are level 5. A v4 file holds only 2-D matrices, never an
+        # H x W x 3 map, so checking its headers would only lead to that refusal later,
+        # after loadmat had parsed a possibly hostile file. v7.3 is HDF5: loadmat cannot.
+        with open(path, "rb") as f:
+            what = not_v5(f.read(128))
+        raise InputError(
+            f"ground-truth normals: {what}, not a MATLAB v5 .mat file (save it with "
+            "MATLAB's -v7 or -v6, or scipy.io.savemat's default)",
+            path,
+        )
+    key = mat.normals
     found = None
-    if mat is not None and key is not None:
+    if key is not None:
         dims = mat.shapes[key]
         # refused from its header: what is not H x W x 3 never reaches loadmat, which a damaged
         # file can crash (a segfault, not an exception)
@@ -183,31 +240,83 @@ def _mat_normals(path: Path, mat: MatDirectory | None) -> np.ndarray:
         return found
     import scipy.io
 
-    if mat is None:  # not level 5 (v4; v7.3 is refused by loadmat itself)
-        variables = scipy.io.loadmat(str(path))
-    else:  # the checked file itself: a replacement by name since is refused or not seen
-        with mat.reopen() as f:
-            variables = scipy.io.loadmat(f)
+    with mat.reopen() as f:  # the checked file itself: a replacement by name since is refused
+        variables = scipy.io.loadmat(f)
     key = normals_variable(variables)
     if key is None:
         raise InputError("cannot read ground-truth normals (the file holds no variable)", path)
     return np.asarray(variables[key])
 
 
-def read_normals(path: Path, mat: MatDirectory | None = None) -> np.ndarray:
-    """Ground-truth normals (H, W, 3) from .mat (key Normal_gt), .npy or an 8/16-bit PNG.
-    ``mat``: a .mat file's headers where a header check parsed them already
-    (:func:`~msfnet.common.matfile.mat_directory`), so that they are not parsed again."""
+def _npy_normals(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
+    """A .npy file's array, its header checked and its values read through one handle (a file
+    replaced by name in between is not read), never unpickled."""
+    with open(path, "rb") as f:
+        try:
+            version = np.lib.format.read_magic(f)
+            read = (
+                np.lib.format.read_array_header_1_0
+                if version == (1, 0)
+                else np.lib.format.read_array_header_2_0
+            )
+            dims, fortran, dtype = read(f)
+        except ValueError as exc:
+            raise InputError(f"damaged .npy header ({first_line(exc)})", path) from exc
+        dtype = np.dtype(dtype)
+        if dtype.hasobject or dtype.kind not in "biuf":  # objects would need unpickling
+            raise InputError(
+                f"ground-truth normals must be numbers, got a .npy array of dtype {dtype}", path
+            )
+        dims = tuple(int(d) for d in dims)
+        if len(dims) != 3 or dims[2] != 3:
+            raise InputError(f"ground-truth normals must be H x W x 3, got {dims}", path)
+        if shape is not None:
+            _same_size(dims, shape, path)
+        if dims[0] * dims[1] > MAX_PIXELS:
+            raise InputError(
+                f"ground truth is {dims[1]}x{dims[0]}, above the {MAX_PIXELS / 1e6:.0f} MP "
+                "limit: refusing to read it",
+                path,
+            )
+        count = dims[0] * dims[1] * 3
+        values = np.empty(count, dtype)
+        want = values.nbytes
+        left = os.fstat(f.fileno()).st_size - f.tell()
+        if left < want:  # known before reading: no partial array
+            raise InputError(
+                f"truncated .npy file ({left:,} of the {want:,} bytes its header declares)",
+                path,
+            )
+        got = f.readinto(values.view(np.uint8).data)
+        if got != want:  # shrunk while read
+            raise InputError(f"truncated .npy file ({got:,} of {want:,} bytes read)", path)
+    return values.reshape(dims, order="F" if fortran else "C")
+
+
+def read_normals(
+    path: Path, mat: MatDirectory | None = None, *, shape: tuple[int, int] | None = None
+) -> np.ndarray:
+    """Ground-truth normals (H, W, 3) from .mat (key Normal_gt; MATLAB v5 only), .npy or an
+    8/16-bit PNG. ``mat``: a .mat file's headers where a header check parsed them already
+    (:func:`check_gt_header`), so that they are not parsed again. ``shape``: the (H, W) they
+    must have, checked from the header of the file read, before its values are.
+
+    A file's header is checked and its values read through one handle (a .mat file from a
+    given parse: refused where it is no longer the file parsed)."""
     if mat is not None and mat.path != path:
         raise ValueError(f"headers of {mat.path} given to read {path}")
     suffix = path.suffix.lower()
     try:
         if suffix == ".mat":
+            if mat is None:
+                mat = mat_directory(path)
+            if mat is not None and shape is not None:
+                _check_mat_header(mat, shape)
             n = np.asarray(_mat_normals(path, mat), dtype=np.float32)
         elif suffix == ".npy":
-            n = np.load(path, allow_pickle=False).astype(np.float32)
+            n = _npy_normals(path, shape).astype(np.float32)
         else:
-            img = read_image(path)
+            img = read_image(path, shape, "ground truth")
             scale = 65535.0 if img.dtype == np.uint16 else 255.0
             n = img.astype(np.float32) / scale * 2.0 - 1.0
             n[np.all(img == 0, axis=-1)] = 0.0
@@ -217,4 +326,6 @@ def read_normals(path: Path, mat: MatDirectory | None = None) -> np.ndarray:
         raise InputError(f"cannot read ground-truth normals ({first_line(exc)})", path) from exc
     if n.ndim != 3 or n.shape[2] != 3:
         raise InputError(f"ground-truth normals must be H x W x 3, got {n.shape}", path)
+    if shape is not None:
+        _same_size(n.shape, shape, path)
     return unit_normals(n)
