@@ -3,6 +3,7 @@ local run (Ray only moves these objects between processes)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,10 @@ from _runtime_helpers import sphere_stack
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.api import Model
-from msfnet.runtime.batch.ray_cluster import ModelSpec, StackWorker
+from msfnet.runtime.batch import ray_cluster
+from msfnet.runtime.batch.ray_cluster import ModelSpec, StackWorker, WorkerPlan, plan_workers
+from msfnet.runtime.batch.runner import BatchItem
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.stack import LoadOptions, save_stack
 
@@ -52,3 +56,151 @@ def test_least_squares_refuses_engine_options_before_any_work(options: dict[str,
 def test_least_squares_refuses_a_model_file(random_onnx: Path) -> None:
     with pytest.raises(InputError, match="needs no model"):
         ModelSpec.of(ModelOptions(random_onnx, method="l2"))
+
+
+# --- --max-memory with --ray: one machine's budget, split among the workers it runs at once
+
+
+@pytest.mark.parametrize(
+    ("nodes", "threads", "stacks", "workers", "want"),
+    [
+        # one 2-CPU machine (a local cluster here): two workers, half the budget each
+        ([2.0], 1, 5, None, (2, 2, 2048.0)),
+        # at most one worker a stack
+        ([2.0], 1, 1, None, (1, 1, 4096.0)),
+        # 16 CPUs but only 4096 MB: four workers of 1024 MB, not sixteen of 256
+        ([16.0], 1, 40, None, (4, 4, 1024.0)),
+        # --threads 4 on 16 CPUs: four fit
+        ([16.0], 4, 40, None, (4, 4, 1024.0)),
+        # --workers as asked; 6 fit on the largest node, which may take all of them
+        ([8.0, 4.0], 1, 40, 6, (6, 6, 4096 / 6)),
+        # 10 workers over two nodes: the largest holds 8 of them at once
+        ([8.0, 4.0], 1, 40, 10, (10, 8, 512.0)),
+    ],
+)
+def test_the_budget_is_shared_by_the_workers_a_node_runs_at_once(
+    nodes: list[float],
+    threads: int,
+    stacks: int,
+    workers: int | None,
+    want: tuple[int, int, float],
+) -> None:
+    plan = plan_workers(nodes, threads, stacks, 4096.0, workers)
+    assert (plan.workers, plan.per_node) == want[:2]
+    assert plan.memory_mb == pytest.approx(want[2], rel=1e-12)
+    # what runs at once on one node stays within the budget
+    assert plan.per_node * plan.memory_mb <= 4096.0 * (1 + 1e-12)
+
+
+def test_a_share_at_the_runtime_floor_is_refused() -> None:
+    # 2 workers on a 2-CPU node: 600 MB / 2 = 300 MB, the floor itself: refused
+    with pytest.raises(InputError, match=r"--max-memory 600 MB .* 300 MB each, not above"):
+        plan_workers([2.0], 1, 2, 2 * BASE_MEMORY_MB, workers=2)
+    assert plan_workers([2.0], 1, 2, 2 * BASE_MEMORY_MB + 1, workers=2).memory_mb > 300
+    # without --workers a small budget starts one worker with all of it
+    assert plan_workers([2.0], 1, 2, 600.0) == WorkerPlan(1, 1, 600.0)
+    with pytest.raises(InputError, match="--max-memory 300 MB"):
+        plan_workers([2.0], 1, 2, float(BASE_MEMORY_MB))
+
+
+def test_workers_the_cluster_cannot_run_at_once_are_refused() -> None:
+    # a worker that never gets its CPUs would hold its stack forever (the batch would hang)
+    with pytest.raises(InputError, match=r"--workers 3: .* at most 2 worker"):
+        plan_workers([2.0], 1, 5, 8192.0, workers=3)
+    with pytest.raises(InputError, match=r"--workers 3: .* at most 2 worker"):
+        plan_workers([3.0, 3.0], 2, 5, 8192.0, workers=3)  # 6 CPUs, but 1 + 1 fit
+    with pytest.raises(InputError, match="--threads 4: no Ray node has 4 CPUs"):
+        plan_workers([2.0, 3.0], 4, 5, 8192.0)
+
+
+class _FakeRef:
+    def __init__(self, value: dict[str, object]) -> None:
+        self.value = value
+
+
+class _FakeActor:
+    """Records what a worker was given; answers every stack with an error (no model run)."""
+
+    def __init__(self, spec: ModelSpec, seen: list[tuple[ModelSpec, LoadOptions]]) -> None:
+        self.spec, self.seen = spec, seen
+        self.run = self
+
+    def remote(self, name: str, path: str, load: LoadOptions) -> _FakeRef:
+        self.seen.append((self.spec, load))
+        return _FakeRef({"name": name, "error": "fake worker", "where": "fake"})
+
+
+class _FakeRay:
+    """The few calls run_batch_ray makes, in process: a cluster of ``cpus`` nodes."""
+
+    def __init__(self, cpus: list[float]) -> None:
+        self.cpus = cpus
+        self.actors: list[_FakeActor] = []
+        self.seen: list[tuple[ModelSpec, LoadOptions]] = []
+
+    def is_initialized(self) -> bool:
+        return True  # the caller's session: neither started nor shut down here
+
+    def nodes(self) -> list[dict[str, object]]:
+        return [{"Alive": True, "Resources": {"CPU": c}} for c in self.cpus]
+
+    def cluster_resources(self) -> dict[str, float]:
+        return {"CPU": sum(self.cpus)}
+
+    def remote(self, num_cpus: float) -> Callable[[type], object]:
+        fake = self
+
+        class ActorClass:
+            @staticmethod
+            def remote(spec: ModelSpec) -> _FakeActor:
+                fake.actors.append(_FakeActor(spec, fake.seen))
+                return fake.actors[-1]
+
+        return lambda cls: ActorClass
+
+    def wait(self, refs: list[_FakeRef], num_returns: int) -> tuple[list[_FakeRef], list[_FakeRef]]:
+        return refs[:num_returns], refs[num_returns:]
+
+    def get(self, ref: _FakeRef) -> dict[str, object]:
+        return ref.value
+
+    def kill(self, actor: _FakeActor) -> None:
+        pass
+
+
+def _items(root: Path, count: int) -> list[BatchItem]:
+    return [BatchItem(root / f"s{i}") for i in range(count)]
+
+
+def test_each_worker_plans_with_its_share(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    fake = _FakeRay([2.0])
+    monkeypatch.setattr(ray_cluster, "import_ray", lambda: fake)
+    spec = ModelSpec.of(ModelOptions(method="l2", threads=1, max_memory_mb=3000.0))
+    load = LoadOptions(max_memory_mb=3000.0)
+    summary = ray_cluster.run_batch_ray(
+        spec, _items(tmp_path, 3), load, lambda n: None, progress=False
+    )
+    assert len(fake.actors) == summary.workers == 2 and len(fake.seen) == 3
+    # the workers' tiles and stack-size checks both see half the budget
+    assert {a.spec.options.max_memory_mb for a in fake.actors} == {1500.0}
+    assert {opts.max_memory_mb for _, opts in fake.seen} == {1500.0}
+    assert summary.worker_memory_mb == 1500.0
+    assert summary.as_dict()["worker_memory_mb"] == 1500.0
+    assert "2 Ray worker(s), 1500 MB each" in summary.totals_line()
+
+
+def test_msf_run_refuses_a_budget_too_small_for_each_worker_before_any_work(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from msfnet.runtime.cli.run import main
+
+    fake = _FakeRay([2.0])
+    monkeypatch.setattr(ray_cluster, "import_ray", lambda: fake)
+    stacks = [save_stack(sphere_stack(n=5, h=20, w=24, seed=i), tmp_path / f"s{i}") for i in (0, 1)]
+    argv = ["--method", "l2", *map(str, stacks), "--ray", "--workers", "2"]
+    out = tmp_path / "out"
+    assert main([*argv, "--max-memory", "500", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-run: error: --max-memory 500 MB"), err
+    assert "250 MB each" in err[0]
+    assert not fake.actors and not out.exists()  # no worker started, nothing written

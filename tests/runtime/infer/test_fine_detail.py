@@ -10,6 +10,12 @@ from msfnet.common.errors import InputError
 from msfnet.runtime.api import Model
 from msfnet.runtime.evaluate.detail_ratio import highpass_energy, masked_smooth
 from msfnet.runtime.infer.fine_detail import enlarge, fuse, shrink
+from msfnet.runtime.infer.tiling import (
+    BASE_MEMORY_MB,
+    HALO,
+    activation_bytes,
+    bytes_per_pixel,
+)
 
 
 def test_enlarge_keeps_dtype_lights_and_the_outline() -> None:
@@ -18,10 +24,54 @@ def test_enlarge_keeps_dtype_lights_and_the_outline() -> None:
     assert big.images.shape == (5, 40, 48, 3) and big.images.dtype == stack.images.dtype
     np.testing.assert_array_equal(big.lights, stack.lights)
     np.testing.assert_array_equal(big.mask[::2, ::2], stack.mask)
-    held = stack.images.nbytes / 2**20  # the stack and its 4x enlargement: 5x
-    with pytest.raises(InputError, match=r"its 2x enlargement: .* above --max-memory"):
-        enlarge(stack, 2, max_memory_mb=4.9 * held)
-    enlarge(stack, 2, max_memory_mb=5.1 * held)
+    # the stack and its 4x enlargement (5x its memory) beside the runtime's base: at the
+    # boundary it fits, a hair under it is refused
+    need = BASE_MEMORY_MB + 5 * stack.images.nbytes / 2**20
+    enlarge(stack, 2, max_memory_mb=need)
+    with pytest.raises(InputError, match=r"its 2x enlargement beside .* above --max-memory"):
+        enlarge(stack, 2, max_memory_mb=need - 0.01)
+    with pytest.raises(InputError, match=r"runtime's 300 MB"):  # the stack's 5x alone fits
+        enlarge(stack, 2, max_memory_mb=5.1 * stack.images.nbytes / 2**20)
+
+
+def test_the_enlarged_pass_counts_the_base_as_its_tiles_do(
+    random_onnx, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One rule for the base: what the enlargement check lets through is what the enlarged
+    pass's tiles then get, less the same BASE_MEMORY_MB; both refuse before any inference."""
+    from msfnet.runtime.infer import estimators
+
+    stack = sphere_stack(n=6, h=24, w=28, seed=2)
+    need = BASE_MEMORY_MB + 5 * stack.images.nbytes / 2**20
+
+    def model(budget: float) -> Model:
+        return Model(
+            random_onnx,
+            engine="onnxruntime",
+            threads=1,
+            maps=None,
+            fine_detail=True,
+            detail_fusion=False,
+            max_memory_mb=budget,
+        )
+
+    engine = model(4096).estimator.network.engine  # type: ignore[attr-defined]
+    staged = engine.chunk is not None
+    per_pixel = bytes_per_pixel(
+        6, engine.chunk, activation_bytes(engine.name, engine.precision, staged)
+    )
+    smallest = (2 * HALO + 4) ** 2 * per_pixel / 2**20  # the smallest tile's working set
+    ran: list[int] = []
+    real = estimators.infer_normals
+    monkeypatch.setattr(estimators, "infer_normals", lambda *a, **k: ran.append(1) or real(*a, **k))
+    for budget, refused in ((need - 0.01, "2x enlargement"), (need + 0.5 * smallest, "lights")):
+        with pytest.raises(InputError, match=refused):
+            model(budget)(stack)
+    assert not ran  # refused before any inference
+    # room for the base, the stack, its enlargement and a tile (twice the smallest's edge, so
+    # the enlarged pass needs few of them): both passes run
+    model(need + 4 * smallest)(stack)
+    assert len(ran) == 2
 
 
 def test_shrink_averages_back_to_unit_normals() -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 from msfnet.common.cli import flag, positive_float, thread_count
 from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
-from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, HALO
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
 from msfnet.runtime.results.maps.api import MapOptions
 
 METHODS = ("msf", "l2")
@@ -96,7 +96,8 @@ class ModelOptions:
         False,
         "keep relief of a few pixels (engravings, scratches, fabric): also run the network "
         "on the stack enlarged 2x and take the fine detail from that run (about 5x the time; "
-        "the stack and its enlargement, 5x its memory, must fit --max-memory; docs/run.md)",
+        "the stack and its enlargement, 5x its memory, must fit --max-memory beside the "
+        f"runtime's {BASE_MEMORY_MB} MB; docs/run.md)",
         action="store_true",
     )
     detail_fusion: bool = flag(

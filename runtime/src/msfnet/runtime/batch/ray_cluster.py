@@ -6,6 +6,17 @@ the stack paths must be visible to them (the same machine, or a shared filesyste
 file travels with the job, so ``--onnx`` needs to exist on the driver only. Results (normals,
 metrics, profile; no images) come back to the driver, which writes every output folder.
 
+Memory: ``--max-memory`` is the budget of one machine (Ray node), not of each worker. Each
+worker holds ``--threads`` CPUs, so a node runs at most its CPUs / ``--threads`` workers at
+once. Ray may place them all on one node, so as many workers as fit on the largest node (at
+most all of them) share the budget equally, and each plans its tiles (and refuses stacks) with
+that share (:func:`plan_workers`). Without ``--workers``, only as many start as get
+WORKER_MEMORY_MB each (one at least); a share no larger than the runtime's own floor
+(tiling's BASE_MEMORY_MB) is refused before any worker starts. Ray's own processes (GCS,
+raylet, object store) and the driver are outside the budget. A Ray worker with the bundled
+model peaked at 200-255 MiB on a 16 x 16 stack (ONNX Runtime / OpenVINO, one thread), under
+that floor, so a worker needs no allowance beyond it.
+
 Ray is imported only here, only when asked for: the edge runtime does not depend on it.
 """
 
@@ -24,12 +35,19 @@ from typing import TYPE_CHECKING, Any
 from msfnet.common.errors import InputError
 from msfnet.common.files import writing_as
 from msfnet.runtime.batch.runner import BatchItem, BatchSummary, OnResult, StackRow, row_for
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.profile import BatchStats
 from msfnet.runtime.stack import LoadOptions, load_stack
 
 if TYPE_CHECKING:
     from msfnet.runtime.api import Model, Result
+
+
+# The least share of --max-memory a worker is started with when --workers is not given: a full
+# DiLiGenT object (96 lights, 612 x 512) peaks at 1.0-1.3 GiB at the default budget
+# (docs/benchmark.md), and within 1 GiB it still runs, in smaller tiles.
+WORKER_MEMORY_MB = 1024
 
 
 def import_ray() -> Any:
@@ -125,6 +143,73 @@ class StackWorker:
         }
 
 
+@dataclass(frozen=True)
+class WorkerPlan:
+    """How many Ray workers start, and the part of --max-memory each one may use."""
+
+    workers: int  # actors started, each holding --threads CPUs for the whole batch
+    per_node: int  # the most of them that run at once on one node
+    memory_mb: float  # each worker's budget: --max-memory / per_node
+
+
+def node_cpus(ray: Any) -> list[float]:
+    """The CPUs of each live node of the cluster; when Ray cannot list its nodes, the whole
+    cluster's CPUs as if on one node (the safe side: every worker shares one budget)."""
+    try:
+        nodes = ray.nodes()
+    except Exception:  # a developer API: its failure must not stop the batch
+        nodes = []
+    cpus = [float(n.get("Resources", {}).get("CPU", 0.0)) for n in nodes if n.get("Alive")]
+    return cpus or [float(ray.cluster_resources().get("CPU", 1.0))]
+
+
+def plan_workers(
+    node_cpus: Sequence[float],
+    threads: int,
+    stacks: int,
+    max_memory_mb: float,
+    workers: int | None = None,
+) -> WorkerPlan:
+    """Workers for ``stacks`` stacks on nodes with ``node_cpus`` CPUs, each worker holding
+    ``threads`` CPUs, and each worker's share of ``max_memory_mb``, the budget of one node.
+    ``workers``: as asked; None: as many as the CPUs hold, at most one a stack and at most
+    one per WORKER_MEMORY_MB of the budget (at least one).
+
+    Ray places a worker only where its CPUs are free and keeps them until the batch ends, so
+    a node runs at most ``cpus // threads`` workers; more workers than the cluster holds would
+    wait for CPUs that never free (the batch would hang), so they are refused. Ray does not
+    spread workers evenly, so the share assumes the largest node full. Raises InputError when
+    no node fits one worker, or when a share would not exceed the runtime's own floor
+    (tiling.BASE_MEMORY_MB)."""
+    room = [int(c // threads) for c in node_cpus]
+    capacity = sum(room)
+    if capacity == 0:
+        raise InputError(
+            f"--threads {threads}: no Ray node has {threads} CPUs for a worker (the largest "
+            f"has {max(node_cpus, default=0):g}); use fewer --threads"
+        )
+    if workers is None:
+        count = max(1, min(stacks, capacity, int(max_memory_mb // WORKER_MEMORY_MB)))
+    elif workers > capacity:
+        raise InputError(
+            f"--workers {workers}: the Ray cluster runs at most {capacity} worker(s) of "
+            f"{threads} thread(s) at once ({sum(node_cpus):g} CPUs); more would wait for "
+            "CPUs forever. Use fewer --workers or --threads"
+        )
+    else:
+        count = workers
+    per_node = min(count, max(room))
+    share = max_memory_mb / per_node
+    if share <= BASE_MEMORY_MB:
+        raise InputError(
+            f"--max-memory {max_memory_mb:g} MB is one node's budget, shared by the "
+            f"{per_node} Ray workers that run at once on a node: {share:.0f} MB each, not "
+            f"above the {BASE_MEMORY_MB} MB a worker takes before any stack (use a larger "
+            "--max-memory, or fewer --workers or more --threads)"
+        )
+    return WorkerPlan(count, per_node, share)
+
+
 def _absolute(load: LoadOptions) -> LoadOptions:
     """Workers do not share the driver's working directory."""
 
@@ -168,13 +253,20 @@ def run_batch_ray(
                 f"connect to Ray ({exc})".replace(":  ", ": ")
             ) from exc
     try:
-        cpus = float(ray.cluster_resources().get("CPU", 1.0))
-        per_worker = float(spec.options.threads or 1)
-        count = workers or max(1, min(len(items), int(cpus // per_worker)))
-        actor_class = ray.remote(num_cpus=per_worker)(StackWorker)
-        actors = [actor_class.remote(spec) for _ in range(count)]
-        summary = BatchSummary("ray", {}, workers=count, prefetch=False)
+        threads = spec.options.threads or 1
+        plan = plan_workers(
+            node_cpus(ray), threads, len(items), spec.options.max_memory_mb, workers
+        )
+        # every worker plans its tiles and checks stack sizes with its share, not the whole
+        spec = replace(spec, options=spec.options.replace(max_memory_mb=plan.memory_mb))
+        actor_class = ray.remote(num_cpus=threads)(StackWorker)
+        actors = [actor_class.remote(spec) for _ in range(plan.workers)]
+        summary = BatchSummary(
+            "ray", {}, workers=plan.workers, prefetch=False, worker_memory_mb=plan.memory_mb
+        )
         opts = _absolute(load)
+        if opts.max_memory_mb is not None:
+            opts = replace(opts, max_memory_mb=plan.memory_mb)
         todo = [(item, item.options(opts)) for item in items]
         todo.reverse()  # pop() from the end keeps the given order
         in_flight: dict[Any, tuple[Any, BatchItem]] = {}
@@ -262,4 +354,13 @@ def _record(
     return result.method
 
 
-__all__ = ["ModelSpec", "StackWorker", "import_ray", "run_batch_ray"]
+__all__ = [
+    "WORKER_MEMORY_MB",
+    "ModelSpec",
+    "StackWorker",
+    "WorkerPlan",
+    "import_ray",
+    "node_cpus",
+    "plan_workers",
+    "run_batch_ray",
+]

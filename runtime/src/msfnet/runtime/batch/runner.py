@@ -60,6 +60,7 @@ class BatchSummary:
     wall_s: float = 0.0
     workers: int = 1
     prefetch: bool = True
+    worker_memory_mb: float | None = None  # ray: each worker's share of --max-memory
 
     @property
     def decode_s(self) -> float:
@@ -96,6 +97,7 @@ class BatchSummary:
             "mode": self.mode,
             "workers": self.workers,
             "prefetch": self.prefetch,
+            "worker_memory_mb": self.worker_memory_mb,
             "model": self.model,
             "stacks": [asdict(r) for r in self.rows],
             "totals": {
@@ -153,8 +155,9 @@ class BatchSummary:
         ]
 
     def totals_line(self) -> str:
+        share = "" if self.worker_memory_mb is None else f", {self.worker_memory_mb:.0f} MB each"
         where = (
-            f"{self.workers} Ray worker(s)"
+            f"{self.workers} Ray worker(s){share}"
             if self.mode == "ray"
             else "next stack decoded in the background"
             if self.prefetch

@@ -18,6 +18,7 @@ from msfnet.common.cli import command_main, make_parser, positive_int
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, json_text, numbered_folder
 from msfnet.runtime.api import Model, Result
+from msfnet.runtime.batch.ray_cluster import WORKER_MEMORY_MB
 from msfnet.runtime.batch.runner import (
     SUMMARY_FILES,
     BatchItem,
@@ -33,6 +34,7 @@ from msfnet.runtime.cli.flags import (
     load_options,
     model_options,
 )
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.profile import announce, announcing
 from msfnet.runtime.stack import LoadOptions, Stack
@@ -132,7 +134,10 @@ def build_parser() -> argparse.ArgumentParser:
         type=positive_int,
         metavar="K",
         help="Ray workers, with --ray (default: the cluster's CPUs / --threads, at "
-        "most one per stack)",
+        f"most one per stack and one per {WORKER_MEMORY_MB} MB of --max-memory). With "
+        "--ray, --max-memory is each machine's budget: the workers that can run at once "
+        f"on one machine share it equally (a share of {BASE_MEMORY_MB} MB or less is "
+        "refused before any work)",
     )
     # Python < 3.13 takes "-5,0,10,10" for an option ("--roi: expected one argument"); read a
     # dash followed by a digit as a value, so --roi's own check speaks ("x and y must be >= 0")

@@ -8,7 +8,8 @@ object around each pixel and its overall shape is slightly worse. So the result 
 coarse shape of the normal run and the fine detail (the high-pass at the detail check's own
 ``SIGMA_PX``) of the enlarged run, shrunk back. It costs the enlarged run on top, about 1 +
 FACTOR^2 times the inference, and holds the stack and its enlargement (1 + FACTOR^2 times the
-stack's memory) within --max-memory."""
+stack's memory) within --max-memory, beside the runtime's own base (tiling's BASE_MEMORY_MB,
+which the tiles' budget leaves out too)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import numpy as np
 from msfnet.common.errors import InputError
 from msfnet.runtime.evaluate.detail_ratio import SIGMA_PX, masked_smooth
 from msfnet.runtime.infer.estimators import Estimate, NetworkEstimator, TilingOptions
+from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.results.profile import StageTimer, announce
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.readers import unit_normals
@@ -29,14 +31,15 @@ FACTOR = 2
 
 def enlarge(stack: Stack, factor: int = FACTOR, max_memory_mb: float | None = None) -> Stack:
     """The stack with every image enlarged ``factor`` x (bicubic; mask nearest), in the images'
-    own dtype; refused up front if it and the stack itself would exceed ``max_memory_mb``."""
+    own dtype; refused up front if it, the stack itself and the runtime's base would exceed
+    ``max_memory_mb`` (the whole process's budget, as the tiles count it)."""
     n, (h, w) = stack.num_lights, stack.shape
-    need = stack.images.nbytes * (1 + factor * factor) / 2**20
+    need = BASE_MEMORY_MB + stack.images.nbytes * (1 + factor * factor) / 2**20
     if max_memory_mb is not None and need > max_memory_mb:
         raise InputError(
-            f"--fine-detail holds the stack and its {factor}x enlargement: "
-            f"{need:.0f} MB, above --max-memory {max_memory_mb:g} MB (use --roi, "
-            "--downscale, --max-lights or a larger budget)",
+            f"--fine-detail holds the stack and its {factor}x enlargement beside the "
+            f"runtime's {BASE_MEMORY_MB} MB: {need:.0f} MB, above --max-memory "
+            f"{max_memory_mb:g} MB (use --roi, --downscale, --max-lights or a larger budget)",
             stack.source or stack.name,
         )
     size = (w * factor, h * factor)
