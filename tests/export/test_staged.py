@@ -10,7 +10,7 @@ from _runtime_helpers import sphere_stack
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.engines.ort_session import create_session
-from msfnet.runtime.engines.staged_loop import STAGE_INPUTS, STAGE_OUTPUTS
+from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK, STAGE_INPUTS, STAGE_OUTPUTS
 from msfnet.runtime.evaluate.metrics import angular_error_deg
 from msfnet.runtime.infer.tiled import choose_plan, infer_normals
 from msfnet.runtime.infer.tiling import plan_tiles, tile_size_for_memory
@@ -53,7 +53,7 @@ def test_chunked_run_equals_monolithic(staged_onnx, sensitive_onnx, chunk) -> No
 
 def test_staged_tiles_are_larger_for_the_same_memory(staged_onnx) -> None:
     mono_tile = tile_size_for_memory(2048, 96)
-    staged_tile = tile_size_for_memory(2048, 96, chunk=8)
+    staged_tile = tile_size_for_memory(2048, 96, chunk=DEFAULT_CHUNK)  # what msf-run feeds
     assert staged_tile > 2 * mono_tile
     stack = sphere_stack(n=96, h=200, w=200, seed=1)
     model = create_session(staged_onnx, threads=1)

@@ -102,6 +102,14 @@ def test_detail_weight_is_flat_at_a_few_per_cent_and_falls_fast_beyond() -> None
     # the shape weight falls off far sooner than the detail weight
     assert weights(0.03)[1] == pytest.approx(np.exp(-1.0), abs=1e-4)
     assert weights(0.065)[1] < 0.01
+    # what profile.json / report.html record names the weights the code uses
+    from types import SimpleNamespace
+
+    from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
+
+    net = SimpleNamespace(describe=lambda: {"method": "msf"})
+    said = DetailFusionEstimator(net).describe()["detail_fusion"]  # type: ignore[arg-type]
+    assert "exp(-(r/0.19)^4)" in str(said) and "exp(-(r/0.03)^2)" in str(said)
 
 
 @pytest.mark.slow

@@ -77,21 +77,27 @@ def test_tiles_are_sized_with_the_engines_measured_working_set() -> None:
     from: the full ball's whole 184 px window, planned within --max-memory 1600, peaked at
     1,752 MiB (1,742-1,747 in later runs). The model must not count less than that peak for
     that window, so the same budget now tiles; engines and precisions never measured keep the
-    bound."""
+    bound. The same holds at the default chunk of 4 lights, for both engines."""
     ov_fp32 = activation_bytes("openvino", "fp32")
     assert ov_fp32 >= activation_bytes("onnxruntime", "fp32") > BYTES_PER_PIXEL_LIGHT
     assert activation_bytes("openvino", "int8") == BYTES_PER_PIXEL_LIGHT
     assert activation_bytes("openvino", "bf16") == BYTES_PER_PIXEL_LIGHT
     stack_mb = 96 * 512 * 612 * 3 * 2 / 2**20  # the full ball, 16-bit
-    whole = BASE_MEMORY_MB + stack_mb + 184**2 * bytes_per_pixel(96, 8, ov_fp32) / 2**20
-    assert whole >= 1752  # the measured peak of that window
     old_model = 150 + stack_mb + 184**2 * bytes_per_pixel(96, 8, 3000) / 2**20
     assert old_model < 1600  # why the old plan ran it whole at 1600
     ov = tile_size_for_memory(1600, 96, 8, stack_mb, ov_fp32)
     assert ov < 184 <= tile_size_for_memory(1700, 96, 8, stack_mb)
-    # the default chunk of 4 lights (the same window measured 1,229-1,235 MiB, 2026-12-02)
-    assert DEFAULT_CHUNK == 4
-    assert BASE_MEMORY_MB + stack_mb + 184**2 * bytes_per_pixel(96, 4, ov_fp32) / 2**20 >= 1235
+    # whole-process peaks of that window measured at each chunk (MiB, 2026-12-02: msf-run, 2
+    # threads, /usr/bin/time -v); the chunk msf-run uses must be among them
+    measured = {
+        ("openvino", 8): 1752,
+        ("openvino", 4): 1240,  # native fp32; 1,229-1,231 capped at AVX2
+        ("onnxruntime", 4): 1114,
+    }
+    assert any(chunk == DEFAULT_CHUNK for _, chunk in measured)
+    for (engine, chunk), peak in measured.items():
+        per_pixel = bytes_per_pixel(96, chunk, activation_bytes(engine, "fp32"))
+        assert BASE_MEMORY_MB + stack_mb + 184**2 * per_pixel / 2**20 >= peak, (engine, chunk)
 
 
 def _crop(stack, y0, y1, x0, x1):

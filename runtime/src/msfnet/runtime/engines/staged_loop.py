@@ -19,9 +19,10 @@ STAGE_OUTPUTS = ("feat1", "feat2", "feat3", "normals")
 FEATURES = 96  # channels of each stage's per-light output (half resolution)
 # lights per call. Each call's activations are the working set that grows with it (OpenVINO
 # keeps one arena per stage model), while a call of 4 lights on a real window is still large
-# enough work: msf-run on the full ball (96 lights), 4 against 8, peaks 1,230 vs 1,730 MiB
-# (OpenVINO fp32 capped at AVX2) and 1,014-1,023 vs 1,305-1,307 MiB (bf16) at the same time;
-# psmImages cat (12 lights) fp32 1,580 vs 2,697 MiB, 9.0-9.2 vs 9.5-9.6 s. 2 lights saved
+# enough work: msf-run on the full ball (96 lights), 4 against 8, peaks 1,229-1,231 vs
+# 1,730-1,735 MiB (OpenVINO fp32 capped at AVX2) and 1,014-1,023 vs 1,305-1,307 MiB (bf16) at
+# the same time; psmImages cat (12 lights) fp32 1,580 vs 2,697 MiB (ONNX Runtime 1,320 vs
+# 1,752), 9.0-9.2 vs 9.5-9.6 s. 2 lights saved
 # another 250 / 140 MiB but ran 5 % slower with bf16 (docs/benchmark.md, 2026-12-02 (last)).
 DEFAULT_CHUNK = 4
 # kept for the whole tile: one float32 stage output (96 ch on 1/4 of the pixels) + the input

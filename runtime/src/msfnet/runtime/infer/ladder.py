@@ -10,7 +10,8 @@ holds (infer/detail_fusion.py):
     balanced  the network at 2/5 of the resolution (1/6.25 of the pixels), upsampled;
               full-resolution detail from least squares where the fit holds. Half resolution
               measured 2.3-2.7x faster than full with OpenVINO fp32 at AVX2 (the target was
-              3x), 2/5 3.3x at +0.32 deg (12 lights, DiLiGenT; docs/benchmark.md)
+              3x), 2/5 3.2-3.7x at +0.36 deg (12 lights, DiLiGenT, the detail weight of
+              2026-12-02; was 3.3x at +0.32 deg; docs/benchmark.md)
     fast      the network at a third of the resolution (1/9 of the pixels) on at most
               FAST_LIGHTS evenly spaced lights (least squares still uses them all)
 
