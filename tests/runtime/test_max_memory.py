@@ -61,7 +61,7 @@ def test_folder_loader_refuses_before_decoding(tmp_path: Path, monkeypatch) -> N
 
     decoded: list[Path] = []
     real = load.read_image
-    monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
+    monkeypatch.setattr(load, "read_image", lambda p, *a: decoded.append(p) or real(p, *a))
     with pytest.raises(InputError, match=r"8 images of 160x120 take 0.88 MB.*--max-memory 0.5 MB"):
         load_stack(folder, LoadOptions(max_memory_mb=0.5))
     assert decoded == []  # refused from the headers alone
@@ -85,7 +85,7 @@ def test_msf_run_passes_its_budget_to_the_loader(tmp_path: Path, monkeypatch, ca
 
     decoded: list[Path] = []
     real = load.read_image
-    monkeypatch.setattr(load, "read_image", lambda p: decoded.append(p) or real(p))
+    monkeypatch.setattr(load, "read_image", lambda p, *a: decoded.append(p) or real(p, *a))
     assert (
         main(["--method", "l2", str(folder), "-o", str(tmp_path / "o"), "--max-memory", "0.5"]) == 2
     )  # the 16-bit stack takes 0.88 MB
