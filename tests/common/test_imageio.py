@@ -3,6 +3,8 @@ the user knows."""
 
 from __future__ import annotations
 
+import io
+import struct
 from pathlib import Path
 
 import cv2
@@ -197,3 +199,61 @@ def test_array_shapes_of_npy_and_mat_files(tmp_path: Path) -> None:
         matfile.mat_shapes(damaged)
     (tmp_path / "v4.mat").write_bytes(bytes(200))  # not level 5: no header to read
     assert matfile.mat_shapes(tmp_path / "v4.mat") is None
+
+
+# ------------------------------------------------- .npy headers: the declared length first
+
+
+def _npy_prefix(version: tuple[int, int], length: int) -> bytes:
+    width = "<H" if version == (1, 0) else "<I"
+    return b"\x93NUMPY" + bytes(version) + struct.pack(width, length)
+
+
+@pytest.mark.parametrize("version", [(1, 0), (2, 0), (3, 0)])
+def test_npy_layout_reads_every_version_and_stops_at_the_data(version: tuple[int, int]) -> None:
+    buf = io.BytesIO()
+    array = np.asfortranarray(np.arange(24, dtype=">f8").reshape(2, 3, 4))
+    np.lib.format.write_array(buf, array, version=version)
+    buf.seek(0)
+    shape, fortran, dtype = imageio.npy_layout(buf)
+    assert (shape, fortran, dtype) == ((2, 3, 4), True, np.dtype(">f8"))
+    assert len(buf.getvalue()) - buf.tell() == array.nbytes  # left where the values start
+
+
+@pytest.mark.parametrize(
+    ("data", "rest", "message"),
+    [
+        # numpy reads as many bytes as the field declares (4 GB at most) before refusing
+        (_npy_prefix((2, 0), 2**32 - 1), 20_000, r"a header of 4,294,967,295 bytes declared"),
+        (_npy_prefix((1, 0), 10_001), 20_000, r"a header of 10,001 bytes declared, above 10,000"),
+        (_npy_prefix((9, 0), 10), 20_000, r"unknown \.npy format version 9\.0"),
+        (b"\x93NUMPY\x01", 0, "no .npy magic string"),
+        (_npy_prefix((1, 0), 64) + b"{'descr'", 0, r"cut off in its header \(8 of 64 bytes\)"),
+    ],
+)
+def test_npy_layout_refuses_a_bad_header_before_reading_it(
+    data: bytes, rest: int, message: str
+) -> None:
+    buf = io.BytesIO(data + b" " * rest)  # rest: more than any header limit, were it read
+    with pytest.raises(ValueError, match=message):
+        imageio.npy_layout(buf)
+    assert buf.tell() <= len(data)  # nothing past the length field read (or the short header)
+
+
+def test_npy_layout_refuses_negative_dimensions() -> None:
+    header = b"{'descr': '<f4', 'fortran_order': False, 'shape': (-1, -1, 3), }".ljust(117)
+    data = _npy_prefix((1, 0), len(header) + 1) + header + b"\n" + bytes(12)
+    with pytest.raises(ValueError, match=r"negative dimension in \(-1, -1, 3\)"):
+        imageio.npy_layout(io.BytesIO(data))
+
+
+def test_array_shape_refuses_a_huge_npy_header_from_its_length(tmp_path: Path) -> None:
+    """A sparse 200 MB file whose length field declares a 190 MB header: refused in one line
+    from the field (the numpy readers would read the 190 MB first)."""
+    path = tmp_path / "n.npy"
+    with open(path, "wb") as f:
+        f.write(_npy_prefix((2, 0), 190_000_000))
+        f.truncate(200_000_000)
+    with pytest.raises(InputError, match=r"damaged \.npy header \(a header of 190,000,000") as e:
+        imageio.array_shape(path)
+    assert "\n" not in str(e.value) and str(e.value).startswith(str(path))

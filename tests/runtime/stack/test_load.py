@@ -254,3 +254,31 @@ def test_a_frame_replaced_after_the_header_check_is_refused_before_decoding(
     line = str(err.value)
     assert "\n" not in line and frames[1].name in line and "30x20" in line
     assert frames[0] in decoded and frames[1] not in decoded  # refused from its header
+
+
+def test_an_npz_member_declaring_a_huge_npy_header_is_refused_before_it_inflates(
+    tmp_path: Path,
+) -> None:
+    """A zip member of a few KB can inflate to the 4 GB of header its length field declares;
+    numpy's reader would inflate it all before refusing it. Refused from the field, with no
+    more than a small buffer ever inflated."""
+    import struct
+    import zipfile
+
+    path = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        with z.open("images.npy", "w", force_zip64=True) as f:
+            f.write(b"\x93NUMPY\x02\x00" + struct.pack("<I", 2**32 - 1))
+            for _ in range(64):
+                f.write(b" " * 2**20)  # 64 MB of "header": about 64 KB deflated
+        with z.open("lights.npy", "w") as f:
+            np.save(f, np.eye(3, dtype=np.float32))
+    tracemalloc.start()
+    try:
+        with pytest.raises(InputError, match=r"a header of 4,294,967,295 bytes declared") as e:
+            load_stack(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert "\n" not in str(e.value) and str(e.value).startswith(str(path))
+    assert peak < 16 * 2**20, peak  # numpy's reader: the 64 MB inflated, twice (bytes, str)

@@ -318,3 +318,22 @@ def test_a_load_whose_ground_truth_changes_after_the_check_fails_in_one_line(
     with pytest.raises(InputError, match="ground truth is 88x72 but images are 44x36") as info:
         load_stack(folder)
     _one_line(info, gt)
+
+
+def test_an_npy_declaring_a_huge_header_is_refused_from_its_length_field(
+    tmp_path: Path,
+) -> None:
+    """numpy's header reader reads all the bytes the length field declares (up to 4 GB) before
+    refusing a header over 10,000 bytes: here a sparse file declaring 190 MB. Refused from the
+    field, in one line."""
+    import struct
+
+    from msfnet.runtime.stack.readers import read_normals
+
+    path = tmp_path / "Normal_gt.npy"
+    with open(path, "wb") as f:
+        f.write(b"\x93NUMPY\x02\x00" + struct.pack("<I", 190_000_000))
+        f.truncate(200_000_000)
+    with pytest.raises(InputError, match=r"damaged \.npy header \(a header of 190,000,000") as e:
+        read_normals(path, shape=(4, 5))
+    _one_line(e, path)

@@ -314,17 +314,52 @@ def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndar
 # -- array files: shapes from their headers
 
 
-def npy_header(f: BinaryIO) -> tuple[tuple[int, ...], np.dtype]:
-    """Shape and type of the .npy data that ``f`` (positioned at its magic) holds, without
-    reading the data; ValueError for a damaged header."""
-    version = np.lib.format.read_magic(f)
+# The longest .npy header read (numpy's own max_header_size). numpy refuses longer ones only
+# after reading as many bytes as the length field declares, up to 4 GB: a .npy file (or an
+# .npz member of a few MB, inflated) could fill the memory before the refusal. So the field is
+# checked before any of the header is read.
+NPY_MAX_HEADER = 10_000
+_NPY_VERSIONS = ((1, 0), (2, 0), (3, 0))
+
+
+def npy_layout(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """Shape, Fortran order and type of the .npy data that ``f`` (positioned at its magic)
+    holds, ``f`` left where the data starts; nothing past the header is read. ValueError for
+    a damaged header, an unknown format version, a negative dimension, or a header longer than
+    NPY_MAX_HEADER bytes."""
+    magic = f.read(8)
+    if len(magic) < 8 or not magic.startswith(b"\x93NUMPY"):
+        raise ValueError("no .npy magic string")
+    version = (magic[6], magic[7])
+    if version not in _NPY_VERSIONS:
+        raise ValueError(f"unknown .npy format version {version[0]}.{version[1]}")
+    width = 2 if version == (1, 0) else 4
+    field = f.read(width)
+    if len(field) < width:
+        raise ValueError("cut off in its header length")
+    (length,) = struct.unpack("<H" if width == 2 else "<I", field)
+    if length > NPY_MAX_HEADER:
+        raise ValueError(f"a header of {length:,} bytes declared, above {NPY_MAX_HEADER:,}")
+    text = f.read(length)
+    if len(text) < length:
+        raise ValueError(f"cut off in its header ({len(text):,} of {length:,} bytes)")
     read = (
         np.lib.format.read_array_header_1_0
         if version == (1, 0)
         else np.lib.format.read_array_header_2_0
     )
-    shape, _fortran, dtype = read(f)
-    return tuple(int(d) for d in shape), np.dtype(dtype)
+    shape, fortran, dtype = read(io.BytesIO(field + text))  # parsed from what was read
+    dims = tuple(int(d) for d in shape)
+    if any(d < 0 for d in dims):
+        raise ValueError(f"negative dimension in {dims}")
+    return dims, bool(fortran), np.dtype(dtype)
+
+
+def npy_header(f: BinaryIO) -> tuple[tuple[int, ...], np.dtype]:
+    """Shape and type of the .npy data that ``f`` (positioned at its magic) holds, without
+    reading the data (:func:`npy_layout`); ValueError for a damaged header."""
+    shape, _fortran, dtype = npy_layout(f)
+    return shape, dtype
 
 
 def array_shape(path: str | Path) -> tuple[int, ...] | None:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common.errors import InputError, first_line
-from msfnet.common.imageio import MAX_PIXELS, array_shape, read_image
+from msfnet.common.imageio import MAX_PIXELS, array_shape, npy_layout, read_image
 from msfnet.common.matfile import MatDirectory, mat_directory, normals_variable, not_v5
 
 # A light file lists one row per light. Real rigs have tens to a few hundred lights; the bounds
@@ -253,21 +253,13 @@ def _npy_normals(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
     replaced by name in between is not read), never unpickled."""
     with open(path, "rb") as f:
         try:
-            version = np.lib.format.read_magic(f)
-            read = (
-                np.lib.format.read_array_header_1_0
-                if version == (1, 0)
-                else np.lib.format.read_array_header_2_0
-            )
-            dims, fortran, dtype = read(f)
+            dims, fortran, dtype = npy_layout(f)  # the header's declared length checked first
         except ValueError as exc:
             raise InputError(f"damaged .npy header ({first_line(exc)})", path) from exc
-        dtype = np.dtype(dtype)
         if dtype.hasobject or dtype.kind not in "biuf":  # objects would need unpickling
             raise InputError(
                 f"ground-truth normals must be numbers, got a .npy array of dtype {dtype}", path
             )
-        dims = tuple(int(d) for d in dims)
         if len(dims) != 3 or dims[2] != 3:
             raise InputError(f"ground-truth normals must be H x W x 3, got {dims}", path)
         if shape is not None:
@@ -279,14 +271,14 @@ def _npy_normals(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
                 path,
             )
         count = dims[0] * dims[1] * 3
-        values = np.empty(count, dtype)
-        want = values.nbytes
+        want = count * dtype.itemsize
         left = os.fstat(f.fileno()).st_size - f.tell()
-        if left < want:  # known before reading: no partial array
+        if left < want:  # known before reading (or allocating): no partial array
             raise InputError(
                 f"truncated .npy file ({left:,} of the {want:,} bytes its header declares)",
                 path,
             )
+        values = np.empty(count, dtype)
         got = f.readinto(values.view(np.uint8).data)
         if got != want:  # shrunk while read
             raise InputError(f"truncated .npy file ({got:,} of {want:,} bytes read)", path)
