@@ -170,6 +170,33 @@ def test_image_header_refuses_a_bomb_from_its_ihdr(tmp_path: Path) -> None:
         read_image(path)
 
 
+def test_a_file_larger_than_the_largest_raw_image_is_refused_before_it_is_read(
+    tmp_path: Path,
+) -> None:
+    # EXR and float TIFF have no header reader here: only the file's size can refuse them
+    # before all of it is in memory. A sparse file: 4.5 GB long, nothing stored.
+    assert imageio.MAX_IMAGE_BYTES > imageio.MAX_PIXELS * 4 * 4  # 4 float32 channels fit
+    path = tmp_path / "huge.exr"
+    with open(path, "wb") as f:
+        f.truncate(imageio.MAX_IMAGE_BYTES + 1)
+    with pytest.raises(InputError, match=r"file is 4\.5 GB, larger than .*250 MP") as info:
+        read_image(path)
+    assert "\n" not in str(info.value) and str(info.value).startswith(str(path))
+
+
+def test_the_byte_limit_is_checked_on_the_file_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "a.png"
+    encode_png(path, IMAGES["rgb8"])
+    size = path.stat().st_size
+    monkeypatch.setattr(imageio, "MAX_IMAGE_BYTES", size)  # at the limit: read
+    np.testing.assert_array_equal(read_image(path), IMAGES["rgb8"])
+    monkeypatch.setattr(imageio, "MAX_IMAGE_BYTES", size - 1)  # one byte over: refused
+    with pytest.raises(InputError, match="refusing to read it"):
+        read_image(path)
+
+
 def test_mask_of_another_size_is_refused_from_its_header(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -357,7 +357,7 @@ def _v73_head() -> bytes:
         ("v4 big-endian", "a MATLAB v4 file"),
         ("v4 truncated", "a MATLAB v4 file"),
         ("v7.3", r"a MATLAB v7.3 file \(HDF5\)"),
-        ("garbage", "not a MATLAB .mat file"),
+        ("garbage", "a file of another format"),
         ("empty", "an empty file"),
     ],
 )
@@ -391,6 +391,8 @@ def test_a_mat_file_that_is_not_level_5_never_reaches_loadmat(
     with pytest.raises(InputError, match=f"{what}, not a MATLAB v5 .mat file") as info:
         read_normals(path)
     assert "\n" not in str(info.value) and str(info.value).startswith(str(path))
+    # says once what the file is not (a review found "not a MATLAB .mat file, not a MATLAB v5")
+    assert str(info.value).count("not a") == 1 and str(info.value).count("MATLAB v5") == 1
 
 
 def test_not_v5_names_what_a_file_is() -> None:
@@ -401,8 +403,8 @@ def test_not_v5_names_what_a_file_is() -> None:
     assert not_v5(_v73_head()) == "a MATLAB v7.3 file (HDF5)"
     head = _v73_head()[:124] + struct.pack("<H", 0x0300) + b"IM"
     assert not_v5(head) == "a .mat file of unknown version 0x0300"
-    assert not_v5(b"\x89PNG\r\n\x1a\n" + b"\0" * 40) == "not a MATLAB .mat file"
-    assert not_v5(b"\0" * 10) == "not a MATLAB .mat file"  # too short for a v4 header
+    assert not_v5(b"\x89PNG\r\n\x1a\n" + b"\0" * 40) == "a file of another format"
+    assert not_v5(b"\0" * 10) == "a file of another format"  # too short for a v4 header
     assert not_v5(b"") == "an empty file"
 
 

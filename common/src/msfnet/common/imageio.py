@@ -40,6 +40,13 @@ from msfnet.common.matfile import mat_directory
 # a few KB of PNG that decodes to tens of GB). 250 MP is ~10x a large industrial sensor.
 MAX_PIXELS = 250_000_000
 
+# The largest image file read: the raw size of the largest image allowed (MAX_PIXELS of four
+# float32 channels), plus an eighth for headers, offset tables and metadata. Compression only
+# makes a file smaller than raw, so a larger file is no image we would decode. Checked before
+# the file is read: formats without a header reader here (EXR, float TIFF) have their pixels
+# counted only once decoded, after the whole file was in memory.
+MAX_IMAGE_BYTES = MAX_PIXELS * 4 * 4 * 9 // 8
+
 # OpenCV logs decoder failures on stderr ("[ERROR:0@0.2] global grfmt_tiff.cpp ..."); msfnet
 # reports a bad file itself, in one line.
 with contextlib.suppress(AttributeError):  # older OpenCV has no logging module
@@ -169,6 +176,14 @@ def read_image(
         header = _header(f, path)  # size refused before the file is read or decoded
         if shape is not None:
             _same_size(header, shape, what, path)
+        size = os.fstat(f.fileno()).st_size  # the file open, not the name: it may change
+        if size > MAX_IMAGE_BYTES:
+            raise InputError(
+                f"file is {size / 1e9:.1f} GB, larger than an image of the "
+                f"{MAX_PIXELS / 1e6:.0f} MP limit takes uncompressed (four float32 channels, "
+                f"{MAX_IMAGE_BYTES / 1e9:.1f} GB with headers): refusing to read it",
+                path,
+            )
         data = _checked_bytes(f.read(), path)
     img = None if path.suffix.lower() == ".tga" else _decode_with_opencv(data, path)
     if img is None:

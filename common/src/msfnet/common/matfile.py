@@ -310,7 +310,8 @@ def not_v5(head: bytes) -> str:
             digits = (mopt // 100 % 10, mopt // 10 % 10, mopt % 10)  # O, P, T
             if 0 <= mopt < 5000 and digits[0] == 0 and digits[1] <= 5 and digits[2] <= 2:
                 return "a MATLAB v4 file"
-    return "not a MATLAB .mat file" if head else "an empty file"
+    # a noun phrase like the others: the caller adds "not a MATLAB v5 .mat file" itself
+    return "a file of another format" if head else "an empty file"
 
 
 def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:

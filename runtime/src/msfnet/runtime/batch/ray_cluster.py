@@ -7,15 +7,17 @@ file travels with the job, so ``--onnx`` needs to exist on the driver only. Resu
 metrics, profile; no images) come back to the driver, which writes every output folder.
 
 Memory: ``--max-memory`` is the budget of one machine (Ray node), not of each worker. Each
-worker holds ``--threads`` CPUs, so a node runs at most its CPUs / ``--threads`` workers at
-once. Ray may place them all on one node, so as many workers as fit on the largest node (at
-most all of them) share the budget equally, and each plans its tiles (and refuses stacks) with
-that share (:func:`plan_workers`). Without ``--workers``, only as many start as get
+worker holds ``--threads`` CPUs, so a node runs at most its CPUs / ``--threads`` workers. The
+workers are pinned to nodes (Ray's node-affinity scheduling), spread round-robin over the live
+nodes up to what each holds, so the driver knows how many share each node's budget: each gets
+``--max-memory`` / (the workers on its node) and plans its tiles (and refuses stacks) with that
+share (:func:`plan_workers`). Without ``--workers``, a node takes only as many as get
 WORKER_MEMORY_MB each (one at least); a share no larger than the runtime's own floor
-(tiling's BASE_MEMORY_MB) is refused before any worker starts. Ray's own processes (GCS,
-raylet, object store) and the driver are outside the budget. A Ray worker with the bundled
-model peaked at 200-255 MiB on a 16 x 16 stack (ONNX Runtime / OpenVINO, one thread), under
-that floor, so a worker needs no allowance beyond it.
+(tiling's BASE_MEMORY_MB) is refused before any worker starts. When Ray cannot list its nodes
+the cluster is planned as one node and nothing is pinned (the safe side: every worker shares
+one budget). Ray's own processes (GCS, raylet, object store) and the driver are outside the
+budget. A Ray worker with the bundled model peaked at 200-255 MiB on a 16 x 16 stack (ONNX
+Runtime / OpenVINO, one thread), under that floor, so a worker needs no allowance beyond it.
 
 Ray is imported only here, only when asked for: the edge runtime does not depend on it.
 """
@@ -144,70 +146,133 @@ class StackWorker:
 
 
 @dataclass(frozen=True)
+class RayNode:
+    """A live node of the cluster, as the plan sees it."""
+
+    node_id: str | None  # Ray's NodeID; None: Ray could not list its nodes (not pinned)
+    cpus: float
+
+
+@dataclass(frozen=True)
+class NodeWorkers:
+    """The workers pinned to one node, and the part of --max-memory each one may use."""
+
+    node_id: str | None  # None: not pinned (the whole cluster planned as one node)
+    workers: int  # actors started there, each holding --threads CPUs for the whole batch
+    memory_mb: float  # each one's budget: --max-memory / workers
+
+
+@dataclass(frozen=True)
 class WorkerPlan:
-    """How many Ray workers start, and the part of --max-memory each one may use."""
+    """Where the Ray workers start: the nodes given at least one, in the order Ray lists them."""
 
-    workers: int  # actors started, each holding --threads CPUs for the whole batch
-    per_node: int  # the most of them that run at once on one node
-    memory_mb: float  # each worker's budget: --max-memory / per_node
+    nodes: tuple[NodeWorkers, ...]
+
+    @property
+    def workers(self) -> int:
+        return sum(n.workers for n in self.nodes)
+
+    @property
+    def per_node(self) -> int:
+        """The most workers on one node."""
+        return max(n.workers for n in self.nodes)
+
+    @property
+    def memory_mb(self) -> float:
+        """The smallest share (a worker on the busiest node)."""
+        return min(n.memory_mb for n in self.nodes)
 
 
-def node_cpus(ray: Any) -> list[float]:
-    """The CPUs of each live node of the cluster; when Ray cannot list its nodes, the whole
-    cluster's CPUs as if on one node (the safe side: every worker shares one budget)."""
+def cluster_nodes(ray: Any) -> list[RayNode]:
+    """The live nodes of the cluster with their CPUs; when Ray cannot list them, the whole
+    cluster's CPUs as one node without an id (every worker then shares one budget)."""
     try:
-        nodes = ray.nodes()
+        listed = ray.nodes()
     except Exception:  # a developer API: its failure must not stop the batch
-        nodes = []
-    cpus = [float(n.get("Resources", {}).get("CPU", 0.0)) for n in nodes if n.get("Alive")]
-    return cpus or [float(ray.cluster_resources().get("CPU", 1.0))]
+        listed = []
+    nodes = [
+        RayNode(str(n["NodeID"]), float(n.get("Resources", {}).get("CPU", 0.0)))
+        for n in listed
+        if n.get("Alive") and n.get("NodeID")
+    ]
+    # a cluster without CPUs lists no "CPU" at all: 0, so the plan says so instead of
+    # starting a worker that would wait forever
+    return nodes or [RayNode(None, float(ray.cluster_resources().get("CPU", 0.0)))]
+
+
+def _spread(count: int, limits: Sequence[int]) -> list[int]:
+    """``count`` workers dealt one at a time over the nodes, each up to its limit (evenly
+    spread, so the busiest node's share of the budget is as large as it can be)."""
+    counts = [0] * len(limits)
+    left = min(count, sum(limits))
+    while left:
+        for i, limit in enumerate(limits):
+            if left and counts[i] < limit:
+                counts[i] += 1
+                left -= 1
+    return counts
 
 
 def plan_workers(
-    node_cpus: Sequence[float],
+    nodes: Sequence[RayNode],
     threads: int,
     stacks: int,
     max_memory_mb: float,
     workers: int | None = None,
 ) -> WorkerPlan:
-    """Workers for ``stacks`` stacks on nodes with ``node_cpus`` CPUs, each worker holding
-    ``threads`` CPUs, and each worker's share of ``max_memory_mb``, the budget of one node.
-    ``workers``: as asked; None: as many as the CPUs hold, at most one a stack and at most
-    one per WORKER_MEMORY_MB of the budget (at least one).
+    """Workers for ``stacks`` stacks on ``nodes``, each worker holding ``threads`` CPUs, and
+    each worker's share of ``max_memory_mb``, the budget of one node. A node holds at most
+    ``cpus // threads`` workers. ``workers``: as asked, spread round-robin over the nodes up
+    to what each holds; None: on each node as many as it holds and as get WORKER_MEMORY_MB of
+    the budget (one at least), at most one a stack in all.
 
-    Ray places a worker only where its CPUs are free and keeps them until the batch ends, so
-    a node runs at most ``cpus // threads`` workers; more workers than the cluster holds would
-    wait for CPUs that never free (the batch would hang), so they are refused. Ray does not
-    spread workers evenly, so the share assumes the largest node full. Raises InputError when
-    no node fits one worker, or when a share would not exceed the runtime's own floor
-    (tiling.BASE_MEMORY_MB)."""
-    room = [int(c // threads) for c in node_cpus]
+    Ray places a worker only where its CPUs are free and keeps them until the batch ends;
+    more workers than the cluster holds would wait for CPUs that never free (the batch would
+    hang), so they are refused. Raises InputError when no node fits one worker, or when a
+    share would not exceed the runtime's own floor (tiling.BASE_MEMORY_MB)."""
+    if not any(n.cpus > 0 for n in nodes):
+        raise InputError(
+            "--ray: no Ray node with CPUs has joined the cluster yet (the head may have been "
+            "started with --num-cpus=0, or the autoscaler is at zero nodes): start a worker "
+            "node (ray start --address=HEAD:PORT) or wait for one, then run again"
+        )
+    room = [int(n.cpus // threads) for n in nodes]
     capacity = sum(room)
     if capacity == 0:
         raise InputError(
             f"--threads {threads}: no Ray node has {threads} CPUs for a worker (the largest "
-            f"has {max(node_cpus, default=0):g}); use fewer --threads"
+            f"has {max(n.cpus for n in nodes):g}); use fewer --threads"
         )
     if workers is None:
-        count = max(1, min(stacks, capacity, int(max_memory_mb // WORKER_MEMORY_MB)))
+        most = max(1, int(max_memory_mb // WORKER_MEMORY_MB))
+        limits = [min(r, most) for r in room]
+        count = max(1, min(stacks, sum(limits)))
     elif workers > capacity:
         raise InputError(
             f"--workers {workers}: the Ray cluster runs at most {capacity} worker(s) of "
-            f"{threads} thread(s) at once ({sum(node_cpus):g} CPUs); more would wait for "
-            "CPUs forever. Use fewer --workers or --threads"
+            f"{threads} thread(s) at once ({sum(n.cpus for n in nodes):g} CPUs on "
+            f"{len(nodes)} node(s)); more would wait for CPUs forever. Use fewer --workers "
+            "or --threads"
         )
     else:
-        count = workers
-    per_node = min(count, max(room))
-    share = max_memory_mb / per_node
+        limits, count = room, workers
+    counts = _spread(count, limits)
+    busiest = max(counts)
+    share = max_memory_mb / busiest
     if share <= BASE_MEMORY_MB:
         raise InputError(
             f"--max-memory {max_memory_mb:g} MB is one node's budget, shared by the "
-            f"{per_node} Ray workers that run at once on a node: {share:.0f} MB each, not "
+            f"{busiest} Ray workers that run at once on a node: {share:.0f} MB each, not "
             f"above the {BASE_MEMORY_MB} MB a worker takes before any stack (use a larger "
             "--max-memory, or fewer --workers or more --threads)"
         )
-    return WorkerPlan(count, per_node, share)
+    return WorkerPlan(
+        tuple(
+            NodeWorkers(n.node_id, c, max_memory_mb / c)
+            for n, c in zip(nodes, counts, strict=True)
+            if c
+        )
+    )
 
 
 def _absolute(load: LoadOptions) -> LoadOptions:
@@ -255,31 +320,44 @@ def run_batch_ray(
     try:
         threads = spec.options.threads or 1
         plan = plan_workers(
-            node_cpus(ray), threads, len(items), spec.options.max_memory_mb, workers
+            cluster_nodes(ray), threads, len(items), spec.options.max_memory_mb, workers
         )
-        # every worker plans its tiles and checks stack sizes with its share, not the whole
-        spec = replace(spec, options=spec.options.replace(max_memory_mb=plan.memory_mb))
-        actor_class = ray.remote(num_cpus=threads)(StackWorker)
-        actors = [actor_class.remote(spec) for _ in range(plan.workers)]
         summary = BatchSummary(
             "ray", {}, workers=plan.workers, prefetch=False, worker_memory_mb=plan.memory_mb
         )
-        opts = _absolute(load)
-        if opts.max_memory_mb is not None:
-            opts = replace(opts, max_memory_mb=plan.memory_mb)
-        todo = [(item, item.options(opts)) for item in items]
-        todo.reverse()  # pop() from the end keeps the given order
-        in_flight: dict[Any, tuple[Any, BatchItem]] = {}
+        base = _absolute(load)
+        actor_class = ray.remote(num_cpus=threads)(StackWorker)
+        # each worker with the load options it runs with (its share of the budget)
+        actors: list[tuple[Any, LoadOptions]] = []
+        for node in plan.nodes:
+            # every worker plans its tiles and checks stack sizes with its share, not the whole
+            node_spec = replace(spec, options=spec.options.replace(max_memory_mb=node.memory_mb))
+            opts = base
+            if opts.max_memory_mb is not None:
+                opts = replace(opts, max_memory_mb=node.memory_mb)
+            where = actor_class
+            if node.node_id is not None:  # pinned: the share assumes exactly these on the node
+                strategies = ray.util.scheduling_strategies
+                where = actor_class.options(
+                    scheduling_strategy=strategies.NodeAffinitySchedulingStrategy(
+                        node_id=node.node_id, soft=False
+                    )
+                )
+            actors += [(where.remote(node_spec), opts) for _ in range(node.workers)]
+        todo = list(reversed(items))  # pop() from the end keeps the given order
+        in_flight: dict[Any, tuple[tuple[Any, LoadOptions], BatchItem]] = {}
 
-        def submit(actor: Any) -> None:
+        def submit(worker: tuple[Any, LoadOptions]) -> None:
             if todo:
-                item, options = todo.pop()
+                item = todo.pop()
+                actor, worker_load = worker
+                options = item.options(worker_load)
                 ref = actor.run.remote(item.name, str(item.path.resolve()), options)
-                in_flight[ref] = (actor, item)
+                in_flight[ref] = (worker, item)
 
         start = time.perf_counter()
-        for actor in actors:
-            submit(actor)
+        for worker in actors:
+            submit(worker)
         bar = tqdm(
             total=len(items),
             unit="stack",
@@ -290,15 +368,15 @@ def run_batch_ray(
         try:
             while in_flight:
                 done, _ = ray.wait(list(in_flight), num_returns=1)
-                actor, item = in_flight.pop(done[0])
+                worker, item = in_flight.pop(done[0])
                 try:
                     payload = ray.get(done[0])
                 except Exception as exc:  # the worker died (RayActorError, OOM kill, ...)
                     payload = {"name": item.name, "error": f"Ray worker failed: {exc}"}
                 else:
-                    submit(actor)  # a live worker takes the next stack at once
+                    submit(worker)  # a live worker takes the next stack at once
                 if "result" in payload:  # where the selection and lights came from, as locally
-                    payload["result"].input = item.describe_input(opts)
+                    payload["result"].input = item.describe_input(worker[1])
                 method = _record(payload, item, out_for, overwrite, inputs, summary, on_result)
                 if method and not summary.model:
                     summary.model = method
@@ -314,7 +392,7 @@ def run_batch_ray(
         summary.rows.sort(key=lambda r: order.get(r.name, len(order)))
         if summary_dir is not None:
             summary.write(summary_dir)
-        for actor in actors:
+        for actor, _ in actors:
             ray.kill(actor)
         return summary
     finally:
@@ -357,10 +435,12 @@ def _record(
 __all__ = [
     "WORKER_MEMORY_MB",
     "ModelSpec",
+    "NodeWorkers",
+    "RayNode",
     "StackWorker",
     "WorkerPlan",
+    "cluster_nodes",
     "import_ray",
-    "node_cpus",
     "plan_workers",
     "run_batch_ray",
 ]

@@ -133,11 +133,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers",
         type=positive_int,
         metavar="K",
-        help="Ray workers, with --ray (default: the cluster's CPUs / --threads, at "
-        f"most one per stack and one per {WORKER_MEMORY_MB} MB of --max-memory). With "
-        "--ray, --max-memory is each machine's budget: the workers that can run at once "
-        f"on one machine share it equally (a share of {BASE_MEMORY_MB} MB or less is "
-        "refused before any work)",
+        help="Ray workers, with --ray, spread over the machines and pinned there (default: "
+        "each machine's CPUs / --threads, at most one per "
+        f"{WORKER_MEMORY_MB} MB of --max-memory on each and one per stack in all). With "
+        "--ray, --max-memory is each machine's budget: the workers on one machine share it "
+        f"equally (a share of {BASE_MEMORY_MB} MB or less is refused before any work)",
     )
     # Python < 3.13 takes "-5,0,10,10" for an option ("--roi: expected one argument"); read a
     # dash followed by a digit as a value, so --roi's own check speaks ("x and y must be >= 0")
