@@ -201,6 +201,9 @@ class _FakeActor:
     ) -> None:
         self.spec, self.node, self.seen = spec, node, seen
         self.run = self
+        # its start (answered at once: a started worker)
+        self.ready_ref = _FakeRef({"where": str(node)})
+        self.ready = SimpleNamespace(remote=lambda: self.ready_ref)
 
     def remote(self, name: str, path: str, load: LoadOptions) -> _FakeRef:
         self.seen.append((self.spec, load))
@@ -360,3 +363,66 @@ def test_msf_run_says_no_node_with_cpus_has_joined(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("msf-run: error: --ray: no Ray node with CPUs")
     assert not fake.actors and not out.exists()
+
+
+class _FailingRay(_FakeRay):
+    """Workers that die: ``start`` of them cannot start (their node died before they were
+    placed), the others die on their first stack."""
+
+    def __init__(self, cpus: list[float], start: int) -> None:
+        super().__init__(cpus)
+        self.cannot_start = start
+
+    def get(self, ref: _FakeRef) -> dict[str, object]:
+        if "where" in ref.value and "name" not in ref.value:  # a worker's start
+            if self.cannot_start:
+                self.cannot_start -= 1
+                raise RuntimeError("ActorUnschedulableError: node n0 died\n(traceback ...)")
+            return ref.value
+        raise RuntimeError("ActorDiedError: the worker died")
+
+
+@pytest.mark.parametrize("cannot_start", [0, 1, 2])
+def test_stacks_left_when_every_worker_failed_are_listed_not_dropped(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cannot_start: int
+) -> None:
+    fake = _FailingRay([1.0, 1.0], cannot_start)
+    monkeypatch.setattr(ray_cluster, "import_ray", lambda: fake)
+    spec = ModelSpec.of(ModelOptions(method="l2", threads=1))
+    summary = ray_cluster.run_batch_ray(
+        spec, _items(tmp_path, 6), LoadOptions(), lambda n: None, progress=False
+    )
+    # every stack has its row, in the given order, and each one failed
+    assert [r.name for r in summary.rows] == [f"s{i}" for i in range(6)]
+    errors = [r.error or "" for r in summary.rows]
+    died = 2 - cannot_start  # a worker that started dies on its one stack
+    assert all(e.startswith("Ray worker failed: ActorDiedError") for e in errors[:died])
+    assert all(e.startswith("not run: no Ray worker left (all 2 failed") for e in errors[died:])
+    if cannot_start:  # why the workers did not start, in one line
+        assert "could not start: ActorUnschedulableError: node n0 died)" in errors[-1]
+    assert all("\n" not in e for e in errors[died:])
+
+
+class _BusyRay(_FakeRay):
+    """The first worker never starts (its node's CPUs are held by another job): its start
+    never answers, and waiting on it alone would never return."""
+
+    def wait(self, refs: list[_FakeRef], num_returns: int) -> tuple[list[_FakeRef], list[_FakeRef]]:
+        pending = self.actors[0].ready_ref
+        ready = [r for r in refs if r is not pending]
+        assert ready, "the batch waits on a worker that never starts: it would hang"
+        return ready[:num_returns], [r for r in refs if r not in ready[:num_returns]]
+
+
+def test_a_worker_that_never_starts_is_given_no_stack(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    fake = _BusyRay([1.0, 1.0])
+    monkeypatch.setattr(ray_cluster, "import_ray", lambda: fake)
+    spec = ModelSpec.of(ModelOptions(method="l2", threads=1))
+    summary = ray_cluster.run_batch_ray(
+        spec, _items(tmp_path, 4), LoadOptions(), lambda n: None, progress=False
+    )
+    assert summary.workers == 2 and len(summary.rows) == 4
+    # all four ran on the worker that started (n1), none waits on the one that did not
+    assert {r.worker for r in summary.rows} == {"n1"}

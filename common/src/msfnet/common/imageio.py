@@ -179,9 +179,9 @@ def read_image(
         size = os.fstat(f.fileno()).st_size  # the file open, not the name: it may change
         if size > MAX_IMAGE_BYTES:
             raise InputError(
-                f"file is {size / 1e9:.1f} GB, larger than an image of the "
-                f"{MAX_PIXELS / 1e6:.0f} MP limit takes uncompressed (four float32 channels, "
-                f"{MAX_IMAGE_BYTES / 1e9:.1f} GB with headers): refusing to read it",
+                f"file is {size / 1e9:.2f} GB, above the {MAX_IMAGE_BYTES / 1e9:.2f} GB read "
+                f"limit (a {MAX_PIXELS / 1e6:.0f} MP image of four float32 channels, "
+                "uncompressed, with headers); save float64 images as float32",
                 path,
             )
         data = _checked_bytes(f.read(), path)

@@ -113,6 +113,10 @@ class StackWorker:
         self.model = spec.build(Path(self._tmp.name))
         self.where = f"{socket.gethostname()}:{os.getpid()}"
 
+    def ready(self) -> str:
+        """Answers once the worker has started (its model loaded): where it runs."""
+        return self.where
+
     def run(self, name: str, path: str, load: LoadOptions) -> dict[str, Any]:
         """Load and run one stack; errors come back as text (exception types with custom
         constructors do not always survive pickling)."""
@@ -345,7 +349,11 @@ def run_batch_ray(
                 )
             actors += [(where.remote(node_spec), opts) for _ in range(node.workers)]
         todo = list(reversed(items))  # pop() from the end keeps the given order
-        in_flight: dict[Any, tuple[tuple[Any, LoadOptions], BatchItem]] = {}
+        # what each ref in flight answers: a stack, or (None) a worker that has started. A
+        # stack goes only to a started worker: one still waiting for CPUs (taken by another
+        # job on its node) would hold its stack, and the batch, forever
+        in_flight: dict[Any, tuple[tuple[Any, LoadOptions], BatchItem | None]] = {}
+        failed_starts: list[str] = []
 
         def submit(worker: tuple[Any, LoadOptions]) -> None:
             if todo:
@@ -355,9 +363,12 @@ def run_batch_ray(
                 ref = actor.run.remote(item.name, str(item.path.resolve()), options)
                 in_flight[ref] = (worker, item)
 
+        def stacks_in_flight() -> bool:
+            return any(item is not None for _, item in in_flight.values())
+
         start = time.perf_counter()
         for worker in actors:
-            submit(worker)
+            in_flight[worker[0].ready.remote()] = (worker, None)
         bar = tqdm(
             total=len(items),
             unit="stack",
@@ -366,15 +377,22 @@ def run_batch_ray(
             disable=True if progress is False else None,
         )
         try:
-            while in_flight:
+            # done when no stack is left or running; workers that never started are not waited on
+            while in_flight and (todo or stacks_in_flight()):
                 done, _ = ray.wait(list(in_flight), num_returns=1)
-                worker, item = in_flight.pop(done[0])
+                worker, maybe_item = in_flight.pop(done[0])
                 try:
                     payload = ray.get(done[0])
                 except Exception as exc:  # the worker died (RayActorError, OOM kill, ...)
-                    payload = {"name": item.name, "error": f"Ray worker failed: {exc}"}
+                    if maybe_item is None:  # it never started (no stack lost)
+                        failed_starts.append((str(exc).strip().splitlines() or [""])[0])
+                        continue
+                    payload = {"name": maybe_item.name, "error": f"Ray worker failed: {exc}"}
                 else:
                     submit(worker)  # a live worker takes the next stack at once
+                if maybe_item is None:
+                    continue
+                item = maybe_item
                 if "result" in payload:  # where the selection and lights came from, as locally
                     payload["result"].input = item.describe_input(worker[1])
                 method = _record(payload, item, out_for, overwrite, inputs, summary, on_result)
@@ -383,6 +401,15 @@ def run_batch_ray(
                 summary.wall_s = time.perf_counter() - start
                 if summary_dir is not None:
                     summary.write(summary_dir)
+                bar.update(1)
+            # every worker failed (dead nodes, model load errors): the stacks left are listed as
+            # not run, not dropped from the summary
+            last = f"; the last that could not start: {failed_starts[-1]}" if failed_starts else ""
+            why = f" (all {len(actors)} failed{last})"
+            while todo:
+                item = todo.pop()
+                left = {"name": item.name, "error": f"not run: no Ray worker left{why}"}
+                _record(left, item, out_for, overwrite, inputs, summary, on_result)
                 bar.update(1)
             summary.wall_s = time.perf_counter() - start
         finally:
