@@ -263,7 +263,9 @@ class _FakeRay:
 
         return lambda cls: ActorClass()
 
-    def wait(self, refs: list[_FakeRef], num_returns: int) -> tuple[list[_FakeRef], list[_FakeRef]]:
+    def wait(
+        self, refs: list[_FakeRef], num_returns: int, timeout: float | None = None
+    ) -> tuple[list[_FakeRef], list[_FakeRef]]:
         return refs[:num_returns], refs[num_returns:]
 
     def get(self, ref: _FakeRef) -> dict[str, object]:
@@ -407,7 +409,9 @@ class _BusyRay(_FakeRay):
     """The first worker never starts (its node's CPUs are held by another job): its start
     never answers, and waiting on it alone would never return."""
 
-    def wait(self, refs: list[_FakeRef], num_returns: int) -> tuple[list[_FakeRef], list[_FakeRef]]:
+    def wait(
+        self, refs: list[_FakeRef], num_returns: int, timeout: float | None = None
+    ) -> tuple[list[_FakeRef], list[_FakeRef]]:
         pending = self.actors[0].ready_ref
         ready = [r for r in refs if r is not pending]
         assert ready, "the batch waits on a worker that never starts: it would hang"
@@ -426,3 +430,55 @@ def test_a_worker_that_never_starts_is_given_no_stack(
     assert summary.workers == 2 and len(summary.rows) == 4
     # all four ran on the worker that started (n1), none waits on the one that did not
     assert {r.worker for r in summary.rows} == {"n1"}
+
+
+class _SlowStartRay(_FakeRay):
+    """No worker starts within the first timed wait (their CPUs are held elsewhere); then
+    they do. Records the timeouts the batch waited with."""
+
+    def __init__(self, cpus: list[float]) -> None:
+        super().__init__(cpus)
+        self.timeouts: list[float | None] = []
+
+    def wait(
+        self, refs: list[_FakeRef], num_returns: int, timeout: float | None = None
+    ) -> tuple[list[_FakeRef], list[_FakeRef]]:
+        self.timeouts.append(timeout)
+        if timeout is not None and len(self.timeouts) == 1:
+            return [], refs  # timed out: nothing started
+        return refs[:num_returns], refs[num_returns:]
+
+
+def test_a_batch_whose_workers_do_not_start_says_so_once_and_goes_on(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    fake = _SlowStartRay([2.0])
+    monkeypatch.setattr(ray_cluster, "import_ray", lambda: fake)
+    notes: list[str] = []
+    spec = ModelSpec.of(ModelOptions(method="l2", threads=1))
+    summary = ray_cluster.run_batch_ray(
+        spec,
+        _items(tmp_path, 3),
+        LoadOptions(),
+        lambda n: None,
+        progress=False,
+        on_note=notes.append,
+    )
+    assert len(summary.rows) == 3 and len(fake.seen) == 3  # every stack ran after the wait
+    assert len(notes) == 1 and "\n" not in notes[0]
+    assert notes[0].startswith("no Ray worker of 2 has started after 60 s")
+    assert fake.timeouts[0] == ray_cluster.STALL_NOTE_S
+    # once noted (or once a worker has started) the batch waits without a timeout
+    assert all(t is None for t in fake.timeouts[1:])
+
+
+def test_without_a_listener_the_batch_never_times_its_waits(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    fake = _SlowStartRay([2.0])
+    monkeypatch.setattr(ray_cluster, "import_ray", lambda: fake)
+    spec = ModelSpec.of(ModelOptions(method="l2", threads=1))
+    ray_cluster.run_batch_ray(
+        spec, _items(tmp_path, 2), LoadOptions(), lambda n: None, progress=False
+    )
+    assert fake.timeouts and all(t is None for t in fake.timeouts)

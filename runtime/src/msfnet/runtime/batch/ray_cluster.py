@@ -50,6 +50,9 @@ if TYPE_CHECKING:
 # DiLiGenT object (96 lights, 612 x 512) peaks at 1.0-1.3 GiB at the default budget
 # (docs/benchmark.md), and within 1 GiB it still runs, in smaller tiles.
 WORKER_MEMORY_MB = 1024
+# Seconds without any worker started before the batch says why it waits: a worker starts once
+# Ray has its CPUs, which another job may hold for as long as it runs.
+STALL_NOTE_S = 60.0
 
 
 def import_ray() -> Any:
@@ -303,10 +306,13 @@ def run_batch_ray(
     on_result: OnResult | None = None,
     progress: bool | None = None,
     inputs: tuple[Path, ...] = (),
+    on_note: Callable[[str], None] | None = None,
 ) -> BatchSummary:
     """Run the batch on Ray: ``address`` as ``ray.init`` takes it (None: $RAY_ADDRESS, else a
     local instance; "auto": a running cluster; "ray://head:10001": a remote one). A Ray
-    session already initialised by the caller is used as it is and left running."""
+    session already initialised by the caller is used as it is and left running.
+    ``on_note``: called with one line, once, when no worker has started after STALL_NOTE_S
+    seconds (the batch goes on waiting)."""
     from tqdm import tqdm
 
     ray = import_ray()
@@ -354,6 +360,7 @@ def run_batch_ray(
         # job on its node) would hold its stack, and the batch, forever
         in_flight: dict[Any, tuple[tuple[Any, LoadOptions], BatchItem | None]] = {}
         failed_starts: list[str] = []
+        worker_up = noted = False
 
         def submit(worker: tuple[Any, LoadOptions]) -> None:
             if todo:
@@ -379,7 +386,19 @@ def run_batch_ray(
         try:
             # done when no stack is left or running; workers that never started are not waited on
             while in_flight and (todo or stacks_in_flight()):
-                done, _ = ray.wait(list(in_flight), num_returns=1)
+                quiet = worker_up or noted or on_note is None
+                done, _ = ray.wait(
+                    list(in_flight), num_returns=1, timeout=None if quiet else STALL_NOTE_S
+                )
+                if not done:  # only with a timeout: no worker has started yet
+                    noted = True
+                    if on_note is not None:
+                        on_note(
+                            f"no Ray worker of {len(actors)} has started after "
+                            f"{STALL_NOTE_S:.0f} s: the CPUs they need ({threads} each) may be "
+                            "held by other jobs; still waiting (Ctrl-C stops)"
+                        )
+                    continue
                 worker, maybe_item = in_flight.pop(done[0])
                 try:
                     payload = ray.get(done[0])
@@ -389,6 +408,7 @@ def run_batch_ray(
                         continue
                     payload = {"name": maybe_item.name, "error": f"Ray worker failed: {exc}"}
                 else:
+                    worker_up = worker_up or maybe_item is None
                     submit(worker)  # a live worker takes the next stack at once
                 if maybe_item is None:
                     continue

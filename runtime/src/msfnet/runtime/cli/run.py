@@ -247,6 +247,10 @@ def _warn_without_figures(req: RunRequest) -> None:
         tqdm.write(f"{PROG}: warning: {pictures.missing_note()}", file=sys.stderr)
 
 
+def _warn(line: str) -> None:
+    tqdm.write(f"{PROG}: warning: {line}", file=sys.stderr)
+
+
 def _terminal() -> bool:
     return sys.stderr.isatty()
 
@@ -397,6 +401,7 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
             on_result=report,
             progress=progress,
             inputs=tuple(load.inputs()),
+            on_note=None if req.quiet else _warn,
         )
     else:
         summary = run_batch(
