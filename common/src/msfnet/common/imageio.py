@@ -298,12 +298,6 @@ def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
         ) from exc
 
 
-def check_image_size(path: str | Path, shape: tuple[int, int], what: str = "image") -> None:
-    """Refuse, from the header alone, an image whose size is not ``shape`` (H, W): a mask or a
-    ground-truth PNG is compared with the stack before it is decoded."""
-    _same_size(image_header(path), shape, what, Path(path))
-
-
 def _same_size(header: ImageHeader | None, shape: tuple[int, int], what: str, path: Path) -> None:
     if header is not None and header.shape != tuple(shape):
         raise InputError(
