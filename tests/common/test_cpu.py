@@ -166,3 +166,32 @@ def test_no_home_and_odd_cache_files_only_cost_the_probe(
     assert files.written_outputs() == []  # a cache, never reported as a command's output
     info = cpu_mod._read_cache(path)
     assert info is not None and info.features() == ["avx2"]
+
+
+@pytest.mark.parametrize(
+    ("name", "features"),
+    [
+        ("avx2", ["avx2"]),
+        ("avx2_vnni", ["avx2", "avx_vnni"]),
+        ("avx512_vnni", ["avx2", "avx512f", "avx512_vnni"]),
+    ],
+)
+def test_a_proxy_class_shows_only_its_features(name: str, features: list[str]) -> None:
+    real = CpuInfo.from_flags(SAPPHIRE, model="Xeon", vendor="GenuineIntel", cores=2)
+    shown = cpu_mod.as_proxy(real, name)
+    assert shown.features() == features
+    assert not shown.has_bf16 and not shown.has_amx
+    assert shown.model == f"Xeon, as {name} (cpuid proxy)"  # every figure names the proxy
+    assert not any(f.startswith("amx") for f in shown.all_flags)
+    assert {"fpu", "sse4_2", "fma"} <= shown.all_flags  # older extensions stay
+
+
+def test_the_proxy_variable_alone_changes_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    # without the cpuid library the libraries see the whole CPU, so detection must too
+    monkeypatch.setenv(cpu_mod.PROXY_ENV, "avx2")
+    monkeypatch.delenv("LD_PRELOAD", raising=False)
+    assert cpu_mod.proxy_class() is None
+    monkeypatch.setenv("LD_PRELOAD", "/x/cpuid_mask-0123.so")
+    assert cpu_mod.proxy_class() == "avx2"
+    monkeypatch.setenv(cpu_mod.PROXY_ENV, "avx9000")
+    assert cpu_mod.proxy_class() is None

@@ -47,7 +47,7 @@ from msfnet.common.cli import (
     positive_float,
     thread_count,
 )
-from msfnet.common.cpu import detect_cpu
+from msfnet.common.cpu import PROXY_CLASSES, detect_cpu, proxy_class
 from msfnet.common.errors import InputError
 from msfnet.common.files import (
     check_output,
@@ -172,6 +172,15 @@ run, never cached between runs, so a report always measures the models it holds.
         type=thread_counts,
         default=[2, 1],
         help="thread counts, comma-separated (default 2,1)",
+    )
+    p.add_argument(
+        "--cpu-proxy",
+        choices=sorted(PROXY_CLASSES),
+        default=None,
+        help="run as if on a smaller x86 CPU class: cpuid masked for every library of the "
+        "run (numpy, ONNX Runtime, OpenVINO, torch) through Linux's CPUID faulting and a small "
+        "library built with the system C compiler (msfnet.bench.cpu_proxy). A proxy: caches, "
+        "clocks and cores stay this machine's, and the report names the class",
     )
     p.add_argument(
         "--max-memory",
@@ -790,12 +799,20 @@ def _run_edge(args: argparse.Namespace) -> int:
     return 0
 
 
-def _body(args: argparse.Namespace) -> int:
+def _body(args: argparse.Namespace, argv: list[str]) -> int:
+    if args.cpu_proxy is not None and proxy_class() != args.cpu_proxy:
+        from msfnet.bench.cpu_proxy import exec_under, library
+
+        library()  # where no proxy can run, the one-line refusal comes before anything else
+        print(f"{PROG}: running as {args.cpu_proxy} (cpuid proxy)", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        exec_under(args.cpu_proxy, [sys.executable, "-m", "msfnet.bench.cli", *argv])
     return _run_edge(args) if _edge_mode(args) else _run(args)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), _body, argv)
+    given = list(sys.argv[1:] if argv is None else argv)
+    return command_main(PROG, build_parser(), lambda args: _body(args, given), argv)
 
 
 __all__ = [

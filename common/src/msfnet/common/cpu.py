@@ -26,6 +26,20 @@ from msfnet.common.errors import InputError
 # The features that matter here, under the names Linux's /proc/cpuinfo uses.
 FEATURES = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "avx_vnni")
 
+# The smaller CPU classes a proxy run poses as (msfnet.bench.cpu_proxy masks cpuid for every
+# library of the process), each with the flags of the newer extensions it keeps. The
+# environment variable names the class; the cpuid library reads the same one.
+PROXY_ENV = "MSFNET_CPU_PROXY"
+PROXY_CLASSES: dict[str, frozenset[str]] = {
+    "avx2": frozenset({"avx2"}),  # AMD Zen 2/3, Intel Core before Alder Lake, Atom / N100
+    "avx2_vnni": frozenset({"avx2", "avx_vnni"}),  # Intel Alder Lake and later client cores
+    "avx512_vnni": frozenset(  # Intel Cascade Lake Xeons
+        {"avx2", "avx512f", "avx512dq", "avx512cd", "avx512bw", "avx512vl", "avx512_vnni"}
+    ),
+}
+# Flags a proxy class drops unless it keeps them (prefixes, /proc/cpuinfo spelling)
+_PROXY_DROPPED = ("avx512", "amx", "avx_vnni", "avx_ifma", "avx_ne_convert", "avx10")
+
 
 def _norm(flag: str) -> str:
     # py-cpuinfo spells some flags both ways ("avx512vnni" and "avx512_vnni"): compare without "_"
@@ -221,9 +235,42 @@ def _write_cache(path: Path, info: CpuInfo) -> None:
         pass  # only costs the probe next time
 
 
+def proxy_class() -> str | None:
+    """The class this process poses as: named in PROXY_ENV with the cpuid library loaded (the
+    variable alone changes nothing the libraries see, so it changes nothing here either)."""
+    name = os.environ.get(PROXY_ENV)
+    loaded = "cpuid_mask" in os.environ.get("LD_PRELOAD", "")
+    return name if name in PROXY_CLASSES and loaded else None
+
+
+def as_proxy(info: CpuInfo, name: str) -> CpuInfo:
+    """``info`` as the proxy class ``name`` shows it: the features it lacks removed, and the
+    model says it is a proxy (every figure states the CPU it ran on)."""
+    keep = PROXY_CLASSES[name]
+    flags = [
+        f
+        for f in info.all_flags
+        if not f.startswith(_PROXY_DROPPED) or any(_norm(f) == _norm(k) for k in keep)
+    ]
+    return CpuInfo.from_flags(
+        flags,
+        model=f"{info.model}, as {name} (cpuid proxy)",
+        vendor=info.vendor,
+        cores=info.cores,
+        source=info.source,
+    )
+
+
 @functools.lru_cache(maxsize=1)
 def detect_cpu() -> CpuInfo:
-    """This machine's CpuInfo, computed once per process and kept per boot on disk."""
+    """This machine's CpuInfo (as a proxy class shows it, under one), computed once per process
+    and kept per boot on disk."""
+    info = _detect()
+    name = proxy_class()
+    return info if name is None else as_proxy(info, name)
+
+
+def _detect() -> CpuInfo:
     cache = cache_path()
     cached = _read_cache(cache) if cache is not None else None
     if cached is not None:
@@ -249,9 +296,13 @@ def detect_cpu() -> CpuInfo:
 __all__ = [
     "FEATURES",
     "MAX_THREADS",
+    "PROXY_CLASSES",
+    "PROXY_ENV",
     "CpuInfo",
+    "as_proxy",
     "cache_path",
     "check_threads",
     "detect_cpu",
+    "proxy_class",
     "usable_cores",
 ]

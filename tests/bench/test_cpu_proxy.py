@@ -1,0 +1,102 @@
+"""The CPU-class proxy (bench/cpu_proxy.py, cpuid_mask.c): a run under it sees the smaller
+class in every library, real faults still crash, and where no proxy can run it says why."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from msfnet.bench import cpu_proxy
+from msfnet.bench.cli import main as bench_main
+from msfnet.common.errors import InputError
+
+REASON = cpu_proxy.unavailable_reason()
+needs_proxy = pytest.mark.skipif(REASON is not None, reason=f"no CPU proxy here: {REASON}")
+
+# What numpy, msfnet's detection and OpenVINO's CPU plugin see, one line of JSON
+PROBE = """
+import json
+from numpy._core._multiarray_umath import __cpu_features__ as f
+from msfnet.common.cpu import detect_cpu
+import openvino
+caps = openvino.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+cpu = detect_cpu()
+print(json.dumps({"numpy_avx2": f["AVX2"], "numpy_avx512f": f["AVX512F"],
+                  "numpy_vnni": f["AVX512VNNI"], "features": cpu.features(),
+                  "model": cpu.model, "ov_bf16": "BF16" in caps}))
+"""
+
+
+def _run(cls: str, code: str, tmp_path: Path) -> subprocess.CompletedProcess[str]:
+    env = cpu_proxy.proxy_env(cls)
+    env["XDG_CACHE_HOME"] = str(tmp_path)  # a fresh detection, not this boot's kept answer
+    return subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+
+
+@needs_proxy
+@pytest.mark.parametrize(
+    ("cls", "avx512f", "vnni", "features"),
+    [
+        ("avx2", False, False, ["avx2"]),
+        ("avx512_vnni", True, True, ["avx2", "avx512f", "avx512_vnni"]),
+    ],
+)
+def test_every_library_sees_the_class(
+    cls: str, avx512f: bool, vnni: bool, features: list[str], tmp_path: Path
+) -> None:
+    import json
+
+    done = _run(cls, PROBE, tmp_path)
+    assert done.returncode == 0, done.stderr
+    seen = json.loads(done.stdout.strip().splitlines()[-1])
+    assert seen["numpy_avx2"] is True
+    assert (seen["numpy_avx512f"], seen["numpy_vnni"]) == (avx512f, vnni)
+    assert seen["features"] == features
+    assert seen["model"].endswith(f"as {cls} (cpuid proxy)")
+    assert seen["ov_bf16"] is False
+
+
+@needs_proxy
+def test_a_real_fault_still_reaches_the_programs_handler(tmp_path: Path) -> None:
+    # faulthandler installs its own SIGSEGV handler after the proxy's: a real fault must still
+    # reach it (traceback printed) and kill the process as without the proxy
+    code = "import faulthandler, ctypes; faulthandler.enable(); ctypes.string_at(0)"
+    done = _run("avx2", code, tmp_path)
+    assert done.returncode == -11
+    assert "Segmentation fault" in done.stderr
+
+
+@needs_proxy
+def test_the_library_is_built_once_into_the_cache(tmp_path: Path) -> None:
+    lib = cpu_proxy.library(tmp_path)
+    assert lib.is_file() and lib.parent == tmp_path
+    stamp = lib.stat().st_mtime_ns
+    assert cpu_proxy.library(tmp_path) == lib and lib.stat().st_mtime_ns == stamp
+    assert [p.name for p in tmp_path.iterdir()] == [lib.name]  # no staging or source left
+
+
+def test_an_unknown_class_is_refused() -> None:
+    with pytest.raises(InputError, match="expected one of avx2, avx2_vnni, avx512_vnni"):
+        cpu_proxy.proxy_env("avx9000")
+
+
+def test_msf_bench_says_why_no_proxy_can_run(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(cpu_proxy, "unavailable_reason", lambda: "no CPUID faulting (test)")
+    monkeypatch.delenv("LD_PRELOAD", raising=False)
+    assert bench_main(["--cpu-proxy", "avx2", "--quick"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "msf-bench: error: --cpu-proxy: no CPUID faulting (test)"
+
+
+def test_the_runner_needs_a_command(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cpu_proxy.main(["avx2"])
+    assert exc.value.code == 2
+    assert "give a command after --" in capsys.readouterr().err
