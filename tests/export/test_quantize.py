@@ -11,9 +11,16 @@ from _runtime_helpers import as_float32
 
 from msfnet.export.pipeline import export_variant
 from msfnet.export.quantize import (
+    MANY_LIGHTS,
+    RENDERED_CALIB_LIGHTS,
+    RENDERED_CALIB_OBJECTS,
+    activation_inputs,
+    activation_ranges,
     calibration_samples,
     calibration_tiles,
+    set_activation_ranges,
     tile_origins,
+    with_many_light_stacks,
 )
 from msfnet.export.variants import ExportOptions
 from msfnet.model.checkpoint import save_checkpoint
@@ -138,3 +145,113 @@ def test_int8_of_the_trained_model_stays_within_half_a_degree(tmp_path, ball_dir
     d = angular_error_deg(out, ref)[crop.mask]
     print(f"int8 vs fp32 on a ballPNG crop: mean {d.mean():.3f} deg, max {d.max():.2f}")
     assert d.mean() < 0.5
+
+
+def test_many_light_stacks_are_added_only_when_missing(ball_dir):
+    """Calibration must see many-light activations (they reach 2-3x further than few-light
+    ones): rendered 96-light objects join stacks that lack them, the same ones every time."""
+    few = load_stack(ball_dir, max_lights=12)
+    got = with_many_light_stacks([few])
+    assert got[0] is few and len(got) == 1 + RENDERED_CALIB_OBJECTS
+    assert all(s.num_lights == RENDERED_CALIB_LIGHTS for s in got[1:])
+    again = with_many_light_stacks([few])
+    np.testing.assert_array_equal(got[1].images, again[1].images)  # seeded
+    many = load_stack(ball_dir, max_lights=MANY_LIGHTS)
+    assert with_many_light_stacks([few, many]) == [few, many]
+
+
+def _two_convs() -> onnx.ModelProto:
+    """x (1, 3, 8, 8) -> Conv 3x3 + bias -> LeakyRelu -> Conv 3x3 + bias -> y."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    r = np.random.default_rng(3)
+    inits = [
+        numpy_helper.from_array(r.normal(size=(4, 3, 3, 3)).astype(np.float32), "w1"),
+        numpy_helper.from_array(r.normal(size=4).astype(np.float32), "b1"),
+        numpy_helper.from_array(r.normal(size=(4, 4, 3, 3)).astype(np.float32) / 4, "w2"),
+        numpy_helper.from_array(r.normal(size=4).astype(np.float32), "b2"),
+    ]
+    nodes = [
+        helper.make_node("Conv", ["x", "w1", "b1"], ["c1"], pads=[1, 1, 1, 1]),
+        helper.make_node("LeakyRelu", ["c1"], ["a1"], alpha=0.1),
+        helper.make_node("Conv", ["a1", "w2", "b2"], ["y"], pads=[1, 1, 1, 1]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "two",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, 8, 8])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 4, 8, 8])],
+        inits,
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+
+
+def _int8_convs(model: onnx.ModelProto, tmp_path) -> int:
+    """How many convs ONNX Runtime runs with its int8 kernel (fused QLinearConv)."""
+    options = ort.SessionOptions()
+    options.optimized_model_filepath = str(tmp_path / "optimised.onnx")
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+    ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    return sum(
+        n.op_type == "QLinearConv" for n in onnx.load(options.optimized_model_filepath).graph.node
+    )
+
+
+def test_percentile_ranges_keep_the_int8_kernels(tmp_path):
+    from onnx import numpy_helper
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
+
+    fp32 = _two_convs()
+    r = np.random.default_rng(4)
+    samples = [{"x": r.normal(size=(1, 3, 8, 8)).astype(np.float32)} for _ in range(6)]
+    samples[2]["x"][0, 0, 0, 0] = 40.0  # one extreme value: min/max follows it, a percentile not
+
+    class Reader(CalibrationDataReader):
+        def __init__(self) -> None:
+            self.it = iter(samples)
+
+        def get_next(self):
+            return next(self.it, None)
+
+    onnx.save(fp32, str(tmp_path / "fp32.onnx"))
+    quantize_static(
+        str(tmp_path / "fp32.onnx"),
+        str(tmp_path / "int8.onnx"),
+        Reader(),
+        quant_format=QuantFormat.QDQ,
+        per_channel=True,
+        activation_type=QuantType.QUInt8,  # as the export quantises
+        weight_type=QuantType.QInt8,
+    )
+    q = onnx.load(str(tmp_path / "int8.onnx"))
+    assert _int8_convs(q, tmp_path) == 2
+    # inputs of both convs, and the conv outputs ORT quantises too (the graph output renamed)
+    known = {"x", "c1", "a1", "y"}
+    names = [n for n in activation_inputs(q) if n in known]
+    assert {"x", "a1"} <= set(names)
+    ranges = activation_ranges(fp32, samples, names, percentile=99.0)
+    # against numpy on the same values (each tile's 384 / 256 values, all kept)
+    values = {"x": np.concatenate([s["x"].ravel() for s in samples])}
+    assert ranges["x"][1] == pytest.approx(np.percentile(values["x"], 99.0), rel=0.05)
+    assert ranges["x"][1] < 10.0  # the extreme value is outside the range
+    assert set_activation_ranges(q, ranges, fp32) == len(names)
+    consts = {i.name: numpy_helper.to_array(i) for i in q.graph.initializer}
+    for node in q.graph.node:
+        if node.op_type == "QuantizeLinear" and node.input[0] in ranges:
+            low, high = ranges[node.input[0]]
+            assert float(consts[node.input[1]]) == pytest.approx((high - low) / 255.0, rel=1e-6)
+    # the int32 biases follow the new input scales: still two int8 convs, same bias values
+    assert _int8_convs(q, tmp_path) == 2
+    biases = [n for n in q.graph.node if n.op_type == "DequantizeLinear" and "b" in n.input[0]]
+    for dq, want in zip(sorted(biases, key=lambda n: n.input[0]), ("b1", "b2"), strict=True):
+        got = consts[dq.input[0]].astype(np.float64) * consts[dq.input[1]]
+        np.testing.assert_allclose(
+            got,
+            numpy_helper.to_array(fp32.graph.initializer[["w1", "b1", "w2", "b2"].index(want)]),
+            atol=float(np.max(consts[dq.input[1]])) / 2 + 1e-7,  # half a step of the new scale
+        )

@@ -179,9 +179,9 @@ def test_open_engine_needs_a_model() -> None:
 
 def test_engine_override_reason_points_at_the_faster_path() -> None:
     assert "--engine openvino" in choose_engine(FP32, AMX, BOTH, "onnxruntime").reason
-    over = choose_engine(INT8, AMX, BOTH, "openvino").reason  # opt-in path above the bound
-    assert "above the 0.5 deg bound" in over
-    # every int8 path of the current bundled model is above the bound (dispatch.MEASURED)
+    # an int8 export without percentile ranges (made before them) is measured above the bound
+    over = choose_engine(INT8, AMX, BOTH, "openvino").reason
+    assert "above the 0.5 deg bound" in over and "percentile" in over
     assert "above the 0.5 deg bound" in choose_engine(INT8_STAGED, AMX, BOTH, "openvino").reason
     assert "above" not in choose_engine(FP32, AMX, BOTH).reason  # the bf16 default is within
 
@@ -331,3 +331,22 @@ def test_open_engine_bounds_threads_with_the_shared_constant(threads: int) -> No
     choice = dispatch.EngineChoice("onnxruntime", "fp32", "test", Path("missing.onnx"))
     with pytest.raises(InputError, match=rf"--threads must be an integer in 1\.\.{MAX_THREADS}"):
         open_engine(choice, threads)
+
+
+@pytest.mark.parametrize("staged", [False, True])
+@pytest.mark.parametrize("engine", ["onnxruntime", "openvino"])
+def test_an_int8_export_with_percentile_ranges_is_within_the_bound(
+    engine: str, staged: bool
+) -> None:
+    import json
+
+    summary = {"msfnet.quantization": json.dumps({"method": "percentile"})}
+    model = ModelInfo(Path("m.onnx"), 32, 4, None, "int8-qdq", summary, staged=staged)
+    reason = choose_engine(model, AMX, BOTH, engine).reason
+    assert "above" not in reason and "min/max" not in reason
+    assert default_allowed(engine, "int8", staged)
+    for damaged in ("{not json", json.dumps({"method": "minmax"}), json.dumps([1])):
+        old = ModelInfo(
+            Path("m.onnx"), 32, 4, None, "int8-qdq", {"msfnet.quantization": damaged}, staged
+        )
+        assert "above the 0.5 deg bound" in choose_engine(old, AMX, BOTH, engine).reason

@@ -203,7 +203,166 @@ def fp32_conv_names(model: onnx.ModelProto) -> list[str]:
     return [*keep, convs[0]] if convs and convs[0] not in keep else keep
 
 
-CALIBRATION_METHODS = ("minmax", "percentile", "entropy")
+# "percentile" (default): each activation's int8 range from the ACTIVATION_PERCENTILE-th
+# percentile of its values over the calibration tiles (both tails), set by msfnet itself on the
+# min/max-calibrated graph (ONNX Runtime's own percentile and entropy calibrators fail on tiles
+# of different light counts). Stacks of many lights reach activations 2-3x larger than few-light
+# stacks in a few pixels (a highlight normalised against many dark lights) while the bulk does
+# not move (docs/export.md): min/max ranges wide enough for those pixels quantise the bulk of a
+# 12-light stack coarsely (its deviation from fp32 doubled), narrower ones clip them.
+# "minmax": the extremes of the calibration tiles.
+CALIBRATION_METHODS = ("percentile", "minmax")
+ACTIVATION_PERCENTILE = 99.9995
+# Values of one activation per calibration tile that the percentile is taken over (an evenly
+# strided subset: a 96-light tile's activation holds up to 50 M)
+PERCENTILE_SUBSAMPLE = 400_000
+
+# Calibration must see many-light stacks (see above); when no stack given has MANY_LIGHTS, these
+# rendered ones are added (msfnet.synth; seeded, so every export calibrates on the same ones).
+MANY_LIGHTS = 48
+RENDERED_CALIB_OBJECTS = 6
+RENDERED_CALIB_LIGHTS = 96
+RENDERED_CALIB_SIZE = 128
+RENDERED_CALIB_SEED = 101
+
+
+def with_many_light_stacks(stacks: Sequence[Stack]) -> list[Stack]:
+    """``stacks``, plus rendered 96-light objects where none of them has MANY_LIGHTS lights."""
+    if max((s.num_lights for s in stacks), default=0) >= MANY_LIGHTS:
+        return list(stacks)
+    from msfnet.synth.render import SHAPES, RenderOptions, render_set
+
+    options = RenderOptions(size=RENDERED_CALIB_SIZE, lights=RENDERED_CALIB_LIGHTS)
+    rendered = render_set(RENDERED_CALIB_SEED, RENDERED_CALIB_OBJECTS, options, shapes=SHAPES)
+    return [*stacks, *rendered]
+
+
+def activation_inputs(qmodel: onnx.ModelProto) -> list[str]:
+    """The fp32 tensors a QDQ graph quantises that are activations (not weights)."""
+    constants = {i.name for i in qmodel.graph.initializer}
+    names = [
+        n.input[0]
+        for n in qmodel.graph.node
+        if n.op_type == "QuantizeLinear" and n.input[0] not in constants
+    ]
+    return list(dict.fromkeys(names))
+
+
+def _tails(values: np.ndarray, keep: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``keep`` smallest and largest of ``values`` (all of them when fewer)."""
+    if values.size <= 2 * keep:
+        return values, values
+    part = np.partition(values, (keep, values.size - keep - 1))
+    return part[:keep], part[-keep:]
+
+
+def activation_ranges(
+    fp32: onnx.ModelProto,
+    samples: Sequence[dict[str, np.ndarray]],
+    names: Sequence[str],
+    percentile: float = ACTIVATION_PERCENTILE,
+) -> dict[str, tuple[float, float]]:
+    """(low, high) of each tensor ``names`` of the fp32 graph over ``samples``: the
+    ``100 - percentile`` and ``percentile`` percentiles of an evenly strided subset of each
+    tile's values (zero always inside, as the quantiser requires). Only the tails are kept per
+    tile, so memory does not grow with the number of tiles."""
+    import onnxruntime as ort
+
+    if not names:  # (ONNX Runtime would read an empty list of outputs as "all of them")
+        return {}
+    probe = onnx.ModelProto()
+    probe.CopyFrom(fp32)
+    have = {o.name for o in probe.graph.output}
+    for name in names:
+        if name not in have:
+            probe.graph.output.append(onnx.helper.make_empty_tensor_value_info(name))
+    session = ort.InferenceSession(probe.SerializeToString(), providers=["CPUExecutionProvider"])
+    tail = 1.0 - percentile / 100.0
+    keep = int(np.ceil(len(samples) * PERCENTILE_SUBSAMPLE * tail)) + 1
+    lows: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    highs: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    counts = dict.fromkeys(names, 0)
+    for feeds in samples:
+        for name, value in zip(names, session.run(list(names), feeds), strict=True):
+            flat = value.ravel()
+            flat = flat[:: -(-flat.size // PERCENTILE_SUBSAMPLE)]  # at most the subsample
+            low, high = _tails(flat, keep)
+            lows[name].append(low)
+            highs[name].append(high)
+            counts[name] += flat.size
+    out = {}
+    for name in names:
+        rank = min(int(counts[name] * tail), keep - 1)  # values beyond the range, each tail
+        low = np.sort(np.concatenate(lows[name]))[rank]
+        high = np.sort(np.concatenate(highs[name]))[::-1][rank]
+        out[name] = (min(0.0, float(low)), max(0.0, float(high)))
+    return out
+
+
+def set_activation_ranges(
+    qmodel: onnx.ModelProto,
+    ranges: dict[str, tuple[float, float]],
+    fp32: onnx.ModelProto | None = None,
+) -> int:
+    """Give each activation QuantizeLinear of a QDQ graph the range ``ranges`` names for its
+    input (its DequantizeLinear shares the scale and zero point); returns how many changed.
+    The convs' int32 biases are quantised again at their new scale, from the fp32 graph's
+    biases where ``fp32`` is given (else from their old int32 values, one old step coarser)."""
+    from onnx import numpy_helper
+
+    constants = {i.name: i for i in qmodel.graph.initializer}
+    changed = 0
+    for node in qmodel.graph.node:
+        if node.op_type != "QuantizeLinear" or node.input[0] not in ranges:
+            continue
+        low, high = ranges[node.input[0]]
+        scale_t, zero_t = constants[node.input[1]], constants[node.input[2]]
+        kind = numpy_helper.to_array(zero_t).dtype
+        if kind == np.uint8:
+            scale = max(high - low, 1e-12) / 255.0
+            zero = int(np.clip(round(-low / scale), 0, 255))
+        else:  # int8, symmetric
+            scale = max(abs(low), abs(high), 1e-12) / 127.0
+            zero = 0
+        scale_t.CopyFrom(numpy_helper.from_array(np.array(scale, np.float32), scale_t.name))
+        zero_t.CopyFrom(numpy_helper.from_array(np.array(zero, kind), zero_t.name))
+        changed += 1
+    originals = {} if fp32 is None else {i.name: i for i in fp32.graph.initializer}
+    _requantise_biases(qmodel, originals)
+    return changed
+
+
+def _requantise_biases(qmodel: onnx.ModelProto, originals: dict[str, onnx.TensorProto]) -> None:
+    """Keep each quantised Conv's int32 bias at scale = input scale x weight scale: ONNX
+    Runtime fuses DequantizeLinear -> Conv -> QuantizeLinear into its int8 kernel only then (a
+    bias left at the old scale silently runs that conv in fp32, half the speed)."""
+    from onnx import numpy_helper
+
+    constants = {i.name: i for i in qmodel.graph.initializer}
+    dq = {n.output[0]: n for n in qmodel.graph.node if n.op_type == "DequantizeLinear"}
+
+    def array(name: str) -> np.ndarray:
+        return numpy_helper.to_array(constants[name])
+
+    for conv in qmodel.graph.node:
+        if conv.op_type != "Conv" or len(conv.input) < 3:
+            continue
+        x, w, b = (dq.get(conv.input[i]) for i in range(3))
+        if x is None or w is None or b is None or b.input[0] not in constants:
+            continue
+        bias_int = array(b.input[0])
+        if bias_int.dtype != np.int32:
+            continue
+        # ONNX Runtime names a quantised bias "<fp32 name>_quantized"
+        source = originals.get(b.input[0].removesuffix("_quantized"))
+        if source is not None:
+            bias = numpy_helper.to_array(source).astype(np.float64)
+        else:
+            bias = bias_int.astype(np.float64) * array(b.input[1]).astype(np.float64)
+        scale = (array(x.input[1]).astype(np.float64) * array(w.input[1])).astype(np.float32)
+        requantised = np.clip(np.rint(bias / scale), -(2**31), 2**31 - 1).astype(np.int32)
+        for name, value in ((b.input[0], requantised), (b.input[1], scale)):
+            constants[name].CopyFrom(numpy_helper.from_array(value, name))
 
 
 def quantize_model(
@@ -211,7 +370,7 @@ def quantize_model(
     stacks: Sequence[Stack],
     scratch: Path,
     *,
-    method: str = "minmax",
+    method: str = "percentile",
     tile: int = CALIB_TILE,
     lights: int = CALIB_LIGHTS,
     tiles_per_stack: int = CALIB_TILES_PER_STACK,
@@ -223,7 +382,9 @@ def quantize_model(
     ``scratch`` (a private folder the caller removes). The ``quantise-int8`` pass
     (``passes.py``) records the int8 precision and this summary in the metadata.
 
-    method: 'minmax' (default; robust for this ReLU-like network) or 'percentile' / 'entropy'.
+    method: 'percentile' (default) or 'minmax' (see CALIBRATION_METHODS). Stacks with fewer
+    than MANY_LIGHTS lights are calibrated together with rendered many-light objects
+    (``with_many_light_stacks``; named in the summary).
     reduce_range: 7-bit weights; default: where this CPU lacks VNNI (ONNX Runtime's int8
     kernels saturate full-range weights there, so the export's own check could not pass, and
     7-bit weights compute exactly on every CPU; see CpuInfo.int8_full_range). Recorded in the
@@ -237,16 +398,15 @@ def quantize_model(
         quantize_static,
     )
 
-    methods = {
-        "minmax": CalibrationMethod.MinMax,
-        "percentile": CalibrationMethod.Percentile,
-        "entropy": CalibrationMethod.Entropy,
-    }
-    if method not in methods:
-        raise InputError(f"calibration method {method!r}: expected one of {', '.join(methods)}")
+    if method not in CALIBRATION_METHODS:
+        raise InputError(
+            f"calibration method {method!r}: expected one of {', '.join(CALIBRATION_METHODS)}"
+        )
     if any(n.op_type == "ConvTranspose" for n in model.graph.node):
         raise ValueError("rewrite the transposed convolutions first (rewrite.rewrite_deconvs)")
     check_calibration(stacks)
+    given = [s.name for s in stacks]
+    stacks = with_many_light_stacks(stacks)
     if reduce_range is None:
         from msfnet.common.cpu import detect_cpu
 
@@ -285,19 +445,26 @@ def quantize_model(
             activation_type=QuantType.QUInt8,
             weight_type=QuantType.QInt8,
             op_types_to_quantize=QUANT_OPS,
-            calibrate_method=methods[method],
+            calibrate_method=CalibrationMethod.MinMax,  # percentile ranges are set below
             nodes_to_exclude=fp32_conv_names(model),
             reduce_range=reduce_range,
-            extra_options={"CalibPercentile": 99.999} if method == "percentile" else {},
         )
         qmodel = onnx.load(str(dst))
     finally:
         tempfile.tempdir = old_tempdir
         root.setLevel(level)
+    ranged = 0
+    if method == "percentile":
+        known = {o for n in model.graph.node for o in n.output}
+        names = [n for n in activation_inputs(qmodel) if n in known]
+        ranged = set_activation_ranges(qmodel, activation_ranges(model, samples, names), model)
     summary: dict[str, object] = {
         "calibration_samples": len(samples),
-        "calibration_stacks": [s.name for s in stacks],
+        "calibration_stacks": given,
+        "rendered_stacks": len(stacks) - len(given),
         "method": method,
+        "percentile": ACTIVATION_PERCENTILE if method == "percentile" else None,
+        "ranges_from_percentiles": ranged,
         "tile": tile,
         "lights": lights,
         "reduce_range": reduce_range,
