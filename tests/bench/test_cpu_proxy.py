@@ -30,6 +30,12 @@ print(json.dumps({"numpy_avx2": f["AVX2"], "numpy_avx512f": f["AVX512F"],
 """
 
 
+@pytest.fixture(autouse=True)
+def _own_cache(monkeypatch: pytest.MonkeyPatch, tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The library and the CPU detection's kept answer in a test folder, not the user's cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("cache")))
+
+
 def _run(cls: str, code: str, tmp_path: Path) -> subprocess.CompletedProcess[str]:
     env = cpu_proxy.proxy_env(cls)
     env["XDG_CACHE_HOME"] = str(tmp_path)  # a fresh detection, not this boot's kept answer
@@ -59,6 +65,22 @@ def test_every_library_sees_the_class(
     assert seen["features"] == features
     assert seen["model"].endswith(f"as {cls} (cpuid proxy)")
     assert seen["ov_bf16"] is False
+
+
+@needs_proxy
+def test_a_thread_that_blocks_every_signal_survives_cpuid(tmp_path: Path) -> None:
+    # the cpuid answer comes through SIGSEGV: a thread blocking it would be killed by its
+    # first cpuid (numpy's import runs several)
+    code = (
+        "import signal, threading\n"
+        "def work():\n"
+        "    signal.pthread_sigmask(signal.SIG_BLOCK, set(signal.Signals))\n"
+        "    import numpy\n"
+        "    print('ok')\n"
+        "t = threading.Thread(target=work); t.start(); t.join()\n"
+    )
+    done = _run("avx2", code, tmp_path)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr
 
 
 @needs_proxy
@@ -100,3 +122,30 @@ def test_the_runner_needs_a_command(capsys: pytest.CaptureFixture[str]) -> None:
         cpu_proxy.main(["avx2"])
     assert exc.value.code == 2
     assert "give a command after --" in capsys.readouterr().err
+
+
+def test_a_class_the_host_lacks_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(cpu_proxy, "_cpu_flags", lambda: {"avx", "avx2", "fma"})
+    with pytest.raises(InputError, match="this CPU lacks avx512_vnni, avx512f"):
+        cpu_proxy.proxy_env("avx512_vnni")
+
+
+@needs_proxy
+def test_a_library_path_ld_preload_cannot_take_is_refused(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # the loader would ignore it and the run would measure the whole CPU under the proxy's name
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "with space"))
+    with pytest.raises(InputError, match="space or colon"):
+        cpu_proxy.proxy_env("avx2")
+
+
+@needs_proxy
+def test_a_library_that_does_not_load_is_caught(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    broken = tmp_path / "cpuid_mask-broken.so"
+    broken.write_bytes(b"not a shared object")
+    monkeypatch.setattr(cpu_proxy, "library", lambda cache=None: broken)
+    with pytest.raises(InputError, match="the cpuid library did not load"):
+        cpu_proxy.proxy_env("avx2")

@@ -192,6 +192,9 @@ def test_the_proxy_variable_alone_changes_nothing(monkeypatch: pytest.MonkeyPatc
     monkeypatch.delenv("LD_PRELOAD", raising=False)
     assert cpu_mod.proxy_class() is None
     monkeypatch.setenv("LD_PRELOAD", "/x/cpuid_mask-0123.so")
+    # named but not loaded (the loader skips a preload it cannot open): still the whole CPU
+    assert cpu_mod.proxy_class() is None
+    monkeypatch.setattr(cpu_mod, "_cpuid_library_mapped", lambda: True)
     assert cpu_mod.proxy_class() == "avx2"
     monkeypatch.setenv(cpu_mod.PROXY_ENV, "avx9000")
     assert cpu_mod.proxy_class() is None

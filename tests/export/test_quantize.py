@@ -255,3 +255,20 @@ def test_percentile_ranges_keep_the_int8_kernels(tmp_path):
             numpy_helper.to_array(fp32.graph.initializer[["w1", "b1", "w2", "b2"].index(want)]),
             atol=float(np.max(consts[dq.input[1]])) / 2 + 1e-7,  # half a step of the new scale
         )
+
+
+def test_percentile_ranges_see_every_column_of_a_subsampled_tensor(monkeypatch):
+    """A tile's values are drawn at random when there are more than the subsample: an evenly
+    strided draw lined up with the rows and read only a few columns (review, 2026-12-02)."""
+    import msfnet.export.quantize as quantize
+
+    monkeypatch.setattr(quantize, "PERCENTILE_SUBSAMPLE", 100)  # of 192 values a tile
+    r = np.random.default_rng(5)
+    samples = []
+    for _ in range(6):
+        x = (0.1 * r.normal(size=(1, 3, 8, 8))).astype(np.float32)
+        x[..., 3] = 5.0  # one column in eight: 12.5 % of the values
+        samples.append({"x": x})
+    low, high = activation_ranges(_two_convs(), samples, ["x"], percentile=95.0)["x"]
+    assert high == pytest.approx(5.0, abs=1e-6)
+    assert -0.5 < low < 0.0

@@ -340,12 +340,22 @@ def test_an_int8_export_with_percentile_ranges_is_within_the_bound(
 ) -> None:
     import json
 
-    summary = {"msfnet.quantization": json.dumps({"method": "percentile"})}
+    summary = {
+        "msfnet.quantization": json.dumps({"method": "percentile", "ranges_from_percentiles": 24})
+    }
     model = ModelInfo(Path("m.onnx"), 32, 4, None, "int8-qdq", summary, staged=staged)
     reason = choose_engine(model, AMX, BOTH, engine).reason
     assert "above" not in reason and "min/max" not in reason
     assert default_allowed(engine, "int8", staged)
-    for damaged in ("{not json", json.dumps({"method": "minmax"}), json.dumps([1])):
+    # older exports (min/max ranges; ORT's own percentile calibrator also wrote "percentile")
+    # and damaged metadata, nested deep enough to stop json too
+    for damaged in (
+        "{not json",
+        json.dumps({"method": "minmax"}),
+        json.dumps({"method": "percentile"}),
+        json.dumps([1]),
+        "[" * 100_000,
+    ):
         old = ModelInfo(
             Path("m.onnx"), 32, 4, None, "int8-qdq", {"msfnet.quantization": damaged}, staged
         )

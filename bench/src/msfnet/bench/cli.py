@@ -801,12 +801,14 @@ def _run_edge(args: argparse.Namespace) -> int:
 
 def _body(args: argparse.Namespace, argv: list[str]) -> int:
     if args.cpu_proxy is not None and proxy_class() != args.cpu_proxy:
-        from msfnet.bench.cpu_proxy import exec_under, library
+        import os
 
-        library()  # where no proxy can run, the one-line refusal comes before anything else
+        from msfnet.bench.cpu_proxy import proxy_env
+
+        env = proxy_env(args.cpu_proxy)  # where no proxy can run: one line, before anything
         print(f"{PROG}: running as {args.cpu_proxy} (cpuid proxy)", file=sys.stderr, flush=True)
         sys.stdout.flush()
-        exec_under(args.cpu_proxy, [sys.executable, "-m", "msfnet.bench.cli", *argv])
+        os.execvpe(sys.executable, [sys.executable, "-m", "msfnet.bench.cli", *argv], env)
     return _run_edge(args) if _edge_mode(args) else _run(args)
 
 

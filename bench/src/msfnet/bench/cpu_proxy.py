@@ -8,8 +8,12 @@ themselves, so a same-run comparison of the two engines could not be capped. Thi
 ``cpuid_mask.c`` (a small LD_PRELOAD library, compiled once per source version into the user's
 cache with the system C compiler) that makes ``cpuid`` trap through Linux's CPUID faulting and
 answers it with the class's feature bits, so every library of the process and of its children
-sees the same smaller CPU. Still a proxy: caches, clocks and cores are this machine's, and every
-figure measured under it says so (``CpuInfo.model`` names the class).
+that reads cpuid once loaded (numpy, ONNX Runtime, OpenVINO, torch) sees the same smaller CPU;
+glibc's string routines, chosen by the loader before, keep the real CPU's. Still a proxy:
+caches, clocks and cores are this machine's, and every figure measured under it says so
+(``CpuInfo.model`` names the class). ``proxy_env`` checks in a probe process that the library
+really loaded (the loader skips a preload it cannot open, silently) and that the host has the
+features the class keeps.
 
 ``python -m msfnet.bench.cpu_proxy avx2 -- msf-run ...`` runs any command under a class;
 ``msf-bench --cpu-proxy avx2`` runs the benchmark under one.
@@ -24,7 +28,7 @@ import platform
 import shutil
 import subprocess
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 
@@ -105,24 +109,47 @@ def library(cache: Path | None = None) -> Path:
     return write_atomic(lib, build, output=False)
 
 
+# A proxy removes features; the host must have the ones the class keeps (/proc/cpuinfo names)
+_HOST_NEEDS = {
+    "avx2": {"avx2"},
+    "avx2_vnni": {"avx2", "avx_vnni"},
+    "avx512_vnni": {"avx2", "avx512f", "avx512_vnni"},
+}
+# Run under the proxy: what this package's detection then reports (proves the preload worked)
+_PROBE = "from msfnet.common.cpu import proxy_class; print(proxy_class())"
+
+
 def proxy_env(cpu_class: str, env: Mapping[str, str] | None = None) -> dict[str, str]:
-    """``env`` (default: this process's) with the library preloaded and the class set."""
+    """``env`` (default: this process's) with the library preloaded and the class set, checked
+    by a short probe process: a preload the loader ignores would measure the whole CPU under
+    the proxy's name."""
     if cpu_class not in PROXY_CLASSES:
         raise InputError(
             f"--cpu-proxy {cpu_class}: expected one of {', '.join(sorted(PROXY_CLASSES))}"
         )
+    missing = _HOST_NEEDS[cpu_class] - _cpu_flags()
+    if missing:
+        raise InputError(
+            f"--cpu-proxy {cpu_class}: this CPU lacks {', '.join(sorted(missing))}; a proxy "
+            "can only remove features"
+        )
     out = dict(os.environ if env is None else env)
-    preload = [p for p in out.get("LD_PRELOAD", "").split() if p]
     lib = str(library())
+    if any(c.isspace() or c == ":" for c in lib):  # LD_PRELOAD's separators
+        raise InputError(
+            f"--cpu-proxy: the library's path {lib!r} holds a space or colon, which LD_PRELOAD "
+            "cannot take; set XDG_CACHE_HOME to a folder without"
+        )
+    preload = [p for p in out.get("LD_PRELOAD", "").replace(":", " ").split() if p]
     out["LD_PRELOAD"] = " ".join([lib, *[p for p in preload if p != lib]])
     out[PROXY_ENV] = cpu_class
+    probe = subprocess.run(
+        [sys.executable, "-c", _PROBE], env=out, capture_output=True, text=True, timeout=120
+    )
+    if probe.stdout.strip() != cpu_class:
+        last = (probe.stderr.strip().splitlines() or ["no message"])[-1]
+        raise InputError(f"--cpu-proxy {cpu_class}: the cpuid library did not load ({last})")
     return out
-
-
-def exec_under(cpu_class: str, argv: Sequence[str]) -> None:
-    """Replace this process by ``argv`` run under ``cpu_class`` (does not return)."""
-    env = proxy_env(cpu_class)
-    os.execvpe(argv[0], list(argv), env)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -139,10 +166,12 @@ def main(argv: list[str] | None = None) -> int:
     if not command:
         parser.error("give a command after --")
     try:
-        exec_under(args.cpu_class, command)
-    except InputError as exc:
+        env = proxy_env(args.cpu_class)
+    except (InputError, OSError) as exc:  # the library's build or its cache folder
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 2
+    try:
+        os.execvpe(command[0], command, env)
     except OSError as exc:
         print(f"{parser.prog}: error: {command[0]}: {exc.strerror}", file=sys.stderr)
         return 2

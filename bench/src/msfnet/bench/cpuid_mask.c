@@ -10,7 +10,12 @@
  *
  * Other code may install its own SIGSEGV handler (Python's faulthandler does): sigaction() and
  * signal() are wrapped so that such a handler is kept aside and called for real faults, while
- * this one stays in place for cpuid.
+ * this one stays in place for cpuid. A thread that blocks every signal would die at its first
+ * cpuid, so sigprocmask() and pthread_sigmask() never block SIGSEGV. The handler runs on the
+ * alternate stack where one is set (a stack overflow still reaches faulthandler).
+ *
+ * Not covered: the dynamic loader reads cpuid before this library loads, so glibc's own string
+ * routines keep the variants of the real CPU (they are no part of what is measured here).
  */
 #define _GNU_SOURCE
 #include <asm/prctl.h>
@@ -28,6 +33,7 @@ enum proxy_class { FULL, AVX2_ONLY, AVX2_VNNI, AVX512_VNNI };
 static enum proxy_class proxy = FULL;
 
 typedef int (*sigaction_fn)(int, const struct sigaction *, struct sigaction *);
+typedef int (*sigmask_fn)(int, const sigset_t *, sigset_t *);
 static sigaction_fn real_sigaction;
 static struct sigaction chained; /* the handler other code asked for (SIG_DFL until then) */
 
@@ -97,6 +103,26 @@ int sigaction(int sig, const struct sigaction *act, struct sigaction *old) {
     return 0;
 }
 
+/* Blocking SIGSEGV would turn the next cpuid into a kill: it stays deliverable */
+static int masked(sigmask_fn real, int how, const sigset_t *set, sigset_t *old) {
+    if (proxy == FULL || set == NULL || how == SIG_UNBLOCK) return real(how, set, old);
+    sigset_t copy = *set;
+    sigdelset(&copy, SIGSEGV);
+    return real(how, &copy, old);
+}
+
+int sigprocmask(int how, const sigset_t *set, sigset_t *old) {
+    static sigmask_fn real;
+    if (!real) real = (sigmask_fn)dlsym(RTLD_NEXT, "sigprocmask");
+    return masked(real, how, set, old);
+}
+
+int pthread_sigmask(int how, const sigset_t *set, sigset_t *old) {
+    static sigmask_fn real;
+    if (!real) real = (sigmask_fn)dlsym(RTLD_NEXT, "pthread_sigmask");
+    return masked(real, how, set, old);
+}
+
 sighandler_t signal(int sig, sighandler_t handler) {
     struct sigaction act, old;
     memset(&act, 0, sizeof act);
@@ -122,7 +148,7 @@ __attribute__((constructor)) static void install(void) {
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
     sa.sa_sigaction = on_segv;
-    sa.sa_flags = SA_SIGINFO | SA_NODEFER;
+    sa.sa_flags = SA_SIGINFO | SA_NODEFER | SA_ONSTACK;
     real_sigaction(SIGSEGV, &sa, NULL);
     if (syscall(SYS_arch_prctl, ARCH_SET_CPUID, 0) != 0) {
         perror("cpuid_mask: arch_prctl(ARCH_SET_CPUID)");

@@ -235,12 +235,22 @@ def _write_cache(path: Path, info: CpuInfo) -> None:
         pass  # only costs the probe next time
 
 
+def _cpuid_library_mapped(maps: Path = Path("/proc/self/maps")) -> bool:
+    """Whether the cpuid library is in this process (the loader ignores a preload it cannot
+    open, so LD_PRELOAD naming it proves nothing)."""
+    try:
+        return "cpuid_mask-" in maps.read_text()
+    except OSError:
+        return False
+
+
 def proxy_class() -> str | None:
     """The class this process poses as: named in PROXY_ENV with the cpuid library loaded (the
     variable alone changes nothing the libraries see, so it changes nothing here either)."""
     name = os.environ.get(PROXY_ENV)
-    loaded = "cpuid_mask" in os.environ.get("LD_PRELOAD", "")
-    return name if name in PROXY_CLASSES and loaded else None
+    if name not in PROXY_CLASSES or "cpuid_mask" not in os.environ.get("LD_PRELOAD", ""):
+        return None
+    return name if _cpuid_library_mapped() else None
 
 
 def as_proxy(info: CpuInfo, name: str) -> CpuInfo:

@@ -213,9 +213,12 @@ def fp32_conv_names(model: onnx.ModelProto) -> list[str]:
 # "minmax": the extremes of the calibration tiles.
 CALIBRATION_METHODS = ("percentile", "minmax")
 ACTIVATION_PERCENTILE = 99.9995
-# Values of one activation per calibration tile that the percentile is taken over (an evenly
-# strided subset: a 96-light tile's activation holds up to 50 M)
+# Values of one activation per calibration tile that the percentile is taken over: a seeded
+# random draw (a 96-light tile's activation holds up to 50 M values; an evenly strided subset
+# lines up with the tile's rows and reads only a few columns)
 PERCENTILE_SUBSAMPLE = 400_000
+# Activations fetched per pass over a tile: each is up to 200 MB at 96 lights (64 px tiles)
+RANGES_PER_PASS = 4
 
 # Calibration must see many-light stacks (see above); when no stack given has MANY_LIGHTS, these
 # rendered ones are added (msfnet.synth; seeded, so every export calibrates on the same ones).
@@ -263,9 +266,9 @@ def activation_ranges(
     percentile: float = ACTIVATION_PERCENTILE,
 ) -> dict[str, tuple[float, float]]:
     """(low, high) of each tensor ``names`` of the fp32 graph over ``samples``: the
-    ``100 - percentile`` and ``percentile`` percentiles of an evenly strided subset of each
-    tile's values (zero always inside, as the quantiser requires). Only the tails are kept per
-    tile, so memory does not grow with the number of tiles."""
+    ``100 - percentile`` and ``percentile`` percentiles of a seeded random draw of each tile's
+    values (zero always inside, as the quantiser requires). Only the tails are kept per tile,
+    so memory does not grow with the number of tiles."""
     import onnxruntime as ort
 
     if not names:  # (ONNX Runtime would read an empty list of outputs as "all of them")
@@ -282,14 +285,18 @@ def activation_ranges(
     lows: dict[str, list[np.ndarray]] = {n: [] for n in names}
     highs: dict[str, list[np.ndarray]] = {n: [] for n in names}
     counts = dict.fromkeys(names, 0)
+    rng = np.random.default_rng(0)
+    groups = [list(names[i : i + RANGES_PER_PASS]) for i in range(0, len(names), RANGES_PER_PASS)]
     for feeds in samples:
-        for name, value in zip(names, session.run(list(names), feeds), strict=True):
-            flat = value.ravel()
-            flat = flat[:: -(-flat.size // PERCENTILE_SUBSAMPLE)]  # at most the subsample
-            low, high = _tails(flat, keep)
-            lows[name].append(low)
-            highs[name].append(high)
-            counts[name] += flat.size
+        for group in groups:  # a few activations a pass bounds the memory; costs passes
+            for name, value in zip(group, session.run(group, feeds), strict=True):
+                flat = value.ravel()
+                if flat.size > PERCENTILE_SUBSAMPLE:
+                    flat = flat[rng.integers(0, flat.size, PERCENTILE_SUBSAMPLE)]
+                low, high = _tails(flat, keep)
+                lows[name].append(low)
+                highs[name].append(high)
+                counts[name] += flat.size
     out = {}
     for name in names:
         rank = min(int(counts[name] * tail), keep - 1)  # values beyond the range, each tail
@@ -457,7 +464,8 @@ def quantize_model(
     if method == "percentile":
         known = {o for n in model.graph.node for o in n.output}
         names = [n for n in activation_inputs(qmodel) if n in known]
-        ranged = set_activation_ranges(qmodel, activation_ranges(model, samples, names), model)
+        ranges = activation_ranges(model, samples, names, ACTIVATION_PERCENTILE)
+        ranged = set_activation_ranges(qmodel, ranges, model)
     summary: dict[str, object] = {
         "calibration_samples": len(samples),
         "calibration_stacks": given,
