@@ -217,8 +217,9 @@ ACTIVATION_PERCENTILE = 99.9995
 # random draw (a 96-light tile's activation holds up to 50 M values; an evenly strided subset
 # lines up with the tile's rows and reads only a few columns)
 PERCENTILE_SUBSAMPLE = 400_000
-# Activations fetched per pass over a tile: each is up to 200 MB at 96 lights (64 px tiles)
-RANGES_PER_PASS = 4
+# Activations fetched per pass over a tile: each is up to 200 MB at 96 lights (64 px tiles);
+# every pass runs the graph again (24 activations: 4 a pass took 95 s, 16 a pass 35 s)
+RANGES_PER_PASS = 12
 
 # Calibration must see many-light stacks (see above); when no stack given has MANY_LIGHTS, these
 # rendered ones are added (msfnet.synth; seeded, so every export calibrates on the same ones).
