@@ -125,7 +125,7 @@ def test_the_runner_needs_a_command(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_a_class_the_host_lacks_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cpu_proxy, "_cpu_flags", lambda: {"avx", "avx2", "fma"})
+    monkeypatch.setattr(cpu_proxy, "kernel_flags", lambda: frozenset({"avx", "avx2", "fma"}))
     with pytest.raises(InputError, match="this CPU lacks avx512_vnni, avx512f"):
         cpu_proxy.proxy_env("avx512_vnni")
 

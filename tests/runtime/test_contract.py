@@ -86,3 +86,21 @@ def test_bundled_model_carries_exactly_what_model_metadata_builds() -> None:
     )
     assert list(built.items()) == list(meta.items())
     assert read_model_info(path, built) == read_model_info(path, meta)
+
+
+@pytest.mark.parametrize(
+    ("text", "want"),
+    [
+        ('{"reduce_range": true, "ranges_from_percentiles": 24}', {"reduce_range": True}),
+        ("", {}),  # an fp32 export: no summary
+        ("{not json", {}),
+        ("[1, 2]", {}),  # JSON, but not an object
+        ("[" * 100_000, {}),  # deeper than the JSON reader goes (RecursionError)
+    ],
+)
+def test_quantization_summary_is_read_once_for_every_reader(text: str, want: dict) -> None:
+    from msfnet.runtime.contract import ModelInfo
+
+    meta = {METADATA_KEYS["quantization"]: text} if text else {}
+    got = ModelInfo(Path("m.onnx"), 32, 4, None, "int8-qdq", meta).quantization()
+    assert {k: got[k] for k in want} == want and (want or got == {})

@@ -15,6 +15,7 @@ models it holds, and no run writes outside its own staging folder.
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import sys
 import time
@@ -801,8 +802,6 @@ def _run_edge(args: argparse.Namespace) -> int:
 
 def _body(args: argparse.Namespace, argv: list[str]) -> int:
     if args.cpu_proxy is not None and proxy_class() != args.cpu_proxy:
-        import os
-
         from msfnet.bench.cpu_proxy import proxy_env
 
         env = proxy_env(args.cpu_proxy)  # where no proxy can run: one line, before anything

@@ -32,22 +32,10 @@ from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
 
-from msfnet.common.cpu import PROXY_CLASSES, PROXY_ENV
+from msfnet.common.cpu import FEATURES, PROXY_CLASSES, PROXY_ENV, cache_folder, kernel_flags
 from msfnet.common.errors import InputError
 
 SOURCE = "cpuid_mask.c"
-
-
-def _cpu_flags() -> set[str]:
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return set()
-    for line in text.splitlines():
-        key, _, value = line.partition(":")
-        if key.strip() == "flags":
-            return set(value.split())
-    return set()
 
 
 def compiler() -> str | None:
@@ -62,7 +50,7 @@ def unavailable_reason() -> str | None:
     """Why no proxy can run here, or None when one can."""
     if sys.platform != "linux" or platform.machine() not in ("x86_64", "AMD64"):
         return f"needs Linux on x86-64 (this is {sys.platform} on {platform.machine()})"
-    if "cpuid_fault" not in _cpu_flags():
+    if "cpuid_fault" not in kernel_flags():
         return "this CPU or hypervisor offers no CPUID faulting (no cpuid_fault in /proc/cpuinfo)"
     if compiler() is None:
         return "no C compiler (cc, gcc or $CC) to build the cpuid library with"
@@ -81,10 +69,7 @@ def library(cache: Path | None = None) -> Path:
     if reason is not None:
         raise InputError(f"--cpu-proxy: {reason}")
     source = _source()
-    if cache is None:
-        xdg = os.environ.get("XDG_CACHE_HOME", "")
-        cache = (Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache") / "msfnet"
-    lib = cache / f"cpuid_mask-{hashlib.sha256(source).hexdigest()[:16]}.so"
+    lib = (cache or cache_folder()) / f"cpuid_mask-{hashlib.sha256(source).hexdigest()[:16]}.so"
     if lib.is_file():
         return lib
     cc = compiler()
@@ -109,12 +94,6 @@ def library(cache: Path | None = None) -> Path:
     return write_atomic(lib, build, output=False)
 
 
-# A proxy removes features; the host must have the ones the class keeps (/proc/cpuinfo names)
-_HOST_NEEDS = {
-    "avx2": {"avx2"},
-    "avx2_vnni": {"avx2", "avx_vnni"},
-    "avx512_vnni": {"avx2", "avx512f", "avx512_vnni"},
-}
 # Run under the proxy: what this package's detection then reports (proves the preload worked)
 _PROBE = "from msfnet.common.cpu import proxy_class; print(proxy_class())"
 
@@ -127,7 +106,8 @@ def proxy_env(cpu_class: str, env: Mapping[str, str] | None = None) -> dict[str,
         raise InputError(
             f"--cpu-proxy {cpu_class}: expected one of {', '.join(sorted(PROXY_CLASSES))}"
         )
-    missing = _HOST_NEEDS[cpu_class] - _cpu_flags()
+    # a proxy removes features: the host must have the FEATURES the class keeps
+    missing = (PROXY_CLASSES[cpu_class] & set(FEATURES)) - kernel_flags()
     if missing:
         raise InputError(
             f"--cpu-proxy {cpu_class}: this CPU lacks {', '.join(sorted(missing))}; a proxy "

@@ -170,20 +170,34 @@ def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
     )
 
 
+def kernel_flags() -> frozenset[str]:
+    """Every flag the kernel reports for this CPU (/proc/cpuinfo), empty where unreadable."""
+    try:
+        return _from_proc_cpuinfo().all_flags
+    except OSError:
+        return frozenset()
+
+
 CACHE_MAX_BYTES = 1 << 16
+
+
+def cache_folder() -> Path:
+    """msfnet's folder in the user's cache ($XDG_CACHE_HOME, else ~/.cache); RuntimeError
+    where no home is known (a container with an unknown uid)."""
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    return (Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache") / "msfnet"
 
 
 def cache_path() -> Path | None:
     """Where this boot's py-cpuinfo answer is kept; None where no boot id or no home is known."""
     try:
         boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
-        xdg = os.environ.get("XDG_CACHE_HOME", "")
-        base = Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache"
+        folder = cache_folder()
     except (OSError, RuntimeError):  # no boot id; no home (container with an unknown uid)
         return None
     if not boot or not all(c.isalnum() or c == "-" for c in boot):
         return None
-    return base / "msfnet" / f"cpu-{boot}.json"
+    return folder / f"cpu-{boot}.json"
 
 
 def _read_cache(path: Path) -> CpuInfo | None:
@@ -310,9 +324,11 @@ __all__ = [
     "PROXY_ENV",
     "CpuInfo",
     "as_proxy",
+    "cache_folder",
     "cache_path",
     "check_threads",
     "detect_cpu",
+    "kernel_flags",
     "proxy_class",
     "usable_cores",
 ]

@@ -60,6 +60,17 @@ class ModelInfo:
     metadata: dict[str, str]
     staged: bool = False  # cut at the max-over-lights reductions (runtime/engines/staged_loop.py)
 
+    def quantization(self) -> dict[str, object]:
+        """An int8 export's calibration summary (msf-export's ``quantise-int8`` pass); empty
+        where the file has none or it is unreadable (not JSON, not an object, or nested
+        deeper than the JSON reader goes)."""
+        text = self.metadata.get(METADATA_KEYS["quantization"], "")
+        try:
+            summary = json.loads(text) if text else {}
+        except (ValueError, RecursionError):
+            return {}
+        return summary if isinstance(summary, dict) else {}
+
 
 MAX_TRAIN_LIGHTS = 10_000  # far beyond any rig; a bigger value is a corrupt or crafted file
 MAX_STATIC_SIDE = 16_384  # px; a static window beyond this would not fit in memory anyway

@@ -216,15 +216,7 @@ MIXED_INT8_MEASURED = Measured({12: (0.253, 1.66), 96: (0.430, 4.48)})
 def _minmax_int8(info: ModelInfo) -> bool:
     """An int8 export whose activation ranges are min/max ones (made before percentile ranges;
     a file without the quantisation summary counts as one)."""
-    import json
-
-    try:
-        summary = json.loads(info.metadata.get("msfnet.quantization", "{}"))
-    except (ValueError, RecursionError):  # damaged metadata: judged as the older kind
-        return True
-    if not isinstance(summary, dict):
-        return True
-    ranged = summary.get("ranges_from_percentiles")
+    ranged = info.quantization().get("ranges_from_percentiles")  # damaged: the older kind
     return not (isinstance(ranged, int) and ranged > 0)
 
 

@@ -7,14 +7,13 @@ kernels (VNNI / AMX where the CPU has them). The CPU provider has no bf16 path o
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
-from msfnet.runtime.contract import METADATA_KEYS, ModelInfo
+from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines.base import model_precision
 from msfnet.runtime.engines.ort_session import ModelSession, create_session
 
@@ -100,12 +99,7 @@ def quantised_full_range(info: ModelInfo) -> bool:
     """Whether an int8 model's weights use all 8 bits (not msf-export's reduce_range): the
     quantisation summary in its metadata says; a model that does not say is taken as full
     range (the quantiser's default)."""
-    text = info.metadata.get(METADATA_KEYS["quantization"], "")
-    try:
-        summary = json.loads(text) if text else {}
-    except ValueError:
-        summary = {}
-    return not (isinstance(summary, dict) and summary.get("reduce_range") is True)
+    return info.quantization().get("reduce_range") is not True
 
 
 def check_int8_exact(info: ModelInfo, cpu: CpuInfo | None = None) -> None:
