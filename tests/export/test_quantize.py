@@ -114,7 +114,8 @@ def test_int8_of_the_trained_model_stays_within_half_a_degree(tmp_path, ball_dir
     span ~50x between mask boundary and interior, which random weights do not show (the old
     recipe passed with random weights and failed here at 1.7 deg mean). Calibrated on the stack
     it is scored on: this bounds the quantisation itself; across stacks the current model is
-    further off (dispatch.MEASURED), which is why int8 is no default."""
+    further off (dispatch.MEASURED; the bundled int8 twin's own figures are in
+    docs/export.md)."""
     from dataclasses import replace
 
     from msfnet.model.checkpoint import default_checkpoint_path

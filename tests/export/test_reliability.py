@@ -56,6 +56,8 @@ BAD_OPTIONS = [
     ("--train-lights", "0", "--train-lights: must be a positive integer, got '0'"),
     ("--train-lights", "2.5", "--train-lights: '2.5' is not an integer"),
     ("--variant", "fp64", "--variant: invalid choice: 'fp64'"),
+    ("--weight-bits", "6", "--weight-bits: invalid choice: 6"),
+    ("--weight-bits", "x", "--weight-bits: invalid int value: 'x'"),
 ]
 
 
@@ -82,6 +84,7 @@ BAD_REQUESTS = [
     (["--variant", "static"], "variant static needs --static N,H,W"),
     (["--variant", "fp32", "--static", "4,8,8"], "--static N,H,W is for the static variants"),
     (["--variant", "fp32", "--staged"], "--staged contradicts --variant fp32"),
+    (["--weight-bits", "7"], "--weight-bits: only the int8 variants quantise weights"),
 ]
 
 

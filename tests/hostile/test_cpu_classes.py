@@ -107,7 +107,11 @@ def test_fp32_models_never_ask_about_int8(tmp_path: Path, monkeypatch: pytest.Mo
 
 
 def _quantize_with(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cpu: CpuInfo, stacks: list
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    cpu: CpuInfo,
+    stacks: list,
+    reduce_range: bool | None = None,
 ) -> dict:
     """quantize_model's choices, with ONNX Runtime's quantiser replaced by a recorder."""
     onnx = pytest.importorskip("onnx")
@@ -124,7 +128,9 @@ def _quantize_with(
     monkeypatch.setattr(quantization, "quantize_static", record)
     monkeypatch.setattr(cpumod, "detect_cpu", lambda: cpu)
     model = onnx.load(str(tiny_msfnet_onnx(tmp_path / "m.onnx")))
-    _q, summary = quantize_model(model, stacks, tmp_path, tiles_per_stack=1, lights=8)
+    _q, summary = quantize_model(
+        model, stacks, tmp_path, tiles_per_stack=1, lights=8, reduce_range=reduce_range
+    )
     assert summary["reduce_range"] == seen["reduce_range"]
     return seen
 
@@ -135,6 +141,21 @@ def test_int8_export_quantises_to_what_the_cpu_computes_exactly(
 ) -> None:
     stacks = [sphere_stack(n=8, h=96, w=96)]
     assert _quantize_with(monkeypatch, tmp_path, cpu, stacks)["reduce_range"] is reduced
+
+
+@pytest.mark.parametrize(("cpu", "bits"), [(AVX2, 8), (AMX, 7)])
+def test_int8_export_weight_bits_given_beat_the_cpu(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cpu: CpuInfo, bits: int
+) -> None:
+    """msf-export --weight-bits 7 on a VNNI CPU makes a file for every CPU (the bundled int8
+    model); 8 on an AVX2 CPU is the user's call (its check then runs where it saturates)."""
+    from msfnet.export.variants import ExportOptions
+
+    stacks = [sphere_stack(n=8, h=96, w=96)]
+    reduce = ExportOptions(weight_bits=bits).reduce_range  # what the quantise pass passes
+    assert ExportOptions().reduce_range is None
+    seen = _quantize_with(monkeypatch, tmp_path, cpu, stacks, reduce)
+    assert seen["reduce_range"] is (bits == 7)
 
 
 @pytest.mark.parametrize(

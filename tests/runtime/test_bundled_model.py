@@ -9,9 +9,12 @@ import numpy as np
 import pytest
 from _runtime_helpers import BUNDLED_CHECKPOINT
 
+from msfnet.common.cpu import CpuInfo
 from msfnet.runtime.api import Model, default_model_path
 from msfnet.runtime.cli.run import main as run_main
+from msfnet.runtime.engines.base import read_model_file
 from msfnet.runtime.engines.ort_session import create_session
+from msfnet.runtime.infer.normalise import network_input
 from msfnet.runtime.stack import LoadOptions, load_stack
 
 
@@ -110,8 +113,99 @@ def test_the_bundled_onnx_was_exported_from_the_bundled_checkpoint() -> None:
     checkpoint = BUNDLED_CHECKPOINT
     if not checkpoint.is_file():
         pytest.skip("no checkout: the wheel ships only the ONNX file")
-    meta = {
-        p.key: p.value
-        for p in onnx.load(str(default_model_path()), load_external_data=False).metadata_props
-    }
-    assert meta["msfnet.checkpoint_sha256"] == hashlib.sha256(checkpoint.read_bytes()).hexdigest()
+    digest = hashlib.sha256(checkpoint.read_bytes()).hexdigest()
+    for precision in ("fp32", "int8"):
+        path = default_model_path(precision)
+        meta = {
+            p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props
+        }
+        assert meta["msfnet.checkpoint_sha256"] == digest, path.name
+
+
+# ---------------------------------------------------------------- the int8 twin
+ZEN3 = CpuInfo.from_flags(["avx2", "fma"], model="AMD EPYC 7B13 (faked)", cores=2)
+AMX = CpuInfo.from_flags(
+    ["avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "amx_tile"],
+    model="Xeon (AMX, faked)",
+)
+
+
+def test_the_bundled_int8_model_is_exact_everywhere_and_says_how_it_was_made() -> None:
+    """7-bit weights (exact on CPUs without VNNI too), percentile activation ranges (within the
+    bound: dispatch.MEASURED), the staged graph, dynamic light count."""
+    info = read_model_file(default_model_path("int8"))
+    assert info.precision.startswith("int8") and info.staged and info.static_shape is None
+    summary = info.quantization()
+    assert summary["reduce_range"] is True
+    assert isinstance(summary["ranges_from_percentiles"], int)
+    assert summary["ranges_from_percentiles"] > 0
+    assert summary["calibration_stacks"] == ["cat", "owl", "horse"]  # psmImages: not validation
+
+
+@pytest.mark.parametrize("engine", ["onnxruntime", "openvino"])
+def test_the_bundled_int8_model_stays_within_the_bound_of_the_fp32_one(engine: str) -> None:
+    """Mean deviation from ONNX Runtime fp32 of the fp32 file on rendered objects (not the
+    DiLiGenT crops behind dispatch.MEASURED, which measured 0.31 deg at 32 lights and at most
+    0.45 on ball / bear / harvest at 12 and 96 lights)."""
+    if engine == "openvino":
+        pytest.importorskip("openvino")
+    from msfnet.runtime.engines.dispatch import EngineChoice, open_engine
+    from msfnet.synth.render import RenderOptions, render_set
+
+    fp32 = open_engine(EngineChoice("onnxruntime", "fp32", "", default_model_path()), 2)
+    int8 = open_engine(EngineChoice(engine, "int8", "", default_model_path("int8")), 2)
+    means = []
+    for stack in render_set(777, 2, RenderOptions(size=64, lights=24)):
+        images, lights = network_input(stack)
+        a, b = fp32.run(images, lights)[0], int8.run(images, lights)[0]
+        cos = np.clip((a * b).sum(0) / np.linalg.norm(a, axis=0) / np.linalg.norm(b, axis=0), -1, 1)
+        means.append(float(np.degrees(np.arccos(cos))[stack.mask].mean()))
+    print(engine, "int8 vs fp32 (deg):", [round(m, 3) for m in means])
+    assert 0.0 < max(means) < 0.5
+
+
+def _cpu(monkeypatch: pytest.MonkeyPatch, cpu: CpuInfo) -> None:
+    import msfnet.common.cpu as cpumod
+
+    monkeypatch.setattr(cpumod, "detect_cpu", lambda: cpu)
+
+
+def test_model_opens_the_int8_twin_on_a_cpu_without_bf16(monkeypatch: pytest.MonkeyPatch) -> None:
+    _cpu(monkeypatch, ZEN3)
+    d = Model(threads=1).describe()
+    assert Path(str(d["model"])) == default_model_path("int8")
+    assert d["precision"] == "int8"
+    assert "bundled int8 model" in str(d["choice"]) and "(avx2)" in str(d["choice"])
+    # a precision asked for decides; least squares opens no model
+    d = Model(threads=1, precision="fp32").describe()
+    assert Path(str(d["model"])) == default_model_path() and d["precision"] == "fp32"
+    assert Model(threads=1, engine="onnxruntime").describe()["precision"] == "int8"
+
+
+def test_model_keeps_the_fp32_file_where_bf16_is_faster(monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("openvino")
+    _cpu(monkeypatch, AMX)
+    d = Model(threads=1).describe()
+    assert Path(str(d["model"])) == default_model_path()
+    # chosen for bf16 (where the real CPU lacks it, opening falls back to ONNX Runtime fp32,
+    # and the reason says so)
+    assert "bf16" in str(d["choice"]) and "bundled int8" not in str(d["choice"])
+    d = Model(threads=1, precision="int8").describe()  # the int8 twin on request
+    assert Path(str(d["model"])) == default_model_path("int8") and d["precision"] == "int8"
+
+
+def test_a_missing_int8_twin_leaves_the_fp32_file(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """An install without the int8 file (a trimmed wheel) still runs: the fp32 file, unless
+    int8 was asked for, which is then a one-line error naming the file."""
+    import msfnet.runtime.api as api
+    from msfnet.common.errors import InputError
+
+    (tmp_path / "msfnet_default.onnx").symlink_to(default_model_path())
+    monkeypatch.setattr(api, "WEIGHTS", tmp_path)
+    _cpu(monkeypatch, ZEN3)
+    d = Model(threads=1).describe()
+    assert Path(str(d["model"])) == tmp_path / "msfnet_default.onnx"
+    with pytest.raises(InputError, match=r"msfnet_default_int8\.onnx"):
+        Model(threads=1, precision="int8")

@@ -68,11 +68,15 @@ INT8, INT8_STAGED = info("int8-qdq"), info("int8-qdq", staged=True)
         (ZEN3, BOTH, FP32_STAGED, "openvino", "fp32"),
         (ZEN3, ORT, FP32_STAGED, "onnxruntime", "fp32"),
         (AMX, ORT, FP32_STAGED, "onnxruntime", "fp32"),
-        # int8 models run int8, through ONNX Runtime by default, with or without VNNI
-        (ZEN3, BOTH, INT8, "onnxruntime", "int8"),
-        (ZEN5, BOTH, INT8, "onnxruntime", "int8"),
-        (AMX, BOTH, INT8_STAGED, "onnxruntime", "int8"),
+        # int8 models run int8: through OpenVINO on the classes where it was measured faster
+        # than ONNX Runtime int8 (AVX2 without VNNI, VNNI, AMX), else ONNX Runtime
+        (ZEN3, BOTH, INT8, "openvino", "int8"),
+        (ZEN5, BOTH, INT8, "openvino", "int8"),
+        (SKYLAKE, BOTH, INT8, "openvino", "int8"),  # AVX-512 without VNNI: the avx2 class
+        (AMX, BOTH, INT8_STAGED, "openvino", "int8"),
         (AMX, {"openvino"}, INT8, "openvino", "int8"),
+        (ZEN3, ORT, INT8, "onnxruntime", "int8"),
+        (ARM, BOTH, INT8, "onnxruntime", "int8"),  # nothing measured there
     ],
 )
 def test_defaults(cpu, installed, model, engine, precision) -> None:
@@ -104,7 +108,8 @@ def test_reasons_say_why() -> None:
         (AMX, FP32, "openvino", "fp32", "openvino", "fp32"),
         (ZEN5, FP32_STAGED, None, "bf16", "openvino", "bf16"),
         (ZEN3, INT8, "openvino", None, "openvino", "int8"),
-        (AMX, INT8, None, "int8", "onnxruntime", "int8"),
+        (AMX, INT8, None, "int8", "openvino", "int8"),
+        (AMX, INT8, "ort", None, "onnxruntime", "int8"),
         (AMX, FP32, None, "BF16", "openvino", "bf16"),  # case-insensitive
     ],
 )
@@ -360,3 +365,63 @@ def test_an_int8_export_with_percentile_ranges_is_within_the_bound(
             Path("m.onnx"), 32, 4, None, "int8-qdq", {"msfnet.quantization": damaged}, staged
         )
         assert "above the 0.5 deg bound" in choose_engine(old, AMX, BOTH, engine).reason
+
+
+def test_int8_classes() -> None:
+    assert [dispatch.int8_class(c) for c in (ZEN3, SKYLAKE, ZEN5, AMX, ARM)] == [
+        "avx2",
+        "avx2",
+        "vnni",
+        "amx",
+        "other",
+    ]
+    reason = choose_engine(INT8, ZEN3, BOTH).reason
+    assert "OpenVINO measured 1.24x ONNX Runtime int8" in reason and "(avx2)" in reason
+
+
+@pytest.mark.parametrize(
+    ("cpu", "installed", "eng", "prec", "device", "precision"),
+    [
+        # int8 where the fp32 file would run fp32 and int8 was measured faster on the class
+        (ZEN3, BOTH, None, None, None, "int8"),
+        (ZEN3, ORT, None, None, None, "int8"),
+        (SKYLAKE, BOTH, None, None, None, "int8"),
+        (ZEN3, BOTH, "onnxruntime", None, None, "int8"),  # the engine runs the int8 file
+        (AMX, ORT, None, None, None, "int8"),  # bf16 needs OpenVINO: ORT int8 beats ORT fp32
+        # native bf16 through OpenVINO is faster still: the fp32 file
+        (AMX, BOTH, None, None, None, "fp32"),
+        (ZEN5, BOTH, None, None, None, "fp32"),
+        (ZEN5, BOTH, "openvino", None, None, "fp32"),
+        (ZEN5, ORT, None, None, None, "int8"),
+        (ARM, BOTH, None, None, None, "fp32"),  # nothing measured there
+        # a precision asked for decides; a device runs the portable fp32 file
+        (ZEN3, BOTH, None, "fp32", None, "fp32"),
+        (ZEN3, BOTH, None, "FP32", None, "fp32"),
+        (AMX, BOTH, None, "bf16", None, "fp32"),
+        (AMX, BOTH, None, "int8", None, "int8"),
+        (ARM, BOTH, None, "int8", None, "int8"),
+        (ZEN3, BOTH, None, None, dispatch.Device("cuda", "onnxruntime", "CUDA"), "fp32"),
+        # an engine that is not installed: the fp32 file, choose_engine words the error
+        (ZEN3, ORT, "openvino", None, None, "fp32"),
+    ],
+)
+def test_the_bundled_pair(cpu, installed, eng, prec, device, precision) -> None:
+    pick = dispatch.bundled_precision(cpu, installed, eng, prec, device)
+    assert pick.precision == precision
+    if precision == "int8" and prec is None:
+        assert "int8 measured" in pick.reason and "fp32 on this CPU class" in pick.reason
+        # and the int8 file then runs int8 on the engine the rules pick for it
+        model = info("int8-qdq", staged=True)
+        assert choose_engine(model, cpu, installed, eng).precision == "int8"
+
+
+def test_the_bundled_int8_file_is_no_default_outside_the_bound(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    assert dispatch.bundled_precision(ZEN3, BOTH).precision == "int8"
+    worse = Measured({32: (0.4, 2.0), 96: (0.6, 3.0)})
+    monkeypatch.setitem(MEASURED, ("openvino", "int8", True), worse)
+    assert dispatch.bundled_precision(ZEN3, BOTH).precision == "fp32"
+    assert dispatch.bundled_precision(ZEN3, ORT).precision == "int8"  # ORT's is within
+    monkeypatch.setitem(dispatch.INT8_SPEEDUP, "avx2", 0.9)
+    assert dispatch.bundled_precision(ZEN3, ORT).precision == "fp32"

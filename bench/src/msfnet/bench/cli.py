@@ -777,7 +777,8 @@ def _run_edge(args: argparse.Namespace) -> int:
             sections.append(("Engines and devices", edge.edge_table(rows)))
         if args.ladder:
             _say(args, "measuring the speed ladder (each rung in a fresh process) ...")
-            rungs = ladder.ladder_rows(model, root, threads=threads, scratch=scratch)
+            # without --onnx: the bundled model as msf-run picks it (fp32 or its int8 twin)
+            rungs = ladder.ladder_rows(args.onnx, root, threads=threads, scratch=scratch)
             result["ladder"] = [ladder.asdict(r) for r in rungs]
             sections.append(("Speed ladder (--speed)", ladder.ladder_table(rungs)))
         if args.requirements:

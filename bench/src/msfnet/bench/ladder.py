@@ -64,7 +64,7 @@ def measure_rung(spec: dict) -> dict:
 
     step = rung(spec["rung"])
     model = Model(
-        Path(spec["model"]),
+        Path(spec["model"]) if spec.get("model") else None,  # None: the bundled pair's choice
         speed=step.name,
         threads=spec.get("threads"),
         engine=spec.get("engine"),
@@ -96,7 +96,7 @@ def measure_rung(spec: dict) -> dict:
 
 
 def ladder_rows(
-    model: Path,
+    model: Path | None,
     data: Path,
     *,
     lights: int = LADDER_LIGHTS,
@@ -107,7 +107,8 @@ def ladder_rows(
     scratch: Path,
 ) -> list[LadderRow]:
     """Every rung (or ``rungs``), each in a fresh process; RuntimeError with the worker's last
-    error line if one fails."""
+    error line if one fails. ``model`` None: the bundled model msf-run would open here (its
+    int8 twin on CPUs without native bf16, engines.dispatch.bundled_precision)."""
     from msfnet.runtime.infer.ladder import RUNGS
 
     rows = []
@@ -115,7 +116,7 @@ def ladder_rows(
         result = scratch / f"ladder-{name}.json"
         spec: dict[str, object] = {
             "rung": name,
-            "model": str(model),
+            "model": None if model is None else str(model),
             "data": str(data),
             "lights": lights,
             "threads": threads,

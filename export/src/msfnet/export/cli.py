@@ -151,6 +151,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="real stacks to calibrate --int8 on (e.g. DiLiGenT/ballPNG psmImages/cat)",
     )
     p.add_argument(
+        "--weight-bits",
+        type=int,
+        choices=(7, 8),
+        default=None,
+        help="int8 weights in 7 or 8 bits (default: 7 where this CPU lacks VNNI, whose int8 "
+        "kernels saturate 8-bit weights; 7-bit files compute exactly on every CPU, so "
+        "export with 7 for other machines)",
+    )
+    p.add_argument(
         "--fp16-weights",
         action="store_true",
         help="store weights as float16 (half the file size; computed in float32, "
@@ -230,6 +239,7 @@ def _export(args: argparse.Namespace) -> int:
         static=args.static,
         simplify=args.simplify,
         tolerance_deg=args.tolerance,
+        weight_bits=args.weight_bits,
     )
     output = args.output or args.checkpoint.with_suffix(".onnx")
     result = export_variant(

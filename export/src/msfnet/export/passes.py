@@ -131,6 +131,7 @@ def _quantise_int8(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.Mode
             lights=o.calib_lights,
             tiles_per_stack=o.calib_tiles_per_stack,
             train_lights=o.train_lights,
+            reduce_range=o.reduce_range,
         )
     summary = {
         "deconvs_rewritten": ctx.notes.get("deconvs_rewritten", 0),

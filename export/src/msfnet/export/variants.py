@@ -270,7 +270,10 @@ def variant_for(
 class ExportOptions:
     """Settings shared by all variants. ``tolerance_deg`` None: the variant's own limit.
     ``checks``: (N, H, W) of the rendered checks (default: N = 3, 7, 32 at non-square sizes,
-    or the static shape). ``calib_*``: int8 calibration (and verification) tiles."""
+    or the static shape). ``calib_*``: int8 calibration (and verification) tiles.
+    ``weight_bits``: int8 weights in 7 or 8 bits (None: 7 where this CPU lacks VNNI, see
+    quantize.quantize_model; 7-bit files compute exactly on every CPU, so a model shipped to
+    other machines is exported with 7)."""
 
     opset: int = DEFAULT_OPSET
     train_lights: int = TRAIN_LIGHTS
@@ -282,6 +285,12 @@ class ExportOptions:
     calib_tile: int = 64
     calib_lights: int = 96
     calib_tiles_per_stack: int = 3
+    weight_bits: int | None = None
+
+    @property
+    def reduce_range(self) -> bool | None:
+        """quantize_model's name for 7-bit weights (None: decided by this CPU)."""
+        return None if self.weight_bits is None else self.weight_bits == 7
 
 
 @dataclass(frozen=True)
@@ -381,6 +390,12 @@ def check_options(variant: Variant, options: ExportOptions, calib: Sequence[obje
         raise InputError(f"variant {variant.name} needs --static N,H,W")
     if not variant.needs_shape and options.static is not None:
         raise InputError(f"--static N,H,W is for the static variants, not {variant.name}")
+    if options.weight_bits not in (None, 7, 8):
+        raise InputError(f"--weight-bits {options.weight_bits}: expected 7 or 8")
+    if options.weight_bits is not None and not variant.needs_calibration:
+        raise InputError(
+            f"--weight-bits: only the int8 variants quantise weights, not {variant.name}"
+        )
     if variant.needs_calibration and not calib:
         raise InputError(
             f"{variant.name} needs --calib STACK [STACK ...] (real stacks to calibrate on)"

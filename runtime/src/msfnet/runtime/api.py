@@ -62,9 +62,14 @@ from msfnet.runtime.stack import load_stack as read_stack
 WEIGHTS = Path(__file__).resolve().parent / "weights"
 
 
-def default_model_path() -> Path:
-    """The bundled model, shipped with the runtime (msfnet/runtime/weights/msfnet_default.onnx)."""
-    return WEIGHTS / "msfnet_default.onnx"
+def default_model_path(precision: str = "fp32") -> Path:
+    """The bundled model, shipped with the runtime: the fp32 export
+    (msfnet/runtime/weights/msfnet_default.onnx) or its int8 twin (msfnet_default_int8.onnx:
+    staged int8, 7-bit weights, exact on every CPU), which ``Model()`` opens where
+    engines.dispatch.bundled_precision says it is the faster default."""
+    if precision not in ("fp32", "int8"):
+        raise InputError(f"bundled model precision {precision!r}: expected fp32 or int8")
+    return WEIGHTS / ("msfnet_default.onnx" if precision == "fp32" else "msfnet_default_int8.onnx")
 
 
 # ---------------------------------------------------------------- errors in the API's words
@@ -401,14 +406,11 @@ class Model:
             self.estimator = LeastSquaresEstimator()
         elif engine_given:
             self.estimator = NetworkEstimator(model)  # type: ignore[arg-type]
+        elif opts.model is not None:
+            self.estimator = _open_network(opts.model, opts)
         else:
-            path = opts.model if opts.model is not None else default_model_path()
-            if opts.model is None and not path.is_file():
-                raise InputError(
-                    f"no model given and no bundled model at {path}; export one "
-                    "with msf-export, or use least squares (--method l2)"
-                )
-            self.estimator = _open_network(path, opts)
+            path, why = _bundled_model(opts)
+            self.estimator = _open_network(path, opts, why)
         if isinstance(self.estimator, NetworkEstimator):
             self.estimator.edge_context = opts.edge_context
             # --speed: the network on fewer pixels / lights; the detail fusion below gives the
@@ -606,8 +608,35 @@ class Model:
         return self(stack)
 
 
-def _open_network(path: Path, opts: ModelOptions) -> NetworkEstimator:
-    """Pick the engine and precision for this CPU and model (or honour the overrides)."""
+def _bundled_model(opts: ModelOptions) -> tuple[Path, str]:
+    """The bundled file to open (fp32 or its int8 twin, engines.dispatch.bundled_precision)
+    and why; the fp32 file where the int8 one is missing and was not asked for."""
+    from msfnet.common.cpu import detect_cpu
+    from msfnet.runtime.engines import installed_engines
+    from msfnet.runtime.engines.dispatch import (
+        BundledChoice,
+        bundled_precision,
+        resolve_device,
+    )
+
+    device = resolve_device(opts.device)
+    pick = bundled_precision(detect_cpu(), installed_engines(), opts.engine, opts.precision, device)
+    if opts.provider is not None and opts.precision is None:
+        pick = BundledChoice("fp32")  # an ONNX Runtime execution provider (a GPU): as a device
+    path = default_model_path(pick.precision)
+    if not path.is_file() and pick.precision == "int8" and opts.precision is None:
+        path, pick = default_model_path(), BundledChoice("fp32")
+    if not path.is_file():
+        raise InputError(
+            f"no model given and no bundled model at {path}; export one "
+            "with msf-export, or use least squares (--method l2)"
+        )
+    return path, pick.reason
+
+
+def _open_network(path: Path, opts: ModelOptions, why: str = "") -> NetworkEstimator:
+    """Pick the engine and precision for this CPU and model (or honour the overrides).
+    ``why``: how the file was chosen (the bundled pair), put before the engine's reason."""
     from msfnet.common.cpu import detect_cpu
     from msfnet.runtime.engines import installed_engines
     from msfnet.runtime.engines.dispatch import (
@@ -624,14 +653,15 @@ def _open_network(path: Path, opts: ModelOptions) -> NetworkEstimator:
     choice = choose_engine(
         path, detect_cpu(), installed_engines(), engine, opts.precision, device=device
     )
+    prefix = f"{why}; " if why else ""
     if opts.provider is not None:
         return NetworkEstimator(
-            open_engine(choice, opts.threads, provider=opts.provider), choice.reason
+            open_engine(choice, opts.threads, provider=opts.provider), prefix + choice.reason
         )
     # a default OpenVINO choice falls back to ONNX Runtime if OpenVINO cannot compile the model
     asked = bool(opts.engine or opts.precision or opts.device)
     opened, reason = open_chosen(choice, opts.threads, requested=asked)
-    return NetworkEstimator(opened, reason)
+    return NetworkEstimator(opened, prefix + reason)
 
 
 __all__ = [

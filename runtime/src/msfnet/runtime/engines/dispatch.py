@@ -11,13 +11,20 @@ below is tested on faked CPUs and engines. Rules, in order:
 1. ``--engine`` / ``--precision`` override. An override that cannot be honoured is an error,
    never a silent substitute: bf16 needs OpenVINO (ONNX Runtime's CPU provider has no bf16 path
    on x86) and a CPU with native bf16; int8 needs an int8 export; an int8 export runs only int8.
-2. int8 models run int8, through ONNX Runtime by default (its int8 kernels use VNNI / AMX where
-   present and still beat fp32 with AVX2 alone); OpenVINO on request.
+2. int8 models run int8, through OpenVINO where it was measured faster than ONNX Runtime int8
+   on this CPU class (``OV_INT8_SPEEDUP``), else through ONNX Runtime (its int8 kernels use
+   VNNI / AMX where present and still beat fp32 with AVX2 alone).
 3. fp32 models: bf16 through OpenVINO when the CPU has native bf16 (avx512_bf16 or AMX),
    OpenVINO is installed and bf16 is measured within the accuracy bound (``MEASURED``).
 4. fp32 models otherwise: fp32 through OpenVINO on the CPU classes where it was measured faster
    than ONNX Runtime fp32 in the same run (``OV_FP32_SPEEDUP``), else ONNX Runtime fp32, the
    fallback (also whenever OpenVINO is missing or cannot compile the model).
+
+The bundled model comes as a pair, fp32 and int8 (``bundled_precision`` picks which one
+``Model()`` / ``msf-run`` open when no model is given): int8 where the fp32 file would run in
+fp32 here (no native bf16, or no OpenVINO for it) and int8 was measured faster than fp32 on the
+CPU class (``INT8_SPEEDUP``); fp32 otherwise, and whenever a precision other than int8 or a
+device is asked for.
 
 A reduced precision is a *default* only within ACCURACY_BOUND_DEG (0.5 deg) mean of ONNX Runtime
 fp32 on real data (``MEASURED``, checked by ``default_allowed``); a path above it runs only on
@@ -112,6 +119,39 @@ OV_FP32_SPEEDUP: dict[str, float] = {
 def ov_fp32_preferred(cpu: CpuInfo) -> bool:
     """OpenVINO fp32 is the fp32 default on this CPU class: measured faster than ORT fp32."""
     return OV_FP32_SPEEDUP.get(cpu_class(cpu), 0.0) > 1.0
+
+
+def int8_class(cpu: CpuInfo) -> str:
+    """The CPU class int8 speed is kept for: amx, vnni (int8 dot products in AVX-512 or AVX),
+    avx2 (no VNNI: int8 products summed in 16-bit pairs, which 7-bit weights keep exact; CPUs
+    with AVX-512 but no VNNI count here too) or other (no AVX2: nothing measured)."""
+    if cpu.has_amx:
+        return "amx"
+    if cpu.has_vnni:
+        return "vnni"
+    return "avx2" if cpu.avx2 else "other"
+
+
+# int8 class -> an int8 export over the same model in fp32 through the same engine, same run:
+# workload (b) (128 px crop, 32 lights, 2 threads), medians of 5 interleaved rounds, the slower
+# engine's ratio (docs/benchmark.md, 2026-12-02 session 14). avx2 and vnni were measured in the
+# cpuid proxy (msfnet.bench.cpu_proxy avx2 / avx512_vnni) on an AMX Xeon.
+INT8_SPEEDUP: dict[str, float] = {
+    "avx2": 1.52,  # OpenVINO 1.52-1.55x, ONNX Runtime 1.89x (7-bit weights)
+    "vnni": 1.96,  # ONNX Runtime 1.96x, OpenVINO 2.11x
+    "amx": 1.80,  # ONNX Runtime 1.80x, OpenVINO 2.98x (bf16 is faster still: 4.7x)
+}
+# int8 class -> OpenVINO int8 over ONNX Runtime int8, the same int8 file, same run, (b) as above
+OV_INT8_SPEEDUP: dict[str, float] = {
+    "avx2": 1.24,  # 1.85 against 2.29 s
+    "vnni": 1.46,  # 0.86 against 1.26 s
+    "amx": 2.28,  # 0.59 against 1.34 s
+}
+
+
+def ov_int8_preferred(cpu: CpuInfo) -> bool:
+    """OpenVINO is the int8 default on this CPU class: measured faster than ONNX Runtime int8."""
+    return OV_INT8_SPEEDUP.get(int8_class(cpu), 0.0) > 1.0
 
 
 # --device names: where each runs (engine) and that engine's name for it
@@ -289,6 +329,65 @@ def likely_engine(
     return choice.engine
 
 
+_INT8_GUESS = ModelInfo(
+    path=Path("model_int8.onnx"),
+    train_lights=32,
+    input_multiple=4,
+    static_shape=None,
+    precision="int8",
+    metadata={"msfnet.quantization": '{"ranges_from_percentiles": 1, "reduce_range": true}'},
+    staged=True,
+)
+
+
+@dataclass(frozen=True)
+class BundledChoice:
+    """Which of the bundled pair to open: ``precision`` fp32 or int8, and ``reason`` (one
+    line, empty for the plain fp32 case) for the choice line of logs and profile.json."""
+
+    precision: str
+    reason: str = ""
+
+
+def bundled_precision(
+    cpu: CpuInfo,
+    installed: Iterable[str],
+    requested_engine: str | None = None,
+    requested_precision: str | None = None,
+    device: Device | None = None,
+) -> BundledChoice:
+    """The bundled model's file for this CPU and request: int8 where the fp32 file would run
+    in fp32 (no bf16 default here) and ``INT8_SPEEDUP`` measured int8 faster on this CPU class
+    within the accuracy bound; fp32 otherwise. A requested precision decides (int8 -> the int8
+    file; fp32 / bf16 -> the fp32 one); a device runs the fp32 file (the portable one).
+    Requests the rules refuse are left to ``choose_engine``, which words the error."""
+    want = precision_name(requested_precision) if requested_precision else None
+    if device is not None:
+        return BundledChoice("fp32")
+    if want == "int8":
+        return BundledChoice("int8", "bundled int8 model: --precision int8 given")
+    if want is not None:
+        return BundledChoice("fp32")
+    try:
+        fp32 = choose_engine(_FP32_GUESS, cpu, installed, requested_engine)
+        int8 = choose_engine(_INT8_GUESS, cpu, installed, requested_engine)
+    except InputError:
+        return BundledChoice("fp32")
+    klass = int8_class(cpu)
+    speedup = INT8_SPEEDUP.get(klass, 0.0)
+    if fp32.precision != "fp32" or speedup <= 1.0:
+        return BundledChoice("fp32")
+    if not default_allowed(int8.engine, "int8", True):
+        return BundledChoice("fp32")
+    m = MEASURED[(int8.engine, "int8", True)]
+    return BundledChoice(
+        "int8",
+        f"bundled int8 model: the fp32 one would run in fp32 here; int8 measured {speedup}x "
+        f"fp32 on this CPU class ({klass}), within {m.worst_mean:.2f} deg mean of fp32 on "
+        "DiLiGenT ball crops",
+    )
+
+
 def read_for(path: str | Path, engine: str) -> ModelFile:
     """Read ``path`` with ``engine``'s reader: OpenVINO's keeps its graph for the OpenVINO
     engine to compile; ONNX Runtime's gives the metadata alone (its sessions read the file
@@ -383,7 +482,15 @@ def choose_engine(
         if want_engine is not None:
             note = _int8_note(want_engine, info)
             return pick(want_engine, "int8", f"{what}, --engine given ({hw})" + note)
-        engine = "onnxruntime" if "onnxruntime" in have else "openvino"
+        if "openvino" in have and (ov_int8_preferred(cpu) or "onnxruntime" not in have):
+            engine = "openvino"
+            if ov_int8_preferred(cpu):
+                hw += (
+                    f"; OpenVINO measured {OV_INT8_SPEEDUP[int8_class(cpu)]}x ONNX Runtime int8 "
+                    f"on this CPU class ({int8_class(cpu)})"
+                )
+        else:
+            engine = "onnxruntime"
         note = _int8_note(engine, info)
         return pick(engine, "int8", f"{what} ({hw})" + note)
 
@@ -534,21 +641,27 @@ def open_chosen(
 __all__ = [
     "ACCURACY_BOUND_DEG",
     "DEVICE_TARGETS",
+    "INT8_SPEEDUP",
     "MEASURED",
     "MINMAX_INT8_MEASURED",
     "MIXED_INT8_MEASURED",
     "OV_FP32_SPEEDUP",
+    "OV_INT8_SPEEDUP",
+    "BundledChoice",
     "Device",
     "EngineChoice",
     "Measured",
     "available_devices",
+    "bundled_precision",
     "choose_engine",
     "cpu_class",
     "default_allowed",
+    "int8_class",
     "likely_engine",
     "open_chosen",
     "open_engine",
     "ov_fp32_preferred",
+    "ov_int8_preferred",
     "read_for",
     "resolve_device",
 ]
