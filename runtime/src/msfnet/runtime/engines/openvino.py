@@ -21,13 +21,15 @@ every ``openvino.*`` import, so no narrower import avoids it.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Mapping
+import ctypes
+import os
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from msfnet.common.cpu import check_threads
+from msfnet.common.cpu import cache_folder, check_threads
 from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.base import (
@@ -47,6 +49,53 @@ from msfnet.runtime.engines.staged_loop import (
 
 # OpenVINO's names for the compute precisions
 _HINTS = {"fp32": "f32", "bf16": "bf16"}
+
+# Compiled models are kept between processes in OpenVINO's model cache (keyed by the graph, the
+# compile properties, the device and OpenVINO's version; an entry that fails to import is
+# compiled again): a fresh process opened the bundled int8 twin in 0.19 s from it against 0.45
+# s compiling (3.4 MB on disk; docs/benchmark.md, session 15). "0" turns it off.
+CACHE_ENV = "MSFNET_OPENVINO_CACHE"
+
+
+class _SignalStack(ctypes.Structure):
+    _fields_ = (("sp", ctypes.c_void_p), ("flags", ctypes.c_int), ("size", ctypes.c_size_t))
+
+
+@contextlib.contextmanager
+def _own_signal_stack() -> Iterator[None]:
+    """Keep this thread's alternate signal stack through a compile. OpenVINO's CPU plugin gives
+    the compiling thread a signal stack of its own and puts the previous one back when that
+    model is freed: two models freed in the order they were made left the thread on freed
+    memory, and the next Ctrl-C crashed the process (Python runs its handlers on that stack).
+    Inference runs on other threads (interrupt.py), so the compiling thread needs none."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        before = _SignalStack()
+        if libc.sigaltstack(None, ctypes.byref(before)) != 0:
+            raise OSError(ctypes.get_errno(), "sigaltstack")
+    except (OSError, AttributeError):  # not Linux / glibc: nothing to keep
+        yield
+        return
+    try:
+        yield
+    finally:
+        libc.sigaltstack(ctypes.byref(before), None)
+
+
+def compile_cache() -> Path | None:
+    """The folder OpenVINO keeps compiled models in (msfnet's user cache, ``openvino/``), or
+    None: turned off by MSFNET_OPENVINO_CACHE=0, or no writable cache folder here (no home,
+    a read-only one): then every process compiles, as before."""
+    if os.environ.get(CACHE_ENV, "1").strip() == "0":
+        return None
+    try:
+        folder = cache_folder() / "openvino"
+        folder.mkdir(parents=True, exist_ok=True)
+    except (OSError, RuntimeError):
+        return None
+    return folder if os.access(folder, os.W_OK | os.X_OK) else None
+
+
 INSTALL_HINT = "pip install openvino (part of msfnet's base install)"
 
 
@@ -304,18 +353,30 @@ def open_openvino(
     else:  # NPU: its own precision (f16 compute), no CPU threading properties
         props = {"PERFORMANCE_HINT": "LATENCY"}
     props.update(config or {})
+    cache = compile_cache() if "CACHE_DIR" not in props else None
     core = ov.Core()
+
+    def compile_all(graph: Any, props: dict[str, Any]) -> dict[str, Any]:
+        if info.staged:
+            return {
+                out: core.compile_model(_sub_model(ov, graph, out), device, props)
+                for out in STAGE_OUTPUTS
+            }
+        return {"normals": core.compile_model(graph, device, props)}
+
     try:
         graph = file.openvino_graph
         if graph is None:  # read by ONNX Runtime (or unreadable to OpenVINO: fails here)
             graph = _read_onnx(ov, info.path)
-        if info.staged:
-            compiled = {
-                out: core.compile_model(_sub_model(ov, graph, out), device, props)
-                for out in STAGE_OUTPUTS
-            }
-        else:
-            compiled = {"normals": core.compile_model(graph, device, props)}
+        with _own_signal_stack():
+            try:
+                cached = {**props, "CACHE_DIR": str(cache)} if cache else props
+                compiled = compile_all(graph, cached)
+            except Exception:
+                if cache is None:
+                    raise
+                # the cache is a speed-up, never a new way to fail: compile as before
+                compiled = compile_all(graph, props)
     except InputError:
         raise
     except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
@@ -345,4 +406,12 @@ def open_openvino(
     )
 
 
-__all__ = ["INSTALL_HINT", "OpenVinoEngine", "import_openvino", "open_openvino", "read_openvino"]
+__all__ = [
+    "CACHE_ENV",
+    "INSTALL_HINT",
+    "OpenVinoEngine",
+    "compile_cache",
+    "import_openvino",
+    "open_openvino",
+    "read_openvino",
+]

@@ -1,0 +1,134 @@
+"""engines/openvino.py's compile cache: compiled models kept between processes in msfnet's
+user cache, off with MSFNET_OPENVINO_CACHE=0, never a new way to fail."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("openvino")
+
+from msfnet.runtime.api import default_model_path  # noqa: E402
+from msfnet.runtime.engines import openvino as ovmod  # noqa: E402
+
+
+@pytest.fixture
+def cache_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home-cache"))
+    monkeypatch.delenv(ovmod.CACHE_ENV, raising=False)
+    return tmp_path / "home-cache" / "msfnet" / "openvino"
+
+
+def _blobs(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else []
+
+
+def _run(engine: ovmod.OpenVinoEngine) -> np.ndarray:
+    rng = np.random.default_rng(3)
+    images = rng.random((1, 6, 3, 24, 28), dtype=np.float32) * 0.3
+    lights = rng.normal(size=(1, 6, 3)).astype(np.float32)
+    lights[..., 2] = np.abs(lights[..., 2]) + 1
+    lights /= np.linalg.norm(lights, axis=-1, keepdims=True)
+    return engine.run(images, lights)
+
+
+def test_a_second_open_imports_the_compiled_model(cache_home: Path) -> None:
+    path = default_model_path("int8")
+    first = ovmod.open_openvino(path, threads=1)
+    blobs = _blobs(cache_home)
+    assert blobs, "nothing cached"
+    sizes = {p: p.stat().st_size for p in blobs}
+    second = ovmod.open_openvino(path, threads=1)
+    # the same entries, none rewritten, and the same normals from the imported model
+    assert {p: p.stat().st_size for p in _blobs(cache_home)} == sizes
+    assert second.precision == first.precision == "int8"
+    np.testing.assert_array_equal(_run(second), _run(first))
+
+
+def test_the_cache_can_be_turned_off(cache_home: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv(ovmod.CACHE_ENV, "0")
+    assert ovmod.compile_cache() is None
+    ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
+    assert _blobs(cache_home) == []
+
+
+def test_an_unusable_cache_folder_changes_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A file where the folder should be (or no home at all): no cache, the model still opens."""
+    (tmp_path / "msfnet").write_text("not a folder")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert ovmod.compile_cache() is None
+    engine = ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
+    assert np.isfinite(_run(engine)).all()
+
+
+def test_a_damaged_cache_entry_is_compiled_again(cache_home: Path) -> None:
+    path = default_model_path()
+    reference = _run(ovmod.open_openvino(path, threads=1, precision="fp32"))
+    blobs = [p for p in _blobs(cache_home) if p.suffix == ".blob"] or _blobs(cache_home)
+    for p in blobs:
+        p.write_bytes(p.read_bytes()[: p.stat().st_size // 3])  # torn writes
+    again = ovmod.open_openvino(path, threads=1, precision="fp32")
+    np.testing.assert_array_equal(_run(again), reference)
+
+
+@pytest.mark.slow
+def test_processes_opening_at_once_share_the_cache(cache_home: Path) -> None:
+    """Two processes compiling the same model into an empty cache at the same time (a batch's
+    workers starting together) both open it and agree."""
+    code = (
+        "import numpy as np, sys;"
+        "from msfnet.runtime.api import default_model_path;"
+        "from msfnet.runtime.engines.openvino import open_openvino;"
+        "e = open_openvino(default_model_path('int8'), threads=1);"
+        "x = np.full((1, 4, 3, 16, 16), 0.2, np.float32); l = np.zeros((1, 4, 3), np.float32);"
+        "l[..., 2] = 1; print(float(e.run(x, l).sum()))"
+    )
+    env = {**os.environ, "XDG_CACHE_HOME": str(cache_home.parents[1])}
+    procs = [
+        subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+        for _ in range(2)
+    ]
+    outs = [p.communicate(timeout=120)[0].strip() for p in procs]
+    assert [p.returncode for p in procs] == [0, 0]
+    assert outs[0] == outs[1] and outs[0]
+    assert _blobs(cache_home)
+
+
+def test_ctrl_c_after_models_were_freed_is_a_keyboard_interrupt(tmp_path: Path) -> None:
+    """OpenVINO's CPU plugin gave the compiling thread a signal stack of its own and put the
+    previous one back when the model was freed: two models freed in the order they were made
+    left the main thread on freed memory, and the next Ctrl-C was a segmentation fault."""
+    code = """
+import gc, os, signal, time
+import numpy as np
+from msfnet.runtime.api import default_model_path
+from msfnet.runtime.engines.openvino import open_openvino
+a = open_openvino(default_model_path(), threads=1, precision="fp32")
+b = open_openvino(default_model_path(), threads=1, precision="fp32")
+x = np.full((1, 4, 3, 16, 16), 0.2, np.float32)
+l = np.zeros((1, 4, 3), np.float32)
+l[..., 2] = 1
+a.run(x, l)
+b.run(x, l)
+del a
+del b
+gc.collect()
+try:
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(1)
+except KeyboardInterrupt:
+    print("interrupted")
+"""
+    env = {**os.environ, ovmod.CACHE_ENV: "0"}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, (proc.returncode, proc.stderr[-500:])
+    assert proc.stdout.strip() == "interrupted"
