@@ -40,6 +40,8 @@ def fake_exporter(monkeypatch) -> dict[str, object]:
 
     def export_variant(checkpoint: Path, variant: object, output: Path, **kwargs: object):
         seen.update(writer=current_writer(), command=current_command(), output=output)
+        if kwargs.get("calib"):  # the int8 variants: what the quantiser will be told
+            seen["options"] = kwargs["options"]
         return types.SimpleNamespace(lines=lambda: ["fake export"])
 
     fake = types.ModuleType("msfnet.export.pipeline")
@@ -68,3 +70,14 @@ def test_an_input_error_in_the_body_is_one_line_exit_2(
     err = capsys.readouterr().err
     assert err.startswith("msf-export: error: --calib: only the int8 variants"), err
     assert err.count("\n") == 1 and fake_exporter == {}
+
+
+@pytest.mark.parametrize(("flags", "bits"), [(["--weight-bits", "7"], 7), ([], None)])
+def test_weight_bits_reach_the_export_options(
+    tmp_path: Path, fake_exporter, flags: list[str], bits: int | None
+) -> None:
+    argv = [str(tmp_path / "m.pth"), "--variant", "staged-int8", "--calib", str(tmp_path), *flags]
+    assert export_main(argv) == 0
+    options = fake_exporter["options"]
+    assert options.weight_bits == bits  # type: ignore[attr-defined]
+    assert options.reduce_range is (None if bits is None else True)  # type: ignore[attr-defined]

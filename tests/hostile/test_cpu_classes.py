@@ -143,19 +143,44 @@ def test_int8_export_quantises_to_what_the_cpu_computes_exactly(
     assert _quantize_with(monkeypatch, tmp_path, cpu, stacks)["reduce_range"] is reduced
 
 
-@pytest.mark.parametrize(("cpu", "bits"), [(AVX2, 8), (AMX, 7)])
-def test_int8_export_weight_bits_given_beat_the_cpu(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cpu: CpuInfo, bits: int
+@pytest.mark.parametrize(("cpu", "bits"), [(AVX2, 8), (AMX, 7), (AVX2, None), (AMX, None)])
+def test_the_quantise_pass_hands_weight_bits_to_the_quantiser(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cpu: CpuInfo, bits: int | None
 ) -> None:
     """msf-export --weight-bits 7 on a VNNI CPU makes a file for every CPU (the bundled int8
-    model); 8 on an AVX2 CPU is the user's call (its check then runs where it saturates)."""
-    from msfnet.export.variants import ExportOptions
+    model); 8 on an AVX2 CPU is the user's call; none: the exporting CPU decides. Through the
+    quantise-int8 pass itself, with ONNX Runtime's quantiser replaced by a recorder."""
+    onnx = pytest.importorskip("onnx")
+    quantization = pytest.importorskip("onnxruntime.quantization")
+    import msfnet.common.cpu as cpumod
+    from msfnet.export.passes import PASSES, PassContext
+    from msfnet.export.variants import ExportOptions, get_variant
 
-    stacks = [sphere_stack(n=8, h=96, w=96)]
-    reduce = ExportOptions(weight_bits=bits).reduce_range  # what the quantise pass passes
-    assert ExportOptions().reduce_range is None
-    seen = _quantize_with(monkeypatch, tmp_path, cpu, stacks, reduce)
-    assert seen["reduce_range"] is (bits == 7)
+    seen: dict = {}
+
+    def record(src: str, dst: str, reader: object, **kwargs: object) -> None:
+        seen.update(kwargs)
+        Path(dst).write_bytes(Path(src).read_bytes())
+
+    monkeypatch.setattr(quantization, "quantize_static", record)
+    monkeypatch.setattr(cpumod, "detect_cpu", lambda: cpu)
+    options = ExportOptions(
+        weight_bits=bits, calib_tile=32, calib_lights=8, calib_tiles_per_stack=1
+    )
+    ctx = PassContext(
+        model=None,  # type: ignore[arg-type]  # the quantise pass reads no torch network
+        variant=get_variant("int8"),
+        options=options,
+        checkpoint=tmp_path / "m.pth",
+        output=tmp_path / "m.onnx",
+        stacks=[sphere_stack(n=8, h=96, w=96)],
+    )
+    model = onnx.load(str(tiny_msfnet_onnx(tmp_path / "tiny.onnx")))
+    PASSES["quantise-int8"].run(model, ctx)
+    expected = (bits == 7) if bits is not None else not cpu.int8_full_range
+    assert seen["reduce_range"] is expected
+    summary = ctx.notes["quantization"]
+    assert isinstance(summary, dict) and summary["reduce_range"] is expected
 
 
 @pytest.mark.parametrize(

@@ -176,10 +176,13 @@ def test_model_opens_the_int8_twin_on_a_cpu_without_bf16(monkeypatch: pytest.Mon
     assert Path(str(d["model"])) == default_model_path("int8")
     assert d["precision"] == "int8"
     assert "bundled int8 model" in str(d["choice"]) and "(avx2)" in str(d["choice"])
-    # a precision asked for decides; least squares opens no model
+    # a precision asked for decides; a named engine alone keeps the fp32 file (the reference)
     d = Model(threads=1, precision="fp32").describe()
     assert Path(str(d["model"])) == default_model_path() and d["precision"] == "fp32"
-    assert Model(threads=1, engine="onnxruntime").describe()["precision"] == "int8"
+    d = Model(threads=1, engine="onnxruntime").describe()
+    assert Path(str(d["model"])) == default_model_path() and d["precision"] == "fp32"
+    d = Model(threads=1, engine="onnxruntime", precision="int8").describe()
+    assert Path(str(d["model"])) == default_model_path("int8") and d["precision"] == "int8"
 
 
 def test_model_keeps_the_fp32_file_where_bf16_is_faster(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -207,5 +210,6 @@ def test_a_missing_int8_twin_leaves_the_fp32_file(
     _cpu(monkeypatch, ZEN3)
     d = Model(threads=1).describe()
     assert Path(str(d["model"])) == tmp_path / "msfnet_default.onnx"
-    with pytest.raises(InputError, match=r"msfnet_default_int8\.onnx"):
+    assert str(d["choice"]).startswith("bundled fp32 model: its int8 twin is not installed")
+    with pytest.raises(InputError, match=r"no bundled int8 model .*msfnet_default_int8\.onnx"):
         Model(threads=1, precision="int8")

@@ -13,8 +13,8 @@ import pytest
 
 pytest.importorskip("openvino")
 
-from msfnet.runtime.api import default_model_path  # noqa: E402
-from msfnet.runtime.engines import openvino as ovmod  # noqa: E402
+from msfnet.runtime.api import default_model_path
+from msfnet.runtime.engines import openvino as ovmod
 
 
 @pytest.fixture

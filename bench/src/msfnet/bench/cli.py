@@ -583,8 +583,9 @@ def end_to_end(
     stack = load_stack(args.stack, max_lights=max_lights)
     ort = ["--engine", "onnxruntime"]
     budget = args.max_memory  # None: msf-run's own default, as a user runs it
-    # The default row runs the bundled ONNX; for other weights (--checkpoint, --random-weights)
-    # it runs their staged export, so every row computes the same network.
+    # The default row runs the bundled model as msf-run picks it (fp32, or its int8 twin on
+    # CPUs without native bf16: then it differs from the fp32 rows by the quantisation); for
+    # other weights (--checkpoint, --random-weights) it runs their staged fp32 export.
     from msfnet.model.checkpoint import default_checkpoint_path
 
     bundled = (
@@ -739,6 +740,15 @@ def _edge_mode(args: argparse.Namespace) -> bool:
     return args.onnx is not None or args.ladder or args.requirements
 
 
+def _bundled_file(args: argparse.Namespace) -> str:
+    """The bundled file msf-run opens here with no engine or precision named (fp32 or int8)."""
+    from msfnet.runtime.api import default_model_path
+    from msfnet.runtime.engines.dispatch import bundled_precision
+
+    pick = bundled_precision(detect_cpu(), installed_engines())
+    return default_model_path(pick.precision).name
+
+
 def _run_edge(args: argparse.Namespace) -> int:
     """--onnx / --ladder / --requirements: torch-free, inputs checked first, one report folder
     (REPORT.md, report.json) written as a whole."""
@@ -761,10 +771,12 @@ def _run_edge(args: argparse.Namespace) -> int:
         command=PROG,
     )
     threads = max(args.threads)
+    bundled = _bundled_file(args)
     result: dict = {
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
         "machine": machine_description(),
-        "model": str(model),
+        # without --onnx the ladder and the requirements run what msf-run opens here
+        "model": str(model) if args.onnx else f"bundled ({bundled})",
         "threads": threads,
     }
     sections = []
@@ -783,14 +795,14 @@ def _run_edge(args: argparse.Namespace) -> int:
             sections.append(("Speed ladder (--speed)", ladder.ladder_table(rungs)))
         if args.requirements:
             _say(args, "measuring the requirements grid (each cell in a fresh process) ...")
-            reqs = edge.requirement_rows(model, stack, threads, scratch, quick=args.quick)
+            reqs = edge.requirement_rows(args.onnx, stack, threads, scratch, quick=args.quick)
             result["requirements"] = [edge.asdict(r) for r in reqs]
             sections.append(("Requirements", edge.requirements_table(reqs)))
         m = result["machine"]
         head = (
             f"# msf-bench, {result['date']}\n\nCPU: {m['cpu']} ({m['cores']} cores); "
             f"{threads} threads; onnxruntime {m['onnxruntime']}, openvino {m['openvino']}; "
-            f"model {model.name}\n"
+            f"model {model.name if args.onnx else 'bundled, ' + bundled}\n"
         )
         text = head + "".join(f"\n## {t}\n\n{body}\n" for t, body in sections)
         write_text(work / "REPORT.md", text)

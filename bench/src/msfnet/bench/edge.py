@@ -217,7 +217,7 @@ def measure_requirement(spec: dict) -> dict:
     from msfnet.runtime.stack import Stack, load_stack
 
     model = Model(
-        Path(spec["model"]),
+        Path(spec["model"]) if spec.get("model") else None,  # None: the bundled pair's choice
         threads=spec.get("threads"),
         engine=spec.get("engine"),
         precision=spec.get("precision"),
@@ -328,7 +328,7 @@ def edge_table(rows: list[EdgeRow]) -> str:
 
 
 def requirement_rows(
-    model: Path,
+    model: Path | None,
     stack: Path,
     threads: int | None,
     scratch: Path,
@@ -337,7 +337,8 @@ def requirement_rows(
     engines: tuple[tuple[str | None, str | None], ...] = ((None, None), ("onnxruntime", "fp32")),
 ) -> list[Requirement]:
     """The grid, each cell in a fresh process; ``engines``: (engine, precision) pairs, None =
-    dispatch's default."""
+    dispatch's default. ``model`` None: the bundled model msf-run would open here (its int8
+    twin on CPUs without native bf16; an engine or precision named keeps the fp32 file)."""
     sizes, lights = (
         (QUICK_SIZES, QUICK_LIGHTS) if quick else (REQUIREMENT_SIZES, REQUIREMENT_LIGHTS)
     )
@@ -346,7 +347,7 @@ def requirement_rows(
         for n in lights:
             for s in sizes:
                 spec = {
-                    "model": str(model),
+                    "model": None if model is None else str(model),
                     "stack": str(stack),
                     "threads": threads,
                     "engine": engine,

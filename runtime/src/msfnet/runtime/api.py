@@ -625,10 +625,12 @@ def _bundled_model(opts: ModelOptions) -> tuple[Path, str]:
         pick = BundledChoice("fp32")  # an ONNX Runtime execution provider (a GPU): as a device
     path = default_model_path(pick.precision)
     if not path.is_file() and pick.precision == "int8" and opts.precision is None:
-        path, pick = default_model_path(), BundledChoice("fp32")
+        path = default_model_path()
+        pick = BundledChoice("fp32", "bundled fp32 model: its int8 twin is not installed")
     if not path.is_file():
+        what = "int8 model (its twin)" if pick.precision == "int8" else "model"
         raise InputError(
-            f"no model given and no bundled model at {path}; export one "
+            f"no model given and no bundled {what} at {path}; export one "
             "with msf-export, or use least squares (--method l2)"
         )
     return path, pick.reason

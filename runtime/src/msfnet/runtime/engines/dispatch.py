@@ -122,30 +122,40 @@ def ov_fp32_preferred(cpu: CpuInfo) -> bool:
 
 
 def int8_class(cpu: CpuInfo) -> str:
-    """The CPU class int8 speed is kept for: amx, vnni (int8 dot products in AVX-512 or AVX),
-    avx2 (no VNNI: int8 products summed in 16-bit pairs, which 7-bit weights keep exact; CPUs
-    with AVX-512 but no VNNI count here too) or other (no AVX2: nothing measured)."""
+    """The CPU class int8 speed is kept for: amx; vnni (AVX-512 VNNI); avx2_vnni (AVX-VNNI on
+    256-bit vectors, no AVX-512); avx512 (AVX-512 without VNNI); avx2 (no VNNI: int8 products
+    summed in 16-bit pairs, which 7-bit weights keep exact); other (no AVX2)."""
     if cpu.has_amx:
         return "amx"
-    if cpu.has_vnni:
+    if cpu.avx512_vnni:
         return "vnni"
+    if cpu.avx_vnni:
+        return "avx2_vnni"
+    if cpu.avx512f:
+        return "avx512"
     return "avx2" if cpu.avx2 else "other"
 
 
 # int8 class -> an int8 export over the same model in fp32 through the same engine, same run:
 # workload (b) (128 px crop, 32 lights, 2 threads), medians of 5 interleaved rounds, the slower
-# engine's ratio (docs/benchmark.md, 2026-12-02 session 14). avx2 and vnni were measured in the
-# cpuid proxy (msfnet.bench.cpu_proxy avx2 / avx512_vnni) on an AMX Xeon.
+# engine's ratio (docs/benchmark.md, 2026-12-02 session 14); avx2_vnni: the bundled twin on
+# ONNX Runtime over the fp32 file on ONNX Runtime, whole 12-light psmImages cat (session 15).
+# avx2, avx2_vnni and vnni were measured in the cpuid proxy (msfnet.bench.cpu_proxy) on an AMX
+# Xeon; avx512 (AVX-512 without VNNI) and other were not measured: the fp32 file there.
 INT8_SPEEDUP: dict[str, float] = {
     "avx2": 1.52,  # OpenVINO 1.52-1.55x, ONNX Runtime 1.89x (7-bit weights)
+    "avx2_vnni": 1.74,  # 5.64 against 9.83 s (load ~2)
     "vnni": 1.96,  # ONNX Runtime 1.96x, OpenVINO 2.11x
     "amx": 1.80,  # ONNX Runtime 1.80x, OpenVINO 2.98x (bf16 is faster still: 4.7x)
 }
-# int8 class -> OpenVINO int8 over ONNX Runtime int8, the same int8 file, same run, (b) as above
+# int8 class -> OpenVINO int8 over ONNX Runtime int8: the bundled twin (staged) on the whole
+# 12-light psmImages cat, msf-run end to end in fresh processes with OpenVINO's compile cache
+# warm, medians of 3-5 interleaved rounds, load ~2 (docs/benchmark.md, session 15)
 OV_INT8_SPEEDUP: dict[str, float] = {
-    "avx2": 1.24,  # 1.85 against 2.29 s
-    "vnni": 1.46,  # 0.86 against 1.26 s
-    "amx": 2.28,  # 0.59 against 1.34 s
+    "avx2": 1.08,  # 5.22 against 5.66 s (1.02x before the compile cache)
+    "avx2_vnni": 1.31,  # 4.30 against 5.64 s
+    "vnni": 1.20,  # 3.32 against 3.98 s
+    "amx": 1.67,  # 2.46 against 4.11 s
 }
 
 
@@ -356,21 +366,22 @@ def bundled_precision(
     requested_precision: str | None = None,
     device: Device | None = None,
 ) -> BundledChoice:
-    """The bundled model's file for this CPU and request: int8 where the fp32 file would run
-    in fp32 (no bf16 default here) and ``INT8_SPEEDUP`` measured int8 faster on this CPU class
-    within the accuracy bound; fp32 otherwise. A requested precision decides (int8 -> the int8
-    file; fp32 / bf16 -> the fp32 one); a device runs the fp32 file (the portable one).
-    Requests the rules refuse are left to ``choose_engine``, which words the error."""
+    """The bundled model's file for this CPU and request. Nothing asked for: int8 where the
+    fp32 file would run in fp32 (no bf16 default here) and ``INT8_SPEEDUP`` measured int8
+    faster on this CPU class within the accuracy bound, else fp32. ``--precision int8``: the
+    int8 file (any CPU or device); any other request (a precision, an engine, a device) keeps
+    the fp32 file. Requests the rules refuse are left to ``choose_engine``, which words the
+    error."""
     want = precision_name(requested_precision) if requested_precision else None
-    if device is not None:
-        return BundledChoice("fp32")
     if want == "int8":
         return BundledChoice("int8", "bundled int8 model: --precision int8 given")
-    if want is not None:
+    if want is not None or device is not None or requested_engine is not None:
+        # a named engine alone keeps the fp32 file: `--engine onnxruntime` stays the fp32
+        # reference it always was
         return BundledChoice("fp32")
     try:
-        fp32 = choose_engine(_FP32_GUESS, cpu, installed, requested_engine)
-        int8 = choose_engine(_INT8_GUESS, cpu, installed, requested_engine)
+        fp32 = choose_engine(_FP32_GUESS, cpu, installed)
+        int8 = choose_engine(_INT8_GUESS, cpu, installed)
     except InputError:
         return BundledChoice("fp32")
     klass = int8_class(cpu)
@@ -384,7 +395,7 @@ def bundled_precision(
         "int8",
         f"bundled int8 model: the fp32 one would run in fp32 here; int8 measured {speedup}x "
         f"fp32 on this CPU class ({klass}), within {m.worst_mean:.2f} deg mean of fp32 on "
-        "DiLiGenT ball crops",
+        f"DiLiGenT ball crops at {' and '.join(map(str, sorted(m.deg)))} lights",
     )
 
 
@@ -474,11 +485,12 @@ def choose_engine(
                 "model (msf-export without --int8) for fp32 or bf16",
                 info.path,
             )
-        hw = (
-            "VNNI/AMX int8 dot products"
-            if cpu.has_vnni
-            else "no VNNI/AMX: int8 emulated with AVX2, still faster than fp32"
-        )
+        if cpu.has_vnni:
+            hw = "VNNI/AMX int8 dot products"
+        elif cpu.avx2:
+            hw = "no VNNI/AMX: int8 emulated with AVX2, still faster than fp32"
+        else:
+            hw = "no AVX2, VNNI or AMX: int8 speed not measured on this CPU"
         if want_engine is not None:
             note = _int8_note(want_engine, info)
             return pick(want_engine, "int8", f"{what}, --engine given ({hw})" + note)
