@@ -77,6 +77,9 @@ INT8, INT8_STAGED = info("int8-qdq"), info("int8-qdq", staged=True)
         (AMX, BOTH, INT8_STAGED, "openvino", "int8"),
         (AMX, {"openvino"}, INT8, "openvino", "int8"),
         (ZEN3, ORT, INT8, "onnxruntime", "int8"),
+        # only OpenVINO installed, on a class where nothing favours it: still OpenVINO
+        (SKYLAKE, {"openvino"}, FP32, "openvino", "fp32"),
+        (ARM, {"openvino"}, FP32_STAGED, "openvino", "fp32"),
         (ARM, BOTH, INT8, "onnxruntime", "int8"),  # nothing measured there
     ],
 )

@@ -42,10 +42,13 @@ def test_a_second_open_imports_the_compiled_model(cache_home: Path) -> None:
     first = ovmod.open_openvino(path, threads=1)
     blobs = _blobs(cache_home)
     assert blobs, "nothing cached"
-    sizes = {p: p.stat().st_size for p in blobs}
+    stamps = {p: (p.stat().st_size, p.stat().st_mtime_ns, p.stat().st_ino) for p in blobs}
     second = ovmod.open_openvino(path, threads=1)
-    # the same entries, none rewritten, and the same normals from the imported model
-    assert {p: p.stat().st_size for p in _blobs(cache_home)} == sizes
+    # the same entries, none written again (a compile would rewrite them), and the same
+    # normals from the imported model
+    assert {
+        p: (p.stat().st_size, p.stat().st_mtime_ns, p.stat().st_ino) for p in _blobs(cache_home)
+    } == stamps
     assert second.precision == first.precision == "int8"
     np.testing.assert_array_equal(_run(second), _run(first))
 
@@ -55,6 +58,55 @@ def test_the_cache_can_be_turned_off(cache_home: Path, monkeypatch: pytest.Monke
     assert ovmod.compile_cache() is None
     ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
     assert _blobs(cache_home) == []
+
+
+def test_a_cache_folder_others_may_write_is_not_used(cache_home: Path) -> None:
+    """Entries are loaded as they are (OpenVINO keeps no checksum): only a folder of this
+    user's own, not a link and not writable by others, is trusted with them."""
+    assert ovmod.compile_cache() == cache_home
+    cache_home.chmod(0o777)
+    assert ovmod.compile_cache() is None
+    cache_home.chmod(0o700)
+    assert ovmod.compile_cache() == cache_home
+    cache_home.rmdir()
+    elsewhere = cache_home.parent / "elsewhere"
+    elsewhere.mkdir()
+    cache_home.symlink_to(elsewhere)
+    assert ovmod.compile_cache() is None
+
+
+def test_a_failing_cached_compile_compiles_without_the_cache(
+    cache_home: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A cache OpenVINO cannot use costs a second compile, never the run: here every compile
+    that is given a CACHE_DIR raises."""
+    import types
+
+    real = ovmod.import_openvino()
+    tried: list[bool] = []
+
+    class Core:
+        def __init__(self) -> None:
+            self._core = real.Core()
+
+        def compile_model(self, model: object, device: str, props: dict) -> object:
+            tried.append("CACHE_DIR" in props)
+            if "CACHE_DIR" in props:
+                raise RuntimeError("the cache broke")
+            return self._core.compile_model(model, device, props)
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self._core, name)
+
+    fake = types.SimpleNamespace(**{k: getattr(real, k) for k in dir(real) if k[0] != "_"})
+    fake.Core = Core
+    monkeypatch.setattr(ovmod, "import_openvino", lambda: fake)
+    engine = ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
+    assert tried[0] is True and tried[-1] is False  # tried with the cache, then without
+    monkeypatch.undo()
+    monkeypatch.setenv(ovmod.CACHE_ENV, "0")
+    reference = ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
+    np.testing.assert_array_equal(_run(engine), _run(reference))
 
 
 def test_an_unusable_cache_folder_changes_nothing(
@@ -73,6 +125,7 @@ def test_a_damaged_cache_entry_is_compiled_again(cache_home: Path) -> None:
     reference = _run(ovmod.open_openvino(path, threads=1, precision="fp32"))
     blobs = [p for p in _blobs(cache_home) if p.suffix == ".blob"] or _blobs(cache_home)
     for p in blobs:
+        p.chmod(0o600)  # OpenVINO writes its entries read-only
         p.write_bytes(p.read_bytes()[: p.stat().st_size // 3])  # torn writes
     again = ovmod.open_openvino(path, threads=1, precision="fp32")
     np.testing.assert_array_equal(_run(again), reference)
@@ -101,13 +154,22 @@ def test_processes_opening_at_once_share_the_cache(cache_home: Path) -> None:
     assert _blobs(cache_home)
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="sigaltstack via glibc")
 def test_ctrl_c_after_models_were_freed_is_a_keyboard_interrupt(tmp_path: Path) -> None:
     """OpenVINO's CPU plugin gave the compiling thread a signal stack of its own and put the
     previous one back when the model was freed: two models freed in the order they were made
     left the main thread on freed memory, and the next Ctrl-C was a segmentation fault."""
     code = """
-import gc, os, signal, time
+import ctypes, gc, os, signal, time
 import numpy as np
+libc = ctypes.CDLL(None)
+class SS(ctypes.Structure):
+    _fields_ = [("sp", ctypes.c_void_p), ("flags", ctypes.c_int), ("size", ctypes.c_size_t)]
+def stack():
+    ss = SS()
+    assert libc.sigaltstack(None, ctypes.byref(ss)) == 0
+    return (ss.sp, ss.flags, ss.size)
+start = stack()
 from msfnet.runtime.api import default_model_path
 from msfnet.runtime.engines.openvino import open_openvino
 a = open_openvino(default_model_path(), threads=1, precision="fp32")
@@ -120,6 +182,7 @@ b.run(x, l)
 del a
 del b
 gc.collect()
+assert stack() == start, (stack(), start)  # the thread's own signal stack, not a freed one
 try:
     os.kill(os.getpid(), signal.SIGINT)
     time.sleep(1)

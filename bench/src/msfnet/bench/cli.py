@@ -745,8 +745,8 @@ def _bundled_file(args: argparse.Namespace) -> str:
     from msfnet.runtime.api import default_model_path
     from msfnet.runtime.engines.dispatch import bundled_precision
 
-    pick = bundled_precision(detect_cpu(), installed_engines())
-    return default_model_path(pick.precision).name
+    path = default_model_path(bundled_precision(detect_cpu(), installed_engines()).precision)
+    return (path if path.is_file() else default_model_path()).name  # msf-run's fallback too
 
 
 def _run_edge(args: argparse.Namespace) -> int:

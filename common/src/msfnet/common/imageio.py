@@ -175,7 +175,7 @@ def read_image(
     with open(path, "rb") as f:
         header = _header(f, path)  # size refused before the file is read or decoded
         if shape is not None:
-            _same_size(header, shape, what, path)
+            check_same_size(header.shape if header else None, shape, what, path)
         size = os.fstat(f.fileno()).st_size  # the file open, not the name: it may change
         if size > MAX_IMAGE_BYTES:
             raise InputError(
@@ -193,7 +193,7 @@ def read_image(
     if img.ndim not in (2, 3) or img.size == 0 or (img.ndim == 3 and img.shape[2] != 3):
         raise InputError(f"unsupported image shape {img.shape}", path)
     if shape is not None:  # formats without a header reader: compared once decoded
-        _same_size(ImageHeader(img.shape[1], img.shape[0], None), shape, what, path)
+        check_same_size(img.shape, shape, what, path)
     return np.ascontiguousarray(img)
 
 
@@ -298,12 +298,15 @@ def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
         ) from exc
 
 
-def _same_size(header: ImageHeader | None, shape: tuple[int, int], what: str, path: Path) -> None:
-    if header is not None and header.shape != tuple(shape):
-        raise InputError(
-            f"{what} is {header.width}x{header.height} but images are {shape[1]}x{shape[0]}",
-            path,
-        )
+def check_same_size(
+    found: tuple[int, ...] | None, shape: tuple[int, int], what: str, path: Path
+) -> None:
+    """InputError unless ``found`` (an array's or a header's (height, width, ...)) starts with
+    the stack's ``shape``: the one wording of every mask, ground-truth and image size check."""
+    if found is None or tuple(found[:2]) == tuple(shape):
+        return
+    size = f"{found[1]}x{found[0]}" if len(found) >= 2 else f"of shape {tuple(found)}"
+    raise InputError(f"{what} is {size} but images are {shape[1]}x{shape[0]}", path)
 
 
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:

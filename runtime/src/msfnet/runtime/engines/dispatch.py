@@ -572,6 +572,8 @@ def choose_engine(
         return pick("openvino", "fp32", f"{what}; {why}; {ov_why}")
     if "openvino" not in have:
         return pick("onnxruntime", "fp32", f"{what}; {why}")
+    if "onnxruntime" not in have:  # a trimmed install: the engine that is here
+        return pick("openvino", "fp32", f"{what}; {why}; ONNX Runtime is not installed")
     return pick(
         "onnxruntime",
         "fp32",

@@ -23,6 +23,8 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import stat
+import sys
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -51,10 +53,12 @@ from msfnet.runtime.engines.staged_loop import (
 _HINTS = {"fp32": "f32", "bf16": "bf16"}
 
 # Compiled models are kept between processes in OpenVINO's model cache (keyed by the graph, the
-# compile properties, the device and OpenVINO's version; an entry that fails to import is
-# compiled again): a fresh process opened the bundled int8 twin in 0.19 s from it against 0.45
-# s compiling (3.4 MB on disk; docs/benchmark.md, session 15). "0" turns it off.
+# device and OpenVINO's version; precision and threads are applied when an entry is loaded; a
+# truncated entry is compiled again, other damage is not detected): a fresh process opened the
+# bundled int8 twin in 0.19 s from it against 0.45 s compiling (docs/benchmark.md, session
+# 15). "0" turns it off.
 CACHE_ENV = "MSFNET_OPENVINO_CACHE"
+_SS_DISABLE = 2  # sigaltstack's flag for "no alternate stack" (Linux)
 
 
 class _SignalStack(ctypes.Structure):
@@ -64,36 +68,46 @@ class _SignalStack(ctypes.Structure):
 @contextlib.contextmanager
 def _own_signal_stack() -> Iterator[None]:
     """Keep this thread's alternate signal stack through a compile. OpenVINO's CPU plugin gives
-    the compiling thread a signal stack of its own and puts the previous one back when that
-    model is freed: two models freed in the order they were made left the thread on freed
-    memory, and the next Ctrl-C crashed the process (Python runs its handlers on that stack).
-    Inference runs on other threads (interrupt.py), so the compiling thread needs none."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        before = _SignalStack()
-        if libc.sigaltstack(None, ctypes.byref(before)) != 0:
-            raise OSError(ctypes.get_errno(), "sigaltstack")
-    except (OSError, AttributeError):  # not Linux / glibc: nothing to keep
-        yield
-        return
+    the compiling thread a signal stack of its own (on Linux) and puts the previous one back
+    when that model is freed: two models freed in the order they were made left the thread on
+    freed memory, and the next Ctrl-C crashed the process (Python runs its handlers on that
+    stack). Inference runs on other threads (interrupt.py), so the compiling thread needs none.
+    Where the old stack cannot be put back (the kernel refuses one too small for the signal
+    frame once AMX is in use), the thread is left with none rather than the plugin's."""
+    libc: Any = None
+    before = _SignalStack()
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.sigaltstack(None, ctypes.byref(before)) != 0:
+                libc = None
+        except Exception:  # no usable libc: nothing to keep
+            libc = None
     try:
         yield
     finally:
-        libc.sigaltstack(ctypes.byref(before), None)
+        if libc is not None and libc.sigaltstack(ctypes.byref(before), None) != 0:
+            libc.sigaltstack(ctypes.byref(_SignalStack(None, _SS_DISABLE, 0)), None)
 
 
 def compile_cache() -> Path | None:
     """The folder OpenVINO keeps compiled models in (msfnet's user cache, ``openvino/``), or
-    None: turned off by MSFNET_OPENVINO_CACHE=0, or no writable cache folder here (no home,
-    a read-only one): then every process compiles, as before."""
+    None: turned off by MSFNET_OPENVINO_CACHE=0, or no folder of this user's own here (no home,
+    a read-only one, a link, one other users may write into: its entries are loaded as they
+    are): then every process compiles, as before."""
     if os.environ.get(CACHE_ENV, "1").strip() == "0":
         return None
     try:
         folder = cache_folder() / "openvino"
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        st = os.lstat(folder)
     except (OSError, RuntimeError):
         return None
-    return folder if os.access(folder, os.W_OK | os.X_OK) else None
+    mine = not hasattr(os, "getuid") or st.st_uid == os.getuid()
+    private = stat.S_ISDIR(st.st_mode) and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+    if not (mine and private and os.access(folder, os.W_OK | os.X_OK)):
+        return None
+    return folder
 
 
 INSTALL_HINT = "pip install openvino (part of msfnet's base install)"
@@ -355,6 +369,12 @@ def open_openvino(
     props.update(config or {})
     cache = compile_cache() if "CACHE_DIR" not in props else None
     core = ov.Core()
+    if cache is not None:
+        # a model loaded from the cache otherwise reads its weights from the mapped entry at
+        # every call: another process rewriting that entry turned a running engine's normals
+        # into NaN (review, session 15); read into memory it costs nothing measurable
+        with contextlib.suppress(Exception):
+            core.set_property({"ENABLE_MMAP": False})
 
     def compile_all(graph: Any, props: dict[str, Any]) -> dict[str, Any]:
         if info.staged:

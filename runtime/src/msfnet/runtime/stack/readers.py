@@ -10,7 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common.errors import InputError, first_line
-from msfnet.common.imageio import MAX_PIXELS, array_shape, npy_layout, read_image
+from msfnet.common.imageio import (
+    MAX_PIXELS,
+    array_shape,
+    check_same_size,
+    npy_layout,
+    read_image,
+)
 from msfnet.common.matfile import MatDirectory, mat_directory, normals_variable, not_v5
 
 # A light file lists one row per light. Real rigs have tens to a few hundred lights; the bounds
@@ -180,21 +186,14 @@ def check_gt_header(path: Path, shape: tuple[int, int]) -> MatDirectory | None:
         return mat
     found = array_shape(path)
     if found is not None:
-        _same_size(found, shape, path)
+        check_same_size(found, shape, "ground truth", path)
     return None
-
-
-def _same_size(found: tuple[int, ...], shape: tuple[int, int], path: Path) -> None:
-    h, w = shape
-    if tuple(found[:2]) != (h, w):
-        size = f"{found[1]}x{found[0]}" if len(found) >= 2 else f"of shape {found}"
-        raise InputError(f"ground truth is {size} but images are {w}x{h}", path)
 
 
 def _check_mat_header(mat: MatDirectory, shape: tuple[int, int]) -> None:
     found = mat.normals_shape
     if found is not None:
-        _same_size(found, shape, mat.path)
+        check_same_size(found, shape, "ground truth", mat.path)
     # loadmat (the fallback) reads every variable, not only the normals
     shapes = mat.shapes
     total = sum(int(np.prod(d, dtype=np.int64)) for d in shapes.values())
@@ -263,7 +262,7 @@ def _npy_normals(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
         if len(dims) != 3 or dims[2] != 3:
             raise InputError(f"ground-truth normals must be H x W x 3, got {dims}", path)
         if shape is not None:
-            _same_size(dims, shape, path)
+            check_same_size(dims, shape, "ground truth", path)
         if dims[0] * dims[1] > MAX_PIXELS:
             raise InputError(
                 f"ground truth is {dims[1]}x{dims[0]}, above the {MAX_PIXELS / 1e6:.0f} MP "
@@ -319,5 +318,5 @@ def read_normals(
     if n.ndim != 3 or n.shape[2] != 3:
         raise InputError(f"ground-truth normals must be H x W x 3, got {n.shape}", path)
     if shape is not None:
-        _same_size(n.shape, shape, path)
+        check_same_size(n.shape, shape, "ground truth", path)
     return unit_normals(n)
