@@ -106,18 +106,10 @@ def test_fp32_models_never_ask_about_int8(tmp_path: Path, monkeypatch: pytest.Mo
 # -- export/quantize.py: 7-bit weights where the exporting CPU lacks VNNI; a real calibration
 
 
-def _quantize_with(
-    monkeypatch: pytest.MonkeyPatch,
-    tmp_path: Path,
-    cpu: CpuInfo,
-    stacks: list,
-    reduce_range: bool | None = None,
-) -> dict:
-    """quantize_model's choices, with ONNX Runtime's quantiser replaced by a recorder."""
-    onnx = pytest.importorskip("onnx")
+def _record_quantiser(monkeypatch: pytest.MonkeyPatch, cpu: CpuInfo) -> dict:
+    """ONNX Runtime's quantiser replaced by a recorder of its arguments, on a faked CPU."""
     quantization = pytest.importorskip("onnxruntime.quantization")
     import msfnet.common.cpu as cpumod
-    from msfnet.export.quantize import quantize_model
 
     seen: dict = {}
 
@@ -127,10 +119,19 @@ def _quantize_with(
 
     monkeypatch.setattr(quantization, "quantize_static", record)
     monkeypatch.setattr(cpumod, "detect_cpu", lambda: cpu)
+    return seen
+
+
+def _quantize_with(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, cpu: CpuInfo, stacks: list
+) -> dict:
+    """quantize_model's choices, with ONNX Runtime's quantiser replaced by a recorder."""
+    onnx = pytest.importorskip("onnx")
+    from msfnet.export.quantize import quantize_model
+
+    seen = _record_quantiser(monkeypatch, cpu)
     model = onnx.load(str(tiny_msfnet_onnx(tmp_path / "m.onnx")))
-    _q, summary = quantize_model(
-        model, stacks, tmp_path, tiles_per_stack=1, lights=8, reduce_range=reduce_range
-    )
+    _q, summary = quantize_model(model, stacks, tmp_path, tiles_per_stack=1, lights=8)
     assert summary["reduce_range"] == seen["reduce_range"]
     return seen
 
@@ -151,19 +152,10 @@ def test_the_quantise_pass_hands_weight_bits_to_the_quantiser(
     model); 8 on an AVX2 CPU is the user's call; none: the exporting CPU decides. Through the
     quantise-int8 pass itself, with ONNX Runtime's quantiser replaced by a recorder."""
     onnx = pytest.importorskip("onnx")
-    quantization = pytest.importorskip("onnxruntime.quantization")
-    import msfnet.common.cpu as cpumod
     from msfnet.export.passes import PASSES, PassContext
     from msfnet.export.variants import ExportOptions, get_variant
 
-    seen: dict = {}
-
-    def record(src: str, dst: str, reader: object, **kwargs: object) -> None:
-        seen.update(kwargs)
-        Path(dst).write_bytes(Path(src).read_bytes())
-
-    monkeypatch.setattr(quantization, "quantize_static", record)
-    monkeypatch.setattr(cpumod, "detect_cpu", lambda: cpu)
+    seen = _record_quantiser(monkeypatch, cpu)
     options = ExportOptions(
         weight_bits=bits, calib_tile=32, calib_lights=8, calib_tiles_per_stack=1
     )
