@@ -105,6 +105,16 @@ def test_a_real_fault_still_reaches_the_programs_handler(tmp_path: Path) -> None
 
 
 @needs_proxy
+def test_kill_segv_kills_a_proxied_process(tmp_path: Path) -> None:
+    """A SIGSEGV sent by kill() has no faulting instruction to run again: the proxy's handler
+    sends it again under the default action, so it kills at once (it used to kill only at the
+    process's next cpuid)."""
+    code = "import os, signal, time; os.kill(os.getpid(), signal.SIGSEGV); time.sleep(5)"
+    done = _run("avx2", code, tmp_path)
+    assert done.returncode == -11, (done.returncode, done.stderr[-300:])
+
+
+@needs_proxy
 def test_the_library_is_built_once_into_the_cache(tmp_path: Path) -> None:
     lib = cpu_proxy.library(tmp_path)
     assert lib.is_file() and lib.parent == tmp_path

@@ -92,6 +92,9 @@ static void on_segv(int sig, siginfo_t *info, void *context) {
         memset(&dfl, 0, sizeof dfl);
         dfl.sa_handler = SIG_DFL;
         real_sigaction(sig, &dfl, NULL);
+        /* sent by kill() / tgkill() / sigqueue(): there is no fault to run again, so send it
+           again; it is blocked in here and arrives, default and fatal, on return */
+        if (info->si_code <= 0) raise(sig);
     }
 }
 
