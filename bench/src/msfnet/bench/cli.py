@@ -740,20 +740,11 @@ def _edge_mode(args: argparse.Namespace) -> bool:
     return args.onnx is not None or args.ladder or args.requirements
 
 
-def _bundled_file(args: argparse.Namespace) -> str:
-    """The bundled file msf-run opens here with no engine or precision named (fp32 or int8)."""
-    from msfnet.runtime.api import default_model_path
-    from msfnet.runtime.engines.dispatch import bundled_precision
-
-    path = default_model_path(bundled_precision(detect_cpu(), installed_engines()).precision)
-    return (path if path.is_file() else default_model_path()).name  # msf-run's fallback too
-
-
 def _run_edge(args: argparse.Namespace) -> int:
     """--onnx / --ladder / --requirements: torch-free, inputs checked first, one report folder
     (REPORT.md, report.json) written as a whole."""
     from msfnet.bench import edge, ladder
-    from msfnet.runtime.api import default_model_path
+    from msfnet.runtime.api import bundled_model_path, default_model_path
     from msfnet.runtime.engines import read_model_file
 
     model = args.onnx or default_model_path()
@@ -771,7 +762,7 @@ def _run_edge(args: argparse.Namespace) -> int:
         command=PROG,
     )
     threads = max(args.threads)
-    bundled = _bundled_file(args)
+    bundled = bundled_model_path().name  # what Model() opens here with nothing named
     result: dict = {
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
         "machine": machine_description(),

@@ -33,13 +33,16 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import API_WRITER, current_writer
 from msfnet.runtime.engines.base import Engine
+
+if TYPE_CHECKING:
+    from msfnet.runtime.engines.dispatch import Device
 from msfnet.runtime.evaluate.metrics import NormalMetrics, error_map, normal_metrics
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import (
@@ -406,11 +409,8 @@ class Model:
             self.estimator = LeastSquaresEstimator()
         elif engine_given:
             self.estimator = NetworkEstimator(model)  # type: ignore[arg-type]
-        elif opts.model is not None:
-            self.estimator = _open_network(opts.model, opts)
         else:
-            path, why = _bundled_model(opts)
-            self.estimator = _open_network(path, opts, why)
+            self.estimator = _open_network(opts.model, opts)  # None: the bundled pair
         if isinstance(self.estimator, NetworkEstimator):
             self.estimator.edge_context = opts.edge_context
             # --speed: the network on fewer pixels / lights; the detail fusion below gives the
@@ -608,18 +608,20 @@ class Model:
         return self(stack)
 
 
-def _bundled_model(opts: ModelOptions) -> tuple[Path, str]:
+def bundled_model_path() -> Path:
+    """The bundled file ``Model()`` opens here when nothing is named (the fp32 export or its
+    int8 twin, engines.dispatch.bundled_precision): what msf-bench reports it measured."""
+    return _bundled_model(ModelOptions(), None)[0]
+
+
+def _bundled_model(opts: ModelOptions, device: Device | None) -> tuple[Path, str]:
     """The bundled file to open (fp32 or its int8 twin, engines.dispatch.bundled_precision)
-    and why; the fp32 file where the int8 one is missing and was not asked for."""
+    and why; the fp32 file where the int8 one is missing and was not asked for. ``device``:
+    ``opts.device`` resolved (dispatch.resolve_device)."""
     from msfnet.common.cpu import detect_cpu
     from msfnet.runtime.engines import installed_engines
-    from msfnet.runtime.engines.dispatch import (
-        BundledChoice,
-        bundled_precision,
-        resolve_device,
-    )
+    from msfnet.runtime.engines.dispatch import BundledChoice, bundled_precision
 
-    device = resolve_device(opts.device)
     pick = bundled_precision(detect_cpu(), installed_engines(), opts.engine, opts.precision, device)
     if opts.provider is not None and opts.precision is None:
         pick = BundledChoice("fp32")  # an ONNX Runtime execution provider (a GPU): as a device
@@ -636,9 +638,10 @@ def _bundled_model(opts: ModelOptions) -> tuple[Path, str]:
     return path, pick.reason
 
 
-def _open_network(path: Path, opts: ModelOptions, why: str = "") -> NetworkEstimator:
+def _open_network(path: Path | None, opts: ModelOptions) -> NetworkEstimator:
     """Pick the engine and precision for this CPU and model (or honour the overrides).
-    ``why``: how the file was chosen (the bundled pair), put before the engine's reason."""
+    ``path`` None: the bundled pair's file for this CPU and request, and the choice line says
+    how it was chosen."""
     from msfnet.common.cpu import detect_cpu
     from msfnet.runtime.engines import installed_engines
     from msfnet.runtime.engines.dispatch import (
@@ -652,6 +655,9 @@ def _open_network(path: Path, opts: ModelOptions, why: str = "") -> NetworkEstim
     if opts.provider is not None and engine is None:
         engine = "onnxruntime"  # execution providers are ONNX Runtime's
     device = resolve_device(opts.device)
+    why = ""
+    if path is None:
+        path, why = _bundled_model(opts, device)
     choice = choose_engine(
         path, detect_cpu(), installed_engines(), engine, opts.precision, device=device
     )
@@ -673,6 +679,7 @@ __all__ = [
     "Result",
     "api_message",
     "api_words",
+    "bundled_model_path",
     "default_model_path",
     "load_stack",
 ]

@@ -379,11 +379,8 @@ def bundled_precision(
         # a named engine alone keeps the fp32 file: `--engine onnxruntime` stays the fp32
         # reference it always was
         return BundledChoice("fp32")
-    try:
-        fp32 = choose_engine(_FP32_GUESS, cpu, installed)
-        int8 = choose_engine(_INT8_GUESS, cpu, installed)
-    except InputError:
-        return BundledChoice("fp32")
+    fp32 = choose_engine(_FP32_GUESS, cpu, installed)  # nothing requested: nothing refused
+    int8 = choose_engine(_INT8_GUESS, cpu, installed)
     klass = int8_class(cpu)
     speedup = INT8_SPEEDUP.get(klass, 0.0)
     if fp32.precision != "fp32" or speedup <= 1.0:
@@ -494,15 +491,15 @@ def choose_engine(
         if want_engine is not None:
             note = _int8_note(want_engine, info)
             return pick(want_engine, "int8", f"{what}, --engine given ({hw})" + note)
-        if "openvino" in have and (ov_int8_preferred(cpu) or "onnxruntime" not in have):
-            engine = "openvino"
-            if ov_int8_preferred(cpu):
-                hw += (
-                    f"; OpenVINO measured {OV_INT8_SPEEDUP[int8_class(cpu)]}x ONNX Runtime int8 "
-                    f"on this CPU class ({int8_class(cpu)})"
-                )
-        else:
-            engine = "onnxruntime"
+        klass = int8_class(cpu)
+        ov_lead = ov_int8_preferred(cpu)
+        use_ov = "openvino" in have and (ov_lead or "onnxruntime" not in have)
+        engine = "openvino" if use_ov else "onnxruntime"
+        if engine == "openvino" and ov_lead:
+            hw += (
+                f"; OpenVINO measured {OV_INT8_SPEEDUP[klass]}x ONNX Runtime int8 "
+                f"on this CPU class ({klass})"
+            )
         note = _int8_note(engine, info)
         return pick(engine, "int8", f"{what} ({hw})" + note)
 
