@@ -228,3 +228,25 @@ def test_a_failed_fit_lends_no_trust_to_its_pixel() -> None:
     net = _masked_smooth_field(truth, stack.mask)
     fused = fuse_detail(net, fit.normals, v.detail, stack.mask, 3.0, v.shape)
     assert _angle(fused[40:41, 40:41], net[40:41, 40:41]).max() < 2.0
+
+
+def test_bands_span_only_the_masks_columns_and_change_nothing() -> None:
+    """A band is computed on its mask pixels' columns and their context only: an object on a
+    small part of a wide image fuses to the whole-image result (validity + fuse_detail on the
+    full width), with noise and residuals everywhere so that a lost column of context shows."""
+    from msfnet.runtime.infer.detail_fusion import fuse_in_bands, validity
+    from msfnet.runtime.infer.robust_least_squares import RobustFit
+
+    rng = np.random.default_rng(5)
+    h, w = 90, 240
+    yy, xx = np.mgrid[:h, :w]
+    mask = ((yy - 40) ** 2 + (xx - 60) ** 2 < 25**2) | ((yy - 70) ** 2 + (xx - 200) ** 2 < 9**2)
+    net = unit_normals(rng.normal(size=(h, w, 3)).astype(np.float32) + [0, 0, 2])
+    ls = unit_normals(rng.normal(size=(h, w, 3)).astype(np.float32) + [0, 0, 2])
+    fit = RobustFit(ls, rng.uniform(0.0, 0.4, (h, w)).astype(np.float32))
+    v = validity(fit, mask)
+    whole = fuse_detail(net, ls, v.detail, mask, FusionOptions().sigma, v.shape)
+    for rows in (None, 16):
+        banded = fuse_in_bands(net, fit, mask, rows=rows)
+        np.testing.assert_allclose(banded, whole, atol=1e-6)
+        assert not banded[~mask].any()

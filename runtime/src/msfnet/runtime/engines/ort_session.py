@@ -9,9 +9,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import onnxruntime as ort
 
 from msfnet.common.cpu import MAX_THREADS, check_threads, usable_cores
 from msfnet.common.errors import InputError, first_line
@@ -24,6 +24,9 @@ from msfnet.runtime.engines.staged_loop import (
     run_staged,
 )
 
+if TYPE_CHECKING:
+    import onnxruntime as ort
+
 PROVIDER_ALIASES = {
     "cpu": "CPUExecutionProvider",
     "cuda": "CUDAExecutionProvider",
@@ -35,12 +38,20 @@ PROVIDER_ALIASES = {
 }
 
 
+# ONNX Runtime's graph optimisation levels by name (GraphOptimizationLevel.ORT_<value>)
 GRAPH_OPT_LEVELS = {
-    "disable": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
-    "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-    "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-    "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+    "disable": "DISABLE_ALL",
+    "basic": "ENABLE_BASIC",
+    "extended": "ENABLE_EXTENDED",
+    "all": "ENABLE_ALL",
 }
+
+
+def _ort() -> Any:
+    """onnxruntime, imported on first use: a run on OpenVINO never pays its ~30 ms import."""
+    import onnxruntime
+
+    return onnxruntime
 
 
 @dataclass
@@ -92,7 +103,7 @@ class _Interruptible:
         self._session = session
 
     def run(self, output_names: list[str], feeds: Mapping[str, np.ndarray]) -> list[np.ndarray]:
-        options = ort.RunOptions()
+        options = _ort().RunOptions()
         options.log_severity_level = 4  # the "terminate flag" error is ours to report, once
 
         def stop() -> None:
@@ -104,7 +115,7 @@ class _Interruptible:
 def resolve_provider(name: str | None) -> str:
     """'cpu', 'cuda', ... or a full ORT provider name; must be installed."""
     provider = PROVIDER_ALIASES.get((name or "cpu").lower(), name or "CPUExecutionProvider")
-    available = ort.get_available_providers()
+    available = _ort().get_available_providers()
     if provider not in available:
         raise InputError(
             f"--provider {name!r}: not available in this onnxruntime build "
@@ -146,10 +157,13 @@ def create_session(
     threads = threads or default_threads()
     check_threads(threads)  # ONNX Runtime starts every intra-op thread up front
     prov = resolve_provider(provider)
+    ort = _ort()
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
-    opts.graph_optimization_level = GRAPH_OPT_LEVELS[graph_opt]
+    opts.graph_optimization_level = getattr(
+        ort.GraphOptimizationLevel, "ORT_" + GRAPH_OPT_LEVELS[graph_opt]
+    )
     opts.enable_cpu_mem_arena = bool(arena)
     opts.log_severity_level = 3  # keep ORT's warnings off the user's terminal
     providers = [prov] if prov == "CPUExecutionProvider" else [prov, "CPUExecutionProvider"]

@@ -166,9 +166,17 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
 
 def unit_normals(n: np.ndarray) -> np.ndarray:
     """Normals scaled to unit length; zero, tiny or non-finite vectors become 0 (not scored)."""
-    n = np.where(np.isfinite(n), n, 0.0).astype(np.float64)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    return np.where(norm > 1e-6, n / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+    # a copy, scaled in place (one full-size array); float64 input keeps its range until the end
+    out = np.array(n, dtype=np.result_type(n, np.float32))
+    bad = ~np.isfinite(out)
+    if bad.any():
+        out[bad] = 0.0
+    # lengths summed in float64 (no overflow of huge float32 values), one per pixel: 3-5x
+    # faster than float64 copies of the whole map in a fresh process (page faults)
+    length = np.sqrt(np.einsum("...i,...i->...", out, out, dtype=np.float64))
+    scale = np.divide(1.0, length, out=np.zeros_like(length), where=length > 1e-6)
+    out *= scale[..., None].astype(out.dtype, copy=False)
+    return out.astype(np.float32, copy=False)
 
 
 def check_gt_header(path: Path, shape: tuple[int, int]) -> MatDirectory | None:
