@@ -60,3 +60,14 @@ def test_import_and_model_load_only_what_they_need() -> None:
     # generous: typically 0.3-0.6 s and 0.5-1.5 s on a 2-core CI machine (README)
     assert got["import_s"] < 5.0, got
     assert got["model_s"] < 10.0, got
+
+
+def test_starting_msf_run_imports_neither_onnx_runtime_nor_tqdm() -> None:
+    """Every run pays its imports (a station runs msf-run per part): ONNX Runtime (~30 ms) is
+    imported when it runs the model, tqdm (~17 ms) when a bar is drawn, not at start."""
+    code = (
+        "import sys, msfnet.runtime.cli.run, msfnet.runtime.engines.openvino; "
+        "print(sorted(m for m in ('onnxruntime', 'tqdm') if m in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"

@@ -188,14 +188,3 @@ def test_a_bad_model_is_reported_before_a_bad_stack(tmp_path: Path, capsys) -> N
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"msf-run: error: {bad_stack}:")
     assert not out.exists()
-
-
-def test_starting_msf_run_imports_neither_onnx_runtime_nor_tqdm() -> None:
-    """Every run pays its imports (a station runs msf-run per part): ONNX Runtime (~30 ms) is
-    imported when it runs the model, tqdm (~17 ms) when a bar is drawn, not at start."""
-    code = (
-        "import sys, msfnet.runtime.cli.run, msfnet.runtime.engines.openvino; "
-        "print(sorted(m for m in ('onnxruntime', 'tqdm') if m in sys.modules))"
-    )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert done.stdout.strip() == "[]"

@@ -309,9 +309,8 @@ def test_open_chosen_falls_back_to_ort_only_for_defaults(monkeypatch: pytest.Mon
 def test_a_gpu_provider_that_cannot_start_is_no_silent_cpu_run(monkeypatch, tmp_path) -> None:
     # an onnxruntime build that lists CUDA but cannot start it (no driver): ONNX Runtime itself
     # would carry on on the CPU; msfnet refuses in one line
-    from _runtime_helpers import tiny_msfnet_onnx
-
     import onnxruntime
+    from _runtime_helpers import tiny_msfnet_onnx
 
     listed = [*onnxruntime.get_available_providers(), "CUDAExecutionProvider"]
     monkeypatch.setattr(onnxruntime, "get_available_providers", lambda: listed)

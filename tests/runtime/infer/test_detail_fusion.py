@@ -238,11 +238,12 @@ def test_bands_span_only_the_masks_columns_and_change_nothing() -> None:
     from msfnet.runtime.infer.robust_least_squares import RobustFit
 
     rng = np.random.default_rng(5)
+    UP = np.array([0.0, 0.0, 2.0], np.float32)  # tilted around +z: valid normals
     h, w = 90, 240
     yy, xx = np.mgrid[:h, :w]
     mask = ((yy - 40) ** 2 + (xx - 60) ** 2 < 25**2) | ((yy - 70) ** 2 + (xx - 200) ** 2 < 9**2)
-    net = unit_normals(rng.normal(size=(h, w, 3)).astype(np.float32) + [0, 0, 2])
-    ls = unit_normals(rng.normal(size=(h, w, 3)).astype(np.float32) + [0, 0, 2])
+    net = unit_normals(rng.normal(size=(h, w, 3)).astype(np.float32) + UP)
+    ls = unit_normals(rng.normal(size=(h, w, 3)).astype(np.float32) + UP)
     fit = RobustFit(ls, rng.uniform(0.0, 0.4, (h, w)).astype(np.float32))
     v = validity(fit, mask)
     whole = fuse_detail(net, ls, v.detail, mask, FusionOptions().sigma, v.shape)
