@@ -140,3 +140,17 @@ def test_the_sensitive_layer_is_chosen_first(pair) -> None:
     # a generous target keeps everything int8
     _, loose = mixed_precision(fp32, q, feeds, masks, target_deg=180.0)
     assert loose.fp32_layers == () and loose.mixed_mean_deg == loose.int8_mean_deg
+
+
+def test_layers_back_in_fp32_leave_fewer_ranged_quantisers(pair) -> None:
+    """The metadata's count of percentile-ranged activations is recounted after mixed
+    precision (the int8-mixed pass): the quantisers of a layer back in fp32 go with it."""
+    from msfnet.export.quantize import ranged_quantisers
+
+    fp32, q = pair
+    every = ranged_quantisers(q, fp32)
+    # the convs' inputs that other nodes compute: ra, rb (the graph's input images is not
+    # ranged by the percentile step), and the int8 outputs of the convs before their ReLUs
+    assert every >= 2
+    assert ranged_quantisers(keep_fp32(q, ["conv_b"], fp32), fp32) < every
+    assert ranged_quantisers(keep_fp32(q, quantised_convs(q), fp32), fp32) == 0

@@ -281,3 +281,22 @@ def test_batch_output_folder_rules(tmp_path: Path, capsys: pytest.CaptureFixture
         "summary.json",
         "summary.md",
     ]
+
+
+def test_a_summary_names_every_engine_choice_its_workers_made() -> None:
+    """Ray workers on a mixed cluster choose per CPU (bf16 on one, the int8 twin on another):
+    the summary keeps the first as ``model`` and lists each other choice once."""
+    from msfnet.runtime.batch.runner import BatchSummary, StackRow
+
+    amx = {"engine": "openvino", "precision": "bf16", "model": "msfnet_default.onnx"}
+    avx2 = {"engine": "openvino", "precision": "int8", "model": "msfnet_default_int8.onnx"}
+    one = BatchSummary("ray", {})
+    for method in (amx, amx):
+        one.note_model(method)
+    assert one.model == amx and "other_models" not in one.as_dict()
+    assert "did not all run the same" not in one.totals_line()
+    mixed = BatchSummary("ray", {}, rows=[StackRow("a", "a"), StackRow("b", "b")])
+    for method in (amx, avx2, amx, avx2):
+        mixed.note_model(method)
+    assert mixed.model == amx and mixed.as_dict()["other_models"] == [avx2]
+    assert "2 engine/model choices" in mixed.totals_line()

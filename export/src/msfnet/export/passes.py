@@ -154,7 +154,7 @@ def _quantise_int8_mixed(proto: onnx.ModelProto | None, ctx: PassContext) -> onn
     mixed_precision.DEFAULT_TARGET_DEG of fp32 on held-out tiles of the calibration stacks
     (other tiles than the calibration's own; never validation data unless given as --calib)."""
     from msfnet.export.mixed_precision import DEFAULT_TARGET_DEG, mixed_precision
-    from msfnet.export.quantize import calibration_tiles
+    from msfnet.export.quantize import calibration_tiles, ranged_quantisers
 
     assert proto is not None
     qmodel = _quantise_int8(proto, ctx)
@@ -177,6 +177,9 @@ def _quantise_int8_mixed(proto: onnx.ModelProto | None, ctx: PassContext) -> onn
     prior = ctx.notes["quantization"]
     assert isinstance(prior, dict)
     summary = {**prior, "mixed_precision": report.as_dict()}
+    if prior.get("ranges_from_percentiles"):
+        # the quantisers of the layers back in fp32 went with them: count what is left
+        summary["ranges_from_percentiles"] = ranged_quantisers(mixed, proto)
     ctx.notes["quantization"] = summary
     set_metadata(mixed, {METADATA_KEYS["quantization"]: json.dumps(summary)})
     return mixed

@@ -252,6 +252,20 @@ def activation_inputs(qmodel: onnx.ModelProto) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+def ranged_quantisers(qmodel: onnx.ModelProto, fp32: onnx.ModelProto) -> int:
+    """How many activation QuantizeLinear nodes of ``qmodel`` read a tensor that the fp32
+    graph computes: those whose ranges the percentile step sets (what ``quantize_model``
+    records as ranges_from_percentiles; after mixed precision took layers back to fp32,
+    fewer are left)."""
+    known = {o for n in fp32.graph.node for o in n.output}
+    constants = {i.name for i in qmodel.graph.initializer}
+    return sum(
+        1
+        for n in qmodel.graph.node
+        if n.op_type == "QuantizeLinear" and n.input[0] in known and n.input[0] not in constants
+    )
+
+
 def _tails(values: np.ndarray, keep: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``keep`` smallest and largest of ``values`` (all of them when fewer)."""
     if values.size <= 2 * keep:

@@ -416,8 +416,8 @@ def run_batch_ray(
                 if "result" in payload:  # where the selection and lights came from, as locally
                     payload["result"].input = item.describe_input(worker[1])
                 method = _record(payload, item, out_for, overwrite, inputs, summary, on_result)
-                if method and not summary.model:
-                    summary.model = method
+                if method:
+                    summary.note_model(method)
                 summary.wall_s = time.perf_counter() - start
                 if summary_dir is not None:
                     summary.write(summary_dir)

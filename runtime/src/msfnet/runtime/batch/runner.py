@@ -61,6 +61,16 @@ class BatchSummary:
     workers: int = 1
     prefetch: bool = True
     worker_memory_mb: float | None = None  # ray: each worker's share of --max-memory
+    # ray: what workers ran other than ``model`` (a worker on another CPU class may pick
+    # another engine, precision or the bundled model's int8 twin), each listed once
+    other_models: list[dict[str, object]] = field(default_factory=list)
+
+    def note_model(self, method: dict[str, object]) -> None:
+        """What ran one stack: the first becomes ``model``, a different one is listed too."""
+        if not self.model:
+            self.model = method
+        elif method != self.model and method not in self.other_models:
+            self.other_models.append(method)
 
     @property
     def decode_s(self) -> float:
@@ -99,6 +109,7 @@ class BatchSummary:
             "prefetch": self.prefetch,
             "worker_memory_mb": self.worker_memory_mb,
             "model": self.model,
+            **({"other_models": self.other_models} if self.other_models else {}),
             "stacks": [asdict(r) for r in self.rows],
             "totals": {
                 "stacks": len(self.rows),
@@ -169,6 +180,11 @@ class BatchSummary:
             else f"parallel speed-up {self.serial_s / max(self.wall_s, 1e-9):.2f}x (the wall "
             "time includes starting the workers and loading the model in each)"
         )
+        if self.other_models:
+            where += (
+                f" (the workers did not all run the same: {1 + len(self.other_models)} "
+                "engine/model choices, summary.json: model, other_models)"
+            )
         return (
             f"{len(self.rows)} stack(s), {len(self.failed)} failed, {where}: wall "
             f"{self.wall_s:.2f} s vs {self.serial_s:.2f} s of stages run one after another "
