@@ -103,6 +103,10 @@ def test_report_ratios_and_files(tmp_path):
     assert "target >= 1.5x within 0.5 deg on a non-bf16 CPU **met**" in md
     assert "msf-run's engine choice: onnxruntime int8: why" in md
     assert "| (b) fp32 ORT" not in files["table"]
+    assert "bytecode cache" not in md  # not recorded: nothing said
+    result["machine"]["python_bytecode_cache"] = False
+    write_report(result, tmp_path / "nocache")
+    assert "bytecode cache is off here" in (tmp_path / "nocache" / "REPORT.md").read_text()
 
 
 def test_each_variant_is_compared_with_its_own_precisions_peak(tmp_path):

@@ -247,6 +247,9 @@ def machine_description() -> dict[str, object]:
         "isa_flags": flags,
         "cpu_features": cpu.as_dict(),
         "python": platform.python_version(),
+        # PYTHONDONTWRITEBYTECODE: every fresh process (the msf-run rows) compiles msfnet's
+        # modules again, which a default Python does once and caches
+        "python_bytecode_cache": not os.environ.get("PYTHONDONTWRITEBYTECODE"),
         "onnxruntime": onnxruntime.__version__,
         "platform": platform.platform(),
     }

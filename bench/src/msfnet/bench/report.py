@@ -355,6 +355,15 @@ def markdown(result: dict, has_plot: bool) -> str:
             else []
         ),
         *([f"- openvino {m['openvino']}"] if m.get("openvino") else []),
+        *(
+            [
+                "- Python's bytecode cache is off here (PYTHONDONTWRITEBYTECODE is set): every "
+                "fresh process compiles msfnet's modules again, which a default Python does "
+                "once; the fresh-process (msf-run) times include it"
+            ]
+            if m.get("python_bytecode_cache") is False
+            else []
+        ),
         f"- matmul peaks measured in this run, each engine's own kernels (GFLOP/s; int8: "
         f"GOP/s; the fastest call of two measurements, before and after the cells): {peaks}",
         *[
