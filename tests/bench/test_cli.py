@@ -337,3 +337,22 @@ def test_warm_model_times_the_default_path_per_stack(stack: Path) -> None:
     assert warm["peak_rss_mb"] > 50
     assert warm["mae"] is not None and 0 <= warm["mae"] < 90  # the sphere's ground truth
     assert _tree(stack) == before  # nothing written beside the inputs
+
+
+def test_the_bytecode_cache_is_known_on_or_off(tmp_path: Path, monkeypatch) -> None:
+    """The report's bytecode note: on where Python may write the cache, or where every msfnet
+    runtime module already has an up-to-date one; off where neither (a module without one)."""
+    import py_compile
+    import types
+
+    source = tmp_path / "uncached.py"
+    source.write_text("x = 1\n")
+    module = types.ModuleType("msfnet.runtime.uncached_for_test")
+    module.__file__ = str(source)
+    modules = {module.__name__: module, "json": json}  # not msfnet's: not looked at
+    monkeypatch.delenv("PYTHONDONTWRITEBYTECODE", raising=False)
+    assert cli.bytecode_cached(modules)
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    assert not cli.bytecode_cached(modules)
+    py_compile.compile(str(source))  # the cache a default Python would have written
+    assert cli.bytecode_cached(modules)

@@ -295,8 +295,12 @@ def test_a_summary_names_every_engine_choice_its_workers_made() -> None:
         one.note_model(method)
     assert one.model == amx and "other_models" not in one.as_dict()
     assert "did not all run the same" not in one.totals_line()
+    # another install path and OpenVINO build, the same choice: nothing to report
+    elsewhere = {**amx, "model": "/opt/site/msfnet_default.onnx", "openvino": "2026.5"}
+    one.note_model(elsewhere)
+    assert "other_models" not in one.as_dict()
     mixed = BatchSummary("ray", {}, rows=[StackRow("a", "a"), StackRow("b", "b")])
-    for method in (amx, avx2, amx, avx2):
+    for method in (amx, avx2, amx, elsewhere, avx2):
         mixed.note_model(method)
     assert mixed.model == amx and mixed.as_dict()["other_models"] == [avx2]
     assert "2 engine/model choices" in mixed.totals_line()

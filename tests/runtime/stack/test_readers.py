@@ -337,3 +337,32 @@ def test_an_npy_declaring_a_huge_header_is_refused_from_its_length_field(
     with pytest.raises(InputError, match=r"damaged \.npy header \(a header of 190,000,000") as e:
         read_normals(path, shape=(4, 5))
     _one_line(e, path)
+
+
+@pytest.mark.parametrize(
+    "dtype",
+    [np.float16, np.float32, np.float64, np.longdouble, np.int8, np.int16, np.int32, np.int64],
+)
+def test_unit_normals_of_any_numeric_input(dtype: type) -> None:
+    """Unit length in float32 for every numeric input (an .npz's normals may be float128 or
+    ints): non-finite components count as 0, vectors under 1e-6 become 0, all within 1e-7 of
+    a float64 reference; the caller's array is left as it was."""
+    from msfnet.runtime.stack.readers import unit_normals
+
+    rng = np.random.default_rng(3)
+    raw = rng.normal(0.0, 5.0, (6, 7, 3))
+    raw[0, 0] = 0.0
+    x = raw.astype(dtype)
+    if np.issubdtype(dtype, np.floating):
+        x[1, 1, 0] = np.nan
+        x[1, 2] = [np.inf, 1.0, 0.0]
+    before = x.copy()
+    got = unit_normals(x)
+    assert got.dtype == np.float32 and got.shape == x.shape
+    np.testing.assert_array_equal(x, before)
+    finite = np.where(np.isfinite(x.astype(np.float64)), x.astype(np.float64), 0.0)
+    length = np.linalg.norm(finite, axis=-1, keepdims=True)
+    want = np.where(length > 1e-6, finite / np.maximum(length, 1e-6), 0.0)
+    np.testing.assert_allclose(got, want, atol=1e-7)
+    assert not got[0, 0].any()
+    np.testing.assert_allclose(unit_normals([1.0, 2.0, 2.0]), [1 / 3, 2 / 3, 2 / 3], atol=1e-7)

@@ -357,7 +357,8 @@ def markdown(result: dict, has_plot: bool) -> str:
         *([f"- openvino {m['openvino']}"] if m.get("openvino") else []),
         *(
             [
-                "- Python's bytecode cache is off here (PYTHONDONTWRITEBYTECODE is set): every "
+                "- Python's bytecode cache is off here (PYTHONDONTWRITEBYTECODE is set and "
+                "msfnet's modules have no up-to-date cached bytecode): every "
                 "fresh process compiles msfnet's modules again, which a default Python does "
                 "once; the fresh-process (msf-run) times include it"
             ]

@@ -66,10 +66,14 @@ class BatchSummary:
     other_models: list[dict[str, object]] = field(default_factory=list)
 
     def note_model(self, method: dict[str, object]) -> None:
-        """What ran one stack: the first becomes ``model``, a different one is listed too."""
+        """What ran one stack: the first becomes ``model``, another choice is listed too. A
+        choice is the engine, precision, device, graph and the model's file name: workers
+        installed under other paths, or with another OpenVINO build, chose the same."""
         if not self.model:
             self.model = method
-        elif method != self.model and method not in self.other_models:
+            return
+        seen = [_choice(m) for m in (self.model, *self.other_models)]
+        if _choice(method) not in seen:
             self.other_models.append(method)
 
     @property
@@ -203,6 +207,16 @@ class BatchSummary:
         interrupted batch still says what it finished)."""
         write_text(folder / "summary.json", json_text(self.as_dict()))
         write_text(folder / "summary.md", self.markdown())
+
+
+def _choice(method: dict[str, object]) -> tuple[str, ...]:
+    """What a worker chose to run (Model.describe), without where it is installed."""
+    model = method.get("model")
+    name = Path(str(model)).name if model is not None else ""
+    return (
+        *(str(method.get(k)) for k in ("method", "engine", "precision", "device", "graph")),
+        name,
+    )
 
 
 def check_batch_root(root: Path, names: Sequence[str], overwrite: bool) -> None:

@@ -166,8 +166,11 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
 
 def unit_normals(n: np.ndarray) -> np.ndarray:
     """Normals scaled to unit length; zero, tiny or non-finite vectors become 0 (not scored)."""
-    # a copy, scaled in place (one full-size array); float64 input keeps its range until the end
-    out = np.array(n, dtype=np.result_type(n, np.float32))
+    n = np.asarray(n)
+    # a copy, scaled in place (one full-size array): float32 where that holds the input
+    # exactly (float32, float16, small ints), float64 otherwise (float64, int32/64, float128)
+    wide = np.result_type(n.dtype, np.float32) != np.float32
+    out = np.array(n, dtype=np.float64 if wide else np.float32)
     bad = ~np.isfinite(out)
     if bad.any():
         out[bad] = 0.0
