@@ -297,6 +297,75 @@ def read_openvino(path: str | Path) -> ModelFile:
     return ModelFile(read_model_file(path), graph)
 
 
+# ops whose input an int8 QDQ export quantises (OpenVINO's names): a requantisation is kept
+# wherever it is the only one in front of such an op
+_QUANTISED_INPUTS = frozenset(
+    {"Convolution", "GroupConvolution", "ConvolutionBackpropData", "MatMul"}
+)
+# what OpenVINO's ONNX reader makes of a DequantizeLinear after the FakeQuantize
+_DEQUANTISE = frozenset({"Convert", "Subtract", "Multiply"})
+# ops a requantised convolution output may pass through before the next layer's own FakeQuantize
+_PASS_THROUGH = frozenset(
+    {"PRelu", "Relu", "Concat", "DepthToSpace", "Reshape", "Add", "Multiply", "Sigmoid"}
+)
+
+
+def _conv_output(fq: Any) -> bool:
+    """Whether a FakeQuantize requantises a convolution's output (directly, or after its bias)."""
+    node = fq.input_value(0).get_node()
+    if node.get_type_name() == "Add":
+        node = node.input_value(0).get_node()
+    return bool(node.get_type_name() in _QUANTISED_INPUTS - {"MatMul"})
+
+
+def _requantised_again(port: Any) -> bool:
+    """Whether every path from ``port`` meets another FakeQuantize (or a graph output) before
+    any op that reads int8: so dropping the quantisation in front of it keeps every int8
+    convolution int8."""
+    stack, seen = [port], set()
+    while stack:
+        for target in stack.pop().get_target_inputs():
+            node = target.get_node()
+            kind = node.get_type_name()
+            if kind in ("FakeQuantize", "Result") or node.get_name() in seen:
+                continue
+            if kind not in _PASS_THROUGH:
+                return False
+            seen.add(node.get_name())
+            stack.extend(node.outputs())
+    return True
+
+
+def drop_output_requantisation(graph: Any) -> int:
+    """Remove, in place, the quantise-dequantise pairs an int8 QDQ export puts on convolution
+    outputs where the next layer quantises its own input again; returns how many.
+
+    Why: those pairs only round a convolution's f32 result to 8 bits and back. OpenVINO's CPU
+    plugin runs them as separate kernels (Convert, Subtract, Reorder: ~15 % of an int8 run on
+    AVX2), while the convolution itself stays int8 through its input and weight quantisation.
+    Without them the bundled twin ran the 12-light psmImages cat 1.19x faster on an AMX Xeon
+    and 1.09x in the AVX2 proxy, and came closer to fp32 (docs/benchmark.md, session 17).
+    ONNX Runtime needs the pairs for its own int8 fusion (1.8x slower without): the file keeps
+    them, and this runs on OpenVINO's graph only."""
+    dropped = 0
+    for fq in graph.get_ordered_ops():
+        if fq.get_type_name() != "FakeQuantize" or not _conv_output(fq):
+            continue
+        last = fq  # the end of the FakeQuantize -> Convert -> Convert -> Subtract -> Multiply chain
+        while True:
+            targets = list(last.output(0).get_target_inputs())
+            if len(targets) != 1 or targets[0].get_node().get_type_name() not in _DEQUANTISE:
+                break
+            last = targets[0].get_node()
+        if last is fq or not _requantised_again(last.output(0)):
+            continue
+        last.output(0).replace(fq.input_value(0))
+        dropped += 1
+    if dropped:
+        graph.validate_nodes_and_infer_types()
+    return dropped
+
+
 def _sub_model(ov: Any, model: Any, output: str) -> Any:
     """The part of a staged graph that computes ``output``, with only the inputs it uses (so a
     call computes one stage, and no placeholders are fed). The four sub-models share ``model``'s
@@ -327,11 +396,14 @@ def open_openvino(
     device: str = "CPU",
     config: dict[str, Any] | None = None,
     file: ModelFile | None = None,
+    requantise_outputs: bool = False,
 ) -> OpenVinoEngine:
     """Compile ``path`` with OpenVINO. ``precision``: fp32 or bf16 for fp32 models (default
     fp32), int8 (the default) for int8 QDQ models, whose non-quantised layers then run fp32.
     ``file``: ``path`` already read (by ``read_openvino``, or ONNX Runtime's metadata alone),
-    so it is not read again.
+    so it is not read again. On the CPU an int8 model's convolution outputs stay f32 where the
+    next layer quantises its input again (``drop_output_requantisation``: faster and closer to
+    fp32); ``requantise_outputs=True`` runs the file's graph as it is.
 
     Raises InputError when openvino is missing, the file is not an msfnet model, or bf16 is
     asked for on a CPU where OpenVINO does not run bf16 natively.
@@ -388,6 +460,9 @@ def open_openvino(
         graph = file.openvino_graph
         if graph is None:  # read by ONNX Runtime (or unreadable to OpenVINO: fails here)
             graph = _read_onnx(ov, info.path)
+        if own == "int8" and not requantise_outputs and device.upper().startswith("CPU"):
+            graph = graph.clone()  # the file's graph stays as read
+            drop_output_requantisation(graph)
         with _own_signal_stack():
             try:
                 cached = {**props, "CACHE_DIR": str(cache)} if cache else props
@@ -431,6 +506,7 @@ __all__ = [
     "INSTALL_HINT",
     "OpenVinoEngine",
     "compile_cache",
+    "drop_output_requantisation",
     "import_openvino",
     "open_openvino",
     "read_openvino",
