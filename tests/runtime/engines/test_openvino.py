@@ -299,3 +299,16 @@ def test_a_requantisation_that_is_the_next_convolutions_only_one_is_kept(
     ov = ovmod.import_openvino()
     graph = ov.Core().read_model(str(path))
     assert ovmod.drop_output_requantisation(graph) == (1 if again else 0)
+
+
+def test_int8_models_run_fewer_lights_a_call_with_the_same_normals() -> None:
+    """INT8_CHUNK lights a stage call for int8 models (a smaller arena per stage model), the
+    default chunk for fp32 ones; the staged loop's max over lights is exact, so the normals
+    match a run at the default chunk."""
+    from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK
+
+    twin = ovmod.open_openvino(default_model_path("int8"), threads=1)
+    wide = ovmod.open_openvino(default_model_path("int8"), threads=1, chunk=DEFAULT_CHUNK)
+    fp32 = ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
+    assert twin.chunk == ovmod.INT8_CHUNK < DEFAULT_CHUNK == fp32.chunk
+    np.testing.assert_allclose(_run(twin), _run(wide), atol=1e-5)
