@@ -58,11 +58,12 @@ _HINTS = {"fp32": "f32", "bf16": "bf16"}
 # bundled int8 twin in 0.19 s from it against 0.45 s compiling (docs/benchmark.md, session
 # 15). "0" turns it off.
 CACHE_ENV = "MSFNET_OPENVINO_CACHE"
-# lights per stage call for int8 models (staged_loop.DEFAULT_CHUNK for the others): each stage
+# lights per stage call for int8 models on the CPU (staged_loop.DEFAULT_CHUNK for the others and
+# for GPU / NPU, not measured): each stage
 # model keeps an arena sized by its call, and a fresh process pays a page fault for every page
 # of it (~415k on the cat at 4 lights). At 2 lights, AVX2 proxy, fresh msf-run, 5 interleaved
 # rounds: 12-light cat 5.01 -> 4.79 s (AVX-512 VNNI proxy 2.74 -> 2.63 s), 8-light ball 1.94 ->
-# 1.91 s, 96-light ball 13.4-13.5 -> 13.4-13.8 s at 1,245 -> 973 MiB peak (session 17).
+# 1.91 s, 96-light ball 13.2-13.5 -> 13.4-13.8 s at 1,245 -> 973 MiB peak (session 17).
 INT8_CHUNK = 2
 _SS_DISABLE = 2  # sigaltstack's flag for "no alternate stack" (Linux)
 
@@ -308,20 +309,65 @@ def read_openvino(path: str | Path) -> ModelFile:
 _QUANTISED_INPUTS = frozenset(
     {"Convolution", "GroupConvolution", "ConvolutionBackpropData", "MatMul"}
 )
-# what OpenVINO's ONNX reader makes of a DequantizeLinear after the FakeQuantize
-_DEQUANTISE = frozenset({"Convert", "Subtract", "Multiply"})
 # ops a requantised convolution output may pass through before the next layer's own FakeQuantize
 _PASS_THROUGH = frozenset(
     {"PRelu", "Relu", "Concat", "DepthToSpace", "Reshape", "Add", "Multiply", "Sigmoid"}
 )
 
 
+def _constant(value: Any, depth: int = 8) -> bool:
+    """Whether ``value`` depends on no input's values: a Constant, or a few ops on Constants and
+    shapes (a dequantised bias is Constant -> Convert -> Multiply, reshaped to the rank of the
+    convolution's output: a ShapeOf of it)."""
+    node = value.get_node()
+    kind = node.get_type_name()
+    if kind in ("Constant", "ShapeOf"):
+        return True
+    if kind == "Parameter" or depth == 0 or node.get_input_size() == 0:
+        return False
+    return all(_constant(v, depth - 1) for v in node.input_values())
+
+
 def _conv_output(fq: Any) -> bool:
-    """Whether a FakeQuantize requantises a convolution's output (directly, or after its bias)."""
+    """Whether a FakeQuantize requantises a convolution's output, directly or after its bias
+    (an Add of a constant: not a residual Add of two branches)."""
     node = fq.input_value(0).get_node()
     if node.get_type_name() == "Add":
+        if not _constant(node.input_value(1)):
+            return False
         node = node.input_value(0).get_node()
     return bool(node.get_type_name() in _QUANTISED_INPUTS - {"MatMul"})
+
+
+def _only_consumer(node: Any, kind: str) -> Any | None:
+    """``node``'s single consumer if it is a ``kind`` reading it as its first input, else None."""
+    targets = list(node.output(0).get_target_inputs())
+    if len(targets) != 1 or targets[0].get_index() != 0:
+        return None
+    consumer = targets[0].get_node()
+    return consumer if consumer.get_type_name() == kind else None
+
+
+def _dequantised(fq: Any) -> Any | None:
+    """The Multiply that ends the DequantizeLinear after ``fq`` as OpenVINO's ONNX reader writes
+    it (Convert to 8 bits, Convert back, an optional Subtract of a constant zero point, a
+    Multiply by a constant scale), or None where the graph there is anything else: an op of
+    the model itself is never taken for part of the pair."""
+    narrow = _only_consumer(fq, "Convert")
+    if narrow is None or narrow.get_output_element_type(0).bitwidth != 8:
+        return None
+    node = _only_consumer(narrow, "Convert")
+    if node is None:
+        return None
+    zero_point = _only_consumer(node, "Subtract")
+    if zero_point is not None:
+        if not _constant(zero_point.input_value(1)):
+            return None
+        node = zero_point
+    scale = _only_consumer(node, "Multiply")
+    if scale is None or not _constant(scale.input_value(1)):
+        return None
+    return scale
 
 
 def _requantised_again(port: Any) -> bool:
@@ -349,21 +395,19 @@ def drop_output_requantisation(graph: Any) -> int:
     Why: those pairs only round a convolution's f32 result to 8 bits and back. OpenVINO's CPU
     plugin runs them as separate kernels (Convert, Subtract, Reorder: ~15 % of an int8 run on
     AVX2), while the convolution itself stays int8 through its input and weight quantisation.
-    Without them the bundled twin ran the 12-light psmImages cat 1.19x faster on an AMX Xeon
-    and 1.09x in the AVX2 proxy, and came closer to fp32 (docs/benchmark.md, session 17).
-    ONNX Runtime needs the pairs for its own int8 fusion (1.8x slower without): the file keeps
-    them, and this runs on OpenVINO's graph only."""
+    Without them the bundled twin came closer to fp32 (DiLiGenT crops: at most 0.30 against
+    0.45 deg mean) and ran faster: the 8-light ball 4-5 % in fresh processes in the AVX2 and
+    AVX2-VNNI proxies, the 12-light cat 1.09x (proxy) and 1.19x (AMX) from the second call of
+    a process on (docs/benchmark.md, session 17). ONNX Runtime needs the pairs for its own
+    int8 fusion (1.8x slower without): the file keeps them, and this edits OpenVINO's graph
+    only. Only the exact FakeQuantize -> Convert -> Convert -> [Subtract] -> Multiply shape of
+    a pair is removed."""
     dropped = 0
     for fq in graph.get_ordered_ops():
         if fq.get_type_name() != "FakeQuantize" or not _conv_output(fq):
             continue
-        last = fq  # the end of the FakeQuantize -> Convert -> Convert -> Subtract -> Multiply chain
-        while True:
-            targets = list(last.output(0).get_target_inputs())
-            if len(targets) != 1 or targets[0].get_node().get_type_name() not in _DEQUANTISE:
-                break
-            last = targets[0].get_node()
-        if last is fq or not _requantised_again(last.output(0)):
+        last = _dequantised(fq)
+        if last is None or not _requantised_again(last.output(0)):
             continue
         last.output(0).replace(fq.input_value(0))
         dropped += 1
@@ -500,7 +544,8 @@ def open_openvino(
         info,
         precision if precision == "int8" else effective,
         threads,
-        chunk or (INT8_CHUNK if own == "int8" else DEFAULT_CHUNK),
+        chunk
+        or (INT8_CHUNK if own == "int8" and device.upper().startswith("CPU") else DEFAULT_CHUNK),
         device,
         version,
         ov,
