@@ -172,7 +172,7 @@ def ov_int8_closer(info: ModelInfo | None = None) -> bool:
     """Whether OpenVINO's int8 was measured closer to fp32 than ONNX Runtime's for this kind of
     export (``info``; None: the bundled kind, staged with percentile ranges). Mixed-precision
     exports were not measured on OpenVINO: no."""
-    staged, table = True, MEASURED
+    staged = True
     if info is not None:
         if info.metadata.get("msfnet.variant") == "int8-mixed":
             return False
@@ -184,8 +184,8 @@ def ov_int8_closer(info: ModelInfo | None = None) -> bool:
             )
             return ov is not None and ort is not None and ov.worst_mean < ort.worst_mean
     ov_m, ort_m = (
-        table.get(("openvino", "int8", staged)),
-        table.get(("onnxruntime", "int8", staged)),
+        MEASURED.get(("openvino", "int8", staged)),
+        MEASURED.get(("onnxruntime", "int8", staged)),
     )
     return ov_m is not None and ort_m is not None and ov_m.worst_mean < ort_m.worst_mean
 

@@ -58,12 +58,12 @@ _HINTS = {"fp32": "f32", "bf16": "bf16"}
 # bundled int8 twin in 0.19 s from it against 0.45 s compiling (docs/benchmark.md, session
 # 15). "0" turns it off.
 CACHE_ENV = "MSFNET_OPENVINO_CACHE"
-# lights per stage call for int8 models on the CPU (staged_loop.DEFAULT_CHUNK for the others and
-# for GPU / NPU, not measured): each stage
-# model keeps an arena sized by its call, and a fresh process pays a page fault for every page
-# of it (~415k on the cat at 4 lights). At 2 lights, AVX2 proxy, fresh msf-run, 5 interleaved
-# rounds: 12-light cat 5.01 -> 4.79 s (AVX-512 VNNI proxy 2.74 -> 2.63 s), 8-light ball 1.94 ->
-# 1.91 s, 96-light ball 13.2-13.5 -> 13.4-13.8 s at 1,245 -> 973 MiB peak (session 17).
+# lights per stage call for int8 models on the CPU (staged_loop.DEFAULT_CHUNK for the others,
+# and on GPU / NPU, not measured): each stage model keeps an arena sized by its call, and a
+# fresh process pays a page fault for every page of it (~415k on the cat at 4 lights). At 2
+# lights, AVX2 proxy, fresh msf-run, 5 interleaved rounds: 12-light cat 5.01 -> 4.79 s (AVX-512
+# VNNI proxy 2.74 -> 2.63 s), 8-light ball 1.94 -> 1.91 s, 96-light ball 13.2-13.5 -> 13.4-13.8
+# s at 1,245 -> 973 MiB peak (session 17).
 INT8_CHUNK = 2
 _SS_DISABLE = 2  # sigaltstack's flag for "no alternate stack" (Linux)
 
