@@ -21,7 +21,11 @@ from msfnet.runtime.engines.dispatch import (
 )
 
 ZEN3 = CpuInfo.from_flags(["avx2", "fma"], model="AMD EPYC 7B13", cores=2)
-ZEN5 = CpuInfo.from_flags(["avx2", "avx512f", "avx512_vnni", "avx512_bf16"], model="Zen 5")
+# AVX-512 bf16 without AMX: Zen 4 lacks AVX-VNNI, Zen 5 has it (dispatch.bf16_class)
+ZEN4 = CpuInfo.from_flags(["avx2", "avx512f", "avx512_vnni", "avx512_bf16"], model="Zen 4")
+ZEN5 = CpuInfo.from_flags(
+    ["avx2", "avx512f", "avx512_vnni", "avx512_bf16", "avx_vnni"], model="Zen 5"
+)
 SKYLAKE = CpuInfo.from_flags(["avx2", "avx512f"], model="Xeon (AVX-512, no bf16)")
 ARM = CpuInfo.from_flags(["neon", "asimd", "sve"], model="Cortex-A78", vendor="ARM")
 ALDER = CpuInfo.from_flags(["avx2", "avx_vnni"], model="Core (AVX-VNNI, no AVX-512)")
@@ -222,11 +226,18 @@ def test_a_precision_outside_the_bound_falls_to_fp32_on_the_faster_engine(
 
 @pytest.mark.parametrize(
     ("cpu", "klass"),
-    [(ZEN3, "avx2"), (ZEN5, "avx512-bf16"), (SKYLAKE, "avx512"), (AMX, "amx"), (ARM, "other")],
+    [
+        (ZEN3, "avx2"),
+        (ZEN4, "avx512-bf16"),
+        (ZEN5, "avx512-bf16"),
+        (SKYLAKE, "avx512"),
+        (AMX, "amx"),
+        (ARM, "other"),
+    ],
 )
 def test_cpu_classes(cpu, klass) -> None:
     assert dispatch.cpu_class(cpu) == klass
-    assert dispatch.ov_fp32_preferred(cpu) == (klass in ("avx2", "amx"))
+    assert dispatch.ov_fp32_preferred(cpu) == (klass in ("avx2", "amx", "avx512-bf16"))
 
 
 CUDA_ORT = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
@@ -398,7 +409,8 @@ def test_int8_classes() -> None:
     assert "closer to fp32" in reason
     # faster but not measured closer (old min/max exports on VNNI): no such claim
     reason = choose_engine(INT8_STAGED, ZEN5, BOTH).reason
-    assert "OpenVINO measured 1.07x" in reason and "closer to fp32" not in reason
+    vnni = dispatch.OV_INT8_SPEEDUP["vnni"]
+    assert f"OpenVINO measured {vnni:.2f}x" in reason and "closer to fp32" not in reason
 
 
 @pytest.mark.parametrize(("ratio", "engine"), [(0.96, "openvino"), (0.94, "onnxruntime")])
@@ -437,6 +449,11 @@ def test_openvino_int8_stays_the_default_within_the_spread_of_its_measurement(
         (ZEN5, BOTH, None, None, None, "fp32"),
         (ZEN5, BOTH, "openvino", None, None, "fp32"),
         (ZEN5, ORT, None, None, None, "int8"),
+        # Zen 4: bf16 on 256-bit halves, the int8 twin on OpenVINO measured faster than bf16
+        (ZEN4, BOTH, None, None, None, "int8"),
+        (ZEN4, ORT, None, None, None, "int8"),  # no bf16 without OpenVINO: over ORT fp32
+        (ZEN4, BOTH, "openvino", None, None, "fp32"),
+        (ZEN4, BOTH, None, "bf16", None, "fp32"),
         (ARM, BOTH, None, None, None, "fp32"),  # nothing measured there
         # a precision asked for decides; a device runs the portable fp32 file
         (ZEN3, BOTH, None, "fp32", None, "fp32"),
@@ -453,10 +470,14 @@ def test_openvino_int8_stays_the_default_within_the_spread_of_its_measurement(
 def test_the_bundled_pair(cpu, installed, eng, prec, device, precision) -> None:
     pick = dispatch.bundled_precision(cpu, installed, eng, prec, device)
     assert pick.precision == precision
-    if precision == "int8" and prec is None:
+    if precision == "int8" and prec is None and "openvino" in installed and cpu.has_bf16:
+        klass = dispatch.bf16_class(cpu)
+        assert f"int8 measured {dispatch.INT8_OVER_BF16[klass]}x bf16" in pick.reason
+        assert "would run in bf16 here" in pick.reason and f"({klass})" in pick.reason
+    elif precision == "int8" and prec is None:
         klass = dispatch.int8_class(cpu)
         assert f"int8 measured {dispatch.INT8_SPEEDUP[klass]}x fp32" in pick.reason
-        assert f"({klass})" in pick.reason
+        assert "would run in fp32 here" in pick.reason and f"({klass})" in pick.reason
     elif precision == "fp32":
         assert pick.reason == ""
 
@@ -472,3 +493,36 @@ def test_the_bundled_int8_file_is_no_default_outside_the_bound(
     assert dispatch.bundled_precision(ZEN3, ORT).precision == "int8"  # ORT's is within
     monkeypatch.setitem(dispatch.INT8_SPEEDUP, "avx2", 0.9)
     assert dispatch.bundled_precision(ZEN3, ORT).precision == "fp32"
+
+
+def test_the_bundled_int8_file_over_bf16_only_where_measured_faster(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """On a bf16 CPU the twin replaces bf16 only where OpenVINO's int8 was measured faster than
+    bf16 on the class, and only within the bound."""
+    assert [dispatch.bf16_class(c) for c in (ZEN4, ZEN5, AMX, ZEN3)] == [
+        "avx512-bf16",
+        "avx512-bf16-avxvnni",
+        "amx",
+        "none",
+    ]
+    assert dispatch.INT8_OVER_BF16["avx512-bf16"] > 1.0 > dispatch.INT8_OVER_BF16["amx"]
+    assert dispatch.bundled_precision(ZEN4, BOTH).precision == "int8"
+    monkeypatch.setitem(dispatch.INT8_OVER_BF16, "avx512-bf16", 0.97)
+    assert dispatch.bundled_precision(ZEN4, BOTH).precision == "fp32"
+    monkeypatch.setitem(dispatch.INT8_OVER_BF16, "avx512-bf16", 1.2)
+    monkeypatch.setitem(dispatch.INT8_OVER_BF16, "amx", 1.2)
+    assert dispatch.bundled_precision(AMX, BOTH).precision == "int8"
+    # measured against OpenVINO's int8: where ONNX Runtime would run the twin, bf16 stays
+    monkeypatch.setitem(dispatch.OV_INT8_SPEEDUP, "vnni", 0.5)
+    assert dispatch.bundled_precision(ZEN4, BOTH).precision == "fp32"
+    monkeypatch.setitem(dispatch.OV_INT8_SPEEDUP, "vnni", 1.2)
+    worse = Measured({32: (0.4, 2.0), 96: (0.6, 3.0)})
+    monkeypatch.setitem(MEASURED, ("openvino", "int8", True), worse)
+    assert dispatch.bundled_precision(ZEN4, BOTH).precision == "fp32"
+    # and what the file then runs as: the twin on OpenVINO int8, the fp32 file in bf16
+    monkeypatch.undo()
+    pick = dispatch.bundled_precision(ZEN4, BOTH)
+    assert choose_engine(TWIN, ZEN4, BOTH).engine == "openvino"
+    assert pick.precision == "int8" and "(avx512-bf16)" in pick.reason
+    assert choose_engine(FP32_STAGED, ZEN5, BOTH).precision == "bf16"

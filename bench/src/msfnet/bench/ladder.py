@@ -108,7 +108,7 @@ def ladder_rows(
 ) -> list[LadderRow]:
     """Every rung (or ``rungs``), each in a fresh process; RuntimeError with the worker's last
     error line if one fails. ``model`` None: the bundled model msf-run would open here (its
-    int8 twin on CPUs without native bf16, engines.dispatch.bundled_precision)."""
+    int8 twin where it is the faster default, engines.dispatch.bundled_precision)."""
     from msfnet.runtime.infer.ladder import RUNGS
 
     rows = []

@@ -63,8 +63,9 @@ class ModelOptions:
     precision: str | None = flag(
         None,
         "compute precision (default: the fastest one measured within 0.5 deg of fp32 on "
-        "real data for this CPU: bf16 where the CPU has it natively (through OpenVINO), "
-        "else the bundled model's int8 twin; int8 with --onnx needs an int8 export)",
+        "real data for this CPU: the bundled model's int8 twin where it was measured "
+        "faster (CPUs without native bf16; AMD Zen 4), else bf16 through OpenVINO; int8 "
+        "with --onnx needs an int8 export)",
         choices=("fp32", "bf16", "int8"),
     )
     threads: int | None = flag(
