@@ -605,9 +605,10 @@ def end_to_end(
     stack = load_stack(args.stack, max_lights=max_lights)
     ort = ["--engine", "onnxruntime"]
     budget = args.max_memory  # None: msf-run's own default, as a user runs it
-    # The default row runs the bundled model as msf-run picks it (fp32, or its int8 twin on
-    # CPUs without native bf16: then it differs from the fp32 rows by the quantisation); for
-    # other weights (--checkpoint, --random-weights) it runs their staged fp32 export.
+    # The default row runs the bundled model as msf-run picks it (fp32, or its int8 twin where
+    # dispatch.bundled_precision prefers it: then it differs from the fp32 rows by the
+    # quantisation); for other weights (--checkpoint, --random-weights) it runs their staged
+    # fp32 export.
     from msfnet.model.checkpoint import default_checkpoint_path
 
     bundled = (

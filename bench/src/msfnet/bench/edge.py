@@ -338,7 +338,8 @@ def requirement_rows(
 ) -> list[Requirement]:
     """The grid, each cell in a fresh process; ``engines``: (engine, precision) pairs, None =
     dispatch's default. ``model`` None: the bundled model msf-run would open here (its int8
-    twin on CPUs without native bf16; an engine or precision named keeps the fp32 file)."""
+    twin where dispatch.bundled_precision prefers it; an engine or precision named keeps the
+    fp32 file)."""
     sizes, lights = (
         (QUICK_SIZES, QUICK_LIGHTS) if quick else (REQUIREMENT_SIZES, REQUIREMENT_LIGHTS)
     )
