@@ -51,7 +51,7 @@ def test_both_spellings_are_one_feature() -> None:
 
 def test_proc_cpuinfo_fallback_parses_first_processor(tmp_path: Path) -> None:
     text = (
-        "processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R45\n"
+        "processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 26\nmodel name\t: AMD EPYC 9R45\n"
         "flags\t\t: fpu avx2 avx512f avx512_vnni avx512_bf16\n\n"
         "processor\t: 1\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9R45\n"
         "flags\t\t: fpu avx2\n"
@@ -64,6 +64,27 @@ def test_proc_cpuinfo_fallback_parses_first_processor(tmp_path: Path) -> None:
         "/proc/cpuinfo",
     )
     assert info.has_bf16 and info.has_vnni and not info.has_amx
+    assert info.family == 26 and not info.avx512_on_halves  # Zen 5: full-width AVX-512
+
+
+@pytest.mark.parametrize(
+    ("vendor", "family", "flags", "halves"),
+    [
+        ("AuthenticAMD", 25, ["avx2", "avx512f", "avx512_bf16"], True),  # Zen 4
+        ("AuthenticAMD", 25, ["avx2"], False),  # Zen 3: no AVX-512
+        ("AuthenticAMD", 26, ["avx2", "avx512f", "avx512_bf16"], False),  # Zen 5
+        ("GenuineIntel", 6, ["avx2", "avx512f", "avx512_bf16"], False),  # Cooper Lake
+        ("AuthenticAMD", None, ["avx2", "avx512f", "avx512_bf16"], False),  # family not known
+    ],
+)
+def test_avx512_on_halves_is_amd_zen4_only(
+    vendor: str, family: int | None, flags: list[str], halves: bool
+) -> None:
+    cpu = CpuInfo.from_flags(flags, vendor=vendor, family=family)
+    assert cpu.avx512_on_halves is halves
+    # a cpuid proxy keeps the family but drops AVX-512: no longer a Zen 4 to dispatch
+    assert cpu_mod.as_proxy(cpu, "avx2").family == family
+    assert not cpu_mod.as_proxy(cpu, "avx2").avx512_on_halves
 
 
 def test_detect_falls_back_when_py_cpuinfo_fails(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -103,6 +124,7 @@ def test_the_probe_is_kept_per_boot_and_a_damaged_copy_is_ignored(
         model="Fake Xeon",
         vendor="GenuineIntel",
         source="py-cpuinfo",
+        family=6,
     )
 
     def probe() -> CpuInfo:
@@ -114,19 +136,28 @@ def test_the_probe_is_kept_per_boot_and_a_damaged_copy_is_ignored(
         for _ in range(2):  # two "processes": the second reads the kept answer
             detect_cpu.cache_clear()
             info = detect_cpu()
-            assert (info.model, info.features(), info.source) == (
+            assert (info.model, info.features(), info.source, info.family) == (
                 "Fake Xeon",
                 ["avx2", "avx512_bf16", "amx_bf16"],
                 "py-cpuinfo",
+                6,
             )
         assert len(probes) == 1
         path = cpu_mod.cache_path()
         assert path is not None and path.parent == tmp_path / "msfnet"
-        for damage in ("{not json", '{"flags": [], "model": "x", "vendor": "y"}', "[1, 2]"):
+        old = '{"flags": ["avx2"], "model": "x", "vendor": "y"}'  # an older msfnet's: no family
+        bad = '{"flags": ["avx2"], "model": "x", "vendor": "y", "family": "25"}'
+        for damage in (
+            "{not json",
+            '{"flags": [], "model": "x", "vendor": "y"}',
+            "[1, 2]",
+            old,
+            bad,
+        ):
             path.write_text(damage)
             detect_cpu.cache_clear()
             assert detect_cpu().model == "Fake Xeon"  # probed again and rewritten
-        assert len(probes) == 4
+        assert len(probes) == 6
     finally:
         detect_cpu.cache_clear()
 

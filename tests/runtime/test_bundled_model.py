@@ -198,6 +198,28 @@ def test_model_keeps_the_fp32_file_where_bf16_is_faster(monkeypatch: pytest.Monk
     assert Path(str(d["model"])) == default_model_path("int8") and d["precision"] == "int8"
 
 
+ZEN4 = CpuInfo.from_flags(
+    ["avx2", "avx512f", "avx512_vnni", "avx512_bf16"],
+    model="AMD EPYC (Zen 4, faked)",
+    vendor="AuthenticAMD",
+    family=25,
+)
+
+
+def test_model_opens_the_int8_twin_over_bf16_on_zen4(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Zen 4 has native bf16, but the twin on OpenVINO int8 was measured faster there."""
+    pytest.importorskip("openvino")
+    _cpu(monkeypatch, ZEN4)
+    d = Model(threads=1).describe()
+    assert Path(str(d["model"])) == default_model_path("int8")
+    assert (d["engine"], d["precision"]) == ("openvino", "int8")
+    assert "would run in bf16 here" in str(d["choice"]) and "(zen4)" in str(d["choice"])
+    # the fp32 file in bf16 is one option away (where the real CPU lacks bf16, opening falls
+    # back to ONNX Runtime fp32, as in the AMX test)
+    d = Model(threads=1, precision="bf16").describe()
+    assert Path(str(d["model"])) == default_model_path()
+
+
 def test_a_missing_int8_twin_leaves_the_fp32_file(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:

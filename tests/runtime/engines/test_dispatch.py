@@ -21,11 +21,17 @@ from msfnet.runtime.engines.dispatch import (
 )
 
 ZEN3 = CpuInfo.from_flags(["avx2", "fma"], model="AMD EPYC 7B13", cores=2)
-# AVX-512 bf16 without AMX: Zen 4 lacks AVX-VNNI, Zen 5 has it (dispatch.bf16_class)
-ZEN4 = CpuInfo.from_flags(["avx2", "avx512f", "avx512_vnni", "avx512_bf16"], model="Zen 4")
+# AVX-512 bf16 without AMX: Zen 4 (AMD family 25, AVX-512 on 256-bit halves) was measured, Zen
+# 5 (family 26) and Intel Cooper Lake were not (dispatch.cpu_class)
+_BF16_FLAGS = ["avx2", "avx512f", "avx512_vnni", "avx512_bf16"]
+ZEN4 = CpuInfo.from_flags(_BF16_FLAGS, model="AMD EPYC", vendor="AuthenticAMD", family=25)
 ZEN5 = CpuInfo.from_flags(
-    ["avx2", "avx512f", "avx512_vnni", "avx512_bf16", "avx_vnni"], model="Zen 5"
+    [*_BF16_FLAGS, "avx_vnni"], model="AMD EPYC", vendor="AuthenticAMD", family=26
 )
+COOPER = CpuInfo.from_flags(
+    _BF16_FLAGS, model="Xeon (Cooper Lake)", vendor="GenuineIntel", family=6
+)
+ZEN4_NO_VENDOR = CpuInfo.from_flags(_BF16_FLAGS, model="Zen 4, family unknown")
 SKYLAKE = CpuInfo.from_flags(["avx2", "avx512f"], model="Xeon (AVX-512, no bf16)")
 ARM = CpuInfo.from_flags(["neon", "asimd", "sve"], model="Cortex-A78", vendor="ARM")
 ALDER = CpuInfo.from_flags(["avx2", "avx_vnni"], model="Core (AVX-VNNI, no AVX-512)")
@@ -77,6 +83,8 @@ TWIN = ModelInfo(
         (ZEN3, ORT, FP32, "onnxruntime", "fp32"),
         (ZEN5, BOTH, FP32, "openvino", "bf16"),
         (ZEN5, ORT, FP32, "onnxruntime", "fp32"),
+        (ZEN4, BOTH, FP32, "openvino", "bf16"),  # an fp32 export: bf16 (the twin is a file)
+        (ZEN4, BOTH, TWIN, "openvino", "int8"),
         (AMX, BOTH, FP32, "openvino", "bf16"),
         (AMX, BOTH, FP16W, "openvino", "bf16"),
         (AMX, BOTH, FP32_STAGED, "openvino", "bf16"),
@@ -124,6 +132,8 @@ def test_reasons_say_why() -> None:
         (AMX, FP32, "ort", None, "onnxruntime", "fp32"),  # --engine ort keeps fp32
         (AMX, FP32, None, "fp32", "openvino", "fp32"),  # fp32 on the faster fp32 engine
         (ARM, FP32, None, "fp32", "onnxruntime", "fp32"),
+        (ZEN4, FP32, None, "fp32", "openvino", "fp32"),  # measured faster on Zen 4
+        (ZEN5, FP32, None, "fp32", "onnxruntime", "fp32"),  # not measured on Zen 5
         (ZEN3, FP32, "ort", "fp32", "onnxruntime", "fp32"),
         (AMX, FP32, "openvino", "fp32", "openvino", "fp32"),
         (ZEN5, FP32_STAGED, None, "bf16", "openvino", "bf16"),
@@ -228,8 +238,10 @@ def test_a_precision_outside_the_bound_falls_to_fp32_on_the_faster_engine(
     ("cpu", "klass"),
     [
         (ZEN3, "avx2"),
-        (ZEN4, "avx512-bf16"),
+        (ZEN4, "zen4"),
         (ZEN5, "avx512-bf16"),
+        (COOPER, "avx512-bf16"),
+        (ZEN4_NO_VENDOR, "avx512-bf16"),
         (SKYLAKE, "avx512"),
         (AMX, "amx"),
         (ARM, "other"),
@@ -237,7 +249,7 @@ def test_a_precision_outside_the_bound_falls_to_fp32_on_the_faster_engine(
 )
 def test_cpu_classes(cpu, klass) -> None:
     assert dispatch.cpu_class(cpu) == klass
-    assert dispatch.ov_fp32_preferred(cpu) == (klass in ("avx2", "amx", "avx512-bf16"))
+    assert dispatch.ov_fp32_preferred(cpu) == (klass in ("avx2", "amx", "zen4"))
 
 
 CUDA_ORT = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
@@ -394,13 +406,14 @@ def test_an_int8_export_with_percentile_ranges_is_within_the_bound(
 
 
 def test_int8_classes() -> None:
-    assert [dispatch.int8_class(c) for c in (ZEN3, SKYLAKE, ZEN5, AMX, ARM, ALDER)] == [
+    assert [dispatch.int8_class(c) for c in (ZEN3, SKYLAKE, ZEN5, AMX, ARM, ALDER, ZEN4)] == [
         "avx2",
         "avx512",
         "vnni",
         "amx",
         "other",
         "avx2_vnni",
+        "zen4",
     ]
     assert "int8 speed not measured" in choose_engine(INT8, ARM, BOTH).reason
     assert "emulated with AVX2" in choose_engine(INT8, SKYLAKE, BOTH).reason
@@ -451,9 +464,14 @@ def test_openvino_int8_stays_the_default_within_the_spread_of_its_measurement(
         (ZEN5, ORT, None, None, None, "int8"),
         # Zen 4: bf16 on 256-bit halves, the int8 twin on OpenVINO measured faster than bf16
         (ZEN4, BOTH, None, None, None, "int8"),
+        (ZEN4, {"openvino"}, None, None, None, "int8"),
         (ZEN4, ORT, None, None, None, "int8"),  # no bf16 without OpenVINO: over ORT fp32
         (ZEN4, BOTH, "openvino", None, None, "fp32"),
         (ZEN4, BOTH, None, "bf16", None, "fp32"),
+        (ZEN4, BOTH, None, None, dispatch.Device("gpu", "openvino", "GPU"), "fp32"),
+        # the same flags, not measured (Cooper Lake; a Zen 4 whose family is not known): bf16
+        (COOPER, BOTH, None, None, None, "fp32"),
+        (ZEN4_NO_VENDOR, BOTH, None, None, None, "fp32"),
         (ARM, BOTH, None, None, None, "fp32"),  # nothing measured there
         # a precision asked for decides; a device runs the portable fp32 file
         (ZEN3, BOTH, None, "fp32", None, "fp32"),
@@ -471,7 +489,7 @@ def test_the_bundled_pair(cpu, installed, eng, prec, device, precision) -> None:
     pick = dispatch.bundled_precision(cpu, installed, eng, prec, device)
     assert pick.precision == precision
     if precision == "int8" and prec is None and "openvino" in installed and cpu.has_bf16:
-        klass = dispatch.bf16_class(cpu)
+        klass = dispatch.cpu_class(cpu)
         assert f"int8 measured {dispatch.INT8_OVER_BF16[klass]}x bf16" in pick.reason
         assert "would run in bf16 here" in pick.reason and f"({klass})" in pick.reason
     elif precision == "int8" and prec is None:
@@ -499,30 +517,27 @@ def test_the_bundled_int8_file_over_bf16_only_where_measured_faster(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """On a bf16 CPU the twin replaces bf16 only where OpenVINO's int8 was measured faster than
-    bf16 on the class, and only within the bound."""
-    assert [dispatch.bf16_class(c) for c in (ZEN4, ZEN5, AMX, ZEN3)] == [
-        "avx512-bf16",
-        "avx512-bf16-avxvnni",
-        "amx",
-        "none",
-    ]
-    assert dispatch.INT8_OVER_BF16["avx512-bf16"] > 1.0 > dispatch.INT8_OVER_BF16["amx"]
+    bf16 on the class (above 1, not at 1), and only within the bound."""
+    assert dispatch.INT8_OVER_BF16["zen4"] > 1.0 > dispatch.INT8_OVER_BF16["amx"]
+    assert "avx512-bf16" not in dispatch.INT8_OVER_BF16  # Zen 5, Cooper Lake: not measured
     assert dispatch.bundled_precision(ZEN4, BOTH).precision == "int8"
-    monkeypatch.setitem(dispatch.INT8_OVER_BF16, "avx512-bf16", 0.97)
+    monkeypatch.setitem(dispatch.INT8_OVER_BF16, "zen4", 1.0)
     assert dispatch.bundled_precision(ZEN4, BOTH).precision == "fp32"
-    monkeypatch.setitem(dispatch.INT8_OVER_BF16, "avx512-bf16", 1.2)
+    monkeypatch.setitem(dispatch.INT8_OVER_BF16, "zen4", 1.2)
     monkeypatch.setitem(dispatch.INT8_OVER_BF16, "amx", 1.2)
     assert dispatch.bundled_precision(AMX, BOTH).precision == "int8"
     # measured against OpenVINO's int8: where ONNX Runtime would run the twin, bf16 stays
-    monkeypatch.setitem(dispatch.OV_INT8_SPEEDUP, "vnni", 0.5)
+    monkeypatch.setitem(dispatch.OV_INT8_SPEEDUP, "zen4", 0.5)
     assert dispatch.bundled_precision(ZEN4, BOTH).precision == "fp32"
-    monkeypatch.setitem(dispatch.OV_INT8_SPEEDUP, "vnni", 1.2)
+    monkeypatch.setitem(dispatch.OV_INT8_SPEEDUP, "zen4", 1.2)
     worse = Measured({32: (0.4, 2.0), 96: (0.6, 3.0)})
     monkeypatch.setitem(MEASURED, ("openvino", "int8", True), worse)
     assert dispatch.bundled_precision(ZEN4, BOTH).precision == "fp32"
-    # and what the file then runs as: the twin on OpenVINO int8, the fp32 file in bf16
+    # and what each file then runs as: the twin on OpenVINO int8, an fp32 export in bf16
     monkeypatch.undo()
     pick = dispatch.bundled_precision(ZEN4, BOTH)
-    assert choose_engine(TWIN, ZEN4, BOTH).engine == "openvino"
-    assert pick.precision == "int8" and "(avx512-bf16)" in pick.reason
+    assert pick.precision == "int8" and "(zen4)" in pick.reason
+    twin = choose_engine(TWIN, ZEN4, BOTH)
+    assert (twin.engine, twin.precision) == ("openvino", "int8") and "(zen4)" in twin.reason
+    assert choose_engine(FP32_STAGED, ZEN4, BOTH).precision == "bf16"
     assert choose_engine(FP32_STAGED, ZEN5, BOTH).precision == "bf16"

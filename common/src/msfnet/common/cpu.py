@@ -58,6 +58,7 @@ class CpuInfo:
     amx_bf16: bool = False
     amx_int8: bool = False
     avx_vnni: bool = False
+    family: int | None = None  # the x86 family number (AMD: 25 = Zen 3 / Zen 4, 26 = Zen 5)
     source: str = "none"  # where the flags came from: py-cpuinfo, /proc/cpuinfo or none
     all_flags: frozenset[str] = field(default_factory=frozenset, repr=False, compare=False)
 
@@ -69,6 +70,7 @@ class CpuInfo:
         vendor: str = "unknown",
         cores: int = 1,
         source: str = "given",
+        family: int | None = None,
     ) -> CpuInfo:
         """Build from any iterable of flag names (either spelling); also how tests fake CPUs."""
         names = [str(f).lower() for f in flags]
@@ -77,6 +79,7 @@ class CpuInfo:
             model=model,
             vendor=vendor,
             cores=cores,
+            family=family,
             source=source,
             all_flags=frozenset(names),
             **{name: _norm(name) in have for name in FEATURES},
@@ -95,6 +98,14 @@ class CpuInfo:
     @property
     def has_amx(self) -> bool:
         return self.amx_bf16 or self.amx_int8
+
+    @property
+    def avx512_on_halves(self) -> bool:
+        """AMD Zen 4 (family 25 with AVX-512): its 512-bit instructions, bf16 and VNNI dot
+        products included, run as two 256-bit halves, which moves which precision is fastest
+        (engines.dispatch). Zen 3 (also family 25) has no AVX-512; Zen 5 (family 26) runs
+        512-bit vectors at full width."""
+        return self.vendor == "AuthenticAMD" and self.family == 25 and self.avx512f
 
     @property
     def int8_full_range(self) -> bool:
@@ -144,17 +155,20 @@ def _from_py_cpuinfo() -> CpuInfo:
     import cpuinfo
 
     data = cpuinfo.get_cpu_info()
+    family = data.get("family")
     return CpuInfo.from_flags(
         data.get("flags") or [],
         model=data.get("brand_raw") or "unknown",
         vendor=data.get("vendor_id_raw") or "unknown",
         cores=usable_cores(),
         source="py-cpuinfo",
+        family=family if isinstance(family, int) and not isinstance(family, bool) else None,
     )
 
 
 def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
     model = vendor = "unknown"
+    family: int | None = None
     flags: list[str] = []
     for line in path.read_text().splitlines():
         key, _, value = line.partition(":")
@@ -163,10 +177,17 @@ def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
             model = value.strip()
         elif key == "vendor_id" and vendor == "unknown":
             vendor = value.strip()
+        elif key == "cpu family" and family is None and value.strip().isdigit():
+            family = int(value.strip())
         elif key == "flags" and not flags:
             flags = value.split()
     return CpuInfo.from_flags(
-        flags, model=model, vendor=vendor, cores=usable_cores(), source="/proc/cpuinfo"
+        flags,
+        model=model,
+        vendor=vendor,
+        cores=usable_cores(),
+        source="/proc/cpuinfo",
+        family=family,
     )
 
 
@@ -213,7 +234,8 @@ def _read_cache(path: Path) -> CpuInfo | None:
         if not stat.S_ISREG(st.st_mode) or st.st_size > CACHE_MAX_BYTES:
             return None
         data = json.loads(os.read(fd, CACHE_MAX_BYTES).decode())
-        flags, model, vendor = data["flags"], data["model"], data["vendor"]
+        # a file without "family" was kept by an older msfnet: probe again
+        flags, model, vendor, family = data["flags"], data["model"], data["vendor"], data["family"]
     except (OSError, ValueError, KeyError, TypeError):  # damaged: probe again
         return None
     finally:
@@ -224,10 +246,16 @@ def _read_cache(path: Path) -> CpuInfo | None:
         and all(isinstance(f, str) for f in flags)
         and isinstance(model, str)
         and isinstance(vendor, str)
+        and (family is None or (isinstance(family, int) and not isinstance(family, bool)))
     ):
         return None
     return CpuInfo.from_flags(
-        flags, model=model, vendor=vendor, cores=usable_cores(), source="py-cpuinfo"
+        flags,
+        model=model,
+        vendor=vendor,
+        cores=usable_cores(),
+        source="py-cpuinfo",
+        family=family,
     )
 
 
@@ -242,7 +270,12 @@ def _write_cache(path: Path, info: CpuInfo) -> None:
                 old.unlink(missing_ok=True)
         write_json(
             path,
-            {"flags": sorted(info.all_flags), "model": info.model, "vendor": info.vendor},
+            {
+                "flags": sorted(info.all_flags),
+                "model": info.model,
+                "vendor": info.vendor,
+                "family": info.family,
+            },
             output=False,
         )
     except (OSError, InputError):  # a read-only home, or a link or pipe at the cache's name:
@@ -282,6 +315,7 @@ def as_proxy(info: CpuInfo, name: str) -> CpuInfo:
         vendor=info.vendor,
         cores=info.cores,
         source=info.source,
+        family=info.family,
     )
 
 

@@ -64,8 +64,8 @@ class ModelOptions:
         None,
         "compute precision (default: the fastest one measured within 0.5 deg of fp32 on "
         "real data for this CPU: the bundled model's int8 twin where it was measured "
-        "faster (CPUs without native bf16; AMD Zen 4), else bf16 through OpenVINO; int8 "
-        "with --onnx needs an int8 export)",
+        "faster (CPUs without native bf16; AMD Zen 4), else bf16 through OpenVINO where the "
+        "CPU has it natively, else fp32; int8 with --onnx needs an int8 export)",
         choices=("fp32", "bf16", "int8"),
     )
     threads: int | None = flag(

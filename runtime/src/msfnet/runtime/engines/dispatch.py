@@ -23,7 +23,7 @@ below is tested on faked CPUs and engines. Rules, in order:
 The bundled model comes as a pair, fp32 and int8 (``bundled_precision`` picks which one
 ``Model()`` / ``msf-run`` open when no model is given): int8 where it was measured faster than
 the fp32 file's own default on the CPU class: fp32 (no native bf16, or no OpenVINO for it;
-``INT8_SPEEDUP``) or bf16 (AVX-512 bf16 on 256-bit halves, AMD Zen 4; ``INT8_OVER_BF16``);
+``INT8_SPEEDUP``) or bf16 (AMD Zen 4, AVX-512 on 256-bit halves; ``INT8_OVER_BF16``);
 fp32 otherwise, and whenever a precision other than int8 or a device is asked for.
 
 A reduced precision is a *default* only within ACCURACY_BOUND_DEG (0.5 deg) mean of ONNX Runtime
@@ -98,10 +98,14 @@ def default_allowed(engine: str, precision: str, staged: bool) -> bool:
 
 
 def cpu_class(cpu: CpuInfo) -> str:
-    """The CPU class speed measurements are kept for: amx, avx512-bf16, avx512, avx2 or other
-    (no AVX2: old x86 or ARM; nothing measured there)."""
+    """The CPU class speed measurements are kept for: amx; zen4 (AMD Zen 4: AVX-512 with bf16
+    and VNNI on 256-bit halves, CpuInfo.avx512_on_halves); avx512-bf16 (other AVX-512 bf16
+    without AMX: AMD Zen 5, Intel Cooper Lake); avx512; avx2; other (no AVX2: old x86 or ARM;
+    nothing measured there)."""
     if cpu.has_amx:
         return "amx"
+    if cpu.avx512_on_halves and cpu.avx512_bf16 and cpu.avx512_vnni:
+        return "zen4"
     if cpu.avx512_bf16:
         return "avx512-bf16"
     if cpu.avx512f:
@@ -116,7 +120,7 @@ OV_FP32_SPEEDUP: dict[str, float] = {
     "avx2": 1.36,  # AMD EPYC, AVX2 only (another session; the issue's own run read 1.60)
     "amx": 1.43,  # Intel Xeon with AMX
     # AMD EPYC Zen 4, native (session 18): cat 7.75 against 8.36 s, 8-light ball 2.55 / 2.92 s
-    "avx512-bf16": 1.11,
+    "zen4": 1.11,
 }
 
 
@@ -126,11 +130,14 @@ def ov_fp32_preferred(cpu: CpuInfo) -> bool:
 
 
 def int8_class(cpu: CpuInfo) -> str:
-    """The CPU class int8 speed is kept for: amx; vnni (AVX-512 VNNI); avx2_vnni (AVX-VNNI on
-    256-bit vectors, no AVX-512); avx512 (AVX-512 without VNNI); avx2 (no VNNI: int8 products
-    summed in 16-bit pairs, which 7-bit weights keep exact); other (no AVX2)."""
+    """The CPU class int8 speed is kept for: amx; zen4 (AMD Zen 4, measured natively); vnni
+    (other AVX-512 VNNI); avx2_vnni (AVX-VNNI on 256-bit vectors, no AVX-512); avx512 (AVX-512
+    without VNNI); avx2 (no VNNI: int8 products summed in 16-bit pairs, which 7-bit weights
+    keep exact); other (no AVX2)."""
     if cpu.has_amx:
         return "amx"
+    if cpu.avx512_on_halves and cpu.avx512_vnni:
+        return "zen4"
     if cpu.avx512_vnni:
         return "vnni"
     if cpu.avx_vnni:
@@ -145,11 +152,13 @@ def int8_class(cpu: CpuInfo) -> str:
 # engine's ratio (docs/benchmark.md, 2026-12-02 session 14); avx2_vnni: the bundled twin on
 # ONNX Runtime over the fp32 file on ONNX Runtime, whole 12-light psmImages cat (session 15).
 # avx2, avx2_vnni and vnni were measured in the cpuid proxy (msfnet.bench.cpu_proxy) on an AMX
-# Xeon; avx512 (AVX-512 without VNNI) and other were not measured: the fp32 file there.
+# Xeon; zen4 natively, the twin over the fp32 file end to end on the cat and the 8-light ball
+# (session 18); avx512 (AVX-512 without VNNI) and other were not measured: the fp32 file there.
 INT8_SPEEDUP: dict[str, float] = {
     "avx2": 1.52,  # OpenVINO 1.52-1.55x, ONNX Runtime 1.89x (7-bit weights)
     "avx2_vnni": 1.74,  # 5.64 against 9.83 s (load ~2)
     "vnni": 1.96,  # ONNX Runtime 1.96x, OpenVINO 2.11x
+    "zen4": 1.70,  # ONNX Runtime 1.92x cat, 1.50x ball; OpenVINO 2.29x / 1.44x
     "amx": 1.80,  # ONNX Runtime 1.80x, OpenVINO 2.98x (bf16 is faster still: 4.7x)
 }
 # int8 class -> OpenVINO int8 over ONNX Runtime int8: the bundled twin, msf-run end to end in
@@ -157,40 +166,28 @@ INT8_SPEEDUP: dict[str, float] = {
 # geometric mean of the 12-light psmImages cat and the 8-light full DiLiGenT ball; OpenVINO's
 # int8 convolution outputs f32 (engines.openvino.drop_output_requantisation). Session 17,
 # load ~1.7 (docs/benchmark.md); avx2* and vnni in the cpuid proxy; 4 lights a call (before
-# engines.openvino.INT8_CHUNK).
+# engines.openvino.INT8_CHUNK). zen4: natively in session 18, 2 lights a call.
 OV_INT8_SPEEDUP: dict[str, float] = {
     "avx2": 1.00,  # cat 5.58 against 5.53 s, ball 2.01 against 2.05 s
     "avx2_vnni": 1.00,  # cat 4.25 / 4.11 s, ball 1.64 / 1.69 s
-    # cat 3.14 / 3.37 s, ball 1.41 / 1.51 s in the proxy; a real AMD Zen 4 (session 18, 2
-    # lights a call): cat 3.39 / 4.35 s, ball 1.77 / 1.95 s, 1.19x
-    "vnni": 1.19,
+    "vnni": 1.07,  # cat 3.14 / 3.37 s, ball 1.41 / 1.51 s
+    "zen4": 1.19,  # cat 3.39 / 4.35 s, ball 1.77 / 1.95 s
     "amx": 1.24,  # cat 2.70 / 3.47 s, ball 1.16 / 1.37 s
 }
-# bf16 class -> the bundled int8 twin (on its default engine) over the fp32 file in bf16 on
-# OpenVINO, msf-run end to end in fresh processes, same run, medians of 5 interleaved rounds,
-# the geometric mean of the 12-light psmImages cat and the 8-light full ball (docs/benchmark.md,
-# session 18). Where it is above 1 the twin is the default although the CPU has native bf16
-# (both are within the accuracy bound). A class missing here keeps bf16.
+# CPU class -> the bundled int8 twin on OpenVINO over the fp32 file in bf16 on OpenVINO, where
+# bf16 is the fp32 file's default. Where it is above 1 the twin is the default although the CPU
+# has native bf16 (both are within the accuracy bound). A class missing here keeps bf16: AMD Zen
+# 5 and Intel Cooper Lake (avx512-bf16) were not measured with OpenVINO int8 (on Zen 5 ONNX
+# Runtime int8 ran 1.94x ONNX Runtime fp32 and bf16 3.31x, field notes).
 INT8_OVER_BF16: dict[str, float] = {
-    # AMD EPYC Zen 4, native: cat 3.39 against 4.26 s, ball 1.77 against 1.90 s. Its AVX-512
-    # runs on 256-bit halves, bf16 dot products too; VNNI does twice bf16's products a lane
-    "avx512-bf16": 1.16,
-    # Intel Xeon with AMX: its bf16 tiles beat int8 on these convolutions ((b): OpenVINO int8
-    # 2.98x fp32 against bf16 4.7x, session 14; the 8-light ball 1.16 against 1.00 s, session 17)
+    # AMD EPYC Zen 4, natively: msf-run end to end in fresh processes, medians of 5 interleaved
+    # rounds, the geometric mean of the 12-light cat (3.39 against 4.26 s) and the 8-light full
+    # ball (1.77 against 1.90 s); session 18, docs/benchmark.md
+    "zen4": 1.16,
+    # Intel Xeon with AMX: bf16 tiles beat int8 on these convolutions (workload (b), the 128 px
+    # crop: OpenVINO int8 2.98x OpenVINO fp32 against bf16 4.7x, session 14)
     "amx": 0.63,
 }
-
-
-def bf16_class(cpu: CpuInfo) -> str:
-    """The class INT8_OVER_BF16 is kept for: amx; avx512-bf16 (AVX-512 bf16 without AVX-VNNI
-    or AMX: AMD Zen 4, Intel Cooper Lake); avx512-bf16-avxvnni (also AVX-VNNI: AMD Zen 5,
-    whose 512-bit units run bf16 at twice Zen 4's rate and whose int8 was not measured: bf16
-    stays); none (no native bf16)."""
-    if cpu.has_amx:
-        return "amx"
-    if not cpu.avx512_bf16:
-        return "none"
-    return "avx512-bf16-avxvnni" if cpu.avx_vnni else "avx512-bf16"
 
 
 # OpenVINO stays the int8 default down to this ratio (the run-to-run spread of the figures
@@ -449,7 +446,7 @@ def bundled_precision(
     fp32 = choose_engine(_FP32_GUESS, cpu, installed)  # nothing requested: nothing refused
     int8 = choose_engine(_INT8_GUESS, cpu, installed)
     if fp32.precision == "bf16":  # measured against OpenVINO's int8 only (INT8_OVER_BF16)
-        klass = bf16_class(cpu)
+        klass = cpu_class(cpu)
         speedup = INT8_OVER_BF16.get(klass, 0.0) if int8.engine == "openvino" else 0.0
     else:
         klass = int8_class(cpu)
@@ -725,6 +722,7 @@ def open_chosen(
 __all__ = [
     "ACCURACY_BOUND_DEG",
     "DEVICE_TARGETS",
+    "INT8_OVER_BF16",
     "INT8_SPEEDUP",
     "MEASURED",
     "MINMAX_INT8_MEASURED",
