@@ -315,7 +315,7 @@ def as_proxy(info: CpuInfo, name: str) -> CpuInfo:
         vendor=info.vendor,
         cores=info.cores,
         source=info.source,
-        family=info.family,
+        family=None,  # a proxy poses as a class, not as this chip: dispatch by its flags alone
     )
 
 
