@@ -250,6 +250,24 @@ def test_lights_target_depends_on_native_bf16_and_marks_extrapolation(tmp_path):
     assert "| ~1.2 | 0.20 | ~3.1 |" in md  # x per-light, inference s, inference only
 
 
+def test_a_default_path_without_a_b_variant_is_said_not_measured(tmp_path):
+    """Where msf-run's default (the int8 twin on OpenVINO) has no (a)-(c) variant, the (b)
+    target line says so instead of vanishing; a path with a variant is judged as before."""
+    result = _lights_result(bf16=True, measured=True)
+    result["e2e"][0].update(engine="openvino", precision="int8", graph="staged")
+    write_report(result, tmp_path)
+    md = (tmp_path / "REPORT.md").read_text()
+    assert (
+        "the default path on (b) (openvino int8 staged, what msf-run picks here): not "
+        "measured, no (a)-(c) variant runs it" in md
+    )
+    result["e2e"][0].update(precision="bf16")
+    result["rows"].append({**_row("b", "ov-bf16-staged", 2, 1.0, 32, 16384), "mean_deg": 0.1})
+    write_report(result, tmp_path / "again")
+    md = (tmp_path / "again" / "REPORT.md").read_text()
+    assert "not measured, no (a)-(c)" not in md and "the default path on (b) (ov-bf16-staged" in md
+
+
 def test_the_whole_image_row_is_never_scaled_to_other_sizes():
     rows = [_row("d", "per-light", 2, 30.0, 8, 5000)]
     assert per_light_estimate(rows, 8, 5000, 2) == (30.0, True)

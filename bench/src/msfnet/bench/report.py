@@ -222,6 +222,12 @@ def targets(result: dict) -> list[str]:
     key = default and (default.get("engine"), default.get("precision"), default.get("graph"))
     variant = PATH_VARIANT.get(key) if key else None
     r = _find(rows, "b", variant, t) if variant else None
+    if key and all(key) and not r:  # said, not dropped: e.g. the int8 twin has no (b) variant
+        engine, precision, graph = key
+        out.append(
+            f"- the default path on (b) ({engine} {precision} {graph}, what msf-run picks "
+            f"here): not measured, no (a)-(c) variant runs it (its figures: (d) above)."
+        )
     if r:
         x, mean = r.get("x_vs_ort_fp32") or 0.0, r.get("mean_deg")
         ok = x >= goal and mean is not None and mean <= 0.5
