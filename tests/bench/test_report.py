@@ -261,7 +261,14 @@ def test_a_default_path_without_a_b_variant_is_said_not_measured(tmp_path):
         "the default path on (b) (openvino int8 staged, what msf-run picks here): not "
         "measured, no (a)-(c) variant runs it" in md
     )
-    result["e2e"][0].update(precision="bf16")
+    result["e2e"][0].update(precision="bf16")  # a path with a variant, not run at 2 threads
+    result["rows"].append({**_row("b", "ov-bf16-staged", 1, 1.0, 32, 16384), "mean_deg": 0.1})
+    write_report(result, tmp_path / "one-thread")
+    md = (tmp_path / "one-thread" / "REPORT.md").read_text()
+    assert (
+        "(openvino bf16 staged, what msf-run picks here): not measured, no ov-bf16-staged "
+        "row at 2 threads in this run" in md
+    )
     result["rows"].append({**_row("b", "ov-bf16-staged", 2, 1.0, 32, 16384), "mean_deg": 0.1})
     write_report(result, tmp_path / "again")
     md = (tmp_path / "again" / "REPORT.md").read_text()

@@ -68,12 +68,33 @@ def test_proc_cpuinfo_fallback_parses_first_processor(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
+    ("family", "expected"), [(25, 25), ("25", None), (True, None), (None, None)]
+)
+def test_py_cpuinfo_family_is_read_and_odd_values_dropped(
+    monkeypatch: pytest.MonkeyPatch, family: object, expected: int | None
+) -> None:
+    """The normal path: py-cpuinfo's answer, whose integer family makes a Zen 4 a Zen 4."""
+    import cpuinfo
+
+    answer = {
+        "flags": ["avx2", "avx512f", "avx512_vnni", "avx512_bf16"],
+        "brand_raw": "AMD EPYC",
+        "vendor_id_raw": "AuthenticAMD",
+        "family": family,
+    }
+    monkeypatch.setattr(cpuinfo, "get_cpu_info", lambda: answer)
+    info = cpu_mod._from_py_cpuinfo()
+    assert info.family == expected and info.avx512_on_halves is (expected == 25)
+
+
+@pytest.mark.parametrize(
     ("vendor", "family", "flags", "halves"),
     [
         ("AuthenticAMD", 25, ["avx2", "avx512f", "avx512_bf16"], True),  # Zen 4
         ("AuthenticAMD", 25, ["avx2"], False),  # Zen 3: no AVX-512
         ("AuthenticAMD", 26, ["avx2", "avx512f", "avx512_bf16"], False),  # Zen 5
         ("GenuineIntel", 6, ["avx2", "avx512f", "avx512_bf16"], False),  # Cooper Lake
+        ("HygonGenuine", 25, ["avx2", "avx512f", "avx512_bf16"], False),  # not AMD's family
         ("AuthenticAMD", None, ["avx2", "avx512f", "avx512_bf16"], False),  # family not known
     ],
 )

@@ -28,6 +28,13 @@ ZEN4 = CpuInfo.from_flags(_BF16_FLAGS, model="AMD EPYC", vendor="AuthenticAMD", 
 ZEN5 = CpuInfo.from_flags(
     [*_BF16_FLAGS, "avx_vnni"], model="AMD EPYC", vendor="AuthenticAMD", family=26
 )
+# Zen 4 under hypervisors that hide some AVX-512 extensions
+ZEN4_NO_VNNI = CpuInfo.from_flags(
+    ["avx2", "avx512f", "avx512_bf16"], vendor="AuthenticAMD", family=25
+)
+ZEN4_NO_BF16 = CpuInfo.from_flags(
+    ["avx2", "avx512f", "avx512_vnni"], vendor="AuthenticAMD", family=25
+)
 COOPER = CpuInfo.from_flags(
     _BF16_FLAGS, model="Xeon (Cooper Lake)", vendor="GenuineIntel", family=6
 )
@@ -511,6 +518,24 @@ def test_the_bundled_int8_file_is_no_default_outside_the_bound(
     assert dispatch.bundled_precision(ZEN3, ORT).precision == "int8"  # ORT's is within
     monkeypatch.setitem(dispatch.INT8_SPEEDUP, "avx2", 0.9)
     assert dispatch.bundled_precision(ZEN3, ORT).precision == "fp32"
+
+
+@pytest.mark.parametrize(
+    ("cpu", "klass", "int8", "bundled"),
+    [
+        (ZEN4, "zen4", "zen4", "int8"),
+        # bf16 without VNNI: not the chip measured for int8 over bf16; bf16 stays
+        (ZEN4_NO_VNNI, "avx512-bf16", "avx512", "fp32"),
+        # no bf16 shown: the flag class for fp32 engines, the chip's own int8 figures
+        (ZEN4_NO_BF16, "avx512", "zen4", "int8"),
+        (ZEN4_NO_VENDOR, "avx512-bf16", "vnni", "fp32"),
+    ],
+)
+def test_zen4_needs_its_family_and_the_extensions_it_was_measured_with(
+    cpu: CpuInfo, klass: str, int8: str, bundled: str
+) -> None:
+    assert (dispatch.cpu_class(cpu), dispatch.int8_class(cpu)) == (klass, int8)
+    assert dispatch.bundled_precision(cpu, BOTH).precision == bundled
 
 
 def test_the_bundled_int8_file_over_bf16_only_where_measured_faster(

@@ -222,11 +222,16 @@ def targets(result: dict) -> list[str]:
     key = default and (default.get("engine"), default.get("precision"), default.get("graph"))
     variant = PATH_VARIANT.get(key) if key else None
     r = _find(rows, "b", variant, t) if variant else None
-    if key and all(key) and not r:  # said, not dropped: e.g. the int8 twin has no (b) variant
+    if key and all(key) and not r:  # said, not dropped
         engine, precision, graph = key
+        why = (
+            "no (a)-(c) variant runs it (its figures: (d) above)"
+            if variant is None  # e.g. the int8 twin on OpenVINO
+            else f"no {variant} row at {t} threads in this run"
+        )
         out.append(
             f"- the default path on (b) ({engine} {precision} {graph}, what msf-run picks "
-            f"here): not measured, no (a)-(c) variant runs it (its figures: (d) above)."
+            f"here): not measured, {why}."
         )
     if r:
         x, mean = r.get("x_vs_ort_fp32") or 0.0, r.get("mean_deg")

@@ -103,8 +103,8 @@ class CpuInfo:
     def avx512_on_halves(self) -> bool:
         """AMD Zen 4 (family 25 with AVX-512): its 512-bit instructions, bf16 and VNNI dot
         products included, run as two 256-bit halves, which moves which precision is fastest
-        (engines.dispatch). Zen 3 (also family 25) has no AVX-512; Zen 5 (family 26) runs
-        512-bit vectors at full width."""
+        (engines.dispatch). Zen 3 (also family 25) has no AVX-512; Zen 5 is family 26 (its
+        desktop and server parts run 512-bit vectors at full width)."""
         return self.vendor == "AuthenticAMD" and self.family == 25 and self.avx512f
 
     @property
@@ -177,7 +177,7 @@ def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
             model = value.strip()
         elif key == "vendor_id" and vendor == "unknown":
             vendor = value.strip()
-        elif key == "cpu family" and family is None and value.strip().isdigit():
+        elif key == "cpu family" and family is None and value.strip().isdecimal():
             family = int(value.strip())
         elif key == "flags" and not flags:
             flags = value.split()

@@ -101,7 +101,9 @@ def cpu_class(cpu: CpuInfo) -> str:
     """The CPU class speed measurements are kept for: amx; zen4 (AMD Zen 4: AVX-512 with bf16
     and VNNI on 256-bit halves, CpuInfo.avx512_on_halves); avx512-bf16 (other AVX-512 bf16
     without AMX: AMD Zen 5, Intel Cooper Lake); avx512; avx2; other (no AVX2: old x86 or ARM;
-    nothing measured there)."""
+    nothing measured there). A Zen 4 whose hypervisor hides bf16 or VNNI falls to the flag
+    classes here (int8_class still names it zen4 while it shows VNNI): the measured figures
+    are for the whole chip."""
     if cpu.has_amx:
         return "amx"
     if cpu.avx512_on_halves and cpu.avx512_bf16 and cpu.avx512_vnni:
@@ -180,9 +182,9 @@ OV_INT8_SPEEDUP: dict[str, float] = {
 # 5 and Intel Cooper Lake (avx512-bf16) were not measured with OpenVINO int8 (on Zen 5 ONNX
 # Runtime int8 ran 1.94x ONNX Runtime fp32 and bf16 3.31x, field notes).
 INT8_OVER_BF16: dict[str, float] = {
-    # AMD EPYC Zen 4, natively: msf-run end to end in fresh processes, medians of 5 interleaved
-    # rounds, the geometric mean of the 12-light cat (3.39 against 4.26 s) and the 8-light full
-    # ball (1.77 against 1.90 s); session 18, docs/benchmark.md
+    # AMD EPYC Zen 4 (2 cores, 2 threads), natively: msf-run end to end in fresh processes,
+    # medians of 5 interleaved rounds, the geometric mean of the 12-light cat (3.39 against
+    # 4.26 s) and the 8-light full ball (1.77 against 1.90 s); session 18, docs/benchmark.md
     "zen4": 1.16,
     # Intel Xeon with AMX: bf16 tiles beat int8 on these convolutions (workload (b), the 128 px
     # crop: OpenVINO int8 2.98x OpenVINO fp32 against bf16 4.7x, session 14)
