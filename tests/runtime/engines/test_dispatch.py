@@ -566,3 +566,15 @@ def test_the_bundled_int8_file_over_bf16_only_where_measured_faster(
     assert (twin.engine, twin.precision) == ("openvino", "int8") and "(zen4)" in twin.reason
     assert choose_engine(FP32_STAGED, ZEN4, BOTH).precision == "bf16"
     assert choose_engine(FP32_STAGED, ZEN5, BOTH).precision == "bf16"
+
+
+def test_within_claims_round_up() -> None:
+    """A "within" figure never understates the measurement (0.295 deg reads 0.30)."""
+    assert MEASURED[("openvino", "int8", True)].worst_mean == 0.295
+    assert "within 0.30 deg mean" in dispatch.bundled_precision(ZEN3, BOTH).reason
+    assert [dispatch._up(x) for x in (0.29, 0.2901, 0.0915, 0.5)] == [
+        "0.29",
+        "0.30",
+        "0.10",
+        "0.50",
+    ]
