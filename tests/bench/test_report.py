@@ -251,14 +251,14 @@ def test_lights_target_depends_on_native_bf16_and_marks_extrapolation(tmp_path):
 
 
 def test_a_default_path_without_a_b_variant_is_said_not_measured(tmp_path):
-    """Where msf-run's default (the int8 twin on OpenVINO) has no (a)-(c) variant, the (b)
+    """Where msf-run's default (e.g. OpenVINO fp32 staged) has no (a)-(c) variant, the (b)
     target line says so instead of vanishing; a path with a variant is judged as before."""
     result = _lights_result(bf16=True, measured=True)
-    result["e2e"][0].update(engine="openvino", precision="int8", graph="staged")
+    result["e2e"][0].update(engine="openvino", precision="fp32", graph="staged")
     write_report(result, tmp_path)
     md = (tmp_path / "REPORT.md").read_text()
     assert (
-        "the default path on (b) (openvino int8 staged, what msf-run picks here): not "
+        "the default path on (b) (openvino fp32 staged, what msf-run picks here): not "
         "measured, no (a)-(c) variant runs it" in md
     )
     result["e2e"][0].update(precision="bf16")  # a path with a variant, not run at 2 threads
@@ -279,3 +279,14 @@ def test_the_whole_image_row_is_never_scaled_to_other_sizes():
     rows = [_row("d", "per-light", 2, 30.0, 8, 5000)]
     assert per_light_estimate(rows, 8, 5000, 2) == (30.0, True)
     assert per_light_estimate(rows, 32, 16384, 2) is None  # crops: no (a)-(c) run to scale
+
+
+def test_the_int8_default_path_has_its_own_variant() -> None:
+    """msf-run's default where the int8 twin is (OpenVINO int8, staged) is timed on (a)-(c)
+    as ov-int8-staged, on the staged int8 export (which needs the calibration stacks)."""
+    from msfnet.bench.cli import INT8_MODEL_VARIANTS, MODEL_OF_VARIANT
+    from msfnet.bench.report import PATH_VARIANT
+
+    assert PATH_VARIANT[("openvino", "int8", "staged")] == "ov-int8-staged"
+    assert MODEL_OF_VARIANT["ov-int8-staged"] == "int8_staged"
+    assert set(INT8_MODEL_VARIANTS) == {"ort-int8", "ov-int8-staged"}

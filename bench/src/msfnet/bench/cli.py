@@ -81,7 +81,10 @@ MODEL_OF_VARIANT = {
     "ort-int8": "int8",
     "ort-fp32-staged": "fp32_staged",
     "ov-bf16-staged": "fp32_staged",
+    "ov-int8-staged": "int8_staged",
 }
+# variants that need the int8 exports (and so the calibration stacks)
+INT8_MODEL_VARIANTS = tuple(v for v, m in MODEL_OF_VARIANT.items() if m.startswith("int8"))
 
 
 def thread_counts(text: str) -> list[int]:
@@ -93,7 +96,7 @@ def thread_counts(text: str) -> list[int]:
 def build_parser() -> argparse.ArgumentParser:
     p = make_parser(
         PROG,
-        "Benchmark MSF-Net on this CPU: ONNX Runtime fp32 / int8, OpenVINO bf16 "
+        "Benchmark MSF-Net on this CPU: ONNX Runtime fp32 / int8, OpenVINO bf16 / int8 "
         "(if installed), PyTorch eager and the published per-light loop, on workloads (a) 16 "
         "lights 64x64, (b) 32 lights 128x128, (c) 96 lights 128x128 and (d) a full stack "
         "through msf-run. Reports median/p90 latency, peak RSS, GFLOP/s, fraction of the "
@@ -387,7 +390,7 @@ def load_inputs(args: argparse.Namespace, plan: Plan) -> Inputs:
         wl.key: make_input(args.stack, wl) for wl in (QUICK_WORKLOADS if args.quick else WORKLOADS)
     }
     calib = None
-    if "ort-int8" in plan.variants:
+    if any(v in INT8_MODEL_VARIANTS for v in plan.variants):
         from msfnet.export.quantize import load_calibration_stacks
 
         calib = load_calibration_stacks(args.calib or [args.stack])

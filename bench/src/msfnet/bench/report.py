@@ -226,7 +226,7 @@ def targets(result: dict) -> list[str]:
         engine, precision, graph = key
         why = (
             "no (a)-(c) variant runs it (its figures: (d) above)"
-            if variant is None  # e.g. the int8 twin on OpenVINO
+            if variant is None  # e.g. OpenVINO fp32 staged
             else f"no {variant} row at {t} threads in this run"
         )
         out.append(

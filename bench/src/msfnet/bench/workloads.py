@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msfnet.runtime.engines.openvino import INT8_CHUNK
 from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK
 from msfnet.runtime.infer.flops import inference_flops
 from msfnet.runtime.infer.normalise import network_input
@@ -56,6 +57,10 @@ VARIANTS = {
     "ov-bf16-staged": (
         f"OpenVINO CPU, staged fp32 model in bf16, four sub-models, {DEFAULT_CHUNK} lights a call"
     ),
+    "ov-int8-staged": (
+        f"OpenVINO CPU, staged int8 model (msf-export --variant staged-int8, as the bundled "
+        f"twin), {INT8_CHUNK} lights a call: msf-run's default where the twin is"
+    ),
     "torch-fp32": "PyTorch eager fp32, lights folded into the batch",
     "per-light": "PyTorch per-light loop (published style: recomputes stages)",
 }
@@ -66,6 +71,7 @@ VARIANT_PEAK = {
     "ort-int8": ("onnxruntime", "int8"),
     "ov-bf16": ("openvino", "bf16"),
     "ov-bf16-staged": ("openvino", "bf16"),
+    "ov-int8-staged": ("openvino", "int8"),
     "torch-fp32": ("torch", "fp32"),
     "per-light": ("torch", "fp32"),
 }
@@ -76,6 +82,7 @@ ENGINE_OF_VARIANT = {
     "ort-int8": ("onnxruntime", "int8"),
     "ov-bf16": ("openvino", "bf16"),
     "ov-bf16-staged": ("openvino", "bf16"),
+    "ov-int8-staged": ("openvino", "int8"),
 }
 OPENVINO_VARIANTS = tuple(v for v, (e, _) in ENGINE_OF_VARIANT.items() if e == "openvino")
 BF16_VARIANTS = tuple(v for v, (_, p) in ENGINE_OF_VARIANT.items() if p == "bf16")
