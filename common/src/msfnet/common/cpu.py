@@ -151,6 +151,11 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _is_family(value: object) -> bool:
+    """A usable x86 family number: an int (JSON's true / false are ints to Python: not one)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 def _from_py_cpuinfo() -> CpuInfo:
     import cpuinfo
 
@@ -162,7 +167,7 @@ def _from_py_cpuinfo() -> CpuInfo:
         vendor=data.get("vendor_id_raw") or "unknown",
         cores=usable_cores(),
         source="py-cpuinfo",
-        family=family if isinstance(family, int) and not isinstance(family, bool) else None,
+        family=family if _is_family(family) else None,
     )
 
 
@@ -246,7 +251,7 @@ def _read_cache(path: Path) -> CpuInfo | None:
         and all(isinstance(f, str) for f in flags)
         and isinstance(model, str)
         and isinstance(vendor, str)
-        and (family is None or (isinstance(family, int) and not isinstance(family, bool)))
+        and (family is None or _is_family(family))
     ):
         return None
     return CpuInfo.from_flags(
