@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
@@ -86,7 +87,16 @@ def test_stopping_a_stream_early_stops_its_reader(l2: Model) -> None:
     first = next(stream)
     stream.close()  # what a `break` out of a for loop does
     assert first.name == "p0" and len(pulled) <= 2
-    assert not [t for t in threading.enumerate() if t.name.startswith("msf-decode")]
+    _reader_ends()
+    # the one taken ahead is handed back, not dropped
+    assert [s.name for s in stream.unprocessed] == ["p1"]
+
+
+def _reader_ends(timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while [t for t in threading.enumerate() if t.name.startswith("msf-decode")]:
+        assert time.monotonic() < deadline, "the reader thread did not end"
+        time.sleep(0.01)
 
 
 def test_a_bad_stack_in_a_stream_raises_at_its_turn(l2: Model, tmp_path: Path) -> None:
@@ -181,3 +191,78 @@ def test_a_figure_without_matplotlib_says_what_to_install(monkeypatch) -> None:
     assert "\n" not in str(exc.value) and "msfnet[pictures]" in str(exc.value)
     with pytest.raises(InputError, match="expected one of normals"):
         result.plot("nothing")
+
+
+def test_leaving_a_capture_loop_hands_back_the_part_taken_ahead(l2: Model) -> None:
+    """The prefetching thread takes the next part while the current one runs: a `break`
+    must not drop a photographed part unseen (stop() returns it; a stream dropped unclosed
+    warns)."""
+
+    def camera() -> Iterator[Stack]:
+        for i in range(3):
+            yield sphere_stack(n=5, h=20, w=22, seed=i, name=f"part{i}")
+
+    stream = l2.stream(camera())
+    for r in stream:
+        assert r.name == "part0"
+        break
+    left = stream.stop()
+    assert [s.name for s in left] == ["part1"] and isinstance(left[0], Stack)
+    with pytest.warns(RuntimeWarning, match=r"1 stack\(s\) taken from the source.*part1"):
+        for _r in l2.stream(camera()):
+            break
+        _reader_ends()  # the part may land after the loop: it warns then
+
+
+def test_leaving_a_stream_does_not_wait_for_a_camera_that_has_not_fired(l2: Model) -> None:
+    """break while the capture loop waits for its trigger: back at once, not at the next
+    part; a part that arrives later is kept in unprocessed, not decoded and dropped."""
+    import queue
+
+    triggers: queue.Queue[Stack] = queue.Queue()
+    triggers.put(sphere_stack(n=5, h=20, w=22, seed=0, name="first"))
+
+    def camera() -> Iterator[Stack]:
+        while True:
+            yield triggers.get()
+
+    stream = l2.stream(camera())
+    assert next(stream).name == "first"
+    start = time.monotonic()
+    assert stream.stop(timeout=0.1) == []  # the pull is still waiting on the camera
+    assert time.monotonic() - start < 2.0
+    triggers.put(sphere_stack(n=5, h=20, w=22, seed=1, name="late"))
+    _reader_ends()
+    assert [s.name for s in stream.unprocessed] == ["late"]
+
+
+def test_a_stack_whose_run_fails_is_handed_back(l2: Model, monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = {"n": 0}
+    real = l2._run_decoded
+
+    def flaky(decoded, load):  # type: ignore[no-untyped-def]
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt  # Ctrl-C during the second part's inference
+        return real(decoded, load)
+
+    monkeypatch.setattr(l2, "_run_decoded", flaky)
+    parts = [sphere_stack(n=5, h=20, w=22, seed=i, name=f"p{i}") for i in range(4)]
+    stream = l2.stream(iter(parts))
+    assert next(stream).name == "p0"
+    with pytest.raises(KeyboardInterrupt):
+        next(stream)
+    # the interrupted one first, then the one decoded ahead of it
+    assert [s.name for s in stream.stop()] == ["p1", "p2"]
+
+
+def test_skipping_bad_stacks_goes_on_and_says_which(l2: Model, tmp_path: Path) -> None:
+    good = _folder_of_stacks(tmp_path, 2)
+    stream = l2.stream([good[0], tmp_path / "missing", good[1]], on_error="skip")
+    with pytest.warns(RuntimeWarning, match="missing.*skipped"):
+        names = [r.name for r in stream]
+    assert names == ["s0", "s1"]
+    assert [s.source.name for s in stream.skipped] == ["missing"]
+    assert "not found" in str(stream.skipped[0].error)
+    with pytest.raises(InputError, match="on_error"):
+        l2.stream(good, on_error="ignore")

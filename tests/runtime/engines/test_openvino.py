@@ -340,3 +340,39 @@ def test_int8_models_run_fewer_lights_a_call_with_the_same_normals() -> None:
     fp32 = ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
     assert twin.chunk == ovmod.INT8_CHUNK < DEFAULT_CHUNK == fp32.chunk
     np.testing.assert_allclose(_run(twin), _run(wide), atol=1e-4)  # batch sizes may round apart
+
+
+def test_one_engine_shared_by_threads_gives_each_call_its_own_normals() -> None:
+    """A station may run one loaded Model from a thread pool: OpenVINO's infer requests (and
+    the output tensors the staged loop points at its buffer) belong to one call at a time,
+    so concurrent calls queue. Before the engine's lock two threads got each other's
+    features: silently wrong normals (16 deg MAE instead of 1.9) or a broadcast error."""
+    import threading
+
+    engine = ovmod.open_openvino(default_model_path("int8"), threads=1)
+    rng = np.random.default_rng(5)
+    inputs = []
+    for size, n in ((24, 6), (32, 4)):  # different shapes: crossed buffers cannot go unseen
+        images = rng.random((1, n, 3, size, size), dtype=np.float32) * 0.3
+        lights = rng.normal(size=(1, n, 3)).astype(np.float32)
+        lights[..., 2] = np.abs(lights[..., 2]) + 1
+        lights /= np.linalg.norm(lights, axis=-1, keepdims=True)
+        inputs.append((images, lights))
+    serial = [engine.run(*args) for args in inputs]
+    errors: list[BaseException] = []
+    diffs: list[float] = []
+
+    def work(k: int) -> None:
+        try:
+            for _ in range(8):
+                diffs.append(float(np.abs(engine.run(*inputs[k]) - serial[k]).max()))
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in (0, 1)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert len(diffs) == 16 and max(diffs) == 0.0, max(diffs)

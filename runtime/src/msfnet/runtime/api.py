@@ -29,7 +29,8 @@ import json
 import math
 import os
 import re
-from collections.abc import Callable, Iterable, Iterator
+import warnings
+from collections.abc import Callable, Generator, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -58,9 +59,16 @@ from msfnet.runtime.infer.tta import TTAEstimator
 from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
 from msfnet.runtime.results.profile import BatchStats, Profile, StageTimer
-from msfnet.runtime.sources import Decoded, decode_ahead, record_decode, stream_items
+from msfnet.runtime.sources import (
+    Decoded,
+    Leftovers,
+    decode_ahead,
+    record_decode,
+    stream_items,
+)
 from msfnet.runtime.stack import LoadOptions, Stack, prepare_stack
 from msfnet.runtime.stack import load_stack as read_stack
+from msfnet.runtime.stream import Skipped, Stream, given_source
 
 WEIGHTS = Path(__file__).resolve().parent / "weights"
 
@@ -476,26 +484,52 @@ class Model:
         load: LoadOptions | None = None,
         *,
         prefetch: bool = True,
-    ) -> Iterator[Result]:
-        """Run many stacks, yielding one :class:`Result` at a time (a generator: nothing is
-        written, and at most two stacks are in memory).
+        on_error: str = "raise",
+    ) -> Stream:
+        """Run many stacks, yielding one :class:`Result` at a time (an iterator: nothing is
+        written; the stream holds at most two stacks, the current one and the next being
+        decoded, beside the Results you keep: ``r.without_images()`` keeps one small).
 
         ``source``: a folder of stacks (sub-folders, an objects.txt, or sub-folders sharing
         one light file, as msf-run reads it), a single stack path, a Stack, or any iterable
         of paths and Stacks: a list, or a capture loop that yields each new stack. With
         ``prefetch`` the next stack is read and decoded in a background thread while the
         current one runs (so a generator source is advanced from that thread, one item at a
-        time); ``prefetch=False`` does everything in the calling thread. ``load`` applies to
-        every stack, as in ``model(path, load)``. A stack that cannot be read raises
-        InputError at its turn; results already yielded stay valid.
+        time, and a capture overlaps the previous part's inference); ``prefetch=False`` does
+        everything in the calling thread. ``load`` applies to every stack, as in
+        ``model(path, load)``.
+
+        A stack that cannot be read raises InputError at its turn and ends the stream
+        (results already yielded stay valid); ``on_error="skip"`` warns, records it in
+        ``stream.skipped`` and goes on, as msf-run's batches do. Stopping early (``break``,
+        Ctrl-C, an error) never drops a stack taken from the source: ``stream.stop()``
+        returns those not run (:class:`~msfnet.runtime.stream.Stream`).
         """
         with api_words():
+            if on_error not in ("raise", "skip"):
+                raise InputError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
             opts = self._loading(load if load is not None else LoadOptions())
             items, total = stream_items(source)
-            for decoded in decode_ahead(items, opts, prefetch=prefetch, total=total):
-                if decoded.error is not None:
-                    raise decoded.error
-                yield self._run_decoded(decoded, opts)
+
+        def results(taken: Leftovers, skipped: list[Skipped]) -> Generator[Result, None, None]:
+            with api_words():
+                for decoded in decode_ahead(
+                    items, opts, prefetch=prefetch, total=total, unprocessed=taken
+                ):
+                    if decoded.error is not None:
+                        if on_error == "raise":
+                            raise decoded.error
+                        skipped.append(Skipped(given_source(decoded.item), decoded.error))
+                        warnings.warn(f"{decoded.error}; skipped", RuntimeWarning, stacklevel=3)
+                        continue
+                    try:
+                        result = self._run_decoded(decoded, opts)
+                    except BaseException:  # interrupted or failed: the caller gets it back
+                        taken.items.append(decoded.item)
+                        raise
+                    yield result
+
+        return Stream(results, warn_unprocessed=total is None)
 
     def _loading(self, load: LoadOptions) -> LoadOptions:
         """``load`` with an ROI grown by the network's halo where the network runs with edge
@@ -518,20 +552,24 @@ class Model:
         budget = self.tiling
         if decoded.beside:
             # the next stack is being decoded beside this one: leave its memory out of the
-            # tile budget (estimated by this stack's size; sequences are rarely mixed)
+            # tile budget (estimated by this stack's size; sequences are rarely mixed). A
+            # budget for this call only: the Model may be shared by other threads.
             spare = budget.max_memory_mb - decoded.stack.images.nbytes / 2**20
             # a floor above the runtime's own base (tiling.BASE_MEMORY_MB), never below it
-            self.tiling = replace(budget, max_memory_mb=max(spare, BASE_MEMORY_MB + 256.0))
-        try:
-            result = self._run(decoded.stack, None, 1, False)
-        finally:
-            self.tiling = budget
+            budget = replace(budget, max_memory_mb=max(spare, BASE_MEMORY_MB + 256.0))
+        result = self._run(decoded.stack, None, 1, False, budget)
         record_decode(result, decoded, load)
         return result
 
     def _run(
-        self, stack: Stack | str | Path, load: LoadOptions | None, repeat: int, progress: bool
+        self,
+        stack: Stack | str | Path,
+        load: LoadOptions | None,
+        repeat: int,
+        progress: bool,
+        tiling: TilingOptions | None = None,
     ) -> Result:
+        tiling = self.tiling if tiling is None else tiling
         if repeat < 1:
             raise InputError(f"--repeat must be at least 1, got {repeat}")
         if load is not None:
@@ -549,7 +587,7 @@ class Model:
                         )
                     else:
                         loaded = read_stack(stack, load)
-                est = self.estimator.estimate(loaded, self.tiling, timer, progress)
+                est = self.estimator.estimate(loaded, tiling, timer, progress)
                 normals = est.normals
                 if loaded.roi_box is not None:
                     # grown by a halo for context: every output is the requested ROI's
@@ -565,7 +603,7 @@ class Model:
                 if self.maps is not None:
                     with timer("maps"):
                         maps = stack_maps(
-                            loaded, normals, self.maps, max_memory_mb=self.tiling.max_memory_mb
+                            loaded, normals, self.maps, max_memory_mb=tiling.max_memory_mb
                         )
                         if maps.warning:  # a map that did not fit in --max-memory
                             loaded.warnings.append(maps.warning)

@@ -14,10 +14,10 @@ Shared by the Python API (``Model.stream``) and the batch runner (``msf-run A B 
 from __future__ import annotations
 
 import os
+import threading
 import time
-from collections.abc import Iterable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -183,11 +183,99 @@ def _decode(item: StackSource, load: LoadOptions) -> Stack:
 _END = object()
 
 
-def _pull(
+@dataclass
+class Leftovers:
+    """What a sequence stopped early had taken from its source and not handed out, in order.
+    ``pending``: set once a pull that was still inside the source's ``next()`` at the stop
+    is over (its item, if any, then in ``items``)."""
+
+    items: list[StackSource] = field(default_factory=list)
+    pending: threading.Event | None = None
+    # called with an item a pull took after the stop, when whoever stopped the sequence is
+    # gone (Stream's finaliser): the item must not vanish unseen
+    late: Callable[[StackSource], None] | None = None
+
+    def add(self, item: StackSource, *, late: bool = False) -> None:
+        self.items.append(item)
+        if late and self.late is not None:
+            self.late(item)
+
+    def settle(self, timeout: float) -> None:
+        """Give a pull still inside the source up to ``timeout`` s to finish."""
+        if self.pending is not None and timeout > 0:
+            self.pending.wait(timeout)
+
+
+class _Pull:
+    """The source's next item and its decoded stack, fetched in a daemon thread.
+
+    An error of the source itself (a capture loop failing) is re-raised by :meth:`result`; a
+    stack that cannot be read comes back as its InputError. ``waiting_on_source``: the thread
+    is inside the source's ``next()`` (a capture loop waiting for its trigger), which nothing
+    can interrupt: a stopped sequence does not wait for it (a daemon thread, never joined, so
+    neither leaving a loop nor ending the interpreter hangs on a camera that never fires).
+    An item it takes after the sequence stopped is not decoded but kept in ``leftovers``."""
+
+    def __init__(
+        self, source: Iterator[StackSource], load: LoadOptions, leftovers: Leftovers
+    ) -> None:
+        self._source, self._load, self._leftovers = source, load, leftovers
+        self._done = threading.Event()
+        self._outcome: tuple[object, Stack | None, InputError | None, float] | None = None
+        self._raised: BaseException | None = None
+        self.waiting_on_source = True
+        self.abandoned = False
+        self._thread = threading.Thread(target=self._work, name="msf-decode", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        try:
+            item = next(self._source, _END)
+            self.waiting_on_source = False
+            if self.abandoned:  # stopped meanwhile: keep what was taken, decode nothing
+                if item is not _END:
+                    self._leftovers.add(item, late=True)  # type: ignore[arg-type]
+                return
+            if item is _END:
+                self._outcome = (_END, None, None, 0.0)
+                return
+            start = time.perf_counter()
+            try:
+                stack = _decode(item, self._load)  # type: ignore[arg-type]
+            except InputError as exc:
+                self._outcome = (item, None, exc, time.perf_counter() - start)
+            else:
+                self._outcome = (item, stack, None, time.perf_counter() - start)
+        except BaseException as exc:  # re-raised in the caller's thread
+            self._raised = exc
+        finally:
+            self.waiting_on_source = False
+            self._done.set()
+
+    def result(self) -> tuple[object, Stack | None, InputError | None, float]:
+        self._done.wait()  # a lock wait: Ctrl-C interrupts it
+        if self._raised is not None:
+            raise self._raised
+        assert self._outcome is not None
+        return self._outcome
+
+    def stop(self) -> None:
+        """The sequence stopped: what this pull took goes to the leftovers. A pull decoding a
+        stack is waited for (seconds at most, and its memory is then freed); one waiting on
+        the source is left to finish in the background."""
+        self.abandoned = True
+        if self.waiting_on_source:
+            self._leftovers.pending = self._done
+        else:
+            self._done.wait()
+        if self._done.is_set() and self._outcome is not None and self._outcome[0] is not _END:
+            self._leftovers.add(self._outcome[0])  # type: ignore[arg-type]
+            self._outcome = None
+
+
+def _pull_here(
     source: Iterator[StackSource], load: LoadOptions
 ) -> tuple[object, Stack | None, InputError | None, float]:
-    """The source's next item and its decoded stack. An error of the source itself (a capture
-    loop failing) propagates; a stack that cannot be read comes back as its InputError."""
     item = next(source, _END)
     if item is _END:
         return _END, None, None, 0.0
@@ -205,6 +293,7 @@ def decode_ahead(
     *,
     prefetch: bool = True,
     total: int | None = None,
+    unprocessed: Leftovers | None = None,
 ) -> Iterator[Decoded]:
     """The decoded stacks of ``items``, in order, one at a time.
 
@@ -214,24 +303,29 @@ def decode_ahead(
     threads at once (a capture loop may be a generator). Without, everything happens in the
     caller's thread when the next stack is asked for. ``total``: the number of items when
     known (a list), so the last stack is known to have nothing decoding beside it.
+
+    ``unprocessed``: where a sequence stopped early (break, Ctrl-C, an error) puts the item
+    it had already taken from ``items`` and not handed out, so that a capture loop's part is
+    never lost unseen (a pull still waiting on the source adds its item when it comes).
     """
     source = iter(items)
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="msf-decode") if prefetch else None
+    leftovers = Leftovers() if unprocessed is None else unprocessed
+    upcoming = _Pull(source, load, leftovers) if prefetch else None
+    finished = False
     try:
-        upcoming = pool.submit(_pull, source, load) if pool is not None else None
         index = 0
         while True:
             waited = time.perf_counter()
             if upcoming is not None:
                 item, stack, error, decode_s = upcoming.result()
             else:
-                item, stack, error, decode_s = _pull(source, load)
+                item, stack, error, decode_s = _pull_here(source, load)
             wait_s = time.perf_counter() - waited
             if item is _END:
+                finished = True
                 return
             more = total is None or index + 1 < total
-            if pool is not None:
-                upcoming = pool.submit(_pull, source, load) if more else None
+            upcoming = _Pull(source, load, leftovers) if prefetch and more else None
             yield Decoded(
                 index,
                 item,  # type: ignore[arg-type]
@@ -239,17 +333,16 @@ def decode_ahead(
                 error,
                 decode_s,
                 wait_s,
-                prefetched=pool is not None and index > 0,
+                prefetched=prefetch and index > 0,
                 beside=upcoming is not None,
             )
-            if pool is not None and upcoming is None:
+            if prefetch and upcoming is None:
+                finished = True
                 return  # the known last one
             index += 1
     finally:
-        if pool is not None:
-            # the caller stopped early (break, Ctrl-C, an error): do not wait for a stack
-            # nobody will use longer than its decoding takes
-            pool.shutdown(wait=True, cancel_futures=True)
+        if upcoming is not None and not finished:
+            upcoming.stop()
 
 
 class _Timed(Protocol):
@@ -306,6 +399,7 @@ def stream_items(source: object) -> tuple[Iterable[StackSource], int | None]:
 __all__ = [
     "BatchItem",
     "Decoded",
+    "Leftovers",
     "StackSource",
     "decode_ahead",
     "expand_stacks",

@@ -25,6 +25,7 @@ import ctypes
 import os
 import stat
 import sys
+import threading
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -160,6 +161,10 @@ class OpenVinoEngine:
         ov: Any = None,
     ) -> None:
         self._ov = ov  # the openvino module (its Tensor wraps the loop's buffer)
+        # One call at a time: the infer requests below, and the output tensors _run_stage points
+        # at the caller's buffer, belong to one run; two threads sharing them returned silently
+        # wrong normals. ONNX Runtime's sessions are safe to share and need no lock.
+        self._lock = threading.Lock()
         # output name -> (infer request, names of the inputs it needs)
         self._requests = {
             out: (c.create_infer_request(), [i.get_any_name() for i in c.inputs])
@@ -226,13 +231,16 @@ class OpenVinoEngine:
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """Like ONNX Runtime's: every call stoppable by Ctrl-C, the result's shape checked."""
-        try:
-            if self.info.staged:
-                out = run_stages(self._run_stage, self._final, images, lights, self.lights_per_call)
-            else:
-                out = self._run_output("normals", {"images": images, "lights": lights})
-        finally:
-            self._release_arrays()
+        with self._lock:
+            try:
+                if self.info.staged:
+                    out = run_stages(
+                        self._run_stage, self._final, images, lights, self.lights_per_call
+                    )
+                else:
+                    out = self._run_output("normals", {"images": images, "lights": lights})
+            finally:
+                self._release_arrays()
         check_normals(self.info.path, images, out)
         return out
 
