@@ -286,3 +286,21 @@ def test_array_shape_refuses_a_huge_npy_header_from_its_length(tmp_path: Path) -
     with pytest.raises(InputError, match=r"damaged \.npy header \(a header of 190,000,000") as e:
         imageio.array_shape(path)
     assert "\n" not in str(e.value) and str(e.value).startswith(str(path))
+
+
+@pytest.mark.parametrize("name", ["003.png", "003.tif", "003.jpg", "003.tga"])
+def test_an_empty_image_file_is_bad_input_not_an_internal_error(tmp_path: Path, name: str) -> None:
+    """What a failed capture leaves: OpenCV 5 asserted on the empty buffer (cv2.error, exit 1
+    as an internal error)."""
+    path = tmp_path / name
+    path.write_bytes(b"")
+    with pytest.raises(InputError, match=r"empty file \(0 bytes\)"):
+        read_image(path)
+
+
+def test_an_unreadable_format_says_so_without_a_python_object(tmp_path: Path) -> None:
+    path = tmp_path / "x.tga"
+    path.write_bytes(b"not an image at all" * 5)
+    with pytest.raises(InputError) as caught:
+        read_image(path)
+    assert "BytesIO" not in str(caught.value) and "0x" not in str(caught.value)

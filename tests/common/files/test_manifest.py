@@ -56,3 +56,57 @@ def test_the_manifest_names_the_writer_and_a_command_replaces_only_its_own(tmp_p
     # folders from before the writer was recorded stay replaceable
     (run_out / MANIFEST).write_text(json.dumps({"files": ["a.txt"]}))
     check_output(run_out, folder=True, overwrite=True, command="msf-synth")
+
+
+def _write_tree(out: Path, writer: str, overwrite: bool = False) -> None:
+    with files.writing_as(writer), staged_folder(out, overwrite=overwrite) as tmp:
+        (tmp / "obj").mkdir()
+        (tmp / "obj" / "normals.png").write_text("x")
+        (tmp / "summary.json").write_text("{}")
+
+
+def test_a_users_file_inside_a_sub_folder_is_never_deleted(tmp_path: Path) -> None:
+    """The manifest listed the top level only: --overwrite deleted a user's notes put in
+    an msf-eval per-object folder or an msf-synth object folder."""
+    out = tmp_path / "ev"
+    _write_tree(out, "msf-eval")
+    assert json.loads((out / MANIFEST).read_text())["files"] == [
+        "obj",
+        "obj/normals.png",
+        "summary.json",
+    ]
+    _write_tree(out, "msf-eval", overwrite=True)  # its own tree: replaced
+    (out / "obj" / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match=r"did not write \(e.g. obj/notes.txt\)"):
+        _write_tree(out, "msf-eval", overwrite=True)
+    assert (out / "obj" / "notes.txt").read_text() == "mine"
+
+
+def test_a_top_level_manifest_cannot_vouch_for_sub_folders(tmp_path: Path) -> None:
+    """A folder from before the tree listing: its sub-folders' contents are unknown."""
+    out = tmp_path / "old"
+    (out / "obj").mkdir(parents=True)
+    (out / "obj" / "anything.txt").write_text("?")
+    (out / "a.txt").write_text("a")
+    (out / MANIFEST).write_text(json.dumps({"files": ["a.txt", "obj"], "command": "msf-eval"}))
+    assert files.foreign_files(out) == ["obj/"]
+    (out / "obj" / "anything.txt").unlink()
+    assert files.foreign_files(out) == []  # an empty listed folder holds nothing to lose
+
+
+def test_commands_replace_only_folders_of_their_own_kind(tmp_path: Path) -> None:
+    """msf-run, msf-eval and msf-inspect replaced any msfnet folder: a rendered dataset, a
+    whole msf-run result under a mistyped msf-inspect -o. msf-run and the Python API write
+    the same per-stack result and may replace each other's."""
+    data = tmp_path / "dataset"
+    _write_tree(data, "msf-synth")
+    for other in ("msf-run", "msf-inspect", "msf-eval", files.API_WRITER):
+        with files.writing_as(other), pytest.raises(InputError, match="msf-synth's output"):
+            check_output(data, folder=True, overwrite=True)
+        with pytest.raises(InputError, match="msf-synth's output"):
+            _write_tree(data, other, overwrite=True)
+    assert (data / "obj" / "normals.png").is_file()
+    run = tmp_path / "run"
+    _write_tree(run, "msf-run")
+    _write_tree(run, files.API_WRITER, overwrite=True)
+    _write_tree(run, "msf-run", overwrite=True)

@@ -19,7 +19,7 @@ from msfnet.common.files import (
     staged_folder,
     write_atomic,
 )
-from msfnet.common.files.staging import new_staging
+from msfnet.common.files.staging import new_staging, pid_space
 
 # ---------------------------------------------------------------------------- stale staging
 
@@ -59,7 +59,7 @@ def test_scratch_folder_goes_the_output_stays(tmp_path: Path) -> None:
     target = tmp_path / "new" / "m.onnx"
     with scratch_folder(target) as scratch:
         assert scratch.is_dir() and scratch.parent == target.parent
-        assert scratch.name.startswith(f".m.onnx{STAGING_TAG}{os.getpid()}-")
+        assert scratch.name.startswith(f".m.onnx{STAGING_TAG}{os.getpid()}@{pid_space()}-")
         (scratch / "sub").mkdir()
         (scratch / "sub" / "big.bin").write_bytes(b"x" * 100)
         write_atomic(target, lambda t: t.write_bytes(b"model"))
@@ -142,9 +142,28 @@ def test_a_long_legal_output_name_is_written(name: str, tmp_path: Path) -> None:
     a stale staging file of a killed writer of that name is still found."""
     target = tmp_path / name
     stale = new_staging(target, folder=False)
-    stale.rename(stale.with_name(stale.name.replace(f"{os.getpid()}-", "999999999-", 1)))
+    stale.rename(stale.with_name(stale.name.replace(f"{os.getpid()}@", "999999999@", 1)))
     files.write_atomic(target, lambda p: p.write_text("ok"))
     with files.staged_folder(tmp_path / ("d" * 250)) as folder:
         (folder / "f.txt").write_text("ok")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, "d" * 250])
     assert target.read_text() == "ok"
+
+
+def test_staging_of_another_pid_space_is_never_swept(tmp_path: Path) -> None:
+    """A pid means something only in its own namespace: on a shared file system a run swept
+    another container's live staging (its pid not running here) and that run failed with
+    "No such file or directory". Only this pid space's dead writers' staging goes, and
+    staging named before pid spaces counts as this one's."""
+    target = tmp_path / "out"
+    prefix = f".out{STAGING_TAG}"
+    other = tmp_path / f"{prefix}999999999@00000000-abc"
+    other.mkdir()
+    ours = tmp_path / f"{prefix}999999999@{pid_space()}-abc"
+    ours.mkdir()
+    legacy = tmp_path / f"{prefix}999999999-abc"
+    legacy.mkdir()
+    live = tmp_path / f"{prefix}{os.getpid()}@{pid_space()}-abc"
+    live.mkdir()
+    remove_stale_staging(target)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other.name, live.name])

@@ -188,3 +188,26 @@ def test_a_bad_model_is_reported_before_a_bad_stack(tmp_path: Path, capsys) -> N
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"msf-run: error: {bad_stack}:")
     assert not out.exists()
+
+
+def test_a_batchs_results_never_go_inside_the_batch_folder(tmp_path: Path, capsys) -> None:
+    """Each stack's folder was an input, the batch folder named on the command line was not:
+    -o inside it (or a default ./msf-out there) wrote the results into the dataset."""
+    import os
+
+    batch = tmp_path / "batch"
+    for i in range(2):
+        stack = sphere_stack(n=6, h=20, w=24, seed=i, name=f"s{i}")
+        from msfnet.runtime.stack import save_stack
+
+        save_stack(stack, batch / f"s{i}")
+    code = main([str(batch), "--method", "l2", "--no-maps", "-q", "-o", str(batch / "results")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "inside the input folder" in err[0], err
+    here = os.getcwd()
+    try:
+        os.chdir(batch)
+        assert main([".", "--method", "l2", "--no-maps", "-q"]) == 2
+    finally:
+        os.chdir(here)
+    assert sorted(p.name for p in batch.iterdir()) == ["s0", "s1"]

@@ -202,6 +202,8 @@ def _checked_bytes(data: bytes, path: Path) -> bytes:
     their end marker (truncated copies) and PNG files whose chunks fail their CRC (damaged
     bytes) are refused: libpng would print its own line on stderr before failing, or decode
     damaged rows."""
+    if not data:  # what a failed capture leaves (disk full, camera timeout)
+        raise InputError("empty file (0 bytes)", path)
     head, tail = data[:8], data[-64:]
     if head.startswith(b"\x89PNG") and _PNG_END not in tail:
         raise InputError("truncated PNG (the file stops before its end marker)", path)
@@ -262,6 +264,13 @@ def _captured_stderr() -> Iterator[list[str]]:
 
 
 def _decode_with_opencv(data: bytes, path: Path) -> np.ndarray | None:
+    try:
+        return _opencv_decode(data, path)
+    except cv2.error as exc:  # OpenCV asserts on some inputs rather than returning None
+        raise InputError(f"cannot decode image (OpenCV: {first_line(exc)})", path) from exc
+
+
+def _opencv_decode(data: bytes, path: Path) -> np.ndarray | None:
     buf = np.frombuffer(data, np.uint8)
     if data.startswith(b"\xff\xd8"):
         with _captured_stderr() as said:
@@ -293,6 +302,8 @@ def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
                 im = im.convert("RGB")
             return np.asarray(im)
     except Exception as exc:  # Pillow raises many types for corrupt files
+        if type(exc).__name__ == "UnidentifiedImageError":  # its text names a BytesIO object
+            raise InputError("not an image in a format this tool reads", path) from exc
         raise InputError(
             f"cannot decode image ({type(exc).__name__}: {first_line(exc)})", path
         ) from exc

@@ -23,7 +23,13 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files.locations import check_replaceable, resolved
-from msfnet.common.files.manifest import MANIFEST, current_writer, manifest_text, refuse_foreign
+from msfnet.common.files.manifest import (
+    MANIFEST,
+    current_writer,
+    manifest_text,
+    refuse_foreign,
+    tree_names,
+)
 from msfnet.common.files.staging import (
     STAGING_TAG,
     make_parents,
@@ -254,8 +260,7 @@ def staged_folder(
         tmp.chmod(0o777 & ~umask())
         with _errors_name([(tmp, outdir)], None):
             yield tmp
-        names = sorted(p.name for p in tmp.iterdir())
-        (tmp / MANIFEST).write_text(manifest_text(names, current_writer(command)))
+        (tmp / MANIFEST).write_text(manifest_text(tree_names(tmp), current_writer(command)))
         (tmp / MANIFEST).chmod(0o666 & ~umask())
         _durable([tmp], outdir)
         with signals_deferred(), _commit_lock([outdir.parent]):
@@ -288,7 +293,7 @@ def _commit(tmp: Path, outdir: Path, overwrite: bool, command: str | None = None
                     "it?); pass --overwrite to replace it",
                     outdir,
                 )
-            refuse_foreign(outdir, command)
+            refuse_foreign(outdir, current_writer(command))
         old = new_staging(outdir, folder=True)
         os.replace(outdir, old / "old")
     try:

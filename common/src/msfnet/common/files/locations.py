@@ -14,7 +14,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from msfnet.common.errors import InputError
-from msfnet.common.files.manifest import refuse_foreign
+from msfnet.common.files.manifest import current_writer, refuse_foreign
 
 
 def resolved(path: str | Path) -> Path:
@@ -126,8 +126,9 @@ def check_output(
 ) -> Path:
     """Refuse, before any work, an output that would clash with an input or with existing data.
 
-    ``folder``: the output is a folder of files (replaced only if msfnet wrote it; with
-    ``command``, only if that command wrote it, see :func:`refuse_foreign`).
+    ``folder``: the output is a folder of files (replaced only if msfnet wrote all of it, and
+    only by the command that wrote it: ``command``, else the one of ``writing_as``; see
+    :func:`refuse_foreign`).
     Returns the target as given. Raises InputError naming the path.
     """
     target = Path(target)
@@ -147,7 +148,7 @@ def check_output(
                         "output folder exists and is not empty; pass --overwrite to replace it",
                         target,
                     )
-                refuse_foreign(target, command)
+                refuse_foreign(target, current_writer(command))
         elif not overwrite:
             raise InputError("output exists; pass --overwrite to replace it", target)
         # replacing means renaming in the parent folder (and, for a folder, reading it)

@@ -7,9 +7,11 @@ user's is ever deleted), and a command that names itself only when that command 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
+from dataclasses import dataclass
 from pathlib import Path
 
 from msfnet.common.errors import InputError
@@ -37,13 +39,36 @@ def current_writer(command: str | None = None) -> str:
     return command or _command.get() or API_WRITER
 
 
+# Writers of the same per-stack result (msf-run saves through Result.save): each may replace
+# the other's folder. Every other command replaces only its own.
+SAME_OUTPUT = frozenset({"msf-run", API_WRITER})
+
+
 def manifest_text(names: Sequence[str], writer: str) -> str:
-    return json.dumps({"files": list(names), "command": writer}) + "\n"
+    """``names``: every entry of the folder, sub-folders' contents included, as relative POSIX
+    paths (``"tree": true``: a file a user puts inside a sub-folder is then seen as foreign)."""
+    return json.dumps({"files": list(names), "command": writer, "tree": True}) + "\n"
 
 
-def read_manifest(folder: Path) -> tuple[list[str], str | None] | None:
-    """An output folder's manifest ``{"files": [names], "command": writer}`` as (files,
-    writer); None when it is missing or damaged (not JSON, "files" not a list of names)."""
+def tree_names(folder: Path) -> list[str]:
+    """Every entry below ``folder`` (links not followed), as sorted relative POSIX paths."""
+    names = []
+    for root, dirs, files in os.walk(folder):
+        base = Path(root).relative_to(folder)
+        names += [(base / n).as_posix() for n in dirs + files]
+    return sorted(names)
+
+
+@dataclass(frozen=True)
+class Manifest:
+    files: list[str]
+    writer: str | None  # absent in folders written before it was recorded
+    tree: bool  # lists sub-folders' contents too (older manifests: the top level only)
+
+
+def read_manifest(folder: Path) -> Manifest | None:
+    """An output folder's manifest; None when it is missing or damaged (not JSON, "files"
+    not a list of names)."""
     try:
         data = json.loads((folder / MANIFEST).read_text())
     except (OSError, ValueError, RecursionError):  # missing, unreadable, not UTF-8, not JSON
@@ -53,22 +78,31 @@ def read_manifest(folder: Path) -> tuple[list[str], str | None] | None:
     files_ = data.get("files")
     if not isinstance(files_, list) or not all(isinstance(f, str) for f in files_):
         return None
-    writer = data.get("command")  # absent in folders written before it was recorded
-    return files_, writer if isinstance(writer, str) else None
+    writer = data.get("command")
+    return Manifest(files_, writer if isinstance(writer, str) else None, data.get("tree") is True)
 
 
 def foreign_files(folder: Path) -> list[str]:
     """Entries of an existing output folder that its msfnet manifest does not list (all of
-    them when the manifest is missing or damaged)."""
+    them when the manifest is missing or damaged), sub-folders included. A manifest of the
+    top level only (written before sub-folders were listed) cannot vouch for what is inside
+    its sub-folders: they count as foreign."""
     manifest = read_manifest(folder)
-    listed = set(manifest[0]) if manifest else set()
-    return sorted(p.name for p in folder.iterdir() if p.name != MANIFEST and p.name not in listed)
+    listed = set(manifest.files) if manifest else set()
+    if manifest is not None and manifest.tree:
+        return [n for n in tree_names(folder) if n != MANIFEST and n not in listed]
+    return sorted(
+        p.name + ("/" if p.is_dir() and not p.is_symlink() else "")
+        for p in folder.iterdir()
+        if p.name != MANIFEST
+        and (p.name not in listed or (p.is_dir() and not p.is_symlink() and any(p.iterdir())))
+    )
 
 
 def refuse_foreign(folder: Path, command: str | None = None) -> None:
-    """--overwrite replaces a folder only if msfnet wrote everything in it, and with
-    ``command`` only if that command did (folders from before the manifest named its writer
-    stay replaceable)."""
+    """--overwrite replaces a folder only if msfnet wrote everything in it, sub-folders
+    included, and with ``command`` only if that command (or one writing the same output,
+    SAME_OUTPUT) did (folders from before the manifest named its writer stay replaceable)."""
     manifest = read_manifest(folder)
     if manifest is None and (folder / MANIFEST).exists():
         raise InputError(
@@ -83,22 +117,28 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
             f"{foreign[0]}); refusing to delete them",
             folder,
         )
-    writer = manifest[1] if manifest else None
-    if command is not None and writer is not None and writer != command:
-        raise InputError(
-            f"--overwrite: the folder is {writer}'s output, not {command}'s; "
-            "refusing to replace it (choose another folder)",
-            folder,
-        )
+    writer = manifest.writer if manifest else None
+    if command is None or writer is None or writer == command:
+        return
+    if writer in SAME_OUTPUT and command in SAME_OUTPUT:
+        return
+    raise InputError(
+        f"--overwrite: the folder is {writer}'s output, not {command}'s; "
+        "refusing to replace it (choose another folder)",
+        folder,
+    )
 
 
 __all__ = [
     "API_WRITER",
     "MANIFEST",
+    "SAME_OUTPUT",
+    "Manifest",
     "current_writer",
     "foreign_files",
     "manifest_text",
     "read_manifest",
     "refuse_foreign",
+    "tree_names",
     "writing_as",
 ]

@@ -1,15 +1,21 @@
 """Staging names beside an output, and the sweep of staging a killed process left behind.
 
-An output is written as ``.<name>.msf-partial-<pid>-<random>`` beside its final place (same
-file system, so the publishing rename is atomic); the pid lets the next run writing the same
-place tell staging of a dead process (``kill -9``) from a live one's and remove only the former.
+An output is written as ``.<name>.msf-partial-<pid>@<host>-<random>`` beside its final place
+(same file system, so the publishing rename is atomic); the pid lets the next run writing the
+same place tell staging of a dead process (``kill -9``) from a live one's and remove only the
+former. A pid means something only where it was taken: ``<host>`` names the machine, boot and
+pid namespace, and staging of another (a container, another host on a shared file system) is
+never touched: its writer may be alive.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import os
 import shutil
+import socket
 import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
@@ -52,8 +58,21 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+@functools.cache
+def pid_space() -> str:
+    """A short token for where this process's pid means something: host name, boot and pid
+    namespace (what a Linux system exposes of them; the host name elsewhere)."""
+    parts = [socket.gethostname()]
+    with contextlib.suppress(OSError):
+        parts.append(Path("/proc/sys/kernel/random/boot_id").read_text().strip())
+    with contextlib.suppress(OSError):
+        parts.append(str(os.stat("/proc/self/ns/pid").st_ino))
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:8]
+
+
 def remove_stale_staging(target: Path) -> None:
-    """Remove staging left beside ``target`` by processes that no longer run (kill -9)."""
+    """Remove staging left beside ``target`` by processes of this pid space that no longer run
+    (kill -9); staging named without a pid space (older versions) counts as this one's."""
     parent = target.parent
     if not parent.is_dir():
         return
@@ -61,7 +80,9 @@ def remove_stale_staging(target: Path) -> None:
     for entry in parent.iterdir():
         if not entry.name.startswith(prefix):
             continue
-        pid_text = entry.name[len(prefix) :].split("-", 1)[0]
+        pid_text, _, space = entry.name[len(prefix) :].split("-", 1)[0].partition("@")
+        if space and space != pid_space():
+            continue  # another machine's or container's: its writer may be running
         if pid_text.isdigit() and not _pid_alive(int(pid_text)):
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
@@ -89,7 +110,7 @@ def staging_prefix(target: Path) -> str:
 
 
 def staging_name(target: Path) -> str:
-    return f"{staging_prefix(target)}{os.getpid()}-"
+    return f"{staging_prefix(target)}{os.getpid()}@{pid_space()}-"
 
 
 def new_staging(target: Path, *, folder: bool) -> Path:

@@ -129,7 +129,12 @@ def _run(args: argparse.Namespace) -> int:
         min_area_px=args.min_area,
         polarity=args.polarity,
     )
-    inputs = tuple(p for p in (args.input, args.reference) if p is not None)
+    from msfnet.runtime.cli.flags import load_options, model_options
+
+    # every file read is an input: the part, the reference, and the files the load and model
+    # flags name (an --overwrite over a folder holding the --mask read deleted it)
+    read = [args.input, args.reference, *load_options(args).inputs(), model_options(args).model]
+    inputs = tuple(p for p in read if p is not None)
     check_output(args.output, inputs, overwrite=args.overwrite, folder=True)
     part = _prepare(args.input, args)
     reference = None if args.reference is None else _prepare(args.reference, args)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from msfnet.common.cli import command_main, make_parser, positive_int
 from msfnet.common.errors import InputError
-from msfnet.common.files import check_output, json_text, numbered_folder
+from msfnet.common.files import check_not_input, check_output, json_text, numbered_folder
 from msfnet.runtime.api import Model, Result
 from msfnet.runtime.batch.ray_cluster import WORKER_MEMORY_MB
 from msfnet.runtime.batch.runner import (
@@ -356,7 +356,11 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
         )
     # Everything is checked, and the model opened, before anything is made: bad input leaves
     # no output, not even an empty folder (the stacks' folders and the summary create it).
-    inputs = [*load.inputs(), req.model.model]
+    # the folders named on the command line and a light file the stacks share are inputs
+    # too: a batch's results never go inside the batch folder
+    inputs = [*load.inputs(), req.model.model, *req.stacks]
+    inputs += [p for i in items for p in i.options(load).inputs() if p not in inputs]
+    check_not_input(root, inputs, folder=True)
     check_batch_root(root, [i.name for i in items], req.overwrite)
     for item in items:
         check_output(root / item.name, [*inputs, item.path], overwrite=req.overwrite, folder=True)
