@@ -191,3 +191,65 @@ def test_default_path_on_a_stack_finds_every_defect(plate, tmp_path: Path) -> No
         assert plate.defects[round(y), round(x)] > 0 or any(
             plate.defects[max(0, int(y) - 3) : int(y) + 4, max(0, int(x) - 3) : int(x) + 4].ravel()
         )
+
+
+def _edited_run(plate_run: Path, folder: Path) -> Path:
+    import shutil
+
+    shutil.copytree(plate_run, folder)
+    (folder / ".msfnet-output.json").unlink()
+    return folder
+
+
+@pytest.mark.parametrize(
+    "tiff, data, problem",
+    [
+        ("curvature.tif", np.zeros((10, 10), np.float32), "but local_shape.tif is"),
+        ("albedo.tif", np.zeros((5, 5, 3), np.float32), "but local_shape.tif is"),
+        ("albedo.tif", np.zeros((128, 192), np.float32), "H x W x 3"),
+        ("local_shape.tif", np.zeros((128, 192, 3), np.float32), "H x W map"),
+        ("local_shape.tif", np.zeros((128, 192), np.complex64), "real numbers"),
+    ],
+)
+def test_a_run_folder_with_maps_that_do_not_fit_is_bad_input(
+    plate_run: Path, tmp_path: Path, capsys, tiff: str, data: np.ndarray, problem: str
+) -> None:
+    """They crashed (exit 1: "defects found" to a PLC) or, complex, passed."""
+    import tifffile
+
+    run = _edited_run(plate_run, tmp_path / "run")
+    tifffile.imwrite(run / tiff, data)
+    out = tmp_path / "v"
+    assert _code([str(run), "--depth", "0.1", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and tiff in err[0] and problem in err[0], err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("size", ["true", "1e400", "-5", '"0.1"'])
+def test_a_pixel_size_that_is_no_length_is_bad_input(
+    plate_run: Path, tmp_path: Path, capsys, size: str
+) -> None:
+    """1e400 reached verdict.json as Infinity (not JSON); true read as 1 mm."""
+    import json
+
+    run = _edited_run(plate_run, tmp_path / "run")
+    info = json.loads((run / "maps.json").read_text())
+    info["registered"]["pixel_size_mm"] = "SIZE"
+    text = json.dumps(info).replace('"SIZE"', size)
+    (run / "maps.json").write_text(text)
+    assert _code([str(run), "--depth", "0.1", "-o", str(tmp_path / "v")]) == 2
+    assert "pixel_size_mm" in capsys.readouterr().err
+
+
+def test_a_failure_of_the_tool_never_reads_as_defects_found(
+    plate_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    from msfnet.runtime.cli import inspect as cli
+
+    def broken(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(cli, "find_defects", broken)
+    assert _code([str(plate_run), "--depth", "0.1", "-o", str(tmp_path / "v")]) == 3
+    assert "internal error" in capsys.readouterr().err

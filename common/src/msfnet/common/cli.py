@@ -378,7 +378,13 @@ _MEMORY_ADVICE = {
 }
 
 
+# A command whose exit code 1 means a result (msf-inspect: defects found) reports its own
+# failures with another code, so a PLC never reads a crash as a verdict.
+_FAILURE_EXIT = {"msf-inspect": 3}
+
+
 def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
+    failed = _FAILURE_EXIT.get(prog, 1)
 
     def fail(message: str, code: int) -> int:
         print(f"{prog}: {one_line(message)}", file=sys.stderr)
@@ -423,7 +429,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
     except MsfError as exc:
         if debug:
             raise
-        return fail(f"error: {first_line(exc, 500)}", 1)
+        return fail(f"error: {first_line(exc, 500)}", failed)
     except RecursionError as exc:  # e.g. absurdly nested JSON given as input
         if debug:
             raise
@@ -441,7 +447,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
         return fail(
             f"internal error: {type(exc).__name__}: {first_line(exc)} (run with "
             "--debug for the traceback; please report it)",
-            1,
+            failed,
         )
 
 

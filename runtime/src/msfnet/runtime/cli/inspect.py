@@ -6,7 +6,8 @@
     msf-inspect out/part17 --reference out/golden --depth 0.02 -o v/ # against a good part
 
 Exit code: 0 pass (no defect), 1 defects found, 2 bad input (one line on stderr, nothing
-written). The verdict (verdict.json) and the overlay picture (overlay.png, the input's size)
+written), 3 a failure of the tool itself (never read as a verdict; Ctrl-C 130, SIGTERM 143).
+The verdict (verdict.json) and the overlay picture (overlay.png, the input's size)
 are written together into the -o folder, or not at all.
 """
 
@@ -48,7 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
         PROG,
         "Find relief defects (scratches, dents, bumps) in a part's local shape and "
         "curvature; printed marks (albedo only) are not defects. Exit code: 0 pass, 1 "
-        "defects found, 2 bad input.",
+        "defects found, 2 bad input, 3 a failure of the tool itself.",
         examples=(
             "msf-inspect out/part17 --depth 0.02 -o verdicts/part17",
             "msf-inspect captures/part17 --pixel-size 0.05 --depth 0.02 -o verdicts/part17",

@@ -19,6 +19,7 @@ pixels), is subtracted first: only what differs from the good part counts.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -175,21 +176,43 @@ def read_run(folder: Path) -> InspectionInput:
         "curvature": str(reg.get("curvature", "1/px")),
     }
     size = reg.get("pixel_size_mm")
+    if size is not None and (
+        isinstance(size, bool)
+        or not isinstance(size, (int, float))
+        or not math.isfinite(size)
+        or size <= 0
+    ):
+        raise InputError(f"pixel_size_mm must be a positive number, got {size!r}", info_path)
+    shape = _read(local, 2)
     return InspectionInput(
-        local_shape=_read(local),
-        curvature=_read(curv) if curv.is_file() else None,
-        albedo=_read(alb) if alb.is_file() else None,
+        local_shape=shape,
+        curvature=_read(curv, 2, shape.shape) if curv.is_file() else None,
+        albedo=_read(alb, 3, shape.shape) if alb.is_file() else None,
         units=units,
-        pixel_size_mm=float(size) if isinstance(size, (int, float)) else None,
+        pixel_size_mm=None if size is None else float(size),
         source=str(folder),
     )
 
 
-def _read(path: Path) -> np.ndarray:
+def _read(path: Path, ndim: int, size: tuple[int, ...] | None = None) -> np.ndarray:
+    """A map of the run: real numbers, ``ndim`` dimensions (albedo: H x W x 3), and the local
+    shape's H x W; a TIFF edited or from another run is bad input, not a crash."""
     try:
-        return read_tiff(path)
+        data = read_tiff(path)
+    except InputError:
+        raise
     except Exception as exc:  # tifffile raises its own types for damaged files
         raise InputError(f"cannot read the TIFF ({type(exc).__name__}: {exc})", path) from exc
+    want = "H x W x 3" if ndim == 3 else "H x W"
+    if data.ndim != ndim or (ndim == 3 and data.shape[2] != 3):
+        raise InputError(f"expected a {want} map, found shape {data.shape}", path)
+    if size is not None and data.shape[:2] != size[:2]:
+        raise InputError(
+            f"{data.shape[1]}x{data.shape[0]} but local_shape.tif is {size[1]}x{size[0]}: "
+            "maps of different runs?",
+            path,
+        )
+    return data
 
 
 def align_shift(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float]:

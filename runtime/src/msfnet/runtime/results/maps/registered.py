@@ -29,6 +29,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from msfnet.common.errors import InputError
+
 DEFAULT_LOCAL_SIZE_PX = 12.0
 TREND_DEGREE = 2  # the local shape's trend: a quadric around each pixel (see local_trend)
 VIEW_PERCENTILE = 99.5  # a view's range: this percentile of |value| (one hot pixel does not set it)
@@ -146,10 +148,14 @@ def write_tiff(path: Path, data: np.ndarray, description: str = "") -> None:
 
 
 def read_tiff(path: Path) -> np.ndarray:
-    """A TIFF written by :func:`write_tiff` (or any float TIFF) as float32."""
+    """A TIFF written by :func:`write_tiff` (or any real-valued TIFF) as float32; complex
+    samples are refused (a cast would keep the real part without a word)."""
     import tifffile
 
-    return np.asarray(tifffile.imread(path), np.float32)
+    data = np.asarray(tifffile.imread(path))
+    if data.dtype.kind not in "fiub":
+        raise InputError(f"expected real numbers, found {data.dtype}", path)
+    return data.astype(np.float32, copy=False)
 
 
 def described_png(png: bytes, note: str) -> bytes:
