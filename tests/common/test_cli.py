@@ -486,3 +486,13 @@ def test_command_main_check_runs_after_parsing_and_before_the_body(capsys) -> No
     assert calls == ["check", "check"]
     assert cliutil.command_main("msf-x", parser(), body, ["--list"], check=check) == 7
     assert calls == ["check", "check", "check", "body"]
+
+
+def test_a_huge_message_is_cut_to_a_readable_line() -> None:
+    """A lights file holding one 3 MB token printed a 3 MB error line."""
+    from msfnet.common.errors import MAX_LINE, one_line
+
+    line = one_line("x: " + "A" * 3_000_000 + " is not a number")
+    assert len(line) < MAX_LINE + 60 and line.endswith("is not a number")
+    assert "characters ..." in line
+    assert one_line("short\nline") == "short line"

@@ -219,3 +219,17 @@ def test_a_model_given_to_open_engine_is_read_not_the_chosen_one(tmp_path: Path)
     tiny = tiny_msfnet_onnx(tmp_path / "tiny.onnx")
     engine = open_engine(choice, 1, model=tiny)
     assert engine.info.path == tiny and not engine.info.staged
+
+
+def test_a_pipe_named_as_the_model_is_no_file_not_missing(tmp_path: Path) -> None:
+    import os
+
+    from msfnet.common.errors import InputError
+    from msfnet.runtime.engines.base import model_file_path
+
+    fifo = tmp_path / "model.onnx"
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match="not a regular file"):
+        model_file_path(fifo)
+    with pytest.raises(InputError, match="not found"):
+        model_file_path(tmp_path / "absent.onnx")

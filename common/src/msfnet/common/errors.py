@@ -32,7 +32,14 @@ def first_line(exc: BaseException, limit: int = 200) -> str:
     return text.splitlines()[0][:limit] if text else type(exc).__name__
 
 
+MAX_LINE = 2000  # characters: a message quoting a 3 MB token from a file stays readable
+
+
 def one_line(text: str) -> str:
     """Messages are printed as one line: newlines (from a library's text, or a file name with a
-    newline in it) become spaces."""
-    return " ".join(str(text).split("\n")).replace("\r", " ")
+    newline in it) become spaces, and a line longer than MAX_LINE is cut in its middle."""
+    line = " ".join(str(text).split("\n")).replace("\r", " ")
+    if len(line) > MAX_LINE:
+        half = MAX_LINE // 2
+        line = f"{line[:half]} [... {len(line) - MAX_LINE} characters ...] {line[-half:]}"
+    return line

@@ -9,6 +9,7 @@ An engine runs an msfnet ONNX file: ``run(images (1, N, 3, H, W), lights (1, N, 
 from __future__ import annotations
 
 import importlib.util
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -104,6 +105,8 @@ def model_file_path(path: str | Path) -> Path:
     if path.is_dir():
         raise InputError("the model is a folder, not a file", path)
     if not path.is_file():
+        if os.path.lexists(path):  # a pipe, a device, a dangling link: there, but no file
+            raise InputError("not a regular file (expected an .onnx model)", path)
         raise InputError("ONNX model not found", path)
     return path
 

@@ -127,7 +127,9 @@ def _text_rows(text: str, what: str, path: Path) -> list[list[float]]:
         for token in row:
             if not _NUMBER.fullmatch(token):
                 raise InputError(
-                    f"cannot parse {what}: row {i + 1}: {token!r} is not a number", path
+                    f"cannot parse {what}: row {i + 1}: {token[:40]!r}"
+                    f"{'...' if len(token) > 40 else ''} is not a number",
+                    path,
                 )
         out.append([float(v) for v in row])
     return out
