@@ -60,6 +60,22 @@ def shared_lights_root(folder: Path) -> tuple[Path, list[Path]] | None:
     return (lights, subs) if subs else None
 
 
+def _check_listed_select(select: str, folder: Path, listing: Path) -> None:
+    """An objects.txt selection checked up front, in objects.txt's words: checked later it
+    read as a --select the user never gave, mid-batch."""
+    from msfnet.runtime.stack.load import count_images
+    from msfnet.runtime.stack.select import parse_select
+
+    n = count_images(folder)
+    if n == 0:
+        return  # no images: the stack's own check says so
+    try:
+        parse_select(select, n)
+    except InputError as exc:
+        detail = exc.message.replace(f"--select {select!r}: ", "")
+        raise InputError(f"object {folder.name}: selection {select!r}: {detail}", listing) from exc
+
+
 def find_objects(root: Path) -> list[BenchObject]:
     """The objects of a benchmark root in benchmark order: those listed in objects.txt (one
     folder per line, optionally followed by an image selection), the root itself when it is a
@@ -85,7 +101,10 @@ def find_objects(root: Path) -> list[BenchObject]:
             folder = root / parts[0]
             if not folder.is_dir():
                 raise InputError(f"object folder {parts[0]!r} listed but not found", listing)
-            out.append(BenchObject(folder, parts[1] if len(parts) > 1 else None))
+            select = parts[1] if len(parts) > 1 else None
+            if select is not None:
+                _check_listed_select(select, folder, listing)
+            out.append(BenchObject(folder, select))
         if not out:
             raise InputError("objects.txt lists no objects", listing)
         return out
