@@ -42,6 +42,7 @@ RUNTIME_RANK = {
     "infer": 4,
     "options": 5,
     "sources": 5,  # stack sources and decode-ahead, for the API's stream and the batch runner
+    "stream": 5,  # what Model.stream returns: its results, and the stacks it did not run
     "api": 6,
     "batch": 7,
     "cli": 8,

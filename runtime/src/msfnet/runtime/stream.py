@@ -12,14 +12,14 @@ import warnings
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Generic, TypeVar
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.sources import BatchItem, Leftovers, StackSource
 from msfnet.runtime.stack import Stack
 
-if TYPE_CHECKING:
-    from msfnet.runtime.api import Result
+# the API's Result (this module sits below the API: it knows it only as what it yields)
+R = TypeVar("R")
 
 
 @dataclass(frozen=True)
@@ -34,8 +34,9 @@ def given_source(item: StackSource) -> Path | Stack:
     return item.path if isinstance(item, BatchItem) else item
 
 
-class Stream(Iterator["Result"]):
-    """An iterator of :class:`~msfnet.runtime.api.Result`, one per stack of the source.
+class Stream(Iterator[R], Generic[R]):
+    """An iterator of results (:class:`~msfnet.runtime.api.Result`), one per stack of the
+    source.
 
     ``stop()`` ends it and returns the stacks it took from the source and did not run (at
     most two: one being decoded ahead, and one whose run was interrupted); ``skipped`` lists
@@ -45,7 +46,7 @@ class Stream(Iterator["Result"]):
 
     def __init__(
         self,
-        run: Callable[[Leftovers, list[Skipped]], Generator[Result, None, None]],
+        run: Callable[[Leftovers, list[Skipped]], Generator[R, None, None]],
         *,
         warn_unprocessed: bool,
     ) -> None:
@@ -54,10 +55,10 @@ class Stream(Iterator["Result"]):
         self._results = run(self._taken, self.skipped)
         self._warn = warn_unprocessed  # a generator source: the caller cannot re-read it
 
-    def __iter__(self) -> Stream:
+    def __iter__(self) -> Stream[R]:
         return self
 
-    def __next__(self) -> Result:
+    def __next__(self) -> R:
         return next(self._results)
 
     @property
@@ -79,7 +80,7 @@ class Stream(Iterator["Result"]):
         self._taken.settle(timeout)
         return self.unprocessed
 
-    def __enter__(self) -> Stream:
+    def __enter__(self) -> Stream[R]:
         return self
 
     def __exit__(self, *exc: object) -> None:
