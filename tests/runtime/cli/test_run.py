@@ -211,3 +211,18 @@ def test_a_batchs_results_never_go_inside_the_batch_folder(tmp_path: Path, capsy
     finally:
         os.chdir(here)
     assert sorted(p.name for p in batch.iterdir()) == ["s0", "s1"]
+
+
+def test_a_stack_named_like_the_batch_summary_is_refused_before_any_work(
+    tmp_path: Path, capsys
+) -> None:
+    from msfnet.runtime.stack import save_stack
+
+    batch = tmp_path / "weird"
+    save_stack(sphere_stack(n=6, h=20, w=24, seed=0, name="a"), batch / "summary.json")
+    save_stack(sphere_stack(n=6, h=20, w=24, seed=1, name="b"), batch / "b")
+    out = tmp_path / "out"
+    code = main([str(batch), "--method", "l2", "--no-maps", "-q", "-o", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "summary file" in err[0], err
+    assert not out.exists()

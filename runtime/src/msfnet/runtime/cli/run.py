@@ -361,6 +361,11 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
     inputs = [*load.inputs(), req.model.model, *req.stacks]
     inputs += [p for i in items for p in i.options(load).inputs() if p not in inputs]
     check_not_input(root, inputs, folder=True)
+    clash = next((i for i in items if i.name in SUMMARY_FILES), None)
+    if clash is not None:  # found up front, not after the batch ran
+        raise InputError(
+            f"a stack is named {clash.name!r}, as the batch's summary file; rename it", clash.path
+        )
     check_batch_root(root, [i.name for i in items], req.overwrite)
     for item in items:
         check_output(root / item.name, [*inputs, item.path], overwrite=req.overwrite, folder=True)
