@@ -263,3 +263,33 @@ def test_threads_and_lights_are_bounded_at_parse_time(
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"msf-train: error: {option[0]}: "), err
     assert bound in err[0] and not (tmp_path / "r").exists()
+
+
+def test_a_run_stopped_before_its_first_validation_says_so(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """A --time-budget shorter than an epoch printed "best held-out MAE inf deg"."""
+    from types import SimpleNamespace
+
+    from msfnet.model import train, train_cli
+
+    def trainer(cfg, resume):  # a run that stops before any validation
+        return SimpleNamespace(
+            device=SimpleNamespace(type="cpu"),
+            bf16=False,
+            workers=0,
+            step=3,
+            val_set=[0, 1],
+            val_ls=7.2,
+            run=lambda **_: SimpleNamespace(
+                stopped=None, step=3, best_val_mae=float("inf"), val_ls_mae=7.2
+            ),
+        )
+
+    monkeypatch.setattr(train, "Trainer", trainer)
+    args = train_cli.build_parser().parse_args(["--out", str(tmp_path / "r"), "--no-progress"])
+    monkeypatch.setattr(train_cli, "_announce_duration", lambda *a: None)
+    assert train_cli._run(args, None) == 0
+    out = capsys.readouterr()
+    text = out.out + out.err
+    assert "before the first validation" in text and "inf" not in text

@@ -122,7 +122,7 @@ run, never cached between runs, so a report always measures the models it holds.
         type=Path,
         default=None,
         help="MSF-Net checkpoint (.pth); default: the bundled trained model "
-        "(msfnet/weights/msfnet_default.pth)",
+        "(msfnet/model/weights/msfnet_default.pth)",
     )
     p.add_argument(
         "--random-weights",
@@ -165,7 +165,8 @@ run, never cached between runs, so a report always measures the models it holds.
     p.add_argument(
         "--quick",
         action="store_true",
-        help="smoke test: tiny workloads, one timed run each (about 1-2 minutes)",
+        help="smoke test: tiny workloads, one timed run each (about 4-8 minutes on 2 cores: "
+        "the models are exported and int8-calibrated first)",
     )
     p.add_argument(
         "--variants",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import time
@@ -46,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
         "Train MSF-Net with three stage losses (0.5:0.5:1) and the selective update "
         "strategy. Writes OUT/last.pth (published {'state_dict': ...} format), "
         "OUT/best.pth (best held-out synthetic MAE), OUT/last_state.pth (optimizer), "
-        "OUT/log.jsonl, OUT/curve.png and OUT/config.json. Resume with --resume. "
+        "OUT/log.jsonl, OUT/curve.png and OUT/config.json (best.pth and curve.png from the first "
+        "validation, at the end of the first epoch, on). Resume with --resume. "
         "SIGTERM / SIGINT (Ctrl-C) finish the step, save last.pth and exit with "
         "128 + the signal number (143 / 130), so time-boxed chunks can be chained: "
         "`timeout 600 msf-train ... --resume` repeated.",
@@ -283,10 +285,16 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
             f"{result.step}; last.pth saved, continue with --resume"
         )
         return 128 + result.stopped
-    say(
-        f"msf-train: done at step {result.step}: best held-out MAE "
-        f"{result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})"
-    )
+    if math.isfinite(result.best_val_mae):
+        say(
+            f"msf-train: done at step {result.step}: best held-out MAE "
+            f"{result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})"
+        )
+    else:  # stopped (--time-budget) before the first epoch's validation
+        say(
+            f"msf-train: done at step {result.step}, before the first validation (end of "
+            "an epoch): last.pth saved, no best.pth or curve.png yet"
+        )
     return 0
 
 

@@ -54,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--preset",
         choices=PRESETS,
         default="default",
-        help="'default' (the renderer the README's held-out figures used) or 'hard': "
+        help="'default' (the renderer of docs/model-card.md's held-out figures) or 'hard': "
         "steep rims, folds and cups with inter-reflections, pixel-scale relief, "
         "rough / painted / very dark materials, LED rings, mostly 8-bit",
     )

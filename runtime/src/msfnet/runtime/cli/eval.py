@@ -334,7 +334,8 @@ def build_parser() -> argparse.ArgumentParser:
         dest="output",
         type=Path,
         default=None,
-        help="output folder (default ./msf-eval/<root name>/)",
+        help="output folder (default ./msf-eval/<root name>/, ./msf-eval/objects/ for several "
+        "ROOTs)",
     )
     add_load_flags(p, ("max_lights", "select"))
     p.add_argument(
