@@ -58,8 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
         "to a memory budget) or classical least squares. STACK is a DiLiGenT-layout folder, a "
         "folder of images with a lights file (txt/json), an .npz, or a folder of such stacks "
         "(sub-folders, or an objects.txt as msf-eval reads). Writes normals.npy, normals.png, "
-        "profile.json and, with ground truth, metrics.json and error.png; for several stacks "
-        "one folder each plus summary.json and summary.md.",
+        "normals_view.png, profile.json, with ground truth metrics.json and error.png, and "
+        "unless --no-maps the inspection maps (height, albedo, curvature, TIFFs, mesh.ply, "
+        "report.html; docs/run.md); for several stacks one folder each plus summary.json and "
+        "summary.md.",
         EXAMPLES,
     )
     p.add_argument(
