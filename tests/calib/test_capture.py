@@ -303,3 +303,100 @@ def test_a_chrome_frame_with_a_clipped_highlight_is_not_under_exposed() -> None:
     chk = exposure_check(frame, 65535.0)
     assert not chk.too_dark and not any("under" in p for p in chk.problems())
     assert exposure_check(np.full((100, 100, 3), 100, np.uint16), 65535.0).too_dark  # still seen
+
+
+class _SaturatingRig:
+    """Camera and lights in one: lights 1-3 give fully saturated frames, the others a good
+    exposure; ``stop_at`` (0-based light) stands for a Ctrl-C when that light is switched on."""
+
+    white_level = 255.0
+    frame_shape = (16, 16)
+
+    def __init__(self, count=6, stop_at=None):
+        self.count, self.stop_at, self.lit, self.frames = count, stop_at, None, 0
+
+    def on(self, i):
+        if i == self.stop_at:
+            raise KeyboardInterrupt
+        self.lit = i
+
+    def off(self):
+        self.lit = None
+
+    def capture(self):
+        self.frames += 1
+        level = 5 if self.lit is None else (255 if self.lit < 3 else 120)
+        return np.full((16, 16, 3), level, np.uint8)
+
+    def info(self):
+        return {"backend": "fake"}
+
+
+def _capture_fake(rig, out, **kw):
+    return capture_stack(rig, rig, out, progress=False, log=kw.pop("log", lambda m: None), **kw)
+
+
+def test_strict_resume_judges_the_frames_taken_before_the_interruption(tmp_path):
+    """--strict was bypassed by a resume: only this run's frames were judged, not the
+    saturated ones session.json recorded before the Ctrl-C."""
+    with pytest.raises(InputError) as whole:
+        _capture_fake(_SaturatingRig(), tmp_path / "whole", strict=True)
+    out = tmp_path / "resumed"
+    with pytest.raises(KeyboardInterrupt):
+        _capture_fake(_SaturatingRig(stop_at=4), out, strict=True)
+    with pytest.raises(InputError) as resumed:
+        _capture_fake(_SaturatingRig(), out, strict=True)
+    assert resumed.value.message == whole.value.message
+    assert "001.png: 100.0% saturated" in resumed.value.message
+    assert not (out / "filenames.txt").exists()  # no stack built from the saturated frames
+    # and again once every frame is on disk (nothing left to capture): still refused
+    with pytest.raises(InputError, match=r"001\.png: 100\.0% saturated"):
+        _capture_fake(_SaturatingRig(), out, strict=True)
+    assert _capture_fake(_SaturatingRig(), out) == out  # without --strict: built
+
+
+def test_a_frame_on_disk_without_its_exposure_record_is_checked_on_resume(tmp_path):
+    """A frame written before its record (signal in between) was skipped by every resume,
+    its exposure never checked: it is checked from raw/ and recorded."""
+    out = tmp_path / "cap"
+    with pytest.raises(KeyboardInterrupt):
+        _capture_fake(_SaturatingRig(stop_at=4), out)
+    session = json.loads((out / "session.json").read_text())
+    del session["frames"]["002.png"]  # what the old write-then-record order left behind
+    (out / "session.json").write_text(json.dumps(session))
+    logs = []
+    with pytest.raises(InputError, match=r"002\.png: 100\.0% saturated"):
+        _capture_fake(_SaturatingRig(), out, strict=True, log=logs.append)
+    assert any(m.startswith("warning: 002.png: 100.0% saturated") for m in logs), logs
+    frames = json.loads((out / "session.json").read_text())["frames"]
+    assert sorted(frames) == [f"{i:03d}.png" for i in range(1, 7)]
+    assert frames["002.png"]["too_bright"] is True
+
+
+@pytest.mark.parametrize("kill_at", range(1, 9))
+def test_an_interruption_while_saving_never_leaves_an_unrecorded_frame(
+    tmp_path, monkeypatch, kill_at
+):
+    """A Ctrl-C at every session.json save: after the resume every frame on disk has its
+    exposure record (the record is saved before its frame is written)."""
+    from msfnet.calib import capture as capture_module
+
+    real, calls = capture_module.write_atomic, []
+
+    def dying(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == kill_at:
+            raise KeyboardInterrupt
+        return real(path, *args, **kwargs)
+
+    out = tmp_path / "cap"
+    monkeypatch.setattr(capture_module, "write_atomic", dying)
+    with pytest.raises(KeyboardInterrupt):
+        _capture_fake(_SaturatingRig(), out)
+    monkeypatch.setattr(capture_module, "write_atomic", real)
+    rig = _SaturatingRig()
+    _capture_fake(rig, out)
+    frames = json.loads((out / "session.json").read_text())["frames"]
+    on_disk = sorted(p.name for p in (out / "raw").glob("[0-9]*.png"))
+    assert on_disk == sorted(frames) == [f"{i:03d}.png" for i in range(1, 7)]
+    assert [frames[f"{i:03d}.png"]["too_bright"] for i in range(1, 7)] == [True] * 3 + [False] * 3

@@ -354,6 +354,76 @@ def test_overwrite_never_replaces_a_stack_it_did_not_capture(
     assert _tree_bytes(folder) == before
 
 
+@pytest.mark.parametrize(
+    "theirs",
+    [
+        "001.png",
+        "light_directions.txt",
+        "light_intensities.txt",
+        "filenames.txt",
+        "Normal_gt.mat",
+        "mask.png",
+        "raw/002.png",
+    ],
+)
+def test_a_file_under_a_name_msf_capture_writes_is_refused_without_overwrite(
+    theirs: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """In a folder without session.json a plain capture replaced the user's light files,
+    mask and ground truth (only images were looked for): every name msf-capture writes is
+    refused, as with --overwrite, and nothing in the folder changes."""
+    import cv2
+
+    folder = tmp_path / "mine"
+    (folder / "raw").mkdir(parents=True)
+    path = folder / theirs
+    if path.suffix == ".png":
+        cv2.imwrite(str(path), np.full((8, 8), 255, np.uint8))
+    else:
+        path.write_text("USER DATA\n")
+    before = _tree_bytes(folder)
+    assert capture_main([str(folder), *SIM, "--count", "4"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and theirs in err[0] and "not msf-capture's" in err[0], err
+    assert "--overwrite" not in err[0]  # it would be refused with --overwrite too
+    assert _tree_bytes(folder) == before
+
+
+@pytest.mark.parametrize(
+    ("option", "name"),
+    [
+        ("--light-directions", "light_directions.txt"),
+        ("--light-intensities", "light_intensities.txt"),
+        ("--mask", "mask.png"),
+    ],
+)
+@pytest.mark.parametrize("session", [False, True])
+def test_an_input_inside_the_folder_under_an_output_name_is_refused(
+    option: str, name: str, session: bool, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--light-directions obj/light_directions.txt`` was replaced by the run's own output
+    (reformatted): an input the capture would write over is refused, in a new folder and in
+    a session of msf-capture's alike."""
+    import cv2
+
+    folder = tmp_path / "obj"
+    if session:
+        assert capture_main([str(folder), *SIM, "--count", "12"]) == 0
+    folder.mkdir(exist_ok=True)
+    path = folder / name
+    if option == "--mask":
+        cv2.imwrite(str(path), np.full((128, 160), 255, np.uint8))
+    elif option == "--light-directions":
+        path.write_text("".join(f"{x:.3f} {y:.3f} {z:.3f}\n" for x, y, z in ring_lights(12)))
+    else:
+        path.write_text("1 1 1\n" * 12)
+    before = _tree_bytes(folder)
+    assert capture_main([str(folder), *SIM, "--count", "12", option, str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and name in err[0] and "would replace it" in err[0], err
+    assert _tree_bytes(folder) == before
+
+
 def test_overwrite_of_its_own_session_keeps_frames_beyond_its_count(tmp_path: Path) -> None:
     """Only the session's own frame names go: a 013.png the user put beside a 4-light
     session's frames is not msf-capture's to delete."""

@@ -428,3 +428,64 @@ def test_sane_perspective_options_still_work(chrome: Path, tmp_path: Path) -> No
         )
         rows = read_vectors(out, "light directions")
         np.testing.assert_allclose(np.linalg.norm(rows, axis=1), 1.0, atol=1e-5)
+
+
+# ---------------------------------------------------------------- warnings
+
+
+def _matte(folder: Path, gain: float) -> Path:
+    """A matte sphere under the chrome fixture's six lights (no mirror highlight at all)."""
+    folder.mkdir()
+    scene = S.mirror_scene(96, 80, 30, kind="matte")
+    scene.ss = 1
+    for i, light in enumerate(S.ring_lights(6, (15, 55), seed=3)):
+        write_png(folder / f"{i + 1:02d}.png", S.expose(S.render(scene, light), gain, 8, 0.0))
+    write_png(folder / "mask.png", S.sphere_masks(scene)[0].astype(np.uint8) * 255)
+    return folder
+
+
+def _stray_light(chrome: Path) -> None:
+    """A white spot on the sphere of 02.png, away from its highlight: a second highlight."""
+    from msfnet.common.imageio import read_image, read_mask
+
+    mask = read_mask(chrome / "mask.png")
+    img = read_image(chrome / "02.png")
+    ys, xs = np.nonzero(mask)
+    cy, cx = int(ys.mean()), int(xs.mean())
+    peak = np.unravel_index(np.argmax(img.max(-1) * mask), mask.shape)
+    dy, dx = (-1 if peak[0] > cy else 1), (-1 if peak[1] > cx else 1)
+    y, x = cy + dy * 12, cx + dx * 12  # the opposite quarter of the sphere
+    img[y - 3 : y + 3, x - 3 : x + 3] = 255
+    img[peak[0] - 1 : peak[0] + 2, peak[1] - 1 : peak[1] + 2] = 255  # (a 1-pixel highlight)
+    write_png(chrome / "02.png", img)
+
+
+def test_warnings_carry_the_command_and_are_silent_with_q(
+    chrome: Path, tmp_path: Path, capfd
+) -> None:
+    """msf-calib printed "warning: ..." without its name, and also with -q (errors only)."""
+    _stray_light(chrome)
+    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "a.txt")]) == 0
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err and all(line.startswith("msf-calib: warning: ") for line in err), err
+    assert any("02.png: a second highlight" in line for line in err), err
+    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "b.txt"), "-q"]) == 0
+    assert capfd.readouterr().err == ""
+    # intensities: a matte target partly saturated
+    bright = _matte(tmp_path / "bright", gain=1.3)
+    argv = ["intensities", str(bright), "--lights", str(_lights_file(tmp_path, 6))]
+    assert cli.main([*argv, "-o", str(tmp_path / "i.txt")]) == 0
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err and all(line.startswith("msf-calib: warning: ") for line in err), err
+    assert any("of the lit target is saturated" in line for line in err), err
+    assert cli.main([*argv, "-o", str(tmp_path / "j.txt"), "-q"]) == 0
+    assert capfd.readouterr().err == ""
+
+
+def test_no_highlight_names_the_capture_folder(tmp_path: Path, capfd) -> None:
+    """A matte sphere given as a chrome one: the error named no file."""
+    folder = _matte(tmp_path / "matte", gain=0.8)
+    assert cli.main(["directions", str(folder), "-o", str(tmp_path / "l.txt")]) == 2
+    line = _one_line(capfd, ["no highlight found for", "01.png"])
+    assert line.startswith(f"msf-calib: error: {folder}: "), line
+    assert not (tmp_path / "l.txt").exists()

@@ -61,6 +61,26 @@ def test_the_export_runs_as_msf_export(tmp_path: Path, fake_exporter, capsys) ->
     assert capsys.readouterr().out == "fake export\n"
 
 
+@pytest.mark.parametrize(
+    ("name", "default"),
+    [
+        ("checkp_30.pth.tar", "checkp_30.onnx"),
+        ("model.pth", "model.onnx"),
+        ("model.pt", "model.onnx"),
+        ("run.v2.ckpt", "run.v2.onnx"),
+        ("weights.tar", "weights.onnx"),
+        ("weights", "weights.onnx"),
+        ("same.onnx", "same.onnx"),  # then refused as its own input, by the exporter
+    ],
+)
+def test_the_default_output_drops_both_suffixes(
+    tmp_path: Path, fake_exporter, name: str, default: str
+) -> None:
+    """`msf-export checkp_30.pth.tar` wrote checkp_30.pth.onnx."""
+    assert export_main([str(tmp_path / name), "-q"]) == 0
+    assert fake_exporter["output"] == tmp_path / default
+
+
 def test_an_input_error_in_the_body_is_one_line_exit_2(
     tmp_path: Path, fake_exporter, capsys
 ) -> None:

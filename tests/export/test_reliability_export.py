@@ -68,6 +68,32 @@ def test_ctrl_c_is_one_line_exit_130(ckpt: Path, tmp_path: Path, monkeypatch, ca
     assert len(err) == 1 and "interrupted" in err[0], err
 
 
+class _SignalledImport:
+    """A meta-path finder for ``onnxruntime`` that fails as a SIGTERM landing inside the C
+    extension's import does: "ImportError: initialization failed", caused by the signal."""
+
+    def find_spec(self, name: str, path: object = None, target: object = None) -> None:
+        if name == "onnxruntime":
+            from msfnet.common.signals import Terminated
+
+            raise ImportError("initialization failed") from Terminated(signal.SIGTERM)
+        return None
+
+
+def test_sigterm_inside_the_onnxruntime_import_is_a_termination(
+    ckpt: Path, tmp_path: Path, monkeypatch, capfd
+) -> None:
+    """Seen as "internal error: ImportError: initialization failed ... please report it",
+    exit 1: it is the SIGTERM, exit 143, nothing written."""
+    monkeypatch.delitem(sys.modules, "onnxruntime", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [_SignalledImport(), *sys.meta_path])
+    code = _run([str(ckpt), "-o", str(tmp_path / "m.onnx")])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 143, err
+    assert len(err) == 1 and "terminated (signal 15)" in err[0] and "internal" not in err[0]
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.slow
 def test_output_over_its_own_checkpoint_is_refused(ckpt: Path, tmp_path: Path, capfd) -> None:
     """`msf-export x.pth -o x.pth --overwrite` replaced the checkpoint with the ONNX file."""

@@ -105,3 +105,64 @@ def test_weights_of_the_wrong_kind_are_named(spoil: str) -> None:
     with pytest.raises(CheckpointError, match=f"1 mis-typed key\\(s\\): {key}"):
         check_state_dict(model, state, "x.pth")
     check_state_dict(model, dict(model.state_dict()), "x.pth")  # the real thing passes
+
+
+def _saved(tmp_path: Path, state: dict, name: str = "c.pth") -> Path:
+    import torch
+
+    path = tmp_path / name
+    torch.save({"state_dict": state, "model": "MSF_Net"}, path)
+    return path
+
+
+def test_one_weight_under_two_names_is_refused_as_ambiguous(tmp_path: Path) -> None:
+    """X and DataParallel's module.X were merged silently (the last one won): the exported
+    weights depended on key order."""
+    import torch
+
+    from msfnet.model.checkpoint import load_model
+    from msfnet.model.network import MSFNet
+
+    state = dict(MSFNet().state_dict())
+    key = "extractor1.conv1.0.bias"
+    state["module." + key] = torch.zeros_like(state[key])
+    with pytest.raises(CheckpointError) as exc:
+        load_model(_saved(tmp_path, state))
+    message = str(exc.value)
+    assert f"both {key} and module.{key}" in message and "\n" not in message
+
+
+def test_a_state_dict_without_num_batches_tracked_loads_exactly(tmp_path: Path) -> None:
+    """Checkpoints of PyTorch < 0.4.1 lack BatchNorm's num_batches_tracked, which strict
+    load_state_dict accepts: they were refused as "missing key(s)"."""
+    import torch
+
+    from msfnet.model.checkpoint import check_state_dict, load_model
+    from msfnet.model.network import MSFNet
+
+    torch.manual_seed(0)
+    source = MSFNet()
+    state = {k: v for k, v in source.state_dict().items() if "num_batches_tracked" not in k}
+    assert len(state) < len(source.state_dict())  # the network has BatchNorm layers
+    loaded = load_model(_saved(tmp_path, state)).state_dict()
+    for key, value in state.items():
+        assert torch.equal(loaded[key], value), key
+    # any other missing key is still refused
+    del state["regressor.est_normal.0.weight"]
+    with pytest.raises(CheckpointError, match="1 missing key"):
+        check_state_dict(MSFNet(), state, "x.pth")
+
+
+def test_a_truncated_zip_checkpoint_is_said_in_a_complete_sentence(tmp_path: Path) -> None:
+    """torch's zip reader appends advice that the 200-character cut left mid-sentence."""
+    import torch
+
+    path = tmp_path / "whole.pth"
+    torch.save({"state_dict": {"w": torch.zeros(1000)}}, path)
+    cut = tmp_path / "trunc.pth"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(CheckpointError) as exc:
+        read_state_dict(cut)
+    assert exc.value.message == (
+        "not a readable PyTorch checkpoint (a truncated or damaged zip archive)"
+    )

@@ -4,19 +4,25 @@ typed LoadOptions with str paths, errors in the API's words, results a person ca
 from __future__ import annotations
 
 import json
+import shutil
 import sys
 import threading
 import time
+import typing
+import warnings
 from collections.abc import Iterator
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet import LoadOptions, Model, load_stack
-from msfnet.common.errors import InputError
+import msfnet
+from msfnet import LoadOptions, MapOptions, Model, Result, load_stack
+from msfnet.common.errors import InputError, MsfError
+from msfnet.runtime.api import api_message
 from msfnet.runtime.cli.run import main as msf_run
 from msfnet.runtime.stack import Stack, save_stack
 
@@ -266,3 +272,160 @@ def test_skipping_bad_stacks_goes_on_and_says_which(l2: Model, tmp_path: Path) -
     assert "not found" in str(stream.skipped[0].error)
     with pytest.raises(InputError, match="on_error"):
         l2.stream(good, on_error="ignore")
+
+
+# ---------------------------------------------------------------- one path, three entry points
+
+
+def _bear(root: Path, n: int = 96) -> Path:
+    """A folder named like DiLiGenT's bear with as many images (small, generated)."""
+    return save_stack(sphere_stack(n=n, h=12, w=12, name="bear"), root / "bearPNG")
+
+
+def test_a_path_is_read_with_its_benchmark_selection_by_every_entry_point(
+    l2: Model, tmp_path: Path
+) -> None:
+    """``model(bearPNG)`` and ``load_stack(bearPNG)`` used all 96 images where
+    ``model.stream(bearPNG)`` and msf-run use DiLiGenT's 21-96: the same path gave two inputs,
+    and nothing said so on the ``model(path)`` side."""
+    bear = _bear(tmp_path)
+    said = r"bearPNG: using images 21-96 \(DiLiGenT's protocol: .*\); select overrides"
+    with pytest.warns(UserWarning, match=said):
+        called = l2(bear)
+    with pytest.warns(UserWarning, match=said):
+        (streamed,) = list(l2.stream(bear))
+    with pytest.warns(UserWarning, match=said):
+        loaded = load_stack(str(bear))
+    assert called.stack.num_lights == streamed.stack.num_lights == loaded.num_lights == 76
+    assert loaded.filenames[0] == "021.png" and called.stack.filenames == loaded.filenames
+    np.testing.assert_array_equal(called.normals, streamed.normals)
+    assert called.input == streamed.input
+    assert called.input is not None and called.input["select"] == "21-96"
+    assert called.input["select_from"] == "benchmark protocol"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a selection of one's own overrides it, silently
+        own = l2(bear, LoadOptions(select="1-96"))
+        assert load_stack(bear, select="1-10").num_lights == 10
+        ours = l2(_bear(tmp_path / "ours", 24))  # 24 images: not DiLiGenT's bear, run whole
+    assert own.stack.num_lights == 96 and own.input is not None and own.input["select"] == "1-96"
+    assert ours.stack.num_lights == 24 and ours.input is None
+
+
+def test_diligent_bear_is_read_from_image_21_by_model_and_load_stack(
+    l2: Model, ball_dir: Path
+) -> None:
+    bear = ball_dir.parent / "bearPNG"
+    if not bear.is_dir():
+        pytest.skip(f"DiLiGenT's bear not found at {bear}")
+    with pytest.warns(UserWarning, match="bearPNG: using images 21-96"):
+        stack = load_stack(bear, max_lights=4)
+    with pytest.warns(UserWarning, match="bearPNG: using images 21-96"):
+        result = l2(bear, LoadOptions(max_lights=4, downscale=4))
+    assert stack.filenames == result.stack.filenames == ["021.png", "046.png", "071.png", "096.png"]
+    assert result.input is not None and result.input["select"] == "21-96"
+
+
+def test_a_result_names_the_files_given_in_place_of_the_stacks_own(
+    l2: Model, tmp_path: Path
+) -> None:
+    """A light file given as LoadOptions(lights=...) was recorded nowhere in the saved result:
+    a mirrored light file gave normals 53 deg off, and nothing in the folder said why."""
+    path = save_stack(sphere_stack(n=6, h=20, w=24, seed=4), tmp_path / "s")
+    rig = tmp_path / "rig"
+    rig.mkdir()
+    for name in ("light_directions.txt", "light_intensities.txt", "mask.png"):
+        shutil.copy(path / name, rig / name)
+    load = LoadOptions(
+        lights=str(rig / "light_directions.txt"),
+        intensities=rig / "light_intensities.txt",
+        mask=rig / "mask.png",
+    )
+    given = {
+        "lights": str(rig / "light_directions.txt"),
+        "intensities": str(rig / "light_intensities.txt"),
+        "mask": str(rig / "mask.png"),
+    }
+    result = l2(path, load)
+    result.save(tmp_path / "out")
+    profile = json.loads((tmp_path / "out" / "profile.json").read_text())
+    assert given.items() <= profile["input"].items()
+    (streamed,) = list(l2.stream([path], load))
+    assert streamed.input is not None and given.items() <= streamed.input.items()
+    assert not {"lights", "intensities", "mask"} & set(l2(path, LoadOptions()).input or {})
+
+
+# ---------------------------------------------------------------- messages in the API's words
+
+
+def test_a_ragged_list_is_refused_in_one_line(l2: Model) -> None:
+    """numpy's "inhomogeneous shape" ValueError came out of predict raw."""
+    stack = sphere_stack(n=6, h=20, w=24)
+    images = list(stack.images)
+    images[1] = images[1][:10]
+    with pytest.raises(InputError, match="images are ragged"):
+        l2.predict(images, stack.lights)
+    rows = stack.lights.tolist()
+    rows[2] = rows[2][:2]
+    with pytest.raises(InputError, match="light directions are ragged"):
+        l2.predict(stack.images, rows)
+    lists = l2.predict(
+        stack.images.tolist(), stack.lights.tolist(), intensities=stack.intensities.tolist()
+    )
+    np.testing.assert_array_equal(lists.normals, l2(stack).normals)
+
+
+def test_messages_name_keywords_that_work(
+    random_onnx: Path, l2: Model, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """API messages read "detail_fusion=... runs without it" (the keyword to pass is
+    detail_fusion=False), "threads=... must be", an engine failure's "try a smaller --tile or
+    --max-memory", and a map hint named MapOptions, which msfnet did not export."""
+    with pytest.raises(InputError) as caught:
+        Model(random_onnx, threads=0)
+    assert str(caught.value).startswith("threads must be an integer in 1..")
+    stack = sphere_stack(n=6, h=28, w=32)
+    small = Model(random_onnx, engine="onnxruntime", threads=1, max_memory_mb=10, maps=None)
+    with pytest.raises(InputError, match=r"\(detail_fusion=False runs without it\)"):
+        small(stack)
+    model = Model(random_onnx, engine="onnxruntime", threads=1, detail_fusion=False, maps=None)
+
+    def fails(images: np.ndarray, lights: np.ndarray) -> np.ndarray:
+        raise RuntimeError("out of device memory")
+
+    monkeypatch.setattr(model.estimator.engine, "run", fails)  # type: ignore[attr-defined]
+    with pytest.raises(MsfError) as failed:
+        model(stack)
+    assert "try a smaller tile or max_memory_mb=..." in str(failed.value)
+    assert "--" not in str(failed.value) and isinstance(failed.value.__cause__, RuntimeError)
+    plain = l2(stack)  # maps=None
+    with pytest.raises(InputError, match=r"Model\(maps='height'\) or .*msfnet\.MapOptions"):
+        plain.plot("height")
+    assert msfnet.MapOptions is MapOptions
+    assert Model.least_squares(maps=msfnet.MapOptions(maps=("height",)))(stack).maps is not None
+
+
+@pytest.mark.parametrize(
+    ("flags", "words"),
+    [
+        ("--threads must be 1..4", "threads must be 1..4"),
+        ("(--no-detail-fusion runs without it)", "(detail_fusion=False runs without it)"),
+        ("use --no-maps", "use maps=None"),
+        ("try a smaller --tile or --max-memory", "try a smaller tile or max_memory_mb=..."),
+        ("--tile True: expected", "tile=True: expected"),
+        ("--speed balanced", "speed='balanced'"),
+        ("--max-memory 10 MB", "max_memory_mb=10 MB"),
+        ("(or pass --lights)", "(or pass lights=...)"),
+    ],
+)
+def test_api_message_writes_flags_as_keywords(flags: str, words: str) -> None:
+    assert api_message(flags) == words
+
+
+def test_public_hints_take_what_the_runtime_takes() -> None:
+    """``predict`` takes lists (a type error for a checker while the hints said ndarray), and
+    ``plot`` says what it returns (Any before: ``r.plot().shape`` went unchecked)."""
+    hints = typing.get_type_hints(Model.predict)
+    assert hints["images"] == hints["lights"] == npt.ArrayLike
+    assert hints["mask"] == npt.ArrayLike | None
+    returns = [o.__annotations__["return"] for o in typing.get_overloads(Result.plot)]
+    assert returns == ["np.ndarray", "Figure", "np.ndarray | Figure"]

@@ -31,9 +31,10 @@ _guard_startup()
 if TYPE_CHECKING:
     __version__: str
     from msfnet.runtime.api import Model, Result, load_stack
+    from msfnet.runtime.results.maps import MapOptions
     from msfnet.runtime.stack import LoadOptions, Stack
 
-__all__ = ["LoadOptions", "Model", "Result", "Stack", "__version__", "load_stack"]
+__all__ = ["LoadOptions", "MapOptions", "Model", "Result", "Stack", "__version__", "load_stack"]
 
 
 def __getattr__(name: str) -> object:
@@ -53,4 +54,8 @@ def __getattr__(name: str) -> object:
         from msfnet.runtime import stack
 
         return getattr(stack, name)
+    if name == "MapOptions":  # Model(maps=MapOptions(...)): which inspection maps, and how
+        from msfnet.runtime.results.maps import MapOptions
+
+        return MapOptions
     raise AttributeError(f"module 'msfnet' has no attribute {name!r}")

@@ -282,3 +282,91 @@ def test_an_npz_member_declaring_a_huge_npy_header_is_refused_before_it_inflates
         tracemalloc.stop()
     assert "\n" not in str(e.value) and str(e.value).startswith(str(path))
     assert peak < 16 * 2**20, peak  # numpy's reader: the 64 MB inflated, twice (bytes, str)
+
+
+@pytest.mark.parametrize("name", ["light_intensities.txt", "mask.png", "filenames.txt"])
+@pytest.mark.parametrize("kind", ["dangling", "folder", "fifo"])
+def test_a_stack_file_that_is_there_but_unreadable_is_refused(
+    tmp_path: Path, name: str, kind: str
+) -> None:
+    """Found with is_file(), a moved intensities file (a dangling link) ran with unit
+    intensities (4.5 -> 12.5 deg, no word) and a dangling mask as no mask."""
+    import os
+
+    folder = png_stack(tmp_path / "s", 16)
+    target = folder / name
+    if target.exists():
+        target.unlink()
+    if kind == "dangling":
+        target.symlink_to(tmp_path / "moved" / name)
+    elif kind == "folder":
+        target.mkdir()
+    else:
+        os.mkfifo(target)
+    with pytest.raises(InputError, match=r"dangling link|is a folder|not a regular file") as e:
+        load_stack(folder)
+    assert name in str(e.value)
+
+
+@pytest.mark.parametrize("entry", ["../other/003.png", "/tmp/003.png", "sub/../../003.png"])
+def test_filenames_txt_may_not_reach_outside_the_stack(tmp_path: Path, entry: str) -> None:
+    """An image read from outside the folder is an input no output check knows of: an
+    --overwrite could delete the image just read."""
+    folder = png_stack(tmp_path / "s", 16)
+    names = (folder / "filenames.txt").read_text().splitlines()
+    names[2] = entry
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    with pytest.raises(InputError, match="outside the stack folder"):
+        load_stack(folder)
+
+
+def test_an_empty_mask_file_is_named(tmp_path: Path) -> None:
+    """An all-black --mask was reported as the stack's problem, not the mask file's."""
+    folder = png_stack(tmp_path / "s", 16)
+    black = tmp_path / "black.png"
+    cv2.imwrite(str(black), np.zeros((36, 44), np.uint8))
+    with pytest.raises(InputError, match="mask is empty") as e:
+        load_stack(folder, LoadOptions(mask=black))
+    assert "black.png" in str(e.value)
+
+
+def test_load_options_describe_the_files_given_in_place_of_the_stacks_own() -> None:
+    """profile.json's ``input`` had no trace of LoadOptions(lights=...): a result computed
+    with a mirrored light file did not say which file it used."""
+    opts = LoadOptions(lights="rig/lights.txt", intensities=Path("rig/ints.txt"), mask="m.png")
+    info = opts.describe()
+    assert (info["lights"], info["intensities"], info["mask"]) == (
+        "rig/lights.txt",
+        "rig/ints.txt",
+        "m.png",
+    )
+    assert not {"lights", "intensities", "mask"} & set(LoadOptions(select="1-3").describe())
+
+
+def test_load_options_constructor_hints_take_str_paths() -> None:
+    """``LoadOptions(lights="rig/lights.txt")`` (the README's line) works, but its hints said
+    Path: a type error for mypy and pyright. The hints a checker reads are the constructor
+    written out under TYPE_CHECKING; it must stay the fields' list, in order, with their
+    defaults."""
+    import ast
+    import dataclasses
+    import inspect
+
+    from msfnet.runtime.stack import load as module
+
+    tree = ast.parse(inspect.getsource(module))
+    cls = next(n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "LoadOptions")
+    guarded = next(n for n in cls.body if isinstance(n, ast.If))
+    assert ast.unparse(guarded.test) == "TYPE_CHECKING"
+    init = next(n for n in guarded.body if isinstance(n, ast.FunctionDef))
+    args = init.args.args[1:]
+    fields = dataclasses.fields(LoadOptions)
+    assert [a.arg for a in args] == [f.name for f in fields]
+    assert [ast.literal_eval(d) for d in init.args.defaults] == [f.default for f in fields]
+    hints = {a.arg: ast.unparse(a.annotation) for a in args if a.annotation is not None}
+    for name in ("lights", "intensities", "mask"):
+        assert hints[name] == "str | PathLike[str] | None"
+        assert isinstance(getattr(LoadOptions(**{name: "x.txt"}), name), Path)  # held as Path
+    assert all(
+        hints[f.name] == f.type for f in fields if f.name not in ("lights", "intensities", "mask")
+    )

@@ -11,6 +11,7 @@ import pytest
 from _runtime_helpers import sphere_stack
 
 from msfnet.common.errors import InputError
+from msfnet.runtime.api import Model
 from msfnet.runtime.stack import Stack, as_held, held_dtype, load_stack, save_stack
 
 
@@ -71,12 +72,41 @@ def test_saturated_stack_is_refused(dtype: type) -> None:
     replace(stack, images=images).validate()
 
 
-def test_saturated_float_stack_is_refused() -> None:
-    """Float images carry no white level: one value everywhere is what a clipped stack becomes
-    after --downscale or --srgb, and holds no shading either."""
+@pytest.mark.parametrize("full", [1.0, 255.0, 4095.0, 65535.0])
+def test_saturated_float_stack_is_refused(full: float) -> None:
+    """Float images carry no white level: one full-scale value everywhere (1.0, or an integer
+    scale kept through --downscale or --srgb) is what a clipped stack becomes, and holds no
+    shading either."""
     stack = sphere_stack(n=5)
+    with pytest.raises(InputError, match=f"saturated inside the mask .*at {full:g}"):
+        replace(stack, images=np.full_like(stack.images, full)).validate()
+    srgb = np.float32(full) * np.float32(1.0000001)  # float32 rounding of a linearised clip
     with pytest.raises(InputError, match="saturated"):
-        replace(stack, images=np.full_like(stack.images, 0.7)).validate()
+        replace(stack, images=np.full_like(stack.images, srgb)).validate()
+
+
+@pytest.mark.parametrize("value", [0.4, 0.7, 100.0, 1000.0])
+def test_a_flat_float_stack_below_full_scale_is_no_saturated_one(value: float) -> None:
+    """A flat, face-on part under a ring light (every image one value, 0.4 of full scale) was
+    refused as "saturated ... lower the exposure"; its normals are (0, 0, 1)."""
+    n = 8
+    az = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    lights = np.stack([np.cos(az) * 0.6, np.sin(az) * 0.6, np.full(n, 0.8)], 1)
+    images = np.full((n, 16, 16), value, np.float32)
+    stack = Stack.from_arrays(images, lights)
+    normals = Model.least_squares(maps=None)(stack).normals
+    np.testing.assert_allclose(normals.reshape(-1, 3), [[0, 0, 1]] * 256, atol=1e-5)
+
+
+def test_ragged_arrays_are_refused_as_such() -> None:
+    """A list of images of different sizes raised numpy's own ValueError ("inhomogeneous
+    shape"), where every other bad shape is an InputError."""
+    stack = sphere_stack(n=5)
+    images = [*stack.images[:2], stack.images[2][:10], *stack.images[3:]]
+    with pytest.raises(InputError, match=r"images are ragged: .* the same shape"):
+        Stack.from_arrays(images, stack.lights)
+    with pytest.raises(InputError, match="light intensities are ragged"):
+        Stack.from_arrays(stack.images, stack.lights, intensities=[[1, 1, 1], [1, 1]] * 3)
 
 
 def test_lights_all_pointing_away_from_the_camera_are_refused() -> None:

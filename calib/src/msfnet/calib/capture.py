@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -104,6 +105,35 @@ class Exposure:
     too_bright: bool
     too_dark: bool
 
+    @classmethod
+    def judged(
+        cls, saturated: float, p99_5: float, max_saturated: float, min_level: float
+    ) -> Exposure:
+        """The verdict for these measurements under these limits."""
+        # A frame that reaches the white level anywhere (saturated > 0: a chrome sphere's
+        # highlight) is not under-exposed, however dark the rest: more exposure would only
+        # clip more.
+        return cls(
+            saturated,
+            p99_5,
+            saturated > max_saturated,
+            p99_5 < min_level and not saturated > 0.0,
+        )
+
+    @classmethod
+    def from_record(cls, record: object, max_saturated: float, min_level: float) -> Exposure | None:
+        """A frame's check as session.json recorded it, judged anew under this run's limits;
+        None when there is no usable record."""
+        if not isinstance(record, dict):
+            return None
+        try:
+            sat, p = float(record["saturated"]), float(record["p99_5"])
+        except (KeyError, TypeError, ValueError):
+            return None
+        if not (math.isfinite(sat) and math.isfinite(p)):
+            return None
+        return cls.judged(sat, p, max_saturated, min_level)
+
     def problems(self) -> list[str]:
         found = []
         if self.too_bright:
@@ -126,9 +156,7 @@ def exposure_check(
     at_white = vals >= 0.99 * white_level
     sat = float(np.mean(at_white))
     p = float(np.percentile(vals, 99.5)) / white_level
-    # A frame that reaches the white level anywhere (a chrome sphere's highlight) is not
-    # under-exposed, however dark the rest: more exposure would only clip more.
-    return Exposure(sat, p, sat > max_saturated, p < min_level and not at_white.any())
+    return Exposure.judged(sat, p, max_saturated, min_level)
 
 
 def _name(i: int) -> str:
@@ -285,27 +313,48 @@ def _capture_names(out: Path) -> list[Path]:
     return found
 
 
+def _written_here(out: Path, path: Path) -> bool:
+    """Whether ``path`` is (resolved) one of the files msf-capture writes in ``out``."""
+    root, target = out.resolve(), path.resolve()
+    if target.parent == root:
+        return target.name in _STACK_FILES or bool(_STACK_IMAGE.match(target.name))
+    return target.parent == root / "raw" and bool(_FRAME.match(target.name))
+
+
+def check_inputs(out: Path, inputs: Iterable[object]) -> None:
+    """Refuse an input file (light directions, intensities, mask) lying in ``out`` under a
+    name msf-capture writes there (``light_directions.txt``, ``mask.png``, ``raw/001.png``
+    ...): the capture would replace its own input. Arrays and None are skipped."""
+    for value in inputs:
+        if isinstance(value, (str, Path)) and _written_here(out, Path(value)):
+            raise InputError(
+                f"is inside the capture folder under a name msf-capture writes, so the capture "
+                f"would replace it: give a copy outside {out}",
+                value,
+            )
+
+
 def check_folder(out: Path, overwrite: bool, overwrite_allowed: bool = True) -> None:
-    """Refuse a folder holding images msf-capture did not take (no session.json): its files
-    could be mistaken for frames or written over. ``overwrite`` captures into it anyway, but
-    never over a file of the user's: one under a name msf-capture writes (001.png,
-    light_directions.txt, raw/001.png ...) is refused even then."""
+    """Refuse a folder msf-capture did not capture into (no session.json) when it holds a file
+    under a name msf-capture writes (001.png, light_directions.txt, mask.png, raw/001.png ...),
+    with or without ``overwrite``: it would be replaced. Other images (which could be
+    mistaken for frames) are refused too; ``overwrite`` captures beside them."""
     if not out.is_dir() or (out / SESSION).is_file():
         return
+    clash = _capture_names(out)
+    if clash:
+        raise InputError(
+            f"{'--overwrite: ' if overwrite else ''}{clash[0].relative_to(out)} is not "
+            "msf-capture's (the folder has no session.json) and would be replaced; "
+            "msf-capture replaces only what it captured: move it away or use another folder",
+            out,
+        )
     if overwrite:
-        clash = _capture_names(out)
-        if clash:
-            raise InputError(
-                f"--overwrite: {clash[0].relative_to(out)} is not msf-capture's (the folder "
-                "has no session.json) and would be replaced; msf-capture replaces only what it "
-                "captured: move it away or use another folder",
-                out,
-            )
         return
     raw = out / "raw"
     theirs = list_images(out) + (list_images(raw) if raw.is_dir() else [])
-    if theirs or (out / FILENAMES_FILE).exists():
-        example = theirs[0].name if theirs else FILENAMES_FILE
+    if theirs:
+        example = theirs[0].name
         how = ", or --overwrite to capture into it anyway" if overwrite_allowed else ""
         raise InputError(
             f"the folder holds images msf-capture did not take (e.g. {example}, "
@@ -456,6 +505,7 @@ def _capture(
         raise InputError("the light back-end reports no lights")
     lin = linearisation or Linearisation()
     # everything given is checked before the first frame
+    check_inputs(out, (light_directions, light_intensities, mask))
     check_folder(out, overwrite, overwrite_allowed)
     dirs = check_vectors(light_directions, n, "light directions")
     ints = check_vectors(light_intensities, n, "light intensities")
@@ -465,13 +515,55 @@ def _capture(
         _discard(out)
     sess_path = out / SESSION
     session = _load_session(sess_path, n, info, overwrite_allowed)
+    if not isinstance(session.get("frames"), dict):
+        session["frames"] = {}
+    records: dict[str, Any] = session["frames"]
     todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
     pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
-    if not pending and _finished(out, n) and sess_path.is_file():
+    # frames on disk without a usable exposure record (an older version wrote the frame
+    # before its record): checked again from raw/ below
+    unchecked = [
+        name
+        for name, i in todo
+        if i is not None
+        and (raw / name).is_file()
+        and Exposure.from_record(records.get(name), max_saturated, min_level) is None
+    ]
+
+    def fits(frame: np.ndarray) -> None:
+        if mask_arr is not None and mask_arr.shape != frame.shape[:2]:
+            raise InputError(
+                f"mask is {mask_arr.shape[1]}x{mask_arr.shape[0]} but the "
+                f"camera delivers {frame.shape[1]}x{frame.shape[0]} frames"
+            )
+
+    def check(name: str, frame: np.ndarray) -> None:
+        """Record the frame's exposure in the session; problems are logged as warnings."""
+        fits(frame)
+        chk = exposure_check(frame, camera.white_level, mask_arr, max_saturated, min_level)
+        records[name] = {**asdict(chk), "time": time.time()}
+        if chk.problems():
+            log(f"warning: {name}: " + ", ".join(chk.problems()))
+
+    def judge_all() -> None:
+        """``strict``: every frame's recorded exposure judged, those taken before an
+        interruption included, as an uninterrupted run judges them."""
+        if not strict:
+            return
+        problems = []
+        for i in range(n):
+            chk = Exposure.from_record(records.get(_name(i)), max_saturated, min_level)
+            if chk is not None and chk.problems():
+                problems.append(f"{_name(i)}: " + ", ".join(chk.problems()))
+        if problems:
+            raise InputError("exposure problems: " + "; ".join(problems), out)
+
+    if not pending and not unchecked and _finished(out, n) and sess_path.is_file():
         log(
             f"stack complete: all {n} frames are already in {raw}; nothing to capture "
             "(kept as it is; --overwrite captures again)"
         )
+        judge_all()
         return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt, log=log)
     raw.mkdir(parents=True, exist_ok=True)
     session.update(count=n, camera=info, white_level=camera.white_level)
@@ -487,8 +579,11 @@ def _capture(
         log(f"all {len(todo)} frames already in {raw}; building the stack")
     elif len(pending) < len(todo):
         log(f"resuming: {len(todo) - len(pending)} of {len(todo)} frames already in {raw}")
+    if unchecked:
+        log(f"checking the exposure of {len(unchecked)} frame(s) in {raw} that have no record")
+        for name in unchecked:
+            check(name, read_image(raw / name))
     save_session()  # from here on the folder is msf-capture's (check_folder)
-    problems = []
     try:
         # disable=None: a bar on a terminal, nothing in a log file
         for name, i in tqdm(
@@ -499,26 +594,19 @@ def _capture(
             else:
                 lights.on(i)
             frame = _to_uint(np.asarray(camera.capture()))
-            if mask_arr is not None and mask_arr.shape != frame.shape[:2]:
-                raise InputError(
-                    f"mask is {mask_arr.shape[1]}x{mask_arr.shape[0]} but the "
-                    f"camera delivers {frame.shape[1]}x{frame.shape[0]} frames"
-                )
-            write_png(raw / name, frame)  # atomic: a crash never leaves half a frame
+            fits(frame)
             if i is not None:
-                chk = exposure_check(frame, camera.white_level, mask_arr, max_saturated, min_level)
-                session["frames"][name] = {**asdict(chk), "time": time.time()}
-                msg = chk.problems()
-                if msg:
-                    problems.append(f"{name}: " + ", ".join(msg))
-                    log(f"warning: {problems[-1]}")
+                check(name, frame)
+            # The record first, then the frame: an interruption between the two leaves a
+            # record without its frame, which the resume captures (and records) again; never
+            # a frame on disk that nothing has checked.
             save_session()
+            write_png(raw / name, frame)  # atomic: a crash never leaves half a frame
     finally:
         # never hide the original error behind a light-controller error
         with contextlib.suppress(Exception):
             lights.off()
-    if strict and problems:
-        raise InputError("exposure problems: " + "; ".join(problems), out)
+    judge_all()
     return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt, log=log)
 
 
@@ -730,6 +818,7 @@ __all__ = [
     "capture_loop",
     "capture_stack",
     "check_folder",
+    "check_inputs",
     "check_mask",
     "check_vectors",
     "exposure_check",

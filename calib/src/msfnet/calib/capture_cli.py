@@ -11,7 +11,13 @@ from typing import Any
 import numpy as np
 
 from msfnet.calib.cameras import Camera, SimulatedCamera
-from msfnet.calib.capture import Linearisation, capture_loop, capture_stack, check_folder
+from msfnet.calib.capture import (
+    Linearisation,
+    capture_loop,
+    capture_stack,
+    check_folder,
+    check_inputs,
+)
 from msfnet.calib.lights import Lights
 from msfnet.common.cli import (
     command_main,
@@ -100,7 +106,11 @@ def add_device_arguments(
         help=f"number of lights, at least {MIN_LIGHTS} (manual; checks serial; sim default 12)",
     )
     g.add_argument(
-        "--settle", type=nonnegative_float, default=0.05, help="seconds after switching a light"
+        "--settle",
+        type=nonnegative_float,
+        default=0.05,
+        help="--light-rig serial: seconds to wait after switching a light (default 0.05; "
+        "the manual and sim rigs do not wait)",
     )
     g.add_argument(
         "--sim-scene",
@@ -314,6 +324,7 @@ def run_capture(args: argparse.Namespace, out_dir: Path, overwrite: bool = False
     # into the folder is refused at once
     with folder_lock(out_dir, PROG):
         try:
+            check_inputs(out_dir, (args.light_directions, args.light_intensities, args.mask))
             check_folder(out_dir, overwrite)
             cam, lights, known = _open(args)
             options = _capture_options(args, known, log, overwrite)

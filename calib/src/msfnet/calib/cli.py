@@ -212,6 +212,12 @@ def _say(args: argparse.Namespace, text: str) -> None:
         print(text)
 
 
+def _warn(args: argparse.Namespace, text: str) -> None:
+    """``msf-calib: warning: <image>: ...`` on stderr; not with -q (errors only)."""
+    if not args.quiet:
+        print(f"{PROG}: warning: {text}", file=sys.stderr)
+
+
 def cmd_directions(args: argparse.Namespace) -> int:
     _check_options(args)
     out = Path(args.output)
@@ -235,10 +241,10 @@ def cmd_directions(args: argparse.Namespace) -> int:
         diag.append((imgs, circ))
     intr = _intrinsics(args, captures[0].shape[1:3])
     names = names or []
-    res = estimate_directions(captures, circles, intr, ambients, names=names)
+    res = estimate_directions(captures, circles, intr, ambients, names=names, source=folders[0])
     _check_result(res.directions, "light directions", unit=True)
     for w in res.warnings:
-        print(f"warning: {w}", file=sys.stderr)
+        _warn(args, w)
     writers: list[tuple[Path, Callable[[Path], None]]] = [
         (out, _text_writer(vectors_text(res.directions))),
         (
@@ -310,7 +316,7 @@ def cmd_intensities(args: argparse.Namespace) -> int:
     )
     _check_result(ints, "light intensities", unit=False)
     for w in warnings:
-        print(f"warning: {w}", file=sys.stderr)
+        _warn(args, w)
     _commit([(out, _text_writer(vectors_text(ints)))], args.overwrite)
     _say(
         args,

@@ -182,10 +182,12 @@ def estimate_directions(
     white_level: float | None = None,
     names: list[str] | None = None,
     min_snr: float = 8.0,
+    source: str | Path | None = None,
 ) -> DirectionResult:
     """Light directions from one or more captures (each (N, H, W[, 3])) of mirror spheres.
 
     ``circles[k]`` lists the spheres of capture k. All captures must have the same N lights.
+    ``source``: the file or folder an error names (the first capture's folder).
     """
     if not captures:
         raise InputError("no images given")
@@ -248,7 +250,8 @@ def estimate_directions(
         raise InputError(
             f"no highlight found for {len(missing)} light(s): "
             f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''} "
-            f"({_why_none([per_light[names.index(m)] for m in missing])})"
+            f"({_why_none([per_light[names.index(m)] for m in missing])})",
+            source,
         )
     return DirectionResult(dirs, conf, per_light, spread, warnings)
 

@@ -303,7 +303,7 @@ def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
             return np.asarray(im)
     except Exception as exc:  # Pillow raises many types for corrupt files
         if type(exc).__name__ == "UnidentifiedImageError":  # its text names a BytesIO object
-            raise InputError("not an image in a format this tool reads", path) from exc
+            raise InputError("cannot decode image: not a format this tool reads", path) from exc
         raise InputError(
             f"cannot decode image ({type(exc).__name__}: {first_line(exc)})", path
         ) from exc

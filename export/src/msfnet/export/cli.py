@@ -86,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--output",
         type=Path,
         default=None,
-        help="output .onnx (default: the checkpoint's name with .onnx)",
+        help="output .onnx (default: the checkpoint's name with .onnx in place of its "
+        ".pth / .pth.tar)",
     )
     p.add_argument(
         "--variant",
@@ -224,6 +225,24 @@ def main(argv: list[str] | None = None) -> int:
     return command_main(PROG, build_parser(), _body, argv, check=_check_args)
 
 
+_CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt")
+
+
+def default_output(checkpoint: Path) -> Path:
+    """The output without -o: the checkpoint's name with .onnx in place of its suffix, both of
+    a double one (``checkp_30.pth.tar`` -> ``checkp_30.onnx``, ``model.pth`` -> ``model.onnx``)."""
+    stem = checkpoint.name
+    if stem.lower().endswith(".tar"):
+        stem = stem[: -len(".tar")]
+    for suffix in _CHECKPOINT_SUFFIXES:
+        if stem.lower().endswith(suffix):
+            stem = stem[: -len(suffix)]
+            break
+    if not stem or stem == checkpoint.name:
+        return checkpoint.with_suffix(".onnx")
+    return checkpoint.with_name(stem + ".onnx")
+
+
 def _export(args: argparse.Namespace) -> int:
     from msfnet.export.pipeline import export_variant  # torch: only once the flags are good
 
@@ -241,7 +260,7 @@ def _export(args: argparse.Namespace) -> int:
         tolerance_deg=args.tolerance,
         weight_bits=args.weight_bits,
     )
-    output = args.output or args.checkpoint.with_suffix(".onnx")
+    output = args.output or default_output(args.checkpoint)
     result = export_variant(
         args.checkpoint,
         variant,

@@ -26,6 +26,7 @@ import torch
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, write_atomic
+from msfnet.common.signals import Terminated
 from msfnet.export.onnx_export import STAGED_CHECK_CHUNK, default_checks
 from msfnet.export.passes import PASSES, PassContext
 from msfnet.export.variants import (
@@ -124,6 +125,7 @@ def run_export(
             checkpoint,
         )
     stacks = load_stacks(calib)
+    import_onnxruntime()  # the passes and the verification use it: imported once, here
     ctx = PassContext(model, variant, options, checkpoint, output, stacks)
     proto = None
     reference: bytes | None = None
@@ -184,11 +186,6 @@ def run_export(
             rows.extend(compare(runner, torch_runner(model), rendered_cases(checks)))
         judge(rows, variant.rule, limit, source=checkpoint)
 
-    # Import the verifier's runtime before the partial file exists: a Ctrl-C / SIGTERM landing
-    # inside a C extension's import surfaces as "ImportError: initialization failed", not as
-    # the signal (seen once in CI's SIGTERM test).
-    import onnxruntime  # noqa: F401
-
     write_atomic(output, write_verified, overwrite=overwrite)
     return ExportResult(
         path=output,
@@ -200,6 +197,24 @@ def run_export(
         size_bytes=len(data),
         notes=dict(ctx.notes),
     )
+
+
+def import_onnxruntime() -> None:
+    """Import ONNX Runtime. A Ctrl-C / SIGTERM landing inside its C extension's import
+    surfaces as "ImportError: initialization failed" caused by the signal's exception: that
+    exception is raised instead, so the command ends as interrupted / terminated (130 / 143,
+    "nothing was written"), not as an internal error."""
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError as exc:
+        seen: set[int] = set()
+        cause: BaseException | None = exc
+        while cause is not None and id(cause) not in seen:
+            seen.add(id(cause))
+            if isinstance(cause, (KeyboardInterrupt, Terminated)):
+                raise cause from None
+            cause = cause.__cause__ or cause.__context__
+        raise
 
 
 def write_file(path: Path, data: bytes, target: Path) -> None:

@@ -64,9 +64,23 @@ def read_torch_file(path: str | Path) -> object:
         TypeError,
         IndexError,
     ) as exc:
-        raise CheckpointError(
-            f"not a readable PyTorch checkpoint ({first_line(exc)})", path
-        ) from exc
+        raise CheckpointError(f"not a readable PyTorch checkpoint ({_reason(exc)})", path) from exc
+
+
+def _reason(exc: BaseException) -> str:
+    """Why torch could not read the file, short and complete: torch's first sentence (its
+    zip reader adds a paragraph of advice), a damaged zip archive said plainly."""
+    text = first_line(exc, 10_000)
+    if (
+        "failed reading zip archive" in text
+        or "central directory" in text
+        or isinstance(exc, zipfile.BadZipFile)
+    ):
+        return "a truncated or damaged zip archive"
+    sentence = text.split(". ")[0].rstrip(".")
+    if len(sentence) > 160:
+        sentence = sentence[:160].rsplit(" ", 1)[0] + " ..."
+    return sentence
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], int | None]:
@@ -95,7 +109,19 @@ def _tensors(obj: object, path: Path) -> dict[str, torch.Tensor]:
             "{'state_dict': {...}} or a bare state_dict)",
             path,
         )
-    return {_strip_prefix(str(k)): v for k, v in obj.items()}
+    tensors: dict[str, torch.Tensor] = {}
+    given: dict[str, str] = {}
+    for k, v in obj.items():
+        key = _strip_prefix(str(k))
+        if key in tensors:
+            # DataParallel's module.X next to X: which of the two is meant cannot be told
+            raise CheckpointError(
+                f"holds both {given[key]} and {k}, one weight under two names; keep one of "
+                "them (re-save the state_dict)",
+                path,
+            )
+        tensors[key], given[key] = v, str(k)
+    return tensors
 
 
 def _refusal(path: Path, exc: pickle.UnpicklingError) -> str:
@@ -143,7 +169,9 @@ def check_state_dict(
 ) -> None:
     """Raise CheckpointError listing missing, unexpected and mis-shaped keys."""
     expected = model.state_dict()
-    missing = sorted(set(expected) - set(state))
+    # BatchNorm's num_batches_tracked counter is not used in inference, and checkpoints of
+    # PyTorch < 0.4.1 (or converted ones) lack it: load_state_dict(strict=True) fills it in
+    missing = sorted(k for k in set(expected) - set(state) if not _optional_key(k))
     unexpected = sorted(set(state) - set(expected))
     shapes = sorted(
         f"{k} {tuple(state[k].shape)} != {tuple(v.shape)}"
@@ -168,6 +196,10 @@ def check_state_dict(
             problems.append(f"{len(keys)} {label} key(s): {shown}")
     if problems:
         raise CheckpointError("not an MSF-Net checkpoint: " + "; ".join(problems), source)
+
+
+def _optional_key(key: str) -> bool:
+    return key.endswith(".num_batches_tracked")
 
 
 def _same_kind(got: torch.Tensor, want: torch.Tensor) -> bool:

@@ -17,9 +17,12 @@ Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any st
         view = r.plot()                      # (h, w, 3) uint8 RGB picture of the normals
 
     baseline = Model.least_squares()         # classical least squares, same API
-    l2 = baseline.predict(stack.images, stack.lights, mask=stack.mask)  # plain numpy arrays
+    l2 = baseline(stack)                     # the stack's own intensities, mask, ground truth
 
-``Model("x.onnx", threads=2)`` loads another msfnet export. The data flows stack -> estimator
+``Model("x.onnx", threads=2)`` loads another msfnet export. ``model.predict(images, lights,
+mask=..., intensities=...)`` runs on plain arrays: images as stored (a Stack's ``images``) are
+not yet divided by their lights' intensities, so a calibrated rig's must be passed too (or run
+``model(stack)``, which cannot leave them out). The data flows stack -> estimator
 (normalise -> infer, tiled) -> metrics -> Result; nothing is written until ``Result.save``.
 """
 
@@ -34,15 +37,18 @@ from collections.abc import Callable, Generator, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
+import numpy.typing as npt
 
-from msfnet.common.errors import InputError
+from msfnet.common.errors import InputError, MsfError
 from msfnet.common.files import API_WRITER, current_writer
 from msfnet.runtime.engines.base import Engine
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
     from msfnet.runtime.engines.dispatch import Device
 from msfnet.runtime.evaluate.metrics import NormalMetrics, error_map, normal_metrics
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
@@ -56,13 +62,15 @@ from msfnet.runtime.infer.fine_detail import FineDetailEstimator
 from msfnet.runtime.infer.ladder import RUNGS, reduced_network
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO, TilePlan
 from msfnet.runtime.infer.tta import TTAEstimator
-from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions
+from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions, map_options
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
 from msfnet.runtime.results.profile import BatchStats, Profile, StageTimer
 from msfnet.runtime.sources import (
+    BatchItem,
     Decoded,
     Leftovers,
     decode_ahead,
+    path_item,
     record_decode,
     stream_items,
 )
@@ -86,7 +94,18 @@ def default_model_path(precision: str = "fp32") -> Path:
 # ---------------------------------------------------------------- errors in the API's words
 # The library's messages name command-line flags (what msf-run prints). A Python caller gets
 # the same message with each flag written as the keyword it passes instead: "pass --overwrite"
-# becomes "pass overwrite=True", "--select '1-x'" becomes "select='1-x'".
+# becomes "pass overwrite=True", "--select '1-x'" becomes "select='1-x'", "--no-detail-fusion"
+# "detail_fusion=False", "--threads must be ..." "threads must be ...", and a valued flag with
+# no value after it ("pass --lights") "lights=...".
+
+# Words that follow a valued flag in a message as prose, not as its value ("--threads must
+# be", "--tile or --max-memory"): the keyword is then written alone.
+_PROSE_WORDS = (
+    "a an and applied are as at beside both can cannot contradict does each evenly for from "
+    "given has holds in inside is keeps leaves may must names needs not of on only or "
+    "override overrides per profiles promises read runs takes than the to too was when with"
+)
+_PROSE = frozenset(_PROSE_WORDS.split())
 
 
 def _keywords() -> dict[str, tuple[str, bool, tuple[str, ...]]]:
@@ -99,6 +118,9 @@ def _keywords() -> dict[str, tuple[str, bool, tuple[str, ...]]]:
     for f in fields(ModelOptions):
         spec = f.metadata.get("flag")
         if spec is not None:
+            if spec.action == "store_false":  # --no-detail-fusion: detail_fusion=False
+                table[spec.flag_name(f.name)] = (f"{f.name}=False", True, ())
+                continue
             switch = spec.action == "store_true"
             table[spec.flag_name(f.name)] = (f.name, switch, tuple(spec.choices or ()))
     for f in fields(LoadOptions):
@@ -108,7 +130,8 @@ def _keywords() -> dict[str, tuple[str, bool, tuple[str, ...]]]:
 
 
 _FLAG = re.compile(
-    r"--([a-z][a-z0-9-]*)((?: (?:'[^']*'|\"[^\"]*\"|-?[\d][\d.,]*))|(?: [a-z0-9]+))?"
+    r"--([a-z][a-z0-9-]*)"
+    r"((?: (?:'[^']*'|\"[^\"]*\"|-?[\d][\d.,]*|(?:True|False|None)\b))|(?: [a-z0-9]+))?"
 )
 _HAS_KEYWORD = re.compile(r"\b[a-z_]+=")  # a message that already speaks both
 
@@ -125,12 +148,14 @@ def api_message(text: str) -> str:
             return m.group(0)
         name, switch, words = table[flag]
         if switch:
-            return name if "=" in name else f"{name}=True{value}"
+            return (name if "=" in name else f"{name}=True") + value
         word = value.strip()
-        if word and (word[0] in "'\"-" or word[0].isdigit()):
+        if word and (word[0] in "'\"-" or word[0].isdigit() or word[0].isupper()):
             return f"{name}={word}"
         if word in words:
             return f"{name}={word!r}"
+        if word in _PROSE:
+            return f"{name}{value}"
         return f"{name}=...{value}"
 
     return _FLAG.sub(keyword, text)
@@ -138,14 +163,19 @@ def api_message(text: str) -> str:
 
 @contextmanager
 def api_words() -> Iterator[None]:
-    """Re-raise an InputError in the API's words, unless a command (msf-run, ...) is running,
-    which prints its own."""
+    """Re-raise an InputError or an MsfError in the API's words, unless a command (msf-run,
+    ...) is running, which prints its own. An MsfError keeps its cause and traceback."""
     try:
         yield
     except InputError as exc:
         if current_writer() != API_WRITER:
             raise
         raise InputError(api_message(exc.message), exc.path) from None
+    except MsfError as exc:
+        text = str(exc)
+        if current_writer() != API_WRITER or api_message(text) == text:
+            raise
+        raise MsfError(api_message(text)).with_traceback(exc.__traceback__) from exc.__cause__
 
 
 @contextmanager
@@ -286,7 +316,13 @@ class Result:
         """:meth:`as_dict` as JSON text (one line with ``indent=None``, for a log)."""
         return json.dumps(self.as_dict(), indent=indent, default=_plain)
 
-    def plot(self, what: str = "normals", *, figure: bool = False) -> Any:
+    @overload
+    def plot(self, what: str = ..., *, figure: Literal[False] = ...) -> np.ndarray: ...
+    @overload
+    def plot(self, what: str = ..., *, figure: Literal[True]) -> Figure: ...
+    @overload
+    def plot(self, what: str = ..., *, figure: bool) -> np.ndarray | Figure: ...
+    def plot(self, what: str = "normals", *, figure: bool = False) -> np.ndarray | Figure:
         """A picture of the result: an (h, w, 3) uint8 RGB array (cropped to the object, with
         a colour bar where it has a scale), or with ``figure=True`` a matplotlib Figure
         showing it. ``what``: "normals" (with the colour-convention sphere), "error"
@@ -334,8 +370,8 @@ class Result:
         values = None if self.maps is None else getattr(self.maps, what, None)
         if values is None:
             raise InputError(
-                f"plot({what!r}): no {what} map was computed (Model(maps=MapOptions(...)) "
-                "chooses them; maps=None computes none)"
+                f"plot({what!r}): no {what} map was computed: Model(maps={what!r}) or "
+                "Model(maps=msfnet.MapOptions(...)) chooses the maps; maps=None computes none"
             )
         return drawers[what](values, mask)
 
@@ -368,12 +404,36 @@ def _plain(value: object) -> object:
     return str(value)
 
 
-def load_stack(path: str | Path, options: LoadOptions | None = None, **overrides: Any) -> Stack:
+def load_stack(
+    path: str | os.PathLike[str], options: LoadOptions | None = None, **overrides: Any
+) -> Stack:
     """Read a stack (folder, .npz, ...) as :func:`msfnet.runtime.stack.load_stack` does, with
     errors in the API's words: ``load_stack("obj/", max_lights=8)``, ``load_stack(p,
-    LoadOptions(lights="lights.txt"))``."""
+    LoadOptions(lights="lights.txt"))``. A folder named for a benchmark object with that
+    object's images is read with the benchmark's selection, as ``model(path)``, streams and
+    msf-run read it (DiLiGenT's ``bearPNG``: images 21-96, with a UserWarning that says so);
+    a ``select`` of your own overrides it."""
     with api_words():
-        return read_stack(path, options, **overrides)
+        given = options if options is not None else LoadOptions()
+        if overrides:
+            given = replace(given, **overrides)
+        path = Path(path)
+        return read_stack(path, _protocol(path, given, stacklevel=3)[0])
+
+
+def _protocol(
+    path: Path, load: LoadOptions, *, stacklevel: int
+) -> tuple[LoadOptions, BatchItem | None]:
+    """``load`` with the benchmark protocol's selection for the stack folder ``path``
+    (:func:`~msfnet.runtime.sources.path_item`: DiLiGenT bear, 21-96) where ``load`` selects
+    no images itself, and the item that chose it (None: no protocol selection applies). The
+    line msf-run prints then is a UserWarning here: the selection changes the result."""
+    item = path_item(path)
+    note = item.note(load)
+    if note is None:
+        return load, None
+    warnings.warn(api_message(note), UserWarning, stacklevel=stacklevel)
+    return item.options(load), item
 
 
 class Model:
@@ -383,7 +443,11 @@ class Model:
     export (loaded once, here); ``Model.least_squares()`` classical least squares. The keyword
     settings are the fields of :class:`~msfnet.runtime.options.ModelOptions` (``method``,
     ``engine``, ``precision``, ``threads``, ``provider``, ``tile``, ``max_memory_mb``,
-    ``maps``, ``fine_detail``, ...); ``options=`` passes a whole ModelOptions instead.
+    ``maps``, ``fine_detail``, ...), each checked here, before any work; ``options=`` passes a
+    whole ModelOptions instead. ``maps``: the inspection maps computed after the normals, a
+    :class:`msfnet.MapOptions`, map names as msf-run's ``--maps`` takes them
+    (``"height,curvature"`` or ``["height", "curvature"]``: a MapOptions with those maps), or
+    None for the normals only.
     ``fine_detail`` also runs the network at 2x for relief of a few pixels
     (:mod:`msfnet.runtime.infer.fine_detail`).
     Calling it (``model(stack)``, :meth:`predict`) returns a :class:`Result` and writes
@@ -434,10 +498,15 @@ class Model:
 
     @classmethod
     def least_squares(
-        cls, *, max_memory_mb: float = DEFAULT_MAX_MEMORY_MB, maps: MapOptions | None = DEFAULT_MAPS
+        cls,
+        *,
+        max_memory_mb: float = DEFAULT_MAX_MEMORY_MB,
+        maps: MapOptions | str | Iterable[str] | None = DEFAULT_MAPS,
     ) -> Model:
         """Per-pixel least squares (Woodham 1980): no network, the same inputs and outputs."""
-        return cls(options=ModelOptions(method="l2", max_memory_mb=max_memory_mb, maps=maps))
+        with api_words():
+            opts = ModelOptions(method="l2", max_memory_mb=max_memory_mb, maps=map_options(maps))
+        return cls(options=opts)
 
     @property
     def method(self) -> str:
@@ -466,8 +535,12 @@ class Model:
 
         ``load``: how to read a path (selection, files, ROI, downscale, linearisation,
         auto-mask); on a Stack already in memory its selection and real-camera options are
-        applied to a copy. ``repeat``: run load -> metrics that many times for the latency
-        profile. For many stacks (a folder, a list, a capture loop) see :meth:`stream`.
+        applied to a copy. A folder named for a benchmark object is read with the benchmark's
+        selection unless ``load`` selects images, as streams and msf-run read it (DiLiGenT's
+        ``bearPNG``: images 21-96; a UserWarning says so, and ``Result.input`` records
+        ``select`` and ``select_from``). ``repeat``: run load -> metrics that many times for
+        the latency profile. For many stacks (a folder, a list, a capture loop) see
+        :meth:`stream`.
         """
         with api_words():
             if isinstance(stack, (list, tuple)) or not isinstance(stack, (Stack, str, Path)):
@@ -485,7 +558,7 @@ class Model:
         *,
         prefetch: bool = True,
         on_error: str = "raise",
-    ) -> Stream:
+    ) -> Stream[Result]:
         """Run many stacks, yielding one :class:`Result` at a time (an iterator: nothing is
         written; the stream holds at most two stacks, the current one and the next being
         decoded, beside the Results you keep: ``r.without_images()`` keeps one small).
@@ -522,6 +595,10 @@ class Model:
                         skipped.append(Skipped(given_source(decoded.item), decoded.error))
                         warnings.warn(f"{decoded.error}; skipped", RuntimeWarning, stacklevel=3)
                         continue
+                    item = decoded.item
+                    note = item.note(opts) if isinstance(item, BatchItem) else None
+                    if note is not None:  # a benchmark's selection, as model(path) says it
+                        warnings.warn(api_message(note), UserWarning, stacklevel=3)
                     try:
                         result = self._run_decoded(decoded, opts)
                     except BaseException:  # interrupted or failed: the caller gets it back
@@ -574,6 +651,12 @@ class Model:
             raise InputError(f"--repeat must be at least 1, got {repeat}")
         if load is not None:
             load = self._loading(load)
+        recorded = None if load is None else load.describe()  # Result.input
+        if not isinstance(stack, Stack):
+            given = load if load is not None else LoadOptions()
+            protocol, item = _protocol(Path(stack), given, stacklevel=4)
+            if item is not None:  # recorded as a stream and msf-run record it
+                load, recorded = protocol, item.describe_input(given)
         prof = Profile()
         loaded: Stack | None = None
         result: Result | None = None
@@ -618,22 +701,28 @@ class Model:
                 err,
                 est.plan,
                 maps,
-                input=load.describe() if load is not None else None,
+                input=recorded,
             )
         assert result is not None
         return result
 
     def predict(
         self,
-        images: np.ndarray,
-        lights: np.ndarray,
-        mask: np.ndarray | None = None,
-        intensities: np.ndarray | None = None,
-        normals_gt: np.ndarray | None = None,
+        images: npt.ArrayLike,
+        lights: npt.ArrayLike,
+        mask: npt.ArrayLike | None = None,
+        intensities: npt.ArrayLike | None = None,
+        normals_gt: npt.ArrayLike | None = None,
     ) -> Result:
-        """Run on numpy arrays: images (N, H, W, 3) or (N, H, W) linear values, lights (N, 3)
-        directions (x right, y up, z to the camera); mask (H, W) and intensities (N, 3)
-        optional. Writes nothing."""
+        """Run on numpy arrays (or nested lists): images (N, H, W, 3) or (N, H, W) linear
+        values, lights (N, 3) directions (x right, y up, z to the camera); mask (H, W) and
+        intensities (N, 3) optional. Writes nothing.
+
+        ``intensities``: the lights' RGB intensities the images are divided by (ones when
+        omitted). Images as a calibrated rig stores them, a Stack's ``images`` among them, are
+        not divided yet: pass ``intensities=stack.intensities`` (or run ``model(stack)``), or
+        the normals bend toward the brighter lights (15.6 deg instead of 4.1 on DiLiGenT's
+        ball with least squares, 8 lights)."""
         with api_words():
             stack = Stack.from_arrays(
                 images,

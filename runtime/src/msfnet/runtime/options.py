@@ -10,14 +10,17 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import numbers
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 from msfnet.common.cli import flag, positive_float, thread_count
 from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
+from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
-from msfnet.runtime.results.maps.api import MapOptions
+from msfnet.runtime.results.maps.api import MAP_NAMES, MapOptions
 
 METHODS = ("msf", "l2")
 TTA_COUNTS = (1, 4, 8)  # infer.tta: the plain pass, + half turn and mirrors, + quarter turns
@@ -31,6 +34,32 @@ def tta_count(text: str) -> int:
 
 
 DEFAULT_MAPS = MapOptions()  # albedo, height (Poisson), curvature, mesh
+MIN_TILE = 2 * HALO + INPUT_MULTIPLE  # the smallest window with a core inside its halo
+
+
+def map_options(maps: MapOptions | str | Iterable[str] | None) -> MapOptions | None:
+    """``Model(maps=...)``: a MapOptions, None (normals only), or map names as msf-run's
+    ``--maps`` takes them, ``"height,curvature"`` or ``("height", "curvature")``, which give
+    ``MapOptions(maps=names)`` (the other map settings at their defaults). Anything else is
+    refused here, before any work (it used to fail after the first stack's inference)."""
+    if maps is None or isinstance(maps, MapOptions):
+        return maps
+    names: tuple[str, ...] | None = None
+    if isinstance(maps, str):
+        names = tuple(n.strip() for n in maps.split(",") if n.strip())
+    elif isinstance(maps, (list, tuple)) and all(isinstance(n, str) for n in maps):
+        names = tuple(maps)
+    elif isinstance(maps, (set, frozenset)) and all(isinstance(n, str) for n in maps):
+        known = [n for n in MAP_NAMES if n in maps]  # a set: in the usual order
+        names = (*known, *sorted(set(maps) - set(known)))  # unknown ones refused below
+    if names is None:
+        raise InputError(
+            f"maps={maps!r}: expected map names ('height,curvature' or ('height', 'curvature'); "
+            f"from {', '.join(MAP_NAMES)}), a msfnet.MapOptions, or None (normals only)"
+        )
+    if not names:
+        raise InputError(f"maps={maps!r} names no map; maps=None computes none")
+    return MapOptions(maps=names)  # unknown names refused there
 
 
 @dataclass(frozen=True)
@@ -39,7 +68,8 @@ class ModelOptions:
 
     ``model``: an msfnet ONNX file (None: the bundled model). ``method``: "msf" the network,
     "l2" per-pixel least squares. ``engine`` / ``precision``: None = chosen for this CPU.
-    ``maps``: inspection maps computed after the normals (None: normals only).
+    ``maps``: inspection maps computed after the normals (None: normals only; map names
+    ``"height,curvature"`` are taken too, see :func:`map_options`).
     """
 
     model: Path | None = flag(
@@ -64,8 +94,9 @@ class ModelOptions:
         None,
         "compute precision (default: the fastest one measured within 0.5 deg of fp32 on "
         "real data for this CPU: the bundled model's int8 twin where it was measured "
-        "faster (CPUs without native bf16; AMD Zen 4), else bf16 through OpenVINO where the "
-        "CPU has it natively, else fp32; int8 with --onnx needs an int8 export)",
+        "faster (AVX2 and AVX-512 VNNI CPUs without native bf16; AMD Zen 4), else bf16 "
+        "through OpenVINO where the CPU has it natively, else fp32; int8 with --onnx needs "
+        "an int8 export)",
         choices=("fp32", "bf16", "int8"),
     )
     threads: int | None = flag(
@@ -146,6 +177,9 @@ class ModelOptions:
             object.__setattr__(self, "model", Path(self.model))
         if self.provider == "cpu":
             object.__setattr__(self, "provider", None)  # the default, spelled out
+        object.__setattr__(self, "maps", map_options(self.maps))
+        if isinstance(self.tile, numbers.Integral) and not isinstance(self.tile, bool):
+            object.__setattr__(self, "tile", int(self.tile))  # numpy's integers too
         self.check()
 
     def check(self) -> None:
@@ -196,6 +230,17 @@ class ModelOptions:
             raise InputError(f"max memory {self.max_memory_mb}: must be a positive number of MB")
         if self.threads is not None:
             check_threads(self.threads)
+        tile = self.tile
+        if tile is not None and (
+            isinstance(tile, bool)
+            or not isinstance(tile, int)
+            or (tile != 0 and (tile < MIN_TILE or tile % INPUT_MULTIPLE))
+        ):
+            raise InputError(
+                f"--tile {tile!r}: expected 0 (no tiling) or a window edge in px, a multiple "
+                f"of {INPUT_MULTIPLE} and at least {MIN_TILE} (2 x {HALO} px halo + "
+                f"{INPUT_MULTIPLE})"
+            )
 
     @property
     def is_network(self) -> bool:
@@ -230,4 +275,12 @@ class ModelOptions:
         return out
 
 
-__all__ = ["DEFAULT_MAPS", "METHODS", "TTA_COUNTS", "ModelOptions", "tta_count"]
+__all__ = [
+    "DEFAULT_MAPS",
+    "METHODS",
+    "MIN_TILE",
+    "TTA_COUNTS",
+    "ModelOptions",
+    "map_options",
+    "tta_count",
+]

@@ -102,6 +102,13 @@ def _protocol_item(folder: Path, lights: Path | None = None) -> BatchItem:
     return BatchItem(folder, select, "protocol", lights)
 
 
+def path_item(path: Path) -> BatchItem:
+    """One stack given by its path (an element of a stream, ``model(path)``,
+    ``msfnet.load_stack(path)``): a folder with its benchmark's selection, as msf-run reads it
+    (DiLiGenT bear: 21-96), anything else as it is (an .npz, or a path the loader reports)."""
+    return _protocol_item(path) if path.is_dir() else BatchItem(path)
+
+
 def _shared_lights_items(folder: Path) -> list[BatchItem] | None:
     """A folder with a light file but no images of its own, whose sub-folders hold images
     (psmImages: ``lights.txt`` at the top, one folder of TGA images per object): a folder of
@@ -385,8 +392,7 @@ def stream_items(source: object) -> tuple[Iterable[StackSource], int | None]:
             if isinstance(element, Stack):
                 yield element
             elif isinstance(element, (str, os.PathLike)):
-                path = Path(element)
-                yield _protocol_item(path) if path.is_dir() else BatchItem(path)
+                yield path_item(Path(element))
             else:
                 raise InputError(
                     f"stream(): an element of type {type(element).__name__}; expected a "
@@ -403,6 +409,7 @@ __all__ = [
     "StackSource",
     "decode_ahead",
     "expand_stacks",
+    "path_item",
     "record_decode",
     "stream_items",
 ]

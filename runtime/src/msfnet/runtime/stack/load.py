@@ -7,10 +7,12 @@ ROI -> downscale -> linearise -> auto-mask; images, mask and ground truth stay a
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,6 +45,9 @@ from msfnet.runtime.stack.types import (
     held_dtype,
     unit_lights,
 )
+
+if TYPE_CHECKING:
+    from os import PathLike
 
 LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_directions.json")
 INTENSITY_NAMES = ("light_intensities.txt", "intensities.txt", "light_intensities.json")
@@ -80,6 +85,28 @@ class LoadOptions:
     # crops every output back to the ROI; 0: the plain crop.
     roi_halo: int = 0
 
+    if TYPE_CHECKING:
+        # What the generated __init__ accepts: the files as str or any os.PathLike, held as
+        # Path once made (__post_init__); the other fields as declared (tests/runtime/stack/
+        # test_load.py checks that this stays the fields' list).
+        def __init__(
+            self,
+            lights: str | PathLike[str] | None = None,
+            intensities: str | PathLike[str] | None = None,
+            mask: str | PathLike[str] | None = None,
+            select: str | None = None,
+            max_lights: int | None = None,
+            threads: int = 4,
+            roi: Roi | None = None,
+            downscale: int = 1,
+            srgb: bool = False,
+            gamma: float | None = None,
+            white_level: float | None = None,
+            auto_mask: bool = False,
+            max_memory_mb: float | None = None,
+            roi_halo: int = 0,
+        ) -> None: ...
+
     def __post_init__(self) -> None:
         for name in ("lights", "intensities", "mask"):  # LoadOptions(lights="x.txt") works
             value = getattr(self, name)
@@ -101,13 +128,18 @@ class LoadOptions:
         return Transforms(self.roi, self.downscale, self.srgb, self.gamma, self.white_level)
 
     def describe(self) -> dict[str, object]:
-        """The real-camera options in effect, and the image selection when there is one, for
-        profile.json."""
-        chosen = {
+        """The real-camera options in effect, the image selection when there is one, and the
+        files given in place of the stack's own (lights, intensities, mask: as given), for
+        profile.json: a saved result names the light file it was computed with."""
+        chosen: dict[str, object] = {
             k: v
             for k, v in (("select", self.select), ("max_lights", self.max_lights))
             if v is not None
         }
+        for name in ("lights", "intensities", "mask"):
+            given = getattr(self, name)
+            if given is not None:
+                chosen[name] = str(given)
         if self.roi is not None and self.roi_halo:
             chosen["roi_halo"] = self.roi_halo
         return {**self.transforms().describe(), "auto_mask": self.auto_mask, **chosen}
@@ -127,7 +159,40 @@ class LoadOptions:
 
 
 def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
-    return next((folder / n for n in names if (folder / n).is_file()), None)
+    """The first of ``names`` present in ``folder``. One that is there but no readable file (a
+    dangling link, a folder, a pipe) is refused: taken as absent, a moved intensities file
+    ran with unit intensities and a dangling mask.png as no mask, without a word."""
+    for name in names:
+        path = folder / name
+        if os.path.lexists(path):
+            _regular_file(path)
+            return path
+    return None
+
+
+def _regular_file(path: Path) -> None:
+    if path.is_symlink() and not path.exists():
+        raise InputError(f"dangling link (to {os.readlink(path)})", path)
+    if not path.is_file():
+        what = "a folder" if path.is_dir() else "not a regular file (a pipe or a device?)"
+        raise InputError(f"is {what}; expected a file", path)
+
+
+def _listed_images(folder: Path, names_file: Path) -> list[Path]:
+    """The images filenames.txt lists, which must lie in the stack folder: an entry reaching
+    outside it (``../x.png``, an absolute path) would be an input no output check knows of."""
+    names = [
+        ln.strip() for ln in names_file.read_text(encoding="utf-8-sig").splitlines() if ln.strip()
+    ]
+    for name in names:
+        part = Path(os.path.normpath(name))  # sub/../002.png is 002.png
+        if part.is_absolute() or part.parts[:1] == ("..",):
+            raise InputError(
+                f"entry {name[:80]!r} lies outside the stack folder; list the images by "
+                "their names in the folder",
+                names_file,
+            )
+    return [folder / n for n in names]
 
 
 def check_stack_size(
@@ -344,13 +409,9 @@ def load_folder(
             raise InputError(f"not a supported stack: expected {STACK_KINDS}", folder)
         raise InputError("stack folder not found", folder)
     names_file = folder / "filenames.txt"
-    if names_file.is_file():
-        names = [
-            ln.strip()
-            for ln in names_file.read_text(encoding="utf-8-sig").splitlines()
-            if ln.strip()
-        ]
-        paths = [folder / n for n in names]
+    if os.path.lexists(names_file):
+        _regular_file(names_file)
+        paths = _listed_images(folder, names_file)
         _refuse_repeats(paths, names_file)
     else:
         paths = list_images(folder)
@@ -392,6 +453,8 @@ def load_folder(
     # read with --auto-mask too: the automatic mask is compared with it (see _finish)
     mask_path = options.mask or _first_existing(folder, MASK_NAMES) or _other_mask(folder)
     mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3], bool)
+    if mask_path is not None and not mask_arr.any():  # the file's fault, not the stack's
+        raise InputError("mask is empty (no pixel above 127 inside the image read)", mask_path)
     gt_path = _first_existing(folder, GT_NAMES)
     gt = None
     if gt_path is not None:

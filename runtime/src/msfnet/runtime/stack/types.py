@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from msfnet.common.errors import InputError
 
@@ -33,6 +35,8 @@ INTEGER_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 # its pixels say "black" where the surface is lit, and every normal bends away from that light.
 # The darkest images of DiLiGenT and psmImages (grazing lights, shadows) are at 0.6 or more.
 DARK_IMAGE = 0.02
+# The values a float image stands at when it is clipped: see float_full_scale.
+FLOAT_FULL_SCALES = (1.0, 255.0, 1023.0, 4095.0, 16383.0, 65535.0)
 
 
 def held_dtype(dtype: np.dtype | type) -> np.dtype:
@@ -85,17 +89,17 @@ class Stack:
     @classmethod
     def from_arrays(
         cls,
-        images: np.ndarray,
-        lights: np.ndarray,
+        images: npt.ArrayLike,
+        lights: npt.ArrayLike,
         *,
-        mask: np.ndarray | None = None,
-        intensities: np.ndarray | None = None,
-        normals_gt: np.ndarray | None = None,
+        mask: npt.ArrayLike | None = None,
+        intensities: npt.ArrayLike | None = None,
+        normals_gt: npt.ArrayLike | None = None,
         name: str = "stack",
     ) -> Stack:
-        """A validated stack from plain arrays: images (N, H, W, 3) or (N, H, W) grey, lights
-        (N, 3) any length; mask and intensities optional. uint8/uint16 images are kept as
-        they are, any other type becomes float32."""
+        """A validated stack from plain arrays (or nested lists): images (N, H, W, 3) or
+        (N, H, W) grey, lights (N, 3) any length; mask and intensities optional. uint8/uint16
+        images are kept as they are, any other type becomes float32."""
         images = as_held(real_array(images, "images", name))
         if images.ndim == 3:
             images = np.repeat(images[..., None], 3, axis=3)
@@ -235,10 +239,15 @@ class Stack:
             raise InputError(
                 "every image is black (zero) inside the mask: nothing to estimate normals from", src
             )
-        # integer images: at the type's full scale; float ones (their scale is unknown): one
-        # value everywhere, which is what a clipped stack becomes after --downscale or --srgb
-        full = float(np.iinfo(self.images.dtype).max) if kind in "ui" else float(peak.max())
-        if (low >= full).all():
+        # integer images: at the type's full scale; float ones: one value everywhere, and that
+        # value a full scale (see float_full_scale). A clipped stack after --downscale or
+        # --srgb is one; a flat part under a ring light (one value in every image, 0.4 say) is
+        # not, and its normals are well determined.
+        if kind in "ui":
+            full: float | None = float(np.iinfo(self.images.dtype).max)
+        else:
+            full = float_full_scale(float(peak.max()))
+        if full is not None and (low >= full).all():
             raise InputError(
                 f"every image is saturated inside the mask (all pixels at {full:g})"
                 ": no shading to estimate normals from; lower the exposure",
@@ -279,10 +288,26 @@ class Stack:
         return out
 
 
+def float_full_scale(value: float) -> float | None:
+    """``value`` when it is a full scale float images are held at, else None: 1.0 (float
+    images), 255 / 65535 (8 / 16-bit images after --downscale, --srgb, --gamma), 1023 / 4095
+    / 16383 (a camera's 10 / 12 / 14 raw bits). Only a float stack at one of them everywhere
+    is saturated."""
+    return next((f for f in FLOAT_FULL_SCALES if math.isclose(value, f, rel_tol=1e-5)), None)
+
+
 def real_array(values: object, what: str, src: str | Path | None = None) -> np.ndarray:
     """``values`` as an array of real numbers (bool, integers or floats); complex numbers,
-    strings and objects refused (a cast would drop an imaginary part without a word)."""
-    arr = np.asarray(values)
+    strings and objects refused (a cast would drop an imaginary part without a word), and so
+    are ragged lists (rows or images of different sizes)."""
+    try:
+        arr = np.asarray(values)
+    except ValueError as exc:  # numpy: "setting an array element with a sequence ..."
+        raise InputError(
+            f"{what} are ragged: a list of arrays (or rows) of different shapes; every "
+            "element must have the same shape",
+            src,
+        ) from exc
     if arr.dtype.kind not in "biuf":
         raise InputError(f"{what} have dtype {arr.dtype}; expected real numbers", src)
     return arr
