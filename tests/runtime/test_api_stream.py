@@ -236,10 +236,11 @@ def test_leaving_a_stream_does_not_wait_for_a_camera_that_has_not_fired(l2: Mode
     assert next(stream).name == "first"
     start = time.monotonic()
     assert stream.stop(timeout=0.1) == []  # the pull is still waiting on the camera
+    assert stream.pending
     assert time.monotonic() - start < 2.0
     triggers.put(sphere_stack(n=5, h=20, w=22, seed=1, name="late"))
     _reader_ends()
-    assert [s.name for s in stream.unprocessed] == ["late"]
+    assert [s.name for s in stream.unprocessed] == ["late"] and not stream.pending
 
 
 def test_a_stack_whose_run_fails_is_handed_back(l2: Model, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -429,3 +430,29 @@ def test_public_hints_take_what_the_runtime_takes() -> None:
     assert hints["mask"] == npt.ArrayLike | None
     returns = [o.__annotations__["return"] for o in typing.get_overloads(Result.plot)]
     assert returns == ["np.ndarray", "Figure", "np.ndarray | Figure"]
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+@pytest.mark.parametrize("failure", [MemoryError, KeyboardInterrupt])
+def test_a_part_whose_decoding_fails_is_handed_back(
+    l2: Model, monkeypatch: pytest.MonkeyPatch, prefetch: bool, failure: type
+) -> None:
+    """Only an InputError kept its item: a MemoryError while preparing a large stack, or
+    Ctrl-C while one decodes in the calling thread, dropped a part taken from the camera."""
+    from msfnet.runtime import sources
+
+    real = sources._decode
+
+    def decode(item, load):  # type: ignore[no-untyped-def]
+        if getattr(item, "name", "") == "p1":
+            raise failure
+        return real(item, load)
+
+    monkeypatch.setattr(sources, "_decode", decode)
+    parts = [sphere_stack(n=5, h=20, w=22, seed=i, name=f"p{i}") for i in range(3)]
+    stream = l2.stream(iter(parts), prefetch=prefetch)
+    assert next(stream).name == "p0"
+    with pytest.raises(failure):
+        next(stream)
+    assert [s.name for s in stream.stop()] == ["p1"]
+    assert not stream.pending

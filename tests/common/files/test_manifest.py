@@ -110,3 +110,12 @@ def test_commands_replace_only_folders_of_their_own_kind(tmp_path: Path) -> None
     _write_tree(run, "msf-run")
     _write_tree(run, files.API_WRITER, overwrite=True)
     _write_tree(run, "msf-run", overwrite=True)
+
+
+def test_an_older_folder_says_why_it_is_not_replaced(tmp_path: Path) -> None:
+    out = tmp_path / "old"
+    (out / "obj").mkdir(parents=True)
+    (out / "obj" / "l2_normals.png").write_text("?")
+    (out / MANIFEST).write_text(json.dumps({"files": ["obj"], "command": "msf-eval"}))
+    with files.writing_as("msf-eval"), pytest.raises(InputError, match="an older msfnet"):
+        check_output(out, folder=True, overwrite=True)

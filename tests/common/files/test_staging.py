@@ -153,11 +153,17 @@ def test_a_long_legal_output_name_is_written(name: str, tmp_path: Path) -> None:
 def test_staging_of_another_pid_space_is_never_swept(tmp_path: Path) -> None:
     """A pid means something only in its own namespace: on a shared file system a run swept
     another container's live staging (its pid not running here) and that run failed with
-    "No such file or directory". Only this pid space's dead writers' staging goes, and
-    staging named before pid spaces counts as this one's."""
+    "No such file or directory". Only this pid space's dead writers' staging goes (and that
+    of an earlier boot here, and anyone's untouched for a day); staging named before pid
+    spaces counts as this one's."""
+    import time
+
+    from msfnet.common.files.staging import STALE_AFTER_S
+
     target = tmp_path / "out"
     prefix = f".out{STAGING_TAG}"
-    other = tmp_path / f"{prefix}999999999@00000000-abc"
+    space, boot = pid_space().split(".")
+    other = tmp_path / f"{prefix}999999999@00000000.{boot}-abc"
     other.mkdir()
     ours = tmp_path / f"{prefix}999999999@{pid_space()}-abc"
     ours.mkdir()
@@ -165,5 +171,13 @@ def test_staging_of_another_pid_space_is_never_swept(tmp_path: Path) -> None:
     legacy.mkdir()
     live = tmp_path / f"{prefix}{os.getpid()}@{pid_space()}-abc"
     live.mkdir()
+    # this host and namespace before a reboot (a power cut): its writer is gone, whatever pid
+    rebooted = tmp_path / f"{prefix}{os.getpid()}@{space}.00000000-abc"
+    rebooted.mkdir()
+    # another container's, untouched for longer than any write takes
+    old = tmp_path / f"{prefix}1@11111111.{boot}-abc"
+    old.mkdir()
+    then = time.time() - STALE_AFTER_S - 60
+    os.utime(old, (then, then))
     remove_stale_staging(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other.name, live.name])

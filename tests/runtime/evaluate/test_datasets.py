@@ -24,3 +24,16 @@ def test_an_objects_txt_selection_that_does_not_fit_names_the_listing(tmp_path: 
     assert "--select" not in text
     (tmp_path / "objects.txt").write_text("a\nb 2-7\n")
     assert [o.select for o in find_objects(tmp_path)] == [None, "2-7"]
+
+
+def test_the_users_selection_overrides_a_listed_one_unchecked(tmp_path: Path) -> None:
+    """The up-front check refused a listing that --select overrides (a regression)."""
+    from msfnet.runtime.cli.run import main as run_main
+
+    root = tmp_path / "bench"
+    png_stack(root / "a", 16)
+    (root / "objects.txt").write_text("a 7-9\n")
+    assert [o.select for o in find_objects(root, select_given=True)] == ["7-9"]
+    out = tmp_path / "out"
+    argv = [str(root), "--select", "1-6", "--method", "l2", "--no-maps", "-q", "-o", str(out)]
+    assert run_main(argv) == 0

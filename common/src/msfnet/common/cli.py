@@ -16,6 +16,7 @@ import math
 import os
 import re
 import sys
+import traceback
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from contextvars import ContextVar
@@ -342,8 +343,14 @@ def command_main(
             return body(args)
 
     token = _command.set(typed)
+    debug = bool(getattr(args, "debug", False))
     try:
-        return run_command(prog, run, debug=bool(getattr(args, "debug", False)))
+        return run_command(prog, run, debug=debug)
+    except Exception as exc:
+        if prog not in _FAILURE_EXIT:
+            raise  # --debug: Python prints the traceback and exits 1
+        traceback.print_exc()  # the traceback --debug asks for, but never exit 1 (a verdict)
+        return 2 if isinstance(exc, InputError) else _FAILURE_EXIT[prog]
     finally:
         _command.reset(token)
 

@@ -4,7 +4,7 @@
 Every command prints it as one line ``<command>: error: <file>: <problem>`` and exits with 2, so
 its message must name the offending file or option and say what is wrong.
 :class:`MsfError`: msfnet itself could not do its job (an engine failed, a verification did not
-pass); printed as one line too, exit 1.
+pass); printed as one line too, exit 1 (msf-inspect: 3, its 1 being a verdict).
 """
 
 from __future__ import annotations

@@ -582,7 +582,7 @@ class Model:
             if on_error not in ("raise", "skip"):
                 raise InputError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
             opts = self._loading(load if load is not None else LoadOptions())
-            items, total = stream_items(source)
+            items, total = stream_items(source, select_given=opts.select is not None)
 
         def results(taken: Leftovers, skipped: list[Skipped]) -> Generator[Result, None, None]:
             with api_words():
@@ -592,8 +592,13 @@ class Model:
                     if decoded.error is not None:
                         if on_error == "raise":
                             raise decoded.error
-                        skipped.append(Skipped(given_source(decoded.item), decoded.error))
-                        warnings.warn(f"{decoded.error}; skipped", RuntimeWarning, stacklevel=3)
+                        error = decoded.error
+                        if current_writer() == API_WRITER:  # the API's words, as raised ones
+                            error = InputError(api_message(error.message), error.path)
+                        source = given_source(decoded.item)
+                        skipped.append(Skipped(source, error))
+                        where = "" if error.path is not None else f"{source.name}: "
+                        warnings.warn(f"{where}{error}; skipped", RuntimeWarning, stacklevel=3)
                         continue
                     item = decoded.item
                     note = item.note(opts) if isinstance(item, BatchItem) else None

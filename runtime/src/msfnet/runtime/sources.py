@@ -122,7 +122,7 @@ def _shared_lights_items(folder: Path) -> list[BatchItem] | None:
     return [_protocol_item(d, None if lights_file(d) else resolved) for d in subs]
 
 
-def expand_stacks(paths: Sequence[Path]) -> list[BatchItem]:
+def expand_stacks(paths: Sequence[Path], *, select_given: bool = False) -> list[BatchItem]:
     """The stacks named on the command line: a stack folder or .npz stands for itself; a folder
     with an objects.txt (msf-eval's format, e.g. ``bearPNG 21-96``), whose sub-folders are
     stacks, or whose sub-folders share its light file stands for those. Names must be unique
@@ -131,7 +131,8 @@ def expand_stacks(paths: Sequence[Path]) -> list[BatchItem]:
     items: list[BatchItem] = []
     for path in paths:
         if path.is_dir() and (path / "objects.txt").is_file():
-            items += [BatchItem(o.folder, o.select) for o in find_objects(path)]
+            objects = find_objects(path, select_given=select_given)
+            items += [BatchItem(o.folder, o.select) for o in objects]
         elif path.is_dir() and (shared := _shared_lights_items(path)) is not None:
             items += shared
         elif path.is_dir() and not _is_stack_folder(path):
@@ -202,10 +203,21 @@ class Leftovers:
     # gone (Stream's finaliser): the item must not vanish unseen
     late: Callable[[StackSource], None] | None = None
 
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
     def add(self, item: StackSource, *, late: bool = False) -> None:
-        self.items.append(item)
-        if late and self.late is not None:
-            self.late(item)
+        with self.lock:
+            self.items.append(item)
+            notify = self.late if late else None
+        if notify is not None:
+            notify(item)
+
+    def watch(self, late: Callable[[StackSource], None]) -> list[StackSource]:
+        """The items so far, and ``late`` for any added later by a pull still running
+        (atomically: none falls between the two)."""
+        with self.lock:
+            self.late = late
+            return list(self.items)
 
     def settle(self, timeout: float) -> None:
         """Give a pull still inside the source up to ``timeout`` s to finish."""
@@ -230,6 +242,8 @@ class _Pull:
         self._done = threading.Event()
         self._outcome: tuple[object, Stack | None, InputError | None, float] | None = None
         self._raised: BaseException | None = None
+        self._item: object | None = None  # taken from the source, not yet handed out
+        self._lock = threading.Lock()
         self.waiting_on_source = True
         self.abandoned = False
         self._thread = threading.Thread(target=self._work, name="msf-decode", daemon=True)
@@ -238,11 +252,21 @@ class _Pull:
     def _work(self) -> None:
         try:
             item = next(self._source, _END)
+        except BaseException as exc:  # the source's own failure: re-raised in the caller's
+            self._raised = exc
             self.waiting_on_source = False
+            self._done.set()
+            return
+        with self._lock:  # against stop(): the item is handed over exactly once
+            self.waiting_on_source = False
+            self._item = None if item is _END else item
             if self.abandoned:  # stopped meanwhile: keep what was taken, decode nothing
-                if item is not _END:
-                    self._leftovers.add(item, late=True)  # type: ignore[arg-type]
+                if self._item is not None:
+                    self._leftovers.add(self._item, late=True)  # type: ignore[arg-type]
+                self._item = None
+                self._done.set()
                 return
+        try:
             if item is _END:
                 self._outcome = (_END, None, None, 0.0)
                 return
@@ -253,35 +277,42 @@ class _Pull:
                 self._outcome = (item, None, exc, time.perf_counter() - start)
             else:
                 self._outcome = (item, stack, None, time.perf_counter() - start)
-        except BaseException as exc:  # re-raised in the caller's thread
+        except BaseException as exc:  # e.g. MemoryError: re-raised, the item kept
             self._raised = exc
         finally:
-            self.waiting_on_source = False
             self._done.set()
 
     def result(self) -> tuple[object, Stack | None, InputError | None, float]:
         self._done.wait()  # a lock wait: Ctrl-C interrupts it
         if self._raised is not None:
+            if self._item is not None:  # taken, not decoded: the caller gets it back
+                self._leftovers.add(self._item)  # type: ignore[arg-type]
+                self._item = None
             raise self._raised
         assert self._outcome is not None
+        self._item = None  # handed out
         return self._outcome
 
     def stop(self) -> None:
         """The sequence stopped: what this pull took goes to the leftovers. A pull decoding a
         stack is waited for (seconds at most, and its memory is then freed); one waiting on
         the source is left to finish in the background."""
-        self.abandoned = True
-        if self.waiting_on_source:
-            self._leftovers.pending = self._done
-        else:
-            self._done.wait()
-        if self._done.is_set() and self._outcome is not None and self._outcome[0] is not _END:
-            self._leftovers.add(self._outcome[0])  # type: ignore[arg-type]
-            self._outcome = None
+        with self._lock:
+            self.abandoned = True
+            waiting = self.waiting_on_source
+            if waiting:
+                self._leftovers.pending = self._done
+        if waiting:
+            return
+        self._done.wait()
+        if self._item is not None:
+            self._leftovers.add(self._item)  # type: ignore[arg-type]
+            self._item = None
+        self._outcome = None
 
 
 def _pull_here(
-    source: Iterator[StackSource], load: LoadOptions
+    source: Iterator[StackSource], load: LoadOptions, leftovers: Leftovers
 ) -> tuple[object, Stack | None, InputError | None, float]:
     item = next(source, _END)
     if item is _END:
@@ -291,6 +322,9 @@ def _pull_here(
         stack = _decode(item, load)  # type: ignore[arg-type]
     except InputError as exc:
         return item, None, exc, time.perf_counter() - start
+    except BaseException:  # Ctrl-C while decoding, MemoryError: the caller gets it back
+        leftovers.add(item)  # type: ignore[arg-type]
+        raise
     return item, stack, None, time.perf_counter() - start
 
 
@@ -326,7 +360,7 @@ def decode_ahead(
             if upcoming is not None:
                 item, stack, error, decode_s = upcoming.result()
             else:
-                item, stack, error, decode_s = _pull_here(source, load)
+                item, stack, error, decode_s = _pull_here(source, load, leftovers)
             wait_s = time.perf_counter() - waited
             if item is _END:
                 finished = True
@@ -372,14 +406,16 @@ def record_decode(result: _Timed, decoded: Decoded, load: LoadOptions) -> None:
     )
 
 
-def stream_items(source: object) -> tuple[Iterable[StackSource], int | None]:
+def stream_items(
+    source: object, *, select_given: bool = False
+) -> tuple[Iterable[StackSource], int | None]:
     """What ``Model.stream`` accepts, as stack sources and their count (None: unknown): a path
     (a stack, or a folder of stacks as msf-run reads it), a Stack, or any iterable of paths
     and Stacks (a list, a generator, a capture loop)."""
     if isinstance(source, Stack):
         return [source], 1
     if isinstance(source, (str, os.PathLike)):
-        found = expand_stacks([Path(source)])
+        found = expand_stacks([Path(source)], select_given=select_given)
         return found, len(found)
     if isinstance(source, (bytes, dict)) or not isinstance(source, Iterable):
         raise InputError(

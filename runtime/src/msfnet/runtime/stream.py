@@ -41,7 +41,9 @@ class Stream(Iterator[R], Generic[R]):
     ``stop()`` ends it and returns the stacks it took from the source and did not run (at
     most two: one being decoded ahead, and one whose run was interrupted); ``skipped`` lists
     the stacks refused with ``on_error="skip"``. Also a context manager (``with
-    model.stream(src) as s:``) that stops it on leaving.
+    model.stream(src) as s:``) that stops it on leaving. Stop it from the thread that
+    iterates it (a generator cannot be closed while it runs in another thread): a Stop button
+    sets a flag that the loop body or the capture loop checks.
     """
 
     def __init__(
@@ -66,6 +68,13 @@ class Stream(Iterator[R], Generic[R]):
         """The stacks taken from the source and not run (filled when the stream stops; a
         pull still waiting on a capture loop adds its item when that arrives)."""
         return [given_source(item) for item in self._taken.items]
+
+    @property
+    def pending(self) -> bool:
+        """A pull was still inside the source's ``next()`` when the stream stopped (a capture
+        loop waiting for its trigger): what it takes will be added to :attr:`unprocessed`."""
+        done = self._taken.pending
+        return done is not None and not done.is_set()
 
     def close(self) -> None:
         """End the stream now (:attr:`unprocessed` then says what it had taken)."""
@@ -94,10 +103,10 @@ class Stream(Iterator[R], Generic[R]):
             return
         if not self._warn:
             return
-        if self._taken.items:
-            _warn_unprocessed([given_source(i).name for i in self._taken.items])
         # a pull still inside the capture loop warns for its part when it comes
-        self._taken.late = lambda item: _warn_unprocessed([given_source(item).name])
+        taken = self._taken.watch(lambda item: _warn_unprocessed([given_source(item).name]))
+        if taken:
+            _warn_unprocessed([given_source(i).name for i in taken])
 
 
 def _warn_unprocessed(names: list[str]) -> None:

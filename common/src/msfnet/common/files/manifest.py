@@ -111,6 +111,15 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
             folder,
         )
     foreign = foreign_files(folder)
+    if foreign and manifest is not None and not manifest.tree:
+        subs = [f for f in foreign if f.endswith("/") and f[:-1] in manifest.files]
+        if subs == foreign:  # only sub-folders msfnet wrote, whose contents it cannot vouch for
+            raise InputError(
+                f"--overwrite: an older msfnet wrote this folder and listed only its top level, "
+                f"so what is inside {subs[0]} cannot be told from files of yours; remove the "
+                "folder yourself or choose another",
+                folder,
+            )
     if foreign:
         raise InputError(
             f"--overwrite: the folder holds files msfnet did not write (e.g. "

@@ -17,6 +17,7 @@ import os
 import shutil
 import socket
 import tempfile
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -58,21 +59,46 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-@functools.cache
-def pid_space() -> str:
-    """A short token for where this process's pid means something: host name, boot and pid
-    namespace (what a Linux system exposes of them; the host name elsewhere)."""
-    parts = [socket.gethostname()]
-    with contextlib.suppress(OSError):
-        parts.append(Path("/proc/sys/kernel/random/boot_id").read_text().strip())
-    with contextlib.suppress(OSError):
-        parts.append(str(os.stat("/proc/self/ns/pid").st_ino))
+def _token(*parts: str) -> str:
     return hashlib.sha256("|".join(parts).encode()).hexdigest()[:8]
 
 
+@functools.cache
+def pid_space() -> str:
+    """Where this process's pid means something, as ``<space>.<boot>``: a token of the host
+    name and pid namespace, then one of the boot (what a Linux system exposes of them; the
+    host name elsewhere)."""
+    space = [socket.gethostname()]
+    with contextlib.suppress(OSError):
+        space.append(str(os.stat("/proc/self/ns/pid").st_ino))
+    boot = ""
+    with contextlib.suppress(OSError):
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    return f"{_token(*space)}.{_token(boot)}"
+
+
+STALE_AFTER_S = 24 * 3600  # staging untouched this long is dead whoever wrote it
+
+
+def _writer_is_dead(pid_text: str, where: str, entry: Path) -> bool:
+    """Staging of this pid space whose writer no longer runs, of this host and namespace from
+    an earlier boot (no process of it survives), or anyone's untouched for a day (a writer in
+    another container or host cannot be asked; no msfnet output stays in staging that long)."""
+    with contextlib.suppress(OSError):
+        if time.time() - entry.lstat().st_mtime > STALE_AFTER_S:
+            return True
+    here_space, _, here_boot = pid_space().partition(".")
+    space, _, boot = where.partition(".")
+    if where and space != here_space:
+        return False  # another machine's or container's: its writer may be running
+    if where and boot != here_boot:
+        return True  # this machine and namespace, an earlier boot
+    return pid_text.isdigit() and not _pid_alive(int(pid_text))
+
+
 def remove_stale_staging(target: Path) -> None:
-    """Remove staging left beside ``target`` by processes of this pid space that no longer run
-    (kill -9); staging named without a pid space (older versions) counts as this one's."""
+    """Remove staging left beside ``target`` by writers that no longer run (kill -9, a power
+    cut); staging named without a pid space (older versions) counts as this one's."""
     parent = target.parent
     if not parent.is_dir():
         return
@@ -80,10 +106,8 @@ def remove_stale_staging(target: Path) -> None:
     for entry in parent.iterdir():
         if not entry.name.startswith(prefix):
             continue
-        pid_text, _, space = entry.name[len(prefix) :].split("-", 1)[0].partition("@")
-        if space and space != pid_space():
-            continue  # another machine's or container's: its writer may be running
-        if pid_text.isdigit() and not _pid_alive(int(pid_text)):
+        pid_text, _, where = entry.name[len(prefix) :].split("-", 1)[0].partition("@")
+        if _writer_is_dead(pid_text, where, entry):
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
             else:

@@ -363,7 +363,8 @@ def _run(args: argparse.Namespace) -> int:
     outdir = args.output or Path("msf-eval") / name
     if args.l2_only and args.model is not None:
         raise InputError("--l2-only and --onnx contradict each other")
-    objects = [o for root in args.roots for o in find_objects(root)]
+    given = args.select is not None
+    objects = [o for root in args.roots for o in find_objects(root, select_given=given)]
     check_unique(objects)
     load = load_options(args)
     check_output(

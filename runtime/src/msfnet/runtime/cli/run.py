@@ -470,7 +470,7 @@ def _run(args: argparse.Namespace) -> int:
         if req.ray is not None:
             raise InputError("--demo runs here; --ray is for stacks on disk")
         return _run_single(req, demo_stack())
-    items = expand_stacks(list(req.stacks))
+    items = expand_stacks(list(req.stacks), select_given=req.load.select is not None)
     if len(items) == 1 and req.ray is None and items[0].path == req.stacks[0]:
         return _run_single(req, req.stacks[0], items[0])
     return _run_batch(req, items)

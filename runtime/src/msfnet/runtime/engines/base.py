@@ -105,7 +105,9 @@ def model_file_path(path: str | Path) -> Path:
     if path.is_dir():
         raise InputError("the model is a folder, not a file", path)
     if not path.is_file():
-        if os.path.lexists(path):  # a pipe, a device, a dangling link: there, but no file
+        if path.is_symlink() and not path.exists():
+            raise InputError(f"ONNX model not found (a broken link to {os.readlink(path)})", path)
+        if os.path.lexists(path):  # a pipe, a device: there, but no file
             raise InputError("not a regular file (expected an .onnx model)", path)
         raise InputError("ONNX model not found", path)
     return path

@@ -76,12 +76,13 @@ def _check_listed_select(select: str, folder: Path, listing: Path) -> None:
         raise InputError(f"object {folder.name}: selection {select!r}: {detail}", listing) from exc
 
 
-def find_objects(root: Path) -> list[BenchObject]:
+def find_objects(root: Path, *, select_given: bool = False) -> list[BenchObject]:
     """The objects of a benchmark root in benchmark order: those listed in objects.txt (one
     folder per line, optionally followed by an image selection), the root itself when it is a
     stack, the sub-folders of a root whose light file they share (psmImages), or every
     sub-folder holding a stack. Known benchmark objects get their protocol's selection
-    (DiLiGenT bear: 21-96) unless objects.txt says otherwise."""
+    (DiLiGenT bear: 21-96) unless objects.txt says otherwise. ``select_given``: the user's
+    own selection overrides objects.txt's, which is then not checked."""
     if not root.is_dir():
         if root.exists():  # e.g. an .npz stack, which msf-run reads but a benchmark is not
             raise InputError(
@@ -102,7 +103,7 @@ def find_objects(root: Path) -> list[BenchObject]:
             if not folder.is_dir():
                 raise InputError(f"object folder {parts[0]!r} listed but not found", listing)
             select = parts[1] if len(parts) > 1 else None
-            if select is not None:
+            if select is not None and not select_given:
                 _check_listed_select(select, folder, listing)
             out.append(BenchObject(folder, select))
         if not out:
