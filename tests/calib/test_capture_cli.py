@@ -500,3 +500,25 @@ def test_loop_messages_never_advise_overwrite(
     assert capture_main([str(root), *SIM, "--count", "4", "--loop", "1"]) == 2
     err = capsys.readouterr().err
     assert "6 lights, this one 4" in err and "--overwrite" not in err, err
+
+
+def test_with_run_json_stdout_holds_the_json_alone(tmp_path: Path, capsys) -> None:
+    """'frames -> obj (stack)' went to stdout before msf-run's JSON: unparseable."""
+    out = tmp_path / "obj"
+    argv = [str(out), "--camera", "sim", "--light-rig", "sim", "--count", "8", "--run"]
+    run_args = ["--method", "l2", "--no-maps", "--json", "-o", str(tmp_path / "res")]
+    assert capture_main([*argv, *run_args]) == 0
+    captured = capsys.readouterr()
+    json.loads(captured.out)  # nothing else on stdout
+    assert "frames ->" in captured.err
+
+
+def test_exposure_takes_a_drivers_negative_units_but_not_for_an_oak(tmp_path: Path, capsys) -> None:
+    """docs/calibration.md's `--exposure -6` (V4L2 / DirectShow log2 seconds) was refused."""
+    from msfnet.calib.capture_cli import build_parser
+
+    assert build_parser().parse_args([str(tmp_path / "o"), "--exposure", "-6"]).exposure == -6
+    code = capture_main(
+        [str(tmp_path / "o"), "--camera", "oak", "--exposure", "-6", "--count", "8"]
+    )
+    assert code == 2 and "microseconds" in capsys.readouterr().err

@@ -21,6 +21,7 @@ from msfnet.calib.capture import (
 from msfnet.calib.lights import Lights
 from msfnet.common.cli import (
     command_main,
+    finite_float,
     int_range,
     make_parser,
     nonnegative_float,
@@ -70,8 +71,10 @@ def add_device_arguments(
     g.add_argument("--device", default="0", help="OpenCV device index or URL; OAK device id")
     g.add_argument(
         "--exposure",
-        type=positive_float,
-        help="OpenCV: exposure (driver units); OAK: microseconds (default 10000)",
+        type=finite_float,
+        help="OpenCV: exposure in the driver's units, passed as given (V4L2 and DirectShow "
+        "drivers often take negative log2 seconds, e.g. -6); OAK: microseconds, positive "
+        "(default 10000)",
     )
     g.add_argument("--iso", type=int, default=100, help="OAK ISO (default 100)")
     g.add_argument("--gain", type=float, help="OpenCV gain")
@@ -267,6 +270,9 @@ def _open(args: argparse.Namespace) -> tuple[Camera, Lights, dict[str, Any]]:
     if args.camera == "oak":
         from msfnet.calib.cameras import OakCamera
 
+        if args.exposure is not None and args.exposure <= 0:
+            raise InputError(f"--exposure: an OAK takes microseconds (> 0), got {args.exposure:g}")
+
         cam: Camera = OakCamera(
             int(args.exposure or 10000),
             args.iso,
@@ -420,7 +426,8 @@ def _main(args: argparse.Namespace) -> int:
             if (out / "light_directions.txt").exists()
             else "images (no light directions yet: run msf-calib directions)"
         )
-        print(f"frames -> {out} ({done})")
+        # on stderr: with --run --json, stdout carries msf-run's JSON alone
+        print(f"frames -> {out} ({done})", file=sys.stderr)
     if args.run is not None:
         from msfnet.runtime.cli.run import main as run_main
 
