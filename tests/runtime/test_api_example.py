@@ -94,20 +94,23 @@ def test_readme_station_block_imports_what_it_uses(tmp_path: Path) -> None:
         taken.append(parts[len(taken)])
         return taken[-1]
 
+    kept: list[object] = []
     scope: dict[str, object] = {
         "model": Model.least_squares(maps=None),  # the first block's
         "capture_next_part": capture_next_part,
         "reject": lambda normals: True,
+        "stop_pressed": lambda: True,  # the operator stops after the first part
+        "keep_for_later": kept.append,
     }
     code = compile(readme_example(1), "README station example", "exec")
     cwd = os.getcwd()
     os.chdir(tmp_path)
     try:
-        with pytest.raises(StationStopped):  # the loop ends where the camera stops
-            exec(code, scope)
+        exec(code, scope)
     finally:
         os.chdir(cwd)
-    assert taken == parts
+    assert taken == parts  # the second was taken while the first ran...
+    assert kept == [parts[1]]  # ...and handed back, not dropped
 
 
 def test_two_calls_in_a_row_agree_and_write_nothing(
