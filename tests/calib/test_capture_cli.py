@@ -338,6 +338,14 @@ def test_overwrite_never_replaces_a_stack_it_did_not_capture(
     """--overwrite in a folder holding the user's own stack (no session.json) replaced their
     images and light file, though the help says other images stay: now refused, naming the
     file, and nothing in the folder changes."""
+    _refused_over_users_file(tmp_path, theirs, capsys, "--overwrite")
+
+
+def _refused_over_users_file(
+    tmp_path: Path, theirs: str, capsys: pytest.CaptureFixture[str], *flags: str
+) -> str:
+    """msf-capture into a folder holding the user's ``theirs``: refused in one line naming
+    it, nothing in the folder changed; returns the line."""
     import cv2
 
     folder = tmp_path / "mine"
@@ -348,10 +356,11 @@ def test_overwrite_never_replaces_a_stack_it_did_not_capture(
     else:
         path.write_text("the user's own\n")
     before = _tree_bytes(folder)
-    assert capture_main([str(folder), *SIM, "--count", "4", "--overwrite"]) == 2
+    assert capture_main([str(folder), *SIM, "--count", "4", *flags]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and theirs in err[0] and "not msf-capture's" in err[0], err
     assert _tree_bytes(folder) == before
+    return err[0]
 
 
 @pytest.mark.parametrize(
@@ -372,21 +381,8 @@ def test_a_file_under_a_name_msf_capture_writes_is_refused_without_overwrite(
     """In a folder without session.json a plain capture replaced the user's light files,
     mask and ground truth (only images were looked for): every name msf-capture writes is
     refused, as with --overwrite, and nothing in the folder changes."""
-    import cv2
-
-    folder = tmp_path / "mine"
-    (folder / "raw").mkdir(parents=True)
-    path = folder / theirs
-    if path.suffix == ".png":
-        cv2.imwrite(str(path), np.full((8, 8), 255, np.uint8))
-    else:
-        path.write_text("USER DATA\n")
-    before = _tree_bytes(folder)
-    assert capture_main([str(folder), *SIM, "--count", "4"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and theirs in err[0] and "not msf-capture's" in err[0], err
-    assert "--overwrite" not in err[0]  # it would be refused with --overwrite too
-    assert _tree_bytes(folder) == before
+    line = _refused_over_users_file(tmp_path, theirs, capsys)
+    assert "--overwrite" not in line  # it would be refused with --overwrite too
 
 
 @pytest.mark.parametrize(

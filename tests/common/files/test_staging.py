@@ -163,21 +163,21 @@ def test_staging_of_another_pid_space_is_never_swept(tmp_path: Path) -> None:
     target = tmp_path / "out"
     prefix = f".out{STAGING_TAG}"
     space, boot = pid_space().split(".")
-    other = tmp_path / f"{prefix}999999999@00000000.{boot}-abc"
-    other.mkdir()
-    ours = tmp_path / f"{prefix}999999999@{pid_space()}-abc"
-    ours.mkdir()
-    legacy = tmp_path / f"{prefix}999999999-abc"
-    legacy.mkdir()
-    live = tmp_path / f"{prefix}{os.getpid()}@{pid_space()}-abc"
-    live.mkdir()
-    # this host and namespace before a reboot (a power cut): its writer is gone, whatever pid
-    rebooted = tmp_path / f"{prefix}{os.getpid()}@{space}.00000000-abc"
-    rebooted.mkdir()
-    # another container's, untouched for longer than any write takes
-    old = tmp_path / f"{prefix}1@11111111.{boot}-abc"
-    old.mkdir()
+    names = {
+        "other": f"999999999@00000000.{boot}",  # another container's
+        "ours": f"999999999@{pid_space()}",  # this pid space's, its writer dead
+        "legacy": "999999999",  # named before pid spaces
+        "live": f"{os.getpid()}@{pid_space()}",
+        # this host and namespace before a reboot (a power cut): gone, whatever pid
+        "rebooted": f"{os.getpid()}@{space}.00000000",
+        # another container's, untouched for longer than any write takes
+        "old": f"1@11111111.{boot}",
+    }
+    made = {key: tmp_path / f"{prefix}{name}-abc" for key, name in names.items()}
+    for path in made.values():
+        path.mkdir()
     then = time.time() - STALE_AFTER_S - 60
-    os.utime(old, (then, then))
+    os.utime(made["old"], (then, then))
+    other, live = made["other"], made["live"]
     remove_stale_staging(target)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([other.name, live.name])

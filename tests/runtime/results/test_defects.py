@@ -242,30 +242,19 @@ def test_a_pixel_size_that_is_no_length_is_bad_input(
     assert "pixel_size_mm" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("debug", [False, True])
 def test_a_failure_of_the_tool_never_reads_as_defects_found(
-    plate_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
+    plate_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys, debug: bool
 ) -> None:
+    """A crash exited 1, "defects found" to a PLC; so did one under --debug, which the crash
+    message tells the user to rerun with."""
     from msfnet.runtime.cli import inspect as cli
 
     def broken(*args, **kwargs):  # type: ignore[no-untyped-def]
         raise RuntimeError("a bug")
 
     monkeypatch.setattr(cli, "find_defects", broken)
-    assert _code([str(plate_run), "--depth", "0.1", "-o", str(tmp_path / "v")]) == 3
-    assert "internal error" in capsys.readouterr().err
-
-
-def test_with_debug_a_failure_still_never_reads_as_defects_found(
-    plate_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
-) -> None:
-    """The crash message says to rerun with --debug, which let Python exit 1."""
-    from msfnet.runtime.cli import inspect as cli
-
-    def broken(*args, **kwargs):  # type: ignore[no-untyped-def]
-        raise RuntimeError("a bug")
-
-    monkeypatch.setattr(cli, "find_defects", broken)
-    argv = [str(plate_run), "--depth", "0.1", "-o", str(tmp_path / "v"), "--debug"]
-    assert _code(argv) == 3
-    assert "Traceback" in capsys.readouterr().err
-    assert _code([str(plate_run), "-o", str(tmp_path / "w"), "--debug"]) == 2  # bad input
+    extra = ["--debug"] if debug else []
+    assert _code([str(plate_run), "--depth", "0.1", "-o", str(tmp_path / "v"), *extra]) == 3
+    assert ("Traceback" if debug else "internal error") in capsys.readouterr().err
+    assert _code([str(plate_run), "-o", str(tmp_path / "w"), *extra]) == 2  # bad input
