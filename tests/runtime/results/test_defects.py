@@ -218,7 +218,7 @@ def test_a_run_folder_with_maps_that_do_not_fit_is_bad_input(
     import tifffile
 
     run = _edited_run(plate_run, tmp_path / "run")
-    tifffile.imwrite(run / tiff, data)
+    tifffile.imwrite(run / tiff, data, photometric="minisblack")
     out = tmp_path / "v"
     assert _code([str(run), "--depth", "0.1", "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
