@@ -166,3 +166,32 @@ def test_a_truncated_zip_checkpoint_is_said_in_a_complete_sentence(tmp_path: Pat
     assert exc.value.message == (
         "not a readable PyTorch checkpoint (a truncated or damaged zip archive)"
     )
+
+
+def test_weights_that_are_not_finite_are_refused() -> None:
+    """msf-train --init / --resume trained on at loss nan from a diverged run's weights."""
+
+    from msfnet.model.checkpoint import check_state_dict
+    from msfnet.model.network import MSFNet
+
+    model = MSFNet()
+    state = dict(model.state_dict())
+    key = next(k for k, v in state.items() if v.is_floating_point())
+    state[key] = state[key].clone().fill_(float("nan"))
+    with pytest.raises(CheckpointError, match=f"{key} holds NaN"):
+        check_state_dict(model, state, "run/last.pth")
+
+
+def test_fp16_refuses_weights_beyond_its_range() -> None:
+    """msf-average --fp16 wrote inf for them, exit 0, and then refused its own file."""
+    import torch
+
+    from msfnet.model.checkpoint import checkpoint_content
+    from msfnet.model.network import MSFNet
+
+    model = MSFNet()
+    with torch.no_grad():
+        next(p for p in model.parameters()).view(-1)[0] = 1e6
+    with pytest.raises(CheckpointError, match="beyond fp16's range"):
+        checkpoint_content(model, fp16=True)
+    assert checkpoint_content(model)["state_dict"]  # fp32 keeps it

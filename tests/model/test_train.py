@@ -293,3 +293,32 @@ def test_gpu_render_workers_follow_the_usable_cores(monkeypatch):
     monkeypatch.setattr(train, "usable_cores", lambda: 8)
     assert train.default_workers(torch.device("cuda")) == 6
     assert train.default_workers(torch.device("cpu")) == 0
+
+
+@pytest.mark.slow
+def test_resume_with_a_damaged_state_or_config_is_one_line(tmp_path, capfd):
+    """A damaged Adam state failed at the first step, and a bad config.json value (lr NaN)
+    when the optimiser was made: both as internal errors, exit 1."""
+    import shutil
+
+    out = tmp_path / "run"
+    small = ["--batch", "2", "--lights", "4", "--crop", "16", "--pool", "3"]
+    small += ["--render-size", "32", "--val-objects", "1", "--no-progress", "--precision", "fp32"]
+    assert train_main(["--out", str(out), "--epochs", "1", "--steps-per-epoch", "2", *small]) == 0
+    moments = tmp_path / "moments"
+    shutil.copytree(out, moments)
+    st = torch.load(moments / "last_state.pth", weights_only=True)
+    first = next(iter(st["optimizer"]["state"].values()))
+    first["exp_avg"] = torch.zeros(2, 2)
+    torch.save(st, moments / "last_state.pth")
+    config = tmp_path / "config"
+    shutil.copytree(out, config)
+    text = (config / "config.json").read_text()
+    cfg = json.loads(text)
+    cfg["lr"] = float("nan")
+    (config / "config.json").write_text(json.dumps(cfg))
+    capfd.readouterr()
+    for run, word in ((moments, "last_state.pth"), (config, "config.json")):
+        assert train_main(["--out", str(run), "--resume", "--epochs", "2", "-q"]) == 2
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("msf-train: error:") and word in err[0], err

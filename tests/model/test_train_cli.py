@@ -174,24 +174,47 @@ def test_train_refuses_before_training(case: str, tmp_path: Path, capfd) -> None
 
 
 def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> None:
-    """--overwrite over an earlier run clears its files (and nothing else) before training."""
+    """--overwrite over an earlier run clears its files (and nothing else) before training,
+    and only once the set-up has passed: a --device cuda without a GPU (or a bad --data)
+    deleted the earlier run's weights, then failed."""
+    from types import SimpleNamespace
+
+    from msfnet.common.errors import InputError
     from msfnet.model import train, train_cli
 
     out = _old_run(tmp_path, "best.pth", "curve.png", ".last.pth.msf-partial-1-x.pth")
+    before = sorted(p.name for p in out.iterdir())
+    args = train_cli.build_parser().parse_args(["--out", str(out), "--overwrite", "-q"])
+
+    def failing_setup(cfg, resume):  # e.g. resolve_device: no CUDA GPU
+        raise InputError("--device cuda: torch sees no CUDA GPU")
+
+    monkeypatch.setattr(train, "Trainer", failing_setup)  # train_cli imports it when it starts
+    with pytest.raises(InputError):
+        train_cli._run(args, None)
+    assert sorted(p.name for p in out.iterdir()) == before
+
     started = []
 
     class Stop(Exception):
         pass
 
-    def trainer(cfg, resume):  # stop where training would start
+    def stop(**_):  # where training would start
         started.append(sorted(p.name for p in out.iterdir()))
         raise Stop
 
-    monkeypatch.setattr(train, "Trainer", trainer)  # train_cli imports it when it starts
+    ready = SimpleNamespace(
+        run=stop,
+        device=SimpleNamespace(type="cpu"),
+        bf16=False,
+        workers=0,
+        step=0,
+        val_set=[],
+        val_ls=0.0,
+    )
+    monkeypatch.setattr(train, "Trainer", lambda cfg, resume: ready)
     with pytest.raises(Stop):
-        train_cli._run(
-            train_cli.build_parser().parse_args(["--out", str(out), "--overwrite"]), None
-        )
+        train_cli._run(args, None)
     assert started == [[]]
 
 

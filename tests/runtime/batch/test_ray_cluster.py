@@ -482,3 +482,27 @@ def test_without_a_listener_the_batch_never_times_its_waits(
         spec, _items(tmp_path, 2), LoadOptions(), lambda n: None, progress=False
     )
     assert fake.timeouts and all(t is None for t in fake.timeouts)
+
+
+def test_rays_sigterm_handler_gives_way_to_msfnets() -> None:
+    """ray.init installs its own SIGTERM handler: msf-run --ray stopped by SIGTERM exited 1
+    with a native stack dump instead of 143 and its "terminated" line."""
+    import signal
+    from types import SimpleNamespace
+
+    from msfnet.runtime.batch.ray_cluster import init_keeping_sigterm
+
+    def ours(signum, frame):  # type: ignore[no-untyped-def]
+        pass
+
+    def rays(signum, frame):  # type: ignore[no-untyped-def]
+        pass
+
+    seen = {}
+    fake = SimpleNamespace(init=lambda **kw: (seen.update(kw), signal.signal(signal.SIGTERM, rays)))
+    previous = signal.signal(signal.SIGTERM, ours)
+    try:
+        init_keeping_sigterm(fake, address=None)
+        assert signal.getsignal(signal.SIGTERM) is ours and seen == {"address": None}
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -251,3 +251,16 @@ def test_bands_span_only_the_masks_columns_and_change_nothing() -> None:
         banded = fuse_in_bands(net, fit, mask, rows=rows)
         np.testing.assert_allclose(banded, whole, atol=1e-6)
         assert not banded[~mask].any()
+
+
+@pytest.mark.parametrize("broken", [np.nan, 0.0])
+def test_pixels_the_network_gave_no_normal_keep_none(broken: float) -> None:
+    """A model returning NaN or zeros was fused into least squares' normals and scored ~11
+    deg instead of the 180 deg a non-unit prediction scores."""
+    net, ls = _field(1), _field(2)
+    net[:4] = broken
+    mask = np.ones(net.shape[:2], bool)
+    one = np.ones(mask.shape, np.float32)
+    fused = fuse_detail(net, ls, one, mask, shape_weights=one)
+    assert not fused[:4].any()
+    assert np.allclose(np.linalg.norm(fused[4:], axis=-1), 1.0, atol=1e-5)

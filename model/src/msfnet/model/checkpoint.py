@@ -196,6 +196,17 @@ def check_state_dict(
             problems.append(f"{len(keys)} {label} key(s): {shown}")
     if problems:
         raise CheckpointError("not an MSF-Net checkpoint: " + "; ".join(problems), source)
+    # a diverged run's weights: training would go on at loss nan, an export score nothing
+    broken = sorted(
+        k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())
+    )
+    if broken:
+        raise CheckpointError(
+            f"{broken[0]} holds NaN or infinite values"
+            + (f" (and {len(broken) - 1} more weights)" if len(broken) > 1 else "")
+            + ": a diverged run's weights?",
+            source,
+        )
 
 
 def _optional_key(key: str) -> bool:
@@ -261,5 +272,11 @@ def checkpoint_content(
     """What :func:`save_checkpoint` writes, for a caller that writes it itself."""
     state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
     if fp16:
+        # fp16 holds magnitudes up to 65504: beyond it a weight would be written as inf
+        big = [k for k, v in state.items() if v.is_floating_point() and v.abs().max() > 65504]
+        if big:
+            raise CheckpointError(
+                f"{big[0]} holds values beyond fp16's range (65504); write it without --fp16"
+            )
         state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
     return {"state_dict": state, "model": "MSF_Net", **extra}

@@ -351,6 +351,21 @@ class Trainer:
             raise InputError(
                 f"the optimiser state does not fit this network ({exc})", state
             ) from exc
+        # load_state_dict does not compare the moments' shapes with the parameters': a
+        # damaged state would fail at the first step as an internal error
+        for group in self.opt.param_groups:
+            for param in group["params"]:
+                for name, value in self.opt.state.get(param, {}).items():
+                    if (
+                        isinstance(value, torch.Tensor)
+                        and value.dim() > 0
+                        and value.shape != param.shape
+                    ):
+                        raise InputError(
+                            f"the optimiser state does not fit this network ({name} "
+                            f"{tuple(value.shape)} for a parameter {tuple(param.shape)})",
+                            state,
+                        )
         self.step, self.best = int(st["step"]), float(st["best"])
         self.history = self._history_until(self.step)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from msfnet.common.cli import add_flags, command_main, int_range, make_parser
-from msfnet.common.errors import InputError
+from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import STAGING_TAG, check_not_input
 from msfnet.model.train_config import (
     MAX_LIGHTS,
@@ -264,9 +264,19 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         cfg = config_from(vars(args), {})
         if cfg.init is not None:
             read_state_dict(cfg.init)  # a bad --init is refused while the earlier run exists
-        for path in earlier:  # --overwrite: only now, with every option checked
-            path.unlink()
-    trainer = Trainer(cfg, resume=resume)
+    try:
+        trainer = Trainer(cfg, resume=resume)  # device, data, precision checked: writes nothing
+    except (ValueError, TypeError, KeyError, RuntimeError) as exc:
+        if not resume or isinstance(exc, InputError):
+            raise
+        # what --resume read (config.json's values, last_state.pth's optimiser) does not fit
+        raise InputError(
+            f"--resume: the run's config.json or last_state.pth cannot be used "
+            f"({type(exc).__name__}: {first_line(exc)}); start a new run",
+            out,
+        ) from exc
+    for path in earlier:  # --overwrite: only now, with every option and the set-up checked
+        path.unlink()
     data = cfg.data if cfg.data != "synth" else f"synth ({cfg.render_preset})"
     say(
         f"msf-train: {trainer.device.type}, "

@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import signal
 import socket
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -293,6 +295,17 @@ def _absolute(load: LoadOptions) -> LoadOptions:
     )
 
 
+def init_keeping_sigterm(ray: Any, **kwargs: Any) -> None:
+    """``ray.init``, with msfnet's SIGTERM handler put back afterwards: Ray installs its own
+    (a native stack dump, exit 1), and a batch stopped by SIGTERM must exit 143 with its
+    "terminated" line and the finished stacks kept, as without --ray."""
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGTERM) if main else None
+    ray.init(**kwargs)
+    if main and previous is not None:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def run_batch_ray(
     spec: ModelSpec,
     items: Sequence[BatchItem],
@@ -321,7 +334,9 @@ def run_batch_ray(
     started = not ray.is_initialized()
     if started:
         try:
-            ray.init(address=address, include_dashboard=False, logging_level="WARNING")
+            init_keeping_sigterm(
+                ray, address=address, include_dashboard=False, logging_level="WARNING"
+            )
         except (ConnectionError, ValueError, RuntimeError) as exc:
             raise InputError(
                 f"--ray {address or os.environ.get('RAY_ADDRESS') or ''}: cannot "

@@ -130,7 +130,11 @@ def fuse_detail(
     if shape_weights is not None:
         s = np.clip(np.nan_to_num(shape_weights.astype(np.float32)), 0.0, 1.0)[..., None]
         fused += s * (low_ls - low_net)
-    return unit_normals(fused * m[..., None]).astype(np.float32)
+    # a pixel the network gave no normal (NaN, zeros: a broken model) stays without one, so it
+    # is scored 180 deg as docs/run.md says, not dressed up by least squares as ~11 deg
+    length = np.linalg.norm(normals_net.astype(np.float32), axis=-1)
+    answered = np.isfinite(length) & (length > 0.5)
+    return unit_normals(fused * (m & answered)[..., None]).astype(np.float32)
 
 
 @dataclass(frozen=True)
