@@ -165,3 +165,19 @@ def test_msf_bench_ladder_and_requirements_run_without_torch(tmp_path: Path) -> 
     assert cells == {(64, 8), (128, 8)}
     assert all(r["status"] == "ok" and r["peak_mb"] > 0 for r in data["requirements"])
     assert "## Speed ladder (--speed)" in (report / "REPORT.md").read_text()
+
+
+@pytest.mark.parametrize(
+    "extra", [["--checkpoint", "a.pth"], ["--random-weights"], ["--no-e2e"], ["--lights", "8"]]
+)
+def test_torch_benchmark_options_are_refused_in_edge_mode(
+    tmp_path: Path, extra: list[str], capsys
+) -> None:
+    """They were ignored in silence: a report on X that never named the --checkpoint Y."""
+    from msfnet.bench.cli import main as bench_main
+
+    out = tmp_path / "r"
+    assert bench_main(["--onnx", str(tmp_path / "x.onnx"), "-o", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and extra[0] in err[0] and "--onnx" in err[0], err
+    assert not out.exists()

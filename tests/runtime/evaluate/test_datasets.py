@@ -37,3 +37,13 @@ def test_the_users_selection_overrides_a_listed_one_unchecked(tmp_path: Path) ->
     out = tmp_path / "out"
     argv = [str(root), "--select", "1-6", "--method", "l2", "--no-maps", "-q", "-o", str(out)]
     assert run_main(argv) == 0
+
+
+def test_two_different_objects_of_one_name_are_told_apart_from_a_repeat(tmp_path: Path) -> None:
+    from msfnet.runtime.evaluate.datasets import BenchObject, check_unique
+
+    a, b = tmp_path / "x" / "obj", tmp_path / "y" / "obj"
+    with pytest.raises(InputError, match=r"two objects are named 'obj'.*separate runs"):
+        check_unique([BenchObject(a, None), BenchObject(b, None)])
+    with pytest.raises(InputError, match="listed twice"):
+        check_unique([BenchObject(a, None), BenchObject(a, None)])

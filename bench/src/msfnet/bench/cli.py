@@ -839,7 +839,36 @@ def _body(args: argparse.Namespace, argv: list[str]) -> int:
         print(f"{PROG}: running as {args.cpu_proxy} (cpuid proxy)", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os.execvpe(sys.executable, [sys.executable, "-m", "msfnet.bench.cli", *argv], env)
-    return _run_edge(args) if _edge_mode(args) else _run(args)
+    if _edge_mode(args):
+        _refuse_torch_options(args)
+        return _run_edge(args)
+    return _run(args)
+
+
+def _refuse_torch_options(args: argparse.Namespace) -> None:
+    """--onnx / --ladder / --requirements measure ONNX files torch-free: the torch benchmark's
+    options would be ignored in silence (a report on X that never names the --checkpoint Y)."""
+    given = [
+        flag
+        for flag, value in (
+            ("--checkpoint", args.checkpoint is not None),
+            ("--random-weights", args.random_weights),
+            ("--calib", args.calib is not None),
+            ("--variants", args.variants != ",".join(VARIANTS)),
+            ("--no-e2e", args.no_e2e),
+            ("--lights", args.lights is not None),
+            ("--max-memory", args.max_memory is not None),
+        )
+        if value
+    ]
+    if given:
+        mode = (
+            "--onnx" if args.onnx is not None else "--ladder" if args.ladder else "--requirements"
+        )
+        raise InputError(
+            f"{', '.join(given)}: options of the torch benchmark, not used with {mode} "
+            "(it measures ONNX files torch-free); drop them"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -101,7 +101,7 @@ class ModelOptions:
     )
     threads: int | None = flag(
         None,
-        "inference threads (default: all available cores; 1 per Ray worker)",
+        "inference threads (default: all available cores; msf-run --ray: 1 per worker)",
         type=thread_count,
         metavar="T",
     )

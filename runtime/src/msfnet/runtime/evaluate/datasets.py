@@ -136,7 +136,14 @@ def check_unique(objects: list[BenchObject]) -> None:
     names = [o.folder.name for o in objects]
     dup = next((n for n in names if names.count(n) > 1), None)
     if dup is not None:
-        raise InputError(f"object {dup!r} is listed twice (its results would clash)")
+        where = [o.folder for o in objects if o.folder.name == dup]
+        same = len({p.resolve() for p in where}) == 1
+        raise InputError(
+            f"object {dup!r} is listed twice (its results would clash)"
+            if same
+            else f"two objects are named {dup!r} ({where[0]} and {where[1]}): their results "
+            "would clash; evaluate them in separate runs or rename one"
+        )
 
 
 __all__ = [
