@@ -132,6 +132,28 @@ def test_msf_bench_onnx_runs_without_torch(tmp_path: Path) -> None:
     assert "torch" not in done.stderr
 
 
+def test_a_path_whose_normals_are_unusable_gets_no_tick(tmp_path: Path, monkeypatch) -> None:
+    """A model answering NaN scored 180 deg on every engine, and every row showed a tick."""
+    assert edge._answer_status(4.1) is None
+    for mae in (180.0, float("nan"), 95.0):
+        assert edge._answer_status(mae).startswith("failed: MAE")
+    model = tmp_path / "m.onnx"
+    model.write_bytes(b"x" * 1000)
+    monkeypatch.setattr(
+        edge,
+        "edge_paths",
+        lambda m: ([edge.EdgePath("ONNX Runtime fp32", "onnxruntime", "fp32", None)], []),
+    )
+    monkeypatch.setattr(
+        edge,
+        "run_worker",
+        lambda kind, spec, scratch: {"mae_deg": 180.0, "ms": 5.0, "peak_mb": 300.0},
+    )
+    rows = edge.onnx_rows(model, tmp_path, 1, tmp_path)
+    assert rows[0].status.startswith("failed: MAE 180 deg")
+    assert "| ONNX Runtime fp32 | ❌ failed: MAE 180 deg" in edge.edge_table(rows)
+
+
 def test_device_rows_report_their_parity_with_cpu_fp32() -> None:
     assert edge._parity_status(None) == "ok"
     good = edge._parity_status((0.012, 0.31))

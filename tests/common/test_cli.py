@@ -389,6 +389,31 @@ def test_every_numeric_option_is_validated_by_argparse(
     assert list(tmp_path.iterdir()) == []
 
 
+EMPTY_PATHS = {
+    "msf-run": [[""], ["stack", "-o", ""], ["stack", "--lights", ""]],
+    "msf-eval": [[""], ["root", "-o", ""]],
+    "msf-synth": [[""]],
+    "msf-calib": [["directions", "", "-o", "l.txt"]],
+    "msf-export": [[""], ["model.pth", "-o", ""]],
+}
+
+
+@pytest.mark.parametrize(
+    ("cmd", "argv"), [(cmd, argv) for cmd, cases in EMPTY_PATHS.items() for argv in cases]
+)
+def test_an_empty_path_is_refused_not_read_as_here(
+    cmd: str, argv: list[str], tmp_path: Path, monkeypatch, capfd
+) -> None:
+    """Path("") is ".": msf-synth "" offered to replace the current folder."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exc:
+        MAINS[cmd](argv)
+    assert exc.value.code == 2
+    lines = capfd.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(cmd) and "an empty path" in lines[0], lines
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_calib_intrinsics_refused_before_any_work(tmp_path: Path, capfd) -> None:
     """--intrinsics 0 0 0 0 used to hang in LAPACK at 100 % CPU, ignoring Ctrl-C."""
     for values, words in (

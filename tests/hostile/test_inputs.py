@@ -133,6 +133,18 @@ def test_openvino_checks_the_output_shape_too(tmp_path: Path, change: str) -> No
         engine.run(images, lights)
 
 
+@pytest.mark.parametrize(
+    ("normals", "words"),
+    [(np.float32(1.0), r"shape \(\) \(a single number\) for"), (None, "shape no array for")],
+)
+def test_a_shapeless_answer_is_named(normals: object, words: str) -> None:
+    from msfnet.runtime.engines.ort_session import check_normals
+
+    images = np.ones((1, 4, 3, 16, 20), np.float32)
+    with pytest.raises(InputError, match=words):
+        check_normals(Path("m.onnx"), images, normals)
+
+
 def test_msf_run_names_the_model_that_answers_wrongly(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

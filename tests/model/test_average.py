@@ -150,10 +150,26 @@ def test_overwrite_replaces_only_the_output(tmp_path: Path) -> None:
     a = _checkpoint(tmp_path / "a.pth", 1)
     b = _checkpoint(tmp_path / "b.pth", 2)
     out = tmp_path / "avg.pth"
-    out.write_bytes(b"old")
+    _checkpoint(out, 3)  # an earlier average
     assert main([str(a), str(b), "-o", str(out), "--overwrite", "-q"]) == 0
     load_model(out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pth", "avg.pth", "b.pth"]
+
+
+def test_overwrite_never_replaces_a_file_that_is_no_checkpoint(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """-o notes.txt --overwrite replaced the user's text with a checkpoint."""
+    a = _checkpoint(tmp_path / "a.pth", 1)
+    b = _checkpoint(tmp_path / "b.pth", 2)
+    notes = tmp_path / "notes.txt"
+    notes.write_text("measurements\n")
+    _refused([str(a), str(b), "-o", str(notes), "--overwrite"], "replaces only an earlier", capfd)
+    assert notes.read_text() == "measurements\n"
+    empty = tmp_path / "empty.pth"
+    empty.touch()  # nothing to lose
+    assert main([str(a), str(b), "-o", str(empty), "--overwrite", "-q"]) == 0
+    load_model(empty)
 
 
 def test_help_does_not_import_torch() -> None:

@@ -3,6 +3,7 @@ pickled objects it refuses to run (a text file, a Git LFS pointer from a clone w
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -166,6 +167,28 @@ def test_a_truncated_zip_checkpoint_is_said_in_a_complete_sentence(tmp_path: Pat
     assert exc.value.message == (
         "not a readable PyTorch checkpoint (a truncated or damaged zip archive)"
     )
+
+
+@pytest.mark.parametrize(
+    ("content", "words"),
+    [
+        (b"hello\n", "not a PyTorch checkpoint (neither a zip archive nor a pickle)"),
+        (b"", "an empty file, not a checkpoint"),
+        (None, "not a regular file"),  # /dev/null: exists, reads as nothing
+    ],
+)
+def test_a_file_that_is_no_checkpoint_is_said_plainly(
+    tmp_path: Path, content: bytes | None, words: str
+) -> None:
+    """A text file read "not a readable PyTorch checkpoint (101)" (its first byte's value),
+    /dev/null "checkpoint file not found"."""
+    path = Path(os.devnull) if content is None else tmp_path / "x.pth"
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(CheckpointError) as exc:
+        read_state_dict(path)
+    assert words in exc.value.message
+    assert not any(ch.isdigit() for ch in exc.value.message)
 
 
 def test_weights_that_are_not_finite_are_refused() -> None:

@@ -75,6 +75,15 @@ def test_time_budget_stops_and_saves(tmp_path) -> None:
     assert last["stopped"] == "time_budget"
 
 
+def test_time_budget_counts_from_the_commands_start(tmp_path) -> None:
+    """msf-train's start, not the Trainer's: a budget the imports already spent stops at once
+    (with the Trainer's clock, 60 s would have trained on)."""
+    out = tmp_path / "run"
+    t = Trainer(_cfg(out, epochs=50, time_budget=60.0), started=time.monotonic() - 61.0)
+    result = t.run(progress=False, report=False)
+    assert result.step == 0 and (out / "last.pth").is_file()
+
+
 def test_cli_refuses_device_rendering_of_a_folder(tmp_path, capsys) -> None:
     (tmp_path / "blobby").mkdir()
     out = str(tmp_path / "r")

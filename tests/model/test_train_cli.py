@@ -186,7 +186,7 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
     before = sorted(p.name for p in out.iterdir())
     args = train_cli.build_parser().parse_args(["--out", str(out), "--overwrite", "-q"])
 
-    def failing_setup(cfg, resume):  # e.g. resolve_device: no CUDA GPU
+    def failing_setup(cfg, resume, started=None):  # e.g. resolve_device: no CUDA GPU
         raise InputError("--device cuda: torch sees no CUDA GPU")
 
     monkeypatch.setattr(train, "Trainer", failing_setup)  # train_cli imports it when it starts
@@ -212,7 +212,7 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
         val_set=[],
         val_ls=0.0,
     )
-    monkeypatch.setattr(train, "Trainer", lambda cfg, resume: ready)
+    monkeypatch.setattr(train, "Trainer", lambda cfg, resume, started=None: ready)
     with pytest.raises(Stop):
         train_cli._run(args, None)
     assert started == [[]]
@@ -296,7 +296,7 @@ def test_a_run_stopped_before_its_first_validation_says_so(
 
     from msfnet.model import train, train_cli
 
-    def trainer(cfg, resume):  # a run that stops before any validation
+    def trainer(cfg, resume, started=None):  # a run that stops before any validation
         return SimpleNamespace(
             device=SimpleNamespace(type="cpu"),
             bf16=False,

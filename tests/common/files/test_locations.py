@@ -64,6 +64,16 @@ def test_check_output_refuses(case: str, tmp_path: Path) -> None:
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
 
 
+def test_missing_input_under_the_output_is_not_found(tmp_path: Path) -> None:
+    """An input that does not exist, named inside (or as) the output, is reported missing:
+    "the output contains the input" sent users to fix the wrong thing."""
+    for target, missing in (("ej", "ej/l.txt"), ("x.txt", "x.txt")):
+        with pytest.raises(InputError, match="not found") as err:
+            check_output(tmp_path / target, [tmp_path / missing], folder=target == "ej")
+        assert err.value.path == tmp_path / missing
+    assert not any(tmp_path.iterdir())
+
+
 def test_check_output_folder_rules(tmp_path: Path) -> None:
     out = tmp_path / "out"
     check_output(out, folder=True)  # new

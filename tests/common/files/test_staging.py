@@ -133,6 +133,9 @@ def test_a_staging_place_refused_names_the_output(kind: str, tmp_path: Path, mon
             with getattr(files, kind)(target):
                 pass
     assert exc.value.filename == str(target) and exc.value.errno == errno.EROFS
+    # the output is not there yet by design: the words say it cannot be written, lest a
+    # "No such file or directory" read as a missing input
+    assert exc.value.strerror == "cannot write the output here (Read-only file system)"
     assert list(tmp_path.iterdir()) == []
 
 

@@ -107,11 +107,11 @@ def test_prefetch_decodes_the_next_stack_during_inference(monkeypatch: pytest.Mo
     estimate, prepare = model.estimator.estimate, stack_module.prepare_stack
 
     def slow_estimate(*a: object, **k: object) -> object:
-        time.sleep(0.3)
+        time.sleep(0.6)
         return estimate(*a, **k)  # type: ignore[arg-type]
 
     def slow_prepare(*a: object, **k: object) -> object:
-        time.sleep(0.2)
+        time.sleep(0.4)
         return prepare(*a, **k)  # type: ignore[arg-type]
 
     monkeypatch.setattr(model.estimator, "estimate", slow_estimate)
@@ -120,9 +120,10 @@ def test_prefetch_decodes_the_next_stack_during_inference(monkeypatch: pytest.Mo
     off = run_batch(model, stacks, LoadOptions(), lambda n: None, prefetch=False, progress=False)
     print(on.totals_line())
     print(off.totals_line())
-    # stacks 2 and 3 were decoded while 1 and 2 ran: ~0.4 s hidden, none without prefetch
-    assert on.hidden_s > 0.3 and off.hidden_s < 0.1
-    assert on.wall_s < off.wall_s - 0.25
+    # stacks 2 and 3 were decoded while 1 and 2 ran: ~0.8 s hidden, none without prefetch
+    # (sleeps long against the real work, so a busy machine keeps the margins)
+    assert on.hidden_s > 0.5 and off.hidden_s < 0.1
+    assert on.wall_s < off.wall_s - 0.4
 
 
 @pytest.mark.slow

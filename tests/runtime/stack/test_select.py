@@ -22,6 +22,9 @@ BAD = [
     ("1,1,2", 10, "more than once"),
     ("a-b", 10, "expected 1-based"),
     (",", 10, "expected 1-based"),
+    ("", 10, "an empty part"),  # not "all images"
+    ("1,,3", 10, "an empty part"),  # a typo, not 1,3
+    ("1,", 10, "an empty part"),
 ]
 
 
@@ -40,5 +43,7 @@ def test_max_lights_spreads_over_the_selection() -> None:
     assert evenly_spaced(96, 4) == [0, 32, 63, 95]
     assert selection(96, "21-96", 3) == [20, 58, 95]  # 76 kept: positions 0, 38, 75
     assert selection(10, None, None) == list(range(10))
+    with pytest.raises(InputError, match="empty part"):
+        selection(10, "", None)  # --select '' is refused, not read as no selection
     with pytest.raises(InputError, match="at least 3"):
         selection(10, None, 2)

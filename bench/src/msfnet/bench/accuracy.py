@@ -26,7 +26,7 @@ import numpy as np
 
 from msfnet.bench.data import data_root
 from msfnet.bench.workloads import Workload, make_input
-from msfnet.common.cli import command_main, make_parser, positive_int, thread_count
+from msfnet.common.cli import command_main, make_parser, path_arg, positive_int, thread_count
 from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
 from msfnet.runtime.engines import installed_engines
@@ -186,14 +186,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = make_parser(PROG, __doc__ or "", (f"{PROG} --models exports/ --lights 32,96",))
     p.add_argument(
         "--data",
-        type=Path,
+        type=path_arg,
         default=None,
         help="data root holding DiLiGenT/ballPNG (default: $MSFNET_DATA, "
         "./shared/data or ../shared/data)",
     )
     p.add_argument(
         "--models",
-        type=Path,
+        type=path_arg,
         default=None,
         help="folder with fp32.onnx, fp32_staged.onnx, int8.onnx, int8_staged.onnx",
     )

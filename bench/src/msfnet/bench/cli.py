@@ -46,6 +46,7 @@ from msfnet.common.cli import (
     command_main,
     int_range,
     make_parser,
+    path_arg,
     positive_float,
     thread_count,
 )
@@ -119,7 +120,7 @@ run, never cached between runs, so a report always measures the models it holds.
     )
     p.add_argument(
         "--checkpoint",
-        type=Path,
+        type=path_arg,
         default=None,
         help="MSF-Net checkpoint (.pth); default: the bundled trained model "
         "(msfnet/model/weights/msfnet_default.pth)",
@@ -132,21 +133,21 @@ run, never cached between runs, so a report always measures the models it holds.
     )
     p.add_argument(
         "--data",
-        type=Path,
+        type=path_arg,
         default=None,
         help=f"data root holding DiLiGenT/ballPNG and psmImages/ (default: "
         f"${ENV_VAR}, else ./shared/data or ../shared/data from the current folder)",
     )
     p.add_argument(
         "--stack",
-        type=Path,
+        type=path_arg,
         default=None,
         help=f"real stack for the inputs and workload (d) (default DATA/"
         f"{STACK_IN_DATA.as_posix()})",
     )
     p.add_argument(
         "--calib",
-        type=Path,
+        type=path_arg,
         nargs="+",
         default=None,
         help="stacks to calibrate int8 on (default: the stack + DATA/psmImages cat/"
@@ -157,7 +158,7 @@ run, never cached between runs, so a report always measures the models it holds.
         "--output",
         "--report-dir",
         dest="report_dir",
-        type=Path,
+        type=path_arg,
         default=Path("msf-bench-out"),
         help="report folder, written as a whole: REPORT.md, report.json, "
         "latency.png, models/, e2e/ (default ./msf-bench-out)",
@@ -211,7 +212,7 @@ run, never cached between runs, so a report always measures the models it holds.
     )
     edge.add_argument(
         "--onnx",
-        type=Path,
+        type=path_arg,
         default=None,
         metavar="MODEL",
         help="benchmark this msfnet ONNX file on every engine, precision and device this "

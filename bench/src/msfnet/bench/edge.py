@@ -18,6 +18,7 @@ Each row runs in a fresh process (``python -m msfnet.bench.edge SPEC.json``), to
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import subprocess
 import sys
@@ -284,7 +285,7 @@ def onnx_rows(model: Path, data: Path, threads: int | None, scratch: Path) -> li
             measured.append(
                 EdgeRow(
                     p.label,
-                    _parity_status(r.get("parity_deg")),
+                    _answer_status(r["mae_deg"]) or _parity_status(r.get("parity_deg")),
                     size,
                     r["mae_deg"],
                     r["ms"],
@@ -292,6 +293,21 @@ def onnx_rows(model: Path, data: Path, threads: int | None, scratch: Path) -> li
                 )
             )
     return measured + rows
+
+
+# A mean error this large is no estimate at all (normals facing the camera score ~30-40 deg on
+# the crops; NaN or zero output scores 180): such a row must not show a tick.
+UNUSABLE_MAE_DEG = 90.0
+
+
+def _answer_status(mae_deg: float) -> str | None:
+    """'failed: ...' when the path's normals are unusable (NaN, zeros, nonsense), else None."""
+    if not math.isfinite(mae_deg) or mae_deg >= UNUSABLE_MAE_DEG:
+        return (
+            f"failed: MAE {mae_deg:.0f} deg, the model's normals are unusable "
+            "(NaN, zeros or nonsense)"
+        )
+    return None
 
 
 def _parity_status(parity: list[float] | tuple[float, float] | None) -> str:

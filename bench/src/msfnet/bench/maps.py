@@ -15,12 +15,11 @@ import os
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from msfnet.common import cpu
-from msfnet.common.cli import command_main, make_parser, positive_int
+from msfnet.common.cli import command_main, make_parser, path_arg, positive_int
 from msfnet.common.files import check_output, write_json
 from msfnet.runtime.results.maps.curvature import curvature_maps
 from msfnet.runtime.results.maps.integrate import METHODS, integrate_normals
@@ -148,7 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar=("H", "W"),
         help=f"frame size (default {HEIGHT} {WIDTH})",
     )
-    p.add_argument("--json", type=Path, default=None, help="also write the results here")
+    p.add_argument("--json", type=path_arg, default=None, help="also write the results here")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     return p
 

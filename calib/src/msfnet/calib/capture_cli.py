@@ -26,6 +26,7 @@ from msfnet.common.cli import (
     make_parser,
     nonnegative_float,
     nonnegative_int,
+    path_arg,
     positive_float,
     positive_int,
 )
@@ -123,11 +124,11 @@ def add_device_arguments(
     )
     g.add_argument(
         "--light-directions",
-        type=Path,
+        type=path_arg,
         help="light_directions.txt to put in the "
         "stack (from msf-calib directions); checked before capturing",
     )
-    g.add_argument("--light-intensities", type=Path, help="light_intensities.txt for the stack")
+    g.add_argument("--light-intensities", type=path_arg, help="light_intensities.txt for the stack")
     g.add_argument("--no-ambient", action="store_true", help="skip the ambient (dark) frame")
     g.add_argument(
         "--keep-ambient",
@@ -159,19 +160,23 @@ def build_parser() -> argparse.ArgumentParser:
         EXAMPLES,
     )
     p.add_argument(
-        "out_dir", type=Path, nargs="?", metavar="OUT", help="session / stack folder (or -o OUT)"
+        "out_dir",
+        type=path_arg,
+        nargs="?",
+        metavar="OUT",
+        help="session / stack folder (or -o OUT)",
     )
     p.add_argument(
         "-o",
         "--output",
-        type=Path,
+        type=path_arg,
         metavar="OUT",
         help="session / stack folder (same as the positional OUT)",
     )
     add_device_arguments(p)
     p.add_argument(
         "--mask",
-        type=Path,
+        type=path_arg,
         help="object mask for the stack and exposure checks "
         "(checked before capturing; the simulated camera writes its own)",
     )

@@ -28,6 +28,7 @@ from msfnet.common.cli import (
     finite_float,
     int_range,
     make_parser,
+    path_arg,
     positive_float,
 )
 from msfnet.common.errors import InputError
@@ -340,16 +341,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sp: argparse.ArgumentParser) -> None:
         add_common_flags(sp, sub_command=True)  # before or after the sub-command's name
-        sp.add_argument("-o", "--output", type=Path, required=True, help="output text file")
+        sp.add_argument("-o", "--output", type=path_arg, required=True, help="output text file")
         sp.add_argument(
             "--mask",
-            type=Path,
+            type=path_arg,
             help="target mask image (default: a file in the "
             "folder with 'mask' in its name; else the sphere is fitted from images)",
         )
         sp.add_argument(
             "--ambient",
-            type=Path,
+            type=path_arg,
             help="dark/ambient frame to subtract (default: a "
             "file with 'ambient' or 'dark' in its name)",
         )
@@ -381,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
         "folders = several captures of the same lights, averaged. Several blobs "
         "in the mask = several spheres, averaged.",
     )
-    d.add_argument("images_dir", nargs="+", type=Path, help="folder(s) of mirror-sphere images")
+    d.add_argument("images_dir", nargs="+", type=path_arg, help="folder(s) of mirror-sphere images")
     d.add_argument(
         "--spheres",
         type=int_range(1, MAX_SPHERES),
@@ -390,7 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     d.add_argument(
         "--diagnostic",
-        type=Path,
+        type=path_arg,
         help="diagnostic PNG path (default "
         "<output>_diagnostic.png; with several captures, _1, _2, ... are appended)",
     )
@@ -404,10 +405,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="One r g b row per image, scaled to mean 1.",
     )
     i.add_argument(
-        "images_dir", type=Path, help="folder of images of a matte white sphere or plane"
+        "images_dir", type=path_arg, help="folder of images of a matte white sphere or plane"
     )
     i.add_argument(
-        "--lights", type=Path, required=True, help="light_directions.txt for these images"
+        "--lights", type=path_arg, required=True, help="light_directions.txt for these images"
     )
     i.add_argument(
         "--target",

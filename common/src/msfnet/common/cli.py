@@ -20,6 +20,7 @@ import traceback
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from contextvars import ContextVar
+from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
 from msfnet.common.errors import InputError, MsfError, first_line, one_line
@@ -41,6 +42,14 @@ def _number(text: str, kind: type) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
+
+
+def path_arg(text: str) -> Path:
+    """A path argument; "" is refused (``Path("")`` is the current folder, which nobody
+    means by an empty argument, e.g. an unset shell variable)."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path")
+    return Path(text)
 
 
 def positive_int(text: str) -> int:

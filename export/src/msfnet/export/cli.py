@@ -16,6 +16,7 @@ from msfnet.common.cli import (
     command_main,
     int_range,
     make_parser,
+    path_arg,
     positive_float,
     positive_int,
 )
@@ -80,11 +81,13 @@ def build_parser() -> argparse.ArgumentParser:
         "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = "
         "int8).\n\n" + (p.epilog or "")
     )
-    p.add_argument("checkpoint", type=Path, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)")
+    p.add_argument(
+        "checkpoint", type=path_arg, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)"
+    )
     p.add_argument(
         "-o",
         "--output",
-        type=Path,
+        type=path_arg,
         default=None,
         help="output .onnx (default: the checkpoint's name with .onnx in place of its "
         ".pth / .pth.tar)",
@@ -145,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--calib",
-        type=Path,
+        type=path_arg,
         nargs="+",
         default=None,
         metavar="STACK",

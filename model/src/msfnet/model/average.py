@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from msfnet.common.cli import command_main, make_parser
+from msfnet.common.cli import command_main, make_parser, path_arg
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, same_file
 
@@ -76,18 +76,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "checkpoints",
         nargs="+",
-        type=Path,
+        type=path_arg,
         metavar="CKPT",
         help="two or more checkpoints of one network variant (.pth), each once",
     )
-    p.add_argument("-o", "--output", type=Path, required=True, help="checkpoint to write")
+    p.add_argument("-o", "--output", type=path_arg, required=True, help="checkpoint to write")
     p.add_argument(
         "--fp16",
         action="store_true",
         help="store the weights in half precision (half the size; loading casts "
         "them back to float32)",
     )
-    p.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing OUTPUT checkpoint (never another kind of file)",
+    )
     return p
 
 
@@ -106,7 +110,17 @@ def _check_inputs(paths: Sequence[Path]) -> None:
 def _run(args: argparse.Namespace) -> int:
     _check_inputs(args.checkpoints)
     check_output(args.output, args.checkpoints, overwrite=args.overwrite)
-    from msfnet.model.checkpoint import network_for, save_checkpoint
+    from msfnet.model.checkpoint import network_for, not_a_checkpoint, save_checkpoint
+
+    if args.output.is_file():  # --overwrite: an earlier checkpoint, never e.g. notes.txt
+        with args.output.open("rb") as f:
+            head = f.read(1 << 20)
+        problem = not_a_checkpoint(head)
+        if head and problem:  # an empty file holds nothing to lose
+            raise InputError(
+                f"{problem}; --overwrite replaces only an earlier checkpoint: choose another path",
+                args.output,
+            )
 
     state = average_state_dicts(args.checkpoints)
     model = network_for(state)

@@ -47,8 +47,18 @@ def read_torch_file(path: str | Path) -> object:
     path = Path(path)
     if path.is_dir():
         raise CheckpointError("is a folder, not a checkpoint file", path)
-    if not path.is_file():
+    if not path.exists():
         raise CheckpointError("checkpoint file not found", path)
+    if not path.is_file():  # /dev/null, a pipe: torch would read nothing or block
+        raise CheckpointError("not a regular file, so not a checkpoint", path)
+    try:
+        with path.open("rb") as f:
+            head = f.read(1 << 20)  # a legacy checkpoint's first pickle is far smaller
+    except OSError as exc:
+        raise CheckpointError(f"cannot be read ({first_line(exc)})", path) from exc
+    problem = not_a_checkpoint(head)
+    if problem:  # said from the bytes: torch fails on these with e.g. "KeyError: 101"
+        raise CheckpointError(problem, path)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -129,9 +139,10 @@ def _refusal(path: Path, exc: pickle.UnpicklingError) -> str:
     messages do not separate "no pickle at all" from "a pickle it does not support"."""
     text = str(exc)
     with open(path, "rb") as f:
-        head = f.read(1 << 20)  # a legacy checkpoint's first pickle is far smaller
-    if head.startswith(b"version https://git-lfs"):
-        return "a Git LFS pointer, not the checkpoint itself (fetch it with `git lfs pull`)"
+        head = f.read(1 << 20)
+    problem = not_a_checkpoint(head)
+    if problem:
+        return problem
     if not zipfile.is_zipfile(path) and not _is_a_pickle(head):
         return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"
     if re.search(r"unsupported global", text, re.IGNORECASE):  # wording varies by torch
@@ -145,6 +156,18 @@ def _refusal(path: Path, exc: pickle.UnpicklingError) -> str:
         f"a pickle that PyTorch's safe reader refuses ({detail}); refusing to unpickle it "
         "(re-save the state_dict with torch.save's defaults)"
     )
+
+
+def not_a_checkpoint(head: bytes) -> str | None:
+    """What a file is instead, when its first bytes already show it is no torch.save file
+    (a zip archive, "PK"; before torch 1.6 a pickle); None when it may be one."""
+    if not head:
+        return "an empty file, not a checkpoint"
+    if head.startswith(b"version https://git-lfs"):
+        return "a Git LFS pointer, not the checkpoint itself (fetch it with `git lfs pull`)"
+    if not head.startswith(b"PK") and not _is_a_pickle(head):
+        return "not a PyTorch checkpoint (neither a zip archive nor a pickle)"
+    return None
 
 
 def _is_a_pickle(head: bytes) -> bool:

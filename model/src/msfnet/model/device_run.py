@@ -32,6 +32,7 @@ from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
 
+from msfnet.common.cli import path_arg
 from msfnet.common.files import write_atomic
 from msfnet.model.train_config import SNAPSHOT
 
@@ -173,11 +174,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m msfnet.model.device_run",
         description="A time-boxed msf-train run for a lent GPU (see docs/training.md).",
     )
-    p.add_argument("--out", type=Path, required=True, help="what comes back ($OUT)")
-    p.add_argument("--work", type=Path, default=Path("/tmp/msf_device_run"))
+    p.add_argument("--out", type=path_arg, required=True, help="what comes back ($OUT)")
+    p.add_argument("--work", type=path_arg, default=Path("/tmp/msf_device_run"))
     p.add_argument("--limit", type=float, default=600.0, help="the command's limit, seconds")
     p.add_argument("--margin", type=float, default=60.0, help="stop training this much earlier")
-    p.add_argument("--init", type=Path, default=BUNDLED, help="weights to start from")
+    p.add_argument("--init", type=path_arg, default=BUNDLED, help="weights to start from")
     p.add_argument("--snapshots", type=int, default=4, help="snapshots to bring back (<= 5)")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     p.add_argument("--batch", type=int, default=64)

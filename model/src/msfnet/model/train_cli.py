@@ -12,7 +12,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from msfnet.common.cli import add_flags, command_main, int_range, make_parser
+from msfnet.common.cli import add_flags, command_main, int_range, make_parser, path_arg
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import STAGING_TAG, check_not_input
 from msfnet.model.train_config import (
@@ -59,7 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument(
-        "-o", "--output", "--out", dest="out", type=Path, required=True, help="output (run) folder"
+        "-o",
+        "--output",
+        "--out",
+        dest="out",
+        type=path_arg,
+        required=True,
+        help="output (run) folder",
     )
     p.add_argument(
         "--resume",
@@ -214,7 +220,7 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
     return sorted(out.iterdir())  # deleted by the caller once every option has been checked
 
 
-def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
+def _run(args: argparse.Namespace, argv: list[str] | None, started: float | None = None) -> int:
     # torch now, after the options were checked and before OUT is touched: a missing torch
     # must not cost an earlier run's files (--overwrite, --resume clean up first)
     from msfnet.model.checkpoint import read_state_dict
@@ -265,7 +271,9 @@ def _run(args: argparse.Namespace, argv: list[str] | None) -> int:
         if cfg.init is not None:
             read_state_dict(cfg.init)  # a bad --init is refused while the earlier run exists
     try:
-        trainer = Trainer(cfg, resume=resume)  # device, data, precision checked: writes nothing
+        trainer = Trainer(
+            cfg, resume=resume, started=started
+        )  # device, data, precision checked: writes nothing
     except (ValueError, TypeError, KeyError, RuntimeError) as exc:
         if not resume or isinstance(exc, InputError):
             raise
@@ -356,7 +364,8 @@ def _announce_duration(trainer: Any, cfg: TrainConfig) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), lambda args: _run(args, argv), argv)
+    started = time.monotonic()  # --time-budget's zero: before torch is imported
+    return command_main(PROG, build_parser(), lambda args: _run(args, argv, started), argv)
 
 
 if __name__ == "__main__":

@@ -238,10 +238,11 @@ class TrainConfig:
         "itself, as batched tensor operations; no workers; --render-preset applies)",
         choices=("cpu", "device"),
     )
-    # stop (and save) this many seconds after the Trainer was made
+    # stop (and save) this many seconds after msf-train started
     time_budget: float | None = flag(
         None,
-        "stop this many seconds after the start (setup included), finishing the step and "
+        "stop this many seconds after msf-train starts (imports and set-up included), "
+        "finishing the step and "
         "saving last.pth (exit 0): e.g. a minute short of a time-boxed session",
         type=positive_float,
         metavar="SECONDS",

@@ -15,7 +15,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from msfnet.common.cli import flag, positive_float, thread_count
+from msfnet.common.cli import flag, path_arg, positive_float, thread_count
 from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
 from msfnet.runtime.contract import INPUT_MULTIPLE
@@ -76,7 +76,7 @@ class ModelOptions:
         None,
         "msfnet ONNX model (default: the bundled model)",
         name="--onnx",
-        type=Path,
+        type=path_arg,
         metavar="MODEL",
     )
     method: str = flag(

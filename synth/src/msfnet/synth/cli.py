@@ -12,6 +12,7 @@ from msfnet.common.cli import (
     int_range,
     make_parser,
     nonnegative_int,
+    path_arg,
     positive_int,
 )
 from msfnet.common.errors import InputError
@@ -38,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
             "msf-synth big/ --objects 2 --size 256 --lights 96 --seed 3",
         ),
     )
-    p.add_argument("outdir", type=Path, help="output benchmark root (one folder per object)")
+    p.add_argument("outdir", type=path_arg, help="output benchmark root (one folder per object)")
     p.add_argument("--objects", type=positive_int, default=8, help="number of objects (default 8)")
     p.add_argument(
         "--lights", type=int_range(3, MAX_LIGHTS), default=32, help="lights per object (default 32)"

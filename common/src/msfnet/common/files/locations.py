@@ -97,6 +97,10 @@ def check_not_input(
         if item is None:
             continue
         src = resolved(Path(item))
+        clash = real == src or same_file(real, src) or _is_within(src, real)
+        if clash and not os.path.lexists(item):
+            # a missing input "inside" the output is a missing input, not an output problem
+            raise InputError("not found", item)
         if real == src or same_file(real, src):
             raise InputError(
                 "the output would replace an input; choose another output path", target

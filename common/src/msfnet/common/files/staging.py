@@ -149,7 +149,11 @@ def new_staging(target: Path, *, folder: bool) -> Path:
         os.close(fd)
         return Path(name)
     except OSError as exc:
-        raise OSError(exc.errno, exc.strerror, str(target)) from exc
+        # the output itself is not there yet by design: say it cannot be written there
+        # ("/proc/x: No such file or directory" read as a missing input)
+        raise OSError(
+            exc.errno, f"cannot write the output here ({exc.strerror})", str(target)
+        ) from exc
 
 
 @contextmanager

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.common.cli import command_main, make_parser
+from msfnet.common.cli import command_main, make_parser, path_arg
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, json_text, staged_folder
 from msfnet.runtime.api import Model
@@ -323,7 +323,11 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     p.add_argument(
-        "roots", type=Path, metavar="ROOT", nargs="+", help="benchmark root(s) or object folder(s)"
+        "roots",
+        type=path_arg,
+        metavar="ROOT",
+        nargs="+",
+        help="benchmark root(s) or object folder(s)",
     )
     p.add_argument("--l2-only", action="store_true", help="only the least-squares baseline")
     p.add_argument("--no-l2", action="store_true", help="skip the least-squares baseline")
@@ -332,7 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--output",
         "--outdir",
         dest="output",
-        type=Path,
+        type=path_arg,
         default=None,
         help="output folder (default ./msf-eval/<root name>/, ./msf-eval/objects/ for several "
         "ROOTs)",
@@ -340,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_load_flags(p, ("max_lights", "select"))
     p.add_argument(
         "--lights",
-        type=Path,
+        type=path_arg,
         help="light directions file shared by all objects (e.g. psmImages/lights.txt)",
     )
     add_model_flags(

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from pathlib import Path
 
 from msfnet.common.cli import (
     Flag,
     add_flags,
     nonnegative_float,
     options_from_args,
+    path_arg,
     positive_float,
     positive_int,
 )
@@ -28,9 +28,9 @@ from msfnet.runtime.results.maps.integrate import METHODS as INTEGRATION_METHODS
 from msfnet.runtime.stack import LoadOptions, parse_roi
 
 LOAD_FLAGS: dict[str, Flag] = {
-    "lights": Flag("light directions file (txt or json), overrides the stack's", type=Path),
-    "intensities": Flag("light intensities file (txt or json)", type=Path),
-    "mask": Flag("mask image (> 127 is object)", type=Path),
+    "lights": Flag("light directions file (txt or json), overrides the stack's", type=path_arg),
+    "intensities": Flag("light intensities file (txt or json)", type=path_arg),
+    "mask": Flag("mask image (> 127 is object)", type=path_arg),
     "select": Flag(
         "1-based image subset, e.g. 21-96 or 1,3,5-9 (default: all images, or the "
         "benchmark's own selection, e.g. DiLiGenT bear 21-96, which a line reports and "

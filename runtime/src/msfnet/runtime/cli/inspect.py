@@ -17,7 +17,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from msfnet.common.cli import command_main, make_parser, positive_float, positive_int
+from msfnet.common.cli import command_main, make_parser, path_arg, positive_float, positive_int
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, staged_folder
 from msfnet.common.imageio import encode_png
@@ -58,11 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "input",
-        type=Path,
+        type=path_arg,
         help="an msf-run output folder (maps.json, local_shape.tif) or a stack (then msf-run's "
         "pipeline runs first, with the flags below)",
     )
-    p.add_argument("-o", "--output", type=Path, required=True, help="folder for the verdict")
+    p.add_argument("-o", "--output", type=path_arg, required=True, help="folder for the verdict")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier verdict folder")
     t = p.add_argument_group("thresholds (in the maps' units: mm with --pixel-size, else px)")
     t.add_argument("--depth", type=_finite, help="|local shape| at or above this is a defect")
@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     t.add_argument(
         "--reference",
-        type=Path,
+        type=path_arg,
         help="a good part (run folder or stack, same fixture and size): only what differs "
         "from it counts (aligned by phase correlation first)",
     )

@@ -12,7 +12,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from msfnet.common.cli import command_main, make_parser, positive_int
+from msfnet.common.cli import command_main, make_parser, path_arg, positive_int
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_not_input, check_output, json_text, numbered_folder
 from msfnet.runtime.api import Model, Result
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "stacks",
-        type=Path,
+        type=path_arg,
         metavar="STACK",
         nargs="*",
         help="stack folder(s), .npz, or folders of stacks (omit with --demo)",
@@ -82,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--output",
         "--outdir",
         dest="output",
-        type=Path,
+        type=path_arg,
         default=None,
         help="output folder (default: a fresh ./msf-out/<stack name>[-N]/); with "
         "several stacks, the parent of one folder per stack and the summary "

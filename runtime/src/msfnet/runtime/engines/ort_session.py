@@ -199,7 +199,12 @@ def check_normals(path: Path, images: np.ndarray, normals: object) -> None:
     want = (images.shape[0], 3, *images.shape[3:5])
     shape = getattr(normals, "shape", None)
     if shape is None or tuple(shape) != want:
-        got = "no array" if shape is None else "x".join(str(d) for d in shape)
+        if shape is None:
+            got = "no array"
+        elif len(shape) == 0:
+            got = "() (a single number)"
+        else:
+            got = "x".join(str(d) for d in shape)
         raise InputError(
             f"the model returned normals of shape {got} for a {want[3]}x{want[2]} input "
             f"(expected {'x'.join(str(d) for d in want)}): not a working msfnet model",

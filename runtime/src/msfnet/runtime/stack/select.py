@@ -18,8 +18,8 @@ def parse_select(spec: str, n: int) -> list[int]:
     usage = f"--select {spec!r}: expected 1-based indices like 21-96 or 1,3,5-9"
     for part in spec.split(","):
         part = part.strip()
-        if not part:
-            continue
+        if not part:  # "" or "1,,3": a typo, not "all images" (omit --select for that)
+            raise InputError(f"{usage} (an empty part; leave out --select for all images)")
         try:
             if "-" in part or ":" in part:
                 a, b = part.replace(":", "-").split("-", 1)
@@ -57,7 +57,7 @@ def evenly_spaced(n: int, k: int) -> list[int]:
 
 def selection(n: int, select: str | None, max_lights: int | None) -> list[int]:
     """--select (1-based spec), then --max-lights evenly spread over what is left."""
-    keep = parse_select(select, n) if select else list(range(n))
+    keep = parse_select(select, n) if select is not None else list(range(n))
     if max_lights is not None and max_lights < len(keep):
         if max_lights < MIN_LIGHTS:
             raise InputError(f"--max-lights {max_lights}: at least {MIN_LIGHTS} lights are needed")
