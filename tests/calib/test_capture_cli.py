@@ -518,3 +518,133 @@ def test_exposure_takes_a_drivers_negative_units_but_not_for_an_oak(tmp_path: Pa
         [str(tmp_path / "o"), "--camera", "oak", "--exposure", "-6", "--count", "8"]
     )
     assert code == 2 and "microseconds" in capsys.readouterr().err
+
+
+# ------------------------------------------------- review of light calibration and capture
+
+
+@pytest.mark.parametrize("theirs", ["013.png", "raw/013.png"])
+def test_overwrite_refuses_a_file_only_the_longer_new_session_would_write(
+    theirs: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--overwrite of a 12-light session with 20 lights wrote its 013.png over the user's
+    013.png beside the session (the old session never wrote that name): now refused before
+    anything is discarded or captured."""
+    import cv2
+
+    out = tmp_path / "o"
+    assert capture_main([str(out), *SIM]) == 0
+    cv2.imwrite(str(out / theirs), np.full((4, 4), 7, np.uint8))
+    before = _tree_bytes(out)
+    capsys.readouterr()
+    assert capture_main([str(out), *SIM, "--overwrite", "--count", "20"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"msf-capture: error: {out}: --overwrite"), err
+    assert theirs in err[0] and "12 lights" in err[0], err
+    assert _tree_bytes(out) == before
+    # the session's own names are still replaced: the same count goes through
+    assert capture_main([str(out), *SIM, "--overwrite"]) == 0
+
+
+def test_a_finished_take_without_its_result_is_run_by_the_next_loop(tmp_path: Path) -> None:
+    """A take captured whole but whose run was stopped was skipped for good (the next loop
+    took 002); now the next loop runs it."""
+    root = tmp_path / "takes"
+    loop = [str(root), "--camera", "sim", "--count", "6", "--loop", "1", "-q"]
+    assert capture_main(loop) == 0  # as if stopped between the capture and its run
+    assert not (root / "001-normals").exists()
+    assert capture_main([*loop, "--run", "--method", "l2"]) == 0
+    assert (root / "001-normals" / "normals.npy").is_file()
+    assert not (root / "002").exists()
+    # with its result the take is done: the next loop takes 002
+    assert capture_main([*loop, "--run", "--method", "l2"]) == 0
+    assert (root / "002-normals" / "normals.npy").is_file()
+
+
+@pytest.mark.parametrize("frame", ["003.png", "ambient.png"])
+def test_a_raw_frame_of_another_size_is_one_line_and_builds_nothing(
+    frame: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys
+) -> None:
+    """A damaged or replaced frame in raw/ crashed the resumed session with a broadcast error
+    (exit 1) after writing some stack images; now refused before capturing, naming it."""
+    import cv2
+
+    out = tmp_path / "o"
+    _interrupt_after(monkeypatch, 6)
+    assert capture_main([str(out), *SIM, "--count", "8"]) == 130
+    monkeypatch.undo()
+    cv2.imwrite(str(out / "raw" / frame), np.zeros((50, 50, 3), np.uint16))
+    capsys.readouterr()
+    assert capture_main([str(out), *SIM, "--count", "8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"msf-capture: error: {out / 'raw' / frame}: "), err
+    assert "50x50" in err[0], err
+    assert not list(out.glob("*.png"))  # no stack image
+
+
+def test_a_frame_of_another_size_is_refused_before_any_stack_image(tmp_path: Path) -> None:
+    """finish_stack checks every frame before writing the first stack image."""
+    import cv2
+
+    from msfnet.calib.capture import finish_stack
+    from msfnet.common.errors import InputError
+
+    out = tmp_path / "o"
+    assert capture_main([str(out), *SIM, "--count", "6"]) == 0
+    for p in out.glob("*.png"):
+        p.unlink()
+    cv2.imwrite(str(out / "raw" / "005.png"), np.zeros((50, 50, 3), np.uint8))
+    with pytest.raises(InputError, match=r"005\.png: frame is 50x50, 8-bit but"):
+        finish_stack(out, log=lambda m: None)
+    assert not list(out.glob("*.png"))
+
+
+def test_run_options_are_checked_before_capturing(tmp_path: Path, capfd) -> None:
+    """--run --method bogus captured every frame, then failed in msf-run."""
+    out = tmp_path / "o"
+    try:
+        code = capture_main([str(out), *SIM, "--run", "--method", "bogus"])
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    assert code == 2
+    assert "--method" in capfd.readouterr().err
+    assert not out.exists()
+
+
+def test_new_light_directions_drop_the_intensities_of_the_old_ones(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The simulated rig's light_intensities.txt stayed beside new --light-directions, though
+    it belongs to the rig's true directions only."""
+    out = tmp_path / "st"
+    assert capture_main([str(out), *SIM]) == 0
+    assert (out / "light_intensities.txt").is_file()
+    lights = tmp_path / "lights.txt"
+    rows = read_vectors(out / "light_directions.txt", "l") * np.array([1.0, 1.0, 1.02])
+    lights.write_text("".join(f"{x} {y} {z}\n" for x, y, z in rows))
+    assert capture_main([str(out), "--camera", "sim", "--light-directions", str(lights)]) == 0
+    said = capsys.readouterr().out
+    assert "removed light_intensities.txt" in said, said
+    assert not (out / "light_intensities.txt").exists()
+    assert load_stack(out).num_lights == 12
+    # given with them, intensities are written
+    ints = tmp_path / "ints.txt"
+    ints.write_text("1 1 1\n" * 12)
+    lights.write_text("".join(f"{x} {y} {z}\n" for x, y, z in rows * np.array([1, 1, 1.01])))
+    argv = ["--light-directions", str(lights), "--light-intensities", str(ints)]
+    assert capture_main([str(out), *SIM, *argv]) == 0
+    assert (out / "light_intensities.txt").is_file()
+
+
+def test_a_circle_fitted_to_the_highlights_suggests_a_mask(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Without a mask, the circle fitted to a chrome capture's ring of highlights missed the
+    sphere, and the error blamed the exposure."""
+    calib = tmp_path / "calib"
+    assert capture_main([str(calib), *SIM, "--sim-scene", "chrome"]) == 0
+    capsys.readouterr()
+    assert calib_main(["directions", str(calib / "raw"), "-o", str(tmp_path / "l.txt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no highlight found" in err[0] and "--mask" in err[0], err
+    assert err[0].index("--mask") < err[0].index("exposure"), err  # the likelier cause first

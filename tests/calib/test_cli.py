@@ -444,6 +444,13 @@ def _matte(folder: Path, gain: float) -> Path:
     return folder
 
 
+def _matte_lights(path: Path, flip: tuple[int, int, int] = (1, 1, 1)) -> Path:
+    """The lights _matte's images were rendered under (times ``flip``)."""
+    rows = S.ring_lights(6, (15, 55), seed=3) * np.asarray(flip)
+    path.write_text("".join(f"{a} {b} {c}\n" for a, b, c in rows))
+    return path
+
+
 def _stray_light(chrome: Path) -> None:
     """A white spot on the sphere of 02.png, away from its highlight: a second highlight."""
     from msfnet.common.imageio import read_image, read_mask
@@ -471,9 +478,10 @@ def test_warnings_carry_the_command_and_are_silent_with_q(
     assert any("02.png: a second highlight" in line for line in err), err
     assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "b.txt"), "-q"]) == 0
     assert capfd.readouterr().err == ""
-    # intensities: a matte target partly saturated
+    # intensities: a matte target partly saturated (under its own lights: other lights are
+    # refused by the fit check)
     bright = _matte(tmp_path / "bright", gain=1.3)
-    argv = ["intensities", str(bright), "--lights", str(_lights_file(tmp_path, 6))]
+    argv = ["intensities", str(bright), "--lights", str(_matte_lights(tmp_path / "m.txt"))]
     assert cli.main([*argv, "-o", str(tmp_path / "i.txt")]) == 0
     err = capfd.readouterr().err.strip().splitlines()
     assert err and all(line.startswith("msf-calib: warning: ") for line in err), err
@@ -489,3 +497,98 @@ def test_no_highlight_names_the_capture_folder(tmp_path: Path, capfd) -> None:
     line = _one_line(capfd, ["no highlight found for", "01.png"])
     assert line.startswith(f"msf-calib: error: {folder}: "), line
     assert not (tmp_path / "l.txt").exists()
+
+
+# ------------------------------------------------- review of light calibration and capture
+
+
+@pytest.mark.parametrize("command", ["directions", "intensities"])
+@pytest.mark.parametrize("output", [".", "/"])
+def test_an_output_that_is_a_folder_is_one_line(
+    command: str, output: str, chrome: Path, tmp_path: Path, capfd
+) -> None:
+    """``-o .`` crashed directions with "ValueError: PosixPath('.') has an empty name"."""
+    extra = ["--lights", str(_lights_file(tmp_path, 6))] if command == "intensities" else []
+    before = _files(tmp_path)
+    assert cli.main([command, str(chrome), *extra, "-o", output]) == 2
+    _one_line(capfd, [f"error: {output}: ", "not a folder"])
+    assert _files(tmp_path) == before
+
+
+@pytest.mark.parametrize("suffix", [".jpg", ".pgm"])
+def test_a_mask_and_ambient_frame_in_any_image_format_are_used(
+    suffix: str, chrome: Path, tmp_path: Path, capfd
+) -> None:
+    """mask.jpg / mask.pgm and ambient.jpg were left out as images and then never used: the
+    sphere was fitted without its mask, the ambient frame silently skipped."""
+    import cv2
+
+    mask = cv2.imread(str(chrome / "mask.png"), cv2.IMREAD_GRAYSCALE)
+    (chrome / "mask.png").unlink()
+    cv2.imwrite(str(chrome / f"mask{suffix}"), mask)
+    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "l.txt")]) == 0
+    assert f"mask mask{suffix}" in capfd.readouterr().out
+    # an ambient frame of another size: refused, so it is read
+    cv2.imwrite(str(chrome / f"ambient{suffix}"), np.zeros((10, 10), np.uint8))
+    assert cli.main(["directions", str(chrome), "-o", str(tmp_path / "m.txt")]) == 2
+    _one_line(capfd, [f"ambient{suffix}", "size differs"])
+
+
+def test_captures_of_different_lengths_name_the_folder(chrome: Path, tmp_path: Path, capfd) -> None:
+    """ "captures have different image counts: [6, 5]" named no folder."""
+    short = Path(shutil.copytree(chrome, tmp_path / "short"))
+    (short / "06.png").unlink()
+    assert cli.main(["directions", str(chrome), str(short), "-o", str(tmp_path / "l.txt")]) == 2
+    line = _one_line(capfd, ["5 images", f"{chrome} has 6"])
+    assert line.startswith(f"msf-calib: error: {short}: "), line
+
+
+def test_intensity_errors_name_the_folder_and_hint_at_z(tmp_path: Path, capfd) -> None:
+    """A z-flipped lights file gave "002.png: fewer than 30 lit target pixels", naming no
+    folder and not the likely cause."""
+    folder = _matte(tmp_path / "matte", gain=0.8)
+    lights = _matte_lights(tmp_path / "back.txt", (1, 1, -1))
+    argv = ["intensities", str(folder), "--lights", str(lights), "-o", str(tmp_path / "i.txt")]
+    assert cli.main(argv) == 2
+    line = _one_line(capfd, ["png: fewer than 30 lit", "flip the sign of z"])
+    assert line.startswith(f"msf-calib: error: {folder}: "), line
+
+
+@pytest.mark.parametrize("case", ["y negated", "plane", "mirror sphere"])
+def test_intensities_refuse_a_target_that_does_not_fit(
+    case: str, chrome: Path, tmp_path: Path, capfd
+) -> None:
+    """Wrong lights (y negated), a sphere fitted as a plane and a mirror sphere as the matte
+    target all wrote plausible intensities with exit 0; the fit residual refuses them."""
+    folder = chrome if case == "mirror sphere" else _matte(tmp_path / "matte", gain=0.8)
+    flip = (1, -1, 1) if case == "y negated" else (1, 1, 1)
+    lights = _matte_lights(tmp_path / "lights.txt", flip)
+    out = tmp_path / "i.txt"
+    extra = ["--target", "plane"] if case == "plane" else []
+    before = _files(tmp_path)
+    assert (
+        cli.main(["intensities", str(folder), "--lights", str(lights), "-o", str(out), *extra]) == 2
+    )
+    line = _one_line(capfd, ["fit residual", "wrong lights file", "glossy"])
+    assert line.startswith(f"msf-calib: error: {folder}: "), line
+    assert _files(tmp_path) == before
+    # a target known to be imperfect: written anyway on request, with the warning
+    argv = ["intensities", str(folder), "--lights", str(lights), "-o", str(out), *extra]
+    assert cli.main([*argv, "--accept-poor-fit"]) == 0 and out.is_file()
+    assert "fits matte shading poorly" in capfd.readouterr().err
+
+
+def test_intensities_fitting_well_pass_and_a_poor_fit_warns(
+    tmp_path: Path, capfd, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from msfnet.calib import intensities
+
+    folder = _matte(tmp_path / "matte", gain=0.8)
+    argv = ["intensities", str(folder), "--lights", str(_matte_lights(tmp_path / "l.txt"))]
+    assert cli.main([*argv, "-o", str(tmp_path / "i.txt")]) == 0
+    assert capfd.readouterr().err == ""
+    monkeypatch.setattr(intensities, "FIT_WARN", 0.0)  # the band between warning and refusal
+    assert cli.main([*argv, "-o", str(tmp_path / "j.txt")]) == 0
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"msf-calib: warning: {folder}: "), err
+    assert "fits matte shading poorly" in err[0], err

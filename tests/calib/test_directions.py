@@ -165,3 +165,18 @@ def test_a_frame_without_highlight_is_told_why(fill: int, cause: str, not_said: 
     with pytest.raises(InputError, match="image 3") as exc:
         estimate_directions([imgs], circles)
     assert cause in str(exc.value) and not_said not in str(exc.value), str(exc.value)
+
+
+def test_two_spheres_asked_of_a_one_sphere_capture_are_refused(tmp_path) -> None:
+    """``--spheres 2`` on one sphere took Hough's circle around it, mostly outside the
+    picture, and averaged its estimates in (9 deg off, exit 0)."""
+    from msfnet.common.errors import InputError
+
+    scene = S.mirror_scene(256, 200, 70)
+    lights = S.ring_lights(8, (15, 55), seed=3)
+    body = S.sphere_masks(scene)[0][None, :, :, None] * 40  # the sphere's dull reflection
+    imgs = np.clip(render_stack(scene, lights, gain=1.0) + body, 0, 255).astype(np.uint8)
+    (one,) = fit_circles_from_images(imgs, 1)
+    assert abs(one.r - 70) < 2
+    with pytest.raises(InputError, match="found only 1 sphere in the images, not 2"):
+        fit_circles_from_images(imgs, 2, source=tmp_path)

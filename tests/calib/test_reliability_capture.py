@@ -45,6 +45,13 @@ def test_corrupt_session_json_is_one_line(content: bytes, tmp_path: Path, capfd)
         ["--count", "0"],
         ["--average", "0"],
         ["--exposure", "inf"],
+        # time.sleep(inf) crashed after the first take; -5 and nan were taken silently
+        ["--interval", "inf", "--loop", "2"],
+        ["--interval", "-5", "--loop", "2"],
+        ["--interval", "nan", "--loop", "2"],
+        ["--interval", "1e300", "--loop", "2"],
+        ["--gain", "nan"],
+        ["--focus", "inf"],
     ],
 )
 def test_numeric_options_are_validated(option: list[str], tmp_path: Path, capfd) -> None:

@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import folder_lock, vectors_text, write_atomic
-from msfnet.common.imageio import list_images, read_image, read_mask, write_png
+from msfnet.common.imageio import image_header, list_images, read_image, read_mask, write_png
 from msfnet.runtime.stack import (
     FILENAMES_FILE,
     INTENSITIES_FILE,
@@ -295,6 +295,23 @@ def _discard(out: Path) -> None:
     sess.unlink()
 
 
+def _check_new_names(out: Path, count: int) -> None:
+    """``overwrite`` of a session: _discard removes only the old session's frame names, so
+    a file under a name only the new, longer session writes is someone else's."""
+    old = _session_count(out / SESSION)
+    if old is None:
+        return  # unreadable count: _discard removes every frame name, as msf-capture's
+    for i in range(old, count):
+        for p in (out / _name(i), out / "raw" / _name(i)):
+            if os.path.lexists(p):
+                raise InputError(
+                    f"--overwrite: {p.relative_to(out)} is not the previous session's (it had "
+                    f"{old} lights) and a {count}-light session would replace it: move it away "
+                    "or use another folder",
+                    out,
+                )
+
+
 def _session_count(path: Path) -> int | None:
     try:
         return int(read_session(path)["count"])
@@ -334,12 +351,20 @@ def check_inputs(out: Path, inputs: Iterable[object]) -> None:
             )
 
 
-def check_folder(out: Path, overwrite: bool, overwrite_allowed: bool = True) -> None:
+def check_folder(
+    out: Path, overwrite: bool, overwrite_allowed: bool = True, count: int | None = None
+) -> None:
     """Refuse a folder msf-capture did not capture into (no session.json) when it holds a file
     under a name msf-capture writes (001.png, light_directions.txt, mask.png, raw/001.png ...),
     with or without ``overwrite``: it would be replaced. Other images (which could be
-    mistaken for frames) are refused too; ``overwrite`` captures beside them."""
-    if not out.is_dir() or (out / SESSION).is_file():
+    mistaken for frames) are refused too; ``overwrite`` captures beside them. In a session's
+    folder, ``overwrite`` with ``count`` lights refuses a file under a frame name the new
+    session writes and the old one did not (its 013.png beside a 12-light session)."""
+    if not out.is_dir():
+        return
+    if (out / SESSION).is_file():
+        if overwrite and count is not None:
+            _check_new_names(out, count)
         return
     clash = _capture_names(out)
     if clash:
@@ -416,6 +441,35 @@ def _frame_shape(camera: Any, raw: Path) -> tuple[int, int] | None:
         if frames:
             return tuple(read_image(frames[0]).shape[:2])  # type: ignore[return-value]
     return None
+
+
+def _check_frames(raw: Path, names: Iterable[str], shape: tuple[int, int] | None = None) -> None:
+    """The frames of ``names`` on disk in ``raw`` are of one size and bit depth (and of
+    ``shape``, the camera's, when known): a damaged or replaced frame crashed the stack build
+    halfway (a broadcast error, some stack images written)."""
+    first: tuple[str, Any] | None = None
+    retake = "delete it and run the capture again to retake it"
+    for name in names:
+        path = raw / name
+        head = image_header(path) if path.is_file() else None
+        if head is None:
+            continue
+        if shape is not None and head.shape != tuple(shape):
+            raise InputError(
+                f"frame is {head.width}x{head.height} but the camera delivers "
+                f"{shape[1]}x{shape[0]} frames: {retake}",
+                path,
+            )
+        if first is None:
+            first = (name, head)
+        elif (head.shape, head.bits) != (first[1].shape, first[1].bits):
+
+            def desc(h: Any) -> str:
+                return f"{h.width}x{h.height}, {h.bits}-bit"
+
+            raise InputError(
+                f"frame is {desc(head)} but {first[0]} is {desc(first[1])}: {retake}", path
+            )
 
 
 def capture_stack(
@@ -506,10 +560,11 @@ def _capture(
     lin = linearisation or Linearisation()
     # everything given is checked before the first frame
     check_inputs(out, (light_directions, light_intensities, mask))
-    check_folder(out, overwrite, overwrite_allowed)
+    check_folder(out, overwrite, overwrite_allowed, count=n)
     dirs = check_vectors(light_directions, n, "light directions")
     ints = check_vectors(light_intensities, n, "light intensities")
-    mask_arr = check_mask(mask, _frame_shape(camera, raw))
+    shape = _frame_shape(camera, raw)
+    mask_arr = check_mask(mask, shape)
     info = camera.info()  # before discarding anything: a device failing here costs nothing
     if overwrite:
         _discard(out)
@@ -519,6 +574,7 @@ def _capture(
         session["frames"] = {}
     records: dict[str, Any] = session["frames"]
     todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
+    _check_frames(raw, [name for name, _ in todo], shape)  # a resume's frames, before capturing
     pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
     # frames on disk without a usable exposure record (an older version wrote the frame
     # before its record): checked again from raw/ below
@@ -697,9 +753,18 @@ def finish_stack(
     if _text_changed(out / FILENAMES_FILE, filenames_text(names), log):
         write_filenames(out, names)
     dirs = check_vectors(light_directions, n, "light directions")
-    if dirs is not None and _text_changed(out / LIGHTS_FILE, vectors_text(dirs), log):
-        write_lights(out, dirs)
     ints = check_vectors(light_intensities, n, "light intensities")
+    if dirs is not None and _text_changed(out / LIGHTS_FILE, vectors_text(dirs), log):
+        stale = (out / LIGHTS_FILE).is_file() and (out / INTENSITIES_FILE).is_file()
+        write_lights(out, dirs)
+        if stale and ints is None:
+            # intensities are fitted to (or, for the simulated rig, belong to) the directions
+            # they came with: kept beside new ones they would be read as theirs
+            (out / INTENSITIES_FILE).unlink()
+            log(
+                f"removed {INTENSITIES_FILE}: it was for the previous light directions "
+                "(give --light-intensities to add new ones)"
+            )
     if ints is not None and _text_changed(out / INTENSITIES_FILE, vectors_text(ints), log):
         write_intensities(out, ints)
     if mask is not None:
@@ -721,7 +786,9 @@ def _build_images(
 ) -> tuple[int, int]:
     raw = out / "raw"
     amb_path = raw / "ambient.png"
-    amb = read_image(amb_path) if subtract_ambient and amb_path.is_file() else None
+    use_amb = subtract_ambient and amb_path.is_file()
+    _check_frames(raw, [*names, amb_path.name] if use_amb else names)  # before writing any
+    amb = read_image(amb_path) if use_amb else None
     shape: tuple[int, int] = (0, 0)
     for nm in names:
         img = read_image(raw / nm)
@@ -754,9 +821,10 @@ class LoopStep:
 _NUMBERED = re.compile(r"^\d{3,}$")
 
 
-def next_take(root: Path) -> Path:
-    """``root/001``, ``root/002``, ...: an unfinished last take is resumed, otherwise the
-    number after the highest."""
+def next_take(root: Path, has_result: Callable[[Path], bool] | None = None) -> Path:
+    """``root/001``, ``root/002``, ...: an unfinished last take is resumed (and, given
+    ``has_result``, a finished one without its result: its run was interrupted), otherwise
+    the number after the highest."""
     taken = (
         sorted((int(p.name), p) for p in root.iterdir() if p.is_dir() and _NUMBERED.match(p.name))
         if root.is_dir()
@@ -767,7 +835,7 @@ def next_take(root: Path) -> Path:
         sess = last / SESSION
         if sess.is_file():
             count = int(read_session(sess).get("count", 0))
-            if not _finished(last, count):
+            if not _finished(last, count) or (has_result is not None and not has_result(last)):
                 return last
         return root / f"{taken[-1][0] + 1:03d}"
     return root / "001"
@@ -790,19 +858,20 @@ def capture_loop(
     each: results in ``out_root/NNN`` (default ``root/NNN-normals``). Yields each step.
     ``capture``: keyword options of :func:`capture_stack`."""
     root = Path(root)
+
+    def result_of(take: Path) -> Path:
+        return (out_root / take.name) if out_root is not None else root / f"{take.name}-normals"
+
     done = 0
     while iterations is None or done < iterations:
         if done and interval > 0:
             time.sleep(interval)
-        folder = next_take(root)
+        # with a model, a take whose run was stopped is run again (results are written whole)
+        folder = next_take(root, (lambda t: result_of(t).exists()) if model is not None else None)
         stack = capture_stack(camera, lights, folder, **capture)
         step = LoopStep(int(folder.name), stack)
         if model is not None:
-            out = (
-                (out_root / folder.name)
-                if out_root is not None
-                else root / f"{folder.name}-normals"
-            )
+            out = result_of(folder)
             step.result = model(stack, load)
             step.result.save(out, inputs=tuple(load.inputs()) if load else ())
             step.output = out

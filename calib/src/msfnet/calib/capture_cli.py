@@ -22,6 +22,7 @@ from msfnet.calib.lights import Lights
 from msfnet.common.cli import (
     command_main,
     finite_float,
+    float_range,
     int_range,
     make_parser,
     nonnegative_float,
@@ -36,6 +37,7 @@ from msfnet.runtime.stack import MIN_LIGHTS
 from msfnet.runtime.stack.readers import MAX_LIGHTS
 
 PROG = "msf-capture"
+MAX_INTERVAL = 7 * 24 * 3600.0  # seconds
 EXAMPLES = (
     "msf-capture calib/ --camera sim --sim-scene chrome       # no hardware: a chrome sphere",
     "msf-calib directions calib/ -o lights.txt                # ... calibrated",
@@ -78,9 +80,9 @@ def add_device_arguments(
         "(default 10000)",
     )
     g.add_argument("--iso", type=int, default=100, help="OAK ISO (default 100)")
-    g.add_argument("--gain", type=float, help="OpenCV gain")
+    g.add_argument("--gain", type=finite_float, help="OpenCV gain")
     g.add_argument("--wb-kelvin", type=int, default=5500, help="locked white balance")
-    g.add_argument("--focus", type=float, help="locked focus (OAK lens position 0..255)")
+    g.add_argument("--focus", type=finite_float, help="locked focus (OAK lens position 0..255)")
     g.add_argument(
         "--oak-mode",
         choices=("raw", "isp"),
@@ -201,10 +203,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--interval",
-        type=float,
+        # a week at most: time.sleep overflows on inf and on huge values
+        type=float_range(0.0, MAX_INTERVAL),
         default=0.0,
         metavar="S",
-        help="--loop: seconds to wait between takes (to move the object)",
+        help="--loop: seconds to wait between takes (to move the object; at most a week)",
     )
     p.add_argument(
         "--run",
@@ -354,14 +357,20 @@ def _logger(args: argparse.Namespace) -> Callable[[str], None]:
     return log
 
 
+def _run_args(argv: list[str]) -> argparse.Namespace:
+    """msf-run's options parsed before the first frame: a typo must not cost a capture."""
+    from msfnet.runtime.cli.run import build_parser as run_parser
+
+    return run_parser().parse_args(argv)
+
+
 def _run_loop(args: argparse.Namespace, root: Path) -> int:
     model = load = out_root = None
     if args.run is not None:
         from msfnet.runtime.api import Model
         from msfnet.runtime.cli.flags import load_options, model_options
-        from msfnet.runtime.cli.run import build_parser as run_parser
 
-        run_args = run_parser().parse_args(args.run)
+        run_args = _run_args(args.run)
         if run_args.stacks or run_args.demo:
             raise InputError(
                 "--loop --run: the stacks are the captured takes; give msf-run options only"
@@ -420,6 +429,8 @@ def _main(args: argparse.Namespace) -> int:
         if args.overwrite:
             raise InputError("--loop never overwrites: each take goes to a new folder")
         return _run_loop(args, out)
+    if args.run is not None:
+        _run_args([str(out), *args.run])
     try:
         out = run_capture(args, out, args.overwrite)
     except KeyboardInterrupt:

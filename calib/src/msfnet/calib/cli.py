@@ -33,7 +33,13 @@ from msfnet.common.cli import (
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, staged_files, vectors_text
-from msfnet.common.imageio import encode_png, list_images, read_image, read_mask
+from msfnet.common.imageio import (
+    IMAGE_SUFFIXES,
+    encode_png,
+    list_images,
+    read_image,
+    read_mask,
+)
 from msfnet.runtime.stack import read_vectors
 
 PROG = "msf-calib"
@@ -43,12 +49,13 @@ IMAGE_OUT = (".png", ".tif", ".tiff", ".bmp", ".jpg")  # what the diagnostic may
 
 
 def _named(folder: Path, words: tuple[str, ...]) -> Path | None:
+    # every suffix list_images reads: a mask.jpg it leaves out as an image must be used here
     hits = sorted(
         p
         for p in folder.iterdir()
         if p.is_file()
         and any(w in p.stem.lower() for w in words)
-        and p.suffix.lower() in (".png", ".tif", ".tiff", ".tga", ".bmp")
+        and p.suffix.lower() in IMAGE_SUFFIXES
     )
     return hits[0] if hits else None
 
@@ -98,6 +105,9 @@ def load_capture(
 
 def _check_options(args: argparse.Namespace) -> None:
     """Option values argparse types cannot judge alone, checked before any image is read."""
+    if not Path(args.output).name:
+        # "." or "/": the names of the other outputs are derived from this one's
+        raise InputError("-o names the output text file, not a folder", args.output)
     if args.intrinsics:
         fx, fy = args.intrinsics[:2]
         if not (fx > 0 and fy > 0):
@@ -227,22 +237,32 @@ def cmd_directions(args: argparse.Namespace) -> int:
     conf_path = out.with_name(out.stem + "_confidence.txt")
     inputs: list[Path | None] = [*folders, args.mask, args.ambient]
     _check_outputs([out, conf_path, *diag_paths], inputs, args.overwrite)
-    captures, circles, names, diag = [], [], None, []
-    ambients = []
+    captures: list[np.ndarray] = []
+    circles, names, diag = [], None, []
+    ambients, fitted = [], []
     for k, folder in enumerate(folders):
         imgs, paths, amb = load_capture(folder, args.ambient, args.no_ambient)
+        if captures and len(imgs) != len(captures[0]):
+            raise InputError(
+                f"{len(imgs)} images but {folders[0]} has {len(captures[0])}: every capture "
+                "holds one image per light",
+                folder,
+            )
         circ, mpath = _circles(folder, imgs, args.mask, args.spheres)
         how = f"mask {mpath.name}" if mpath else "fitted from the images (no mask)"
         for c in circ:
             _say(args, f"capture {k + 1}: sphere at ({c.cx:.2f}, {c.cy:.2f}) r={c.r:.2f} px, {how}")
         captures.append(imgs)
         circles.append(circ)
+        fitted.append(mpath is None)
         ambients.append(amb)
         names = names or [p.name for p in paths]
         diag.append((imgs, circ))
     intr = _intrinsics(args, captures[0].shape[1:3])
     names = names or []
-    res = estimate_directions(captures, circles, intr, ambients, names=names, source=folders[0])
+    res = estimate_directions(
+        captures, circles, intr, ambients, names=names, source=folders[0], fitted=fitted
+    )
     _check_result(res.directions, "light directions", unit=True)
     for w in res.warnings:
         _warn(args, w)
@@ -313,7 +333,14 @@ def cmd_intensities(args: argparse.Namespace) -> int:
     else:
         normals, valid = target_normals(imgs.shape[1:3], plane_normal=normal, mask=mask)
     ints, warnings = estimate_intensities(
-        imgs, lights, normals, valid, amb, names=[p.name for p in paths]
+        imgs,
+        lights,
+        normals,
+        valid,
+        amb,
+        names=[p.name for p in paths],
+        source=folder,
+        accept_poor_fit=args.accept_poor_fit,
     )
     _check_result(ints, "light intensities", unit=False)
     for w in warnings:
@@ -423,6 +450,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=(0.0, 0.0, 1.0),
         metavar=("X", "Y", "Z"),
         help="plane normal (default 0 0 1, facing camera)",
+    )
+    i.add_argument(
+        "--accept-poor-fit",
+        action="store_true",
+        help="write the intensities even when the target fits matte shading poorly (fit "
+        "residual above 20%%: usually wrong light directions or a glossy target); a warning "
+        "says so",
     )
     common(i)
     i.set_defaults(func=cmd_intensities)

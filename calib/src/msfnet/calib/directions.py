@@ -183,17 +183,22 @@ def estimate_directions(
     names: list[str] | None = None,
     min_snr: float = 8.0,
     source: str | Path | None = None,
+    fitted: list[bool] | None = None,
 ) -> DirectionResult:
     """Light directions from one or more captures (each (N, H, W[, 3])) of mirror spheres.
 
     ``circles[k]`` lists the spheres of capture k. All captures must have the same N lights.
     ``source``: the file or folder an error names (the first capture's folder).
+    ``fitted[k]``: capture k's spheres were fitted from the images (no mask), so a missing
+    highlight may be a wrong circle.
     """
     if not captures:
         raise InputError("no images given")
     nlights = len(captures[0])
     if any(len(c) != nlights for c in captures):
-        raise InputError(f"captures have different image counts: {[len(c) for c in captures]}")
+        raise InputError(
+            f"captures have different image counts: {[len(c) for c in captures]}", source
+        )
     names = names or [f"image {i + 1}" for i in range(nlights)]
     per_light: list[list[LightEstimate]] = [[] for _ in range(nlights)]
     for k, cap in enumerate(captures):
@@ -247,10 +252,12 @@ def estimate_directions(
         if spread[i] > 2.0:
             warnings.append(f"{names[i]}: spheres/captures disagree by up to {spread[i]:.1f} deg")
     if missing:
+        failed = [per_light[names.index(m)] for m in missing]
+        guessed = any(fitted[e.capture] for ests in failed for e in ests) if fitted else False
         raise InputError(
             f"no highlight found for {len(missing)} light(s): "
             f"{', '.join(missing[:6])}{' ...' if len(missing) > 6 else ''} "
-            f"({_why_none([per_light[names.index(m)] for m in missing])})",
+            f"({_why_none(failed, guessed)})",
             source,
         )
     return DirectionResult(dirs, conf, per_light, spread, warnings)
@@ -373,15 +380,20 @@ def place_labels(
     return [b for b in boxes if b is not None]
 
 
-def _why_none(failed: list[list[LightEstimate]]) -> str:
+def _why_none(failed: list[list[LightEstimate]], fitted: bool = False) -> str:
     """The likely cause when lights have no highlight: a saturated sphere was blamed on too
-    low an exposure."""
+    low an exposure. ``fitted``: the sphere was fitted from the images, where a ring of
+    highlights can pass for its outline; a wrong circle was blamed on the exposure."""
     ests = [e for ests in failed for e in ests]
     if ests and all(e.saturated > 0.5 for e in ests):
-        return "the sphere is saturated in these images: lower the exposure"
-    if ests and all(e.peak_level < 0.02 for e in ests):
-        return "the sphere is black in these images: light off, or exposure far too low"
-    return "light off, sphere mask wrong, or exposure too low"
+        cause = "the sphere is saturated in these images: lower the exposure"
+    elif ests and all(e.peak_level < 0.02 for e in ests):
+        cause = "the sphere is black in these images: light off, or exposure far too low"
+    else:
+        cause = "light off, sphere mask wrong, or exposure too low"
+    if fitted:
+        return f"the sphere fitted from the images may be wrong: pass a mask (--mask); else {cause}"
+    return cause
 
 
 def diagnostic_image(

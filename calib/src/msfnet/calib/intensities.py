@@ -4,15 +4,32 @@ With the light directions known, a Lambertian target of known normals gives
 ``I_c(p) = e_c * rho * max(n(p) . l, 0)``: per light and channel, ``e_c`` is the least-squares
 fit of the (ambient-subtracted) pixel values to the shading ``s = n . l``. Saturated and
 grazing pixels are left out. The result is scaled so its mean is 1 (only ratios matter).
+How well the shading explains the pixels (the relative fit residual) is checked: wrong light
+directions or a glossy target give plausible-looking intensities that are wrong.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
 from msfnet.calib.directions import Intrinsics, sphere_geometry
 from msfnet.calib.sphere import Circle
 from msfnet.common.errors import InputError
+
+# Relative fit residual ||I - e s|| / ||I|| over the used pixels of every light. Measured:
+# right lights: rendered Lambertian spheres 0.0002 (16-bit), 0.005 (8-bit), 0.04 (1 % noise);
+# real psmImages/gray 0.073 (lights.txt) / 0.065 (chrome-calibrated); real DiLiGenT ballPNG,
+# a somewhat glossy ball, 0.118 (0.122 without its mask). Wrong: y negated 0.31 (rendered),
+# 0.34 (ballPNG), 0.45 (gray); x negated 0.36 (ballPNG), 0.25 (gray); a sphere fitted as a
+# plane 0.41; a mirror sphere 0.34 (rendered) / 0.99 (psmImages/chrome).
+FIT_WARN = 0.15
+FIT_REFUSE = 0.20
+_FIT_HINT = (
+    "a wrong lights file, axis convention (x right, y up, z toward the camera) or target "
+    "shape (--target, --normal), or a glossy / non-matte target"
+)
 
 
 def target_normals(
@@ -48,12 +65,16 @@ def estimate_intensities(
     white_level: float | None = None,
     min_shading: float = 0.15,
     names: list[str] | None = None,
+    source: str | Path | None = None,
+    accept_poor_fit: bool = False,
 ) -> tuple[np.ndarray, list[str]]:
-    """(N, 3) relative RGB intensities, mean 1, plus warnings."""
+    """(N, 3) relative RGB intensities, mean 1, plus warnings. ``source``: the images'
+    folder, named by every error (with the image's name). ``accept_poor_fit``: a fit residual
+    above FIT_REFUSE warns instead of refusing (a target known to be imperfect)."""
     imgs = np.asarray(images)  # as stored: cast to float64 one light at a time below
     n = len(imgs)
     if len(lights) != n:
-        raise InputError(f"{len(lights)} light directions for {n} images")
+        raise InputError(f"{len(lights)} light directions for {n} images", source)
     if white_level is None:
         white_level = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(
             imgs.dtype, float(np.max(imgs))
@@ -65,6 +86,7 @@ def estimate_intensities(
     out = np.zeros((n, 3))
     black = np.zeros(n, bool)  # nothing lit on the target before any ambient subtraction
     warnings = []
+    misfit = total = 0.0  # squared fit residual and squared signal, over every light
     for i in range(n):
         img = np.asarray(imgs[i], np.float64)
         if img.ndim == 2:  # grey: the same value in every channel
@@ -77,20 +99,26 @@ def estimate_intensities(
             if lit.sum() >= 30:  # lit pixels enough, but at the white level: not too dark
                 raise InputError(
                     f"{names[i]}: the lit target is saturated ({1 - unsat[lit].mean():.0%} "
-                    "of it at the white level): lower the exposure"
+                    "of it at the white level): lower the exposure",
+                    source,
                 )
-            raise InputError(
-                f"{names[i]}: fewer than 30 lit target pixels (check the mask and the light "
-                "directions)"
+            why = (
+                "its light points away from the camera (z <= 0; expected x right, y up, "
+                "z toward the camera): flip the sign of z"
+                if lights[i][2] <= 0
+                else "check the mask and the light directions"
             )
+            raise InputError(f"{names[i]}: fewer than 30 lit target pixels ({why})", source)
         black[i] = float(img[use].max()) < 0.02 * white_level
         if amb is not None:
             img = img - amb
         sat_share = 1.0 - unsat[valid & (s > min_shading)].mean()
         if sat_share > 0.02:
             warnings.append(f"{names[i]}: {sat_share:.0%} of the lit target is saturated")
-        sv = s[use]
-        out[i] = (img[use] * sv[:, None]).sum(0) / (sv * sv).sum()
+        sv, iv = s[use], img[use]
+        out[i] = (iv * sv[:, None]).sum(0) / (sv * sv).sum()
+        misfit += float(((iv - sv[:, None] * out[i]) ** 2).sum())
+        total += float((iv * iv).sum())
     bad = np.flatnonzero(np.any(out <= 0, axis=1))
     if len(bad):
         which = ", ".join(names[i] for i in bad[:6]) + (" ..." if len(bad) > 6 else "")
@@ -102,7 +130,22 @@ def estimate_intensities(
             why = "the ambient frame is brighter than these lit images"
         else:
             why = "check the light directions for these images"
-        raise InputError(f"zero or negative intensity for {len(bad)} light(s): {which} ({why})")
+        raise InputError(
+            f"zero or negative intensity for {len(bad)} light(s): {which} ({why})", source
+        )
+    residual = np.sqrt(misfit / max(total, 1e-300))
+    if residual > FIT_REFUSE and not accept_poor_fit:
+        raise InputError(
+            f"the target does not fit matte shading under these light directions (fit "
+            f"residual {residual:.0%}, at most {FIT_REFUSE:.0%} accepted): check for "
+            f"{_FIT_HINT} (--accept-poor-fit writes them anyway)",
+            source,
+        )
+    if residual > FIT_WARN:
+        warnings.append(
+            f"{source or 'the images'}: the target fits matte shading poorly (fit residual "
+            f"{residual:.0%}): check for {_FIT_HINT}"
+        )
     return out / out.mean(), warnings
 
 

@@ -156,9 +156,9 @@ def fit_circles_from_images(
     mean = _stretch(total / len(imgs))
     h, w = mean.shape
     blurred = cv2.GaussianBlur(mean, (0, 0), 2.0)
-    found = None
+    found: list[Circle] = []
     for acc in (40, 30, 20, 12):
-        found = cv2.HoughCircles(
+        hough = cv2.HoughCircles(
             blurred,
             cv2.HOUGH_GRADIENT,
             dp=1.5,
@@ -168,16 +168,38 @@ def fit_circles_from_images(
             minRadius=int(min(h, w) * 0.08),
             maxRadius=int(min(h, w) * 0.55),
         )
-        if found is not None and found.shape[1] >= count:
+        found = _spheres(mean, [] if hough is None else hough[0], count)
+        if len(found) >= count:
             break
-    if found is None:
+    if not found:
         raise InputError("could not find the sphere in the images: pass a mask (--mask)", source)
-    # A narrow band keeps inner edges (bright rim reflections) from capturing the fit.
-    circles = [
-        _refine_edge(mean, _refine_edge(mean, Circle(*map(float, f))), band=0.04)
-        for f in found[0, :count]
-    ]
-    return sorted(circles, key=lambda c: c.cx)
+    if len(found) < count:
+        raise InputError(
+            f"found only {len(found)} sphere{'s' if len(found) > 1 else ''} in the images, "
+            f"not {count} (--spheres {count}): pass a mask (--mask) or a lower --spheres",
+            source,
+        )
+    return sorted(found, key=lambda c: c.cx)
+
+
+def _spheres(mean: np.ndarray, hough: np.ndarray, count: int) -> list[Circle]:
+    """Up to ``count`` refined Hough circles, strongest first, that can be spheres: at least
+    half inside the image and not overlapping one already taken. At its lowest threshold
+    Hough otherwise offers a circle around the real sphere, far outside the picture, whose
+    estimates were averaged in (``--spheres 2`` on one sphere: 9 deg off)."""
+    h, w = mean.shape
+    taken: list[Circle] = []
+    for f in hough:
+        if len(taken) == count:
+            break
+        # A narrow band keeps inner edges (bright rim reflections) from capturing the fit.
+        c = _refine_edge(mean, _refine_edge(mean, Circle(*map(float, f[:3]))), band=0.04)
+        inside = float(c.contains(h, w).sum()) / (np.pi * c.r * c.r)
+        # spheres side by side touch: a few per cent of edge-fit noise is not an overlap
+        apart = all(np.hypot(c.cx - o.cx, c.cy - o.cy) > 0.95 * (c.r + o.r) for o in taken)
+        if inside >= 0.5 and apart:
+            taken.append(c)
+    return taken
 
 
 __all__ = [
