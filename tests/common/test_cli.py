@@ -154,6 +154,17 @@ def test_run_command_turns_failures_into_one_line(case: str, capfd) -> None:
 
 
 @pytest.mark.parametrize(
+    "exc", [MemoryError(), OSError(errno.ENOSPC, "No space left on device", "v/verdict.json")]
+)
+def test_a_full_disk_or_memory_is_no_bad_input_where_2_means_only_that(exc, capfd) -> None:
+    """msf-inspect's 2 is "bad input" to a PLC; out of memory or a full disk is a failure of
+    the run (3), not of the part's data."""
+    assert run_command("msf-inspect", _raise(exc)) == 3
+    assert run_command("msf-run", _raise(exc)) == 2  # its documented code stays
+    assert capfd.readouterr().err.count("\n") == 2
+
+
+@pytest.mark.parametrize(
     ("module", "words"),
     [
         ("torch", "pip install torch --index-url https://download.pytorch.org/whl/cpu"),

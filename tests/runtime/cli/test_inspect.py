@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from _runtime_helpers import png_stack
 
 from msfnet.runtime.cli.inspect import main as inspect_main
@@ -27,3 +28,117 @@ def test_an_output_holding_a_file_the_load_flags_read_is_refused(tmp_path: Path,
         assert code == 2 and len(err) == 1, err
         assert err[0].startswith("msf-inspect: error:") and "contains the input" in err[0]
         assert path.is_file()
+
+
+def _run_folder(tmp_path: Path, name: str, *extra: str) -> tuple[Path, Path]:
+    from msfnet.runtime.cli.run import main as run_main
+
+    stack = png_stack(tmp_path / f"{name}-stack", 16)
+    out = tmp_path / name
+    assert run_main([str(stack), "--method", "l2", "-o", str(out), "-q", *extra]) == 0
+    return stack, out
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-inspect: error:"), err
+    return err[0]
+
+
+def test_stack_flags_on_a_run_folder_are_refused_not_ignored(tmp_path: Path, capsys) -> None:
+    """--pixel-size 0.05 --depth 0.005 on a px run folder inspected at 0.005 px, silently;
+    --onnx of a missing file passed too."""
+    _, run = _run_folder(tmp_path, "run")
+    out = tmp_path / "v"
+    for extra in (["--pixel-size", "0.05"], ["--onnx", "none.onnx"], ["--local-size", "30"]):
+        assert _code([str(run), "--depth", "0.005", "-o", str(out), *extra]) == 2
+        line = _one_line(capsys)
+        assert f"{extra[0]} applies only when INPUT is a stack" in line and "(px)" in line
+    for extra in (["--no-tiff"], ["--maps", "height"], ["--no-report"]):
+        assert _code([str(run), "--depth", "0.005", "-o", str(out), *extra]) == 2
+        assert "msf-inspect writes only its verdict" in _one_line(capsys)
+    assert not out.exists()
+    assert "--no-tiff" not in capsys.readouterr().out + _help()
+
+
+def _help() -> str:
+    from msfnet.runtime.cli.inspect import build_parser
+
+    return build_parser().format_help()
+
+
+def _code(argv: list[str]) -> int:
+    try:
+        return inspect_main(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+
+
+def test_folders_msfnet_wrote_without_maps_are_named(tmp_path: Path, capsys) -> None:
+    """They were read as stacks: "no light directions" for a --no-maps run, "no images found"
+    for a batch."""
+    from msfnet.runtime.cli.run import main as run_main
+
+    stack, bare = _run_folder(tmp_path, "bare", "--no-maps")
+    other = png_stack(tmp_path / "other", 16, seed=1)
+    batch = tmp_path / "batch"
+    assert run_main([str(stack), str(other), "--method", "l2", "-q", "-o", str(batch)]) == 0
+    out = tmp_path / "v"
+    assert _code([str(bare), "--depth", "0.1", "-o", str(out)]) == 2
+    assert "an msf-run output without maps" in _one_line(capsys)
+    assert _code([str(batch), "--depth", "0.1", "-o", str(out)]) == 2
+    assert "batch output" in _one_line(capsys)
+    assert not out.exists()
+
+
+def test_a_missing_reference_is_refused_before_the_part_runs(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
+    from msfnet.runtime.cli import inspect as cli
+
+    stack = png_stack(tmp_path / "part", 16)
+    monkeypatch.setattr(cli, "_prepare", lambda *a: (_ for _ in ()).throw(AssertionError("ran")))
+    out = tmp_path / "v"
+    argv = [str(stack), "--method", "l2", "--reference", str(tmp_path / "gone"), "--depth", "1"]
+    assert _code([*argv, "-o", str(out)]) == 2
+    assert "gone: no such file or folder" in _one_line(capsys)
+
+
+@pytest.mark.parametrize(
+    ("edit", "words"),
+    [
+        (lambda text: "{broken", "maps.json: not valid JSON"),
+        (lambda text: text.replace('"local_shape": "px"', '"local_shape": "furlong"'), "units"),
+    ],
+)
+def test_a_damaged_maps_json_says_what_is_wrong(tmp_path: Path, capsys, edit, words) -> None:
+    import json
+    import shutil
+
+    _, run = _run_folder(tmp_path, "run")
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    (copy / ".msfnet-output.json").unlink()
+    text = json.dumps(json.loads((copy / "maps.json").read_text()))
+    (copy / "maps.json").write_text(edit(text))
+    assert _code([str(copy), "--depth", "0.1", "-o", str(tmp_path / "v")]) == 2
+    assert words in _one_line(capsys)
+
+
+def test_the_verdict_says_where_and_what_made_the_maps(tmp_path: Path, capsys) -> None:
+    """With --roi, coordinates were the ROI's with nothing to say so; verdict.json had no
+    provenance, unlike every other output."""
+    import json
+
+    stack = png_stack(tmp_path / "part", 16, h=48, w=64)
+    out = tmp_path / "v"
+    argv = [str(stack), "--method", "l2", "--roi", "8,4,40,36", "--depth", "1e-4", "-o", str(out)]
+    assert inspect_main(argv) == 1  # a sphere's relief is far above 1e-4 px
+    line = capsys.readouterr().out
+    assert "at image x=" in line
+    verdict = json.loads((out / "verdict.json").read_text())
+    assert verdict["frame"] == {"origin_xy": [8, 4], "downscale": 1}
+    region = verdict["regions"][0]
+    assert region["image_peak"] == [region["peak"][0] + 8, region["peak"][1] + 4]
+    prov = verdict["provenance"]
+    assert prov["input"] == str(stack) and prov["model"] is None and prov["version"]

@@ -14,6 +14,8 @@ from msfnet.runtime.api import Model
 from msfnet.runtime.cli.inspect import main as inspect_main
 from msfnet.runtime.results.defects import (
     DefectOptions,
+    Frame,
+    InspectionInput,
     align_shift,
     find_defects,
     from_maps,
@@ -258,3 +260,118 @@ def test_a_failure_of_the_tool_never_reads_as_defects_found(
     assert _code([str(plate_run), "--depth", "0.1", "-o", str(tmp_path / "v"), *extra]) == 3
     assert ("Traceback" if debug else "internal error") in capsys.readouterr().err
     assert _code([str(plate_run), "-o", str(tmp_path / "w"), *extra]) == 2  # bad input
+
+
+# ------------------------------------------------- a second review: references, frames, peaks
+
+
+def _bumpy(shift: float = 0.0, seed: int = 1) -> np.ndarray:
+    """A smooth random relief (a ring of bumps' stand-in), moved ``shift`` px along x."""
+    rng = np.random.default_rng(seed)
+    base = cv2_smooth(rng.normal(size=(96, 128)).astype(np.float32)) * 0.05
+    return shift_map(base, shift, 0.0) if shift else base
+
+
+def _part(local: np.ndarray, **kw: object) -> InspectionInput:
+    args: dict[str, object] = {
+        "local_shape": local,
+        "curvature": None,
+        "albedo": None,
+        "units": {"depth": "px", "curvature": "1/px"},
+        "pixel_size_mm": None,
+        "source": "part",
+        "local_size_px": 12.0,
+    }
+    args.update(kw)
+    return InspectionInput(**args)  # type: ignore[arg-type]
+
+
+def test_a_uniform_albedo_does_not_decide_the_alignment() -> None:
+    """A machined part's albedo is one value plus noise: aligned on it, a golden part moved
+    2 px read as 0 px, and the good part failed."""
+    rng = np.random.default_rng(3)
+
+    def flat_albedo() -> np.ndarray:
+        return (0.7 + 0.0005 * rng.normal(size=(96, 128, 3))).astype(np.float32)
+
+    part = _part(_bumpy(), albedo=flat_albedo())
+    golden = _part(_bumpy(shift=2.0), albedo=flat_albedo(), source="golden")
+    verdict, labels = find_defects(part, DefectOptions(depth=0.01), golden)
+    assert verdict.aligned_on == "local shape"
+    assert verdict.shift == pytest.approx((-2.0, 0.0), abs=0.1)
+    assert verdict.passed and labels.max() == 0
+    # a printed part: the albedo's features align it (and the local shape could too)
+    printed = flat_albedo()
+    printed[30:50, 40:60] = 0.2
+    part = _part(_bumpy(), albedo=printed)
+    golden = _part(_bumpy(2.0), albedo=shift_map_rgb(printed, 2.0), source="golden")
+    verdict, _ = find_defects(part, DefectOptions(depth=0.01), golden)
+    assert verdict.shift == pytest.approx((-2.0, 0.0), abs=0.1) and verdict.passed
+
+
+def shift_map_rgb(rgb: np.ndarray, dx: float) -> np.ndarray:
+    return np.stack([shift_map(rgb[..., c], dx, 0.0) for c in range(3)], axis=2)
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (
+            {"units": {"depth": "mm", "curvature": "1/mm"}, "pixel_size_mm": 0.05},
+            "units: reference px, part mm; pixel size: reference None mm, part 0.05 mm",
+        ),
+        ({"local_size_px": 30.0}, "local size: reference 12 px, part 30 px"),
+        ({"frame": Frame((10, 0), 1)}, "ROI corner / downscale"),
+    ],
+)
+def test_a_reference_mapped_differently_is_refused(change: dict, words: str) -> None:
+    """A part in mm minus itself in px failed (exit 1, "0.32 mm"); so did another local size."""
+    part = _part(_bumpy(), **change)
+    golden = _part(_bumpy(), source="golden")
+    with pytest.raises(InputError) as err:
+        find_defects(part, DefectOptions(depth=0.01), golden)
+    assert words in err.value.message and err.value.path == Path("golden")
+
+
+def test_curvature_keeps_the_polarity_and_the_reference() -> None:
+    """--curvature ignored both: --polarity up reported dents, a part against itself failed."""
+    yy, xx = np.mgrid[:64, :64].astype(np.float32)
+    dent = -0.2 * np.exp(-((xx - 20) ** 2 + (yy - 30) ** 2) / 8.0)  # concave: negative
+    bump = 0.2 * np.exp(-((xx - 45) ** 2 + (yy - 30) ** 2) / 8.0)
+    curv = (dent + bump).astype(np.float32)
+    part = InspectionInput(
+        local_shape=None,
+        curvature=curv,
+        albedo=None,
+        units={"depth": "px", "curvature": "1/px"},
+        pixel_size_mm=None,
+        source="part",
+    )
+    for polarity, x in (("up", 45), ("down", 20)):
+        verdict, _ = find_defects(part, DefectOptions(curvature=0.1, polarity=polarity))
+        assert len(verdict.regions) == 1 and verdict.regions[0].peak == (x, 30), polarity
+    both, _ = find_defects(part, DefectOptions(curvature=0.1))
+    assert len(both.regions) == 2
+    against_itself, _ = find_defects(part, DefectOptions(curvature=0.1), part)
+    assert against_itself.passed
+    with pytest.raises(InputError, match=r"--depth needs local_shape\.tif"):
+        find_defects(part, DefectOptions(depth=0.1))
+
+
+def test_the_peak_is_the_deepest_point_and_is_placed_in_the_camera_image() -> None:
+    """The message named the region's centroid (a ring's is its empty centre), and with --roi
+    every coordinate was the ROI's, with nothing to say so."""
+    yy, xx = np.mgrid[:64, :80].astype(np.float32)
+    r = np.hypot(xx - 40, yy - 32)
+    ring = -0.3 * np.exp(-((r - 15) ** 2) / 4.0)
+    ring[32, 55] = -0.6  # the deepest point, on the ring's right
+    frame = Frame((100, 50), 2)
+    verdict, _ = find_defects(_part(ring.astype(np.float32), frame=frame), DefectOptions(0.1))
+    (region,) = verdict.regions
+    assert region.peak == (55, 32) and region.depth == pytest.approx(0.6)
+    assert region.centroid == pytest.approx((40, 32), abs=0.5)  # the empty centre
+    # map pixel (55, 32) covers image pixels 210-211 x 114-115: its centre is 210.5, 114.5
+    assert region.image_peak == (210.5, 114.5)
+    x, y, w, h = region.bbox
+    assert region.image_bbox == (100 + 2 * x, 50 + 2 * y, 2 * w, 2 * h)
+    assert verdict.as_dict()["frame"] == {"origin_xy": [100, 50], "downscale": 2}

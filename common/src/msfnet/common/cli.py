@@ -401,6 +401,9 @@ _FAILURE_EXIT = {"msf-inspect": 3}
 
 def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
     failed = _FAILURE_EXIT.get(prog, 1)
+    # out of memory or a full disk is no bad input: where 2 means only that (msf-inspect),
+    # such a failure takes the command's failure code
+    resources = 2 if failed == 1 else failed
 
     def fail(message: str, code: int) -> int:
         print(f"{prog}: {one_line(message)}", file=sys.stderr)
@@ -424,7 +427,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
             raise
         # advice only with the options the command has (msf-calib has no --max-memory)
         advice = _MEMORY_ADVICE.get(prog, "close other programs or give smaller inputs")
-        return fail(f"error: out of memory; {advice}", 2)
+        return fail(f"error: out of memory; {advice}", resources)
     except BrokenPipeError as exc:
         if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
             return fail(f"error: {exc.filename}: {exc.strerror}", 2)
@@ -439,9 +442,11 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
             raise
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         if exc.strerror:
-            return fail(f"error: {where}{exc.strerror}", 2)
+            return fail(f"error: {where}{exc.strerror}", resources)
         # no errno: e.g. numpy's short write "4752 requested and 1968 written"
-        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", 2)
+        return fail(
+            f"error: {where}input/output failed ({first_line(exc)}; disk full?)", resources
+        )
     except MsfError as exc:
         if debug:
             raise

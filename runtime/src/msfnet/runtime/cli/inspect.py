@@ -14,7 +14,9 @@ are written together into the -o folder, or not at all.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from msfnet.common.cli import command_main, make_parser, path_arg, positive_float, positive_int
@@ -24,14 +26,30 @@ from msfnet.common.imageio import encode_png
 from msfnet.runtime.results.defects import (
     POLARITIES,
     DefectOptions,
+    Frame,
     InspectionInput,
+    Verdict,
     find_defects,
     from_maps,
     overlay_picture,
     read_run,
 )
+from msfnet.runtime.results.provenance import Provenance
 
 PROG = "msf-inspect"
+# msf-inspect's own options: never "a flag for running a stack"
+_OWN = (
+    "input",
+    "output",
+    "overwrite",
+    "depth",
+    "curvature",
+    "min_area",
+    "polarity",
+    "reference",
+    "quiet",
+    "debug",
+)
 
 
 def _finite(text: str) -> float:
@@ -88,11 +106,49 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_flags(p)
     add_load_flags(p, camera=True)
     add_map_flags(p)
+    for action in p._actions:  # msf-run's output choices: msf-inspect writes its verdict only
+        if action.dest in WRITING_FLAGS:
+            action.help = argparse.SUPPRESS
     return p
+
+
+# msf-run flags about what it writes: nothing here writes them, so they are refused
+WRITING_FLAGS = ("no_maps", "maps", "no_tiff", "no_report", "auto_mask")
 
 
 def _is_run(path: Path) -> bool:
     return path.is_dir() and (path / "maps.json").is_file()
+
+
+def _stack_flags(args: argparse.Namespace, parser: argparse.ArgumentParser) -> list[str]:
+    """The msf-run flags given (not at their defaults): they shape how a stack is run."""
+    given = []
+    for action in parser._actions:
+        if not action.option_strings or action.dest in ("help", "version"):
+            continue
+        if action.dest in WRITING_FLAGS or action.dest in _OWN:
+            continue
+        if getattr(args, action.dest, None) != action.default:
+            given.append(
+                action.option_strings[-1]
+                if len(action.option_strings) > 1
+                else action.option_strings[0]
+            )
+    return given
+
+
+def _check_input_kind(path: Path) -> None:
+    """A folder msfnet wrote that holds no maps is named as such, not read as a stack."""
+    if _is_run(path) or not path.is_dir():
+        return
+    if (path / "summary.json").is_file():
+        raise InputError("an msf-run batch output: give one stack's folder inside it", path)
+    if (path / "profile.json").is_file() and (path / "normals.npy").is_file():
+        raise InputError(
+            "an msf-run output without maps (written with --no-maps or --no-tiff?): run "
+            "msf-run again with maps, or give the stack itself",
+            path,
+        )
 
 
 def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
@@ -106,6 +162,7 @@ def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
     from msfnet.runtime.results.maps import MapOptions
     from msfnet.runtime.stack import load_stack
 
+    load = load_options(args)
     opts = model_options(args)
     maps = opts.maps or MapOptions()
     need = tuple(dict.fromkeys((*maps.maps, "albedo", "height", "curvature")))
@@ -117,10 +174,15 @@ def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
         pixel_size_mm=maps.pixel_size_mm,
         local_size_px=maps.local_size_px,
     )
-    stack = load_stack(path, load_options(args))
-    result = Model(options=opts.replace(maps=maps))(stack)
+    stack = load_stack(path, load)
+    model = Model(options=opts.replace(maps=maps))
+    result = model(stack)
     assert result.maps is not None
-    return from_maps(result.maps, str(path))
+    roi = load.roi
+    frame = Frame((0, 0) if roi is None else (roi[0], roi[1]), load.downscale)
+    part = from_maps(result.maps, str(path), frame)
+    part.method = model.describe()
+    return part
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -137,24 +199,70 @@ def _run(args: argparse.Namespace) -> int:
     read = [args.input, args.reference, *load_options(args).inputs(), model_options(args).model]
     inputs = tuple(p for p in read if p is not None)
     check_output(args.output, inputs, overwrite=args.overwrite, folder=True)
+    writing = [f"--{d.replace('_', '-')}" for d in WRITING_FLAGS if getattr(args, d, None)]
+    if writing:
+        raise InputError(
+            f"{', '.join(writing)}: msf-run's output choices; msf-inspect writes only its "
+            "verdict and overlay"
+        )
+    given = _stack_flags(args, build_parser())
+    runs = [p for p in (args.input, args.reference) if p is not None and _is_run(p)]
+    if given and len(runs) == (1 if args.reference is None else 2):
+        # a run folder's maps are used as written: --pixel-size 0.05 --depth 0.005 on a px
+        # run was 0.005 px, silently
+        raise InputError(
+            f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} only when "
+            "INPUT is a stack; this is an msf-run "
+            f"output, whose maps are used as written ({read_run(runs[0]).units['depth']}): "
+            "leave them out, or give the stack",
+            runs[0],
+        )
+    for path in (args.input, args.reference):
+        if path is not None:
+            if not path.exists():  # the reference too, before the part's whole run
+                raise InputError("no such file or folder", path)
+            _check_input_kind(path)
     part = _prepare(args.input, args)
     reference = None if args.reference is None else _prepare(args.reference, args)
     verdict, labels = find_defects(part, options, reference)
+    verdict = replace(verdict, provenance=_provenance(args, part).as_dict())
     picture = overlay_picture(part, labels)
     with staged_folder(args.output, overwrite=args.overwrite) as tmp:
         (tmp / "verdict.json").write_text(verdict.json_text(), encoding="utf-8")
         encode_png(tmp / "overlay.png", picture)
     if not args.quiet:
-        if verdict.passed:
-            print(f"PASS: no defect ({verdict.pixels} px inspected) -> {args.output}")
-        else:
-            worst = max(verdict.regions, key=lambda r: r.depth)
-            x, y = worst.centroid
-            print(
-                f"FAIL: {len(verdict.regions)} defect(s); deepest {worst.depth:.4g} "
-                f"{verdict.units['depth']} at x={x:.0f}, y={y:.0f} -> {args.output}"
-            )
+        print(_summary(verdict, args.output))
     return verdict.exit_code
+
+
+def _provenance(args: argparse.Namespace, part: InspectionInput) -> Provenance:
+    """What made the part's maps: this run's model, or the run folder's own record."""
+    method: dict[str, object] = dict(part.method or {})
+    if not method and _is_run(args.input):
+        try:
+            profile = json.loads((args.input / "profile.json").read_text(encoding="utf-8"))
+            method = dict(profile.get("provenance") or {})
+        except (OSError, ValueError, TypeError, AttributeError):
+            method = {}  # a run without a readable profile: the verdict still stands
+    inputs = [p for p in (args.input, args.reference) if p is not None]
+    return Provenance.of(inputs, method)
+
+
+def _summary(verdict: Verdict, output: Path) -> str:
+    if verdict.passed:
+        return f"PASS: no defect ({verdict.pixels} px inspected) -> {output}"
+    by_depth = verdict.options.depth is not None
+    worst = max(verdict.regions, key=lambda r: r.depth if by_depth else r.curvature)
+    x, y = worst.image_peak
+    where = "image " if not verdict.frame.is_identity else ""
+    size = (
+        f"deepest {worst.depth:.4g} {verdict.units['depth']}"
+        if by_depth
+        else f"most bent {worst.curvature:.4g} {verdict.units['curvature']}"
+    )
+    return (
+        f"FAIL: {len(verdict.regions)} defect(s); {size} at {where}x={x:.0f}, y={y:.0f} -> {output}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,8 +12,10 @@ defect candidate when
 Candidates are grown by hysteresis (neighbours above half the thresholds join a region that
 has a pixel above them), so a scratch is one region and not a string of beads. Regions smaller
 than ``min_area_px`` are noise. With a golden reference (a good part captured in the same
-fixture) the local shape of the reference, aligned by phase correlation (a shift of a few
-pixels), is subtracted first: only what differs from the good part counts.
+fixture) the local shape and curvature of the reference, aligned by phase correlation (a
+shift of a few pixels), are subtracted first: only what differs from the good part counts.
+The reference must have been mapped alike (units, pixel size, local size), else the
+difference would mean nothing.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from msfnet.common.errors import InputError
+from msfnet.common.errors import InputError, first_line
 from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import read_tiff
 
@@ -59,10 +61,29 @@ class DefectOptions:
 
 
 @dataclass(frozen=True)
+class Frame:
+    """Where the maps sit in the camera image: a map pixel (col, row) is image pixel
+    (x0 + K col + (K - 1) / 2, y0 + K row + (K - 1) / 2), from --roi's corner and --downscale K."""
+
+    origin_xy: tuple[int, int] = (0, 0)
+    downscale: int = 1
+
+    def to_image(self, x: float, y: float) -> tuple[float, float]:
+        k, (x0, y0) = self.downscale, self.origin_xy
+        return x0 + k * x + (k - 1) / 2, y0 + k * y + (k - 1) / 2
+
+    @property
+    def is_identity(self) -> bool:
+        return self.origin_xy == (0, 0) and self.downscale == 1
+
+
+@dataclass(frozen=True)
 class Region:
     """One defect: ``depth`` the largest |local shape| (height units; signed_depth < 0 for a
-    dent or scratch), ``area_px`` (and area_mm2 with a pixel size), centroid (x, y) and
-    bounding box (x, y, w, h) in image pixels, and the largest |mean curvature|."""
+    dent or scratch) at ``peak``; ``area_px`` (and area_mm2 with a pixel size); ``peak``,
+    ``centroid`` (x, y) and ``bbox`` (x, y, w, h) in map pixels (overlay.png's); the same
+    in the camera image's pixels (``image_*``, see :class:`Frame`); the largest |mean
+    curvature|."""
 
     label: int
     area_px: int
@@ -72,6 +93,10 @@ class Region:
     curvature: float
     centroid: tuple[float, float]
     bbox: tuple[int, int, int, int]
+    peak: tuple[int, int] = (0, 0)
+    image_peak: tuple[float, float] = (0.0, 0.0)
+    image_centroid: tuple[float, float] = (0.0, 0.0)
+    image_bbox: tuple[int, int, int, int] = (0, 0, 0, 0)
 
 
 @dataclass(frozen=True)
@@ -88,6 +113,9 @@ class Verdict:
     shift: tuple[float, float] | None = None
     source: str | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
+    frame: Frame = field(default_factory=Frame)
+    aligned_on: str | None = None  # "albedo" or "local shape": what the shift came from
+    provenance: dict[str, str | None] | None = None  # what produced the maps (Provenance)
 
     @property
     def exit_code(self) -> int:
@@ -105,8 +133,11 @@ class Verdict:
             "pixels_inspected": self.pixels,
             "reference": self.reference,
             "reference_shift_px": None if self.shift is None else list(self.shift),
+            "reference_aligned_on": self.aligned_on,
             "source": self.source,
+            "frame": {"origin_xy": list(self.frame.origin_xy), "downscale": self.frame.downscale},
             "notes": list(self.notes),
+            "provenance": self.provenance,
         }
 
     def json_text(self) -> str:
@@ -116,82 +147,146 @@ class Verdict:
 @dataclass
 class InspectionInput:
     """The registered maps the step reads (height units per ``units``): local_shape and
-    curvature (H, W) float32 with NaN outside the mask; albedo (H, W, 3) or None."""
+    curvature (H, W) float32 with NaN outside the mask (either may be missing, not both:
+    a perspective run has no local shape); albedo (H, W, 3) or None."""
 
-    local_shape: np.ndarray
+    local_shape: np.ndarray | None
     curvature: np.ndarray | None
     albedo: np.ndarray | None
     units: dict[str, str]
     pixel_size_mm: float | None
     source: str
+    local_size_px: float | None = None
+    frame: Frame = field(default_factory=Frame)
+    perspective: bool = False
+    method: dict[str, object] | None = None  # the Model's describe() when run in process
+
+    @property
+    def _any_map(self) -> np.ndarray:
+        found = self.local_shape if self.local_shape is not None else self.curvature
+        assert found is not None, "an InspectionInput holds a local shape or a curvature"
+        return found
 
     @property
     def mask(self) -> np.ndarray:
-        return np.isfinite(self.local_shape)
+        return np.isfinite(self._any_map)
 
     @property
     def shape(self) -> tuple[int, int]:
-        return int(self.local_shape.shape[0]), int(self.local_shape.shape[1])
+        h, w = self._any_map.shape[:2]
+        return int(h), int(w)
 
 
-def from_maps(maps: InspectionMaps, source: str) -> InspectionInput:
+def from_maps(maps: InspectionMaps, source: str, frame: Frame | None = None) -> InspectionInput:
     """The step's input straight from computed maps (a run in this process)."""
     phys = maps.physical()
-    if "local_shape" not in phys:
-        raise InputError("the defect step needs the height map (local shape)", source)
+    if "local_shape" not in phys and "curvature" not in phys:
+        raise InputError("the defect step needs the height or curvature map", source)
     units = maps.registered_units()
     return InspectionInput(
-        local_shape=phys["local_shape"],
+        local_shape=phys.get("local_shape"),
         curvature=phys.get("curvature"),
         albedo=phys.get("albedo"),
         units={"depth": str(units["local_shape"]), "curvature": str(units["curvature"])},
         pixel_size_mm=maps.options.pixel_size_mm,
         source=source,
+        local_size_px=float(maps.options.local_size_px),
+        frame=frame or Frame(),
+        perspective=maps.options.intrinsics is not None,
     )
 
 
+DEPTH_UNITS = ("px", "mm")
+CURVATURE_UNITS = ("1/px", "1/mm")
+
+
 def read_run(folder: Path) -> InspectionInput:
-    """The maps of an msf-run output folder (local_shape.tif, curvature.tif, albedo.tif and
-    maps.json's units); InputError naming what is missing."""
+    """The maps of an msf-run output folder (local_shape.tif and/or curvature.tif, albedo.tif,
+    maps.json's units, local size and frame); InputError naming what is missing."""
     folder = Path(folder)
     info_path = folder / "maps.json"
     if not info_path.is_file():
         raise InputError("no maps.json: not an msf-run output folder with maps", folder)
     try:
         info = json.loads(info_path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({first_line(exc)})", info_path) from exc
+    try:
         reg = dict(info["registered"])
-    except (ValueError, KeyError, TypeError) as exc:
+        options = dict(info.get("options") or {})
+    except (KeyError, TypeError, ValueError) as exc:
         raise InputError(
             "maps.json has no registered-map units (older msf-run?)", info_path
         ) from exc
+    perspective = options.get("intrinsics") is not None
     local = folder / "local_shape.tif"
-    if not local.is_file():
-        raise InputError(
-            "no local_shape.tif: run msf-run with the height map and TIFF output", folder
-        )
     curv = folder / "curvature.tif"
     alb = folder / "albedo.tif"
+    if not local.is_file() and not curv.is_file():
+        why = (
+            "a perspective run (--intrinsics) has no local shape; run msf-run with "
+            "curvature in --maps and inspect with --curvature"
+            if perspective
+            else "run msf-run with the height or curvature map and TIFF output"
+        )
+        raise InputError(f"no local_shape.tif or curvature.tif: {why}", folder)
     units = {
         "depth": str(reg.get("local_shape", "px")),
         "curvature": str(reg.get("curvature", "1/px")),
     }
-    size = reg.get("pixel_size_mm")
-    if size is not None and (
-        isinstance(size, bool)
-        or not isinstance(size, (int, float))
-        or not math.isfinite(size)
-        or size <= 0
-    ):
-        raise InputError(f"pixel_size_mm must be a positive number, got {size!r}", info_path)
-    shape = _read(local, 2)
+    if units["depth"] not in DEPTH_UNITS or units["curvature"] not in CURVATURE_UNITS:
+        raise InputError(
+            f"unknown units {units['depth']!r} / {units['curvature']!r} (expected "
+            f"{'/'.join(DEPTH_UNITS)} and {'/'.join(CURVATURE_UNITS)})",
+            info_path,
+        )
+    size = _positive(reg.get("pixel_size_mm"), "pixel_size_mm", info_path)
+    local_size = _positive(reg.get("local_size_px"), "local_size_px", info_path)
+    first = _read(local, 2) if local.is_file() else _read(curv, 2)
     return InspectionInput(
-        local_shape=shape,
-        curvature=_read(curv, 2, shape.shape) if curv.is_file() else None,
-        albedo=_read(alb, 3, shape.shape) if alb.is_file() else None,
+        local_shape=first if local.is_file() else None,
+        curvature=(_read(curv, 2, first.shape) if curv.is_file() else None)
+        if local.is_file()
+        else first,
+        albedo=_read(alb, 3, first.shape) if alb.is_file() else None,
         units=units,
-        pixel_size_mm=None if size is None else float(size),
+        pixel_size_mm=size,
         source=str(folder),
+        local_size_px=local_size,
+        frame=_frame(info.get("frame"), info_path),
+        perspective=perspective,
     )
+
+
+def _positive(value: object, name: str, where: Path) -> float | None:
+    """A positive number of maps.json, or None when absent."""
+    if value is None:
+        return None
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not math.isfinite(value)
+        or value <= 0
+    ):
+        raise InputError(f"{name} must be a positive number, got {value!r}", where)
+    return float(value)
+
+
+def _frame(value: object, where: Path) -> Frame:
+    """maps.json's "frame" ({"origin_xy": [x, y], "downscale": K}); absent: the whole image."""
+    if value is None:
+        return Frame()
+    bad = InputError(
+        f'"frame" must be {{"origin_xy": [x, y], "downscale": K}}, got {value!r}', where
+    )
+    try:
+        x, y = (int(v) for v in value["origin_xy"])  # type: ignore[index]
+        k = int(value["downscale"])  # type: ignore[index]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise bad from exc
+    if x < 0 or y < 0 or k < 1:
+        raise bad
+    return Frame((x, y), k)
 
 
 def _read(path: Path, ndim: int, size: tuple[int, ...] | None = None) -> np.ndarray:
@@ -219,10 +314,20 @@ def align_shift(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float]:
     """(dx, dy) such that ``moving`` shifted by it matches ``fixed``: phase correlation (NaN as
     0, Hann-windowed) for the coarse shift, refined by OpenCV's ECC (translation only) over the
     pixels both maps hold. InputError when it is larger than MAX_SHIFT_PX."""
-    a = np.nan_to_num(fixed.astype(np.float32))
-    b = np.nan_to_num(moving.astype(np.float32))
+    dx, dy, _ = _align(moving, fixed)
+    _check_shift(dx, dy)
+    return dx, dy
+
+
+def _align(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float, float]:
+    """align_shift's shift and the phase correlation's peak (0..1): how much the two maps had
+    in common to align on (a featureless map's peak is noise, low)."""
+    # each map less its mean: a constant (a uniform albedo) correlates perfectly at zero shift
+    # and would outvote the features
+    a = np.nan_to_num(fixed.astype(np.float32) - np.float32(np.nanmean(fixed)))
+    b = np.nan_to_num(moving.astype(np.float32) - np.float32(np.nanmean(moving)))
     window = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_32F)
-    (dx, dy), _ = cv2.phaseCorrelate(b, a, window)
+    (dx, dy), response = cv2.phaseCorrelate(b, a, window)
     start = np.array([[1, 0, -dx], [0, 1, -dy]], np.float32)  # ECC maps fixed -> moving
     both = (np.isfinite(fixed) & np.isfinite(moving)).astype(np.uint8)
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
@@ -231,12 +336,7 @@ def align_shift(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float]:
         dx, dy = -float(warp[0, 2]), -float(warp[1, 2])
     except cv2.error:
         pass  # ECC did not converge (a featureless map): the phase correlation's shift stands
-    if max(abs(dx), abs(dy)) > MAX_SHIFT_PX:
-        raise InputError(
-            f"the reference is {dx:+.1f}, {dy:+.1f} px off this part (more than "
-            f"{MAX_SHIFT_PX} px): not captured in the same fixture?"
-        )
-    return float(dx), float(dy)
+    return float(dx), float(dy), float(response)
 
 
 def shift_map(values: np.ndarray, dx: float, dy: float) -> np.ndarray:
@@ -251,10 +351,19 @@ def shift_map(values: np.ndarray, dx: float, dy: float) -> np.ndarray:
     return np.where(ok, moved, np.nan).astype(np.float32)
 
 
-def _reference_pair(
-    part: InspectionInput, reference: InspectionInput
-) -> tuple[np.ndarray, tuple[float, float]]:
-    """The reference's local shape aligned to the part's, and the shift used."""
+@dataclass(frozen=True)
+class _Aligned:
+    """The reference's maps moved onto the part's pixels."""
+
+    local_shape: np.ndarray | None
+    curvature: np.ndarray | None
+    shift: tuple[float, float]
+    aligned_on: str
+
+
+def _check_alike(part: InspectionInput, reference: InspectionInput) -> None:
+    """The reference was mapped as the part was, else subtracting it means nothing (a mm
+    part minus a px reference failed a part compared with itself)."""
     if reference.shape != part.shape:
         h, w = part.shape
         rh, rw = reference.shape
@@ -263,13 +372,72 @@ def _reference_pair(
             "camera, ROI and downscale",
             reference.source,
         )
-    # the albedo (print, texture) aligns best; the local shape when there is none
+    differ = []
+    if reference.units != part.units:
+        differ.append(f"units: reference {reference.units['depth']}, part {part.units['depth']}")
+    ps, rs = part.pixel_size_mm, reference.pixel_size_mm
+    if (ps is None) != (rs is None) or (
+        ps is not None and rs is not None and not math.isclose(ps, rs, rel_tol=1e-6)
+    ):
+        differ.append(f"pixel size: reference {rs} mm, part {ps} mm")
+    pl, rl = part.local_size_px, reference.local_size_px
+    if pl is not None and rl is not None and not math.isclose(pl, rl, rel_tol=1e-6):
+        differ.append(f"local size: reference {rl:g} px, part {pl:g} px")
+    if reference.frame != part.frame:
+        differ.append(
+            f"ROI corner / downscale: reference {reference.frame.origin_xy} / "
+            f"{reference.frame.downscale}, part {part.frame.origin_xy} / {part.frame.downscale}"
+        )
+    if differ:
+        raise InputError(
+            f"the reference was mapped differently from the part ({'; '.join(differ)}): "
+            "map both with the same --pixel-size, --local-size, --roi and --downscale",
+            reference.source,
+        )
+
+
+def _reference_pair(part: InspectionInput, reference: InspectionInput) -> _Aligned:
+    """The reference's maps aligned to the part's, on whichever they share most of: the
+    albedo (print, texture) or the local shape (a uniform part's albedo is only noise, and
+    aligning on it kept a 2 px misplacement)."""
+    _check_alike(part, reference)
+    candidates = []
     if part.albedo is not None and reference.albedo is not None:
-        moving, fixed = reference.albedo.mean(axis=2), part.albedo.mean(axis=2)
-    else:
-        moving, fixed = reference.local_shape, part.local_shape
-    dx, dy = align_shift(moving, fixed)
-    return shift_map(reference.local_shape, dx, dy), (dx, dy)
+        candidates.append(("albedo", reference.albedo.mean(axis=2), part.albedo.mean(axis=2)))
+    for name in ("local_shape", "curvature"):
+        mine, theirs = getattr(part, name), getattr(reference, name)
+        if mine is not None and theirs is not None:
+            candidates.append((name.replace("_", " "), theirs, mine))
+            break
+    best = max(
+        ((name, *_align(moving, fixed)) for name, moving, fixed in candidates),
+        key=lambda c: c[3],
+    )
+    name, dx, dy, _ = best
+    _check_shift(dx, dy)
+
+    def moved(values: np.ndarray | None) -> np.ndarray | None:
+        return None if values is None else shift_map(values, dx, dy)
+
+    return _Aligned(moved(reference.local_shape), moved(reference.curvature), (dx, dy), name)
+
+
+def _check_shift(dx: float, dy: float) -> None:
+    if max(abs(dx), abs(dy)) > MAX_SHIFT_PX:
+        raise InputError(
+            f"the reference is {dx:+.1f}, {dy:+.1f} px off this part (more than "
+            f"{MAX_SHIFT_PX} px): not captured in the same fixture?"
+        )
+
+
+def _toward(signed: np.ndarray, polarity: str) -> np.ndarray:
+    """How far each pixel goes in the direction ``polarity`` inspects (bumps and convex
+    curvature are positive, dents and scratches negative)."""
+    if polarity == "down":
+        return np.maximum(-signed, 0.0)
+    if polarity == "up":
+        return np.maximum(signed, 0.0)
+    return np.abs(signed)
 
 
 def find_defects(
@@ -279,40 +447,55 @@ def find_defects(
     mask = part.mask
     if not mask.any():
         raise InputError("the mask is empty: nothing to inspect", part.source)
-    local = part.local_shape
-    shift = None
-    notes: list[str] = []
+    if options.depth is not None and part.local_shape is None:
+        why = " (a perspective run has none: use --curvature)" if part.perspective else ""
+        raise InputError(f"--depth needs local_shape.tif{why}", part.source)
+    if options.curvature is not None and part.curvature is None:
+        raise InputError("--curvature needs curvature.tif in the run folder", part.source)
+    local, curv = part.local_shape, part.curvature
+    shift = aligned_on = None
     if reference is not None:
-        ref_local, shift = _reference_pair(part, reference)
-        both = mask & np.isfinite(ref_local)
-        local = np.where(both, local - ref_local, np.nan).astype(np.float32)
-        mask = both
+        ref = _reference_pair(part, reference)
+        shift, aligned_on = ref.shift, ref.aligned_on
+        for name, ref_map in (("local_shape", ref.local_shape), ("curvature", ref.curvature)):
+            own = getattr(part, name)
+            wanted = options.depth if name == "local_shape" else options.curvature
+            if wanted is not None and own is not None and ref_map is None:
+                raise InputError(
+                    f"the reference has no {name.replace('_', ' ')} map", reference.source
+                )
+        if ref.local_shape is not None and local is not None:
+            mask = mask & np.isfinite(ref.local_shape)
+            local = local - ref.local_shape
+        if ref.curvature is not None and curv is not None:
+            mask = mask & np.isfinite(ref.curvature)
+            curv = curv - ref.curvature
         if not mask.any():
             raise InputError("the part and the aligned reference share no pixel", part.source)
-    signed = np.nan_to_num(local)
-    if options.polarity == "down":
-        size = np.maximum(-signed, 0.0)
-    elif options.polarity == "up":
-        size = np.maximum(signed, 0.0)
-    else:
-        size = np.abs(signed)
-    curv = None if part.curvature is None else np.abs(np.nan_to_num(part.curvature))
-    if options.curvature is not None and curv is None:
-        raise InputError("--curvature needs curvature.tif in the run folder", part.source)
+    signed = np.zeros(mask.shape, np.float32) if local is None else np.nan_to_num(local)
+    signed_curv = None if curv is None else np.nan_to_num(curv)
     high = np.zeros(mask.shape, bool)
     low = np.zeros(mask.shape, bool)
     if options.depth is not None:
+        size = _toward(signed, options.polarity)
         high |= size >= options.depth
         low |= size >= 0.5 * options.depth
-    if options.curvature is not None and curv is not None:
-        high |= curv >= options.curvature
-        low |= curv >= 0.5 * options.curvature
+    if options.curvature is not None and signed_curv is not None:
+        bend = _toward(signed_curv, options.polarity)
+        high |= bend >= options.curvature
+        low |= bend >= 0.5 * options.curvature
     high &= mask
     low &= mask
     _, labels, stats, cents = cv2.connectedComponentsWithStats(low.astype(np.uint8), connectivity=8)
     out = np.zeros(mask.shape, np.int32)
     regions: list[Region] = []
     seeded = np.unique(labels[high])
+    # the peak: the deepest point, or with curvature alone the most bent one
+    score = np.abs(signed) if options.depth is not None or signed_curv is None else None
+    if score is None:
+        assert signed_curv is not None
+        score = np.abs(signed_curv)
+    frame = part.frame
     for lab in seeded[seeded > 0]:
         area = int(stats[lab, cv2.CC_STAT_AREA])
         if area < options.min_area_px:
@@ -320,9 +503,13 @@ def find_defects(
         sel = labels == lab
         k = len(regions) + 1
         out[sel] = k
-        i = int(np.argmax(np.where(sel, np.abs(signed), -1.0)))
+        i = int(np.argmax(np.where(sel, score, -1.0)))
+        py, px_ = divmod(i, mask.shape[1])
         peak = float(signed.flat[i])
         px = part.pixel_size_mm
+        x, y, w, h = (int(v) for v in stats[lab, :4])
+        cx, cy = float(cents[lab][0]), float(cents[lab][1])
+        (x0, y0), kk = frame.origin_xy, frame.downscale
         regions.append(
             Region(
                 label=k,
@@ -330,9 +517,13 @@ def find_defects(
                 area_mm2=None if px is None else area * px * px,
                 depth=abs(peak),
                 signed_depth=peak,
-                curvature=0.0 if curv is None else float(curv[sel].max()),
-                centroid=(float(cents[lab][0]), float(cents[lab][1])),
-                bbox=tuple(int(v) for v in stats[lab, :4]),  # type: ignore[arg-type]
+                curvature=0.0 if signed_curv is None else float(np.abs(signed_curv[sel]).max()),
+                centroid=(cx, cy),
+                bbox=(x, y, w, h),
+                peak=(px_, py),
+                image_peak=frame.to_image(px_, py),
+                image_centroid=frame.to_image(cx, cy),
+                image_bbox=(x0 + kk * x, y0 + kk * y, kk * w, kk * h),
             )
         )
     verdict = Verdict(
@@ -344,7 +535,8 @@ def find_defects(
         reference=None if reference is None else reference.source,
         shift=shift,
         source=part.source,
-        notes=tuple(notes),
+        frame=frame,
+        aligned_on=aligned_on,
     )
     return verdict, out
 
@@ -356,7 +548,7 @@ def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
     if part.albedo is not None:
         base = np.nan_to_num(part.albedo.mean(axis=2))
     else:
-        base = np.nan_to_num(part.local_shape)
+        base = np.nan_to_num(part._any_map)
     vals = base[mask]
     if part.albedo is not None:  # from black: a uniform part stays uniform, not its noise
         lo, hi = 0.0, float(np.percentile(vals, 99)) if vals.size else 1.0
@@ -382,6 +574,7 @@ def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
 __all__ = [
     "POLARITIES",
     "DefectOptions",
+    "Frame",
     "InspectionInput",
     "Region",
     "Verdict",
