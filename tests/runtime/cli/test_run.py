@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -225,4 +226,68 @@ def test_a_stack_named_like_the_batch_summary_is_refused_before_any_work(
     code = main([str(batch), "--method", "l2", "--no-maps", "-q", "-o", str(out)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "summary file" in err[0], err
+    assert not out.exists()
+
+
+def _run_maps(tmp_path: Path, name: str, *flags: str, stack=None) -> Path:
+    stack = stack if stack is not None else sphere_stack(n=8, h=72, w=88)
+    src = tmp_path / "in"
+    src.mkdir(exist_ok=True)
+    out = tmp_path / name
+    code = main(["--method", "l2", str(_npz(stack, src)), "-o", str(out), "-q", *flags])
+    assert code == 0
+    return out
+
+
+def test_pixel_size_is_the_stored_images_under_downscale(tmp_path: Path) -> None:
+    """--pixel-size is a stored-image pixel (as --roi): with --downscale 2 the heights in mm
+    are those of the full-size run (were half), and maps.json records both sizes."""
+    full = _run_maps(tmp_path, "k1", "--pixel-size", "0.05")
+    half = _run_maps(tmp_path, "k2", "--pixel-size", "0.05", "--downscale", "2")
+    ranges = []
+    for out in (full, half):
+        h = cv2.imread(str(out / "height.tif"), cv2.IMREAD_UNCHANGED)
+        ranges.append(float(np.nanmax(h) - np.nanmin(h)))
+    assert ranges[1] == pytest.approx(ranges[0], rel=0.03), ranges
+    reg = json.loads((half / "maps.json").read_text())["registered"]
+    assert reg["image_pixel_size_mm"] == 0.05 and reg["pixel_size_mm"] == pytest.approx(0.1)
+    assert reg["height"] == "mm"
+
+
+def test_maps_json_frame_places_the_maps_in_the_stored_image(tmp_path: Path) -> None:
+    """--roi and --downscale: maps.json's "frame" maps a map pixel (col, row) to image
+    (x0 + K col + (K - 1) / 2, y0 + K row + (K - 1) / 2): the sphere's mask centre lands on
+    the rendered centre (21.5, 17.5), within a quarter pixel."""
+    stack = sphere_stack(n=8, h=36, w=44)
+    out = _run_maps(tmp_path, "roi", "--roi", "4,1,40,34", "--downscale", "2", stack=stack)
+    frame = json.loads((out / "maps.json").read_text())["frame"]
+    assert frame == {"origin_xy": [4, 1], "downscale": 2}
+    normals = np.load(out / "normals.npy")
+    assert normals.shape[:2] == (17, 20)
+    rows, cols = np.nonzero(np.any(normals != 0, axis=2))
+    (x0, y0), k = frame["origin_xy"], frame["downscale"]
+    x = x0 + k * cols.mean() + (k - 1) / 2
+    y = y0 + k * rows.mean() + (k - 1) / 2
+    assert abs(x - 21.5) < 0.25 and abs(y - 17.5) < 0.25, (x, y)
+    assert cv2.imread(str(out / "height.tif"), cv2.IMREAD_UNCHANGED).shape == (17, 20)
+
+
+@pytest.mark.parametrize("roi", [None, "0,0,40,30"])
+def test_a_local_size_above_the_image_is_refused_quickly(
+    tmp_path: Path, capsys, roi: str | None
+) -> None:
+    """--local-size 1e9 was minutes of Gaussian sums, then bad_alloc or the OOM killer: now one
+    line, exit 2, nothing written (with --roi before the stack is even read)."""
+    stack = sphere_stack(n=8, h=36, w=44)
+    out = tmp_path / "o"
+    flags = ["--roi", roi] if roi else []
+    # with --roi the maps' size is known from the flags: refused before the input is read
+    path = tmp_path / "not-read.npz" if roi else _npz(stack, tmp_path)
+    start = time.perf_counter()
+    code = main(["--method", "l2", str(path), "-o", str(out), "--local-size", "1e9", *flags])
+    assert code == 2 and time.perf_counter() - start < 20
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-run: error: ")
+    longer = 40 if roi else 44
+    assert f"longer side ({longer} px" in err[0] and "--local-size" in err[0]
     assert not out.exists()

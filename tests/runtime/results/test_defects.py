@@ -14,7 +14,6 @@ from msfnet.runtime.api import Model
 from msfnet.runtime.cli.inspect import main as inspect_main
 from msfnet.runtime.results.defects import (
     DefectOptions,
-    Frame,
     InspectionInput,
     align_shift,
     find_defects,
@@ -22,6 +21,7 @@ from msfnet.runtime.results.defects import (
     shift_map,
 )
 from msfnet.runtime.results.maps import MapOptions
+from msfnet.runtime.results.maps.registered import Frame
 from msfnet.synth.plates import PlateOptions, render_plate
 
 DEPTH_PX = 0.06  # below the plate's shallowest measured scratch (0.11 px), 15x the noise s.d.

@@ -444,9 +444,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
         if exc.strerror:
             return fail(f"error: {where}{exc.strerror}", resources)
         # no errno: e.g. numpy's short write "4752 requested and 1968 written"
-        return fail(
-            f"error: {where}input/output failed ({first_line(exc)}; disk full?)", resources
-        )
+        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", resources)
     except MsfError as exc:
         if debug:
             raise

@@ -25,6 +25,7 @@ from msfnet.common.errors import InputError
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.maps import MAP_NAMES, MapOptions
 from msfnet.runtime.results.maps.integrate import METHODS as INTEGRATION_METHODS
+from msfnet.runtime.results.maps.registered import Frame, check_local_size
 from msfnet.runtime.stack import LoadOptions, parse_roi
 
 LOAD_FLAGS: dict[str, Flag] = {
@@ -146,7 +147,9 @@ def add_map_flags(parser: argparse.ArgumentParser) -> None:
         "--pixel-size",
         type=positive_float,
         metavar="MM",
-        help="object-side size of one pixel in mm: the TIFFs then hold mm and 1/mm",
+        help="object-side size of one pixel of the stored images in mm (as --roi is in "
+        "stored-image pixels; with --downscale K a map pixel is K times it): the TIFFs then "
+        "hold mm and 1/mm, maps.json records both sizes",
     )
     insp.add_argument(
         "--local-size",
@@ -154,7 +157,7 @@ def add_map_flags(parser: argparse.ArgumentParser) -> None:
         default=MapOptions.local_size_px,
         metavar="PX",
         help="characteristic size of the local-shape map (height minus its trend at this "
-        "size), px (default %(default)g)",
+        "size), px of the maps (default %(default)g; at most their longer side)",
     )
     insp.add_argument(
         "--no-tiff", action="store_true", help="no pixel-registered float32 TIFF maps"
@@ -173,15 +176,24 @@ def map_options(args: argparse.Namespace) -> MapOptions | None:
         raise InputError(
             f"--intrinsics: focal lengths must be positive, got {intr[0]:g}, {intr[1]:g}"
         )
-    return MapOptions(
+    # the maps are the --roi's, downscaled: where they sit in the stored images (maps.json)
+    roi = getattr(args, "roi", None)
+    k = int(getattr(args, "downscale", None) or 1)
+    frame = Frame((roi[0], roi[1]) if roi else (0, 0), k)
+    maps = MapOptions(
         maps=args.maps or MAP_NAMES,
         method=args.integration,
         intrinsics=intr,
         curvature_sigma=getattr(args, "curvature_sigma", MapOptions.curvature_sigma),
-        pixel_size_mm=getattr(args, "pixel_size", None),
+        image_pixel_size_mm=getattr(args, "pixel_size", None),
         local_size_px=getattr(args, "local_size", MapOptions.local_size_px),
         tiff=not getattr(args, "no_tiff", False),
+        frame=frame,
     )
+    if roi and maps.wants("height") and intr is None:
+        # the maps' size is known now: refuse before loading and inference, not after
+        check_local_size(maps.local_size_px, (max(roi[3] // k, 1), max(roi[2] // k, 1)))
+    return maps
 
 
 def model_options(args: argparse.Namespace, **overrides: object) -> ModelOptions:

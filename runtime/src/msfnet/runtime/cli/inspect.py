@@ -26,7 +26,6 @@ from msfnet.common.imageio import encode_png
 from msfnet.runtime.results.defects import (
     POLARITIES,
     DefectOptions,
-    Frame,
     InspectionInput,
     Verdict,
     find_defects,
@@ -166,21 +165,13 @@ def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
     opts = model_options(args)
     maps = opts.maps or MapOptions()
     need = tuple(dict.fromkeys((*maps.maps, "albedo", "height", "curvature")))
-    maps = MapOptions(
-        maps=tuple(n for n in need if n != "mesh"),
-        method=maps.method,
-        intrinsics=maps.intrinsics,
-        curvature_sigma=maps.curvature_sigma,
-        pixel_size_mm=maps.pixel_size_mm,
-        local_size_px=maps.local_size_px,
-    )
+    # replace() keeps what the flags set (frame, the stored image's pixel size, ...)
+    maps = replace(maps, maps=tuple(n for n in need if n != "mesh"))
     stack = load_stack(path, load)
     model = Model(options=opts.replace(maps=maps))
     result = model(stack)
     assert result.maps is not None
-    roi = load.roi
-    frame = Frame((0, 0) if roi is None else (roi[0], roi[1]), load.downscale)
-    part = from_maps(result.maps, str(path), frame)
+    part = from_maps(result.maps, str(path))
     part.method = model.describe()
     return part
 

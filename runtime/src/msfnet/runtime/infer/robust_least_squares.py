@@ -38,6 +38,7 @@ import numpy as np
 from msfnet.common.cpu import usable_cores
 from msfnet.runtime.infer.least_squares import grey_values, rows_for_memory
 from msfnet.runtime.infer.normalise import network_lights
+from msfnet.runtime.results.maps.albedo import full_scale  # the albedo drops the same values
 from msfnet.runtime.stack import MIN_LIGHTS, Stack
 
 TUKEY_C = 4.685  # spreads at which an observation's weight reaches 0 (95 % Gaussian efficiency)
@@ -83,7 +84,7 @@ def robust_least_squares(
     lights = network_lights(stack.lights).astype(np.float64)
     if rows is None:
         rows = band_rows(stack, max_memory_mb)
-    full = float(np.iinfo(stack.images.dtype).max) if stack.images.dtype.kind in "ui" else None
+    full = full_scale(stack.images.dtype)
     noise = stack_noise(stack, lights, full, max_pixels=rows * w)  # a band's worth at most
     normals = np.zeros((h, w, 3), np.float32)
     residual = np.zeros((h, w), np.float32)

@@ -30,7 +30,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError, first_line
 from msfnet.runtime.results.maps.api import InspectionMaps
-from msfnet.runtime.results.maps.registered import read_tiff
+from msfnet.runtime.results.maps.registered import Frame, read_tiff
 
 POLARITIES = ("both", "down", "up")
 MAX_SHIFT_PX = 32  # a reference further off than this is not "the same fixture"
@@ -58,23 +58,6 @@ class DefectOptions:
             raise InputError(f"--min-area {self.min_area_px}: must be at least 1 px")
         if self.polarity not in POLARITIES:
             raise InputError(f"--polarity {self.polarity!r}: expected one of {POLARITIES}")
-
-
-@dataclass(frozen=True)
-class Frame:
-    """Where the maps sit in the camera image: a map pixel (col, row) is image pixel
-    (x0 + K col + (K - 1) / 2, y0 + K row + (K - 1) / 2), from --roi's corner and --downscale K."""
-
-    origin_xy: tuple[int, int] = (0, 0)
-    downscale: int = 1
-
-    def to_image(self, x: float, y: float) -> tuple[float, float]:
-        k, (x0, y0) = self.downscale, self.origin_xy
-        return x0 + k * x + (k - 1) / 2, y0 + k * y + (k - 1) / 2
-
-    @property
-    def is_identity(self) -> bool:
-        return self.origin_xy == (0, 0) and self.downscale == 1
 
 
 @dataclass(frozen=True)
@@ -135,7 +118,7 @@ class Verdict:
             "reference_shift_px": None if self.shift is None else list(self.shift),
             "reference_aligned_on": self.aligned_on,
             "source": self.source,
-            "frame": {"origin_xy": list(self.frame.origin_xy), "downscale": self.frame.downscale},
+            "frame": self.frame.as_dict(),
             "notes": list(self.notes),
             "provenance": self.provenance,
         }
@@ -177,7 +160,7 @@ class InspectionInput:
         return int(h), int(w)
 
 
-def from_maps(maps: InspectionMaps, source: str, frame: Frame | None = None) -> InspectionInput:
+def from_maps(maps: InspectionMaps, source: str) -> InspectionInput:
     """The step's input straight from computed maps (a run in this process)."""
     phys = maps.physical()
     if "local_shape" not in phys and "curvature" not in phys:
@@ -191,7 +174,7 @@ def from_maps(maps: InspectionMaps, source: str, frame: Frame | None = None) -> 
         pixel_size_mm=maps.options.pixel_size_mm,
         source=source,
         local_size_px=float(maps.options.local_size_px),
-        frame=frame or Frame(),
+        frame=maps.options.frame,
         perspective=maps.options.intrinsics is not None,
     )
 
@@ -273,20 +256,16 @@ def _positive(value: object, name: str, where: Path) -> float | None:
 
 
 def _frame(value: object, where: Path) -> Frame:
-    """maps.json's "frame" ({"origin_xy": [x, y], "downscale": K}); absent: the whole image."""
+    """maps.json's "frame" ({"origin_xy": [x, y], "downscale": K}); absent (a run of an
+    earlier version): the whole image."""
     if value is None:
         return Frame()
-    bad = InputError(
-        f'"frame" must be {{"origin_xy": [x, y], "downscale": K}}, got {value!r}', where
-    )
     try:
-        x, y = (int(v) for v in value["origin_xy"])  # type: ignore[index]
-        k = int(value["downscale"])  # type: ignore[index]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise bad from exc
-    if x < 0 or y < 0 or k < 1:
-        raise bad
-    return Frame((x, y), k)
+        return Frame(tuple(value["origin_xy"]), value["downscale"])  # type: ignore[index,arg-type]
+    except (InputError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(
+            f'"frame" must be {{"origin_xy": [x, y], "downscale": K}}, got {value!r}', where
+        ) from exc
 
 
 def _read(path: Path, ndim: int, size: tuple[int, ...] | None = None) -> np.ndarray:
@@ -521,8 +500,8 @@ def find_defects(
                 centroid=(cx, cy),
                 bbox=(x, y, w, h),
                 peak=(px_, py),
-                image_peak=frame.to_image(px_, py),
-                image_centroid=frame.to_image(cx, cy),
+                image_peak=frame.image_xy(px_, py),
+                image_centroid=frame.image_xy(cx, cy),
                 image_bbox=(x0 + kk * x, y0 + kk * y, kk * w, kk * h),
             )
         )
@@ -574,7 +553,6 @@ def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
 __all__ = [
     "POLARITIES",
     "DefectOptions",
-    "Frame",
     "InspectionInput",
     "Region",
     "Verdict",

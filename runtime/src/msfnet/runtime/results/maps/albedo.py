@@ -6,7 +6,9 @@ e_ic the light's RGB intensity. Given n, the least-squares albedo over a set K o
 (the closed form of min_rho sum_K (I_ic - rho_c s_ic)^2, as in Woodham's photometric stereo,
 Optical Engineering 19(1), 1980, once the normal is known). K keeps only observations the model
 can explain: lit (n . l_i above ``min_shading``, which drops attached shadows and grazing light
-where the cosine is least reliable) and unsaturated (value below ``saturation`` in that channel).
+where the cosine is least reliable) and unsaturated (value below ``saturation`` in that channel;
+by default the image's full scale, :func:`default_saturation`). Where K is empty the albedo is
+unknown: NaN, as outside the mask (0 would read as a black surface).
 Units: image units per unit light intensity (the images' raw scale, e.g. 0..65535 for 16-bit).
 """
 
@@ -16,9 +18,9 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.results.maps.validate import check_normals
+from msfnet.runtime.stack.types import float_full_scale
 
 DEFAULT_MIN_SHADING = 0.1
-SATURATION_FRACTION = 0.99  # default: values at >= 99 % of the stack's maximum count as clipped
 CHUNK_PIXELS = 32768  # bounds the (N, chunk, 3) temporaries to a few tens of MB
 MIN_CHUNK_PIXELS = 256
 # working set per (pixel x light) of one chunk: the float64 gather, shading, kept-mask and the
@@ -26,10 +28,28 @@ MIN_CHUNK_PIXELS = 256
 BYTES_PER_PIXEL_LIGHT = 128
 
 
+def full_scale(dtype: np.dtype) -> float | None:
+    """The value at which an observation stored as ``dtype`` is clipped: an integer type's
+    full scale (255, 65535); None for floats, whose type says nothing of the sensor's range.
+    The robust fit (infer.robust_least_squares) never uses such observations either."""
+    dtype = np.dtype(dtype)
+    return float(np.iinfo(dtype).max) if dtype.kind in "ui" else None
+
+
 def default_saturation(images: np.ndarray) -> float:
-    """The clipping level assumed when none is given: 99 % of the largest stored value."""
-    top = float(np.max(images)) if images.size else 0.0
-    return SATURATION_FRACTION * top if top > 0 else np.inf
+    """The clipping level assumed when none is given (values at or above it are dropped).
+
+    Integer images: the type's full scale, 255 / 65535 (:func:`full_scale`, the robust fit's
+    rule too). Float images carry no range in their type: their largest value when it is a
+    full scale float images are held at (1.0, 255, 65535, ...:
+    :func:`~msfnet.runtime.stack.types.float_full_scale`, the stack check's rule; an 8-bit
+    stack after --downscale or --srgb clips at 255.0), else none (inf).
+    Never a fraction of the largest value: a flat, evenly lit part reads that value in every
+    image, and dropping it left no observation (albedo 0 on the brightest area)."""
+    full = full_scale(images.dtype)
+    if full is None and images.size:
+        full = float_full_scale(float(np.max(images)))
+    return np.inf if full is None else full
 
 
 def albedo_map(
@@ -48,8 +68,10 @@ def albedo_map(
     images: (N, H, W, 3) linear values as stored; lights: (N, 3) directions (normalised here);
     intensities: (N, 3) RGB light intensities; mask: (H, W) bool; normals: (H, W, 3) unit.
     min_shading: smallest n . l kept (dimensionless cosine).
-    saturation: values at or above it are dropped (default: 99 % of the images' maximum).
-    Pixels outside the mask, with a zero normal, or with no kept light in a channel get 0.
+    saturation: values at or above it are dropped (default: :func:`default_saturation`, the
+    images' full scale).
+    Pixels outside the mask or with a zero normal get NaN, and so does a channel with no kept
+    observation (its albedo is unknown).
     chunk_pixels: pixels solved at once (the working set is about
     ``chunk_pixels * N * BYTES_PER_PIXEL_LIGHT`` bytes; maps.budget sizes it to --max-memory).
     """
@@ -88,7 +110,7 @@ def checked_albedo(
         raise InputError("light directions and intensities must be finite, directions non-zero")
     dirs = dirs / norms
     sat = default_saturation(imgs) if saturation is None else float(saturation)
-    out = np.zeros((h, w, 3), np.float32)
+    out = np.full((h, w, 3), np.nan, np.float32)
     pix = np.flatnonzero(valid.ravel())
     flat = imgs.reshape(n_lights, h * w, 3)
     chunk = max(int(chunk_pixels), MIN_CHUNK_PIXELS)
@@ -101,9 +123,15 @@ def checked_albedo(
         s = np.where(keep, s, 0.0)
         num = np.einsum("npc,npc->pc", np.where(keep, obs, 0.0), s)
         den = np.einsum("npc,npc->pc", s, s)
-        rho = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+        rho = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
         out.reshape(-1, 3)[sel] = rho  # written as it comes: no (P, 3) float64 beside it
     return out
 
 
-__all__ = ["DEFAULT_MIN_SHADING", "albedo_map", "checked_albedo", "default_saturation"]
+__all__ = [
+    "DEFAULT_MIN_SHADING",
+    "albedo_map",
+    "checked_albedo",
+    "default_saturation",
+    "full_scale",
+]

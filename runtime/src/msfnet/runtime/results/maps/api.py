@@ -30,18 +30,26 @@ from msfnet.runtime.results.maps.integrate import (
 )
 from msfnet.runtime.results.maps.registered import (
     DEFAULT_LOCAL_SIZE_PX,
+    Frame,
     Units,
+    check_local_size,
     described_png,
     gradients,
     grey16_view,
     local_shape,
     signed_view,
+    tiff_placement,
     write_tiff,
 )
 from msfnet.runtime.results.maps.validate import check_normals
 from msfnet.runtime.stack import Stack
 
 MAP_NAMES = ("albedo", "height", "curvature", "mesh")
+# what the registered TIFFs hold where there is no value (maps.json "outside_mask"; docs/run.md)
+OUTSIDE_MASK = (
+    "NaN, except normals.tif: (0, 0, 0) (no normal); albedo.tif is NaN inside the mask too "
+    "where no observation was kept"
+)
 
 
 @dataclass(frozen=True)
@@ -54,15 +62,23 @@ class MapOptions:
     depth_ref: perspective only, the median object depth the unknown scale is fixed to
         (default fx: heights then read in pixels at that distance).
     min_nz: smallest nz (or |D|) used for slopes, bounding them to 1/min_nz px per px.
-    min_shading, saturation: albedo observation filters (cosine; image units, None = 99 % of
-        the images' maximum).
+    min_shading, saturation: albedo observation filters (cosine; image units, None = the
+        images' full scale, see maps.albedo.default_saturation).
     curvature_sigma: Gaussian pre-smoothing of the normals for curvature, in pixels.
     bini_k, bini_max_iter, bini_tol: "bini" sharpness, rounds and energy tolerance.
     mesh_max_jump: drop mesh triangles spanning a larger height step (px); None keeps all.
-    pixel_size_mm: the object-side size of one pixel; with it the registered TIFFs hold mm
-        (height, local shape) and 1/mm (curvature); None = pixel units.
+    pixel_size_mm: the object-side size of one pixel of the maps; with it the registered
+        TIFFs hold mm (height, local shape) and 1/mm (curvature); None = pixel units.
+    image_pixel_size_mm: the same for one pixel of the stored images (msf-run's --pixel-size,
+        as --roi is in stored-image pixels); given, it sets ``pixel_size_mm`` to it x
+        ``frame.downscale`` (a map pixel is K x K stored ones); not given, it is
+        ``pixel_size_mm`` / ``frame.downscale``. Both go into maps.json.
+    frame: where the maps sit in the stored images (--roi corner, --downscale K; see
+        maps.registered.Frame): recorded in maps.json and the TIFFs' position tags. The
+        commands set it from their flags; a caller loading with LoadOptions(roi=...,
+        downscale=...) passes it here (the maps cannot know how their stack was cut).
     local_size_px: the characteristic size of the local-shape map (height minus its trend
-        smoothed at this many px; see maps.registered).
+        smoothed at this many px; see maps.registered); at most the maps' longer side.
     tiff: write the pixel-registered float32 TIFFs (maps.registered).
     """
 
@@ -81,8 +97,29 @@ class MapOptions:
     pixel_size_mm: float | None = None
     local_size_px: float = DEFAULT_LOCAL_SIZE_PX
     tiff: bool = True
+    image_pixel_size_mm: float | None = None
+    frame: Frame = field(default_factory=Frame)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.frame, Frame):
+            raise InputError(f"frame must be a maps.registered.Frame, got {self.frame!r}")
+        given = self.image_pixel_size_mm
+        if given is not None:
+            if not (np.isfinite(given) and given > 0):
+                raise InputError(f"image pixel size mm {given}: must be a positive number")
+            size = given * self.frame.downscale
+            if self.pixel_size_mm is None:
+                object.__setattr__(self, "pixel_size_mm", size)
+            elif not np.isclose(self.pixel_size_mm, size, rtol=1e-9, atol=0.0):
+                raise InputError(
+                    f"pixel size {self.pixel_size_mm:g} mm is not the image pixel size "
+                    f"{given:g} mm x downscale {self.frame.downscale}: give one of them"
+                )
+        elif self.pixel_size_mm is not None and np.isfinite(self.pixel_size_mm):
+            # only the map pixel given (the API): the stored image's follows from the frame
+            object.__setattr__(
+                self, "image_pixel_size_mm", self.pixel_size_mm / self.frame.downscale
+            )
         for name in ("curvature_sigma", "local_size_px", "pixel_size_mm"):
             v = getattr(self, name)
             if v is None and name == "pixel_size_mm":
@@ -117,7 +154,8 @@ class InspectionMaps:
 
     mask: (H, W) bool, the pixels that had a usable normal (the maps' domain).
     normals: (H, W, 3) unit normals as given (zeros outside ``mask``).
-    albedo: RGB, image units per unit light intensity, 0 outside the mask.
+    albedo: RGB, image units per unit light intensity, NaN outside the mask and, per channel,
+        where no observation was kept (all shadowed or at full scale: unknown, not black).
     height: z toward the camera in px (perspective: depth_ref units), min 0 per object part,
         NaN outside. depth: perspective only, depth along the optical axis, NaN outside.
     curvature: mean curvature in 1/px (convex toward the camera > 0), NaN outside;
@@ -150,6 +188,8 @@ class InspectionMaps:
         opts = asdict(self.options)
         out: dict[str, Any] = {
             "options": opts,
+            # map pixel (col, row) is stored-image pixel (x0 + K col + (K-1)/2, y0 + ...)
+            "frame": self.options.frame.as_dict(),
             "pixels": int(self.mask.sum()),
             "timings_s": dict(self.timings),
             "units": {
@@ -158,7 +198,7 @@ class InspectionMaps:
                 "curvature": "1/px",
                 "shape_index": "dimensionless",
             },
-            "registered": self.registered_units(),
+            "registered": self.written_units(),
         }
         if self.skipped:
             out["skipped"] = {"maps": list(self.skipped), "why": self.warning}
@@ -174,10 +214,13 @@ class InspectionMaps:
         return out
 
     def registered_units(self) -> dict[str, object]:
-        """The TIFFs' units and conventions (see maps.registered)."""
-        u = Units.of(self.options.pixel_size_mm)
+        """Every registered map's units and conventions (see maps.registered), computed or
+        not; maps.json keeps those of the TIFFs written (:meth:`written_units`)."""
+        opts = self.options
+        u = Units.of(opts.pixel_size_mm)
         return {
-            "pixel_size_mm": self.options.pixel_size_mm,
+            "pixel_size_mm": opts.pixel_size_mm,  # a map pixel: what every mm value uses
+            "image_pixel_size_mm": opts.image_pixel_size_mm,  # a stored-image pixel
             "local_size_px": self.options.local_size_px,
             "curvature_sigma_px": self.options.curvature_sigma,
             "height": u.height,
@@ -186,8 +229,26 @@ class InspectionMaps:
             "gaussian_curvature": u.gaussian_curvature,
             "gradient": "dz/dcolumn (p), dz/drow (q), rows down, z to the camera",
             "normals": "x right, y up, z to the camera",
-            "outside_mask": "NaN (normals: 0)",
+            "outside_mask": OUTSIDE_MASK,
         }
+
+    def written_units(self) -> dict[str, object]:
+        """:meth:`registered_units` of the TIFFs :func:`write_maps` writes (none with
+        ``tiff=False``; no height or local shape for a perspective run), with their names."""
+        written = self.physical_names() if self.options.tiff else []
+        units = self.registered_units()
+        for key, name in (
+            ("height", "height"),
+            ("local_shape", "local_shape"),
+            ("curvature", "curvature"),
+            ("gaussian_curvature", "gaussian_curvature"),
+            ("gradient", "gradient_p"),
+            ("normals", "normals"),
+        ):
+            if name not in written:
+                del units[key]
+        units["files"] = [f"{name}.tif" for name in written]
+        return units
 
     def physical(self) -> dict[str, np.ndarray]:
         """The registered data maps in their TIFF units (mm with a pixel size): name -> (H, W)
@@ -236,7 +297,8 @@ def compute_maps(
     images (N, H, W, 3), lights (N, 3), intensities (N, 3): only needed for the albedo.
     mask (H, W) bool; normals (H, W, 3) unit, camera frame (x right, y up, z to the camera).
     Bad input raises InputError (NaN normals in the mask, shape mismatches, missing images for
-    the albedo). An empty mask is not an error: albedo 0, height and curvature all NaN.
+    the albedo). An empty mask is not an error: albedo, height and curvature all NaN.
+    A local size above the maps' longer side is refused before any map is made.
     ``max_memory_mb``: the whole process's budget (see maps.budget): a map whose working set
     does not fit beside what the process holds is skipped before its work starts, named in
     ``skipped`` and in the one-line ``warning``.
@@ -245,6 +307,8 @@ def compute_maps(
     if opts.wants("albedo") and (images is None or lights is None or intensities is None):
         raise InputError("the albedo needs the images, lights and intensities")
     m = np.asarray(mask, bool)
+    if opts.wants("height") and opts.intrinsics is None:  # the local shape's Gaussian sums
+        check_local_size(opts.local_size_px, (int(m.shape[0]), int(m.shape[1])))
     budget = MapsBudget(
         max_memory_mb,
         int(m.size),
@@ -353,8 +417,11 @@ def albedo_png(
     """(H, W, 3) albedo -> 16-bit linear RGB with the ``percentile`` of each pixel's
     brightest channel in the mask at 65535, brighter values clipped (relative; the absolute
     values are in albedo.npy). Scaled to the one brightest pixel, a specular speck, the rest
-    of harvest sat at ~10 % of full scale: black in a viewer. Zeros outside the mask."""
-    top = float(np.percentile(albedo[mask].max(axis=1), percentile)) if mask.any() else 0.0
+    of harvest sat at ~10 % of full scale: black in a viewer. Zeros outside the mask and
+    where the albedo is unknown (NaN: no observation kept), so black there."""
+    known = albedo[mask].max(axis=1) if mask.any() else np.zeros(0)
+    known = known[np.isfinite(known)]  # a channel with no observation is NaN
+    top = float(np.percentile(known, percentile)) if known.size else 0.0
     scale = 65535.0 / top if top > 0 else 0.0
     img = np.clip(np.rint(np.nan_to_num(albedo) * scale), 0, 65535).astype(np.uint16)
     img[~mask] = 0
@@ -418,6 +485,17 @@ def provenance(profile: Mapping[str, object] | None) -> dict[str, object]:
         "time": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
     }
     return out
+
+
+def height_range_text(value: float, options: MapOptions) -> str:
+    """The report's height range with its unit: px (and mm with a pixel size), or the
+    perspective height's depth_ref units."""
+    if options.intrinsics is not None:
+        return f"{value:.4g} depth_ref units"
+    text = f"{value:.4g} px"
+    if options.pixel_size_mm is not None:
+        text += f" ({value * options.pixel_size_mm:.4g} mm)"
+    return text
 
 
 def _npy_writer(arr: np.ndarray) -> Any:
@@ -525,12 +603,13 @@ def write_maps(
             jobs.append(("shape_index.npy", _npy_writer(maps.shape_index)))
     if maps.options.tiff:
         reg_units = maps.registered_units()
+        placement = tiff_placement(maps.options.frame, maps.options.image_pixel_size_mm)
         for name in maps.physical_names():
             text = f"msfnet {name} ({reg_units.get(name, 'see maps.json')}), float32, registered"
             jobs.append(
                 (
                     f"{name}.tif",
-                    lambda tmp, n=name, t=text: write_tiff(tmp, maps.physical_map(n), t),
+                    lambda tmp, n=name, t=text: write_tiff(tmp, maps.physical_map(n), t, placement),
                 )
             )
     if error_deg is not None and draw:
@@ -568,7 +647,7 @@ def write_maps(
         if maps.integration is not None:
             meta["integration iterations"] = maps.integration.iterations
         if "height_range" in summary:
-            meta["height range"] = f"{summary['height_range']:.1f}"
+            meta["height range"] = height_range_text(summary["height_range"], maps.options)
         html_text = build_report(
             title or f"inspection maps: {folder.name}",
             figures,

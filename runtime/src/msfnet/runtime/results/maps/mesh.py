@@ -36,8 +36,10 @@ class Mesh:
 
 def albedo_colors(albedo: np.ndarray, valid: np.ndarray, percentile: float = 99.5) -> np.ndarray:
     """(H, W, 3) albedo -> (H, W, 3) uint8, scaled so the ``percentile`` of the valid pixels'
-    largest channel maps to 255 (the absolute scale is in albedo.npy, not in the colours)."""
+    largest channel maps to 255 (the absolute scale is in albedo.npy, not in the colours);
+    black where the albedo is unknown (NaN)."""
     vals = albedo[valid].max(axis=1) if valid.any() else np.zeros(0)
+    vals = vals[np.isfinite(vals)]  # NaN: no observation kept there (coloured black)
     top = float(np.percentile(vals, percentile)) if vals.size else 0.0
     scale = 255.0 / top if top > 0 else 0.0
     return np.clip(np.rint(np.nan_to_num(albedo) * scale), 0, 255).astype(np.uint8)

@@ -615,7 +615,8 @@ def albedo_picture(albedo: np.ndarray, mask: np.ndarray, percentile: float = 99.
     if not mask.any():
         return _empty("albedo")
     vals = albedo[mask].max(axis=1)
-    top = float(np.percentile(vals, percentile))
+    vals = vals[np.isfinite(vals)]  # NaN: no observation kept there (shown black)
+    top = float(np.percentile(vals, percentile)) if vals.size else 0.0
     rs, cs = crop_box(mask)
     scaled = np.nan_to_num(albedo[rs, cs].astype(np.float32)) / np.float32(top if top > 0 else 1.0)
     rgb = _u8(np.clip(scaled, 0, 1) ** np.float32(1 / 2.2))

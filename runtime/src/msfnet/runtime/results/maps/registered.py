@@ -18,13 +18,20 @@ Conventions (documented in maps.json too):
   Relief narrower than about that size stays, the part's tilt and bow go (Matrox' "local
   shape", Keyence's "characteristic size").
 - normals.tif and albedo.tif hold three samples per pixel in x, y, z (R, G, B) order; OpenCV's
-  imread returns them reversed (its BGR order), tifffile and HALCON as stored.
+  imread returns them reversed (its BGR order), tifffile and HALCON as stored. Outside the mask
+  every TIFF holds NaN but normals.tif, which holds (0, 0, 0), the project's "no normal" (as
+  normals.npy); albedo.tif is NaN inside too where no observation was kept (maps.albedo).
+- placement: with --roi / --downscale the maps are a part of the stored image (:class:`Frame`,
+  maps.json's "frame"); the TIFFs carry it in their XPosition / YPosition tags and the scale in
+  XResolution / YResolution (:func:`tiff_placement`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -49,6 +56,84 @@ class Units:
         if pixel_size_mm is None:
             return cls("px", "1/px", "1/px^2")
         return cls("mm", "1/mm", "1/mm^2")
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Where the maps sit in the stored images: ``origin_xy`` is the --roi's top-left corner in
+    stored-image pixels ((0, 0) without one), ``downscale`` the --downscale factor K (1 without).
+    Map pixel (col, row) is the mean of stored pixels x0 + K col .. x0 + K col + K - 1 (rows
+    likewise), so its centre lies at image (x0 + K col + (K - 1) / 2, y0 + K row + (K - 1) / 2)
+    (:meth:`image_xy`)."""
+
+    origin_xy: tuple[int, int] = (0, 0)
+    downscale: int = 1
+
+    def __post_init__(self) -> None:
+        x0, y0 = (int(v) for v in self.origin_xy)
+        if (x0, y0) != tuple(self.origin_xy) or x0 < 0 or y0 < 0:
+            raise InputError(f"frame origin {self.origin_xy}: must be two integers >= 0")
+        if int(self.downscale) != self.downscale or self.downscale < 1:
+            raise InputError(f"frame downscale {self.downscale}: must be an integer >= 1")
+        object.__setattr__(self, "origin_xy", (x0, y0))
+        object.__setattr__(self, "downscale", int(self.downscale))
+
+    def as_dict(self) -> dict[str, object]:
+        """maps.json's "frame": {"origin_xy": [x0, y0], "downscale": K}."""
+        return {"origin_xy": list(self.origin_xy), "downscale": self.downscale}
+
+    @property
+    def is_identity(self) -> bool:
+        """The maps are the whole stored image at its own resolution."""
+        return self.origin_xy == (0, 0) and self.downscale == 1
+
+    def image_xy(self, col: float, row: float) -> tuple[float, float]:
+        """The stored-image position (x, y) of map pixel (col, row)'s centre."""
+        k = self.downscale
+        half = (k - 1) / 2.0
+        return self.origin_xy[0] + k * col + half, self.origin_xy[1] + k * row + half
+
+
+def check_local_size(size_px: float, shape: tuple[int, int]) -> None:
+    """InputError when the local shape's characteristic size exceeds the maps' longer side: its
+    trend would span more than the whole image (nothing left to measure), and the Gaussian
+    sums behind it grow with the size (minutes, then out of memory, at 1e5 px on 64 x 64)."""
+    longer = max(shape)
+    if size_px > longer:
+        raise InputError(
+            f"--local-size {size_px:g} px is larger than the maps' longer side ({longer} px "
+            f"for {shape[1]} x {shape[0]}, after --roi / --downscale): the trend would span "
+            f"the whole part; give at most {longer}"
+        )
+
+
+def tiff_placement(frame: Frame, image_pixel_size_mm: float | None) -> dict[str, Any]:
+    """tifffile.imwrite arguments that place a map in its stored image (TIFF 6.0 tags).
+
+    With a pixel size (``image_pixel_size_mm``: a stored-image pixel, as --pixel-size) the
+    resolution is map pixels per centimetre (ResolutionUnit 3; HALCON, ImageJ and GIMP read
+    the scale) and XPosition / YPosition the ROI's corner in cm; without one the unit is one
+    stored-image pixel (ResolutionUnit 1, NONE): resolution 1 / K, position (x0, y0)."""
+    k = frame.downscale
+    if image_pixel_size_mm is None:
+        unit, per_unit, position_scale = "NONE", 1.0 / k, 1.0
+    else:
+        cm = image_pixel_size_mm / 10.0  # a stored-image pixel in cm
+        unit, per_unit, position_scale = "CENTIMETER", 1.0 / (k * cm), cm
+
+    def rational(value: float) -> tuple[int, int]:
+        f = Fraction(value).limit_denominator(1 << 20)
+        return f.numerator, f.denominator
+
+    x0, y0 = frame.origin_xy
+    return {
+        "resolution": (per_unit, per_unit),
+        "resolutionunit": unit,
+        "extratags": [
+            (286, 5, 1, rational(x0 * position_scale), True),  # XPosition, RATIONAL
+            (287, 5, 1, rational(y0 * position_scale), True),  # YPosition
+        ],
+    }
 
 
 def gradients(
@@ -124,16 +209,24 @@ def local_trend(
 
 def local_shape(height: np.ndarray, valid: np.ndarray, size_px: float) -> np.ndarray:
     """Height minus its trend at the characteristic size ``size_px`` (see module notes; the
-    trend is :func:`local_trend`, so a tilted or bowed part reads flat up to its edges)."""
+    trend is :func:`local_trend`, so a tilted or bowed part reads flat up to its edges); at
+    most the map's longer side (:func:`check_local_size`)."""
     if not (np.isfinite(size_px) and size_px > 0):
         raise ValueError(f"local shape size must be a positive number of px, got {size_px}")
+    check_local_size(size_px, (int(height.shape[0]), int(height.shape[1])))
     ok = valid & np.isfinite(height)
     trend = local_trend(height, ok, size_px)
     return np.where(ok, height - trend, np.nan).astype(np.float32)
 
 
-def write_tiff(path: Path, data: np.ndarray, description: str = "") -> None:
-    """A float32 TIFF, (H, W) or (H, W, C) as RGB-like samples, uncompressed."""
+def write_tiff(
+    path: Path,
+    data: np.ndarray,
+    description: str = "",
+    placement: dict[str, Any] | None = None,
+) -> None:
+    """A float32 TIFF, (H, W) or (H, W, C) as RGB-like samples, uncompressed; ``placement``:
+    :func:`tiff_placement`'s resolution and position tags."""
     import tifffile
 
     arr = np.ascontiguousarray(data, np.float32)
@@ -144,6 +237,7 @@ def write_tiff(path: Path, data: np.ndarray, description: str = "") -> None:
         photometric=photometric,
         description=description or None,
         metadata=None,
+        **(placement or {}),
     )
 
 
@@ -205,7 +299,9 @@ def signed_view(values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, floa
 
 __all__ = [
     "DEFAULT_LOCAL_SIZE_PX",
+    "Frame",
     "Units",
+    "check_local_size",
     "described_png",
     "gradients",
     "grey16_view",
@@ -214,5 +310,6 @@ __all__ = [
     "masked_gaussian",
     "read_tiff",
     "signed_view",
+    "tiff_placement",
     "write_tiff",
 ]
