@@ -38,8 +38,8 @@ import numpy as np
 from msfnet.common.cpu import usable_cores
 from msfnet.runtime.infer.least_squares import grey_values, rows_for_memory
 from msfnet.runtime.infer.normalise import network_lights
-from msfnet.runtime.results.maps.albedo import full_scale  # the albedo drops the same values
 from msfnet.runtime.stack import MIN_LIGHTS, Stack
+from msfnet.runtime.stack.types import full_scale  # the albedo drops the same values
 
 TUKEY_C = 4.685  # spreads at which an observation's weight reaches 0 (95 % Gaussian efficiency)
 ITERATIONS = 3  # reweighting passes after the plain solve (the fits barely move after the third)

@@ -288,6 +288,14 @@ class Stack:
         return out
 
 
+def full_scale(dtype: np.dtype) -> float | None:
+    """The value at which an observation stored as ``dtype`` is clipped: an integer type's
+    full scale (255, 65535); None for floats, whose type says nothing of the sensor's range.
+    The robust fit and the albedo both drop such observations."""
+    dtype = np.dtype(dtype)
+    return float(np.iinfo(dtype).max) if dtype.kind in "ui" else None
+
+
 def float_full_scale(value: float) -> float | None:
     """``value`` when it is a full scale float images are held at, else None: 1.0 (float
     images), 255 / 65535 (8 / 16-bit images after --downscale, --srgb, --gamma), 1023 / 4095

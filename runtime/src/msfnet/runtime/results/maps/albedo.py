@@ -18,7 +18,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.results.maps.validate import check_normals
-from msfnet.runtime.stack.types import float_full_scale
+from msfnet.runtime.stack.types import float_full_scale, full_scale
 
 DEFAULT_MIN_SHADING = 0.1
 CHUNK_PIXELS = 32768  # bounds the (N, chunk, 3) temporaries to a few tens of MB
@@ -26,14 +26,6 @@ MIN_CHUNK_PIXELS = 256
 # working set per (pixel x light) of one chunk: the float64 gather, shading, kept-mask and the
 # masked products (measured ~110 B; maps.budget sizes chunks with it)
 BYTES_PER_PIXEL_LIGHT = 128
-
-
-def full_scale(dtype: np.dtype) -> float | None:
-    """The value at which an observation stored as ``dtype`` is clipped: an integer type's
-    full scale (255, 65535); None for floats, whose type says nothing of the sensor's range.
-    The robust fit (infer.robust_least_squares) never uses such observations either."""
-    dtype = np.dtype(dtype)
-    return float(np.iinfo(dtype).max) if dtype.kind in "ui" else None
 
 
 def default_saturation(images: np.ndarray) -> float:
@@ -133,5 +125,4 @@ __all__ = [
     "albedo_map",
     "checked_albedo",
     "default_saturation",
-    "full_scale",
 ]
