@@ -97,13 +97,15 @@ class Frame:
 def check_local_size(size_px: float, shape: tuple[int, int]) -> None:
     """InputError when the local shape's characteristic size exceeds the maps' longer side: its
     trend would span more than the whole image (nothing left to measure), and the Gaussian
-    sums behind it grow with the size (minutes, then out of memory, at 1e5 px on 64 x 64)."""
+    sums behind it grow with the size (minutes, then out of memory, at 1e5 px on 64 x 64).
+    The default size is always accepted: on a part smaller than it (a thumbnail, a tiny ROI)
+    its trend is one quadric over the whole part, as before, at no cost."""
     longer = max(shape)
-    if size_px > longer:
+    if size_px > max(longer, DEFAULT_LOCAL_SIZE_PX):
         raise InputError(
             f"--local-size {size_px:g} px is larger than the maps' longer side ({longer} px "
             f"for {shape[1]} x {shape[0]}, after --roi / --downscale): the trend would span "
-            f"the whole part; give at most {longer}"
+            f"the whole part; give at most {max(longer, int(DEFAULT_LOCAL_SIZE_PX))}"
         )
 
 
