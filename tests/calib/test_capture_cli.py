@@ -546,19 +546,36 @@ def test_overwrite_refuses_a_file_only_the_longer_new_session_would_write(
     assert capture_main([str(out), *SIM, "--overwrite"]) == 0
 
 
-def test_a_finished_take_without_its_result_is_run_by_the_next_loop(tmp_path: Path) -> None:
+def test_a_finished_take_without_its_result_is_run_by_the_next_loop(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A take captured whole but whose run was stopped was skipped for good (the next loop
-    took 002); now the next loop runs it."""
+    took 002); now the next loop runs it. A take captured without --run is owed no result:
+    the next --run loop captures a new one."""
+    from msfnet.runtime.api import Model
+
     root = tmp_path / "takes"
     loop = [str(root), "--camera", "sim", "--count", "6", "--loop", "1", "-q"]
-    assert capture_main(loop) == 0  # as if stopped between the capture and its run
-    assert not (root / "001-normals").exists()
-    assert capture_main([*loop, "--run", "--method", "l2"]) == 0
+    run = [*loop, "--run", "--method", "l2"]
+
+    def stopped(*_a: object, **_k: object) -> None:
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(Model, "__call__", stopped)  # Ctrl-C during the take's run
+        assert capture_main(run) == 130
+    assert (root / "001").is_dir() and not (root / "001-normals").exists()
+    assert capture_main(run) == 0
     assert (root / "001-normals" / "normals.npy").is_file()
     assert not (root / "002").exists()
     # with its result the take is done: the next loop takes 002
-    assert capture_main([*loop, "--run", "--method", "l2"]) == 0
+    assert capture_main(run) == 0
     assert (root / "002-normals" / "normals.npy").is_file()
+    # a take without --run, then a --run loop: a new take, 003 is not re-run
+    assert capture_main(loop) == 0
+    assert capture_main(run) == 0
+    assert (root / "004-normals").is_dir() and not (root / "003-normals").exists()
+    assert not list(root.glob(".*run-pending"))
 
 
 @pytest.mark.parametrize("frame", ["003.png", "ambient.png"])

@@ -406,6 +406,7 @@ EMPTY_PATHS = {
     "msf-synth": [[""]],
     "msf-calib": [["directions", "", "-o", "l.txt"]],
     "msf-export": [[""], ["model.pth", "-o", ""]],
+    "msf-train": [["--init", "", "-o", "run"], ["--data", "", "-o", "run"]],
 }
 
 

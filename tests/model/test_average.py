@@ -166,6 +166,14 @@ def test_overwrite_never_replaces_a_file_that_is_no_checkpoint(
     notes.write_text("measurements\n")
     _refused([str(a), str(b), "-o", str(notes), "--overwrite"], "replaces only an earlier", capfd)
     assert notes.read_text() == "measurements\n"
+    import zipfile
+
+    doc = tmp_path / "thesis.docx"  # a zip, as torch.save's files are
+    with zipfile.ZipFile(doc, "w") as z:
+        z.writestr("word/document.xml", "chapter 1")
+    before = doc.read_bytes()
+    _refused([str(a), str(b), "-o", str(doc), "--overwrite"], "replaces only an earlier", capfd)
+    assert doc.read_bytes() == before
     empty = tmp_path / "empty.pth"
     empty.touch()  # nothing to lose
     assert main([str(a), str(b), "-o", str(empty), "--overwrite", "-q"]) == 0

@@ -3,6 +3,7 @@ may contain or replace. The defect step itself is tested in tests/runtime/result
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -54,6 +55,17 @@ def test_stack_flags_on_a_run_folder_are_refused_not_ignored(tmp_path: Path, cap
         assert _code([str(run), "--depth", "0.005", "-o", str(out), *extra]) == 2
         line = _one_line(capsys)
         assert f"{extra[0]} applies only when INPUT is a stack" in line and "(px)" in line
+    # given at its default it is ignored just the same: refused too
+    assert _code([str(run), "--depth", "0.005", "-o", str(out), "--local-size", "12"]) == 2
+    assert "--local-size applies only" in _one_line(capsys)
+    # how a stack would be run, not what the maps mean: accepted (a wrapper always caps them)
+    for extra in (["--threads", "1"], ["--max-memory", "2000"], ["--engine", "onnxruntime"]):
+        argv = [str(run), "--depth", "0.005", "-o", str(out), *extra, "-q", "--overwrite"]
+        assert _code(argv) in (0, 1), capsys.readouterr().err
+        capsys.readouterr()
+    import shutil
+
+    shutil.rmtree(out)
     for extra in (["--no-tiff"], ["--maps", "height"], ["--no-report"]):
         assert _code([str(run), "--depth", "0.005", "-o", str(out), *extra]) == 2
         assert "msf-inspect writes only its verdict" in _one_line(capsys)
@@ -142,3 +154,19 @@ def test_the_verdict_says_where_and_what_made_the_maps(tmp_path: Path, capsys) -
     assert region["image_peak"] == [region["peak"][0] + 8, region["peak"][1] + 4]
     prov = verdict["provenance"]
     assert prov["input"] == str(stack) and prov["model"] is None and prov["version"]
+
+
+def test_auto_mask_is_a_load_option_msf_inspect_keeps(tmp_path: Path, capsys) -> None:
+    """--auto-mask was refused as an output choice: without it a stack with no mask file is
+    inspected background and all."""
+    import numpy as np
+
+    from msfnet.runtime.stack import load_stack
+
+    stack = png_stack(tmp_path / "part", 16, h=40, w=48)
+    (stack / "mask.png").unlink()
+    out = tmp_path / "v"
+    argv = [str(stack), "--method", "l2", "--auto-mask", "--depth", "50", "-o", str(out)]
+    assert inspect_main([*argv, "-q"]) == 0
+    inspected = json.loads((out / "verdict.json").read_text())["pixels_inspected"]
+    assert 0 < inspected < 40 * 48 == int(np.prod(load_stack(stack).shape))

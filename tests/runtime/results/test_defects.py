@@ -375,3 +375,57 @@ def test_the_peak_is_the_deepest_point_and_is_placed_in_the_camera_image() -> No
     x, y, w, h = region.bbox
     assert region.image_bbox == (100 + 2 * x, 50 + 2 * y, 2 * w, 2 * h)
     assert verdict.as_dict()["frame"] == {"origin_xy": [100, 50], "downscale": 2}
+
+
+def test_a_plain_part_is_compared_in_place_not_at_a_peak_of_noise() -> None:
+    """Without features (uniform albedo, no relief) the best correlation was noise: a golden
+    taken 13 px off hid a 0.34 px dent outside the compared area, and others were refused as
+    "more than 32 px off"."""
+
+    def plain(seed: int) -> InspectionInput:
+        r = np.random.default_rng(seed)
+        return _part(
+            (0.002 * r.normal(size=(96, 128))).astype(np.float32),
+            albedo=(0.7 + 0.002 * r.normal(size=(96, 128, 3))).astype(np.float32),
+        )
+
+    part = plain(1)
+    yy, xx = np.mgrid[:96, :128]
+    part.local_shape = part.local_shape - 0.4 * np.exp(-((xx - 64) ** 2 + (yy - 88) ** 2) / 8.0)
+    for seed in range(2, 8):
+        verdict, _ = find_defects(part, DefectOptions(depth=0.1), plain(seed))
+        assert verdict.shift == (0.0, 0.0) and verdict.aligned_on.startswith("none")
+        assert len(verdict.regions) == 1 and verdict.regions[0].peak == (64, 88)
+
+
+def test_a_reference_too_far_off_names_the_reference() -> None:
+    part = _part(_bumpy())
+    golden = _part(_bumpy(shift=40.0), source="golden")
+    with pytest.raises(InputError, match="more than 32 px") as err:
+        find_defects(part, DefectOptions(depth=0.01), golden)
+    assert err.value.path == Path("golden")
+
+
+def test_older_run_folders_and_curvature_only_runs_keep_their_frame_and_units(
+    plate, tmp_path: Path
+) -> None:
+    """A run from before maps.json had "frame" read as the whole image (its --roi is in
+    profile.json); a curvature-only run in mm read as px (no local_shape unit written)."""
+    from msfnet.runtime.results.defects import read_run
+
+    run = tmp_path / "run"
+    maps = MapOptions(maps=("albedo", "height", "curvature"))
+    Model.least_squares(maps=maps)(plate.stack).save(run)
+    info = json.loads((run / "maps.json").read_text())
+    del info["frame"]
+    (run / "maps.json").write_text(json.dumps(info))
+    profile = json.loads((run / "profile.json").read_text())
+    profile["input"] = {"roi": [64, 10, 64, 60], "downscale": 2}
+    (run / "profile.json").write_text(json.dumps(profile))
+    assert read_run(run).frame == Frame((64, 10), 2)
+    (run / "profile.json").unlink()
+    assert read_run(run).frame == Frame()  # nothing recorded: the whole image, as then
+    curv = tmp_path / "curv"
+    mm = MapOptions(maps=("curvature",), pixel_size_mm=0.05)
+    Model.least_squares(maps=mm)(plate.stack).save(curv)
+    assert read_run(curv).units == {"depth": "mm", "curvature": "1/mm"}

@@ -821,6 +821,9 @@ class LoopStep:
 _NUMBERED = re.compile(r"^\d{3,}$")
 
 
+RUN_PENDING = ".run-pending"  # beside a loop's takes: ".NNN.run-pending"
+
+
 def next_take(root: Path, has_result: Callable[[Path], bool] | None = None) -> Path:
     """``root/001``, ``root/002``, ...: an unfinished last take is resumed (and, given
     ``has_result``, a finished one without its result: its run was interrupted), otherwise
@@ -862,12 +865,23 @@ def capture_loop(
     def result_of(take: Path) -> Path:
         return (out_root / take.name) if out_root is not None else root / f"{take.name}-normals"
 
+    def pending(take: Path) -> Path:
+        # marks a take whose run was asked for and has not finished: only such a take is run
+        # again (a take captured without a model is not owed a result)
+        return root / f".{take.name}{RUN_PENDING}"
+
+    def owed(take: Path) -> bool:
+        return pending(take).exists() and not result_of(take).exists()
+
     done = 0
     while iterations is None or done < iterations:
         if done and interval > 0:
             time.sleep(interval)
         # with a model, a take whose run was stopped is run again (results are written whole)
-        folder = next_take(root, (lambda t: result_of(t).exists()) if model is not None else None)
+        folder = next_take(root, (lambda t: not owed(t)) if model is not None else None)
+        if model is not None:
+            root.mkdir(parents=True, exist_ok=True)
+            pending(folder).touch()
         stack = capture_stack(camera, lights, folder, **capture)
         step = LoopStep(int(folder.name), stack)
         if model is not None:
@@ -875,6 +889,7 @@ def capture_loop(
             step.result = model(stack, load)
             step.result.save(out, inputs=tuple(load.inputs()) if load else ())
             step.output = out
+            pending(folder).unlink(missing_ok=True)
         done += 1
         yield step
 

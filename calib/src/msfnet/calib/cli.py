@@ -341,6 +341,7 @@ def cmd_intensities(args: argparse.Namespace) -> int:
         names=[p.name for p in paths],
         source=folder,
         accept_poor_fit=args.accept_poor_fit,
+        plane=args.target == "plane",
     )
     _check_result(ints, "light intensities", unit=False)
     for w in warnings:

@@ -67,6 +67,7 @@ def estimate_intensities(
     names: list[str] | None = None,
     source: str | Path | None = None,
     accept_poor_fit: bool = False,
+    plane: bool = False,
 ) -> tuple[np.ndarray, list[str]]:
     """(N, 3) relative RGB intensities, mean 1, plus warnings. ``source``: the images'
     folder, named by every error (with the image's name). ``accept_poor_fit``: a fit residual
@@ -134,6 +135,18 @@ def estimate_intensities(
             f"zero or negative intensity for {len(bad)} light(s): {which} ({why})", source
         )
     residual = np.sqrt(misfit / max(total, 1e-300))
+    if plane:
+        # a plane's shading is one value per light: the residual sees only brightness varying
+        # across the image alike under every light (lens vignetting: 21 % at a 38 deg
+        # half-diagonal, rendered), which cancels in the ratios, or a target that is no
+        # plane; never a wrong light. So a warning, never a refusal.
+        if residual > FIT_WARN:
+            warnings.append(
+                f"{source or 'the images'}: the plane's brightness varies across the image "
+                f"more than matte shading explains (fit residual {residual:.0%}): fine if it "
+                "is vignetting (the same under every light); check the target is a plane"
+            )
+        return out / out.mean(), warnings
     if residual > FIT_REFUSE and not accept_poor_fit:
         raise InputError(
             f"the target does not fit matte shading under these light directions (fit "

@@ -52,6 +52,12 @@ def path_arg(text: str) -> Path:
     return Path(text)
 
 
+def path_text(text: str) -> str:
+    """:func:`path_arg` for options kept as text (a config's fields): "" refused."""
+    path_arg(text)
+    return text
+
+
 def positive_int(text: str) -> int:
     value = int(_number(text, int))
     if value < 1:

@@ -110,17 +110,24 @@ def _check_inputs(paths: Sequence[Path]) -> None:
 def _run(args: argparse.Namespace) -> int:
     _check_inputs(args.checkpoints)
     check_output(args.output, args.checkpoints, overwrite=args.overwrite)
-    from msfnet.model.checkpoint import network_for, not_a_checkpoint, save_checkpoint
+    from msfnet.model.checkpoint import (
+        CheckpointError,
+        network_for,
+        read_state_dict,
+        save_checkpoint,
+    )
 
-    if args.output.is_file():  # --overwrite: an earlier checkpoint, never e.g. notes.txt
-        with args.output.open("rb") as f:
-            head = f.read(1 << 20)
-        problem = not_a_checkpoint(head)
-        if head and problem:  # an empty file holds nothing to lose
+    if args.output.is_file() and args.output.stat().st_size:  # empty: nothing to lose
+        # --overwrite replaces an earlier checkpoint only: read it as one (weights only, never
+        # unpickling), since a .docx or a .pkl also starts as a zip or a pickle
+        try:
+            read_state_dict(args.output)
+        except CheckpointError as exc:
             raise InputError(
-                f"{problem}; --overwrite replaces only an earlier checkpoint: choose another path",
+                f"{exc.message}; --overwrite replaces only an earlier checkpoint: choose "
+                "another path",
                 args.output,
-            )
+            ) from exc
 
     state = average_state_dicts(args.checkpoints)
     model = network_for(state)

@@ -12,6 +12,7 @@ from msfnet.common.cli import (
     int_range,
     nonnegative_float,
     nonnegative_int,
+    path_text,
     positive_float,
     positive_int,
     thread_count,
@@ -135,7 +136,9 @@ class TrainConfig:
         metavar="W",
     )
     data: str = flag(
-        "synth", "'synth' (built-in renderer, default) or a Blobby/Sculpture root folder"
+        "synth",
+        "'synth' (built-in renderer, default) or a Blobby/Sculpture root folder",
+        type=path_text,
     )
     # start from these weights (fresh optimiser), e.g. the bundled model
     init: str | None = flag(
@@ -143,6 +146,7 @@ class TrainConfig:
         "start from these weights with a fresh optimiser (e.g. the bundled msfnet_default.pth), "
         "instead of random initialisation",
         metavar="CKPT",
+        type=path_text,
     )
     render_size: int = flag(
         64,

@@ -64,6 +64,7 @@ from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, H
 from msfnet.runtime.infer.tta import TTAEstimator
 from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions, map_options
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
+from msfnet.runtime.results.maps.registered import Frame
 from msfnet.runtime.results.profile import BatchStats, Profile, StageTimer
 from msfnet.runtime.sources import (
     BatchItem,
@@ -639,7 +640,7 @@ class Model:
             spare = budget.max_memory_mb - decoded.stack.images.nbytes / 2**20
             # a floor above the runtime's own base (tiling.BASE_MEMORY_MB), never below it
             budget = replace(budget, max_memory_mb=max(spare, BASE_MEMORY_MB + 256.0))
-        result = self._run(decoded.stack, None, 1, False, budget)
+        result = self._run(decoded.stack, None, 1, False, budget, placed=load)
         record_decode(result, decoded, load)
         return result
 
@@ -650,7 +651,10 @@ class Model:
         repeat: int,
         progress: bool,
         tiling: TilingOptions | None = None,
+        placed: LoadOptions | None = None,
     ) -> Result:
+        """``placed``: how an already decoded ``stack`` was cut (ROI, downscale), for the maps'
+        frame when ``load`` is None."""
         tiling = self.tiling if tiling is None else tiling
         if repeat < 1:
             raise InputError(f"--repeat must be at least 1, got {repeat}")
@@ -691,7 +695,10 @@ class Model:
                 if self.maps is not None:
                     with timer("maps"):
                         maps = stack_maps(
-                            loaded, normals, self.maps, max_memory_mb=tiling.max_memory_mb
+                            loaded,
+                            normals,
+                            _placed(self.maps, load or placed),
+                            max_memory_mb=tiling.max_memory_mb,
                         )
                         if maps.warning:  # a map that did not fit in --max-memory
                             loaded.warnings.append(maps.warning)
@@ -802,6 +809,19 @@ def _open_network(path: Path | None, opts: ModelOptions) -> NetworkEstimator:
     asked = bool(opts.engine or opts.precision or opts.device)
     opened, reason = open_chosen(choice, opts.threads, requested=asked)
     return NetworkEstimator(opened, prefix + reason)
+
+
+def _placed(maps: MapOptions, load: LoadOptions | None) -> MapOptions:
+    """``maps`` with the frame the loading gave (ROI corner, downscale), unless the caller set
+    one: maps.json and the TIFF tags then place the maps as msf-run's do. ``pixel_size_mm``
+    stays a map pixel (the API's meaning); the stored image's is derived again."""
+    if load is None or not maps.frame.is_identity:
+        return maps
+    roi, k = load.roi, int(load.downscale or 1)
+    if roi is None and k == 1:
+        return maps
+    frame = Frame((int(roi[0]), int(roi[1])) if roi is not None else (0, 0), k)
+    return replace(maps, frame=frame, image_pixel_size_mm=None)
 
 
 __all__ = [

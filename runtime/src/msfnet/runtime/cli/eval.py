@@ -239,7 +239,9 @@ def evaluate(
     with staged_folder(outdir, overwrite=overwrite) as tmp:
         for k, obj in enumerate(objects, 1):
             # --select / --lights override the benchmark's selection and shared light file
-            opts = replace(load, select=load.select or obj.select, lights=load.lights or obj.lights)
+            # "is not None": --select '' is a typo the parser refuses, not "the benchmark's own"
+            select = load.select if load.select is not None else obj.select
+            opts = replace(load, select=select, lights=load.lights or obj.lights)
             started = time.perf_counter()
             stack = load_stack(obj.folder, opts)
             (tmp / obj.folder.name).mkdir()

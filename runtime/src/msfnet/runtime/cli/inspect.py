@@ -112,28 +112,44 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # msf-run flags about what it writes: nothing here writes them, so they are refused
-WRITING_FLAGS = ("no_maps", "maps", "no_tiff", "no_report", "auto_mask")
+WRITING_FLAGS = ("no_maps", "maps", "no_tiff", "no_report")
+# how a stack would be run, not what its maps mean: harmless beside a run folder (a PLC
+# wrapper that always caps threads and memory must keep working)
+RESOURCE_FLAGS = (
+    "threads",
+    "max_memory",
+    "max_memory_mb",
+    "engine",
+    "precision",
+    "provider",
+    "tile",
+    "device",
+)
 
 
 def _is_run(path: Path) -> bool:
     return path.is_dir() and (path / "maps.json").is_file()
 
 
-def _stack_flags(args: argparse.Namespace, parser: argparse.ArgumentParser) -> list[str]:
-    """The msf-run flags given (not at their defaults): they shape how a stack is run."""
-    given = []
+def _stack_flags(argv: list[str] | None) -> list[str]:
+    """The msf-run flags on the command line that change what a stack's maps mean (given at
+    all, defaults included: "--local-size 12" on a 30 px run would be ignored just the same)."""
+    parser = build_parser()
     for action in parser._actions:
-        if not action.option_strings or action.dest in ("help", "version"):
+        action.default = argparse.SUPPRESS  # parsed again: only what was typed remains
+        action.required = False
+    given = vars(parser.parse_known_args(argv)[0])
+    names = []
+    for action in parser._actions:
+        dest = action.dest
+        if not action.option_strings or dest not in given:
             continue
-        if action.dest in WRITING_FLAGS or action.dest in _OWN:
+        if dest in ("help", "version") or dest in _OWN or dest in RESOURCE_FLAGS:
             continue
-        if getattr(args, action.dest, None) != action.default:
-            given.append(
-                action.option_strings[-1]
-                if len(action.option_strings) > 1
-                else action.option_strings[0]
-            )
-    return given
+        if dest in WRITING_FLAGS:
+            continue
+        names.append(max(action.option_strings, key=len))
+    return names
 
 
 def _check_input_kind(path: Path) -> None:
@@ -176,7 +192,7 @@ def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
     return part
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     options = DefectOptions(
         depth=args.depth,
         curvature=args.curvature,
@@ -196,7 +212,7 @@ def _run(args: argparse.Namespace) -> int:
             f"{', '.join(writing)}: msf-run's output choices; msf-inspect writes only its "
             "verdict and overlay"
         )
-    given = _stack_flags(args, build_parser())
+    given = _stack_flags(argv)
     runs = [p for p in (args.input, args.reference) if p is not None and _is_run(p)]
     if given and len(runs) == (1 if args.reference is None else 2):
         # a run folder's maps are used as written: --pixel-size 0.05 --depth 0.005 on a px
@@ -257,7 +273,7 @@ def _summary(verdict: Verdict, output: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), _run, argv)
+    return command_main(PROG, build_parser(), lambda args: _run(args, argv), argv)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,10 @@ from msfnet.runtime.results.maps.registered import Frame, read_tiff
 
 POLARITIES = ("both", "down", "up")
 MAX_SHIFT_PX = 32  # a reference further off than this is not "the same fixture"
+# The phase correlation's peak below which two maps share no feature to align on. Measured on
+# rendered plates (each map less its mean): plain parts' albedo and local shape, noise only,
+# -0.02..0.14; a printed albedo 0.99; a designed relief ring 0.88.
+MIN_ALIGN_RESPONSE = 0.3
 
 
 @dataclass(frozen=True)
@@ -213,9 +217,11 @@ def read_run(folder: Path) -> InspectionInput:
             else "run msf-run with the height or curvature map and TIFF output"
         )
         raise InputError(f"no local_shape.tif or curvature.tif: {why}", folder)
+    # a map not written has no unit entry (a curvature-only run): it follows the pixel size
+    mm = reg.get("pixel_size_mm") is not None
     units = {
-        "depth": str(reg.get("local_shape", "px")),
-        "curvature": str(reg.get("curvature", "1/px")),
+        "depth": str(reg.get("local_shape", "mm" if mm else "px")),
+        "curvature": str(reg.get("curvature", "1/mm" if mm else "1/px")),
     }
     if units["depth"] not in DEPTH_UNITS or units["curvature"] not in CURVATURE_UNITS:
         raise InputError(
@@ -236,7 +242,9 @@ def read_run(folder: Path) -> InspectionInput:
         pixel_size_mm=size,
         source=str(folder),
         local_size_px=local_size,
-        frame=_frame(info.get("frame"), info_path),
+        frame=_frame(info.get("frame"), info_path)
+        if "frame" in info
+        else _frame_of_older_run(folder),
         perspective=perspective,
     )
 
@@ -253,6 +261,17 @@ def _positive(value: object, name: str, where: Path) -> float | None:
     ):
         raise InputError(f"{name} must be a positive number, got {value!r}", where)
     return float(value)
+
+
+def _frame_of_older_run(folder: Path) -> Frame:
+    """A run written before maps.json had "frame": its ROI and downscale from profile.json's
+    load options (identity when it has none, as such runs then had)."""
+    try:
+        load = json.loads((folder / "profile.json").read_text(encoding="utf-8"))["input"]
+        roi, k = load.get("roi"), load.get("downscale") or 1
+        return Frame((int(roi[0]), int(roi[1])) if roi else (0, 0), int(k))
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError, InputError):
+        return Frame()
 
 
 def _frame(value: object, where: Path) -> Frame:
@@ -392,8 +411,12 @@ def _reference_pair(part: InspectionInput, reference: InspectionInput) -> _Align
         ((name, *_align(moving, fixed)) for name, moving, fixed in candidates),
         key=lambda c: c[3],
     )
-    name, dx, dy, _ = best
-    _check_shift(dx, dy)
+    name, dx, dy, response = best
+    if response < MIN_ALIGN_RESPONSE:
+        # nothing to align on (a plain part): the fixture's place, not a peak of noise (one
+        # put a 0.34 px dent 13 px outside the compared area and passed the part)
+        name, dx, dy = "none (no features: taken as in place)", 0.0, 0.0
+    _check_shift(dx, dy, reference.source)
 
     def moved(values: np.ndarray | None) -> np.ndarray | None:
         return None if values is None else shift_map(values, dx, dy)
@@ -401,11 +424,12 @@ def _reference_pair(part: InspectionInput, reference: InspectionInput) -> _Align
     return _Aligned(moved(reference.local_shape), moved(reference.curvature), (dx, dy), name)
 
 
-def _check_shift(dx: float, dy: float) -> None:
+def _check_shift(dx: float, dy: float, source: str | None = None) -> None:
     if max(abs(dx), abs(dy)) > MAX_SHIFT_PX:
         raise InputError(
             f"the reference is {dx:+.1f}, {dy:+.1f} px off this part (more than "
-            f"{MAX_SHIFT_PX} px): not captured in the same fixture?"
+            f"{MAX_SHIFT_PX} px): not captured in the same fixture?",
+            source,
         )
 
 
