@@ -96,6 +96,11 @@ REFUSED: dict[str, tuple[Callable[[Path, Path], list[str]], list[str]]] = {
         ["same file"],
     ),
     "--diagnostic not an image name": (lambda t, c: ["--diagnostic", str(t / "d.txt")], [".png"]),
+    # ".png" alone is a name without an ending: said so, with an example
+    "--diagnostic only an ending": (
+        lambda t, c: ["--diagnostic", str(t / ".png")],
+        ["needs a file name ending in", "e.g."],
+    ),
     "--diagnostic under a file": (
         lambda t, c: ["--diagnostic", str(Path(_make(t / "f")[0]) / "d.png")],
         ["is a file, not a folder"],
@@ -307,6 +312,8 @@ def _intensity_args(chrome: Path, tmp_path: Path, *extra: str) -> list[str]:
 INTENSITY_REFUSED: dict[str, tuple[list[str], list[str]]] = {
     "plane normal zero": (["--target", "plane", "--normal", "0", "0", "0"], ["--normal"]),
     "plane facing away": (["--target", "plane", "--normal", "0", "0", "-1"], ["face the camera"]),
+    # was ignored without a word (the sphere was fitted, or not found)
+    "normal for a sphere": (["--normal", "0", "0.2", "1"], ["--normal", "--target plane"]),
     "output is the lights file": (["-o", "{lights}", "--overwrite"], ["input"]),
     "output exists": (["-o", "{existing}"], ["--overwrite"]),
 }

@@ -165,7 +165,12 @@ def _diagnostic_paths(args: argparse.Namespace, out: Path, captures: int) -> lis
     if args.diagnostic:
         base = Path(args.diagnostic)
         if base.suffix.lower() not in IMAGE_OUT:
-            raise InputError(f"--diagnostic: the name must end in {', '.join(IMAGE_OUT)}", base)
+            # ".png" alone is a hidden file with no suffix, hence "a name and an ending"
+            raise InputError(
+                f"--diagnostic: needs a file name ending in {', '.join(IMAGE_OUT)} "
+                "(e.g. chrome_diagnostic.png)",
+                base,
+            )
         if captures == 1:
             return [base]
         return [
@@ -306,7 +311,9 @@ def cmd_intensities(args: argparse.Namespace) -> int:
     folder = Path(args.images_dir)
     lights_path = Path(args.lights)
     _check_outputs([out], [folder, lights_path, args.mask, args.ambient], args.overwrite)
-    normal = np.asarray(args.normal, np.float64)
+    if args.normal is not None and args.target != "plane":
+        raise InputError("--normal is the plane target's: add --target plane, or leave it out")
+    normal = np.asarray(args.normal or (0.0, 0.0, 1.0), np.float64)
     if args.target == "plane" and not (np.linalg.norm(normal) > 0 and normal[2] > 0):
         raise InputError(
             f"--normal {' '.join(f'{v:g}' for v in normal)}: the plane normal must "
@@ -448,9 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--normal",
         type=finite_float,
         nargs=3,
-        default=(0.0, 0.0, 1.0),
+        default=None,
         metavar=("X", "Y", "Z"),
-        help="plane normal (default 0 0 1, facing camera)",
+        help="plane normal, with --target plane (default 0 0 1, facing the camera)",
     )
     i.add_argument(
         "--accept-poor-fit",
