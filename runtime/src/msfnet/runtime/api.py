@@ -817,10 +817,9 @@ def _placed(maps: MapOptions, load: LoadOptions | None) -> MapOptions:
     stays a map pixel (the API's meaning); the stored image's is derived again."""
     if load is None or not maps.frame.is_identity:
         return maps
-    roi, k = load.roi, int(load.downscale or 1)
-    if roi is None and k == 1:
+    frame = Frame.of_cut(load.roi, load.downscale)
+    if frame.is_identity:
         return maps
-    frame = Frame((int(roi[0]), int(roi[1])) if roi is not None else (0, 0), k)
     return replace(maps, frame=frame, image_pixel_size_mm=None)
 
 

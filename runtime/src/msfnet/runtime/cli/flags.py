@@ -178,8 +178,8 @@ def map_options(args: argparse.Namespace) -> MapOptions | None:
         )
     # the maps are the --roi's, downscaled: where they sit in the stored images (maps.json)
     roi = getattr(args, "roi", None)
-    k = int(getattr(args, "downscale", None) or 1)
-    frame = Frame((roi[0], roi[1]) if roi else (0, 0), k)
+    frame = Frame.of_cut(roi, getattr(args, "downscale", None))
+    k = frame.downscale
     maps = MapOptions(
         maps=args.maps or MAP_NAMES,
         method=args.integration,

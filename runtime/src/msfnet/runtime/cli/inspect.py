@@ -167,11 +167,10 @@ def _check_input_kind(path: Path) -> None:
 
 
 def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
-    """A run folder's maps, or a stack run through msf-run's pipeline (in memory)."""
+    """A run folder's maps, or a stack run through msf-run's pipeline (in memory); ``path``
+    exists (:func:`_run` checks both inputs first)."""
     if _is_run(path):
         return read_run(path)
-    if not path.exists():
-        raise InputError("no such file or folder", path)
     from msfnet.runtime.api import Model
     from msfnet.runtime.cli.flags import load_options, model_options
     from msfnet.runtime.results.maps import MapOptions

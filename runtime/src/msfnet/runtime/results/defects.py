@@ -268,8 +268,7 @@ def _frame_of_older_run(folder: Path) -> Frame:
     load options (identity when it has none, as such runs then had)."""
     try:
         load = json.loads((folder / "profile.json").read_text(encoding="utf-8"))["input"]
-        roi, k = load.get("roi"), load.get("downscale") or 1
-        return Frame((int(roi[0]), int(roi[1])) if roi else (0, 0), int(k))
+        return Frame.of_cut(load.get("roi"), load.get("downscale"))
     except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError, InputError):
         return Frame()
 
@@ -494,10 +493,7 @@ def find_defects(
     regions: list[Region] = []
     seeded = np.unique(labels[high])
     # the peak: the deepest point, or with curvature alone the most bent one
-    score = np.abs(signed) if options.depth is not None or signed_curv is None else None
-    if score is None:
-        assert signed_curv is not None
-        score = np.abs(signed_curv)
+    score = np.abs(signed if options.depth is not None or signed_curv is None else signed_curv)
     frame = part.frame
     for lab in seeded[seeded > 0]:
         area = int(stats[lab, cv2.CC_STAT_AREA])

@@ -243,9 +243,8 @@ class Stack:
         # value a full scale (see float_full_scale). A clipped stack after --downscale or
         # --srgb is one; a flat part under a ring light (one value in every image, 0.4 say) is
         # not, and its normals are well determined.
-        if kind in "ui":
-            full: float | None = float(np.iinfo(self.images.dtype).max)
-        else:
+        full = full_scale(self.images.dtype)
+        if full is None:
             full = float_full_scale(float(peak.max()))
         if full is not None and (low >= full).all():
             raise InputError(

@@ -44,6 +44,14 @@ def default_saturation(images: np.ndarray) -> float:
     return np.inf if full is None else full
 
 
+def display_level(albedo: np.ndarray, mask: np.ndarray, percentile: float) -> float:
+    """The ``percentile`` of the brightest channel over the mask's known albedos (NaN: no
+    observation kept), the level a picture puts at full scale; 0 when none is known."""
+    vals = albedo[mask].max(axis=1) if mask.any() else np.zeros(0)
+    vals = vals[np.isfinite(vals)]
+    return float(np.percentile(vals, percentile)) if vals.size else 0.0
+
+
 def albedo_map(
     images: np.ndarray,
     lights: np.ndarray,
@@ -125,4 +133,5 @@ __all__ = [
     "albedo_map",
     "checked_albedo",
     "default_saturation",
+    "display_level",
 ]

@@ -18,7 +18,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import write_atomic
-from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, checked_albedo
+from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, checked_albedo, display_level
 from msfnet.runtime.results.maps.budget import MapsBudget
 from msfnet.runtime.results.maps.curvature import DEFAULT_SIGMA, curvature_maps
 from msfnet.runtime.results.maps.integrate import (
@@ -419,9 +419,7 @@ def albedo_png(
     values are in albedo.npy). Scaled to the one brightest pixel, a specular speck, the rest
     of harvest sat at ~10 % of full scale: black in a viewer. Zeros outside the mask and
     where the albedo is unknown (NaN: no observation kept), so black there."""
-    known = albedo[mask].max(axis=1) if mask.any() else np.zeros(0)
-    known = known[np.isfinite(known)]  # a channel with no observation is NaN
-    top = float(np.percentile(known, percentile)) if known.size else 0.0
+    top = display_level(albedo, mask, percentile)
     scale = 65535.0 / top if top > 0 else 0.0
     img = np.clip(np.rint(np.nan_to_num(albedo) * scale), 0, 65535).astype(np.uint16)
     img[~mask] = 0

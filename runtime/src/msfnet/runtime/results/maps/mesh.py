@@ -20,6 +20,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import write_atomic
+from msfnet.runtime.results.maps.albedo import display_level
 from msfnet.runtime.results.maps.integrate import Intrinsics
 
 
@@ -38,9 +39,7 @@ def albedo_colors(albedo: np.ndarray, valid: np.ndarray, percentile: float = 99.
     """(H, W, 3) albedo -> (H, W, 3) uint8, scaled so the ``percentile`` of the valid pixels'
     largest channel maps to 255 (the absolute scale is in albedo.npy, not in the colours);
     black where the albedo is unknown (NaN)."""
-    vals = albedo[valid].max(axis=1) if valid.any() else np.zeros(0)
-    vals = vals[np.isfinite(vals)]  # NaN: no observation kept there (coloured black)
-    top = float(np.percentile(vals, percentile)) if vals.size else 0.0
+    top = display_level(albedo, valid, percentile)
     scale = 255.0 / top if top > 0 else 0.0
     return np.clip(np.rint(np.nan_to_num(albedo) * scale), 0, 255).astype(np.uint8)
 

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from msfnet.runtime.results.maps.albedo import display_level
 from msfnet.runtime.results.maps.curvature import symmetric_range
 
 if TYPE_CHECKING:
@@ -614,9 +615,7 @@ def albedo_picture(albedo: np.ndarray, mask: np.ndarray, percentile: float = 99.
     white (relative: the absolute values are in albedo.npy)."""
     if not mask.any():
         return _empty("albedo")
-    vals = albedo[mask].max(axis=1)
-    vals = vals[np.isfinite(vals)]  # NaN: no observation kept there (shown black)
-    top = float(np.percentile(vals, percentile)) if vals.size else 0.0
+    top = display_level(albedo, mask, percentile)
     rs, cs = crop_box(mask)
     scaled = np.nan_to_num(albedo[rs, cs].astype(np.float32)) / np.float32(top if top > 0 else 1.0)
     rgb = _u8(np.clip(scaled, 0, 1) ** np.float32(1 / 2.2))

@@ -28,6 +28,7 @@ Conventions (documented in maps.json too):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -77,6 +78,13 @@ class Frame:
             raise InputError(f"frame downscale {self.downscale}: must be an integer >= 1")
         object.__setattr__(self, "origin_xy", (x0, y0))
         object.__setattr__(self, "downscale", int(self.downscale))
+
+    @classmethod
+    def of_cut(cls, roi: Sequence[int] | None, downscale: int | None) -> Frame:
+        """The frame of maps loaded with ``roi`` (x, y, w, h; None: the whole image) and
+        ``downscale`` (None or 1: none), as --roi / --downscale / LoadOptions give them."""
+        origin = (int(roi[0]), int(roi[1])) if roi else (0, 0)
+        return cls(origin, int(downscale or 1))
 
     def as_dict(self) -> dict[str, object]:
         """maps.json's "frame": {"origin_xy": [x0, y0], "downscale": K}."""
