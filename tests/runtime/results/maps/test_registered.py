@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from _runtime_helpers import sphere_stack
 
-from msfnet.runtime.results.maps import MapOptions, stack_maps, write_maps
+from msfnet.runtime.results.maps import MapOptions, registered, stack_maps, write_maps
 from msfnet.runtime.results.maps.registered import (
     gradients,
     grey16_view,
     local_shape,
+    local_trend,
     read_tiff,
     signed_view,
     write_tiff,
@@ -66,6 +67,63 @@ def test_local_shape_ignores_tilt_and_bow_and_keeps_a_dent() -> None:
     assert np.nanmax(np.abs(local[away])) < 0.01  # px: tilt and bow gone, edges included
     assert local[40, 30] == pytest.approx(-0.5, abs=0.08)
     assert np.isnan(local[~valid]).all()
+
+
+def _weighted_quadric_at_each_pixel(z: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
+    """The trend by definition: a weighted least-squares quadric per pixel, untruncated."""
+    rows, cols = np.nonzero(valid)
+    out = np.full(z.shape, np.nan)
+    for r, c in zip(rows, cols, strict=True):
+        u, v = (cols - c) / sigma, (rows - r) / sigma
+        root_w = np.exp(-0.25 * (u * u + v * v))
+        basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=1)
+        coef = np.linalg.lstsq(basis * root_w[:, None], z[valid] * root_w, rcond=None)[0]
+        out[r, c] = coef[0]
+    return out
+
+
+@pytest.mark.parametrize("sigma", [1.5, 4.0, 12.0, 200.0])
+def test_local_trend_is_the_weighted_quadric_fit(sigma: float) -> None:
+    # sigma 12 and 200 take the FFT path (kernel radius above TREND_FFT_RADIUS), 1.5 and 4 not
+    h, w = 40, 48
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = 50 + 0.01 * (cols - 20) ** 2 + 0.3 * np.sin(cols / 2.5) + 0.2 * np.cos(rows / 3)
+    valid = np.hypot(rows - 21, cols - 26) < 17
+    valid[20:23, 12:40] = False  # a slot through the part
+    expected = _weighted_quadric_at_each_pixel(z, valid, sigma)
+    got = local_trend(z.astype(np.float32), valid, sigma)
+    assert np.isnan(got[~valid]).all()
+    # the kernel ends at 4 sigma: weights below exp(-8) of the centre's are left out
+    assert np.max(np.abs(got[valid] - expected[valid])) < 2e-3
+
+
+def test_the_fft_and_the_direct_filters_agree(monkeypatch: pytest.MonkeyPatch) -> None:
+    # odd, thin and wide boxes: the FFT's padding must keep the circular wrap out
+    rng = np.random.default_rng(0)
+    for _ in range(12):
+        h, w = (int(n) for n in rng.integers(1, 70, 2))
+        z = (10 * rng.normal(size=(h, w))).astype(np.float32)
+        valid = rng.random((h, w)) > 0.3
+        sigma = float(rng.uniform(0.7, 40))
+        monkeypatch.setattr(registered, "TREND_FFT_RADIUS", 10**9)
+        direct = local_trend(z, valid, sigma)
+        monkeypatch.setattr(registered, "TREND_FFT_RADIUS", -1)
+        by_fft = local_trend(z, valid, sigma)
+        np.testing.assert_allclose(by_fft[valid], direct[valid], rtol=0, atol=1e-4)
+
+
+def test_local_trend_uses_only_the_masks_box() -> None:
+    # the same part anywhere in a larger image gives the same trend
+    rng = np.random.default_rng(3)
+    z = rng.normal(size=(30, 30)).astype(np.float32)
+    valid = rng.random((30, 30)) > 0.2
+    alone = local_trend(z, valid, 6.0)
+    big = np.full((90, 120), 7.0, np.float32)
+    big_valid = np.zeros((90, 120), bool)
+    big[50:80, 20:50], big_valid[50:80, 20:50] = z, valid
+    placed = local_trend(big, big_valid, 6.0)
+    np.testing.assert_allclose(placed[50:80, 20:50][valid], alone[valid], atol=1e-5)
+    assert np.isnan(placed[~big_valid]).all()
 
 
 def test_views_have_the_input_size() -> None:
