@@ -46,6 +46,7 @@ TREND_TRUNCATE = 4.0  # the trend's Gaussian weights end at 4 sigma (as OpenCV's
 # kernels wider than this many px each side are applied by FFT: faster beyond ~6 px sigma on
 # 150-600 px maps (Zen 4, 2026-12-04)
 TREND_FFT_RADIUS = 24
+TREND_CHUNK = 1 << 16  # pixels whose 6 x 6 systems are solved together
 VIEW_PERCENTILE = 99.5  # a view's range: this percentile of |value| (one hot pixel does not set it)
 
 
@@ -251,22 +252,23 @@ def local_trend(
     k = len(powers)
     filters = _Moments(sigma, (int(ok.shape[0]), int(ok.shape[1])), 2 * degree)
     of_mask, of_values = filters.of(m), filters.of(z)
-    a = np.empty((int(ok.sum()), k, k))
-    b = np.empty((int(ok.sum()), k))
-    seen: dict[tuple[int, int], np.ndarray] = {}
-    for i, (ai, bi) in enumerate(powers):
-        b[:, i] = of_values(ai, bi)[ok]
-        for j in range(i, k):
-            key = (ai + powers[j][0], bi + powers[j][1])
-            if key not in seen:
-                seen[key] = of_mask(*key)[ok]
-            a[:, i, j] = a[:, j, i] = seen[key]
-    # a ridge on the non-constant terms: a one-pixel strip has no slope across it
-    ridge = 1e-6 * a[:, 0, 0]
-    for i in range(1, k):
-        a[:, i, i] += ridge
-    coef = np.linalg.solve(a, b[..., None])[..., 0]
-    out[box][ok] = coef[:, 0] + level
+    del m, z
+    # each moment once, at the mask's pixels only (8 B a pixel each); the 6 x 6 systems are
+    # then built and solved a chunk of pixels at a time
+    sums = [(ai + aj, bi + bj) for ai, bi in powers for aj, bj in powers]
+    of_m = {key: of_mask(*key)[ok] for key in dict.fromkeys(sums)}
+    of_z = [of_values(ai, bi)[ok] for ai, bi in powers]
+    trend = np.empty(len(of_z[0]))
+    for start in range(0, len(trend), TREND_CHUNK):
+        part = slice(start, start + TREND_CHUNK)
+        a = np.stack([of_m[key][part] for key in sums], axis=-1).reshape(-1, k, k)
+        b = np.stack([v[part] for v in of_z], axis=-1)
+        # a ridge on the non-constant terms: a one-pixel strip has no slope across it
+        ridge = 1e-6 * a[:, 0, 0]
+        for i in range(1, k):
+            a[:, i, i] += ridge
+        trend[part] = np.linalg.solve(a, b[..., None])[:, 0, 0]
+    out[box][ok] = trend + level
     return out
 
 
