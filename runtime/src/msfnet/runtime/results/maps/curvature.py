@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from msfnet.runtime.results.maps.validate import check_normals
@@ -75,14 +76,18 @@ def smooth_normals(normals: np.ndarray, valid: np.ndarray, sigma: float) -> np.n
     """Gaussian smoothing inside the mask only (normalised convolution), renormalised."""
     if sigma <= 0:
         return normals
-    from scipy import ndimage  # here, not at import: SciPy takes ~0.4 s to import
+    # SciPy's gaussian_filter kernel (cut at 4 sigma, normalised) through OpenCV, which a
+    # fresh process has loaded already (ndimage: 0.06 s more)
+    radius = int(4.0 * sigma + 0.5)
 
-    weight = ndimage.gaussian_filter(valid.astype(np.float64), sigma, mode="constant")
+    def blur(a: np.ndarray) -> np.ndarray:
+        size = (2 * radius + 1, 2 * radius + 1)
+        return cv2.GaussianBlur(a, size, sigma, borderType=cv2.BORDER_CONSTANT)
+
+    weight = blur(valid.astype(np.float64))
     out = np.empty_like(normals)
     for c in range(3):
-        out[..., c] = ndimage.gaussian_filter(
-            np.where(valid, normals[..., c], 0.0), sigma, mode="constant"
-        )
+        out[..., c] = blur(np.where(valid, normals[..., c], 0.0))
     out /= np.maximum(weight, 1e-12)[..., None]
     norm = np.linalg.norm(out, axis=2, keepdims=True)
     return np.where(valid[..., None], out / np.maximum(norm, 1e-12), 0.0)

@@ -55,6 +55,7 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 
 from msfnet.common.camera import Intrinsics
@@ -77,7 +78,14 @@ COARSE_SIZE = 400  # unknowns on the coarsest multigrid level, solved by SuperLU
 RIDGE = 1e-10  # relative diagonal ridge of the normal equations (see _system)
 JACOBI_OMEGA = 2.0 / 3.0  # damping of the Jacobi smoother and of the prolongator smoothing
 CROP_MARGIN = 8  # px of background kept around the object (fc's zero-gradient apron)
-FOUR_NEIGHBOURS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
+
+
+def components(valid: np.ndarray) -> tuple[int, np.ndarray]:
+    """The mask's 4-connected components: their count and an (H, W) label image (0 outside,
+    1..count in raster order of first pixel). OpenCV's, not SciPy's: ndimage costs a fresh
+    process 0.06 s to import."""
+    count, labels = cv2.connectedComponents(valid.astype(np.uint8), connectivity=4)
+    return int(count) - 1, labels
 
 
 @dataclass(frozen=True)
@@ -185,7 +193,6 @@ class _Graph:
 
 def _graph(valid: np.ndarray) -> _Graph:
     import scipy.sparse as sp
-    from scipy import ndimage
 
     index = np.full(valid.shape, -1, np.int64)
     p = int(valid.sum())
@@ -200,7 +207,7 @@ def _graph(valid: np.ndarray) -> _Graph:
         (np.concatenate([-np.ones(e), np.ones(e)]), (rows, np.concatenate([first, second]))),
         shape=(e, p),
     )
-    labels, _ = ndimage.label(valid, structure=FOUR_NEIGHBOURS)
+    _, labels = components(valid)
     _, pins = np.unique(labels[valid], return_index=True)
     return _Graph(index, p, he, ve, inc, pins)
 
@@ -466,9 +473,7 @@ def _anchor(
     z: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics | None, depth_ref: float | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Fix the free constant per 4-connected component; see the module docstring."""
-    from scipy import ndimage
-
-    labels, count = ndimage.label(valid, structure=FOUR_NEIGHBOURS)
+    count, labels = components(valid)
     height = np.full(valid.shape, np.nan)
     depth = None if intrinsics is None else np.full(valid.shape, np.nan)
     for lab in range(1, count + 1):
