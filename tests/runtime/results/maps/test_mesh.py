@@ -74,3 +74,45 @@ def test_mesh_degenerate_masks(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="mask"):
         height_mesh(np.zeros((4, 4)), np.ones((4, 5), bool))
     assert not list(tmp_path.glob(".*")), "no temporary file may be left behind"
+
+
+@pytest.mark.parametrize("attributes", [True, False])
+def test_the_file_is_byte_for_byte_what_plyfile_writes(
+    surfaces, tmp_path: Path, attributes: bool
+) -> None:
+    # write_ply packs the faces itself (plyfile writes lists a face at a time in Python):
+    # the bytes must be plyfile's own
+    from plyfile import PlyElement
+
+    z, mask, n = surfaces["sphere_cap"](h=20, w=23, radius=12.0, cap=9.0)
+    albedo = np.zeros((*mask.shape, 3))
+    albedo[mask] = (0.2, 0.4, 0.8)
+    mesh = height_mesh(
+        z,
+        mask,
+        normals=n if attributes else None,
+        colors=albedo_colors(albedo, mask) if attributes else None,
+    )
+    ours = write_ply(tmp_path / "ours.ply", mesh).read_bytes()
+    fields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    columns = [mesh.vertices]
+    if attributes:
+        assert mesh.normals is not None and mesh.colors is not None
+        fields += [("nx", "f4"), ("ny", "f4"), ("nz", "f4")]
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+        columns += [mesh.normals, mesh.colors]
+    vert = np.empty(len(mesh.vertices), dtype=fields)
+    names = iter(name for name, _ in fields)
+    for block in columns:
+        for i in range(block.shape[1]):
+            vert[next(names)] = block[:, i]
+    face = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
+    face["vertex_indices"] = mesh.faces
+    reference = tmp_path / "plyfile.ply"
+    PlyData(
+        [PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")],
+        text=False,
+        byte_order="<",
+    ).write(str(reference))
+    assert len(mesh.faces) > 100
+    assert ours == reference.read_bytes()

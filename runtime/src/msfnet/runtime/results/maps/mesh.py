@@ -108,12 +108,13 @@ def height_mesh(
 
 
 def write_ply(path: str | Path, mesh: Mesh) -> Path:
-    """Write a binary little-endian PLY through plyfile, atomically (all or nothing)."""
+    """Write a binary little-endian PLY, atomically (all or nothing): the header from plyfile,
+    the data as whole arrays."""
     from plyfile import PlyData, PlyElement
 
-    fields = [("x", "f4"), ("y", "f4"), ("z", "f4")]
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if mesh.normals is not None:
-        fields += [("nx", "f4"), ("ny", "f4"), ("nz", "f4")]
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
     if mesh.colors is not None:
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     vert = np.empty(len(mesh.vertices), dtype=fields)
@@ -125,15 +126,28 @@ def write_ply(path: str | Path, mesh: Mesh) -> Path:
     if mesh.colors is not None:
         for i, name in enumerate(("red", "green", "blue")):
             vert[name] = mesh.colors[:, i]
-    face = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
+    face = np.empty(len(mesh.faces), dtype=[("vertex_indices", "<i4", (3,))])
     face["vertex_indices"] = mesh.faces
-    data = PlyData(
+    # plyfile states the format (the header); the data go out as whole arrays, since plyfile
+    # writes list properties one face at a time in Python (0.15 s for the ball's 31 k faces,
+    # seconds for a megapixel part). Each face is its count (uchar 3) and three int32.
+    header = PlyData(
         [PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")],
         text=False,
         byte_order="<",
-    )
+    ).header
+    packed = np.empty(len(mesh.faces), dtype=[("count", "u1"), ("vertex_indices", "<i4", (3,))])
+    packed["count"] = 3
+    packed["vertex_indices"] = mesh.faces
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii") + b"\n")
+            f.write(vert.tobytes())
+            f.write(packed.tobytes())
+
     path = Path(path)
-    write_atomic(path, lambda tmp: data.write(str(tmp)))
+    write_atomic(path, write)
     return path
 
 
