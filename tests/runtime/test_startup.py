@@ -65,7 +65,8 @@ def test_import_and_model_load_only_what_they_need() -> None:
 def test_an_openvino_run_imports_neither_onnx_runtime_nor_tqdm(tmp_path) -> None:
     """Every run pays its imports (a station runs msf-run per part): ONNX Runtime (~30 ms) is
     imported when it runs the model, tqdm (~17 ms) when a bar is drawn. A whole msf-run on
-    OpenVINO (open, infer, fuse, write; no terminal: no bar) imports neither."""
+    OpenVINO (open, infer, fuse, write; no terminal: no bar) imports neither, nor OpenVINO's
+    telemetry (a network call from a forked child)."""
     pytest.importorskip("openvino")
     from _runtime_helpers import sphere_stack, tiny_msfnet_onnx
 
@@ -77,7 +78,8 @@ def test_an_openvino_run_imports_neither_onnx_runtime_nor_tqdm(tmp_path) -> None
     code = (
         "import sys; from msfnet.runtime.cli.run import main; "
         f"rc = main({args!r} + ['--no-maps', '--no-report']); "
-        "print(rc, sorted(m for m in ('onnxruntime', 'tqdm') if m in sys.modules))"
+        "print(rc, sorted(m for m in ('onnxruntime', 'tqdm', 'openvino_telemetry') "
+        "if m in sys.modules))"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]

@@ -376,3 +376,44 @@ def test_one_engine_shared_by_threads_gives_each_call_its_own_normals() -> None:
         t.join()
     assert not errors, errors
     assert len(diffs) == 16 and max(diffs) == 0.0, max(diffs)
+
+
+_TELEMETRY_CHILD = """
+import sys
+from msfnet.runtime.engines.openvino import import_openvino
+import_openvino()
+print("openvino_telemetry" in sys.modules, "multiprocessing.popen_fork" in sys.modules)
+"""
+
+
+def _import_in_child(**env: str) -> str:
+    done = subprocess.run(
+        [sys.executable, "-c", _TELEMETRY_CHILD],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        # CI=true: OpenVINO's own switch, so a child that does load the telemetry sends nothing
+        env={**os.environ, "CI": "true", **env},
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout.strip().splitlines()[-1]
+
+
+def test_openvino_is_imported_with_its_telemetry_off() -> None:
+    # import openvino sends a usage event from a forked child unless the user opted out:
+    # msfnet hides the telemetry package, so nothing is loaded that could send or fork
+    env = {k: v for k, v in os.environ.items() if k != "MSFNET_TELEMETRY"}
+    done = subprocess.run(
+        [sys.executable, "-c", _TELEMETRY_CHILD],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "False False"
+
+
+def test_msfnet_telemetry_1_leaves_openvinos_own_setting() -> None:
+    pytest.importorskip("openvino_telemetry")
+    assert _import_in_child(MSFNET_TELEMETRY="1").startswith("True")

@@ -257,11 +257,11 @@ def machine_description() -> dict[str, object]:
         "onnxruntime": onnxruntime.__version__,
         "platform": platform.platform(),
     }
-    try:
-        import openvino
+    from msfnet.runtime.engines.openvino import import_openvino
 
-        out["openvino"] = openvino.__version__
-    except ImportError:
+    try:
+        out["openvino"] = import_openvino().__version__
+    except InputError:  # not installed
         out["openvino"] = None
     return out
 

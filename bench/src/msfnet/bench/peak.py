@@ -197,8 +197,9 @@ def ov_matmul_peak(
     repeats: int = 5,
 ) -> dict[str, object]:
     """OpenVINO CPU: fp32 / bf16 (the fp32 graph with the bf16 hint) / int8 (QDQ MatMul)."""
-    import openvino as ov
+    from msfnet.runtime.engines.openvino import import_openvino
 
+    ov = import_openvino()
     check_threads(threads)
 
     core = ov.Core()

@@ -14,8 +14,8 @@ NPU (Intel NPUs, their own f16), chosen through ``--device`` (dispatch.resolve_d
 Start-up: OpenVINO parses the file once (``read_openvino``); the msfnet metadata comes from that
 parse (ONNX metadata_props are the graph's ``rt_info["framework"]``), and the staged sub-models
 are cut from it, so this path starts no ONNX Runtime session. ``import openvino`` itself pulls
-in ``openvino.tools.ovc`` and its telemetry (~0.1 s): the package's ``__init__`` does that for
-every ``openvino.*`` import, so no narrower import avoids it.
+in ``openvino.tools.ovc``: the package's ``__init__`` does that for every ``openvino.*`` import,
+so no narrower import avoids it; its telemetry is kept off (:func:`import_openvino`).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import numpy as np
 
 from msfnet.common.cpu import cache_folder, check_threads
 from msfnet.common.errors import InputError
+from msfnet.common.privacy import telemetry_allowed
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.base import (
     ModelFile,
@@ -122,10 +123,30 @@ INSTALL_HINT = "pip install openvino (part of msfnet's base install)"
 
 
 def import_openvino() -> Any:
+    """``openvino``, imported with its usage telemetry off.
+
+    ``import openvino`` (2026.4, with openvino-telemetry installed, as pip does) sends a usage
+    event to Google Analytics unless the user has opted out: it forks the process to do so,
+    and at exit the process waits for that child up to 3 s (longer where a DNS lookup hangs
+    offline). A station running msf-run per part should make no network calls of its own, so
+    the telemetry package is hidden while OpenVINO is first imported and OpenVINO falls back
+    to its own no-op stub (its ``openvino.tools.ovc`` imports the package under try / except
+    ImportError for exactly that). ``MSFNET_TELEMETRY=1`` leaves it as configured
+    (msfnet.common.privacy); an OpenVINO the program imported itself is left alone."""
+    hide = (
+        "openvino" not in sys.modules
+        and "openvino_telemetry" not in sys.modules
+        and not telemetry_allowed()
+    )
+    if hide:
+        sys.modules["openvino_telemetry"] = None  # type: ignore[assignment]  # import fails
     try:
         import openvino
     except ImportError as exc:
         raise InputError(f"the OpenVINO engine needs the openvino package: {INSTALL_HINT}") from exc
+    finally:
+        if hide and sys.modules.get("openvino_telemetry", False) is None:
+            del sys.modules["openvino_telemetry"]  # a later import of its own works as usual
     return openvino
 
 
