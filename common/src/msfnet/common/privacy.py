@@ -1,19 +1,21 @@
 """No usage reports from the libraries msfnet runs on, unless the user asks for them.
 
-Three of them report usage by default (measured here, 2026-12-04):
+Four of them report usage by default (the first three measured here, 2026-12-04):
 - ONNX Runtime 1.32 (Linux builds since 1.29) opens an event store and a device id under
   ``~/.cache/Microsoft/DeveloperTools/.onnxruntime`` in every process that creates a session,
-  and uploads from it (session and model events, file names and hashes included, per its
-  release notes); ``ORT_DISABLE_TELEMETRY=1`` before it initialises creates nothing.
+  and uploads from it (process, session, model, execution-provider and error events, per the
+  change that added it); ``ORT_DISABLE_TELEMETRY=1`` before it initialises creates nothing.
 - depthai 3 looks up its collector (a DNS query for b.luxonis.com) on ``import depthai``;
   ``DEPTHAI_TELEMETRY=0`` stops it.
 - OpenVINO sends an event on ``import openvino`` (see msfnet.runtime.engines.openvino's
   import_openvino, which has no switch to set and hides the telemetry package instead).
+- Ray (the ``[ray]`` extra, for cluster batches) collects usage stats from a cluster it
+  starts (its docs: opt-out, ``RAY_USAGE_STATS_ENABLED=0``).
 
 An inspection station or a lab machine should not talk to the network on its own, so the
-first msfnet import sets the two switches above for this process and its children, where the
-user has not set them. ``MSFNET_TELEMETRY=1`` leaves all three libraries as they are
-configured. Standard library only: this runs before anything heavy is imported.
+first msfnet import sets the switches above for this process and its children, where the
+user has not set them. ``MSFNET_TELEMETRY=1`` leaves every library as it is configured.
+Standard library only: this runs before anything heavy is imported.
 """
 
 from __future__ import annotations
@@ -23,7 +25,11 @@ import os
 OPT_IN_ENV = "MSFNET_TELEMETRY"  # "1": leave the libraries' telemetry as they configure it
 
 # each library's own switch, read when the library initialises
-LIBRARY_SWITCHES = {"ORT_DISABLE_TELEMETRY": "1", "DEPTHAI_TELEMETRY": "0"}
+LIBRARY_SWITCHES = {
+    "ORT_DISABLE_TELEMETRY": "1",
+    "DEPTHAI_TELEMETRY": "0",
+    "RAY_USAGE_STATS_ENABLED": "0",
+}
 
 
 def telemetry_allowed() -> bool:
