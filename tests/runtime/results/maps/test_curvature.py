@@ -63,3 +63,12 @@ def test_curvature_robust_range_and_edge_cases() -> None:
     bad[2, 2] = np.inf
     with pytest.raises(InputError):
         curvature_maps(bad, one)
+
+
+def test_an_empty_map_gives_empty_maps() -> None:
+    # OpenCV's blur and labelling refuse empty images: the maps of a 0 x N crop are empty
+    from msfnet.runtime.results.maps.integrate import integrate_normals
+
+    normals, mask = np.zeros((0, 5, 3)), np.zeros((0, 5), bool)
+    assert integrate_normals(normals, mask).height.shape == (0, 5)
+    assert curvature_maps(normals, mask).mean.shape == (0, 5)

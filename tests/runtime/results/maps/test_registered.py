@@ -112,6 +112,28 @@ def test_the_fft_and_the_direct_filters_agree(monkeypatch: pytest.MonkeyPatch) -
         np.testing.assert_allclose(by_fft[valid], direct[valid], rtol=0, atol=1e-4)
 
 
+@pytest.mark.parametrize("shape", [(30, 2000), (2000, 30)])
+def test_a_thin_strip_with_a_wide_size_stays_small(shape: tuple[int, int]) -> None:
+    # each axis's kernel ends at the map's extent along it: one radius for both padded the
+    # short axis to the long one (a 30 x 2000 strip at size 2000 took ~0.5 GB)
+    import tracemalloc
+
+    z = np.random.default_rng(0).normal(size=shape).astype(np.float32)
+    tracemalloc.start()
+    try:
+        out = local_trend(z, np.ones(shape, bool), 2000.0)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert np.isfinite(out).all()
+    assert peak < 100 * 2**20  # measured 53 MB (30 x 2000) and 39 MB (2000 x 30)
+
+
+def test_heights_and_mask_of_other_shapes_are_refused() -> None:
+    with pytest.raises(ValueError, match="expected one"):
+        local_trend(np.zeros((4, 5), np.float32), np.ones((5, 4), bool), 2.0)
+
+
 def test_local_trend_uses_only_the_masks_box() -> None:
     # the same part anywhere in a larger image gives the same trend
     rng = np.random.default_rng(3)

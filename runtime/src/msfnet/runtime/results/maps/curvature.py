@@ -81,6 +81,8 @@ def smooth_normals(normals: np.ndarray, valid: np.ndarray, sigma: float) -> np.n
     radius = int(4.0 * sigma + 0.5)
 
     def blur(a: np.ndarray) -> np.ndarray:
+        if a.size == 0:  # OpenCV refuses an empty image
+            return a.copy()
         size = (2 * radius + 1, 2 * radius + 1)
         return cv2.GaussianBlur(a, size, sigma, borderType=cv2.BORDER_CONSTANT)
 

@@ -143,8 +143,8 @@ def write_ply(path: str | Path, mesh: Mesh) -> Path:
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as f:
             f.write(header.encode("ascii") + b"\n")
-            f.write(vert.tobytes())
-            f.write(packed.tobytes())
+            vert.tofile(f)  # the arrays' own bytes, no copy
+            packed.tofile(f)
 
     path = Path(path)
     write_atomic(path, write)

@@ -175,16 +175,20 @@ class _Moments:
 
     def __init__(self, sigma: float, shape: tuple[int, int], max_power: int) -> None:
         h, w = shape
-        # no offset in the map exceeds its extent: the kernel ends there or at 4 sigma
-        self.radius = int(min(math.ceil(TREND_TRUNCATE * sigma), max(h, w) - 1))
-        offsets = np.arange(-self.radius, self.radius + 1, dtype=np.float64)
-        weight = np.exp(-0.5 * (offsets / sigma) ** 2)
+        reach = math.ceil(TREND_TRUNCATE * sigma)
+        # no offset along an axis exceeds the map's extent there: each axis's kernel ends at
+        # that or at 4 sigma (one radius for both padded a 40 x 3000 strip to 3000 x 3000)
+        self.radius = (int(min(reach, h - 1)), int(min(reach, w - 1)))  # rows, columns
         # offsets in units of the window actually seen: the moments stay O(1), so the ridge
-        # below means the same whatever sigma is
-        unit = offsets / min(sigma, max(self.radius, 1) / 2.0)
-        self.kernels = [weight * unit**a for a in range(max_power + 1)]
+        # below means the same whatever sigma is (one unit for both axes)
+        unit = min(sigma, max(*self.radius, 1) / 2.0)
+        self.kernels: list[list[np.ndarray]] = []  # [axis][power], axis 0: rows
+        for r in self.radius:
+            offsets = np.arange(-r, r + 1, dtype=np.float64)
+            weight = np.exp(-0.5 * (offsets / sigma) ** 2)
+            self.kernels.append([weight * (offsets / unit) ** a for a in range(max_power + 1)])
         self.shape = shape
-        self.fft = self.radius > TREND_FFT_RADIUS
+        self.fft = max(self.radius) > TREND_FFT_RADIUS
         if self.fft:
             from scipy import fft
 
@@ -192,23 +196,20 @@ class _Moments:
             # h + radius samples keep the circular wrap out of the rows kept (and w + radius
             # the columns): the kernel spans 2 radius + 1, the output h
             self._padded = (
-                fft.next_fast_len(h + self.radius, real=True),
-                fft.next_fast_len(w + self.radius, real=True),
+                fft.next_fast_len(h + self.radius[0], real=True),
+                fft.next_fast_len(w + self.radius[1], real=True),
             )
-            self._rows = [fft.fft(k, self._padded[0]) for k in self.kernels]
-            self._cols = [fft.rfft(k, self._padded[1]) for k in self.kernels]
+            self._rows = [fft.fft(k, self._padded[0]) for k in self.kernels[0]]
+            self._cols = [fft.rfft(k, self._padded[1]) for k in self.kernels[1]]
 
     def of(self, src: np.ndarray) -> Callable[[int, int], np.ndarray]:
         """A function (a, b) -> the moment of ``src`` with column power a and row power b."""
+        rows, cols = self.kernels
         if not self.fft:
             return lambda a, b: cv2.sepFilter2D(
-                src,
-                cv2.CV_64F,
-                self.kernels[a],
-                self.kernels[b],
-                borderType=cv2.BORDER_CONSTANT,
+                src, cv2.CV_64F, cols[a], rows[b], borderType=cv2.BORDER_CONSTANT
             )
-        fft, padded, r = self._fft, self._padded, self.radius
+        fft, padded, (ry, rx) = self._fft, self._padded, self.radius
         h, w = self.shape
         spectrum = fft.rfft2(src, padded)
 
@@ -216,7 +217,7 @@ class _Moments:
             full = fft.irfft2(spectrum * self._rows[b][:, None] * self._cols[a][None, :], padded)
             # the FFT convolves; a kernel of odd total power changes sign when mirrored
             sign = -1.0 if (a + b) % 2 else 1.0
-            return sign * full[r : r + h, r : r + w]
+            return sign * full[ry : ry + h, rx : rx + w]
 
         return moment
 
@@ -234,6 +235,8 @@ def local_trend(
     The polynomial is written in offsets from the pixel, so its constant term is the trend
     there and every normal equation is a Gaussian-weighted moment of the mask or of the
     masked values: one filter each, on the mask's bounding box only."""
+    if values.shape != valid.shape or values.ndim != 2:
+        raise ValueError(f"heights {values.shape} and mask {valid.shape}: expected one (H, W)")
     h, w = values.shape
     out = np.full((h, w), np.nan, np.float32)
     rows = np.flatnonzero(valid.any(axis=1))
