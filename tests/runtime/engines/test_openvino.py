@@ -417,3 +417,34 @@ def test_openvino_is_imported_with_its_telemetry_off() -> None:
 def test_msfnet_telemetry_1_leaves_openvinos_own_setting() -> None:
     pytest.importorskip("openvino_telemetry")
     assert _import_in_child(MSFNET_TELEMETRY="1").startswith("True")
+
+
+def test_a_telemetry_module_the_program_loaded_is_hidden_then_put_back() -> None:
+    # import msfnet, then openvino_telemetry, then OpenVINO through msfnet: still the stub
+    code = (
+        "import sys\n"
+        "import msfnet, openvino_telemetry\n"
+        "from msfnet.runtime.engines.openvino import import_openvino\n"
+        "import_openvino()\n"
+        "import openvino.tools.ovc.telemetry_utils as u\n"
+        "print(u.tm.__name__, sys.modules['openvino_telemetry'] is openvino_telemetry)"
+    )
+    pytest.importorskip("openvino_telemetry")
+    env = {**os.environ, "CI": "true"}  # should the hiding fail, OpenVINO's own switch is off
+    env.pop("MSFNET_TELEMETRY", None)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["openvino.tools.ovc.telemetry_stub", "True"]
+
+
+def test_the_telemetry_package_imports_normally_afterwards() -> None:
+    pytest.importorskip("openvino_telemetry")
+    code = (
+        "from msfnet.runtime.engines.openvino import import_openvino\n"
+        "import_openvino()\n"
+        "import openvino_telemetry\n"
+        "print(openvino_telemetry.__name__)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["openvino_telemetry"]

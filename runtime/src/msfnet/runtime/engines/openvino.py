@@ -131,13 +131,13 @@ def import_openvino() -> Any:
     offline). A station running msf-run per part should make no network calls of its own, so
     the telemetry package is hidden while OpenVINO is first imported and OpenVINO falls back
     to its own no-op stub (its ``openvino.tools.ovc`` imports the package under try / except
-    ImportError for exactly that). ``MSFNET_TELEMETRY=1`` leaves it as configured
-    (msfnet.common.privacy); an OpenVINO the program imported itself is left alone."""
-    hide = (
-        "openvino" not in sys.modules
-        and "openvino_telemetry" not in sys.modules
-        and not telemetry_allowed()
-    )
+    ImportError for exactly that). The hiding is process-wide for the moment of that import
+    (another thread importing the telemetry package then fails); a telemetry module the program
+    had loaded already is hidden too and put back after. ``MSFNET_TELEMETRY=1`` leaves it as
+    configured (msfnet.common.privacy); an OpenVINO the program imported itself is left
+    alone."""
+    hide = "openvino" not in sys.modules and not telemetry_allowed()
+    had = sys.modules.get("openvino_telemetry")  # the program's own, if it imported it
     if hide:
         sys.modules["openvino_telemetry"] = None  # type: ignore[assignment]  # import fails
     try:
@@ -146,7 +146,10 @@ def import_openvino() -> Any:
         raise InputError(f"the OpenVINO engine needs the openvino package: {INSTALL_HINT}") from exc
     finally:
         if hide and sys.modules.get("openvino_telemetry", False) is None:
-            del sys.modules["openvino_telemetry"]  # a later import of its own works as usual
+            if had is None:
+                del sys.modules["openvino_telemetry"]  # a later import of its own works
+            else:
+                sys.modules["openvino_telemetry"] = had
     return openvino
 
 
