@@ -612,3 +612,19 @@ def test_intensities_fitting_well_pass_and_a_poor_fit_warns(
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"msf-calib: warning: {folder}: "), err
     assert "fits matte shading poorly" in err[0], err
+
+
+def test_a_diagnostic_left_by_an_earlier_run_is_named(chrome: Path, tmp_path: Path, capfd) -> None:
+    out = tmp_path / "l.txt"
+    assert cli.main(["directions", str(chrome), "-o", str(out), "-q"]) == 0
+    old = tmp_path / "l_diagnostic.png"
+    assert old.is_file()
+    capfd.readouterr()
+    args = ["directions", str(chrome), "-o", str(out), "--overwrite", "--no-diagnostic"]
+    assert cli.main(args) == 0
+    err = capfd.readouterr().err
+    assert "warning" in err and "l_diagnostic.png: from an earlier run" in err, err
+    assert old.is_file()  # named, not deleted
+    # a run that rewrites it says nothing
+    assert cli.main(["directions", str(chrome), "-o", str(out), "--overwrite"]) == 0
+    assert "earlier run" not in capfd.readouterr().err

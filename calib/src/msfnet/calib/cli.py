@@ -180,6 +180,17 @@ def _diagnostic_paths(args: argparse.Namespace, out: Path, captures: int) -> lis
     return [out.with_name(f"{out.stem}_diagnostic{s}.png") for s in suffixes]
 
 
+def _stale_diagnostics(out: Path, written: list[Path]) -> list[Path]:
+    """Default-named diagnostics of ``out`` left by an earlier run that this one did not
+    replace (``--overwrite --no-diagnostic``, or one capture where there were two): beside
+    new lights they would describe old ones. Named, not deleted: they may be kept on purpose."""
+    mine = {p.resolve() for p in written}
+    names = [f"{out.stem}_diagnostic.png"]
+    names += [f"{out.stem}_diagnostic_{k}.png" for k in range(1, 100)]
+    found = [out.with_name(n) for n in names if out.with_name(n).is_file()]
+    return [p for p in found if p.resolve() not in mine]
+
+
 def _check_outputs(outputs: list[Path], inputs: list[Path | None], overwrite: bool) -> None:
     """Before any work: every output is new (or --overwrite), none is an input or lies inside
     an input folder, and no two outputs are the same file."""
@@ -296,6 +307,8 @@ def cmd_directions(args: argparse.Namespace) -> int:
             )
         )
     _commit(writers, args.overwrite)
+    for stale in _stale_diagnostics(out, diag_paths):
+        _warn(args, f"{stale}: from an earlier run (this run wrote no image of that name)")
     _say(args, f"{len(res.directions)} light directions -> {out} (x right, y up, z to camera)")
     for i, (d, c) in enumerate(zip(res.directions, res.confidence, strict=True)):
         _say(args, f"  {names[i]:>20s}: {d[0]:+.4f} {d[1]:+.4f} {d[2]:+.4f}  confidence {c:.2f}")
