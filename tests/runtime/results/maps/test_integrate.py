@@ -207,14 +207,7 @@ def test_multigrid_preconditioned_cg_matches_a_direct_solve(rng) -> None:
     assert np.max(np.abs(x - exact)) <= 1e-6 * np.max(np.abs(exact))
 
 
-def test_every_multigrid_level_smooths_without_diverging() -> None:
-    """A damped Jacobi sweep contracts only where omega * rho(D^-1 A) < 2. The Galerkin levels'
-    rho grows with depth (3.3-5.0 on a 2.4 M-pixel part), so one fixed omega of 2/3 made the
-    deep levels amplify errors (2.0-2.3 here; CG then took 34 steps instead of 7): each level
-    has its own omega."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as sla
-
+def _deep_hierarchy(coarse_size: int = 4) -> tuple[object, list]:
     from msfnet.runtime.results.maps import integrate as ig
 
     h = w = 160
@@ -227,9 +220,38 @@ def test_every_multigrid_level_smooths_without_diverging() -> None:
     graph = ig._graph(grad.valid)
     terms = ig._edge_terms(grad, graph, *ig._side_weights(None, grad.valid, 2.0, 1.0))
     mat, _ = ig._system(graph, *terms)
-    mg = ig.Multigrid(mat, graph.index, coarse_size=4)  # deep: 7 levels
-    assert len(mg.levels) >= 6
-    for a, _, step in mg.levels:
+    return ig, ig.Multigrid(mat, graph.index, coarse_size=coarse_size).levels
+
+
+def test_the_radius_estimate_never_drops_below_a_strong_pair(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """rho(S) >= 1 + max |s_ij| (a 2 x 2 principal block): a power iteration that misses a
+    mode held by a few unknowns (a review saw 1.67 for 2.69) must not go below it."""
+    from msfnet.runtime.results.maps import integrate as ig
+
+    monkeypatch.setattr(ig, "RADIUS_STEPS", 1)  # a poor estimate on purpose
+    _, levels = _deep_hierarchy()
+    for a, _, _ in levels:
+        dinv = 1.0 / a.diagonal()
+        coo = a.tocoo()
+        off = coo.row != coo.col
+        root = np.sqrt(dinv)
+        pair = np.max(np.abs(coo.data[off]) * root[coo.row[off]] * root[coo.col[off]])
+        assert ig._jacobi_radius(a, dinv) >= 1.0 + pair - 1e-12
+
+
+def test_every_multigrid_level_smooths_without_diverging() -> None:
+    """A damped Jacobi sweep contracts only where omega * rho(D^-1 A) < 2. The Galerkin levels'
+    rho grows with depth (3.3-5.0 on a 2.4 M-pixel part), so one fixed omega of 2/3 made the
+    deep levels amplify errors (2.0-2.3 here; CG then took 34 steps instead of 7): each level
+    has its own omega."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    _, levels = _deep_hierarchy()  # coarse_size 4: 7 levels
+    assert len(levels) >= 6
+    for a, _, step in levels:
         root = sp.diags(np.sqrt(step))
         top = sla.eigsh(root @ a @ root, k=1, which="LA", return_eigenvectors=False, tol=1e-4)
         assert top[0] < 1.6  # 4/3 aimed at; 2.0-2.1 on levels 4-6 with omega fixed at 2/3

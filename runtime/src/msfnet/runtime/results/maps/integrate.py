@@ -352,14 +352,21 @@ class Multigrid:
 
 
 def _jacobi_radius(a: sp.csr_matrix, dinv: np.ndarray) -> float:
-    """rho(D^-1 A) of a symmetric positive (semi)definite ``a``: the row-sum bound where it
-    is exact enough (2 on the finest level, a weighted Laplacian), else a margin over a short
-    power iteration on D^-1/2 A D^-1/2 (the row-sum bound of a Galerkin level is 5-100x too
-    large: its stencils have many small entries of both signs)."""
+    """rho(D^-1 A) of a symmetric positive (semi)definite ``a``, never much below it (the
+    damping 4 / (3 rho) contracts only while omega x rho < 2). The row-sum bound where it is at
+    most 2 (the finest level, a weighted Laplacian, and some coarse ones: a little over-damped
+    there); else a 10 % margin over a short power iteration on S = D^-1/2 A D^-1/2, but at
+    least 1 + max |s_ij| (a 2 x 2 principal block's top eigenvalue, a true lower bound: the
+    power iteration alone missed a mode held by a few unknowns, 1.67 for 2.69, in a review),
+    and at most the row-sum bound (5-500x too large on Galerkin levels: their stencils hold
+    many small entries of both signs)."""
     bound = float(np.max(abs(a).sum(axis=1).A1 * dinv))
     if bound <= 2.0 + 1e-9:
         return bound
     root = np.sqrt(dinv)
+    coo = a.tocoo()
+    off = coo.row != coo.col
+    pair = float(np.max(np.abs(coo.data[off]) * root[coo.row[off]] * root[coo.col[off]]))
     v = np.random.default_rng(0).standard_normal(a.shape[0])
     estimate = 0.0
     for _ in range(RADIUS_STEPS):
@@ -367,7 +374,9 @@ def _jacobi_radius(a: sp.csr_matrix, dinv: np.ndarray) -> float:
         w = root * (a @ (root * v))
         estimate = _dot(v, w)
         v = w
-    return min(bound, RADIUS_MARGIN * estimate)
+    if not np.isfinite(estimate):
+        return bound
+    return min(bound, max(RADIUS_MARGIN * estimate, 1.0 + pair))
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -405,8 +414,10 @@ def _pcg(
 
 
 def _solve(mat: sp.csr_matrix, b: np.ndarray, x0: np.ndarray, mg: Multigrid) -> np.ndarray:
-    """Solve to CG_RTOL with multigrid-preconditioned CG; should that stall (it has not been
-    seen to), fall back to a sparse LU, slower but direct."""
+    """Solve to CG_RTOL with multigrid-preconditioned CG; should that stall, fall back to a
+    sparse LU, slower but direct (seen on fragmented masks: random ones of 55-62 % density,
+    one-pixel spirals, and in bini's final solve on harvest; the 2 x 2 aggregates ignore
+    whether their pixels are connected)."""
     import scipy.sparse.linalg as sla
 
     x, relres = _pcg(mat, b, x0, mg, CG_RTOL, SOLVE_ITER)
