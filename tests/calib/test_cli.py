@@ -628,3 +628,14 @@ def test_a_diagnostic_left_by_an_earlier_run_is_named(chrome: Path, tmp_path: Pa
     # a run that rewrites it says nothing
     assert cli.main(["directions", str(chrome), "-o", str(out), "--overwrite"]) == 0
     assert "earlier run" not in capfd.readouterr().err
+
+
+def test_stale_diagnostics_are_the_default_names_only_in_capture_order(tmp_path: Path) -> None:
+    out = tmp_path / "l[1].txt"  # glob characters in the name are literal
+    names = ["l[1]_diagnostic.png", "l[1]_diagnostic_10.png", "l[1]_diagnostic_2.png"]
+    names += ["l[1]_diagnostic_0.png", "l[1]_diagnostic_x.png", "l1_diagnostic.png"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"")
+    written = [tmp_path / "l[1]_diagnostic_2.png"]
+    stale = cli._stale_diagnostics(out, written)
+    assert [p.name for p in stale] == ["l[1]_diagnostic.png", "l[1]_diagnostic_10.png"]

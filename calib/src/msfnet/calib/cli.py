@@ -8,6 +8,8 @@ replaces or lands inside an input.
 from __future__ import annotations
 
 import argparse
+import glob
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -185,10 +187,14 @@ def _stale_diagnostics(out: Path, written: list[Path]) -> list[Path]:
     replace (``--overwrite --no-diagnostic``, or one capture where there were two): beside
     new lights they would describe old ones. Named, not deleted: they may be kept on purpose."""
     mine = {p.resolve() for p in written}
-    names = [f"{out.stem}_diagnostic.png"]
-    names += [f"{out.stem}_diagnostic_{k}.png" for k in range(1, 100)]
-    found = [out.with_name(n) for n in names if out.with_name(n).is_file()]
-    return [p for p in found if p.resolve() not in mine]
+    default = re.compile(re.escape(out.stem) + r"_diagnostic(_[1-9][0-9]*)?\.png")
+    found = out.parent.glob(glob.escape(out.stem) + "_diagnostic*.png")
+    stale = {}
+    for p in found:
+        m = default.fullmatch(p.name)
+        if m and p.is_file() and p.resolve() not in mine:
+            stale[int(m[1][1:]) if m[1] else 0] = p
+    return [stale[k] for k in sorted(stale)]
 
 
 def _check_outputs(outputs: list[Path], inputs: list[Path | None], overwrite: bool) -> None:

@@ -60,6 +60,7 @@ import numpy as np
 
 from msfnet.common.camera import Intrinsics
 from msfnet.common.errors import InputError
+from msfnet.runtime.results.maps.extent import mask_box
 from msfnet.runtime.results.maps.validate import check_normals
 
 if TYPE_CHECKING:
@@ -497,18 +498,6 @@ def least_squares_surface(
 # ----------------------------------------------------------------------------- entry point
 
 
-def _box(valid: np.ndarray, margin: int) -> tuple[slice, slice]:
-    """Row and column slices of the valid pixels' bounding box grown by ``margin``."""
-    if not valid.any():
-        return slice(0, valid.shape[0]), slice(0, valid.shape[1])
-    rows = np.flatnonzero(valid.any(axis=1))
-    cols = np.flatnonzero(valid.any(axis=0))
-    return (
-        slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, valid.shape[0])),
-        slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, valid.shape[1])),
-    )
-
-
 def _anchor(
     z: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics | None, depth_ref: float | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -561,7 +550,8 @@ def integrate_normals(
     unit, valid = check_normals(normals, mask)
     # Work on the object's bounding box (plus a margin for fc): the solvers only ever look at
     # valid pixels, and a small object in a large frame then costs what its own size costs.
-    rs, cs = _box(valid, CROP_MARGIN)
+    box = mask_box(valid, CROP_MARGIN)
+    rs, cs = box if box is not None else (slice(0, valid.shape[0]), slice(0, valid.shape[1]))
     if intr is not None:
         intr = Intrinsics(intr.fx, intr.fy, intr.cx - cs.start, intr.cy - rs.start)
     grad = target_gradients(unit[rs, cs], valid[rs, cs], intr, min_nz)

@@ -126,16 +126,13 @@ def write_ply(path: str | Path, mesh: Mesh) -> Path:
     if mesh.colors is not None:
         for i, name in enumerate(("red", "green", "blue")):
             vert[name] = mesh.colors[:, i]
-    face = np.empty(len(mesh.faces), dtype=[("vertex_indices", "<i4", (3,))])
-    face["vertex_indices"] = mesh.faces
     # plyfile states the format (the header); the data go out as whole arrays, since plyfile
     # writes list properties one face at a time in Python (0.15 s for the ball's 31 k faces,
-    # seconds for a megapixel part). Each face is its count (uchar 3) and three int32.
-    header = PlyData(
-        [PlyElement.describe(vert, "vertex"), PlyElement.describe(face, "face")],
-        text=False,
-        byte_order="<",
-    ).header
+    # seconds for a megapixel part). Each face is its count (uchar 3) and three int32; the
+    # face element is described from an empty array, with the count given, to copy no face.
+    no_faces = np.empty(0, dtype=[("vertex_indices", "<i4", (3,))])
+    face = PlyElement("face", PlyElement.describe(no_faces, "face").properties, len(mesh.faces))
+    header = PlyData([PlyElement.describe(vert, "vertex"), face], text=False, byte_order="<").header
     packed = np.empty(len(mesh.faces), dtype=[("count", "u1"), ("vertex_indices", "<i4", (3,))])
     packed["count"] = 3
     packed["vertex_indices"] = mesh.faces

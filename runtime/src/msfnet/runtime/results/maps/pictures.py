@@ -20,6 +20,7 @@ import numpy as np
 
 from msfnet.runtime.results.maps.albedo import display_level
 from msfnet.runtime.results.maps.curvature import symmetric_range
+from msfnet.runtime.results.maps.extent import mask_box
 
 if TYPE_CHECKING:
     from PIL import Image, ImageFont
@@ -143,15 +144,15 @@ def crop_box(mask: np.ndarray, margin: float = 0.06) -> tuple[slice, slice]:
     every k-th pixel where the box is longer than SHOWN_PX: a picture ~500 px wide shows no
     more, and drawing a full-resolution crop held several float copies of a large image
     (hundreds of MB beyond --max-memory)."""
-    if not mask.any():
+    box = mask_box(mask)
+    if box is None:
         return slice(None), slice(None)
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
+    rows, cols = box
     h, w = mask.shape
-    pad_r = math.ceil(margin * float(rows[-1] - rows[0] + 1)) + 1
-    pad_c = math.ceil(margin * float(cols[-1] - cols[0] + 1)) + 1
-    r0, r1 = max(rows[0] - pad_r, 0), min(rows[-1] + pad_r + 1, h)
-    c0, c1 = max(cols[0] - pad_c, 0), min(cols[-1] + pad_c + 1, w)
+    pad_r = math.ceil(margin * float(rows.stop - rows.start)) + 1
+    pad_c = math.ceil(margin * float(cols.stop - cols.start)) + 1
+    r0, r1 = max(rows.start - pad_r, 0), min(rows.stop + pad_r, h)
+    c0, c1 = max(cols.start - pad_c, 0), min(cols.stop + pad_c, w)
     step = max(1, math.ceil(max(r1 - r0, c1 - c0) / SHOWN_PX))
     return slice(int(r0), int(r1), step), slice(int(c0), int(c1), step)
 

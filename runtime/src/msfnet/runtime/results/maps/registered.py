@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.runtime.results.maps.extent import mask_box
 
 DEFAULT_LOCAL_SIZE_PX = 12.0
 TREND_DEGREE = 2  # the local shape's trend: a quadric around each pixel (see local_trend)
@@ -239,11 +240,9 @@ def local_trend(
         raise ValueError(f"heights {values.shape} and mask {valid.shape}: expected one (H, W)")
     h, w = values.shape
     out = np.full((h, w), np.nan, np.float32)
-    rows = np.flatnonzero(valid.any(axis=1))
-    if rows.size == 0:
+    box = mask_box(valid)
+    if box is None:
         return out
-    cols = np.flatnonzero(valid.any(axis=0))
-    box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
     ok = valid[box]
     m = ok.astype(np.float64)
     z = np.where(ok, np.nan_to_num(values[box]), 0.0).astype(np.float64)
