@@ -275,6 +275,29 @@ def test_skipping_bad_stacks_goes_on_and_says_which(l2: Model, tmp_path: Path) -
         l2.stream(good, on_error="ignore")
 
 
+def test_a_stack_refused_while_running_is_skipped_or_raised(
+    l2: Model, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    paths = _folder_of_stacks(tmp_path, 3)
+    real = l2._run_decoded
+
+    def refuse_s1(decoded, load):  # type: ignore[no-untyped-def]
+        if decoded.item.name == "s1":  # what a map its normals cannot make raises
+            raise InputError("perspective depth: past float32's range")
+        return real(decoded, load)
+
+    monkeypatch.setattr(l2, "_run_decoded", refuse_s1)
+    stream = l2.stream(paths, on_error="skip")
+    with pytest.warns(RuntimeWarning, match="s1: perspective depth.*skipped"):
+        assert [r.name for r in stream] == ["s0", "s2"]
+    assert [s.source.name for s in stream.skipped] == ["s1"]
+    stream = l2.stream(paths, prefetch=False)
+    assert next(stream).name == "s0"
+    with pytest.raises(InputError, match="float32"):
+        next(stream)
+    assert [p.name for p in stream.stop()] == ["s1"]  # taken, not run: given back
+
+
 # ---------------------------------------------------------------- one path, three entry points
 
 

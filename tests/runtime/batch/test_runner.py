@@ -305,3 +305,38 @@ def test_a_summary_names_every_engine_choice_its_workers_made() -> None:
         mixed.note_model(method)
     assert mixed.model == amx and mixed.as_dict()["other_models"] == [avx2]
     assert "2 engine/model choices" in mixed.totals_line()
+
+
+def test_a_stack_refused_while_running_is_reported_and_the_batch_goes_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    good = _stacks(tmp_path / "in", 3)
+    real = Model._run_decoded
+
+    def refuse_s1(self, decoded, load):  # type: ignore[no-untyped-def]
+        if decoded.item.name == "s1":  # what a map its normals cannot make raises
+            raise InputError("perspective depth: past float32's range")
+        return real(self, decoded, load)
+
+    monkeypatch.setattr(Model, "_run_decoded", refuse_s1)
+    out = tmp_path / "out"
+    assert main(["--method", "l2", *map(str, good), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "float32's range" in err and "1 of 3 stack(s) failed" in err, err
+    assert (out / "s0" / "normals.npy").is_file() and (out / "s2" / "normals.npy").is_file()
+    assert not (out / "s1").exists()
+    rows = json.loads((out / "summary.json").read_text())["stacks"]
+    assert [r["error"] is None for r in rows] == [True, False, True]
+
+
+def test_one_stack_refused_while_running_names_the_stack(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (stack,) = _stacks(tmp_path / "in", 1)
+    out = tmp_path / "out"
+    # a 179-degree camera for a 28 x 32 image: no float32 depth holds what the normals say
+    argv = ["--method", "l2", str(stack), "-o", str(out), "--intrinsics", ".05", ".05", "16", "14"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"msf-run: error: {stack}: perspective depth"), err
+    assert not out.exists()

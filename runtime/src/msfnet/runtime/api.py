@@ -70,6 +70,7 @@ from msfnet.runtime.sources import (
     BatchItem,
     Decoded,
     Leftovers,
+    StackSource,
     decode_ahead,
     path_item,
     record_decode,
@@ -573,7 +574,8 @@ class Model:
         everything in the calling thread. ``load`` applies to every stack, as in
         ``model(path, load)``.
 
-        A stack that cannot be read raises InputError at its turn and ends the stream
+        A stack that cannot be read or run (bad input: a broken image, intrinsics its
+        normals cannot use) raises InputError at its turn and ends the stream
         (results already yielded stay valid); ``on_error="skip"`` warns, records it in
         ``stream.skipped`` and goes on, as msf-run's batches do. Stopping early (``break``,
         Ctrl-C, an error) never drops a stack taken from the source: ``stream.stop()``
@@ -586,6 +588,14 @@ class Model:
             items, total = stream_items(source, select_given=opts.select is not None)
 
         def results(taken: Leftovers, skipped: list[Skipped]) -> Generator[Result, None, None]:
+            def skip(error: InputError, item: StackSource) -> None:
+                if current_writer() == API_WRITER:  # the API's words, as raised ones
+                    error = InputError(api_message(error.message), error.path)
+                source = given_source(item)
+                skipped.append(Skipped(source, error))
+                where = "" if error.path is not None else f"{source.name}: "
+                warnings.warn(f"{where}{error}; skipped", RuntimeWarning, stacklevel=4)
+
             with api_words():
                 for decoded in decode_ahead(
                     items, opts, prefetch=prefetch, total=total, unprocessed=taken
@@ -593,13 +603,7 @@ class Model:
                     if decoded.error is not None:
                         if on_error == "raise":
                             raise decoded.error
-                        error = decoded.error
-                        if current_writer() == API_WRITER:  # the API's words, as raised ones
-                            error = InputError(api_message(error.message), error.path)
-                        source = given_source(decoded.item)
-                        skipped.append(Skipped(source, error))
-                        where = "" if error.path is not None else f"{source.name}: "
-                        warnings.warn(f"{where}{error}; skipped", RuntimeWarning, stacklevel=3)
+                        skip(decoded.error, decoded.item)
                         continue
                     item = decoded.item
                     note = item.note(opts) if isinstance(item, BatchItem) else None
@@ -607,6 +611,12 @@ class Model:
                         warnings.warn(api_message(note), UserWarning, stacklevel=3)
                     try:
                         result = self._run_decoded(decoded, opts)
+                    except InputError as exc:  # e.g. intrinsics its normals cannot use
+                        if on_error == "raise":
+                            taken.items.append(decoded.item)
+                            raise
+                        skip(exc, decoded.item)
+                        continue
                     except BaseException:  # interrupted or failed: the caller gets it back
                         taken.items.append(decoded.item)
                         raise

@@ -94,6 +94,20 @@ def test_perspective_log_depth(surfaces, method: str) -> None:
         assert persp_rel < 0.5 * ortho_rel
 
 
+@pytest.mark.parametrize("method", ("poisson", "bini"))
+def test_intrinsics_that_fit_no_camera_are_refused_not_written_as_inf(method: str) -> None:
+    # orthographic sphere normals read through a 175-degree camera: log-depths hundreds apart
+    yy, xx = np.mgrid[:96, :96]
+    x, y = (xx - 48) / 40, -(yy - 48) / 40
+    mask = x * x + y * y < 0.9
+    n = np.dstack([x, y, np.sqrt(np.clip(1 - x * x - y * y, 0, None))]).astype(np.float32)
+    with pytest.raises(InputError, match=r"past float32's range.*pixels of the image as run"):
+        integrate_normals(n, mask, method, intrinsics=(2.0, 2.0, 48.0, 48.0))
+    res = integrate_normals(n, mask, method, intrinsics=(80.0, 80.0, 48.0, 48.0))
+    assert res.depth is not None and np.isfinite(res.depth[mask]).all()
+    assert np.isfinite(res.height[mask]).all()
+
+
 def test_separate_parts_do_not_pull_on_each_other() -> None:
     h, w = 24, 40
     mask = np.zeros((h, w), bool)

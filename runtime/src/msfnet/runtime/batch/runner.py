@@ -306,12 +306,23 @@ def run_batch(
         load = model._loading(load)  # an ROI grown by the network's halo (Model._loading)
         for decoded in decode_ahead(items, load, prefetch=prefetch, total=len(items)):
             item = decoded.item
-            if decoded.stack is None:
-                assert decoded.error is not None
+            error = decoded.error
+            if decoded.stack is not None:
+                t0 = time.perf_counter()
+                out = out_for(item.name)
+                try:
+                    result = model._run_decoded(decoded, load)
+                    compute_s = time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    if out is not None:  # all or nothing: a refused stack leaves no folder
+                        result.save(out, overwrite=overwrite, inputs=inputs)
+                except InputError as exc:  # e.g. intrinsics this stack's normals cannot use
+                    error = exc
+            if error is not None:
                 row = StackRow(
                     item.name,
                     str(getattr(item, "path", item.name)),
-                    error=str(decoded.error),
+                    error=str(error),
                     wait_s=decoded.wait_s,
                 )
                 summary.rows.append(row)
@@ -319,13 +330,6 @@ def run_batch(
                     on_result(row, None)
                 bar.update(1)
                 continue
-            t0 = time.perf_counter()
-            result = model._run_decoded(decoded, load)
-            compute_s = time.perf_counter() - t0
-            out = out_for(item.name)
-            t0 = time.perf_counter()
-            if out is not None:
-                result.save(out, overwrite=overwrite, inputs=inputs)
             row = row_for(result, out)
             row.decode_s, row.wait_s, row.compute_s = decoded.decode_s, decoded.wait_s, compute_s
             row.save_s = time.perf_counter() - t0

@@ -302,6 +302,18 @@ def _default_name(path: Path, stem: bool = False) -> str:
     return (full.stem if stem else full.name) or "stack"
 
 
+@contextmanager
+def naming_the_stack(src: Path | Stack) -> Iterator[None]:
+    """A problem found while running a stack (a map its normals cannot make) names the stack,
+    as the command's one error line does for a file."""
+    try:
+        yield
+    except InputError as exc:
+        if exc.path is not None or not isinstance(src, Path):
+            raise
+        raise InputError(exc.message, src) from exc
+
+
 def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = None) -> int:
     load = req.load
     if req.workers is not None:
@@ -314,7 +326,11 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
     progress = sys.stderr.isatty() and req.chatty
     if item is not None:
         _say(req, item.note(load))
-    with stage_status(name, enabled=not req.quiet and _terminal()) as step, announcing(step):
+    with (
+        stage_status(name, enabled=not req.quiet and _terminal()) as step,
+        announcing(step),
+        naming_the_stack(src),
+    ):
         result = model(
             src,
             item.options(load) if item is not None else load,

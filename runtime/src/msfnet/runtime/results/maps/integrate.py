@@ -498,6 +498,22 @@ def least_squares_surface(
 # ----------------------------------------------------------------------------- entry point
 
 
+F32 = np.finfo(np.float32)
+
+
+def _check_depth(depth: np.ndarray, intrinsics: Intrinsics) -> None:
+    """Refuse a part whose depths float32 cannot hold (silent inf / 0 depths and NaN heights
+    otherwise), naming the likely cause: normals and intrinsics that fit no camera."""
+    if np.isfinite(depth).all() and depth.max() < F32.max and depth.min() > F32.tiny:
+        return
+    raise InputError(
+        f"perspective depth: these normals with intrinsics fx {intrinsics.fx:g}, fy "
+        f"{intrinsics.fy:g} give one part depths past float32's range (a field of view near "
+        "180 degrees); the intrinsics must be in pixels of the image as run (after any "
+        "downscale or ROI)"
+    )
+
+
 def _anchor(
     z: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics | None, depth_ref: float | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -513,7 +529,9 @@ def _anchor(
         else:
             assert depth is not None
             ref = intrinsics.fx if depth_ref is None else depth_ref
-            d = ref * np.exp(vals - np.median(vals))
+            with np.errstate(over="ignore", under="ignore"):
+                d = ref * np.exp(vals.astype(np.float64) - np.median(vals))
+            _check_depth(d, intrinsics)
             depth[sel] = d
             height[sel] = d.max() - d
     return height, depth
