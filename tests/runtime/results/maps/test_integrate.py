@@ -108,6 +108,25 @@ def test_intrinsics_that_fit_no_camera_are_refused_not_written_as_inf(method: st
     assert np.isfinite(res.height[mask]).all()
 
 
+def test_every_piece_of_a_speckled_mask_gets_its_own_constant(rng) -> None:
+    from msfnet.runtime.results.maps.integrate import components
+
+    mask = rng.random((120, 130)) < 0.5  # hundreds of 4-connected pieces
+    n = rng.normal(size=(120, 130, 3)) * [0.2, 0.2, 0]
+    n[..., 2] = 1.0
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    count, labels = components(mask)
+    assert count > 300
+    ortho = integrate_normals(n, mask, "poisson").height
+    persp = integrate_normals(n, mask, "poisson", intrinsics=(500.0, 500.0, 65.0, 60.0))
+    assert persp.depth is not None
+    for lab in range(1, count + 1):
+        sel = labels == lab
+        assert np.min(ortho[sel]) == 0.0  # its lowest point
+        assert np.median(persp.depth[sel]) == pytest.approx(500.0, rel=1e-6)  # depth_ref
+        assert np.min(persp.height[sel]) == 0.0  # its farthest point
+
+
 def test_separate_parts_do_not_pull_on_each_other() -> None:
     h, w = 24, 40
     mask = np.zeros((h, w), bool)
@@ -213,12 +232,55 @@ def test_multigrid_preconditioned_cg_matches_a_direct_solve(rng) -> None:
     weights = 10 ** rng.uniform(-3, 0, size=g.incidence.shape[0])
     mat = (g.incidence.T @ sp.diags(weights) @ g.incidence + sp.eye(g.pixels) * 1e-3).tocsr()
     b = rng.normal(size=g.pixels)
-    mg = integ.Multigrid(mat, g.index)
-    assert len(mg.levels) >= 2  # the hierarchy is really used at this size
+    mg = integ.Multigrid(mat, g.index, coarse_size=50)
+    assert len(mg.levels) >= 2  # the hierarchy is really used
     x, relres = integ._pcg(mat, b, np.zeros_like(b), mg, 1e-10, 200)
     exact = sla.spsolve(mat.tocsc(), b)
     assert relres <= 1e-10
     assert np.max(np.abs(x - exact)) <= 1e-6 * np.max(np.abs(exact))
+
+
+def _poisson_system(normals: np.ndarray, valid: np.ndarray) -> tuple:
+    from msfnet.runtime.results.maps import integrate as ig
+
+    grad = ig.target_gradients(normals, valid)
+    g = ig._graph(grad.valid)
+    terms = ig._edge_terms(grad, g, *ig._side_weights(None, grad.valid, 2.0, 1.0))
+    mat, b = ig._system(g, *terms)
+    return g, mat, b
+
+
+def test_aggregates_never_join_unknowns_the_block_does_not_connect() -> None:
+    from msfnet.runtime.results.maps import integrate as ig
+
+    valid = np.zeros((6, 6), bool)
+    valid[0] = valid[2] = True  # two lines: each 3 x 3 block holds a part of both
+    normals = np.zeros((6, 6, 3))
+    normals[..., 2] = 1.0
+    _, mat, _ = _poisson_system(normals, valid)
+    rows, cols = np.nonzero(valid)  # unknowns 0-5 the first line, 6-11 the second
+    count, owner = ig._aggregates(mat, (rows // 3) * 2 + cols // 3)
+    assert count == 4  # 2 blocks x 2 lines
+    assert len({*owner[:3]}) == 1 and len({*owner[6:9]}) == 1 and owner[0] != owner[6]
+
+
+@pytest.mark.parametrize("mask_kind", ("lines", "speckled"))
+def test_fragmented_masks_converge_without_the_direct_fallback(mask_kind: str, rng) -> None:
+    """Aggregates that tied separate pieces together stalled CG (100 steps, then a sparse
+    LU) on these masks."""
+    from msfnet.runtime.results.maps import integrate as ig
+
+    valid = np.zeros((192, 192), bool)
+    if mask_kind == "lines":
+        valid[::2] = True
+    else:
+        valid = rng.random((192, 192)) < 0.55
+    normals = rng.normal(size=(192, 192, 3)) * [0.3, 0.3, 0]
+    normals[..., 2] = 1.0
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    g, mat, b = _poisson_system(normals, valid)
+    _, relres = ig._pcg(mat, b, np.zeros_like(b), ig.Multigrid(mat, g.index), ig.CG_RTOL, 80)
+    assert relres <= ig.CG_RTOL
 
 
 def _deep_hierarchy(coarse_size: int = 4) -> tuple[object, list]:
@@ -255,16 +317,22 @@ def test_the_radius_estimate_never_drops_below_a_strong_pair(
         assert ig._jacobi_radius(a, dinv) >= 1.0 + pair - 1e-12
 
 
-def test_every_multigrid_level_smooths_without_diverging() -> None:
+@pytest.mark.parametrize(("aggregate", "depth"), ((3, 4), (2, 6)))
+def test_every_multigrid_level_smooths_without_diverging(
+    aggregate: int, depth: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A damped Jacobi sweep contracts only where omega * rho(D^-1 A) < 2. The Galerkin levels'
-    rho grows with depth (3.3-5.0 on a 2.4 M-pixel part), so one fixed omega of 2/3 made the
-    deep levels amplify errors (2.0-2.3 here; CG then took 34 steps instead of 7): each level
-    has its own omega."""
+    rho can grow with depth (3.3-5.0 on a 2.4 M-pixel part with 2 x 2 aggregates; ~1.5 with
+    3 x 3), and one fixed omega of 2/3 made such levels amplify errors (CG then took 34 steps
+    instead of 7): each level has its own omega."""
     import scipy.sparse as sp
     import scipy.sparse.linalg as sla
 
-    _, levels = _deep_hierarchy()  # coarse_size 4: 7 levels
-    assert len(levels) >= 6
+    from msfnet.runtime.results.maps import integrate as ig
+
+    monkeypatch.setattr(ig, "AGGREGATE", aggregate)
+    _, levels = _deep_hierarchy()  # coarse_size 4: every level down to a few unknowns
+    assert len(levels) >= depth
     for a, _, step in levels:
         root = sp.diags(np.sqrt(step))
         top = sla.eigsh(root @ a @ root, k=1, which="LA", return_eigenvectors=False, tol=1e-4)

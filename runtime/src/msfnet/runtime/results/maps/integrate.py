@@ -27,7 +27,7 @@ Methods
   sides share weight 1 (0.5 each; 1 for the only side at a border). The normal equations form a
   weighted graph Laplacian over the 4-neighbour mask graph (Neumann at the mask border),
   assembled with scipy.sparse and solved by conjugate gradients preconditioned with a
-  smoothed-aggregation multigrid V-cycle (:class:`Multigrid`; about 10 iterations, faster
+  smoothed-aggregation multigrid V-cycle (:class:`Multigrid`; 10-20 iterations, faster
   than a sparse LU on large masks: docs/benchmark.md). No equation crosses the mask border,
   so separate objects never pull on each other. The confidence makes grazing normals (whose
   slopes are the least reliable) count little: a steep feature one pixel wide is outvoted by
@@ -76,6 +76,12 @@ SOLVE_ITER = 100  # CG steps allowed for a full solve (multigrid needs ~10 on a 
 INNER_ITER = 6  # CG steps per reweighting round (inexact: the weights move on anyway)
 REBUILD_RESIDUAL = 1e-2  # an inner solve left above this: rebuild the multigrid hierarchy
 COARSE_SIZE = 400  # unknowns on the coarsest multigrid level, solved by SuperLU
+# Side of the square blocks that multigrid aggregates. With 3 x 3 the coarse levels of a
+# 5-point Laplacian keep ~9-point stencils; with 2 x 2 they widened to ~500 entries a row on
+# the deep levels of a 2.4 M-pixel part, whose setup then took 4.8-5.6 s against 1.7 s (CG
+# needs 12 steps instead of 7, each cheaper: docs/benchmark.md).
+AGGREGATE = 3
+STRENGTH = 0.08
 RIDGE = 1e-10  # relative diagonal ridge of the normal equations (see _system)
 # damping of the Jacobi smoother and of the prolongator smoothing: 4 / (3 rho), rho the
 # spectral radius of D^-1 A on that level (2 on the finest; the Galerkin levels below reach
@@ -296,10 +302,14 @@ class Multigrid:
     """Smoothed-aggregation algebraic multigrid (after Vanek, Mandel & Brezina, Computing 56,
     1996) for the masked, weighted grid Laplacians above, used as a CG preconditioner.
 
-    Aggregates are the 2 x 2 pixel blocks of each level's grid (the unknowns are pixels, so
-    geometry gives good aggregates for free); the tentative prolongator maps each aggregate to
-    its pixels with weight 1 (it reproduces constants, the Laplacian's near-null space) and is
-    smoothed by one damped Jacobi step. Coarse operators are Galerkin products P^T A P, down to
+    Aggregates come from geometry: the unknowns of each ``AGGREGATE`` x ``AGGREGATE`` block of
+    the level's grid (pixels on the finest level; a coarse unknown sits at its block's place
+    on the grid one level coarser), split into the pieces the level's operator connects
+    inside the block. A block holding parts of two separate lines of the mask thus gives two
+    aggregates, not one that ties unrelated heights together (CG stalled on such masks and
+    fell back to a sparse LU). The tentative prolongator maps each aggregate to its unknowns
+    with weight 1 (it reproduces constants, the Laplacian's near-null space) and is smoothed
+    by one damped Jacobi step. Coarse operators are Galerkin products P^T A P, down to
     ``coarse_size`` unknowns, which SuperLU factorises. ``solve(r)`` applies one symmetric
     V-cycle (two damped Jacobi sweeps before and after), an approximation of A^-1 r. Every
     level's Jacobi damping is 4 / (3 rho) with rho its own spectral radius
@@ -314,25 +324,23 @@ class Multigrid:
 
         # per level: the operator, the prolongator, the damped Jacobi step (omega / diagonal)
         self.levels: list[tuple[sp.csr_matrix, sp.csr_matrix, np.ndarray]] = []
-        a, grid = mat.tocsr(), index
+        a = mat.tocsr()
+        rows, cols = np.nonzero(index >= 0)  # each unknown's place (row-major = its number)
         while a.shape[0] > coarse_size:
             n = a.shape[0]
-            rows, cols = np.nonzero(grid >= 0)
-            coarse_w = (grid.shape[1] + 1) // 2
-            blocks = (rows // 2) * coarse_w + cols // 2
-            used, agg = np.unique(blocks, return_inverse=True)
-            if used.size >= n:  # nothing merged (isolated pixels): stop coarsening
+            rows, cols = rows // AGGREGATE, cols // AGGREGATE  # its block's place
+            count, owner = _aggregates(a, rows * (int(cols.max()) + 1) + cols)
+            if count >= n:  # nothing merged (isolated unknowns): stop coarsening
                 break
-            owner = np.empty(n, np.int64)
-            owner[grid[rows, cols]] = agg
-            tentative = sp.csr_matrix((np.ones(n), (np.arange(n), owner)), shape=(n, used.size))
+            tentative = sp.csr_matrix((np.ones(n), (np.arange(n), owner)), shape=(n, count))
             dinv = 1.0 / a.diagonal()
             step = (JACOBI_SCALE / _jacobi_radius(a, dinv)) * dinv
             prolong = (tentative - sp.diags(step) @ (a @ tentative)).tocsr()
             self.levels.append((a, prolong, step))
-            next_grid = np.full(((grid.shape[0] + 1) // 2, coarse_w), -1, np.int64)
-            next_grid.ravel()[used] = np.arange(used.size)
-            a, grid = (prolong.T @ a @ prolong).tocsr(), next_grid
+            coarse_rows, coarse_cols = np.empty(count, np.int64), np.empty(count, np.int64)
+            coarse_rows[owner], coarse_cols[owner] = rows, cols
+            rows, cols = coarse_rows, coarse_cols
+            a = (prolong.T @ a @ prolong).tocsr()
         self.coarse = sla.splu(
             a.tocsc(),
             permc_spec="MMD_AT_PLUS_A",
@@ -350,6 +358,32 @@ class Multigrid:
         x += step * (r - a @ x)
         x += step * (r - a @ x)
         return x
+
+
+def _aggregates(a: sp.csr_matrix, block: np.ndarray) -> tuple[int, np.ndarray]:
+    """(count, owner): the unknowns of each block split into the pieces that ``a``'s strong
+    couplings inside the block connect (|a_ij| >= STRENGTH sqrt(a_ii a_jj)); owner numbers
+    each unknown's piece. Where strength alone would leave more than half the unknowns
+    unmerged, any non-zero coupling counts: a level that coarsens too little only moves the
+    work to a deeper one, or to a large coarsest LU."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    n = a.shape[0]
+    row = np.repeat(np.arange(n), np.diff(a.indptr))
+    col = a.indices
+    linked = (block[row] == block[col]) & (row != col) & (a.data != 0)
+    root = np.sqrt(np.abs(a.diagonal()))
+    strong = linked & (np.abs(a.data) >= STRENGTH * root[row] * root[col])
+    for keep in (strong, linked):
+        inside = sp.csr_matrix(
+            (np.ones(int(np.count_nonzero(keep)), np.int8), (row[keep], col[keep])),
+            shape=(n, n),
+        )
+        count, owner = connected_components(inside, directed=False)
+        if count <= n // 2:
+            break
+    return int(count), owner
 
 
 def _jacobi_radius(a: sp.csr_matrix, dinv: np.ndarray) -> float:
@@ -416,9 +450,8 @@ def _pcg(
 
 def _solve(mat: sp.csr_matrix, b: np.ndarray, x0: np.ndarray, mg: Multigrid) -> np.ndarray:
     """Solve to CG_RTOL with multigrid-preconditioned CG; should that stall, fall back to a
-    sparse LU, slower but direct (seen on fragmented masks: random ones of 55-62 % density,
-    one-pixel spirals, and in bini's final solve on harvest; the 2 x 2 aggregates ignore
-    whether their pixels are connected)."""
+    sparse LU, slower but direct (a safety net: seen, before aggregates followed the mask's
+    connections, on fragmented masks and in bini's final solve on harvest)."""
     import scipy.sparse.linalg as sla
 
     x, relres = _pcg(mat, b, x0, mg, CG_RTOL, SOLVE_ITER)
@@ -517,24 +550,42 @@ def _check_depth(depth: np.ndarray, intrinsics: Intrinsics) -> None:
 def _anchor(
     z: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics | None, depth_ref: float | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Fix the free constant per 4-connected component; see the module docstring."""
+    """Fix the free constant per 4-connected component; see the module docstring. Every
+    component at once (a loop over them took 4 s for the 20 k pieces of a speckled mask)."""
     count, labels = components(valid)
     height = np.full(valid.shape, np.nan)
     depth = None if intrinsics is None else np.full(valid.shape, np.nan)
-    for lab in range(1, count + 1):
-        sel = labels == lab
-        vals = z[sel]
-        if intrinsics is None:
-            height[sel] = vals - vals.min()
-        else:
-            assert depth is not None
-            ref = intrinsics.fx if depth_ref is None else depth_ref
-            with np.errstate(over="ignore", under="ignore"):
-                d = ref * np.exp(vals.astype(np.float64) - np.median(vals))
-            _check_depth(d, intrinsics)
-            depth[sel] = d
-            height[sel] = d.max() - d
+    lab = labels[valid]
+    vals = z[valid].astype(np.float64)
+    if intrinsics is None:
+        low = np.full(count + 1, np.inf)
+        np.minimum.at(low, lab, vals)
+        height[valid] = vals - low[lab]
+        return height, depth
+    assert depth is not None
+    ref = intrinsics.fx if depth_ref is None else depth_ref
+    with np.errstate(over="ignore", under="ignore"):
+        d = ref * np.exp(vals - _medians(vals, lab, count)[lab])
+    _check_depth(d, intrinsics)
+    far = np.full(count + 1, -np.inf)
+    np.maximum.at(far, lab, d)
+    depth[valid] = d
+    height[valid] = far[lab] - d
     return height, depth
+
+
+def _medians(values: np.ndarray, labels: np.ndarray, count: int) -> np.ndarray:
+    """np.median of ``values`` per label 1..count (index 0 unused), all in one sort."""
+    order = np.lexsort((values, labels))
+    ranked = values[order]
+    sizes = np.bincount(labels, minlength=count + 1)
+    start = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    out = np.zeros(count + 1)
+    have = sizes > 0
+    lo = start[have] + (sizes[have] - 1) // 2
+    hi = start[have] + sizes[have] // 2
+    out[have] = 0.5 * (ranked[lo] + ranked[hi])
+    return out
 
 
 def integrate_normals(
