@@ -356,3 +356,34 @@ def test_the_bytecode_cache_is_known_on_or_off(tmp_path: Path, monkeypatch) -> N
     assert not cli.bytecode_cached(modules)
     py_compile.compile(str(source))  # the cache a default Python would have written
     assert cli.bytecode_cached(modules)
+
+
+def test_a_budget_msf_run_cannot_meet_is_refused_before_any_work(
+    stack: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str], monkeypatch
+) -> None:
+    """--max-memory 100 ran the whole benchmark, then failed at workload (d) as an internal
+    error."""
+    monkeypatch.setattr(cli, "bench", _unreached)
+    argv = [a for a in _argv(stack, tmp_path / "r") if a != "--no-e2e"]  # (d) runs
+    assert cli.main([*argv, "--max-memory", "100"]) == 2
+    err = _one_error(capfd)
+    assert "--max-memory 100 MB is too small for workload (d)" in err and "need about" in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_msf_run_refusing_workload_d_is_an_input_error_in_its_words(
+    tmp_path: Path, monkeypatch
+) -> None:
+    import subprocess
+
+    from msfnet.bench import workloads
+    from msfnet.common.errors import InputError
+
+    class Refused:
+        pid = 0
+        stderr = None
+
+    monkeypatch.setattr(subprocess, "Popen", lambda *a, **k: Refused())
+    monkeypatch.setattr(workloads.os, "wait4", lambda pid, opt: (pid, 2 << 8, None))
+    with pytest.raises(InputError, match=r"^workload \(d\): "):
+        workloads.time_msf_run(tmp_path / "stack", None, tmp_path / "out", 1, None)

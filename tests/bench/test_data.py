@@ -57,3 +57,25 @@ def test_default_stack_does_not_depend_on_the_install_location(
     args = build_parser().parse_args(["--data", str(tmp_path / "nowhere")])
     with pytest.raises(InputError, match="--data"):
         resolve_paths(args)
+
+
+def test_a_named_data_root_that_is_missing_is_an_error_beside_a_stack(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With --stack given, a mistyped --data or $MSFNET_DATA was dropped in silence and int8
+    calibrated on the one stack instead of four."""
+    stack = tmp_path / "ballPNG"
+    stack.mkdir()
+    monkeypatch.chdir(tmp_path)  # no data root beside it either
+    monkeypatch.delenv("MSFNET_DATA", raising=False)
+    args = build_parser().parse_args(["--stack", str(stack), "--data", str(tmp_path / "dta")])
+    with pytest.raises(InputError, match="--data: folder not found"):
+        resolve_paths(args)
+    monkeypatch.setenv("MSFNET_DATA", str(tmp_path / "dta"))
+    args = build_parser().parse_args(["--stack", str(stack)])
+    with pytest.raises(InputError, match="MSFNET_DATA"):
+        resolve_paths(args)
+    monkeypatch.delenv("MSFNET_DATA")
+    args = build_parser().parse_args(["--stack", str(stack)])
+    resolve_paths(args)  # nothing named, none found: the stack alone
+    assert args.calib == [stack]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from _runtime_helpers import tiny_msfnet_onnx
@@ -203,3 +204,135 @@ def test_torch_benchmark_options_are_refused_in_edge_mode(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and extra[0] in err[0] and "--onnx" in err[0], err
     assert not out.exists()
+
+
+@pytest.mark.skipif(not (SHARED / "DiLiGenT").is_dir(), reason="needs ../shared/data/DiLiGenT")
+def test_onnx_rows_feed_the_network_the_scaling_its_file_declares(monkeypatch) -> None:
+    """msf-bench --onnx scored a model exported with --train-lights 96 as if trained on 32
+    lights: its MAE was not what msf-run gets from the same file."""
+    import numpy as np
+
+    from msfnet.runtime.contract import TRAIN_LIGHTS
+
+    base = edge.validation_crops(SHARED, TRAIN_LIGHTS)
+    wide = edge.validation_crops(SHARED, 96)
+    scale = np.sqrt(TRAIN_LIGHTS / 96)  # images are multiplied by sqrt(N / train_lights)
+    for a, b in zip(base, wide, strict=True):
+        np.testing.assert_allclose(b["images"], a["images"] * scale, rtol=1e-5, atol=1e-7)
+
+    seen = []
+
+    class Engine:
+        info = SimpleNamespace(train_lights=96)  # what measure_path reads of ModelInfo
+
+        def run(self, images, lights):  # type: ignore[no-untyped-def]
+            up = np.zeros((3, *images.shape[-2:]), np.float32)
+            up[2] = 1.0
+            return [up]
+
+    monkeypatch.setattr(edge, "_open", lambda spec: Engine())
+    real = edge.validation_crops
+    monkeypatch.setattr(
+        edge, "validation_crops", lambda data, tl: seen.append(tl) or real(data, tl)
+    )
+    edge.measure_path({"model": "m.onnx", "data": str(SHARED), "repeat": 1})
+    assert seen == [96]
+
+
+def test_requirements_run_onnx_runtime_in_the_files_own_precision(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """The second engine was ONNX Runtime fp32 whatever the file: an int8 export failed on
+    half the grid."""
+    from msfnet.runtime import engines
+
+    monkeypatch.setattr(engines, "read_model_file", lambda path: path)
+    monkeypatch.setattr(engines, "model_precision", lambda info: "int8")
+    seen = []
+
+    def worker(kind, spec, scratch):  # type: ignore[no-untyped-def]
+        seen.append((spec["engine"], spec["precision"]))
+        return {"seconds": 1.0, "peak_mb": 100.0}
+
+    monkeypatch.setattr(edge, "run_worker", worker)
+    edge.requirement_rows(tmp_path / "m_int8.onnx", tmp_path, 1, tmp_path, quick=True)
+    assert set(seen) == {(None, None), ("onnxruntime", "int8")}
+    seen.clear()
+    edge.requirement_rows(None, tmp_path, 1, tmp_path, quick=True)  # the bundled model
+    assert set(seen) == {(None, None), ("onnxruntime", "fp32")}
+
+
+def test_a_ladder_worker_refusing_its_input_is_an_input_error(tmp_path: Path, monkeypatch) -> None:
+    """Any worker failure was 'internal error ... please report it', exit 1."""
+    import json
+
+    from msfnet.common.errors import InputError
+
+    def refuse(spec):  # type: ignore[no-untyped-def]
+        raise InputError("exported for exactly 8 lights (static shape)", "m.onnx")
+
+    monkeypatch.setattr(ladder, "measure_rung", refuse)
+    spec = tmp_path / "spec.json"
+    result = tmp_path / "ladder-full.json"
+    spec.write_text(json.dumps({"result": str(result)}))
+    assert ladder.main([str(spec)]) == 2
+    assert json.loads(result.read_text()) == {
+        "input_error": "exported for exactly 8 lights (static shape)",
+        "path": "m.onnx",
+    }
+
+    class Done:
+        returncode = 2
+        stderr = ""
+
+    monkeypatch.setattr(ladder.subprocess, "run", lambda *a, **k: Done())
+    with pytest.raises(InputError, match=r"^m.onnx: speed rung full: exported for exactly 8"):
+        ladder.ladder_rows(None, tmp_path, rungs=("full",), scratch=tmp_path)
+
+
+def _edge_main(*argv: str) -> int:
+    from msfnet.bench import cli
+
+    return cli.main(list(argv))
+
+
+def test_edge_inputs_are_checked_before_any_cell_runs(
+    tmp_path: Path, monkeypatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Each was found cell by cell: a report of failed rows with exit 0, or an internal
+    error after minutes of work."""
+    from _runtime_helpers import png_stack
+
+    def unreached(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise AssertionError("a cell ran before the checks")
+
+    monkeypatch.setattr(edge, "onnx_rows", unreached)
+    monkeypatch.setattr(edge, "requirement_rows", unreached)
+    monkeypatch.setattr(ladder, "ladder_rows", unreached)
+    monkeypatch.delenv("MSFNET_DATA", raising=False)
+    out = tmp_path / "r"
+
+    def one_error(*parts: str) -> None:
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("msf-bench: error: "), err
+        assert all(p in err[0] for p in parts), err
+        assert not out.exists()
+
+    # a static-shape export: --onnx scores 12-light 128 px crops it cannot take
+    static = tiny_msfnet_onnx(tmp_path / "s.onnx", **{"msfnet.static_shape": "8,64,64"})
+    assert _edge_main("--onnx", str(static), "-o", str(out)) == 2
+    one_error("s.onnx", "static shape: 8 lights at 64 x 64 px")
+    # validation objects without ground truth
+    data = tmp_path / "data"
+    for name in ("ballPNG", "bearPNG", "harvestPNG"):
+        (data / "DiLiGenT" / name).mkdir(parents=True)
+    assert _edge_main("--ladder", "--data", str(data), "-o", str(out)) == 2
+    one_error("ballPNG", "no ground-truth normals")
+    # the requirements grid: its stack is read first; no data root is needed beside it
+    monkeypatch.chdir(tmp_path)
+    assert _edge_main("--requirements", "--stack", str(tmp_path / "nowhere"), "-o", str(out)) == 2
+    one_error("nowhere")
+    stack = png_stack(tmp_path / "stack", 8)
+    monkeypatch.setattr(edge, "requirement_rows", lambda *a, **k: [])
+    assert _edge_main("--requirements", "--quick", "--stack", str(stack), "-o", str(out)) == 0
+    assert (out / "REPORT.md").is_file()

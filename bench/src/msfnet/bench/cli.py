@@ -306,7 +306,10 @@ def resolve_paths(args: argparse.Namespace) -> Path | None:
         try:
             root = data_root(args.data)
         except InputError:
-            if args.stack is None:
+            # without a data root a given --stack is enough, but a root the user named
+            # (--data, $MSFNET_DATA) that is not there is a typo: int8 would calibrate on
+            # the one stack instead of four, silently
+            if args.stack is None or args.data is not None or os.environ.get(ENV_VAR):
                 raise
     if args.stack is None:
         assert root is not None
@@ -351,6 +354,17 @@ def plan_run(args: argparse.Namespace) -> Plan:
     checkpoint = None if args.random_weights else args.checkpoint or default_checkpoint_path()
     if checkpoint is not None and not checkpoint.is_file():
         raise InputError("checkpoint not found", checkpoint)
+    if args.max_memory is not None and not args.no_e2e:
+        # workload (d) comes last: a budget no tile fits in would end a long run there
+        from msfnet.runtime.infer.tiling import tile_size_for_memory
+
+        try:
+            tile_size_for_memory(args.max_memory, lights=args.lights or MIN_LIGHTS)
+        except InputError as exc:
+            raise InputError(
+                f"--max-memory {args.max_memory:g} MB is too small for workload (d), msf-run "
+                f"on any stack: {exc.message.split(': ', 1)[-1]}"
+            ) from None
     root = resolve_paths(args)
     for calib in args.calib:
         if not calib.exists():
@@ -768,6 +782,43 @@ def _edge_mode(args: argparse.Namespace) -> bool:
     return args.onnx is not None or args.ladder or args.requirements
 
 
+def _check_crop_shape(model: Path, static: tuple[int, int, int] | None) -> None:
+    """--onnx scores fixed crops; a static-shape export cannot take them (msf-run tiles it)."""
+    from msfnet.bench.edge import CROP, CROP_LIGHTS
+
+    if static is not None and static != (CROP_LIGHTS, CROP, CROP):
+        n, h, w = static
+        raise InputError(
+            f"static shape: {n} lights at {h} x {w} px; --onnx scores {CROP_LIGHTS} lights "
+            f"on {CROP} px crops (export with dynamic shapes, or time it with msf-run)",
+            model,
+        )
+
+
+def _check_validation_objects(root: Path) -> None:
+    """Each DiLiGenT validation object with its ground truth (it is scored against it)."""
+    from msfnet.bench.edge import VALIDATION
+    from msfnet.runtime.stack.load import GT_NAMES
+
+    for name, _ in VALIDATION:
+        folder = root / "DiLiGenT" / name
+        if not folder.is_dir():
+            raise InputError("validation object not found (DiLiGenT)", folder)
+        if not any((folder / gt).is_file() for gt in GT_NAMES):
+            raise InputError(
+                f"no ground-truth normals ({', '.join(GT_NAMES[:3])}); --onnx and --ladder "
+                "score against them",
+                folder,
+            )
+
+
+def _check_stack(stack: Path) -> None:
+    """The requirements grid's stack, read once (a few lights) before any cell runs."""
+    from msfnet.runtime.stack.load import load_stack
+
+    load_stack(stack, max_lights=MIN_LIGHTS)
+
+
 def _run_edge(args: argparse.Namespace) -> int:
     """--onnx / --ladder / --requirements: torch-free, inputs checked first, one report folder
     (REPORT.md, report.json) written as a whole."""
@@ -776,15 +827,24 @@ def _run_edge(args: argparse.Namespace) -> int:
     from msfnet.runtime.engines import read_model_file
 
     model = args.onnx or default_model_path()
-    read_model_file(model)  # an unreadable or foreign file is one line before any work
-    root = data_root(args.data)
-    stack = args.stack or root / STACK_IN_DATA
-    for name, _ in edge.VALIDATION:
-        if not (root / "DiLiGenT" / name).is_dir():
-            raise InputError("validation object not found (DiLiGenT)", root / "DiLiGenT" / name)
+    info = read_model_file(model)  # an unreadable or foreign file is one line before any work
+    scoring = args.ladder or not args.requirements  # --onnx and --ladder score on DiLiGenT
+    if args.onnx is not None and not (args.ladder or args.requirements):
+        _check_crop_shape(model, info.static_shape)
+    root = data_root(args.data) if scoring or args.stack is None else None
+    if scoring:
+        assert root is not None
+        _check_validation_objects(root)
+    if args.stack is not None:
+        stack = args.stack
+    else:
+        assert root is not None
+        stack = root / STACK_IN_DATA
+    if args.requirements:
+        _check_stack(stack)  # the grid's every cell would fail on it
     check_output(
         args.report_dir,
-        [model, root, stack],
+        [model, *([root] if root is not None else []), stack],
         overwrite=args.overwrite,
         folder=True,
         command=PROG,
@@ -803,12 +863,14 @@ def _run_edge(args: argparse.Namespace) -> int:
     with staged_folder(final, overwrite=args.overwrite) as work, scratch_folder(final) as scratch:
         if args.onnx is not None and not (args.ladder or args.requirements):
             _say(args, f"measuring {model.name} on every engine and device here ...")
+            assert root is not None
             rows = edge.onnx_rows(model, root, threads, scratch)
             result["onnx"] = [edge.asdict(r) for r in rows]
             sections.append(("Engines and devices", edge.edge_table(rows)))
         if args.ladder:
             _say(args, "measuring the speed ladder (each rung in a fresh process) ...")
             # without --onnx: the bundled model as msf-run picks it (fp32 or its int8 twin)
+            assert root is not None
             rungs = ladder.ladder_rows(args.onnx, root, threads=threads, scratch=scratch)
             result["ladder"] = [ladder.asdict(r) for r in rungs]
             sections.append(("Speed ladder (--speed)", ladder.ladder_table(rungs)))

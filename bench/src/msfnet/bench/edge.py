@@ -103,9 +103,12 @@ def _core(exc: InputError) -> str:
     return text.split(" (", 1)[0]
 
 
-def validation_crops(data: Path, lights: int = CROP_LIGHTS, size: int = CROP) -> list[dict]:
+def validation_crops(
+    data: Path, train_lights: int, lights: int = CROP_LIGHTS, size: int = CROP
+) -> list[dict]:
     """(images, lights, mask, gt) network inputs: a ``size`` px crop of each validation object
-    centred on its mask, ``lights`` evenly spaced lights (after the protocol's selection)."""
+    centred on its mask, ``lights`` evenly spaced lights (after the protocol's selection),
+    normalised for a model trained with ``train_lights`` (its metadata, as msf-run reads it)."""
     from msfnet.runtime.infer.normalise import network_input
     from msfnet.runtime.stack import load_stack
 
@@ -120,8 +123,9 @@ def validation_crops(data: Path, lights: int = CROP_LIGHTS, size: int = CROP) ->
         y0 = int(np.clip(ys.mean() - size / 2, 0, h - size)) // 4 * 4
         x0 = int(np.clip(xs.mean() - size / 2, 0, w - size)) // 4 * 4
         rows, cols = slice(y0, y0 + size), slice(x0, x0 + size)
-        images, lit = network_input(stack, rows, cols)
-        assert stack.normals_gt is not None
+        images, lit = network_input(stack, rows, cols, train_lights=train_lights)
+        if stack.normals_gt is None:
+            raise InputError("validation object without ground-truth normals", folder)
         crops.append(
             {
                 "name": name,
@@ -157,7 +161,7 @@ def measure_path(spec: dict) -> dict:
     from msfnet.runtime.results.profile import peak_rss_mb
 
     engine = _open(spec)
-    crops = validation_crops(Path(spec["data"]))
+    crops = validation_crops(Path(spec["data"]), engine.info.train_lights)
     maes = []
     for c in crops:
         out = engine.run(c["images"], c["lights"])[0].transpose(1, 2, 0)
@@ -350,12 +354,18 @@ def requirement_rows(
     scratch: Path,
     *,
     quick: bool = False,
-    engines: tuple[tuple[str | None, str | None], ...] = ((None, None), ("onnxruntime", "fp32")),
+    engines: tuple[tuple[str | None, str | None], ...] | None = None,
 ) -> list[Requirement]:
     """The grid, each cell in a fresh process; ``engines``: (engine, precision) pairs, None =
-    dispatch's default. ``model`` None: the bundled model msf-run would open here (its int8
-    twin where dispatch.bundled_precision prefers it; an engine or precision named keeps the
-    fp32 file)."""
+    dispatch's default; by default that and ONNX Runtime in the model's own precision (fp32,
+    or int8 for an int8 file: ONNX Runtime cannot run an int8 file in fp32). ``model`` None:
+    the bundled model msf-run would open here (its int8 twin where dispatch.bundled_precision
+    prefers it; an engine or precision named keeps the fp32 file)."""
+    if engines is None:
+        from msfnet.runtime.engines import model_precision, read_model_file
+
+        own = "fp32" if model is None else model_precision(read_model_file(model))
+        engines = ((None, None), ("onnxruntime", own))
     sizes, lights = (
         (QUICK_SIZES, QUICK_LIGHTS) if quick else (REQUIREMENT_SIZES, REQUIREMENT_LIGHTS)
     )

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.files import writing_as
 
 # The validation objects (never calibration or training data) and their protocol selections.
 VALIDATION = (("ballPNG", None), ("bearPNG", "21-96"), ("harvestPNG", None))
@@ -78,7 +79,8 @@ def measure_rung(spec: dict) -> dict:
         t0 = time.perf_counter()
         result = model(stack)
         seconds += time.perf_counter() - t0
-        assert result.metrics is not None
+        if result.metrics is None:
+            raise InputError("validation object without ground-truth normals", stack.source)
         mae[stack.name] = result.metrics.mae_deg
         ls = LeastSquaresEstimator().estimate(stack, TilingOptions(), StageTimer()).normals
         detail.append(detail_ratio(result.normals, ls, stack.mask))
@@ -106,9 +108,11 @@ def ladder_rows(
     rungs: tuple[str, ...] | None = None,
     scratch: Path,
 ) -> list[LadderRow]:
-    """Every rung (or ``rungs``), each in a fresh process; RuntimeError with the worker's last
-    error line if one fails. ``model`` None: the bundled model msf-run would open here (its
-    int8 twin where it is the faster default, engines.dispatch.bundled_precision)."""
+    """Every rung (or ``rungs``), each in a fresh process; InputError where a worker refused
+    its input (a static-shape model, an object without ground truth), RuntimeError with the
+    worker's last error line where it failed otherwise. ``model`` None: the bundled model
+    msf-run would open here (its int8 twin where it is the faster default,
+    engines.dispatch.bundled_precision)."""
     from msfnet.runtime.infer.ladder import RUNGS
 
     rows = []
@@ -131,6 +135,9 @@ def ladder_rows(
             capture_output=True,
             text=True,
         )
+        if proc.returncode == 2 and result.is_file():  # the input, in the worker's words
+            refused = json.loads(result.read_text())
+            raise InputError(f"speed rung {name}: {refused['input_error']}", refused["path"])
         if proc.returncode != 0:
             last = (proc.stderr.strip().splitlines() or ["failed"])[-1]
             raise RuntimeError(f"speed rung {name}: {last[:300]}")
@@ -162,7 +169,14 @@ def ladder_table(rows: list[LadderRow], lights: int = LADDER_LIGHTS) -> str:
 def main(argv: list[str] | None = None) -> int:
     spec_path = Path((argv or sys.argv[1:])[0])
     spec = json.loads(spec_path.read_text())
-    Path(spec["result"]).write_text(json.dumps(measure_rung(spec)))
+    try:
+        with writing_as("msf-bench"):  # errors name msf-bench's options, not the Python API's
+            row = measure_rung(spec)
+    except InputError as exc:  # bad input, not a bug: handed back for one error line
+        path = None if exc.path is None else str(exc.path)
+        Path(spec["result"]).write_text(json.dumps({"input_error": exc.message, "path": path}))
+        return 2
+    Path(spec["result"]).write_text(json.dumps(row))
     return 0
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msfnet.common.errors import InputError
 from msfnet.runtime.engines.openvino import INT8_CHUNK
 from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK
 from msfnet.runtime.infer.flops import inference_flops
@@ -233,6 +234,9 @@ def time_msf_run(
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    if proc.returncode == 2:  # msf-run refused its input or options: say it in its words
+        lines = err.strip().splitlines()
+        raise InputError(f"workload (d): {lines[-1] if lines else 'msf-run: error'}")
     if proc.returncode != 0:
         raise RuntimeError(f"msf-run failed ({proc.returncode}): {err.strip()[-400:]}")
     profile = {}
