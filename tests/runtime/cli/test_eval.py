@@ -129,6 +129,41 @@ def test_closing_line_lists_only_what_was_written(bench_root: Path, tmp_path: Pa
     assert not list((tmp_path / "nogt").rglob("*_error.png"))
 
 
+def test_a_light_file_that_fits_no_later_object_is_refused_before_the_first_runs(
+    bench_root: Path, tmp_path: Path, capfd, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """msf-eval scored the first objects for minutes, then met the mismatch and kept nothing."""
+    lights = tmp_path / "six.txt"
+    lights.write_text((bench_root / "objA" / "light_directions.txt").read_text())  # 6 lights
+    ran = []
+    real = Model.__call__
+    monkeypatch.setattr(
+        Model, "__call__", lambda self, *a, **k: ran.append(1) or real(self, *a, **k)
+    )
+    out = tmp_path / "out"
+    argv = [str(bench_root / "objA"), str(bench_root / "objB"), "--lights", str(lights)]
+    assert main([*argv, "--l2-only", "-o", str(out)]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "6 light directions for 9 images" in err[0], err
+    assert ran == [] and not out.exists()
+
+
+def test_the_protocol_line_and_the_published_least_squares_are_shown(
+    tmp_path: Path, capsys
+) -> None:
+    """--help promised a line for a benchmark's own selection (DiLiGenT bear 21-96) that
+    msf-eval never printed; L2 (paper) was left out beside our l2."""
+    root = tmp_path / "bench"
+    save_stack(sphere_stack(n=9, seed=2, name="ball"), root / "ballPNG")
+    (root / "objects.txt").write_text("ballPNG 2-9\n")
+    out = tmp_path / "out"
+    assert main([str(root), "--l2-only", "-o", str(out)]) == 0
+    assert "ballPNG: using images 2-9" in capsys.readouterr().err
+    table = (out / "results.md").read_text()
+    assert "MAE l2 | L2 (paper) |" in table and "| 4.10 |" in table
+    assert "rows at fewer lights do not compare one to one" in table
+
+
 def test_a_stack_file_is_not_a_benchmark(tmp_path: Path, capfd) -> None:
     """msf-eval x.npz said "benchmark root or object folder not found" for a file there."""
     npz = tmp_path / "good.npz"

@@ -28,6 +28,7 @@ from msfnet.runtime.evaluate.datasets import (
     BenchObject,
     check_unique,
     find_objects,
+    protocol_note,
 )
 from msfnet.runtime.evaluate.detail_ratio import detail_ratio
 from msfnet.runtime.evaluate.metrics import NormalMetrics
@@ -36,6 +37,7 @@ from msfnet.runtime.results.maps import pictures
 from msfnet.runtime.results.outputs import normals_png, write_rgb_png
 from msfnet.runtime.results.provenance import Provenance
 from msfnet.runtime.stack import LoadOptions, load_stack
+from msfnet.runtime.stack.load import check_stack_files
 
 PROG = "msf-eval"
 COLUMNS = ("mae_deg", "err15", "err30")
@@ -169,9 +171,9 @@ def markdown_table(
 ) -> str:
     """Objects with ground truth: MAE per method beside the published figures, then err15/30,
     and a mean row."""
-    published = [
-        p for p in PUBLISHED_METHODS if any(p in PUBLISHED_MAE.get(r.name, {}) for r in rows)
-    ]
+    # the papers' least squares beside ours where l2 is scored
+    shown = (("L2 (paper)",) if "l2" in methods else ()) + PUBLISHED_METHODS
+    published = [p for p in shown if any(p in PUBLISHED_MAE.get(r.name, {}) for r in rows)]
     head = ["object", "lights"] + [f"MAE {m}" for m in methods] + published
     head += [f"<15° % {m}" for m in methods] + [f"<30° % {m}" for m in methods]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -188,6 +190,12 @@ def markdown_table(
         cells += [_fmt(res.get(m, {}).get("err15"), True) for m in methods]
         cells += [_fmt(res.get(m, {}).get("err30"), True) for m in methods]
         lines.append("| " + " | ".join(cells) + " |")
+    if published:
+        lines.append(
+            "\nPublished columns: the papers' figures, with every image of the benchmark's "
+            "protocol (DiLiGenT: 96 lights; bear images 21-96); rows at fewer lights do not "
+            "compare one to one."
+        )
     return "\n".join(lines)
 
 
@@ -234,14 +242,24 @@ def evaluate(
     if not runners:
         raise InputError("nothing to evaluate: both the model and l2 are switched off")
     methods = list(runners)
+
+    def options_for(obj: BenchObject) -> LoadOptions:
+        # --select / --lights override the benchmark's selection and shared light file
+        # "is not None": --select '' is a typo the parser refuses, not "the benchmark's own"
+        select = load.select if load.select is not None else obj.select
+        return replace(load, select=select, lights=load.lights or obj.lights)
+
+    for obj in objects:  # a light file that does not fit the 3rd object, found before the 1st
+        check_stack_files(obj.folder, options_for(obj))
+    if lines:  # what msf-run says of a benchmark's own selection, said here too
+        for obj in objects:
+            if load.select is None and obj.select is not None:
+                print(f"{PROG}: {protocol_note(obj.folder.name, obj.select)}", file=sys.stderr)
     results = []
     draw = pictures.can_draw()  # the error pictures need Pillow; the scores do not
     with staged_folder(outdir, overwrite=overwrite) as tmp:
         for k, obj in enumerate(objects, 1):
-            # --select / --lights override the benchmark's selection and shared light file
-            # "is not None": --select '' is a typo the parser refuses, not "the benchmark's own"
-            select = load.select if load.select is not None else obj.select
-            opts = replace(load, select=select, lights=load.lights or obj.lights)
+            opts = options_for(obj)
             started = time.perf_counter()
             stack = load_stack(obj.folder, opts)
             (tmp / obj.folder.name).mkdir()

@@ -397,13 +397,17 @@ def prepare_stack(stack: Stack, options: LoadOptions) -> Stack:
     return _finish(stack, options)
 
 
-def load_folder(
-    folder: Path, options: LoadOptions = LoadOptions(), indices: Sequence[int] | None = None
-) -> Stack:
-    """A DiLiGenT-layout object folder, or any folder of images plus a lights file.
+@dataclass(frozen=True)
+class _FolderFiles:
+    """A folder stack's files and light table, read and checked, no image decoded."""
 
-    ``indices`` (0-based) picks the images to keep; only those are decoded.
-    """
+    paths: list[Path]
+    lights_path: Path
+    light_dirs: np.ndarray
+    intensities: np.ndarray
+
+
+def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
     if not folder.is_dir():
         if folder.exists():  # an image, a .npy, ...: it is there, just not a stack
             raise InputError(f"not a supported stack: expected {STACK_KINDS}", folder)
@@ -436,6 +440,31 @@ def load_folder(
         check_intensities(ints, int_path)
     else:
         ints = np.ones((len(paths), 3), np.float32)
+    return _FolderFiles(paths, lights_path, light_dirs, ints)
+
+
+def check_stack_files(path: str | Path, options: LoadOptions | None = None) -> None:
+    """What :func:`load_stack` checks before decoding an image (the folder, its image list,
+    light and intensity files and their counts, --select / --max-lights), in milliseconds:
+    a command over many stacks finds a mismatch before its first stack runs, not after."""
+    opts = options or LoadOptions()
+    path = Path(path)
+    if path.suffix.lower() == ".npz":
+        return  # one file, read whole: load_npz checks it as it opens it
+    files = _folder_files(path, opts)
+    selection(len(files.paths), opts.select, opts.max_lights)
+
+
+def load_folder(
+    folder: Path, options: LoadOptions = LoadOptions(), indices: Sequence[int] | None = None
+) -> Stack:
+    """A DiLiGenT-layout object folder, or any folder of images plus a lights file.
+
+    ``indices`` (0-based) picks the images to keep; only those are decoded.
+    """
+    files = _folder_files(folder, options)
+    paths, lights_path = files.paths, files.lights_path
+    light_dirs, ints = files.light_dirs, files.intensities
     if indices is not None:
         keep = list(indices)
         paths, light_dirs, ints = [paths[i] for i in keep], light_dirs[keep], ints[keep]
