@@ -169,6 +169,7 @@ def test_msf_bench_ladder_and_requirements_run_without_torch(tmp_path: Path) -> 
     if not (SHARED / "DiLiGenT" / "harvestPNG").is_dir():
         pytest.skip(f"shared data not found: {SHARED}")
     import json
+    from statistics import median
 
     model = tiny_msfnet_onnx(tmp_path / "tiny.onnx")
     report = tmp_path / "report"
@@ -188,10 +189,27 @@ def test_msf_bench_ladder_and_requirements_run_without_torch(tmp_path: Path) -> 
     assert cells == {(64, 8), (128, 8)}
     assert all(r["status"] == "ok" and r["peak_mb"] > 0 for r in data["requirements"])
     assert "## Speed ladder (--speed)" in (report / "REPORT.md").read_text()
+    # medians of ladder.REPEAT runs, every run kept (one sample each moved 2.3x-3.1x)
+    for r in data["requirements"]:
+        assert len(r["samples_s"]) == ladder.REPEAT and r["seconds"] == median(r["samples_s"])
+    for r in data["ladder"]:
+        runs = r["samples_s"]
+        assert all(len(v) == ladder.REPEAT for v in runs.values())
+        assert r["seconds"] == pytest.approx(sum(median(v) for v in runs.values()), rel=1e-12)
 
 
 @pytest.mark.parametrize(
-    "extra", [["--checkpoint", "a.pth"], ["--random-weights"], ["--no-e2e"], ["--lights", "8"]]
+    "extra",
+    [
+        ["--checkpoint", "a.pth"],
+        ["--random-weights"],
+        ["--no-e2e"],
+        ["--lights", "8"],
+        # read by --requirements only; one thread count measured
+        ["--stack", "s"],
+        ["--quick"],
+        ["--threads", "1,4"],
+    ],
 )
 def test_torch_benchmark_options_are_refused_in_edge_mode(
     tmp_path: Path, extra: list[str], capsys
@@ -252,7 +270,7 @@ def test_requirements_run_onnx_runtime_in_the_files_own_precision(
 
     def worker(kind, spec, scratch):  # type: ignore[no-untyped-def]
         seen.append((spec["engine"], spec["precision"]))
-        return {"seconds": 1.0, "peak_mb": 100.0}
+        return {"seconds": 1.0, "peak_mb": 100.0, "samples_s": [1.0, 1.1, 0.9]}
 
     monkeypatch.setattr(edge, "run_worker", worker)
     edge.requirement_rows(tmp_path / "m_int8.onnx", tmp_path, 1, tmp_path, quick=True)

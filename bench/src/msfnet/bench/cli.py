@@ -70,6 +70,7 @@ STACK_IN_DATA = Path("DiLiGenT") / "ballPNG"
 CALIB_IN_DATA = [STACK_IN_DATA, *(Path("psmImages") / o for o in ("cat", "owl", "horse"))]
 
 PROG = "msf-bench"
+DEFAULT_THREADS = [2, 1]
 
 # --lights N: the per-light loop is timed on (d)'s whole N-light image up to this many lights
 # (a full DiLiGenT object: 5.4 s a light and run on the AMX machine, 2 threads, quiet); above it
@@ -177,8 +178,9 @@ run, never cached between runs, so a report always measures the models it holds.
     p.add_argument(
         "--threads",
         type=thread_counts,
-        default=[2, 1],
-        help="thread counts, comma-separated (default 2,1)",
+        default=DEFAULT_THREADS,
+        help="thread counts, comma-separated (default 2,1; --onnx, --ladder and "
+        "--requirements take one, and measure the largest of the default)",
     )
     p.add_argument(
         "--cpu-proxy",
@@ -924,13 +926,31 @@ def _refuse_torch_options(args: argparse.Namespace) -> None:
         )
         if value
     ]
+    mode = "--onnx" if args.onnx is not None else "--ladder" if args.ladder else "--requirements"
     if given:
-        mode = (
-            "--onnx" if args.onnx is not None else "--ladder" if args.ladder else "--requirements"
-        )
         raise InputError(
             f"{', '.join(given)}: options of the torch benchmark, not used with {mode} "
             "(it measures ONNX files torch-free); drop them"
+        )
+    # what only the requirements grid reads, given to a mode that would drop it in silence
+    unused = (
+        []
+        if args.requirements
+        else [
+            flag
+            for flag, value in (("--stack", args.stack is not None), ("--quick", args.quick))
+            if value
+        ]
+    )
+    if unused:
+        raise InputError(
+            f"{', '.join(unused)}: used by --requirements only, not by {mode} (it scores the "
+            "DiLiGenT validation objects at fixed sizes); drop them"
+        )
+    if len(set(args.threads)) > 1 and args.threads != DEFAULT_THREADS:
+        raise InputError(
+            f"--threads {','.join(map(str, args.threads))}: {mode} measures one thread count; "
+            "give one (or run once per count)"
         )
 
 

@@ -12,7 +12,7 @@ import json
 import subprocess
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,15 +25,19 @@ VALIDATION = (("ballPNG", None), ("bearPNG", "21-96"), ("harvestPNG", None))
 LADDER_LIGHTS = 12
 
 
+REPEAT = 3  # timed runs of each object on each rung (and of each requirements cell)
+
+
 @dataclass(frozen=True)
 class LadderRow:
     rung: str
     summary: str
     engine: str  # engine and precision that ran, e.g. "openvino bf16"
-    seconds: float  # estimate time summed over the objects (network + least squares + fusion)
+    seconds: float  # estimate time summed over the objects, each its median of REPEAT runs
     peak_mb: float  # peak RSS of the process that ran the rung
     mae_deg: dict[str, float]  # object -> mean angular error vs ground truth
     detail: float  # mean over objects of the detail ratio to least squares (1 = all kept)
+    samples_s: dict[str, list[float]] = field(default_factory=dict)  # object -> every run
 
     @property
     def mean_mae(self) -> float:
@@ -74,11 +78,15 @@ def measure_rung(spec: dict) -> dict:
     )
     stacks = validation_stacks(Path(spec["data"]), int(spec["lights"]))
     model(stacks[0])  # warm-up: first-call allocations and compilation at these sizes
-    seconds, mae, detail = 0.0, {}, []
+    seconds, mae, detail, samples = 0.0, {}, [], {}
     for stack in stacks:
-        t0 = time.perf_counter()
-        result = model(stack)
-        seconds += time.perf_counter() - t0
+        runs = []
+        for _ in range(REPEAT):  # a shared edge box is noisy: the median of a few runs
+            t0 = time.perf_counter()
+            result = model(stack)
+            runs.append(time.perf_counter() - t0)
+        samples[stack.name] = runs
+        seconds += float(np.median(runs))
         if result.metrics is None:
             raise InputError("validation object without ground-truth normals", stack.source)
         mae[stack.name] = result.metrics.mae_deg
@@ -93,6 +101,7 @@ def measure_rung(spec: dict) -> dict:
         peak_rss_mb(),
         mae,
         float(np.mean(detail)),
+        samples,
     )
     return asdict(row)
 
