@@ -145,6 +145,10 @@ def test_a_path_whose_normals_are_unusable_gets_no_tick(tmp_path: Path, monkeypa
         "edge_paths",
         lambda m: ([edge.EdgePath("ONNX Runtime fp32", "onnxruntime", "fp32", None)], []),
     )
+    from msfnet.runtime import engines
+
+    monkeypatch.setattr(engines, "read_model_file", lambda path: SimpleNamespace(train_lights=32))
+    monkeypatch.setattr(edge, "validation_crops", lambda data, tl: [])
     monkeypatch.setattr(
         edge,
         "run_worker",
@@ -225,7 +229,9 @@ def test_torch_benchmark_options_are_refused_in_edge_mode(
 
 
 @pytest.mark.skipif(not (SHARED / "DiLiGenT").is_dir(), reason="needs ../shared/data/DiLiGenT")
-def test_onnx_rows_feed_the_network_the_scaling_its_file_declares(monkeypatch) -> None:
+def test_onnx_rows_feed_the_network_the_scaling_its_file_declares(
+    tmp_path: Path, monkeypatch
+) -> None:
     """msf-bench --onnx scored a model exported with --train-lights 96 as if trained on 32
     lights: its MAE was not what msf-run gets from the same file."""
     import numpy as np
@@ -238,10 +244,31 @@ def test_onnx_rows_feed_the_network_the_scaling_its_file_declares(monkeypatch) -
     for a, b in zip(base, wide, strict=True):
         np.testing.assert_allclose(b["images"], a["images"] * scale, rtol=1e-5, atol=1e-7)
 
+    # the row processes get crops cut as the file declares (msfnet.train_lights 96 here)
+    model = tiny_msfnet_onnx(tmp_path / "m.onnx", **{"msfnet.train_lights": "96"})
     seen = []
+    real = edge.validation_crops
+    monkeypatch.setattr(
+        edge, "validation_crops", lambda data, tl: seen.append(tl) or real(data, tl)
+    )
+    monkeypatch.setattr(
+        edge, "edge_paths", lambda m: ([edge.EdgePath("ORT", "onnxruntime", "fp32")], [])
+    )
+    specs = []
+    monkeypatch.setattr(
+        edge,
+        "run_worker",
+        lambda kind, spec, scratch: specs.append(spec) or {"mae_deg": 3.0, "ms": 1.0, "peak_mb": 1},
+    )
+    edge.onnx_rows(model, SHARED, 1, tmp_path)
+    assert seen == [96]
+    crops = edge.read_crops(Path(specs[0]["crops"]))
+    assert [c["name"] for c in crops] == [c["name"] for c in wide]
+    for a, b in zip(crops, wide, strict=True):
+        np.testing.assert_array_equal(a["images"], b["images"])
 
     class Engine:
-        info = SimpleNamespace(train_lights=96)  # what measure_path reads of ModelInfo
+        info = SimpleNamespace(train_lights=96)
 
         def run(self, images, lights):  # type: ignore[no-untyped-def]
             up = np.zeros((3, *images.shape[-2:]), np.float32)
@@ -249,12 +276,8 @@ def test_onnx_rows_feed_the_network_the_scaling_its_file_declares(monkeypatch) -
             return [up]
 
     monkeypatch.setattr(edge, "_open", lambda spec: Engine())
-    real = edge.validation_crops
-    monkeypatch.setattr(
-        edge, "validation_crops", lambda data, tl: seen.append(tl) or real(data, tl)
-    )
-    edge.measure_path({"model": "m.onnx", "data": str(SHARED), "repeat": 1})
-    assert seen == [96]
+    row = edge.measure_path({"model": "m.onnx", "crops": specs[0]["crops"], "repeats": 1})
+    assert 0 < row["mae_deg"] < 90  # scored against the crops' ground truth
 
 
 def test_requirements_run_onnx_runtime_in_the_files_own_precision(

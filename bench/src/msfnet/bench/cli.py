@@ -852,6 +852,10 @@ def _run_edge(args: argparse.Namespace) -> int:
         command=PROG,
     )
     threads = max(args.threads)
+
+    def progress(line: str) -> None:  # fresh-process cells take minutes on a slow box
+        _say(args, f"  {line}")
+
     bundled = bundled_model_path().name  # what Model() opens here with nothing named
     result: dict = {
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
@@ -866,19 +870,23 @@ def _run_edge(args: argparse.Namespace) -> int:
         if args.onnx is not None and not (args.ladder or args.requirements):
             _say(args, f"measuring {model.name} on every engine and device here ...")
             assert root is not None
-            rows = edge.onnx_rows(model, root, threads, scratch)
+            rows = edge.onnx_rows(model, root, threads, scratch, say=progress)
             result["onnx"] = [edge.asdict(r) for r in rows]
             sections.append(("Engines and devices", edge.edge_table(rows)))
         if args.ladder:
             _say(args, "measuring the speed ladder (each rung in a fresh process) ...")
             # without --onnx: the bundled model as msf-run picks it (fp32 or its int8 twin)
             assert root is not None
-            rungs = ladder.ladder_rows(args.onnx, root, threads=threads, scratch=scratch)
+            rungs = ladder.ladder_rows(
+                args.onnx, root, threads=threads, scratch=scratch, say=progress
+            )
             result["ladder"] = [ladder.asdict(r) for r in rungs]
             sections.append(("Speed ladder (--speed)", ladder.ladder_table(rungs)))
         if args.requirements:
             _say(args, "measuring the requirements grid (each cell in a fresh process) ...")
-            reqs = edge.requirement_rows(args.onnx, stack, threads, scratch, quick=args.quick)
+            reqs = edge.requirement_rows(
+                args.onnx, stack, threads, scratch, quick=args.quick, say=progress
+            )
             result["requirements"] = [edge.asdict(r) for r in reqs]
             sections.append(("Requirements", edge.requirements_table(reqs)))
         m = result["machine"]

@@ -23,6 +23,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -162,7 +163,7 @@ def measure_path(spec: dict) -> dict:
     from msfnet.runtime.results.profile import peak_rss_mb
 
     engine = _open(spec)
-    crops = validation_crops(Path(spec["data"]), engine.info.train_lights)
+    crops = read_crops(Path(spec["crops"]))  # cut by the parent: peak MB is the engine's
     maes = []
     for c in crops:
         out = engine.run(c["images"], c["lights"])[0].transpose(1, 2, 0)
@@ -267,6 +268,25 @@ def run_module(module: str, spec: dict, spec_file: Path) -> dict:
     return json.loads(Path(spec["result"]).read_text())
 
 
+CROP_FIELDS = ("images", "lights", "mask", "gt")
+
+
+def write_crops(crops: list[dict], path: Path) -> Path:
+    """The validation crops as one .npz (plain arrays, no pickle) for the row processes:
+    loading three full DiLiGenT objects to cut them added ~66 MB to each row's peak."""
+    arrays = {f"{k}:{field}": c[field] for k, c in enumerate(crops) for field in CROP_FIELDS}
+    np.savez(path, names=np.array([c["name"] for c in crops]), **arrays)
+    return path
+
+
+def read_crops(path: Path) -> list[dict]:
+    with np.load(path, allow_pickle=False) as data:
+        return [
+            {"name": str(name), **{f: data[f"{k}:{f}"] for f in CROP_FIELDS}}
+            for k, name in enumerate(data["names"])
+        ]
+
+
 def run_worker(kind: str, spec: dict, scratch: Path) -> dict:
     """``spec`` run by ``kind`` (path | requirement) in a fresh process; {"error": line} if it
     failed."""
@@ -274,14 +294,28 @@ def run_worker(kind: str, spec: dict, scratch: Path) -> dict:
     return run_module("msfnet.bench.edge", spec, scratch / "edge-spec.json")
 
 
-def onnx_rows(model: Path, data: Path, threads: int | None, scratch: Path) -> list[EdgeRow]:
+def onnx_rows(
+    model: Path,
+    data: Path,
+    threads: int | None,
+    scratch: Path,
+    say: Callable[[str], None] = lambda line: None,
+) -> list[EdgeRow]:
+    """One row per engine / device path, each in a fresh process; ``say``: a line per row."""
+    from msfnet.runtime.engines import read_model_file
+
     paths, rows = edge_paths(model)
     size = model.stat().st_size / 2**20
+    # normalised as the file declares (its train_lights), as msf-run feeds it
+    crops = validation_crops(data, read_model_file(model).train_lights)
+    crop_file = write_crops(crops, scratch / "edge-crops.npz")
+    del crops
     measured = []
-    for p in paths:
+    for k, p in enumerate(paths, 1):
+        say(f"[{k}/{len(paths)}] {p.label} ...")
         spec = {
             "model": str(model),
-            "data": str(data),
+            "crops": str(crop_file),
             "threads": threads,
             "engine": p.engine,
             "precision": p.precision,
@@ -360,6 +394,7 @@ def requirement_rows(
     *,
     quick: bool = False,
     engines: tuple[tuple[str | None, str | None], ...] | None = None,
+    say: Callable[[str], None] = lambda line: None,
 ) -> list[Requirement]:
     """The grid, each cell in a fresh process; ``engines``: (engine, precision) pairs, None =
     dispatch's default; by default that and ONNX Runtime in the model's own precision (fp32,
@@ -374,10 +409,13 @@ def requirement_rows(
     sizes, lights = (
         (QUICK_SIZES, QUICK_LIGHTS) if quick else (REQUIREMENT_SIZES, REQUIREMENT_LIGHTS)
     )
-    out = []
+    out: list[Requirement] = []
+    total = len(engines) * len(lights) * len(sizes)
     for engine, precision in engines:
         for n in lights:
             for s in sizes:
+                name = f"{engine or 'default engine'} {precision or ''}".strip()
+                say(f"[{len(out) + 1}/{total}] {s} x {s} px, {n} lights, {name} ...")
                 spec = {
                     "model": None if model is None else str(model),
                     "stack": str(stack),

@@ -12,6 +12,7 @@ import json
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -116,6 +117,7 @@ def ladder_rows(
     precision: str | None = None,
     rungs: tuple[str, ...] | None = None,
     scratch: Path,
+    say: Callable[[str], None] = lambda line: None,
 ) -> list[LadderRow]:
     """Every rung (or ``rungs``), each in a fresh process; InputError where a worker refused
     its input (a static-shape model, an object without ground truth), RuntimeError with the
@@ -125,7 +127,9 @@ def ladder_rows(
     from msfnet.runtime.infer.ladder import RUNGS
 
     rows = []
-    for name in rungs or tuple(RUNGS):
+    names = rungs or tuple(RUNGS)
+    for k, name in enumerate(names, 1):
+        say(f"[{k}/{len(names)}] rung {name} ...")
         result = scratch / f"ladder-{name}.json"
         spec: dict[str, object] = {
             "rung": name,
