@@ -103,3 +103,21 @@ def test_overwrite_replaces_only_what_msf_synth_wrote(tmp_path: Path, capfd) -> 
     assert manifest.pop("command") == "msf-synth"
     (old / MANIFEST).write_text(json.dumps(manifest))
     assert main([str(old), *SMALL, "--overwrite", "-q"]) == 0
+
+
+@pytest.mark.parametrize(("materials", "dark"), [("diffuse", 0.0), ("diffuse,dark", 0.1)])
+def test_the_hard_presets_dark_objects_follow_materials(
+    materials: str, dark: float, tmp_path: Path, monkeypatch
+) -> None:
+    """--preset hard --materials diffuse still drew ~10 % of its objects glossy and dark."""
+    seen = []
+    real = cli.render_set
+
+    def spy(seed, count, options, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append(options)
+        return real(seed, count, options, **kwargs)
+
+    monkeypatch.setattr(cli, "render_set", spy)
+    argv = [str(tmp_path / "s"), *SMALL, "--preset", "hard", "--materials", materials]
+    assert main(argv) == 0
+    assert seen[0].very_dark == dark

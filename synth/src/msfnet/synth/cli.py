@@ -103,6 +103,9 @@ def run(args: argparse.Namespace) -> list[str]:
     materials = (
         base.materials if args.materials is None else _names(args.materials, ALL_KINDS, "materials")
     )
+    # the hard preset draws 10 % of its objects in the dark material whatever the list: a
+    # --materials that leaves it out must leave it out of those too
+    dark = {} if args.materials is None or "dark" in materials else {"very_dark": 0.0}
     options = RenderOptions.preset(
         args.preset,
         size=args.size,
@@ -110,6 +113,7 @@ def run(args: argparse.Namespace) -> list[str]:
         materials=materials,
         cast_shadows=not args.no_shadows,
         noise=not args.no_noise,
+        **dark,
     )
     # --overwrite replaces only a root msf-synth rendered (its help says so), never another
     # command's results; the manifest names the writer
