@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from msfnet.common.errors import InputError
+from msfnet.common.cli import command_main, make_parser, path_arg, positive_int, thread_count
 from msfnet.model.network import MSFNet
 from msfnet.runtime.contract import INPUT_MULTIPLE, TRAIN_LIGHTS, ModelInfo
 from msfnet.runtime.evaluate.metrics import normal_metrics
@@ -75,32 +75,37 @@ def predict_normals(
     return normals
 
 
-def main(argv: list[str] | None = None) -> int:
-    from msfnet.model.checkpoint import load_model
+PROG = "python -m msfnet.model.predict"
 
-    p = argparse.ArgumentParser(
-        prog="python -m msfnet.model.predict",
-        description="Torch inference of a checkpoint on one stack; "
-        "prints MAE/err15/err30 when ground truth exists.",
+
+def build_parser() -> argparse.ArgumentParser:
+    p = make_parser(
+        PROG,
+        "Torch inference of a checkpoint on one stack; prints MAE/err15/err30 when ground "
+        "truth exists.",
+        [f"{PROG} runs/mine/best.pth ../shared/data/DiLiGenT/ballPNG --max-lights 12"],
     )
-    p.add_argument("checkpoint")
-    p.add_argument("stack")
-    p.add_argument("--max-lights", type=int, default=None)
+    p.add_argument("checkpoint", type=path_arg)
+    p.add_argument("stack", type=path_arg)
+    p.add_argument("--max-lights", type=positive_int, default=None)
     p.add_argument(
         "--fp32",
         action="store_true",
         help="no bf16 autocast (it is only used where the CPU has native bf16)",
     )
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--tile", type=int, default=128, help="tile side in pixels (default 128)")
-    args = p.parse_args(argv)
+    p.add_argument("--threads", type=thread_count, default=2)
+    p.add_argument(
+        "--tile", type=positive_int, default=128, help="tile side in pixels (default 128)"
+    )
+    return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    from msfnet.model.checkpoint import load_model
+
     torch.set_num_threads(args.threads)
-    try:
-        model = load_model(args.checkpoint)
-        stack = load_stack(args.stack, max_lights=args.max_lights)
-    except InputError as exc:
-        print(f"predict: error: {exc}", file=sys.stderr)
-        return 2
+    model = load_model(args.checkpoint)
+    stack = load_stack(args.stack, max_lights=args.max_lights)
     t0 = time.perf_counter()
     bf16 = not args.fp32 and torch.ops.mkldnn._is_mkldnn_bf16_supported()
     normals = predict_normals(model, stack, bf16=bf16, tile=args.tile)
@@ -115,6 +120,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(f"{stack.name}: predicted in {took:.1f} s (no ground truth)")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Bad options and input are one line and exit code 2, as in the msf-* commands."""
+    return command_main(PROG, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":
