@@ -5,7 +5,9 @@
 #
 # LIMIT: the command's limit in seconds (the device tool's timeout_s, default 600); training
 # stops MARGIN seconds before it (default 60). Results go to $OUT (set by the device tool;
-# runs/device otherwise): fp16 snapshots, log.jsonl, config.json, summary.json.
+# runs/device otherwise): fp16 snapshots, log.jsonl, config.json, summary.json. An OUT that
+# already holds a run's results is refused unless --overwrite (passed on to device_run); the
+# training itself runs in a private scratch folder inside --work, never in --work itself.
 # The machine is bare: msfnet is used from this checkout through PYTHONPATH (no install).
 set -u
 LIMIT=${LIMIT:-600}

@@ -183,3 +183,62 @@ def test_watchdog_exits_when_training_hangs(tmp_path) -> None:
     assert proc.returncode == 124, proc.stdout + proc.stderr
     assert time.monotonic() - t0 < 14
     assert json.loads((out / "summary.json").read_text())["exit"] == "watchdog"
+
+
+def _device_run(monkeypatch, out: Path, work: Path, *extra: str) -> int:
+    """device_run in this process, trained for 2 steps (its clock restarted: it counts from
+    the module's import)."""
+    from msfnet.model import device_run
+
+    monkeypatch.setattr(device_run, "STARTED", time.monotonic())
+    argv = ["--out", str(out), "--work", str(work), "--limit", "60", "--margin", "5"]
+    argv += ["--device", "cpu", *extra, "--", *SMALL, "--epochs", "1", "--steps-per-epoch", "2"]
+    return device_run.main([*argv, "--log-every", "1"])
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def test_device_run_never_deletes_the_work_folder(tmp_path, monkeypatch) -> None:
+    """--work DIR was removed with everything in it (rmtree) before msf-train even started."""
+    work = tmp_path / "precious"
+    work.mkdir()
+    (work / "notes.txt").write_text("my results")
+    (work / "last.pth").write_bytes(b"my weights")
+    before = _tree(work)
+    assert _device_run(monkeypatch, tmp_path / "out", work, "--batch", "1") == 0
+    assert _tree(work) == before
+    assert sorted(p.name for p in work.iterdir()) == sorted(before)  # no scratch left either
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["steps"] == 2
+
+
+def test_device_run_counts_samples_with_the_batch_msf_train_used(tmp_path, monkeypatch) -> None:
+    """A --batch after -- wins in msf-train; summary.json multiplied by device_run's own."""
+    out = tmp_path / "out"
+    rc = _device_run(monkeypatch, out, tmp_path / "w", "--batch", "3", "--", "--batch", "1")
+    assert rc == 0
+    assert json.loads((out / "config.json").read_text())["batch"] == 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 2 and summary["samples"] == 2
+
+
+def test_device_run_refuses_an_out_of_an_earlier_run(tmp_path, monkeypatch, capfd) -> None:
+    """A second run into one OUT replaced the first's log, config and summary and left both
+    runs' snapshots side by side; now it is refused, and --overwrite replaces them all."""
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("snap_0000999.pth", "summary.json", "log.jsonl", "config.json"):
+        (out / name).write_text("earlier run")
+    (out / "device_run.txt").write_text("the console log the documented call tees here")
+    before = _tree(out)
+    assert _device_run(monkeypatch, out, tmp_path / "w", "--batch", "1") == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("device_run: error: "), err
+    assert "earlier run" in err[0] and "--overwrite" in err[0]
+    assert _tree(out) == before and not (tmp_path / "w").exists()
+    assert _device_run(monkeypatch, out, tmp_path / "w", "--batch", "1", "--overwrite") == 0
+    summary = json.loads((out / "summary.json").read_text())
+    snaps = sorted(p.name for p in out.glob("snap_*.pth"))
+    assert snaps == list(summary["snapshots"]) and "snap_0000999.pth" not in snaps
+    assert (out / "device_run.txt").read_text() == before["device_run.txt"].decode()

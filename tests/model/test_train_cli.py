@@ -180,6 +180,7 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
     from types import SimpleNamespace
 
     from msfnet.common.errors import InputError
+    from msfnet.common.files.locks import LOCK_NAME
     from msfnet.model import train, train_cli
 
     out = _old_run(tmp_path, "best.pth", "curve.png", ".last.pth.msf-partial-1-x.pth")
@@ -199,8 +200,8 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
     class Stop(Exception):
         pass
 
-    def stop(**_):  # where training would start
-        started.append(sorted(p.name for p in out.iterdir()))
+    def stop(**_):  # where training would start (OUT held by msf-train's lock)
+        started.append(sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME))
         raise Stop
 
     ready = SimpleNamespace(
@@ -305,7 +306,7 @@ def test_a_run_stopped_before_its_first_validation_says_so(
             val_set=[0, 1],
             val_ls=7.2,
             run=lambda **_: SimpleNamespace(
-                stopped=None, step=3, best_val_mae=float("inf"), val_ls_mae=7.2
+                stopped=None, step=3, best_val_mae=float("inf"), val_ls_mae=7.2, budget_spent=True
             ),
         )
 

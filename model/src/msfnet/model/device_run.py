@@ -5,13 +5,16 @@
 ``scripts/device_train.sh`` wraps this for the device tool (docs/training.md gives the exact
 call). What it does:
 
-- trains with ``msf-train`` in a scratch folder (``--work``), from the bundled weights
+- trains with ``msf-train`` in a private scratch folder made inside ``--work`` (and removed
+  after the copy; nothing else in ``--work`` is touched), from the bundled weights
   (``--init``), on batches rendered on the device itself (``--render-on device``), until
   ``--margin`` seconds before ``--limit`` (counted from this process's start);
 - keeps ``--snapshots`` fp16 snapshots (~4.5 MB each) spread over the run and copies them, with
   ``log.jsonl``, ``config.json`` and ``summary.json`` (steps, samples/s, GPU utilisation, the
   share of the wall time spent training), into ``--out``: at most 8 files, each well under the
-  16 MiB that comes back from the device tool;
+  16 MiB that comes back from the device tool. An ``--out`` holding an earlier run's results
+  is refused unless ``--overwrite`` (which then replaces them all: no snapshots of two runs
+  side by side);
 - exits for sure: the renderer runs in this process (no workers to get stuck), a watchdog
   thread copies what exists and calls ``os._exit`` if training has not returned ``--margin / 2``
   seconds before the limit, and the normal path ends in ``os._exit`` too (after flushing), so
@@ -21,6 +24,7 @@ call). What it does:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -33,12 +37,15 @@ from functools import partial
 from pathlib import Path
 
 from msfnet.common.cli import path_arg
-from msfnet.common.files import write_atomic
+from msfnet.common.files import scratch_folder, write_atomic
 from msfnet.model.train_config import SNAPSHOT
 
 STARTED = time.monotonic()  # the command's clock starts with this process
 BUNDLED = Path(__file__).parent / "weights" / "msfnet_default.pth"
 MAX_FILES = 8  # what the device tool brings back from $OUT
+# What deliver() writes into --out besides the snapshots: with those, an earlier run's results.
+# (Anything else, such as the console log the documented call tees into $OUT, is not ours.)
+RESULTS = ("log.jsonl", "config.json", "summary.json")
 TRAIN_DEFAULTS = (
     # a fine-tune of the bundled weights on the hard cases; one "epoch" = 1,000 steps between
     # synthetic validations (6 objects at 96 px, seconds on a GPU)
@@ -103,6 +110,16 @@ def _rows(work: Path) -> list[dict]:
     return rows
 
 
+def _run_batch(work: Path, batch: int) -> int:
+    """The batch the run trained with: its config.json's (a --batch given to msf-train after
+    ``--`` wins over device_run's own), ``batch`` if it wrote none."""
+    try:
+        stored = json.loads((work / "config.json").read_text()).get("batch")
+    except (OSError, ValueError, AttributeError):
+        return batch
+    return stored if isinstance(stored, int) and not isinstance(stored, bool) else batch
+
+
 def summarise(work: Path, sampler: UtilSampler, exit_: str, batch: int) -> Summary:
     import torch
 
@@ -117,7 +134,7 @@ def summarise(work: Path, sampler: UtilSampler, exit_: str, batch: int) -> Summa
         device=device,
         torch=torch.__version__,
         steps=steps,
-        samples=steps * batch,
+        samples=steps * _run_batch(work, batch),
         train_seconds=round(span, 1),
         wall_seconds=round(wall, 1),
         train_fraction=round(span / wall, 3) if wall > 0 else 0.0,
@@ -158,15 +175,29 @@ def _copy(src: Path, dest: Path) -> None:
     shutil.copyfile(src, dest)
 
 
+def earlier_results(out: Path) -> list[str]:
+    """What an earlier run delivered into ``out`` (snapshots, log, config, summary)."""
+    if not out.is_dir():
+        return []
+    return sorted(p.name for p in out.iterdir() if p.name in RESULTS or SNAPSHOT.fullmatch(p.name))
+
+
 def deliver(work: Path, out: Path, summary: Summary, keep: int) -> None:
-    """Copy the newest ``keep`` snapshots, the log, the config and the summary into ``out``."""
+    """Copy the newest ``keep`` snapshots, the log, the config and the summary into ``out``;
+    then remove the rest of an earlier run's results (main lets them be there only with
+    --overwrite), so the folder never mixes two runs' snapshots."""
     out.mkdir(parents=True, exist_ok=True)
+    stale = set(earlier_results(out))
     files = [*_snapshots(work, keep), work / "log.jsonl", work / "config.json"]
     for src in files:
         if src.is_file():
             write_atomic(out / src.name, partial(_copy, src))
+            stale.discard(src.name)
     text = json.dumps(asdict(summary), indent=1) + "\n"
     write_atomic(out / "summary.json", lambda tmp: tmp.write_text(text))
+    stale.discard("summary.json")
+    for name in sorted(stale):
+        (out / name).unlink(missing_ok=True)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -175,7 +206,18 @@ def build_parser() -> argparse.ArgumentParser:
         description="A time-boxed msf-train run for a lent GPU (see docs/training.md).",
     )
     p.add_argument("--out", type=path_arg, required=True, help="what comes back ($OUT)")
-    p.add_argument("--work", type=path_arg, default=Path("/tmp/msf_device_run"))
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the results of an earlier run in --out (refused otherwise)",
+    )
+    p.add_argument(
+        "--work",
+        type=path_arg,
+        default=Path("/tmp/msf_device_run"),
+        help="folder to train in: a private scratch folder is made inside it and removed "
+        "afterwards; nothing else in it is touched (default %(default)s)",
+    )
     p.add_argument("--limit", type=float, default=600.0, help="the command's limit, seconds")
     p.add_argument("--margin", type=float, default=60.0, help="stop training this much earlier")
     p.add_argument("--init", type=path_arg, default=BUNDLED, help="weights to start from")
@@ -186,16 +228,43 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _error(message: str) -> int:
+    print(f"device_run: error: {message}", file=sys.stderr, flush=True)
+    return 2
+
+
 def main(argv: list[str] | None = None) -> int:
     # options device_run does not know are msf-train's (as are those after --)
     args, unknown = build_parser().parse_known_args(argv)
     keep = max(1, min(args.snapshots, MAX_FILES - 3))
+    if args.out.exists() and not args.out.is_dir():
+        return _error(f"{args.out}: exists and is not a folder")
+    earlier = earlier_results(args.out)
+    if earlier and not args.overwrite:
+        return _error(
+            f"{args.out}: holds an earlier run's results ({', '.join(earlier[:3])}"
+            f"{', ...' if len(earlier) > 3 else ''}); use another folder, or --overwrite to "
+            "replace them"
+        )
+    if args.work.exists() and not args.work.is_dir():
+        return _error(f"{args.work}: --work exists and is not a folder")
     budget = args.limit - args.margin - (time.monotonic() - STARTED)
     if budget < 5:
-        print("device_run: error: no time left to train (--limit minus --margin)", flush=True)
-        return 2
-    if args.work.exists():
-        shutil.rmtree(args.work)  # a scratch folder of this command's own
+        return _error("no time left to train (--limit minus --margin)")
+    # Never delete --work itself: it is the user's (the default is shared by every run on the
+    # machine); train in a private folder inside it, which only this process removes (one a
+    # killed run left is removed by the next run, as staging of a dead process).
+    with contextlib.ExitStack() as scratch:
+        try:
+            work = scratch.enter_context(scratch_folder(args.work / "train"))
+        except OSError as exc:
+            return _error(f"{args.work}: cannot make a scratch folder in --work ({exc.strerror})")
+        return _train_and_deliver(args, unknown, work, budget, keep)
+
+
+def _train_and_deliver(
+    args: argparse.Namespace, unknown: list[str], work: Path, budget: float, keep: int
+) -> int:
     sampler = UtilSampler()
     done = threading.Event()
 
@@ -204,9 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         if done.wait(max(1.0, args.limit - args.margin / 2 - (time.monotonic() - STARTED))):
             return
         try:
-            deliver(
-                args.work, args.out, summarise(args.work, sampler, "watchdog", args.batch), keep
-            )
+            deliver(work, args.out, summarise(work, sampler, "watchdog", args.batch), keep)
         finally:
             print("device_run: watchdog: training did not return in time; exiting", flush=True)
             sys.stderr.flush()
@@ -217,7 +284,7 @@ def main(argv: list[str] | None = None) -> int:
     extra = unknown + [a for a in args.train if a != "--"]
     train_argv = [
         "--out",
-        str(args.work),
+        str(work),
         "--device",
         args.device,
         "--render-on",
@@ -239,12 +306,12 @@ def main(argv: list[str] | None = None) -> int:
         rc = train_main(train_argv)
         if rc != 0:
             exit_ = f"error: msf-train exited {rc}"
-        _final_snapshot(args.work)
+        _final_snapshot(work)
     except BaseException as exc:  # still bring back what exists
         exit_, rc = f"error: {exc!r}", 1
     sampler.stop.set()
-    summary = summarise(args.work, sampler, exit_, args.batch)
-    deliver(args.work, args.out, summary, keep)
+    summary = summarise(work, sampler, exit_, args.batch)
+    deliver(work, args.out, summary, keep)
     done.set()
     print("device_run: " + json.dumps(asdict(summary)), flush=True)
     return rc

@@ -14,12 +14,11 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
-import shutil
 import signal
 import threading
 import time
 from collections.abc import Collection, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +28,8 @@ from torch import Tensor
 
 from msfnet.common.cpu import usable_cores
 from msfnet.common.errors import InputError
-from msfnet.common.files import staged_files, write_atomic
+from msfnet.common.files import STAGING_TAG, folder_lock, staged_files, to_jsonable, write_atomic
+from msfnet.common.files.locks import LOCK_NAME
 from msfnet.model.checkpoint import (
     check_state_dict,
     checkpoint_content,
@@ -49,7 +49,7 @@ from msfnet.model.data import (
 )
 from msfnet.model.network import MSFNet
 from msfnet.model.predict import autocast, predict_normals
-from msfnet.model.train_config import TrainConfig, parse_curriculum
+from msfnet.model.train_config import SNAPSHOT, TrainConfig, parse_curriculum
 from msfnet.runtime.evaluate.metrics import normal_metrics
 from msfnet.runtime.infer.least_squares import least_squares_normals
 from msfnet.runtime.stack import Stack
@@ -213,6 +213,25 @@ def snapshot_name(step: int) -> str:
     return f"snap_{step:07d}.pth"
 
 
+# What a run writes besides weights: all a fresh run that failed before its first last.pth
+# leaves that cannot be used (last_state.pth without last.pth cannot be resumed from).
+RUN_FILES = ("config.json", "log.jsonl", "curve.png", "last_state.pth")
+
+
+def trained_weights(out: Path) -> list[str]:
+    """The weight files in ``out`` a run wrote (last.pth, best.pth, snapshots)."""
+    return sorted(
+        p.name
+        for p in out.glob("*.pth")
+        if p.is_file() and (p.name in ("last.pth", "best.pth") or SNAPSHOT.fullmatch(p.name))
+    )
+
+
+def json_row(row: dict) -> str:
+    """One log.jsonl line: non-finite numbers as null (bare NaN is not JSON)."""
+    return json.dumps(to_jsonable(row), allow_nan=False)
+
+
 def _gt(stack: Stack) -> np.ndarray:
     """Validation objects are rendered: they always carry ground truth."""
     assert stack.normals_gt is not None
@@ -227,6 +246,7 @@ class TrainOutcome:
     best_val_mae: float  # best held-out synthetic MAE so far (deg)
     val_ls_mae: float  # least squares on the same held-out set (deg)
     stopped: int | None = None  # the signal that stopped it early, if one did
+    budget_spent: bool = False  # stopped early by --time-budget (last.pth saved)
 
 
 class Trainer:
@@ -276,6 +296,7 @@ class Trainer:
             self.model = self.model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.opt = torch.optim.Adam(self.model.parameters(), lr=cfg.lr, betas=(0.9, 0.999))
         self.step = 0
+        self.saved_step: int | None = None  # the step last.pth holds, once there is one
         self.best = math.inf
         self.history: list[dict] = []
         self.stop_signal: int | None = None  # set by SIGTERM / SIGINT during run()
@@ -318,12 +339,35 @@ class Trainer:
 
     def save(self) -> None:
         """last.pth and last_state.pth, replaced together: a resume needs both of one step."""
+        self._check_finite()
         weights, state = self._state_paths()
         content = checkpoint_content(self.model, step=self.step, epoch=self.epoch)
         optimiser = {"optimizer": self.opt.state_dict(), "step": self.step, "best": self.best}
         with staged_files([weights, state], overwrite=True) as (tmp_weights, tmp_state):
             torch_save(content, tmp_weights)
             torch_save(optimiser, tmp_state)
+        self.saved_step = self.step
+
+    def _diverged(self, what: str, step: int) -> InputError:
+        """The error that ends a diverged run; nothing is saved over last.pth or best.pth."""
+        kept = (
+            "nothing was saved"
+            if self.saved_step is None
+            else f"last.pth is left at step {self.saved_step}"
+        )
+        return InputError(
+            f"training diverged: {what} at step {step} (a learning rate too high? --lr "
+            f"{self.cfg.lr:g}); {kept}",
+            self.out,
+        )
+
+    def _check_finite(self) -> None:
+        """Refuse to write weights holding NaN / inf: they would replace a usable last.pth,
+        best.pth or snapshot, and --resume refuses them anyway (one sync, at saves only)."""
+        values = [v.detach() for v in self.model.state_dict().values() if v.is_floating_point()]
+        peaks = torch.stack([v.abs().amax().float() for v in values if v.numel()])
+        if not bool(torch.isfinite(peaks).all()):
+            raise self._diverged("the weights are not finite", self.step)
 
     def _load(self) -> None:
         weights, state = self._state_paths()
@@ -371,6 +415,7 @@ class Trainer:
                             state,
                         )
         self.step, self.best = int(st["step"]), float(st["best"])
+        self.saved_step = self.step
         self.history = self._history_until(self.step)
 
     def _history_until(self, step: int) -> list[dict]:
@@ -388,7 +433,7 @@ class Trainer:
                 continue
             if isinstance(row, dict) and row.get("step", 0) <= step:
                 rows.append(row)
-        write_atomic(log, lambda t: t.write_text("".join(json.dumps(r) + "\n" for r in rows)))
+        write_atomic(log, lambda t: t.write_text("".join(json_row(r) + "\n" for r in rows)))
         return rows
 
     @property
@@ -483,8 +528,12 @@ class Trainer:
             if self.cfg.consistency > 0:
                 losses = self._with_consistency(batch, losses, preds)
         total = backward_losses(self.model, losses, sus=self.cfg.sus)
+        loss = float(total)  # (the sync the log needs anyway)
+        if not math.isfinite(loss):
+            # before opt.step: a NaN/inf gradient would turn every weight into NaN
+            raise self._diverged(f"the loss is not finite ({loss})", self.step + 1)
         self.opt.step()
-        return float(total), [float(x.detach()) for x in losses]
+        return loss, [float(x.detach()) for x in losses]
 
     def _with_consistency(
         self, batch: Batch, losses: list[Tensor], preds: list[Tensor]
@@ -505,10 +554,13 @@ class Trainer:
         return out
 
     def validate(self) -> float:
-        maes = [
-            normal_metrics(predict_normals(self.model, s, bf16=self.bf16), _gt(s), s.mask).mae_deg
-            for s in self.val_set
-        ]
+        maes = []
+        for s in self.val_set:
+            normals = predict_normals(self.model, s, bf16=self.bf16)
+            if not np.isfinite(normals[s.mask]).all():
+                # NaN normals score 180 deg, which would beat best = inf as a "best" model
+                raise self._diverged("the validation normals are not finite", self.step)
+            maes.append(normal_metrics(normals, _gt(s), s.mask).mae_deg)
         return float(np.mean(maes))
 
     def log(self, row: dict) -> None:
@@ -516,7 +568,7 @@ class Trainer:
         path = self.out / "log.jsonl"
         try:
             with open(path, "a") as f:
-                f.write(json.dumps(row) + "\n")
+                f.write(json_row(row) + "\n")
         except OSError as exc:  # a full disk: one line naming the file, not a bare errno
             if exc.filename is not None or exc.errno is None:
                 raise
@@ -563,15 +615,38 @@ class Trainer:
         """Train to the configured end or a SIGTERM / SIGINT. ``progress``: the progress bar;
         ``report``: a line per epoch.
 
-        A new run that fails before its first save (a full disk, say) leaves nothing: its
-        folder held only this run's files, and none of them can be resumed from."""
-        fresh = not self.out.exists() or not any(self.out.iterdir())
-        try:
-            return self._train(progress, report)
-        except Exception:
-            if fresh and not self._state_paths()[0].exists():
-                shutil.rmtree(self.out, ignore_errors=True)
-            raise
+        OUT is held for the whole run (common.files.folder_lock): a second msf-train into it
+        is refused instead of both replacing last.pth in turn and mixing their logs.
+
+        A new run that fails before its first save (a full disk, say) leaves nothing that
+        cannot be used: its config, log and optimiser state go, but trained weights
+        (--snapshot-seconds / --snapshot-every snapshots, best.pth) are kept, with the config
+        and log that tell how they were trained."""
+        with folder_lock(self.out, "msf-train"):
+            fresh = not any(p.name != LOCK_NAME for p in self.out.iterdir())
+            try:
+                return self._train(progress, report)
+            except Exception:
+                if fresh and not self._state_paths()[0].exists():
+                    self._discard_unusable(report)
+                raise
+
+    def _discard_unusable(self, report: bool) -> None:
+        """After a fresh run failed before its first last.pth: remove what it wrote, unless it
+        wrote weights (then say what is left). The folder itself goes with the lock, which
+        removes it if it created it and it is empty."""
+        weights = trained_weights(self.out)
+        if weights:
+            if report:
+                print(
+                    f"msf-train: the run ended before its first last.pth; kept in {self.out}: "
+                    f"{', '.join(weights)} (start a new run from one with --init)",
+                    flush=True,
+                )
+            return
+        for path in self.out.iterdir():
+            if path.name in RUN_FILES or STAGING_TAG in path.name:
+                path.unlink(missing_ok=True)
 
     def _train(self, progress: bool, report: bool) -> TrainOutcome:
         from tqdm import tqdm
@@ -579,7 +654,7 @@ class Trainer:
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
         write_atomic(
-            self.out / "config.json", lambda t: t.write_text(json.dumps(asdict(cfg), indent=1))
+            self.out / "config.json", lambda t: t.write_text(json.dumps(cfg.stored(), indent=1))
         )
         total = cfg.epochs * cfg.steps_per_epoch
         last_save = time.monotonic()
@@ -604,6 +679,7 @@ class Trainer:
         deadline = None if cfg.time_budget is None else self.created + cfg.time_budget
         last_snap = time.monotonic()
         run_loss = None
+        budget_spent = False
         # Throughput: per log row and per epoch, wall time, time blocked on data, samples.
         win = {"t": time.perf_counter(), "wait": 0.0, "n": 0}
         ep = dict(win)
@@ -612,6 +688,7 @@ class Trainer:
                 if deadline is not None and time.monotonic() >= deadline:
                     self.log({"step": self.step, "stopped": "time_budget", "time": time.time()})
                     self.save()
+                    budget_spent = True
                     break
                 epoch = self.epoch
                 for g in self.opt.param_groups:
@@ -634,6 +711,7 @@ class Trainer:
                 self.step += 1
                 if cfg.snapshot_seconds and time.monotonic() - last_snap >= cfg.snapshot_seconds:
                     # fp16: small enough to copy out of a time-boxed GPU session
+                    self._check_finite()
                     save_checkpoint(
                         self.model, self.out / snapshot_name(self.step), fp16=True, step=self.step
                     )
@@ -689,14 +767,16 @@ class Trainer:
                     if cfg.snapshot_every and (epoch + 1) % cfg.snapshot_every == 0:
                         # Synthetic validation does not rank real objects reliably: keep
                         # snapshots to select on real validation objects afterwards.
+                        self._check_finite()
                         save_checkpoint(
                             self.model,
                             self.out / snapshot_name(self.step),
                             step=self.step,
                             val_mae=mae,
                         )
-                    if mae < self.best:
+                    if math.isfinite(mae) and mae < self.best:  # NaN is never "best"
                         self.best = mae
+                        self._check_finite()
                         save_checkpoint(
                             self.model, self.out / "best.pth", step=self.step, val_mae=mae
                         )
@@ -720,4 +800,4 @@ class Trainer:
             for sig, handler in old_handlers.items():
                 signal.signal(sig, handler)
             bar.close()
-        return TrainOutcome(self.step, self.best, self.val_ls, self.stop_signal)
+        return TrainOutcome(self.step, self.best, self.val_ls, self.stop_signal, budget_spent)

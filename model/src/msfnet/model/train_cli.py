@@ -14,10 +14,12 @@ from typing import Any
 
 from msfnet.common.cli import add_flags, command_main, int_range, make_parser, path_arg
 from msfnet.common.errors import InputError, first_line
-from msfnet.common.files import STAGING_TAG, check_not_input
+from msfnet.common.files import STAGING_TAG, check_not_input, folder_lock
+from msfnet.common.files.locks import LOCK_NAME
 from msfnet.model.train_config import (
     MAX_LIGHTS,
     MAX_SIZE,
+    RUN_ONLY,
     SNAPSHOT,
     TrainConfig,
     parse_curriculum,
@@ -167,7 +169,13 @@ def _stored_config(out: Path, flag: str = "--resume") -> dict:
             + (f" (unknown keys {unknown[:3]})" if unknown else ""),
             stored,
         )
-    return data
+    # runs of earlier versions stored --time-budget: one chunk's limit, not the run's
+    return {k: v for k, v in data.items() if k not in RUN_ONLY}
+
+
+def _entries(out: Path) -> list[Path]:
+    """What OUT holds, leaving out the lock msf-train holds it with (or a killed one left)."""
+    return [p for p in out.iterdir() if p.name != LOCK_NAME]
 
 
 def _ours(path: Path) -> bool:
@@ -196,20 +204,20 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
         raise InputError("output path exists and is not a folder", out)
     if args.resume and args.overwrite:
         raise InputError("--resume and --overwrite contradict each other")
-    if args.resume and (not out.exists() or not any(out.iterdir())):
+    if args.resume and (not out.exists() or not _entries(out)):
         state = "does not exist" if not out.exists() else "is empty"
         raise InputError(
             f"--resume: nothing to resume, the folder {state} (a new run: leave out --resume)",
             out,
         )
-    if args.resume or not out.exists() or not any(out.iterdir()):
+    if args.resume or not out.exists() or not _entries(out):
         return []
     if not args.overwrite:
         raise InputError(
             "output folder is not empty (use --resume to continue or --overwrite to start afresh)",
             out,
         )
-    foreign = sorted(p.name for p in out.iterdir() if not _ours(p))
+    foreign = sorted(p.name for p in _entries(out) if not _ours(p))
     if foreign:
         raise InputError(
             f"--overwrite: the folder holds files msf-train did not write (e.g. "
@@ -217,12 +225,22 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
             out,
         )
     _stored_config(out, "--overwrite")  # names alone do not make it a run of ours
-    return sorted(out.iterdir())  # deleted by the caller once every option has been checked
+    return sorted(_entries(out))  # deleted by the caller once every option has been checked
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None, started: float | None = None) -> int:
     # torch now, after the options were checked and before OUT is touched: a missing torch
     # must not cost an earlier run's files (--overwrite, --resume clean up first)
+    import msfnet.model.train  # noqa: F401
+
+    _prepare_out(args)  # the refusals first: the lock would create a missing OUT
+    # held from before OUT is read to the end of training: a second msf-train into it is
+    # refused at once, not left to swap last.pth with this one and interleave the log
+    with folder_lock(args.out, PROG):
+        return _run_locked(args, argv, started)
+
+
+def _run_locked(args: argparse.Namespace, argv: list[str] | None, started: float | None) -> int:
     from msfnet.model.checkpoint import read_state_dict
     from msfnet.model.train import Trainer
 
@@ -231,12 +249,12 @@ def _run(args: argparse.Namespace, argv: list[str] | None, started: float | None
             print(line, flush=True)
 
     out: Path = args.out
-    earlier = _prepare_out(args)
+    earlier = _prepare_out(args)  # again: what it checked may have changed before the lock
     resume = args.resume and (out / "last.pth").is_file() and (out / "last_state.pth").is_file()
     if args.resume and not resume:
         # Nothing saved yet (first chunk, or killed before the first save): start here, from
         # the stored settings if a config.json was written; but never in someone else's folder.
-        foreign = sorted(p.name for p in out.iterdir() if not _ours(p)) if out.is_dir() else []
+        foreign = sorted(p.name for p in _entries(out) if not _ours(p)) if out.is_dir() else []
         if foreign:
             raise InputError(
                 f"--resume: no msf-train run here (no config.json / last.pth) but "
@@ -303,16 +321,19 @@ def _run(args: argparse.Namespace, argv: list[str] | None, started: float | None
             f"{result.step}; last.pth saved, continue with --resume"
         )
         return 128 + result.stopped
-    if math.isfinite(result.best_val_mae):
+    best = (
+        f"best held-out MAE {result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})"
+        if math.isfinite(result.best_val_mae)
+        else "before the first validation (end of an epoch): no best.pth or curve.png yet"
+    )
+    if result.budget_spent:  # exit 0 as documented, but never read as a finished run
+        total = cfg.epochs * cfg.steps_per_epoch
         say(
-            f"msf-train: done at step {result.step}: best held-out MAE "
-            f"{result.best_val_mae:.2f} deg (least squares {result.val_ls_mae:.2f})"
+            f"msf-train: stopped by --time-budget at step {result.step:,} of {total:,}, {best}; "
+            "last.pth saved, continue with --resume"
         )
-    else:  # stopped (--time-budget) before the first epoch's validation
-        say(
-            f"msf-train: done at step {result.step}, before the first validation (end of "
-            "an epoch): last.pth saved, no best.pth or curve.png yet"
-        )
+    else:
+        say(f"msf-train: done at step {result.step}: {best}")
     return 0
 
 

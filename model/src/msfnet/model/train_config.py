@@ -5,7 +5,7 @@ parsed, and refused, without importing torch."""
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 from msfnet.common.cli import (
     flag,
@@ -22,6 +22,9 @@ from msfnet.runtime.stack.types import MIN_LIGHTS
 from msfnet.synth.render import PRESETS, RenderOptions
 
 SNAPSHOT = re.compile(r"snap_\d{7}\.pth")  # what --snapshot-every writes, and nothing else
+# Limits of one msf-train invocation, not settings of the run: kept out of config.json, so a
+# plain --resume does not stop again after the first chunk's --time-budget.
+RUN_ONLY = frozenset({"time_budget"})
 
 
 @dataclass
@@ -242,12 +245,14 @@ class TrainConfig:
         "itself, as batched tensor operations; no workers; --render-preset applies)",
         choices=("cpu", "device"),
     )
-    # stop (and save) this many seconds after msf-train started
+    # stop (and save) this many seconds after msf-train started; this invocation's only
+    # (RUN_ONLY: never stored in config.json)
     time_budget: float | None = flag(
         None,
         "stop this many seconds after msf-train starts (imports and set-up included), "
-        "finishing the step and "
-        "saving last.pth (exit 0): e.g. a minute short of a time-boxed session",
+        "finishing the step and saving last.pth (exit 0, reported as 'stopped by "
+        "--time-budget'): e.g. a minute short of a time-boxed session. Applies to this "
+        "invocation only: it is not stored, so --resume runs on without it unless given again",
         type=positive_float,
         metavar="SECONDS",
     )
@@ -259,6 +264,10 @@ class TrainConfig:
         metavar="SECONDS",
     )
     extra: dict = field(default_factory=dict)
+
+    def stored(self) -> dict:
+        """What config.json records: every field but the limits of one invocation."""
+        return {k: v for k, v in asdict(self).items() if k not in RUN_ONLY}
 
     def phase(self, epoch: int) -> Phase:
         phases = parse_curriculum(self.curriculum)
