@@ -425,7 +425,8 @@ def test_a_telemetry_module_the_program_loaded_is_hidden_then_put_back() -> None
         "import sys\n"
         "import msfnet, openvino_telemetry\n"
         "from msfnet.runtime.engines.openvino import import_openvino\n"
-        "import_openvino()\n"
+        "ov = import_openvino()\n"
+        "ov.convert_model  # the converter, imported on first use\n"
         "import openvino.tools.ovc.telemetry_utils as u\n"
         "print(u.tm.__name__, sys.modules['openvino_telemetry'] is openvino_telemetry)"
     )
@@ -435,6 +436,22 @@ def test_a_telemetry_module_the_program_loaded_is_hidden_then_put_back() -> None
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.split() == ["openvino.tools.ovc.telemetry_stub", "True"]
+
+
+def test_openvino_comes_without_its_converter_until_a_program_asks_for_it() -> None:
+    """The converter's import was ~100 ms of every fresh msf-run; the runtime never uses it."""
+    code = (
+        "import sys\n"
+        "from msfnet.runtime.engines.openvino import import_openvino\n"
+        "ov = import_openvino()\n"
+        "print('openvino.tools.ovc' in sys.modules, 'importlib.metadata' in sys.modules)\n"
+        "print(callable(ov.convert_model), 'openvino.tools.ovc' in sys.modules)\n"
+        "print('openvino_telemetry' in sys.modules)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MSFNET_TELEMETRY"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False", "False", "True", "True", "False"]
 
 
 def test_the_telemetry_package_imports_normally_afterwards() -> None:

@@ -13,9 +13,10 @@ NPU (Intel NPUs, their own f16), chosen through ``--device`` (dispatch.resolve_d
 
 Start-up: OpenVINO parses the file once (``read_openvino``); the msfnet metadata comes from that
 parse (ONNX metadata_props are the graph's ``rt_info["framework"]``), and the staged sub-models
-are cut from it, so this path starts no ONNX Runtime session. ``import openvino`` itself pulls
-in ``openvino.tools.ovc``: the package's ``__init__`` does that for every ``openvino.*`` import,
-so no narrower import avoids it; its telemetry is kept off (:func:`import_openvino`).
+are cut from it, so this path starts no ONNX Runtime session. ``import openvino`` would also
+pull in its model converter, ``openvino.tools.ovc`` (the package's ``__init__`` does that for
+every ``openvino.*`` import), which the runtime never uses: :func:`import_openvino` leaves it
+out and keeps its telemetry off.
 """
 
 from __future__ import annotations
@@ -123,7 +124,7 @@ INSTALL_HINT = "pip install openvino (part of msfnet's base install)"
 
 
 def import_openvino() -> Any:
-    """``openvino``, imported with its usage telemetry off.
+    """``openvino``, imported with its usage telemetry off and without its model converter.
 
     ``import openvino`` (2026.4, with openvino-telemetry installed, as pip does) sends a usage
     event to Google Analytics unless the user has opted out: it forks the process to do so,
@@ -133,24 +134,57 @@ def import_openvino() -> Any:
     to its own no-op stub (its ``openvino.tools.ovc`` imports the package under try / except
     ImportError for exactly that). The hiding is process-wide for the moment of that import
     (another thread importing the telemetry package then fails); a telemetry module the program
-    had loaded already is hidden too and put back after. ``MSFNET_TELEMETRY=1`` leaves it as
-    configured (msfnet.common.privacy); an OpenVINO the program imported itself is left
-    alone."""
+    had loaded already is hidden too and put back after.
+
+    The converter (``openvino.tools.ovc``, what sends that event) is left out the same way:
+    OpenVINO's ``__init__`` imports it under try / except ImportError, the runtime never
+    converts (the Core reads ONNX files), and its import took ~100 ms of every fresh msf-run
+    (importlib.metadata, numpy.ma). ``openvino.convert_model`` still works for a program that
+    uses it afterwards: the converter is imported on first use, its telemetry hidden too.
+
+    ``MSFNET_TELEMETRY=1`` leaves OpenVINO as configured, converter included
+    (msfnet.common.privacy); an OpenVINO the program imported itself is left alone."""
     hide = "openvino" not in sys.modules and not telemetry_allowed()
-    had = sys.modules.get("openvino_telemetry")  # the program's own, if it imported it
-    if hide:
-        sys.modules["openvino_telemetry"] = None  # type: ignore[assignment]  # import fails
     try:
-        import openvino
+        with _hidden(TELEMETRY, CONVERTER) if hide else contextlib.nullcontext():
+            import openvino
     except ImportError as exc:
         raise InputError(f"the OpenVINO engine needs the openvino package: {INSTALL_HINT}") from exc
-    finally:
-        if hide and sys.modules.get("openvino_telemetry", False) is None:
-            if had is None:
-                del sys.modules["openvino_telemetry"]  # a later import of its own works
-            else:
-                sys.modules["openvino_telemetry"] = had
+    if hide and "convert_model" not in vars(openvino):
+        openvino.__getattr__ = _converter_on_demand  # type: ignore[attr-defined]  # PEP 562
     return openvino
+
+
+TELEMETRY = "openvino_telemetry"
+CONVERTER = "openvino.tools.ovc"
+
+
+@contextlib.contextmanager
+def _hidden(*names: str) -> Iterator[None]:
+    """Imports of ``names`` fail inside the block (a None entry in sys.modules); modules the
+    program had loaded are put back after, the others can be imported normally again."""
+    had = {name: sys.modules.get(name) for name in names}
+    for name in names:
+        sys.modules[name] = None  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        for name, module in had.items():
+            if sys.modules.get(name, False) is None:
+                if module is None:
+                    del sys.modules[name]
+                else:
+                    sys.modules[name] = module
+
+
+def _converter_on_demand(name: str) -> Any:
+    """``openvino.convert_model`` for a program that asks for it after msfnet imported
+    OpenVINO without its converter."""
+    if name != "convert_model":
+        raise AttributeError(f"module 'openvino' has no attribute {name!r}")
+    with _hidden(TELEMETRY):
+        from openvino.tools.ovc import convert_model
+    return convert_model
 
 
 def _effective(compiled: Any) -> str:
