@@ -66,7 +66,8 @@ def test_an_openvino_run_imports_neither_onnx_runtime_nor_tqdm(tmp_path) -> None
     """Every run pays its imports (a station runs msf-run per part): ONNX Runtime (~30 ms) is
     imported when it runs the model, tqdm (~17 ms) when a bar is drawn. A whole msf-run on
     OpenVINO (open, infer, fuse, write; no terminal: no bar) imports neither, nor OpenVINO's
-    telemetry (a network call from a forked child)."""
+    telemetry (a network call from a forked child) and converter (~100 ms), nor
+    importlib.metadata (~55 ms, for the version) or psutil (~25 ms, for the memory in use)."""
     pytest.importorskip("openvino")
     from _runtime_helpers import sphere_stack, tiny_msfnet_onnx
 
@@ -78,8 +79,8 @@ def test_an_openvino_run_imports_neither_onnx_runtime_nor_tqdm(tmp_path) -> None
     code = (
         "import sys; from msfnet.runtime.cli.run import main; "
         f"rc = main({args!r} + ['--no-maps', '--no-report']); "
-        "print(rc, sorted(m for m in ('onnxruntime', 'tqdm', 'openvino_telemetry') "
-        "if m in sys.modules))"
+        "print(rc, sorted(m for m in ('onnxruntime', 'tqdm', 'openvino_telemetry', "
+        "'openvino.tools.ovc', 'importlib.metadata', 'psutil') if m in sys.modules))"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
