@@ -185,14 +185,15 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
 
     out = _old_run(tmp_path, "best.pth", "curve.png", ".last.pth.msf-partial-1-x.pth")
     before = sorted(p.name for p in out.iterdir())
-    args = train_cli.build_parser().parse_args(["--out", str(out), "--overwrite", "-q"])
+    argv = ["--out", str(out), "--overwrite", "-q"]
+    args = train_cli.build_parser().parse_args(argv)
 
     def failing_setup(cfg, resume, started=None):  # e.g. resolve_device: no CUDA GPU
         raise InputError("--device cuda: torch sees no CUDA GPU")
 
     monkeypatch.setattr(train, "Trainer", failing_setup)  # train_cli imports it when it starts
     with pytest.raises(InputError):
-        train_cli._run(args, None)
+        train_cli._run(args, argv)
     assert sorted(p.name for p in out.iterdir()) == before
 
     started = []
@@ -215,7 +216,7 @@ def test_overwrite_deletes_only_msf_train_files(tmp_path: Path, monkeypatch) -> 
     )
     monkeypatch.setattr(train, "Trainer", lambda cfg, resume, started=None: ready)
     with pytest.raises(Stop):
-        train_cli._run(args, None)
+        train_cli._run(args, argv)
     assert started == [[]]
 
 
@@ -311,9 +312,184 @@ def test_a_run_stopped_before_its_first_validation_says_so(
         )
 
     monkeypatch.setattr(train, "Trainer", trainer)
-    args = train_cli.build_parser().parse_args(["--out", str(tmp_path / "r"), "--no-progress"])
+    argv = ["--out", str(tmp_path / "r"), "--no-progress"]
+    args = train_cli.build_parser().parse_args(argv)
     monkeypatch.setattr(train_cli, "_announce_duration", lambda *a: None)
-    assert train_cli._run(args, None) == 0
+    assert train_cli._run(args, argv) == 0
     out = capsys.readouterr()
     text = out.out + out.err
     assert "before the first validation" in text and "inf" not in text
+
+
+# Options that change no refusal below but keep a regression (a refusal that no longer
+# happens) from starting hours of training at the defaults.
+GUARD = [
+    "--epochs",
+    "1",
+    "--steps-per-epoch",
+    "1",
+    "--val-objects",
+    "1",
+    "--val-size",
+    "16",
+    "--threads",
+    "1",
+    "--time-budget",
+    "20",
+    "--no-progress",
+]
+
+# review-train-synth.md 12: config.json's values pass the options' own checks
+EDITED_CONFIG = {
+    "batch 1.5": ({"batch": 1.5}, '"batch": must be an integer, got 1.5'),
+    "noise null": ({"noise": None}, '"noise": must be a number, got null'),
+    "pool 0": ({"pool": 0}, '"pool": must be a positive integer, got 0'),
+    "lr as text": ({"lr": "1e-3"}, '"lr": must be a number, got "1e-3"'),
+    "threads 0": ({"threads": 0}, '"threads": must lie in 1..1024, got 0'),
+    "mfe 1": ({"mfe": 1}, '"mfe": must be true or false, got 1'),
+    "device gpu": ({"device": "gpu"}, '"device": must be one of auto, cpu, cuda, got "gpu"'),
+    "workers -1": ({"workers": -1}, '"workers": must be 0 or more, got -1'),
+    "val_lights 2": ({"val_lights": 2}, '"val_lights": must lie in 3..1024, got 2'),
+    "curriculum twice from 0": (
+        {"curriculum": "0:4-8:16,0:8-8:32"},
+        "\"curriculum\": '0:4-8:16,0:8-8:32': two phases start at epoch 0; give each its own",
+    ),
+}
+
+
+@pytest.mark.parametrize("saved", [True, False], ids=["resume", "before-first-save"])
+@pytest.mark.parametrize("case", sorted(EDITED_CONFIG))
+def test_a_hand_edited_config_is_checked_like_the_options(
+    case: str, saved: bool, tmp_path: Path, capfd
+) -> None:
+    """A wrong type or range in config.json was "internal error ... please report it" (or an
+    error blaming "config.json or last_state.pth" with a Python exception's text)."""
+    edit, problem = EDITED_CONFIG[case]
+    out = _old_run(tmp_path, "last_state.pth") if saved else _damaged(tmp_path, b"{}")
+    if not saved:
+        (out / "last.pth").unlink(missing_ok=True)
+    (out / "config.json").write_text(json.dumps({**json.loads(CONFIG), **edit}))
+    before = _files(tmp_path)
+    assert train_main(["--out", str(out), "--resume", *GUARD]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err == [f"msf-train: error: {out / 'config.json'}: {problem}"]
+    assert _files(tmp_path) == before
+
+
+def test_every_stored_default_passes_the_config_check() -> None:
+    from msfnet.model.train_config import TrainConfig, stored_value_problem
+
+    stored = json.loads(json.dumps(TrainConfig(out="run", workers=2, lr=1).stored()))
+    assert {k: stored_value_problem(k, v) for k, v in stored.items()} == dict.fromkeys(stored)
+
+
+# review-train-synth.md 13: what --render-on device does not use is refused, not stored
+@pytest.mark.parametrize(
+    "given",
+    [
+        ["--noise", "0"],
+        ["--render-size", "8", "--render-lights", "3"],
+        ["--pool", "2", "--refresh", "1", "--workers", "2"],
+        ["--render-size-max", "128", "--render-max-depth", "2"],
+    ],
+    ids=["noise", "size-lights", "pool-refresh-workers", "depth-size-max"],
+)
+def test_render_on_device_refuses_the_options_it_ignores(
+    given: list[str], tmp_path: Path, capfd
+) -> None:
+    out = tmp_path / "r"
+    argv = ["--out", str(out), "--render-on", "device", *given, *GUARD]
+    assert train_main(argv) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-train: error: "), err
+    flags = [word for word in given if word.startswith("--")]
+    assert err[0].startswith(
+        f"msf-train: error: {', '.join(flags)}: not used by --render-on device"
+    )
+    assert not out.exists()
+
+
+def test_render_on_device_help_and_defaults(monkeypatch) -> None:
+    from msfnet.model import train_cli
+
+    monkeypatch.setenv("COLUMNS", "1000")  # no option names wrapped at their hyphens
+    # the defaults of those options are stored, but only what was typed is refused
+    cfg = train_cli.config_from(
+        vars(train_cli.build_parser().parse_args(["--out", "r", "--render-on", "device"])),
+        {},
+        {"out", "render_on"},
+    )
+    assert cfg.render_on == "device"
+    text = " ".join(train_cli.build_parser().format_help().split())
+    for flag in train_cli.CPU_RENDER_ONLY:
+        assert "--" + flag.replace("_", "-") in text.split("where synthetic batches are")[1]
+    assert text.count("--render-on cpu only") == len(train_cli.CPU_RENDER_ONLY)
+
+
+# review-train-synth.md 8: --lights / --crop replace only their part of the curriculum
+@pytest.mark.parametrize(
+    ("argv", "curriculum"),
+    [
+        (["--crop", "16"], "0:16-32:16"),  # was 0:32-32:16: the light range dropped
+        (["--lights", "8"], "0:8-8:32"),
+        (["--lights", "8", "--crop", "16"], "0:8-8:16"),
+        (["--curriculum", "0:4-8:16,2:8-16:32", "--crop", "8"], "0:4-8:8,2:8-16:8"),
+        (["--curriculum", "0:4-8:16,2:8-16:32", "--lights", "8"], "0:8-8:16,2:8-8:32"),
+        (["--curriculum", "0:4-8:16,2:4-8:32", "--crop", "8"], "0:4-8:8"),
+    ],
+)
+def test_crop_and_lights_keep_the_rest_of_the_curriculum(argv: list[str], curriculum: str) -> None:
+    from msfnet.model import train_cli
+
+    args = train_cli.build_parser().parse_args(["--out", "r", *argv])
+    typed = set(train_cli._explicit(["--out", "r", *argv]))
+    assert train_cli.config_from(vars(args), {}, typed).curriculum == curriculum
+
+
+def test_crop_on_resume_keeps_the_stored_phases() -> None:
+    from dataclasses import asdict
+
+    from msfnet.model import train_cli
+    from msfnet.model.train_config import TrainConfig
+
+    stored = asdict(TrainConfig(out="r", curriculum="0:8-16:32,2:16-32:32"))
+    explicit = train_cli._explicit(["--out", "r", "--crop", "16"])
+    cfg = train_cli.config_from(explicit, stored, set(explicit))
+    assert cfg.curriculum == "0:8-16:16,2:16-32:16"
+
+
+@pytest.mark.parametrize(
+    ("argv", "line"),
+    [
+        (["--crop", "30"], "--crop: must be a multiple of 4, got '30'"),
+        (
+            ["--curriculum", "0:4-8:16,0:8-8:32"],
+            "--curriculum '0:4-8:16,0:8-8:32': two phases start at epoch 0; give each its own",
+        ),
+        (["--crop", "128"], "--crop 128 asks for 128 px crops but --render-size is 64"),
+        (
+            ["--lights", "48"],
+            "--lights 48 asks for up to 48 lights but --render-lights renders 40",
+        ),
+        (
+            ["--render-lights", "24"],
+            "the default --curriculum '0:16-32:32' asks for up to 32 lights but "
+            "--render-lights renders 24",
+        ),
+    ],
+    ids=["crop-30", "duplicate-epochs", "crop-beyond-render", "lights-beyond-render", "default"],
+)
+def test_curriculum_errors_name_what_was_typed(
+    argv: list[str], line: str, tmp_path: Path, capfd
+) -> None:
+    """--crop 30 blamed a --curriculum '0:32-32:30' the user never gave; two phases from epoch
+    0 were accepted, the first never applying."""
+    out = tmp_path / "r"
+    try:
+        rc = train_main(["--out", str(out), *argv, *GUARD])
+    except SystemExit as exc:  # argparse's refusals
+        rc = int(exc.code or 0)
+    assert rc == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err == [f"msf-train: error: {line}"]
+    assert not out.exists()

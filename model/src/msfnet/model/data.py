@@ -105,13 +105,20 @@ def make_sample(
         raise InputError(
             f"crop {crop} is larger than the stack ({w}x{h})", stack.source or stack.name
         )
-    count = min(lights, stack.num_lights)
-    if count < MIN_LIGHTS:  # fewer lights cannot determine a normal: nothing to learn from
+    if lights < MIN_LIGHTS:  # fewer lights cannot determine a normal: nothing to learn from
         raise InputError(
-            f"a training sample of {count} light(s) (asked {lights}, the stack has "
-            f"{stack.num_lights}): photometric stereo needs at least {MIN_LIGHTS}",
+            f"a training sample of {lights} light(s): photometric stereo needs at least "
+            f"{MIN_LIGHTS}",
             stack.source or stack.name,
         )
+    if lights > stack.num_lights:
+        # never fewer lights than asked: the log would report a count the network never saw,
+        # and samples of different counts cannot be stacked into one batch
+        raise InputError(
+            f"a training sample of {lights} lights, but the stack has only {stack.num_lights}",
+            stack.source or stack.name,
+        )
+    count = lights
     r, c = random_crop(stack, crop, rng)
     idx = rng.choice(stack.num_lights, size=count, replace=False)
     imgs = stack.images[idx, r : r + crop, c : c + crop]
@@ -236,6 +243,36 @@ def find_blobby_samples(root: str | Path) -> list[tuple[Path, Path]]:
     return pairs
 
 
+def check_blobby_samples(pairs: Sequence[tuple[Path, Path]], lights: int) -> None:
+    """Refuse, before training starts, what can be found without decoding an image: an image
+    list that is malformed, names a file that is not there, or lists fewer images than
+    ``lights`` (the curriculum's largest light count). Reads each list once and each material
+    folder's listing once (no stat per image: the sets hold ~10^6 images). What only decoding
+    finds (a damaged PNG, a size mismatch) is reported when a batch reads it."""
+    for _normal, image_list in pairs:
+        names, _dirs = _read_light_list(image_list)
+        folder = image_list.parent
+        if len(names) < lights:
+            fix = (
+                f"lower --lights or the curriculum's LMAX to {len(names)}, or "
+                if len(names) >= MIN_LIGHTS
+                else ""
+            )
+            raise InputError(
+                f"{image_list.name} lists {len(names)} images but the curriculum asks for up "
+                f"to {lights} lights ({fix}leave this object out)",
+                folder,
+            )
+        present = {p.name for p in folder.iterdir() if not p.is_dir()}
+        for name in names:
+            # a name with a folder part is not in the listing: looked up on its own
+            found = name in present if Path(name).name == name else (folder / name).is_file()
+            if not found:
+                raise InputError(
+                    f"image file not found (listed in {image_list.name})", folder / name
+                )
+
+
 def load_blobby_sample(normal_png: Path, image_list: Path) -> Stack:
     """One shape under one material: images from the list, mask where the normal is non-zero."""
     normals = read_normals(normal_png)
@@ -268,8 +305,15 @@ def load_blobby_sample(normal_png: Path, image_list: Path) -> Stack:
 class BlobbySource:
     """Samples from the Blobby / Sculpture sets, decoded lazily with a small LRU cache."""
 
-    def __init__(self, root: str | Path, cache: int = 64) -> None:
-        self.pairs = find_blobby_samples(root)
+    def __init__(
+        self,
+        root: str | Path,
+        cache: int = 64,
+        pairs: Sequence[tuple[Path, Path]] | None = None,
+    ) -> None:
+        # ``pairs``: an index made (and checked) already, e.g. by the main process for its
+        # DataLoader workers, which then need not search the root again
+        self.pairs = list(pairs) if pairs is not None else find_blobby_samples(root)
         self.cache: OrderedDict[int, Stack] = OrderedDict()
         self.cache_size = cache
 
@@ -314,10 +358,12 @@ class SourceSpec:
     pool: int = 48
     refresh: int = 2
     max_size: int | None = None
+    # Blobby/Sculpture: the (normal map, image list) pairs the main process indexed and checked
+    pairs: tuple[tuple[Path, Path], ...] | None = None
 
     def build(self, worker: int, workers: int, start_step: int) -> Source:
         if self.data != "synth":
-            return BlobbySource(self.data)
+            return BlobbySource(self.data, pairs=self.pairs)
         # Tag 1 keeps worker streams apart from the in-process stream [seed, counter]; the
         # start step makes a resumed run render new objects, as the in-process source does.
         return SynthSource(
@@ -345,6 +391,15 @@ class StepPlan:
         return int(rng.integers(lo, hi + 1)), crop
 
 
+ERROR_KEY = "input_error"  # a worker's InputError, sent in place of a batch (StepStream)
+
+
+def raise_worker_error(d: dict) -> None:
+    """Raise the InputError a DataLoader worker sent in place of a batch, if it sent one."""
+    if ERROR_KEY in d:
+        raise InputError(str(d[ERROR_KEY]), d.get("error_path"))
+
+
 class StepStream(torch.utils.data.IterableDataset):
     """Batches of steps ``start .. total-1`` as dicts of tensors, built in DataLoader workers.
 
@@ -362,19 +417,33 @@ class StepStream(torch.utils.data.IterableDataset):
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
         if self.start + worker >= self.total:
             return
-        source = self.spec.build(worker, workers, self.start)
-        for step in range(self.start + worker, self.total, workers):
-            rng = np.random.default_rng([self.plan.seed, 2, step])
-            lights, crop = self.plan.lights_and_crop(step, rng)
-            b = source.batch(self.plan.batch, lights, crop, rng, noise=self.plan.noise)
+        step = self.start + worker
+        try:
+            source = self.spec.build(worker, workers, self.start)
+            for step in range(self.start + worker, self.total, workers):
+                rng = np.random.default_rng([self.plan.seed, 2, step])
+                lights, crop = self.plan.lights_and_crop(step, rng)
+                b = source.batch(self.plan.batch, lights, crop, rng, noise=self.plan.noise)
+                yield {
+                    "images": b.images,
+                    "lights": b.lights,
+                    "normals": b.normals,
+                    "mask": b.mask,
+                    "step": step,
+                    "n_lights": lights,
+                    "crop": crop,
+                }
+        except InputError as exc:
+            if info is None:  # iterated in the calling process: nothing to carry across
+                raise
+            # Bad data (a damaged image, a size mismatch) found by a worker. Raised here,
+            # torch would hand the main process an InputError whose message is the worker's
+            # whole traceback; sent as data in the step's turn, the main process raises the
+            # same one-line error (raise_worker_error).
             yield {
-                "images": b.images,
-                "lights": b.lights,
-                "normals": b.normals,
-                "mask": b.mask,
+                ERROR_KEY: exc.message,
+                "error_path": None if exc.path is None else str(exc.path),
                 "step": step,
-                "n_lights": lights,
-                "crop": crop,
             }
 
 

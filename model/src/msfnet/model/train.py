@@ -45,7 +45,10 @@ from msfnet.model.data import (
     StepPlan,
     SynthSource,
     batch_from_dict,
+    check_blobby_samples,
+    find_blobby_samples,
     make_loader,
+    raise_worker_error,
 )
 from msfnet.model.network import MSFNet
 from msfnet.model.predict import autocast, predict_normals
@@ -308,6 +311,15 @@ class Trainer:
             lights=cfg.render_lights,
             max_depth=cfg.render_max_depth,
         )
+        self.blobby_pairs: tuple[tuple[Path, Path], ...] | None = None
+        if cfg.data != "synth":
+            # indexed and checked here, before anything is written or trained: a list naming
+            # a missing image, or fewer images than the curriculum's most lights, is refused
+            # in one line instead of failing (or quietly training on fewer lights) mid-run
+            pairs = find_blobby_samples(cfg.data)
+            most = max(p.lights_max for p in parse_curriculum(cfg.curriculum))
+            check_blobby_samples(pairs, most)
+            self.blobby_pairs = tuple(pairs)
         self.source: SynthSource | BlobbySource | None = None
         if self.workers == 0 and not self.on_device:  # in-process; workers build their own
             if cfg.data == "synth":
@@ -321,7 +333,7 @@ class Trainer:
                     max_size=cfg.render_size_max,
                 )
             else:
-                self.source = BlobbySource(cfg.data)
+                self.source = BlobbySource(cfg.data, pairs=self.blobby_pairs)
         val_opts = RenderOptions(size=cfg.val_size, lights=cfg.val_lights)
         self.val_set = list(render_set(cfg.val_seed, cfg.val_objects, val_opts))
         self.val_ls = float(
@@ -452,6 +464,7 @@ class Trainer:
             self.cfg.pool,
             self.cfg.refresh,
             self.cfg.render_size_max,
+            self.blobby_pairs,
         )
         phases = tuple(
             (p.epoch, p.lights_min, p.lights_max, p.crop)
@@ -463,10 +476,23 @@ class Trainer:
         loader = make_loader(
             spec, plan, self.step, total, self.workers, pin_memory=self.device.type == "cuda"
         )
-        for d in loader:
-            if d["step"] != self.step:  # the round-robin order is what makes this hold
-                raise RuntimeError(f"data loader sent step {d['step']}, expected {self.step}")
-            yield batch_from_dict(d), int(d["n_lights"]), int(d["crop"])
+        batches = iter(loader)
+        try:
+            for d in batches:
+                raise_worker_error(d)  # a worker's bad data: the same one-line error
+                if d["step"] != self.step:  # the round-robin order is what makes this hold
+                    raise RuntimeError(f"data loader sent step {d['step']}, expected {self.step}")
+                yield batch_from_dict(d), int(d["n_lights"]), int(d["crop"])
+        finally:
+            # Shut the workers down here, through torch. An exception leaving this generator
+            # keeps its frame (and so the loader) alive in its traceback, so the loader would
+            # not shut them down; stop_workers would then kill them, and torch's SIGCHLD
+            # handler, still watching their pids, would replace the real error with "worker
+            # killed". _shutdown_workers (private, in torch since 1.x) lets them exit, then
+            # stops watching their pids before it terminates any that are left.
+            shutdown = getattr(batches, "_shutdown_workers", None)
+            if shutdown is not None:
+                shutdown()
 
     def _local_batches(self, total: int):
         cfg, rng = self.cfg, np.random.default_rng([self.cfg.seed, self.step])

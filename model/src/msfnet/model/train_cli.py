@@ -8,6 +8,7 @@ import math
 import signal
 import sys
 import time
+from collections.abc import Collection
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -18,11 +19,14 @@ from msfnet.common.files import STAGING_TAG, check_not_input, folder_lock
 from msfnet.common.files.locks import LOCK_NAME
 from msfnet.model.train_config import (
     MAX_LIGHTS,
-    MAX_SIZE,
     RUN_ONLY,
     SNAPSHOT,
+    Phase,
     TrainConfig,
+    crop_size,
+    format_curriculum,
     parse_curriculum,
+    stored_value_problem,
 )
 from msfnet.runtime.stack.types import MIN_LIGHTS
 
@@ -86,13 +90,19 @@ def build_parser() -> argparse.ArgumentParser:
     # shortcuts that rewrite --curriculum (config_from), so no field of their own
     p.add_argument(
         "--lights",
+        metavar="K",
         type=int_range(MIN_LIGHTS, MAX_LIGHTS),  # photometric stereo's fewest lights
         default=None,
-        help="shortcut: a fixed light count for every batch (curriculum with one "
-        "phase; the paper used 32)",
+        help="shortcut: a fixed light count for every batch (every phase of the curriculum "
+        "uses K lights, its crops kept; the paper used 32)",
     )
     p.add_argument(
-        "--crop", type=int_range(8, MAX_SIZE), default=None, help="shortcut: fixed crop size"
+        "--crop",
+        type=crop_size,
+        default=None,
+        help="shortcut: a fixed crop size, a multiple of 4 (every phase of the curriculum "
+        "crops S x S, its light counts kept)",
+        metavar="S",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
@@ -107,37 +117,88 @@ def _explicit(argv: list[str] | None) -> dict:
     return vars(p.parse_args(argv))
 
 
-def config_from(args: dict, base: dict) -> TrainConfig:
+# What --render-on device does not use: its renderer draws each batch at the step's crop and
+# light count (the curriculum), with its own sensor noise and object sizes, in the training
+# process. Given with it, these would be stored in config.json yet change nothing.
+CPU_RENDER_ONLY = (
+    "noise",
+    "render_size",
+    "render_size_max",
+    "render_max_depth",
+    "render_lights",
+    "pool",
+    "refresh",
+    "workers",
+)
+
+
+def _flag(name: str) -> str:
+    """The option spelling of a TrainConfig field."""
+    return "--" + name.replace("_", "-")
+
+
+def config_from(args: dict, base: dict, typed: Collection[str] | None = None) -> TrainConfig:
+    """The run's settings: ``base`` (a stored config.json, or nothing) with ``args`` over it.
+    ``typed``: the options the user typed (their field names; default: every key of
+    ``args``): errors name these, and options --render-on device would ignore are refused
+    only when typed (the defaults are stored either way)."""
+    typed = set(args) if typed is None else set(typed)
     cfg = dict(base)
     names = {f.name for f in fields(TrainConfig)}
     for key, value in args.items():
         if key in names:  # the flags store under the field names (--no-mfe: mfe=False)
             cfg[key] = str(value) if key == "out" else value
-    if args.get("lights") is not None or args.get("crop") is not None:
-        phase = parse_curriculum(cfg["curriculum"])[0]
-        lights = args.get("lights") or phase.lights_max
-        crop = args.get("crop") or phase.crop
-        cfg["curriculum"] = f"0:{lights}-{lights}:{crop}"
+    # where the curriculum came from, for errors that name what the user typed
+    spec = str(cfg.get("curriculum", TrainConfig.curriculum))
+    if "curriculum" in typed:
+        source = "--curriculum"
+    elif "curriculum" in base:
+        source = "config.json's curriculum"
+    else:
+        source = "the default --curriculum"
+    origin = f"{source} {spec!r}"
+    phases = parse_curriculum(spec, source)
+    lights, crop = args.get("lights"), args.get("crop")
+    if lights is not None or crop is not None:
+        # the shortcuts replace only their part of every phase: --crop alone keeps the light
+        # range (the default's 16-32 lights), --lights alone the crops and the phases
+        phases = [
+            Phase(p.epoch, lights or p.lights_min, lights or p.lights_max, crop or p.crop)
+            for p in phases
+        ]
+        same = [(p.lights_min, p.lights_max, p.crop) for p in phases]
+        phases = [p for i, p in enumerate(phases) if i == 0 or same[i] != same[i - 1]]
+        cfg["curriculum"] = format_curriculum(phases)
     out = TrainConfig(**cfg)
-    parse_curriculum(out.curriculum)  # validate early
     if out.epochs < 1 or out.steps_per_epoch < 1 or out.batch < 1:
         raise InputError("--epochs, --steps-per-epoch and --batch must be >= 1")
     if out.workers is not None and out.workers < 0:
         raise InputError("--workers must be >= 0")
     if out.render_on == "device" and out.data != "synth":
         raise InputError("--render-on device renders synthetic data; drop --data")
+    most = max(p.lights_max for p in phases)
+    widest = max(p.crop for p in phases)
+    lights_from = f"--lights {lights}" if lights is not None else origin
+    crop_from = f"--crop {crop}" if crop is not None else origin
     if out.data == "synth" and out.render_on == "device":
-        pass  # the device renderer draws exactly the crop and lights each step asks for
+        ignored = [_flag(name) for name in CPU_RENDER_ONLY if name in typed]
+        if ignored:
+            raise InputError(
+                f"{', '.join(ignored)}: not used by --render-on device (it renders each "
+                "batch's crop and lights, as the curriculum asks, with its own noise and "
+                "object sizes, in the training process); drop "
+                f"{'it' if len(ignored) == 1 else 'them'} or use --render-on cpu"
+            )
     elif out.data == "synth":
-        most = max(p.lights_max for p in parse_curriculum(out.curriculum))
         if most > out.render_lights:  # the sampler would quietly use fewer lights
             raise InputError(
-                f"the curriculum asks for up to {most} lights but "
+                f"{lights_from} asks for up to {most} lights but "
                 f"--render-lights renders {out.render_lights}"
             )
-        crop = max(p.crop for p in parse_curriculum(out.curriculum))
-        if crop > out.render_size:
-            raise InputError(f"crop {crop} exceeds --render-size {out.render_size}")
+        if widest > out.render_size:
+            raise InputError(
+                f"{crop_from} asks for {widest} px crops but --render-size is {out.render_size}"
+            )
         if out.render_size_max is not None and out.render_size_max < out.render_size:
             raise InputError(
                 f"--render-size-max {out.render_size_max} is below --render-size {out.render_size}"
@@ -151,9 +212,10 @@ def config_from(args: dict, base: dict) -> TrainConfig:
 CORE_KEYS = frozenset({"epochs", "steps_per_epoch", "batch", "curriculum", "lr", "seed"})
 
 
-def _stored_config(out: Path, flag: str = "--resume") -> dict:
+def _stored_config(out: Path, flag: str = "--resume", values: bool = True) -> dict:
     """OUT/config.json of an earlier run, refused in one line if missing, damaged or not
-    msf-train's."""
+    msf-train's. ``values``: also check each value by its option's rules (what --resume will
+    use; --overwrite only needs to know the run is msf-train's)."""
     stored = out / "config.json"
     if not stored.is_file():
         raise InputError(f"{flag}: no config.json in the output folder (not an msf-train run)", out)
@@ -170,7 +232,14 @@ def _stored_config(out: Path, flag: str = "--resume") -> dict:
             stored,
         )
     # runs of earlier versions stored --time-budget: one chunk's limit, not the run's
-    return {k: v for k, v in data.items() if k not in RUN_ONLY}
+    kept = {k: v for k, v in data.items() if k not in RUN_ONLY}
+    for key, value in kept.items() if values else ():
+        # a hand-edited value ("batch": 1.5, "pool": 0, "noise": null) is refused as the
+        # option would be, not left to fail in torch or numpy as an internal error
+        problem = stored_value_problem(key, value)
+        if problem is not None:
+            raise InputError(f'"{key}": {problem}', stored)
+    return kept
 
 
 def _entries(out: Path) -> list[Path]:
@@ -224,7 +293,7 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
             f"{foreign[0]}); refusing to delete them",
             out,
         )
-    _stored_config(out, "--overwrite")  # names alone do not make it a run of ours
+    _stored_config(out, "--overwrite", values=False)  # names alone do not make it ours
     return sorted(_entries(out))  # deleted by the caller once every option has been checked
 
 
@@ -250,6 +319,7 @@ def _run_locked(args: argparse.Namespace, argv: list[str] | None, started: float
 
     out: Path = args.out
     earlier = _prepare_out(args)  # again: what it checked may have changed before the lock
+    explicit = _explicit(argv)  # what the user typed: errors name it, --resume keeps the rest
     resume = args.resume and (out / "last.pth").is_file() and (out / "last_state.pth").is_file()
     if args.resume and not resume:
         # Nothing saved yet (first chunk, or killed before the first save): start here, from
@@ -271,11 +341,10 @@ def _run_locked(args: argparse.Namespace, argv: list[str] | None, started: float
             )
         say(f"msf-train: nothing to resume in {out}: starting there")
         base = _stored_config(out) if (out / "config.json").is_file() else {}
-        cfg = config_from(_explicit(argv) if base else vars(args), base)
+        cfg = config_from(explicit if base else vars(args), base, set(explicit))
         (out / "log.jsonl").unlink(missing_ok=True)  # rows of a run that never saved
     elif resume:
         stored = _stored_config(out)
-        explicit = _explicit(argv)
         for flag, key in (("--no-mfe", "mfe"), ("--no-mff", "mff")):
             if key in explicit and stored.get(key, True):
                 raise InputError(
@@ -283,9 +352,9 @@ def _run_locked(args: argparse.Namespace, argv: list[str] | None, started: float
                     "resumed; start a new run instead",
                     out,
                 )
-        cfg = config_from(explicit, stored)
+        cfg = config_from(explicit, stored, set(explicit))
     else:
-        cfg = config_from(vars(args), {})
+        cfg = config_from(vars(args), {}, set(explicit))
         if cfg.init is not None:
             read_state_dict(cfg.init)  # a bad --init is refused while the earlier run exists
     try:

@@ -4,8 +4,13 @@ parsed, and refused, without importing torch."""
 
 from __future__ import annotations
 
+import argparse
+import functools
+import json
 import re
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, get_args, get_type_hints
 
 from msfnet.common.cli import (
     flag,
@@ -37,8 +42,10 @@ class Phase:
     crop: int
 
 
-def parse_curriculum(spec: str) -> list[Phase]:
-    """``"0:8-16:32,4:16-32:32"`` -> phases (start epoch : lights range : crop size)."""
+def parse_curriculum(spec: str, source: str = "--curriculum") -> list[Phase]:
+    """``"0:8-16:32,4:16-32:32"`` -> phases (start epoch : lights range : crop size).
+    ``source``: what errors name as the curriculum's origin (the option the user typed)."""
+    where = f"{source} {spec!r}"
     phases = []
     try:
         for part in spec.split(","):
@@ -47,23 +54,40 @@ def parse_curriculum(spec: str) -> list[Phase]:
             phases.append(Phase(int(e), int(lo), int(hi or lo), int(crop)))
     except ValueError as exc:
         raise InputError(
-            f"--curriculum {spec!r}: expected EPOCH:LMIN-LMAX:CROP[,...] like 0:8-16:32,4:16-32:32"
+            f"{where}: expected EPOCH:LMIN-LMAX:CROP[,...] like 0:8-16:32,4:16-32:32"
         ) from exc
     phases.sort(key=lambda p: p.epoch)
     for p in phases:
         if p.lights_min < MIN_LIGHTS or p.lights_max < p.lights_min or p.crop < 8 or p.crop % 4:
             raise InputError(
-                f"--curriculum {spec!r}: need {MIN_LIGHTS} <= LMIN <= LMAX (photometric "
+                f"{where}: need {MIN_LIGHTS} <= LMIN <= LMAX (photometric "
                 "stereo's fewest lights) and CROP a multiple of 4 (>= 8)"
             )
     if not phases or phases[0].epoch != 0:
-        raise InputError(f"--curriculum {spec!r}: the first phase must start at epoch 0")
+        raise InputError(f"{where}: the first phase must start at epoch 0")
+    starts = [p.epoch for p in phases]
+    twice = sorted({e for e in starts if starts.count(e) > 1})
+    if twice:  # only the last of them would ever apply, the others silently never
+        raise InputError(f"{where}: two phases start at epoch {twice[0]}; give each its own")
     return phases
+
+
+def format_curriculum(phases: Sequence[Phase]) -> str:
+    """The ``--curriculum`` text of ``phases`` (parse_curriculum's inverse)."""
+    return ",".join(f"{p.epoch}:{p.lights_min}-{p.lights_max}:{p.crop}" for p in phases)
 
 
 # Upper bounds that keep a mistyped number from asking for terabytes before anything runs.
 MAX_SIZE = 4096
 MAX_LIGHTS = 1024
+
+
+def crop_size(text: str) -> int:
+    """A --crop value: 8..MAX_SIZE and a multiple of 4, as the curriculum's CROP."""
+    value = int_range(8, MAX_SIZE)(text)
+    if value % 4:
+        raise argparse.ArgumentTypeError(f"must be a multiple of 4, got {text!r}")
+    return value
 
 
 @dataclass
@@ -153,20 +177,21 @@ class TrainConfig:
     )
     render_size: int = flag(
         64,
-        "synthetic object size in pixels (default %(default)s)",
+        "synthetic object size in pixels (default %(default)s; --render-on cpu only)",
         type=int_range(8, MAX_SIZE),
     )
     # sizes drawn from [render_size, render_size_max]
     render_size_max: int | None = flag(
         None,
         "draw each synthetic object's size from [--render-size, this]: larger renders are "
-        "smoother per pixel, like real full-resolution objects",
+        "smoother per pixel, like real full-resolution objects (--render-on cpu only)",
         type=int_range(8, MAX_SIZE),
     )
     render_max_depth: float = flag(
         RenderOptions.max_depth,
         "synthetic domes up to this height/radius (default %(default)s; 2 gives a slant "
-        "histogram like DiLiGenT ball's, with 4x more pixels steeper than 66 deg)",
+        "histogram like DiLiGenT ball's, with 4x more pixels steeper than 66 deg; "
+        "--render-on cpu only)",
         type=positive_float,
     )
     # "default" or "hard" (msfnet.synth RenderOptions.preset)
@@ -179,20 +204,23 @@ class TrainConfig:
     )
     render_lights: int = flag(
         40,
-        "lights rendered per synthetic object (default %(default)s)",
+        "lights rendered per synthetic object (default %(default)s; --render-on cpu only)",
         type=int_range(3, MAX_LIGHTS),
     )
     pool: int = flag(
-        48, "synthetic objects kept in memory (default %(default)s)", type=positive_int
+        48,
+        "synthetic objects kept in memory (default %(default)s; --render-on cpu only)",
+        type=positive_int,
     )
     refresh: int = flag(
         2,
-        "new synthetic objects rendered per batch (default %(default)s)",
+        "new synthetic objects rendered per batch (default %(default)s; --render-on cpu only)",
         type=nonnegative_int,
     )
     noise: float = flag(
         0.01,
-        "max extra Gaussian noise, fraction of the crop's 95th percentile (default %(default)s)",
+        "max extra Gaussian noise, fraction of the crop's 95th percentile (default "
+        "%(default)s; --render-on cpu only: the device renderer draws its own sensor noise)",
         type=nonnegative_float,
     )
     val_objects: int = flag(
@@ -233,7 +261,7 @@ class TrainConfig:
         None,
         "processes rendering batches in parallel (DataLoader workers, each with its own object "
         "pool and seed stream); 0 = render in the training process. Default: 0 on the CPU, "
-        "min(cores - 2, 12) with cuda",
+        "min(cores - 2, 12) with cuda (--render-on cpu only)",
         type=nonnegative_int,
     )
     # "cpu": the numpy renderer (in process or in workers); "device": the torch renderer
@@ -242,7 +270,10 @@ class TrainConfig:
         "cpu",
         "where synthetic batches are rendered: cpu (default: the numpy renderer, in the "
         "training process or --workers) or device (the torch renderer on the training device "
-        "itself, as batched tensor operations; no workers; --render-preset applies)",
+        "itself, as batched tensor operations: each batch at the curriculum's crop and light "
+        "count, --render-preset applies; --noise, --render-size, --render-size-max, "
+        "--render-max-depth, --render-lights, --pool, --refresh and --workers are for cpu "
+        "only and refused with device)",
         choices=("cpu", "device"),
     )
     # stop (and save) this many seconds after msf-train started; this invocation's only
@@ -272,3 +303,64 @@ class TrainConfig:
     def phase(self, epoch: int) -> Phase:
         phases = parse_curriculum(self.curriculum)
         return [p for p in phases if p.epoch <= epoch][-1]
+
+
+# the fields without a flag, checked as their flag would (val_* are fixed for runs to compare)
+_UNFLAGGED: dict[str, Callable[[str], object]] = {
+    "out": path_text,
+    "val_lights": int_range(MIN_LIGHTS, MAX_LIGHTS),
+    "val_seed": nonnegative_int,
+}
+_KINDS = {
+    bool: "true or false",
+    int: "an integer",
+    float: "a number",
+    str: "text",
+    dict: "an object",
+}
+
+
+def stored_value_problem(name: str, value: object) -> str | None:
+    """What is wrong with ``value`` as config.json's ``name`` (a TrainConfig field), by the
+    rules of the field's flag; None when nothing is. config.json is the run's editable record,
+    so a hand-edited value must be refused like a typed one, not reach torch or numpy."""
+    hint = _field_types()[name]
+    args = get_args(hint)  # (int, NoneType) for "int | None"; () for a plain type
+    kind = next((t for t in args if t is not type(None)), hint)
+    if value is None:
+        return None if type(None) in args else _expected(kind, value)
+    # JSON numbers: an integer is a float's value too, but true / false is no number
+    if kind is bool:
+        fits = isinstance(value, bool)
+    else:
+        fits = isinstance(value, (int, float) if kind is float else kind) and not isinstance(
+            value, bool
+        )
+    if not fits:
+        return _expected(kind, value)
+    spec = next(f.metadata.get("flag") for f in fields(TrainConfig) if f.name == name)
+    if spec is not None and spec.choices is not None and value not in spec.choices:
+        return f"must be one of {', '.join(spec.choices)}, got {json.dumps(value)}"
+    check = _UNFLAGGED.get(name) if spec is None else spec.type
+    if check is not None:
+        try:
+            check(str(value))
+        except argparse.ArgumentTypeError as exc:
+            # the flag's own words, with the JSON value in place of the quoted text
+            return str(exc).replace(repr(str(value)), json.dumps(value))
+    if name == "curriculum":
+        try:
+            parse_curriculum(str(value), source="")
+        except InputError as exc:
+            return exc.message.strip()
+    return None
+
+
+@functools.cache
+def _field_types() -> dict[str, Any]:
+    """TrainConfig's field types (its annotations are text: ``from __future__``)."""
+    return get_type_hints(TrainConfig)
+
+
+def _expected(kind: type, value: object) -> str:
+    return f"must be {_KINDS.get(kind, kind.__name__)}, got {json.dumps(value)}"
