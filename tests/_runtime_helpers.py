@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -253,3 +255,35 @@ def msfnet_folder(path: Path, names: tuple[str, ...] = ("a.txt",)) -> Path:
         for n in names:
             (tmp / n).write_text(n)
     return path
+
+
+@contextmanager
+def folder_held(folder: Path, command: str) -> Iterator[subprocess.Popen[str]]:
+    """Another process holding ``folder``'s lock as ``command`` (common.files.folder_lock)
+    while the block runs; it lets go when the block ends. ``kill()`` it inside the block to
+    leave a stale lock file behind, as kill -9 would."""
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys\n"
+            "from msfnet.common.files import folder_lock\n"
+            "with folder_lock(sys.argv[1], sys.argv[2]):\n"
+            "    print('held', flush=True)\n"
+            "    sys.stdin.readline()\n",
+            str(folder),
+            command,
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        yield holder
+    finally:
+        if holder.poll() is None:
+            assert holder.stdin is not None
+            holder.stdin.write("\n")
+            holder.stdin.close()
+        holder.wait(timeout=30)

@@ -439,37 +439,15 @@ def test_a_second_capture_into_a_busy_folder_is_refused(
     """Two simultaneous captures into one folder both reported success, one's frames gone.
     The second, started while the first holds the folder, is refused at once; the first
     finishes untouched, and the folder is free again afterwards."""
-    import subprocess
-    import sys
+    from _runtime_helpers import folder_held
 
     out = tmp_path / "o"
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys, time\n"
-            "from msfnet.common.files import folder_lock\n"
-            "with folder_lock(sys.argv[1], 'msf-capture'):\n"
-            "    print('held', flush=True)\n"
-            "    sys.stdin.readline()\n",
-            str(out),
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+    with folder_held(out, "msf-capture") as holder:
         assert capture_main([str(out), *SIM, "--count", "4"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "another msf-capture is working in this folder" in err[0], err
         assert f"pid {holder.pid}" in err[0]
         assert not (out / "raw").exists() and not (out / "session.json").exists()
-    finally:
-        assert holder.stdin is not None
-        holder.stdin.write("\n")
-        holder.stdin.close()
-        holder.wait(timeout=30)
     assert capture_main([str(out), *SIM, "--count", "4"]) == 0
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []  # no lock left
 

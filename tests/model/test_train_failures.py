@@ -5,11 +5,10 @@ busy OUT is refused, and --time-budget is one invocation's limit, reported as su
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from _runtime_helpers import folder_held
 
 torch = pytest.importorskip("torch")
 
@@ -185,23 +184,7 @@ def test_a_second_msf_train_into_a_busy_folder_is_refused(tmp_path: Path, capfd)
     for name in ("last.pth", "last_state.pth", "log.jsonl"):
         (out / name).write_text("x")
     before = _files(out)
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys\n"
-            "from msfnet.common.files import folder_lock\n"
-            "with folder_lock(sys.argv[1], 'msf-train'):\n"
-            "    print('held', flush=True)\n"
-            "    sys.stdin.readline()\n",
-            str(out),
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+    with folder_held(out, "msf-train") as holder:
         for extra in (["--resume"], ["--overwrite"]):
             assert train_main(["--out", str(out), *extra, "--no-progress"]) == 2
             err = capfd.readouterr().err.strip().splitlines()
@@ -209,9 +192,7 @@ def test_a_second_msf_train_into_a_busy_folder_is_refused(tmp_path: Path, capfd)
             now = _files(out)
             now.pop(LOCK_NAME)  # the holder's
             assert now == before
-    finally:
         holder.kill()  # like kill -9: the lock file stays, and holds nothing any more
-        holder.wait(timeout=30)
     # a lock left by a killed run neither blocks nor counts as a file in OUT
     assert train_main(["--out", str(out), "--resume", "--no-progress"]) == 2
     err = capfd.readouterr().err.strip().splitlines()
