@@ -287,3 +287,8 @@ def folder_held(folder: Path, command: str) -> Iterator[subprocess.Popen[str]]:
             holder.stdin.write("\n")
             holder.stdin.close()
         holder.wait(timeout=30)
+
+
+# msf-train's validation at its smallest (one 16 px object, one thread): a test's run then
+# validates in well under a second
+QUICK_VALIDATION = ["--val-objects", "1", "--val-size", "16", "--threads", "1"]

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from _runtime_helpers import QUICK_VALIDATION
 
 pytest.importorskip("torch")
 
@@ -328,12 +329,7 @@ GUARD = [
     "1",
     "--steps-per-epoch",
     "1",
-    "--val-objects",
-    "1",
-    "--val-size",
-    "16",
-    "--threads",
-    "1",
+    *QUICK_VALIDATION,
     "--time-budget",
     "20",
     "--no-progress",

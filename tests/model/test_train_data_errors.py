@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _runtime_helpers import QUICK_VALIDATION
 
 pytest.importorskip("torch")
 
@@ -33,12 +34,7 @@ TINY = [
     "2",
     "--crop",
     "8",
-    "--val-objects",
-    "1",
-    "--val-size",
-    "16",
-    "--threads",
-    "1",
+    *QUICK_VALIDATION,
     "--precision",
     "fp32",
     "--device",

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 import pytest
-from _runtime_helpers import folder_held
+from _runtime_helpers import QUICK_VALIDATION, folder_held
 
 torch = pytest.importorskip("torch")
 
@@ -34,12 +34,7 @@ TINY = [
     "2",
     "--refresh",
     "1",
-    "--val-objects",
-    "1",
-    "--val-size",
-    "16",
-    "--threads",
-    "1",
+    *QUICK_VALIDATION,
     "--log-every",
     "1",
     "--precision",
