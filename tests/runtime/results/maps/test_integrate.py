@@ -127,6 +127,53 @@ def test_every_piece_of_a_speckled_mask_gets_its_own_constant(rng) -> None:
         assert np.min(persp.height[sel]) == 0.0  # its farthest point
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_an_empty_perspective_mask_gives_nan_not_an_error(method: str) -> None:
+    normals = np.zeros((8, 8, 3))
+    normals[..., 2] = 1.0
+    res = integrate_normals(normals, np.zeros((8, 8), bool), method, intrinsics=(100, 100, 4, 4))
+    assert res.depth is not None and np.isnan(res.depth).all() and np.isnan(res.height).all()
+
+
+def test_a_depth_ref_out_of_float32_is_named_not_the_intrinsics() -> None:
+    normals = np.zeros((8, 8, 3))
+    normals[..., 2] = 1.0
+    mask = np.ones((8, 8), bool)
+    with pytest.raises(InputError, match=r"^depth_ref 1e\+39: outside float32"):
+        integrate_normals(normals, mask, "poisson", intrinsics=(100, 100, 4, 4), depth_ref=1e39)
+
+
+def test_a_stalled_solve_retries_with_smaller_aggregates_before_lu(
+    monkeypatch: pytest.MonkeyPatch, rng
+) -> None:
+    """Large regions of grazing normals (confidence 400x lower) stalled CG with 3 x 3
+    aggregates: 101 steps, then an LU of 1.75 GB at 1 M pixels; 2 x 2 blocks take ~25."""
+    import cv2
+    import scipy.sparse.linalg as sla
+
+    from msfnet.runtime.results.maps import integrate as ig
+
+    size = 160
+    yy, xx = np.mgrid[:size, :size] / size - 0.5
+    normals = np.dstack([xx, -yy, np.ones_like(xx)])
+    blobs = cv2.GaussianBlur(rng.standard_normal((size, size)), (0, 0), 4.0)
+    grazing = blobs > np.quantile(blobs, 0.4)
+    normals[grazing] = [1.0, 0.3, 0.01]
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    g, mat, b = _poisson_system(normals, np.ones((size, size), bool))
+    built, lu = [], []
+    real_mg, real_lu = ig.Multigrid, sla.splu
+    monkeypatch.setattr(
+        ig, "Multigrid", lambda *a, **k: built.append(k.get("aggregate")) or real_mg(*a, **k)
+    )
+    monkeypatch.setattr(sla, "splu", lambda m, **k: lu.append(m.shape[0]) or real_lu(m, **k))
+    monkeypatch.setattr(ig, "PROBE_ITER", 3)  # this small part's 3 x 3 solve would get there
+    x = ig._solve(mat, b, np.zeros_like(b), real_mg(mat, g.index))
+    assert built == [2]  # retried with 2 x 2 blocks
+    assert mat.shape[0] not in lu  # and no LU of the whole system (coarsest levels only)
+    assert np.linalg.norm(b - mat @ x) <= 10 * ig.CG_RTOL * np.linalg.norm(b)
+
+
 def test_separate_parts_do_not_pull_on_each_other() -> None:
     h, w = 24, 40
     mask = np.zeros((h, w), bool)
