@@ -176,10 +176,15 @@ class SynthSource:
         self.seed = [seed] if isinstance(seed, int) else list(seed)
         self.options, self.refresh = options, refresh
         self.sizes = (options.size, max(options.size, max_size or options.size))
-        self.counter = start  # index of the next object to render (for resuming)
-        self.pool: list[Stack] = []
-        while len(self.pool) < pool:
-            self.pool.append(self._render())
+        # The pool after b batches holds objects b * refresh .. b * refresh + pool - 1, object k
+        # in slot k % pool (each batch's new objects replace the oldest). ``start`` = b *
+        # refresh rebuilds exactly that pool: a resumed run picks the objects an unbroken one
+        # would have.
+        self.counter = start  # index of the next object to render
+        slots: list[Stack | None] = [None] * pool
+        for _ in range(pool):
+            slots[self.counter % pool] = self._render()
+        self.pool: list[Stack] = [s for s in slots if s is not None]
 
     def _render(self) -> Stack:
         rng = np.random.default_rng([*self.seed, self.counter])
@@ -362,15 +367,22 @@ class SourceSpec:
     pairs: tuple[tuple[Path, Path], ...] | None = None
 
     def build(self, worker: int, workers: int, start_step: int) -> Source:
+        """The source of DataLoader worker ``worker`` of ``workers`` for steps ``start_step +
+        worker``, ``+ workers``, ...: those an unbroken run gives its worker ``(start_step +
+        worker) % workers``, whose object stream and pool it takes over as they are after its
+        earlier steps, so a resumed run renders what an unbroken one would (same worker
+        count)."""
         if self.data != "synth":
             return BlobbySource(self.data, pairs=self.pairs)
-        # Tag 1 keeps worker streams apart from the in-process stream [seed, counter]; the
-        # start step makes a resumed run render new objects, as the in-process source does.
+        owner = (start_step + worker) % workers
+        done = max(0, -(-(start_step - owner) // workers))  # its steps before start_step
+        # Tag 1 keeps worker streams apart from the in-process stream [seed, counter]
         return SynthSource(
-            [self.seed, 1, worker, workers, start_step],
+            [self.seed, 1, owner, workers],
             self.options,
             self.pool,
             self.refresh,
+            start=done * self.refresh,
             max_size=self.max_size,
         )
 

@@ -495,10 +495,14 @@ class Trainer:
                 shutdown()
 
     def _local_batches(self, total: int):
-        cfg, rng = self.cfg, np.random.default_rng([self.cfg.seed, self.step])
+        """Batches rendered in this process; step s's light count, picks, crops and
+        augmentation come from a generator seeded with (seed, s), so a resumed run gets the
+        batches an unbroken one would (with SynthSource's pool rebuilt for the step)."""
+        cfg = self.cfg
         assert self.source is not None
-        while self.step < total:
-            phase = cfg.phase(self.epoch)
+        for step in range(self.step, total):
+            rng = np.random.default_rng([cfg.seed, step])
+            phase = cfg.phase(step // cfg.steps_per_epoch)
             lights = int(rng.integers(phase.lights_min, phase.lights_max + 1))
             yield (
                 self.source.batch(cfg.batch, lights, phase.crop, rng, noise=cfg.noise),
