@@ -323,3 +323,47 @@ def test_a_python_program_importing_msfnet_keeps_its_own_ctrl_c() -> None:
         "sys.exit(0 if signal.getsignal(signal.SIGINT) is signal.default_int_handler else 1)\n"
     )
     assert _child(code).returncode == 0
+
+
+# a kill that arrives once the command has said its last line (review-inspect.md 13)
+KILLED_WHILE_EXITING = """
+import os, signal, sys, time
+sys.argv[0] = "/usr/local/bin/msf-x"
+import msfnet
+from msfnet.common.cli import run_command
+from msfnet.common.files import staged_folder
+
+def body():
+    with staged_folder(sys.argv[1]) as tmp:
+        (tmp / "a.txt").write_text("x")
+    print("wrote", sys.argv[1])
+    return 0
+
+code = run_command("msf-x", body)
+os.kill(os.getpid(), signal.SIGTERM)  # the supervisor's kill while the process shuts down
+os.kill(os.getpid(), signal.SIGHUP)
+time.sleep(0.2)
+sys.exit(code)
+"""
+
+
+def test_a_kill_after_the_command_finished_keeps_its_exit_code(tmp_path: Path) -> None:
+    """It exited 143 with no word, the output complete: a supervisor read a failed run."""
+    proc = _child(KILLED_WHILE_EXITING, str(tmp_path / "out"))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""
+    assert (tmp_path / "out" / "a.txt").read_text() == "x"
+
+
+def test_an_in_process_command_gives_the_callers_kill_handlers_back() -> None:
+    from msfnet.common.cli import run_command
+
+    def mine(signum: int, frame: object) -> None:
+        pass
+
+    before = signal.signal(signal.SIGTERM, mine)
+    try:
+        assert run_command("msf-x", lambda: 0) == 0
+        assert signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        signal.signal(signal.SIGTERM, before)

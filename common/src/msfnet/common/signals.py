@@ -122,9 +122,17 @@ def install_signal_handlers() -> dict[int, object]:
 
 
 def restore_signal_handlers(previous: dict[int, object]) -> None:
+    """Put back the handlers :func:`install_signal_handlers` replaced.
+
+    Once an msf-* program's command has finished and said its last line, the process only
+    exits: a SIGTERM / SIGHUP then (Python's shutdown can take a moment with an engine
+    loaded) would have killed it with 143 and no word although its outputs were complete,
+    and a supervisor reads 143 as a failed run. Such a signal is ignored from then on, as
+    Ctrl-C is; in-process callers get their own handlers back."""
+    exiting = _Command.guarded and _Command.done
     for sig, handler in previous.items():
         with contextlib.suppress(ValueError, TypeError):
-            signal.signal(sig, handler)  # type: ignore[arg-type]
+            signal.signal(sig, signal.SIG_IGN if exiting else handler)  # type: ignore[arg-type]
 
 
 @contextmanager
