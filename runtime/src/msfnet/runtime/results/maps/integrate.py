@@ -329,7 +329,6 @@ class Multigrid:
         strength: float = STRENGTH,
     ) -> None:
         import scipy.sparse as sp
-        import scipy.sparse.linalg as sla
 
         side = AGGREGATE if aggregate is None else aggregate
         self.index = index  # kept: _solve may rebuild the hierarchy with smaller blocks
@@ -353,12 +352,7 @@ class Multigrid:
             coarse_rows[owner], coarse_cols[owner] = rows, cols
             rows, cols = coarse_rows, coarse_cols
             a = (prolong.T @ a @ prolong).tocsr()
-        self.coarse = sla.splu(
-            a.tocsc(),
-            permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0,
-            options={"SymmetricMode": True},
-        )
+        self.coarse = _factorise(a)
 
     def solve(self, r: np.ndarray, level: int = 0) -> np.ndarray:
         if level == len(self.levels):
@@ -468,8 +462,6 @@ def _solve(mat: sp.csr_matrix, b: np.ndarray, x0: np.ndarray, mg: Multigrid) -> 
     sharply, e.g. large regions of grazing normals, where 3 x 3 blocks stalled: 1 M pixels took
     101 steps and an LU of 1.75 GB against 27 steps); a solve far from done after PROBE_ITER
     steps retries at once. As a last resort, a sparse LU, slower but direct."""
-    import scipy.sparse.linalg as sla
-
     x, relres = _pcg(mat, b, x0, mg, CG_RTOL, PROBE_ITER)
     if relres <= 10 * CG_RTOL:
         return x
@@ -482,13 +474,20 @@ def _solve(mat: sp.csr_matrix, b: np.ndarray, x0: np.ndarray, mg: Multigrid) -> 
         x, relres = _pcg(mat, b, x, smaller, CG_RTOL, SOLVE_ITER)
         if relres <= 10 * CG_RTOL:
             return x
-    lu = sla.splu(
+    return _factorise(mat).solve(b)
+
+
+def _factorise(mat: sp.csr_matrix) -> Any:
+    """Sparse LU of a symmetric positive definite system: an ordering for A + A^T and no
+    pivoting off the diagonal, which such a system never needs."""
+    import scipy.sparse.linalg as sla
+
+    return sla.splu(
         mat.tocsc(),
         permc_spec="MMD_AT_PLUS_A",
         diag_pivot_thresh=0.0,
         options={"SymmetricMode": True},
     )
-    return lu.solve(b)
 
 
 def _to_grid(values: np.ndarray, g: _Graph) -> np.ndarray:
