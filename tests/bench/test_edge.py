@@ -143,7 +143,10 @@ def test_a_path_whose_normals_are_unusable_gets_no_tick(tmp_path: Path, monkeypa
     monkeypatch.setattr(
         edge,
         "edge_paths",
-        lambda m: ([edge.EdgePath("ONNX Runtime fp32", "onnxruntime", "fp32", None)], []),
+        lambda m, info=None: (
+            [edge.EdgePath("ONNX Runtime fp32", "onnxruntime", "fp32", None)],
+            [],
+        ),
     )
     from msfnet.runtime import engines
 
@@ -252,7 +255,7 @@ def test_onnx_rows_feed_the_network_the_scaling_its_file_declares(
         edge, "validation_crops", lambda data, tl: seen.append(tl) or real(data, tl)
     )
     monkeypatch.setattr(
-        edge, "edge_paths", lambda m: ([edge.EdgePath("ORT", "onnxruntime", "fp32")], [])
+        edge, "edge_paths", lambda m, info=None: ([edge.EdgePath("ORT", "onnxruntime", "fp32")], [])
     )
     specs = []
     monkeypatch.setattr(

@@ -870,7 +870,7 @@ def _run_edge(args: argparse.Namespace) -> int:
         if args.onnx is not None and not (args.ladder or args.requirements):
             _say(args, f"measuring {model.name} on every engine and device here ...")
             assert root is not None
-            rows = edge.onnx_rows(model, root, threads, scratch, say=progress)
+            rows = edge.onnx_rows(model, root, threads, scratch, say=progress, info=info)
             result["onnx"] = [edge.asdict(r) for r in rows]
             sections.append(("Engines and devices", edge.edge_table(rows)))
         if args.ladder:
@@ -885,7 +885,13 @@ def _run_edge(args: argparse.Namespace) -> int:
         if args.requirements:
             _say(args, "measuring the requirements grid (each cell in a fresh process) ...")
             reqs = edge.requirement_rows(
-                args.onnx, stack, threads, scratch, quick=args.quick, say=progress
+                args.onnx,
+                stack,
+                threads,
+                scratch,
+                quick=args.quick,
+                say=progress,
+                info=info if args.onnx is not None else None,
             )
             result["requirements"] = [edge.asdict(r) for r in reqs]
             sections.append(("Requirements", edge.requirements_table(reqs)))

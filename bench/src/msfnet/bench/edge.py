@@ -26,11 +26,15 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from msfnet.bench.ladder import REPEAT
 from msfnet.common.errors import InputError
+
+if TYPE_CHECKING:
+    from msfnet.runtime.engines.base import ModelInfo
 
 CROP = 128
 CROP_LIGHTS = 12
@@ -61,14 +65,15 @@ class EdgeRow:
     peak_mb: float | None
 
 
-def edge_paths(model: Path) -> tuple[list[EdgePath], list[EdgeRow]]:
+def edge_paths(model: Path, info: ModelInfo | None = None) -> tuple[list[EdgePath], list[EdgeRow]]:
     """The paths this machine can run ``model`` on, and rows for those it cannot (status says
-    why). Nothing is loaded but the model's metadata."""
+    why). Nothing is loaded but the model's metadata (``info``, when the caller has read it)."""
     from msfnet.common.cpu import detect_cpu
     from msfnet.runtime.engines import installed_engines, model_precision, read_model_file
     from msfnet.runtime.engines.dispatch import DEVICE_TARGETS, resolve_device
 
-    info = read_model_file(model)
+    if info is None:
+        info = read_model_file(model)
     own = model_precision(info)
     have = installed_engines()
     size = model.stat().st_size / 2**20
@@ -300,14 +305,18 @@ def onnx_rows(
     threads: int | None,
     scratch: Path,
     say: Callable[[str], None] = lambda line: None,
+    info: ModelInfo | None = None,
 ) -> list[EdgeRow]:
-    """One row per engine / device path, each in a fresh process; ``say``: a line per row."""
+    """One row per engine / device path, each in a fresh process; ``say``: a line per row;
+    ``info``: the model's metadata, when the caller has read it."""
     from msfnet.runtime.engines import read_model_file
 
-    paths, rows = edge_paths(model)
+    if info is None:
+        info = read_model_file(model)
+    paths, rows = edge_paths(model, info)
     size = model.stat().st_size / 2**20
     # normalised as the file declares (its train_lights), as msf-run feeds it
-    crops = validation_crops(data, read_model_file(model).train_lights)
+    crops = validation_crops(data, info.train_lights)
     crop_file = write_crops(crops, scratch / "edge-crops.npz")
     del crops
     measured = []
@@ -395,6 +404,7 @@ def requirement_rows(
     quick: bool = False,
     engines: tuple[tuple[str | None, str | None], ...] | None = None,
     say: Callable[[str], None] = lambda line: None,
+    info: ModelInfo | None = None,
 ) -> list[Requirement]:
     """The grid, each cell in a fresh process; ``engines``: (engine, precision) pairs, None =
     dispatch's default; by default that and ONNX Runtime in the model's own precision (fp32,
@@ -404,7 +414,10 @@ def requirement_rows(
     if engines is None:
         from msfnet.runtime.engines import model_precision, read_model_file
 
-        own = "fp32" if model is None else model_precision(read_model_file(model))
+        if model is None:
+            own = "fp32"
+        else:
+            own = model_precision(info if info is not None else read_model_file(model))
         engines = ((None, None), ("onnxruntime", own))
     sizes, lights = (
         (QUICK_SIZES, QUICK_LIGHTS) if quick else (REQUIREMENT_SIZES, REQUIREMENT_LIGHTS)
