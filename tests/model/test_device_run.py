@@ -136,7 +136,7 @@ def test_prepared_run_rehearsed_on_the_cpu(tmp_path) -> None:
     assert 4 <= len(files) <= 8
     assert all(f.stat().st_size < 16 * 2**20 for f in files)
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["exit"] == "done" and summary["steps"] > 0
+    assert summary["exit"] == "time budget" and summary["steps"] > 0
     assert summary["samples_per_s_median"] > 0 and 0 < summary["train_fraction"] <= 1
     snaps = [f for f in files if f.name.startswith("snap_")]
     assert snaps and [s.name for s in snaps] == summary["snapshots"]
@@ -242,3 +242,28 @@ def test_device_run_refuses_an_out_of_an_earlier_run(tmp_path, monkeypatch, capf
     snaps = sorted(p.name for p in out.glob("snap_*.pth"))
     assert snaps == list(summary["snapshots"]) and "snap_0000999.pth" not in snaps
     assert (out / "device_run.txt").read_text() == before["device_run.txt"].decode()
+
+
+def test_the_summary_counts_the_steps_after_the_last_logged_loss(tmp_path: Path) -> None:
+    """A run stopped by its budget at step 20 with --log-every 50 reported 0 steps, 0 samples
+    and "done" (a CPU rehearsal of scripts/device_train.sh); on a GPU the count was up to a
+    log window short."""
+    from msfnet.model import device_run
+
+    rows = [{"step": s, "loss": 0.1, "samples_per_s": 50.0, "time": 100.0 + s} for s in (50, 100)]
+    rows.append({"step": 137, "stopped": "time_budget", "time": 240.0})
+    (tmp_path / "log.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    (tmp_path / "config.json").write_text(json.dumps({"batch": 4}))
+    sampler = device_run.UtilSampler()
+    summary = device_run.summarise(tmp_path, sampler, "done", batch=64)
+    assert (summary.steps, summary.samples, summary.exit) == (137, 137 * 4, "time budget")
+    assert summary.train_seconds == 50.0  # between the two logged windows
+
+    (tmp_path / "log.jsonl").write_text(json.dumps(rows[-1] | {"step": 20}) + "\n")
+    summary = device_run.summarise(tmp_path, sampler, "done", batch=64)
+    assert (summary.steps, summary.samples, summary.exit) == (20, 80, "time budget")
+    assert summary.samples_per_s_median is None
+
+    (tmp_path / "log.jsonl").write_text(json.dumps(rows[0]) + "\n")  # every epoch ran
+    assert device_run.summarise(tmp_path, sampler, "done", batch=64).exit == "done"
+    assert device_run.summarise(tmp_path, sampler, "watchdog", batch=64).exit == "watchdog"

@@ -74,7 +74,7 @@ class Summary:
     samples_per_s_median: float | None
     gpu_util_median: float | None  # NVML samples taken once a second while training
     gpu_util_mean: float | None
-    exit: str  # "done", "watchdog" or "error: ..."
+    exit: str  # "time budget", "done" (every epoch), "watchdog" or "error: ..."
     snapshots: tuple[str, ...]
 
 
@@ -123,9 +123,15 @@ def _run_batch(work: Path, batch: int) -> int:
 def summarise(work: Path, sampler: UtilSampler, exit_: str, batch: int) -> Summary:
     import torch
 
-    rows = [r for r in _rows(work) if "loss" in r]
+    every = _rows(work)
+    rows = [r for r in every if "loss" in r]
     speeds = [r["samples_per_s"] for r in rows[1:]]  # the first window holds cuDNN's tuning
-    steps = rows[-1]["step"] if rows else 0
+    # the steps done: the last row that names one (the stop's row comes after the last loss
+    # row, which is up to --log-every steps behind; a short run may have no loss row at all)
+    steps = max((r["step"] for r in every if type(r.get("step")) is int), default=0)
+    stopped = next((r.get("stopped") for r in reversed(every) if "stopped" in r), None)
+    if exit_ == "done" and stopped == "time_budget":
+        exit_ = "time budget"  # the planned end of a device run: msf-train's --time-budget
     span = rows[-1]["time"] - rows[0]["time"] if len(rows) > 1 else 0.0
     wall = time.monotonic() - STARTED
     util = sampler.samples[2:]  # the first seconds are start-up
