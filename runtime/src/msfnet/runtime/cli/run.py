@@ -378,17 +378,27 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
     # too: a batch's results never go inside the batch folder
     inputs = [*load.inputs(), req.model.model, *req.stacks]
     inputs += [p for i in items for p in i.options(load).inputs() if p not in inputs]
-    check_not_input(root, inputs, folder=True)
+    check_not_input(root, [*inputs, *(i.path for i in items)], folder=True)
     clash = next((i for i in items if i.name in SUMMARY_FILES), None)
     if clash is not None:  # found up front, not after the batch ran
         raise InputError(
             f"a stack is named {clash.name!r}, as the batch's summary file; rename it", clash.path
         )
     check_batch_root(root, [i.name for i in items], req.overwrite)
+    # the root's check has looked through the stacks' links into all of it: the outputs
+    # inside it need not again (a batch of n stacks would scan them n times)
     for item in items:
-        check_output(root / item.name, [*inputs, item.path], overwrite=req.overwrite, folder=True)
+        check_output(
+            root / item.name,
+            [*inputs, item.path],
+            overwrite=req.overwrite,
+            folder=True,
+            links=False,
+        )
     for name in SUMMARY_FILES:
-        check_output(root / name, [*inputs, *(i.path for i in items)], overwrite=req.overwrite)
+        check_output(
+            root / name, [*inputs, *(i.path for i in items)], overwrite=req.overwrite, links=False
+        )
     model = None
     if req.ray is not None:
         from msfnet.runtime.batch.ray_cluster import ModelSpec, import_ray, run_batch_ray
