@@ -86,3 +86,41 @@ def test_psmimages_root_is_a_batch_of_its_objects(psm_dir: Path) -> None:
     names = [i.name for i in items]
     assert {"cat", "owl", "horse"} <= set(names) and len(names) >= 7
     assert all(i.lights == (psm_dir / "lights.txt").resolve() for i in items)
+
+
+def test_a_stack_given_as_dot_or_through_a_link_keeps_its_name_and_protocol(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """review-stack23.md 4 and 9: "." had an empty name (its batch outputs went into the
+    batch's root, msf-eval failed), and bear given as "." or through a link ran on all 96
+    images, the 20 corrupted ones too."""
+    from msfnet.runtime.sources import path_item
+
+    bear = tmp_path / "bearPNG"
+    save_stack(sphere_stack(n=96, h=12, w=12), bear)
+    link = tmp_path / "bear"
+    link.symlink_to(bear)
+    for given in (bear, link, Path(".")):
+        monkeypatch.chdir(bear if given == Path(".") else tmp_path)
+        item = path_item(given)
+        assert item.select == "21-96", given
+        assert item.name == ("bear" if given == link else "bearPNG")
+        assert "DiLiGenT" in (item.note(LoadOptions()) or "")
+
+
+def test_a_batch_with_a_stack_given_as_dot_writes_it_into_its_own_folder(
+    tmp_path: Path, monkeypatch
+) -> None:
+    for name in ("a", "b"):
+        save_stack(sphere_stack(seed=len(name)), tmp_path / name)
+    monkeypatch.chdir(tmp_path / "a")
+    out = tmp_path / "out"
+    assert (
+        main([".", str(tmp_path / "b"), "--method", "l2", "--no-maps", "-q", "-o", str(out)]) == 0
+    )
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
+        "a",
+        "b",
+        "summary.json",
+        "summary.md",
+    ]

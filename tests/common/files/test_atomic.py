@@ -350,7 +350,9 @@ def test_an_output_replaced_again_counts_once(tmp_path: Path) -> None:
     files.forget_written()
 
 
-@pytest.mark.parametrize("writer", ["write_atomic", "staged_files", "staged_folder"])
+@pytest.mark.parametrize(
+    "writer", ["write_atomic", "staged_files", "staged_folder", "staged_folder_unnamed"]
+)
 def test_a_full_disk_names_the_output_not_its_temporary(writer: str, tmp_path: Path) -> None:
     """A write failing as a full disk does (OSError without a file name) is reported against
     the output the user named: "error: No space left on device" alone said nothing of where."""
@@ -365,11 +367,22 @@ def test_a_full_disk_names_the_output_not_its_temporary(writer: str, tmp_path: P
             write_atomic(target, full)
         elif writer == "staged_files":
             with staged_files([target]) as (tmp,):
-                full(tmp)  # a writer that names no file: left as it is (no target to guess)
-        else:
+                full(tmp)  # a writer that names no file: the one output
+        elif writer == "staged_folder":
             with staged_folder(target) as tmp:
                 (tmp / "a.npy").write_bytes(b"x")
                 raise OSError(errno.ENOSPC, "No space left on device", str(tmp / "b.npy"))
+        else:  # review-stack23.md 11: "msf-run: error: No space left on device", no file
+            with staged_folder(target) as tmp:
+                full(tmp / "error.png")
     assert exc.value.errno == errno.ENOSPC
-    assert exc.value.filename == (None if writer == "staged_files" else str(target))
+    assert exc.value.filename == str(target)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_error_that_is_no_write_error_is_not_pinned_on_the_output(tmp_path: Path) -> None:
+    import errno
+
+    with pytest.raises(OSError) as exc, staged_folder(tmp_path / "out"):
+        raise OSError(errno.ECONNREFUSED, "Connection refused")
+    assert exc.value.filename is None

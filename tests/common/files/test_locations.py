@@ -265,3 +265,11 @@ def test_a_folder_an_entry_links_to_may_hold_the_output(tmp_path: Path) -> None:
     (stack / "001.png").write_bytes(b"x")
     (stack / "home").symlink_to(home)
     check_output(home / "results", [stack], overwrite=True, folder=True)
+
+
+def test_an_output_under_a_link_loop_says_so(tmp_path: Path) -> None:
+    """It said "loopA: File exists"."""
+    (tmp_path / "loopA").symlink_to("loopB")
+    (tmp_path / "loopB").symlink_to("loopA")
+    with pytest.raises(InputError, match="loopA is a link that leads nowhere"):
+        check_output(tmp_path / "loopA" / "sub", folder=True)

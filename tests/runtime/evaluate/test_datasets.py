@@ -47,3 +47,16 @@ def test_two_different_objects_of_one_name_are_told_apart_from_a_repeat(tmp_path
         check_unique([BenchObject(a, None), BenchObject(b, None)])
     with pytest.raises(InputError, match="listed twice"):
         check_unique([BenchObject(a, None), BenchObject(a, None)])
+
+
+def test_objects_are_named_and_known_through_dot_and_links(tmp_path: Path, monkeypatch) -> None:
+    from msfnet.runtime.evaluate.datasets import BenchObject, folder_name, known_object
+
+    real = tmp_path / "harvestPNG"
+    real.mkdir()
+    (tmp_path / "h").symlink_to(real)
+    monkeypatch.chdir(real)
+    assert folder_name(Path(".")) == "harvestPNG"
+    assert folder_name(Path("sub/..")) == "harvestPNG"
+    assert known_object(tmp_path / "h") == "harvestPNG"
+    assert BenchObject(tmp_path / "h", None).name == "h"

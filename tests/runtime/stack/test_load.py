@@ -370,3 +370,92 @@ def test_load_options_constructor_hints_take_str_paths() -> None:
     assert all(
         hints[f.name] == f.type for f in fields if f.name not in ("lights", "intensities", "mask")
     )
+
+
+# ------------------------------------------------- review-stack23.md: inputs read wrongly
+
+
+def test_a_json_light_file_brings_its_intensities(tmp_path: Path) -> None:
+    """They were dropped without a word (unit intensities: 4 deg off on a coloured rig), and
+    all-zero ones were accepted."""
+    import json
+
+    folder = png_stack(tmp_path / "s", 16)
+    lights = np.loadtxt(folder / "light_directions.txt")
+    ints = np.loadtxt(folder / "light_intensities.txt")
+    ints[:, 0] *= 2.0  # a coloured rig
+    (folder / "light_intensities.txt").unlink()
+    (folder / "light_directions.txt").unlink()
+    own = {"lights": lights.tolist(), "intensities": ints.tolist()}
+    (folder / "lights.json").write_text(json.dumps(own))
+    stack = load_stack(folder)
+    np.testing.assert_allclose(stack.intensities, ints, rtol=1e-6)
+
+    (folder / "light_intensities.txt").write_text("1 1 1\n" * len(ints))  # given twice
+    with pytest.raises(InputError, match="intensities are given twice"):
+        load_stack(folder)
+    (folder / "light_intensities.txt").unlink()
+
+    zero = {"lights": lights.tolist(), "intensities": [[0, 0, 0]] * len(ints)}
+    (folder / "lights.json").write_text(json.dumps(zero))
+    with pytest.raises(InputError, match="positive"):
+        load_stack(folder)
+
+
+def test_an_npz_member_of_no_known_name_is_refused(tmp_path: Path) -> None:
+    """'light_intensities' for 'intensities' ran on unit intensities, 4 deg off, exit 0."""
+    s = sphere_stack()
+    arrays = {"images": s.images, "lights": s.lights, "mask": s.mask}
+    np.savez(tmp_path / "typo.npz", **arrays, light_intensities=s.intensities)
+    with pytest.raises(InputError, match="'light_intensities' is not one of a stack's"):
+        load_stack(tmp_path / "typo.npz")
+    np.savez(tmp_path / "wide.npz", images=s.images, lights=np.c_[s.lights, np.ones(8)])
+    with pytest.raises(InputError, match="3 numbers per row"):
+        load_stack(tmp_path / "wide.npz")
+    np.savez(tmp_path / "ok.npz", **arrays, intensities=s.intensities)
+    assert load_stack(tmp_path / "ok.npz").num_lights == 8
+
+
+def test_one_grey_image_among_colour_ones_is_refused(tmp_path: Path) -> None:
+    """It was spread over R, G and B: a coloured object's normals 0.7 deg off, no word."""
+    folder = png_stack(tmp_path / "s", 16)
+    third = folder / sorted(p.name for p in folder.glob("0*.png"))[2]
+    grey = cv2.cvtColor(cv2.imread(str(third), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2GRAY)
+    cv2.imwrite(str(third), grey)
+    with pytest.raises(InputError, match="image is grey but .* is colour"):
+        load_stack(folder)
+
+
+def test_a_link_loop_in_filenames_txt_is_one_error(tmp_path: Path) -> None:
+    """It was "internal error: RuntimeError: Symlink loop", exit 1."""
+    folder = png_stack(tmp_path / "s", 16)
+    names = (folder / "filenames.txt").read_text().split()
+    (folder / names[2]).unlink()
+    (folder / names[2]).symlink_to(names[2])
+    with pytest.raises(InputError) as err:
+        load_stack(folder)
+    assert err.value.path is not None and Path(err.value.path).name == names[2]
+
+
+def test_a_stack_given_as_dot_has_its_folders_name(tmp_path: Path, monkeypatch) -> None:
+    folder = png_stack(tmp_path / "part", 16)
+    monkeypatch.chdir(folder)
+    assert load_stack(Path(".")).name == "part"
+
+
+def test_a_linked_duplicate_photo_is_refused_with_or_without_filenames_txt(
+    tmp_path: Path,
+) -> None:
+    folder = png_stack(tmp_path / "s", 16, n=8)
+    names = (folder / "filenames.txt").read_text().split()
+    lights = (folder / "light_directions.txt").read_text().splitlines()
+    (folder / "light_directions.txt").write_text("\n".join([*lights, lights[0]]) + "\n")
+    (folder / "light_intensities.txt").unlink()
+    (folder / "zz.png").symlink_to(names[0])
+    (folder / "filenames.txt").write_text("\n".join([*names, "zz.png"]) + "\n")
+    with pytest.raises(InputError, match=f"{names[0]} and zz.png are the same photo \\(lines 1"):
+        load_stack(folder)
+    (folder / "filenames.txt").unlink()
+    with pytest.raises(InputError, match=f"is the same photo as {names[0]}") as err:
+        load_stack(folder)
+    assert Path(str(err.value.path)).name == "zz.png"

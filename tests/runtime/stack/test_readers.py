@@ -366,3 +366,13 @@ def test_unit_normals_of_any_numeric_input(dtype: type) -> None:
     np.testing.assert_allclose(got, want, atol=1e-7)
     assert not got[0, 0].any()
     np.testing.assert_allclose(unit_normals([1.0, 2.0, 2.0]), [1 / 3, 2 / 3, 2 / 3], atol=1e-7)
+
+
+def test_a_first_line_of_one_number_that_is_no_count_is_refused(tmp_path: Path) -> None:
+    """"3.7" above 8 rows was taken for a count line and dropped without a word."""
+    path = tmp_path / "l.txt"
+    path.write_text("3.7\n" + "0 0 1\n" * 8)
+    with pytest.raises(InputError, match="count line must be a whole number"):
+        read_vectors(path, "light directions")
+    path.write_text("8\n" + "0 0 1\n" * 8)
+    assert read_vectors(path, "light directions").shape == (8, 3)

@@ -23,11 +23,12 @@ from typing import Protocol
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.evaluate.datasets import (
-    PROTOCOL_SELECT,
     find_objects,
+    folder_name,
     has_images,
     lights_file,
     protocol_note,
+    protocol_select,
     shared_lights_root,
 )
 from msfnet.runtime.results.profile import BatchStats, Profile
@@ -49,7 +50,9 @@ class BatchItem:
 
     @property
     def name(self) -> str:
-        return self.path.stem if self.path.suffix.lower() == ".npz" else self.path.name
+        if self.path.suffix.lower() == ".npz":
+            return self.path.stem
+        return folder_name(self.path)  # "." is the folder's own name
 
     def options(self, load: LoadOptions) -> LoadOptions:
         """``load`` with this stack's own selection and shared light file, unless the user's
@@ -66,7 +69,7 @@ class BatchItem:
         so it is never silent)."""
         if self.origin != "protocol" or self.select is None or load.select is not None:
             return None
-        return protocol_note(self.name, self.select)
+        return protocol_note(self.path, self.select)
 
     def describe_input(self, load: LoadOptions) -> dict[str, object]:
         """profile.json's "input": the options in effect and where the selection and the
@@ -93,7 +96,7 @@ def _protocol_item(folder: Path, lights: Path | None = None) -> BatchItem:
     msf-eval does, however the folder is named on the command line) and the selection fits
     its images: a folder of ours that happens to be called bearPNG but holds 24 images is not
     DiLiGenT's bear, and runs whole."""
-    select = PROTOCOL_SELECT.get(folder.name)
+    select = protocol_select(folder)
     if select is not None:
         try:
             selection(count_images(folder), select, None)

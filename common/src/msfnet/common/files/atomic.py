@@ -12,6 +12,7 @@ are flushed once, at its commit, from 8 threads).
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -152,6 +153,9 @@ def _appeared(path: Path) -> InputError:
     )
 
 
+_WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS}
+
+
 @contextmanager
 def _errors_name(targets: Sequence[tuple[Path, Path]], default: Path | None) -> Iterator[None]:
     """An OSError while filling a temporary (a full disk) names the output the user gave, not
@@ -162,7 +166,9 @@ def _errors_name(targets: Sequence[tuple[Path, Path]], default: Path | None) -> 
     except OSError as exc:
         where = None if exc.filename is None else str(exc.filename)
         if where is None:
-            target = default
+            # only an error of writing is the output's (a full disk, a quota: numpy's and
+            # Python's writes report no file name); any other is left as it came
+            target = default if exc.errno in _WRITE_ERRNOS else None
         else:
             inside = [t for tmp, t in targets if where == str(tmp) or where.startswith(f"{tmp}/")]
             target = inside[0] if inside else None
@@ -258,11 +264,11 @@ def staged_folder(
     done = False
     try:
         tmp.chmod(0o777 & ~umask())
-        with _errors_name([(tmp, outdir)], None):
+        with _errors_name([(tmp, outdir)], outdir):
             yield tmp
-        (tmp / MANIFEST).write_text(manifest_text(tree_names(tmp), current_writer(command)))
-        (tmp / MANIFEST).chmod(0o666 & ~umask())
-        _durable([tmp], outdir)
+            (tmp / MANIFEST).write_text(manifest_text(tree_names(tmp), current_writer(command)))
+            (tmp / MANIFEST).chmod(0o666 & ~umask())
+            _durable([tmp], outdir)
         with signals_deferred(), _commit_lock([outdir.parent]):
             _commit(tmp, outdir, overwrite, command)
             _written.append(outdir)
@@ -331,7 +337,9 @@ def staged_files(targets: Sequence[str | Path], *, overwrite: bool = False) -> I
             created += make_parents(path)
             remove_stale_staging(path)
             temps.append(new_staging(path, folder=False))
-        with _errors_name(list(zip(temps, paths, strict=True)), None):
+        # an error naming no file: the one output, or the folder the outputs share
+        where = paths[0] if len(paths) == 1 else Path(os.path.commonpath(paths))
+        with _errors_name(list(zip(temps, paths, strict=True)), where):
             yield list(temps)
         for tmp in temps:
             os.chmod(tmp, 0o666 & ~umask())

@@ -219,6 +219,14 @@ def check_output(
     """
     target = Path(target)
     real = check_not_input(target, inputs, folder=folder, links=links)
+    # a link on the way that leads nowhere (dangling, or a loop) would be "File exists" later
+    for above in target.parents:
+        if os.path.lexists(above) and not os.path.exists(above):
+            raise InputError(
+                f"cannot create the output: {above} is a link that leads nowhere (dangling, "
+                "or a loop of links)",
+                target,
+            )
     # the nearest existing ancestor must be a writable folder
     parent = real.parent
     while not parent.exists():

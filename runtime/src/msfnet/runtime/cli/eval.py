@@ -28,6 +28,7 @@ from msfnet.runtime.evaluate.datasets import (
     BenchObject,
     check_unique,
     find_objects,
+    known_object,
     protocol_note,
 )
 from msfnet.runtime.evaluate.detail_ratio import detail_ratio
@@ -173,20 +174,25 @@ def markdown_table(
     and a mean row."""
     # the papers' least squares beside ours where l2 is scored
     shown = (("L2 (paper)",) if "l2" in methods else ()) + PUBLISHED_METHODS
-    published = [p for p in shown if any(p in PUBLISHED_MAE.get(r.name, {}) for r in rows)]
+    published = [p for p in shown if any(p in (r.published or {}) for r in rows)]
     head = ["object", "lights"] + [f"MAE {m}" for m in methods] + published
     head += [f"<15° % {m}" for m in methods] + [f"<30° % {m}" for m in methods]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     Cells = dict[str, dict[str, float | None]]
-    table_rows: list[tuple[str, str, Cells]] = [
-        (r.name, str(r.lights), {m: {c: s.column(c) for c in COLUMNS} for m, s in r.scores.items()})
+    table_rows: list[tuple[str, str, Cells, dict[str, float]]] = [
+        (
+            r.name,
+            str(r.lights),
+            {m: {c: s.column(c) for c in COLUMNS} for m, s in r.scores.items()},
+            r.published or {},
+        )
         for r in rows
     ]
-    table_rows.append(("**mean**", "", {m: dict(v) for m, v in mean.items()}))
-    for name, lights, res in table_rows:
+    table_rows.append(("**mean**", "", {m: dict(v) for m, v in mean.items()}, {}))
+    for name, lights, res, paper in table_rows:
         cells = [name, lights]
         cells += [_fmt(res.get(m, {}).get("mae_deg")) for m in methods]
-        cells += [_fmt(PUBLISHED_MAE.get(name, {}).get(p)) for p in published]
+        cells += [_fmt(paper.get(p)) for p in published]
         cells += [_fmt(res.get(m, {}).get("err15"), True) for m in methods]
         cells += [_fmt(res.get(m, {}).get("err30"), True) for m in methods]
         lines.append("| " + " | ".join(cells) + " |")
@@ -254,7 +260,7 @@ def evaluate(
     if lines:  # what msf-run says of a benchmark's own selection, said here too
         for obj in objects:
             if load.select is None and obj.select is not None:
-                print(f"{PROG}: {protocol_note(obj.folder.name, obj.select)}", file=sys.stderr)
+                print(f"{PROG}: {protocol_note(obj.folder, obj.select)}", file=sys.stderr)
     results = []
     draw = pictures.can_draw()  # the error pictures need Pillow; the scores do not
     with staged_folder(outdir, overwrite=overwrite) as tmp:
@@ -262,13 +268,13 @@ def evaluate(
             opts = options_for(obj)
             started = time.perf_counter()
             stack = load_stack(obj.folder, opts)
-            (tmp / obj.folder.name).mkdir()
+            (tmp / obj.name).mkdir()
             outs, errors, scores = {}, {}, {}
             for m, runner in runners.items():
                 res = runner(stack, progress=progress)
                 outs[m] = res.normals
                 write_rgb_png(
-                    tmp / obj.folder.name / f"{m}_normals.png", normals_png(res.normals, stack.mask)
+                    tmp / obj.name / f"{m}_normals.png", normals_png(res.normals, stack.mask)
                 )
                 scored = res.metrics is not None and res.error_deg is not None
                 if res.error_deg is not None:
@@ -279,7 +285,7 @@ def evaluate(
             # one colour range for every method of an object, so the pictures compare
             vmax = max((pictures.error_range(e, stack.mask) for e in errors.values()), default=None)
             for m, err in errors.items() if draw else ():
-                (tmp / obj.folder.name / f"{m}_error.png").write_bytes(
+                (tmp / obj.name / f"{m}_error.png").write_bytes(
                     pictures.png_bytes(pictures.error_picture(err, stack.mask, vmax=vmax))
                 )
             gt = stack.normals_gt is not None
@@ -289,11 +295,11 @@ def evaluate(
                 else None
             )
             row = ObjectResult(
-                obj.folder.name,
+                obj.name,
                 stack.num_lights,
                 opts.select,
                 scores,
-                published=PUBLISHED_MAE.get(obj.folder.name, {}) if gt else None,
+                published=PUBLISHED_MAE.get(known_object(obj.folder), {}) if gt else None,
                 detail_ratio=detail,
                 warnings=tuple(stack.warnings),
             )

@@ -7,6 +7,7 @@ the standard protocol (the MSF-Net paper's too) uses images 21-96. Published mea
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,10 +19,10 @@ PROTOCOL_SELECT = {"bearPNG": "21-96"}  # object folder -> the images the benchm
 PROTOCOL_WHY = {"bearPNG": "DiLiGenT's protocol: bear's first 20 images are corrupted"}
 
 
-def protocol_note(name: str, select: str) -> str:
+def protocol_note(folder: Path, select: str) -> str:
     """The line a command prints when a benchmark's selection applies by the folder's name."""
-    why = PROTOCOL_WHY.get(name, "the benchmark's protocol")
-    return f"{name}: using images {select} ({why}); --select overrides"
+    why = PROTOCOL_WHY.get(known_object(folder), "the benchmark's protocol")
+    return f"{folder_name(folder)}: using images {select} ({why}); --select overrides"
 
 
 PUBLISHED_MAE: dict[str, dict[str, float]] = {
@@ -32,11 +33,36 @@ PUBLISHED_MAE: dict[str, dict[str, float]] = {
 PUBLISHED_METHODS = ("PS-FCN", "MSF-Net (paper)")
 
 
+def folder_name(path: Path) -> str:
+    """The name a stack folder goes by, also when it is given as ``.`` or ``sub/..`` (whose
+    ``Path.name`` is empty or ``..``: results were written into a batch's root, and msf-eval
+    failed)."""
+    return Path(os.path.abspath(path)).name or "stack"
+
+
+def known_object(folder: Path) -> str:
+    """The benchmark object a folder holds, for its protocol and published figures: its own
+    name, or that of the folder it links to (``bear -> DiLiGenT/bearPNG``)."""
+    name = folder_name(folder)
+    if name in PROTOCOL_SELECT or name in PUBLISHED_MAE:
+        return name
+    return Path(os.path.realpath(folder)).name or name
+
+
+def protocol_select(folder: Path) -> str | None:
+    """The images the benchmark uses of this object folder (DiLiGenT bear: 21-96), if any."""
+    return PROTOCOL_SELECT.get(known_object(folder))
+
+
 @dataclass(frozen=True)
 class BenchObject:
     folder: Path
     select: str | None  # the benchmark's image selection (e.g. bear 21-96)
     lights: Path | None = None  # a light file shared by the root's objects (psmImages)
+
+    @property
+    def name(self) -> str:
+        return folder_name(self.folder)
 
 
 def lights_file(folder: Path) -> Path | None:
@@ -115,13 +141,12 @@ def find_objects(root: Path, *, select_given: bool = False) -> list[BenchObject]
         # read from another working directory (Ray workers)
         common = lights.resolve()
         return [
-            BenchObject(d, PROTOCOL_SELECT.get(d.name), None if lights_file(d) else common)
-            for d in subs
+            BenchObject(d, protocol_select(d), None if lights_file(d) else common) for d in subs
         ]
     if lights_file(root) is not None or has_images(root):  # one object (or --lights)
-        return [BenchObject(root, PROTOCOL_SELECT.get(root.name))]
+        return [BenchObject(root, protocol_select(root))]
     found = [
-        BenchObject(d, PROTOCOL_SELECT.get(d.name))
+        BenchObject(d, protocol_select(d))
         for d in sorted(root.iterdir())
         if d.is_dir() and any((d / n).is_file() for n in LIGHTS_NAMES)
     ]
@@ -133,10 +158,10 @@ def find_objects(root: Path, *, select_given: bool = False) -> list[BenchObject]
 
 
 def check_unique(objects: list[BenchObject]) -> None:
-    names = [o.folder.name for o in objects]
+    names = [o.name for o in objects]
     dup = next((n for n in names if names.count(n) > 1), None)
     if dup is not None:
-        where = [o.folder for o in objects if o.folder.name == dup]
+        where = [o.folder for o in objects if o.name == dup]
         same = len({p.resolve() for p in where}) == 1
         raise InputError(
             f"object {dup!r} is listed twice (its results would clash)"

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msfnet.common.errors import InputError, first_line
+from msfnet.common.files.locations import same_file
 from msfnet.common.imageio import (
     IMAGE_SUFFIXES,
     MAX_PIXELS,
@@ -30,6 +31,7 @@ from msfnet.common.imageio import (
 from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.stack.readers import (
     check_gt_header,
+    companion_intensities,
     read_normals,
     read_vectors,
     unit_normals,
@@ -50,6 +52,8 @@ if TYPE_CHECKING:
     from os import PathLike
 
 LIGHTS_NAMES = ("light_directions.txt", "lights.txt", "lights.json", "light_directions.json")
+# what an .npz stack may hold: images and lights, optionally intensities, mask and normals
+NPZ_MEMBERS = ("images", "lights", "intensities", "mask", "normals")
 INTENSITY_NAMES = ("light_intensities.txt", "intensities.txt", "light_intensities.json")
 MASK_NAMES = ("mask.png", "mask.tif", "mask.tiff", "mask.tga", "mask.bmp")
 GT_NAMES = ("Normal_gt.mat", "Normal_gt.npy", "Normal_gt.png", "normal_gt.png", "normals_gt.png")
@@ -287,16 +291,16 @@ def _read_images(
     transforms = transforms or Transforms()
     stored = check_headers(paths, transforms, max_memory_mb)
 
-    def read(path: Path) -> tuple[np.ndarray, np.dtype, tuple[int, int]]:
+    def read(path: Path) -> tuple[np.ndarray, np.dtype, tuple[int, int], int]:
         # the size the headers agreed on, checked again from the handle that is decoded: a
         # frame replaced since its header was read is refused before its pixels are decoded
         img = read_image(path, stored)
         if img.ndim == 2:
             img = img[:, :, None]
         _check_float_scale(img, transforms, path)
-        return transforms.image(img, path), img.dtype, img.shape[:2]
+        return transforms.image(img, path), img.dtype, img.shape[:2], img.shape[2]
 
-    first, dtype0, shape0 = read(paths[0])
+    first, dtype0, shape0, channels0 = read(paths[0])
     check_stack_size(
         len(paths), first.shape[0], first.shape[1], max_memory_mb, paths[0].parent, first.dtype
     )
@@ -304,7 +308,7 @@ def _read_images(
     out[0] = first
 
     def read_into(i: int) -> None:
-        img, dtype, shape = read(paths[i])
+        img, dtype, shape, channels = read(paths[i])
         if shape != shape0:
             raise InputError(
                 f"image is {shape[1]}x{shape[0]} but {paths[0].name} is {shape0[1]}x{shape0[0]}",
@@ -314,6 +318,15 @@ def _read_images(
             # an 8-bit image among 16-bit ones is 257x too dark: silently wrong normals
             raise InputError(
                 f"image is {dtype} but {paths[0].name} is {dtype0}: one bit depth per stack",
+                paths[i],
+            )
+        if channels != channels0:
+            # a grey frame among colour ones would stand for all three colours of its light
+            # (a coloured object's normals 0.7 deg off, without a word)
+            kind = {1: "grey", 3: "colour (RGB)"}
+            raise InputError(
+                f"image is {kind.get(channels, f'{channels}-channel')} but {paths[0].name} is "
+                f"{kind.get(channels0, f'{channels0}-channel')}: one kind of image per stack",
                 paths[i],
             )
         out[i] = img  # grey (H, W, 1) broadcasts to RGB
@@ -419,6 +432,7 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
         _refuse_repeats(paths, names_file)
     else:
         paths = list_images(folder)
+        _refuse_repeats(paths)
     if not paths:
         raise InputError("no images found (expected PNG/TIFF/TGA files or filenames.txt)", folder)
     lights_path = options.lights or _first_existing(folder, LIGHTS_NAMES)
@@ -432,7 +446,7 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
         raise InputError(
             f"{len(light_dirs)} light directions for {len(paths)} images in {folder}", lights_path
         )
-    int_path = options.intensities or _first_existing(folder, INTENSITY_NAMES)
+    int_path = options.intensities or _intensity_file(folder, lights_path)
     if int_path is not None:
         ints = read_vectors(int_path, "light intensities")
         if len(ints) != len(paths):
@@ -441,6 +455,20 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
     else:
         ints = np.ones((len(paths), 3), np.float32)
     return _FolderFiles(paths, lights_path, light_dirs, ints)
+
+
+def _intensity_file(folder: Path, lights_path: Path) -> Path | None:
+    """The stack's intensities: its JSON light file's own, or a file of INTENSITY_NAMES; both
+    is refused (which one the rig's is cannot be guessed)."""
+    own = companion_intensities(lights_path)
+    beside = _first_existing(folder, INTENSITY_NAMES)
+    if own is not None and beside is not None and not same_file(own, beside):
+        raise InputError(
+            f"light intensities are given twice: in {own.name} and in this file; keep one "
+            "(or name the one to use with --intensities)",
+            beside,
+        )
+    return own or beside
 
 
 def check_stack_files(path: str | Path, options: LoadOptions | None = None) -> None:
@@ -490,7 +518,14 @@ def load_folder(
         # one parse of a .mat; an .npy or image checked from the handle read
         gt = t.normals(read_normals(gt_path, check_gt_header(gt_path, hw), shape=hw))
     stack = Stack(
-        folder.name, images, light_dirs, ints, mask_arr, gt, [p.name for p in paths], folder
+        Path(os.path.abspath(folder)).name or "stack",
+        images,
+        light_dirs,
+        ints,
+        mask_arr,
+        gt,
+        [p.name for p in paths],
+        folder,
     )
     return _finish(
         replace(stack, roi_box=box),
@@ -505,17 +540,29 @@ def _stored_shape(path: Path) -> tuple[int, int]:
     return header.shape if header is not None else read_image(path).shape[:2]
 
 
-def _refuse_repeats(paths: Sequence[Path], listing: Path) -> None:
+def _refuse_repeats(paths: Sequence[Path], listing: Path | None = None) -> None:
     """One photo listed twice would count as two lights (one of them with the wrong
-    direction): refused, naming both lines. Names are compared as the files they reach
-    (``./001.png``, ``sub/../001.png`` and a link to it are the same photo)."""
+    direction): refused, naming both. Names are compared as the files they reach
+    (``./001.png``, ``sub/../001.png`` and a link to it are the same photo). ``listing``:
+    filenames.txt (its lines are named), None for a folder's images in name order."""
     seen: dict[Path, int] = {}
     for line, path in enumerate(paths, 1):
-        key = path.resolve()
+        key = Path(os.path.realpath(path))  # a link loop: its own name, refused when read
         if key in seen:
+            first = paths[seen[key] - 1]
+            if listing is None:
+                raise InputError(
+                    f"is the same photo as {first.name} (a link to it): one photo cannot "
+                    "stand for two lights",
+                    path,
+                )
+            same = (
+                f"{path.name} is listed twice"
+                if first.name == path.name
+                else f"{first.name} and {path.name} are the same photo"
+            )
             raise InputError(
-                f"{path.name} is listed twice (lines {seen[key]} and {line}): one photo "
-                "cannot stand for two lights",
+                f"{same} (lines {seen[key]} and {line}): one photo cannot stand for two lights",
                 listing,
             )
         seen[key] = line
@@ -604,6 +651,11 @@ def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: fl
         if key not in data.files:
             continue
         found, _ = _npz_header(data, key)
+        if key in ("lights", "intensities") and len(found) == 2 and found[1] != 3:
+            raise InputError(
+                f"npz array {key!r} is {found}: 3 numbers per row expected (x y z / r g b)",
+                path,
+            )
         if int(np.prod(found, dtype=np.int64)) > limit:
             raise InputError(
                 f"npz array {key!r} is {found}: larger than the {key} of {n} images of "
@@ -633,6 +685,15 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
             raise InputError(
                 "npz stack needs arrays 'images' and 'lights' (it has "
                 f"{', '.join(sorted(files)) or 'none'})",
+                path,
+            )
+        # an unknown member is refused, never skipped: "light_intensities" for
+        # "intensities" ran on unit intensities, 4 deg off, exit 0
+        unknown = sorted(files - set(NPZ_MEMBERS))
+        if unknown:
+            raise InputError(
+                f"npz array {unknown[0]!r} is not one of a stack's "
+                f"({', '.join(repr(m) for m in NPZ_MEMBERS)})",
                 path,
             )
         _check_npz_headers(data, path, options.max_memory_mb)  # before anything inflates
@@ -665,8 +726,12 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         raise InputError(f"cannot read npz stack ({first_line(exc)})", path) from exc
     if options.lights is not None:
         lights = read_vectors(options.lights, "light directions")
-    if options.intensities is not None:
-        ints = read_vectors(options.intensities, "light intensities")
+    # a --lights JSON holding intensities too brings them (as --intensities would)
+    int_src = options.intensities or (
+        companion_intensities(options.lights) if options.lights is not None else None
+    )
+    if int_src is not None:
+        ints = read_vectors(int_src, "light intensities")
     lights_src = options.lights or path
     if lights.ndim != 2 or lights.shape[1] != 3:
         raise InputError(
@@ -678,7 +743,7 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
     if ints.shape != (n, 3):
         raise InputError(
             f"{n} images but light intensities of shape {ints.shape} (expected {n} x 3)",
-            options.intensities or path,
+            int_src or path,
         )
     if options.mask is not None:
         mask = read_mask(options.mask, (h, w))

@@ -111,7 +111,13 @@ def _text_rows(text: str, what: str, path: Path) -> list[list[float]]:
     if rows and len(rows[0]) == 1 and len(rows) > 1 and len(rows[1]) != 1:
         count = rows[0][0]  # a leading count line ("12")
         rows = rows[1:]
-        if count.isdigit() and int(count) != len(rows):
+        if not count.isdigit():  # "3.7" alone on the first line is no count of rows
+            raise InputError(
+                f"cannot parse {what}: the first line holds one number, {count[:40]!r}; a "
+                "count line must be a whole number, and rows need 3 numbers",
+                path,
+            )
+        if int(count) != len(rows):
             raise InputError(
                 f"{what}: the first line says {count} rows but {len(rows)} follow", path
             )
@@ -164,6 +170,21 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
     if np.any(np.abs(arr) > np.finfo(np.float32).max):
         raise InputError(f"{what}: values beyond the float32 range", path)
     return arr.astype(np.float32)
+
+
+def companion_intensities(lights: Path) -> Path | None:
+    """``lights`` itself when it is a JSON object that also holds the intensities (under a
+    name of :data:`JSON_KEYS`), else None: such a file's intensities had been dropped without
+    a word, 4 deg off on a coloured rig. Damage is left to :func:`read_vectors` to report."""
+    if lights.suffix.lower() != ".json":
+        return None
+    try:
+        _check_small_file(lights, "light directions")
+        data = json.loads(lights.read_text(encoding="utf-8-sig"))
+    except (InputError, OSError, ValueError, UnicodeDecodeError, RecursionError):
+        return None
+    named = JSON_KEYS["light intensities"]
+    return lights if isinstance(data, dict) and any(k in data for k in named) else None
 
 
 def unit_normals(n: np.ndarray) -> np.ndarray:
