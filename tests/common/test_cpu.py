@@ -251,3 +251,28 @@ def test_the_proxy_variable_alone_changes_nothing(monkeypatch: pytest.MonkeyPatc
     assert cpu_mod.proxy_class() == "avx2"
     monkeypatch.setenv(cpu_mod.PROXY_ENV, "avx9000")
     assert cpu_mod.proxy_class() is None
+
+
+def test_a_probe_without_proc_cpuinfo_is_marked_partial_and_not_kept(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """review-dispatch23.md 1: py-cpuinfo's cpuid probe alone lacks avx512_bf16 / AMX /
+    AVX-VNNI; kept as this boot's answer, every later run lost bf16."""
+    if cpu_mod.cache_path() is None or not sys.platform.startswith("linux"):
+        pytest.skip("no boot id / not Linux: nothing is kept")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    cpuid_only = CpuInfo.from_flags(["avx2", "avx512f"], model="Fake EPYC", source="py-cpuinfo")
+    monkeypatch.setattr(cpu_mod, "_from_py_cpuinfo", lambda: cpuid_only)
+    monkeypatch.setattr(cpu_mod, "kernel_flags", lambda: frozenset())
+    try:
+        detect_cpu.cache_clear()
+        info = detect_cpu()
+        assert info.partial and info.avx512f and not info.has_bf16
+        assert "bf16, AMX and AVX-VNNI unknown" in info.summary()
+        assert not (tmp_path / "msfnet").exists() or not any((tmp_path / "msfnet").iterdir())
+        monkeypatch.setattr(cpu_mod, "kernel_flags", lambda: frozenset({"avx2"}))
+        detect_cpu.cache_clear()
+        assert not detect_cpu().partial  # /proc/cpuinfo readable: whole, and kept
+        assert any((tmp_path / "msfnet").glob("cpu-*.json"))
+    finally:
+        detect_cpu.cache_clear()

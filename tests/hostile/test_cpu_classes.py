@@ -73,24 +73,46 @@ def _int8_model(tmp_path: Path, reduce_range: bool | None) -> Path:
 def test_full_range_int8_is_refused_without_vnni(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, reduce_range: bool | None
 ) -> None:
+    import msfnet.runtime.engines.base as basemod
     import msfnet.runtime.engines.onnxruntime as ortmod
 
     path = _int8_model(tmp_path, reduce_range)
-    monkeypatch.setattr(ortmod, "detect_cpu", lambda: AVX2)
+    monkeypatch.setattr(basemod, "detect_cpu", lambda: AVX2)
     with pytest.raises(InputError, match="saturate on CPUs without VNNI") as e:
         ortmod.open_onnxruntime(path, threads=1)
-    assert e.value.path == path and "--engine openvino" in str(e.value)
+    # OpenVINO's AVX2 int8 kernels saturate as well (session 23): never advised
+    assert e.value.path == path and "--weight-bits 7" in str(e.value)
+    assert "--engine openvino" not in str(e.value)
     for cpu in (VNNI, AMX):  # the same file opens where the kernels are exact
-        monkeypatch.setattr(ortmod, "detect_cpu", lambda cpu=cpu: cpu)
+        monkeypatch.setattr(basemod, "detect_cpu", lambda cpu=cpu: cpu)
         assert ortmod.open_onnxruntime(path, threads=1).precision == "int8"
 
 
+def test_full_range_int8_is_refused_on_openvino_too_without_vnni(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """review-dispatch23.md 2 asked for OpenVINO there; its AVX2 int8 convolution gave 276
+    off of 648 on full-range weights under the AVX2 proxy (exact natively): refused too."""
+    pytest.importorskip("openvino")
+    import msfnet.runtime.engines.base as basemod
+    from msfnet.runtime.engines.dispatch import EngineChoice, open_engine
+
+    path = _int8_model(tmp_path, False)
+    choice = EngineChoice("openvino", "int8", "test", path)
+    monkeypatch.setattr(basemod, "detect_cpu", lambda: AVX2)
+    with pytest.raises(InputError, match="saturate on CPUs without VNNI"):
+        open_engine(choice, threads=1)
+    monkeypatch.setattr(basemod, "detect_cpu", lambda: VNNI)
+    assert open_engine(choice, threads=1).precision == "int8"
+
+
 def test_seven_bit_int8_runs_on_every_cpu(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import msfnet.runtime.engines.base as basemod
     import msfnet.runtime.engines.onnxruntime as ortmod
 
     path = _int8_model(tmp_path, True)
     for cpu in (AVX2, VNNI, AMX):
-        monkeypatch.setattr(ortmod, "detect_cpu", lambda cpu=cpu: cpu)
+        monkeypatch.setattr(basemod, "detect_cpu", lambda cpu=cpu: cpu)
         assert ortmod.open_onnxruntime(path, threads=1).precision == "int8"
 
 
@@ -98,8 +120,10 @@ def test_fp32_models_never_ask_about_int8(tmp_path: Path, monkeypatch: pytest.Mo
     import msfnet.runtime.engines.onnxruntime as ortmod
 
     pytest.importorskip("onnx")
+    import msfnet.runtime.engines.base as basemod
+
     path = tiny_msfnet_onnx(tmp_path / "fp32.onnx")
-    monkeypatch.setattr(ortmod, "detect_cpu", lambda: AVX2)
+    monkeypatch.setattr(basemod, "detect_cpu", lambda: AVX2)
     assert ortmod.open_onnxruntime(path, threads=1).precision == "fp32"
 
 

@@ -423,7 +423,9 @@ def test_int8_classes() -> None:
         "zen4",
     ]
     assert "int8 speed not measured" in choose_engine(INT8, ARM, BOTH).reason
-    assert "emulated with AVX2" in choose_engine(INT8, SKYLAKE, BOTH).reason
+    # AVX-512 without VNNI runs AVX-512BW kernels there, never timed (review-dispatch23.md 12)
+    assert "int8 speed not measured on this CPU class" in choose_engine(INT8, SKYLAKE, BOTH).reason
+    assert "emulated with AVX2" in choose_engine(INT8, ZEN3, BOTH).reason
     reason = choose_engine(TWIN, ZEN3, BOTH).reason
     assert "OpenVINO measured 1.00x ONNX Runtime int8" in reason and "(avx2)" in reason
     assert "closer to fp32" in reason
@@ -578,3 +580,18 @@ def test_within_claims_round_up() -> None:
         "0.10",
         "0.50",
     ]
+
+
+def test_the_reason_says_when_the_cpus_features_were_not_all_read() -> None:
+    """review-dispatch23.md 1, 8 and 12: "no native bf16 on this CPU" was said of a CPU whose
+    features could not be read, of one read without /proc/cpuinfo (cpuid alone lacks bf16),
+    and of an Arm CPU that has bf16."""
+    from dataclasses import replace
+
+    blind = CpuInfo(model="unknown", vendor="unknown", cores=2)
+    assert "CPU features could not be read" in choose_engine(FP32, blind, BOTH).reason
+    partial = replace(CpuInfo.from_flags(["avx2", "avx512f"]), partial=True)
+    assert "native bf16 unknown here" in choose_engine(FP32, partial, BOTH).reason
+    graviton = CpuInfo.from_flags(["asimd", "sve", "bf16"], vendor="ARM")
+    assert "bf16 on this Arm CPU not measured" in choose_engine(FP32, graviton, BOTH).reason
+    assert "no native bf16 on this CPU" in choose_engine(FP32, ZEN3, BOTH).reason

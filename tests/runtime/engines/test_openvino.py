@@ -1,7 +1,7 @@
 """engines/openvino.py: the compile cache (compiled models kept between processes in msfnet's
-user cache, off with MSFNET_OPENVINO_CACHE=0, never a new way to fail), int8 convolution
-outputs left unquantised where the next layer quantises again, and Ctrl-C after models were
-freed."""
+user cache, off with MSFNET_OPENVINO_CACHE=0 / off / false / no, never a new way to fail),
+OpenVINO's cause quoted in compile errors, int8 convolution outputs left unquantised where the
+next layer quantises again, and Ctrl-C after models were freed."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import pytest
 
 pytest.importorskip("openvino")
 
+from msfnet.common.errors import InputError
 from msfnet.runtime.api import default_model_path
 from msfnet.runtime.engines import openvino as ovmod
 
@@ -120,6 +121,100 @@ def test_an_unusable_cache_folder_changes_nothing(
     assert ovmod.compile_cache() is None
     engine = ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
     assert np.isfinite(_run(engine)).all()
+
+
+@pytest.mark.parametrize("value", ["0", "off", "OFF", "False", "no", " No "])
+def test_every_off_spelling_turns_the_cache_off(
+    cache_home: Path, monkeypatch: pytest.MonkeyPatch, value: str
+) -> None:
+    # "off" / "false" used to keep the cache on, silently (review dispatch-23, finding 10)
+    monkeypatch.setenv(ovmod.CACHE_ENV, value)
+    assert ovmod.compile_cache() is None
+
+
+@pytest.mark.parametrize("value", ["", "1", "on", "True", "YES"])
+def test_every_on_spelling_and_empty_keep_the_cache_on(
+    cache_home: Path, monkeypatch: pytest.MonkeyPatch, value: str
+) -> None:
+    monkeypatch.setenv(ovmod.CACHE_ENV, value)
+    assert ovmod.compile_cache() == cache_home
+
+
+@pytest.mark.parametrize("value", ["disable", "of", "2", "-1"])
+def test_any_other_cache_value_is_refused_in_one_line(
+    cache_home: Path, monkeypatch: pytest.MonkeyPatch, value: str
+) -> None:
+    monkeypatch.setenv(ovmod.CACHE_ENV, value)
+    for call in (ovmod.compile_cache, lambda: ovmod.read_openvino(default_model_path())):
+        # read_openvino too: it runs with the engine choice, before open_chosen's fallback
+        # to ONNX Runtime could take the refusal for an OpenVINO failure
+        with pytest.raises(InputError) as err:
+            call()
+        text = str(err.value)
+        assert "\n" not in text
+        assert text.startswith(f"{ovmod.CACHE_ENV}={value!r}: ")
+        assert "off: 0, off, false, no" in text and "on: 1, on, true, yes" in text
+    assert not cache_home.exists()
+
+
+# shaped like OpenVINO 2026.4's text for a property value its CPU plugin refuses
+_OV_TEXT = (
+    "Exception from src/inference/src/cpp/core.cpp:117:\n"
+    "Exception from src/inference/src/dev/plugin.cpp:54:\n"
+    "Exception from src/plugins/intel_cpu/src/config.cpp:266:\n"
+    "Wrong value f16x for property key INFERENCE_PRECISION_HINT. Supported values: bf16, f16\n"
+    "\n\n"
+)
+
+
+def test_a_compile_failure_quotes_openvinos_cause_not_its_location_lines(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Every OpenVINO message starts with "Exception from <file>:<line>:" lines; only the
+    first line was quoted, so the cause never reached the error or the fallback reason
+    (review dispatch-23, finding 5)."""
+    import types
+
+    real = ovmod.import_openvino()
+
+    class Core:
+        def __init__(self) -> None:
+            self._core = real.Core()
+
+        def compile_model(self, model: object, device: str, props: dict) -> object:
+            raise RuntimeError(_OV_TEXT)
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self._core, name)
+
+    fake = types.SimpleNamespace(**{k: getattr(real, k) for k in dir(real) if k[0] != "_"})
+    fake.Core = Core
+    monkeypatch.setattr(ovmod, "import_openvino", lambda: fake)
+    monkeypatch.setenv(ovmod.CACHE_ENV, "0")
+    with pytest.raises(InputError) as err:
+        ovmod.open_openvino(default_model_path(), threads=1, precision="fp32")
+    assert err.value.message == (
+        "OpenVINO cannot compile this model for CPU (RuntimeError: Wrong value f16x for "
+        "property key INFERENCE_PRECISION_HINT. Supported values: bf16, f16)"
+    )
+
+
+def test_openvinos_cause_is_its_last_lines_in_one_line_of_bounded_length() -> None:
+    gpu = (
+        "Exception from src/inference/src/cpp/core.cpp:117:\n"
+        'Cannot load library "libopenvino_intel_gpu_plugin.so": libOpenCL.so.1: cannot open\n'
+    )
+    assert ovmod.openvino_cause(RuntimeError(gpu)) == (
+        'Cannot load library "libopenvino_intel_gpu_plugin.so": libOpenCL.so.1: cannot open'
+    )
+    # a cause over several lines: as many of the last ones as fit, joined by spaces
+    lines = "Exception from a.cpp:1:\nfirst part\nException from b.cpp:2:\nsecond\nthird\n"
+    assert ovmod.openvino_cause(RuntimeError(lines)) == "first part second third"
+    assert ovmod.openvino_cause(RuntimeError(lines), limit=12) == "second third"
+    long = ovmod.openvino_cause(RuntimeError("Exception from a.cpp:1:\n" + "x" * 5000))
+    assert long == "x" * 300 + " ..."
+    assert ovmod.openvino_cause(RuntimeError("Exception from a.cpp:1:\n")) == ""
+    assert ovmod.openvino_cause(ValueError("not an ONNX file")) == "not an ONNX file"
 
 
 def test_a_damaged_cache_entry_is_compiled_again(cache_home: Path) -> None:

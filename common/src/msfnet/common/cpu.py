@@ -17,8 +17,9 @@ import json
 import os
 import platform
 import stat
+import sys
 from collections.abc import Iterable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from msfnet.common.errors import InputError
@@ -60,6 +61,9 @@ class CpuInfo:
     avx_vnni: bool = False
     family: int | None = None  # the x86 family number (AMD: 25 = Zen 3 / Zen 4, 26 = Zen 5)
     source: str = "none"  # where the flags came from: py-cpuinfo, /proc/cpuinfo or none
+    # only some features could be read: py-cpuinfo's own cpuid probe, without the kernel's
+    # /proc/cpuinfo, never sees avx512_bf16, AMX or AVX-VNNI (cpuid leaf 7 EDX, sub-leaf 1)
+    partial: bool = False
     all_flags: frozenset[str] = field(default_factory=frozenset, repr=False, compare=False)
 
     @classmethod
@@ -126,8 +130,17 @@ class CpuInfo:
         out.update(has_bf16=self.has_bf16, has_vnni=self.has_vnni, has_amx=self.has_amx)
         return out
 
+    @property
+    def detected(self) -> bool:
+        """Whether any feature could be read at all (else every flag is False by default)."""
+        return bool(self.all_flags)
+
     def summary(self) -> str:
         feats = " ".join(self.features()) or "no AVX2/AVX-512/VNNI/bf16/AMX"
+        if not self.detected:
+            feats = "features could not be read"
+        elif self.partial:
+            feats += "; bf16, AMX and AVX-VNNI unknown (no /proc/cpuinfo)"
         return f"{self.model} ({self.vendor}, {self.cores} cores; {feats})"
 
 
@@ -341,6 +354,10 @@ def _detect() -> CpuInfo:
     try:
         info = _from_py_cpuinfo()
         if info.all_flags:
+            if sys.platform.startswith("linux") and not kernel_flags():
+                # a sandbox hiding /proc/cpuinfo: said, and never kept, or every later run
+                # of this boot would have lost bf16 too (ONNX Runtime fp32 on a bf16 CPU)
+                return replace(info, partial=True)
             if cache is not None:
                 _write_cache(cache, info)
             return info

@@ -16,6 +16,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.ort_session import check_io
@@ -137,15 +138,43 @@ def read_model_file(path: str | Path) -> ModelInfo:
     return info
 
 
+def quantised_full_range(info: ModelInfo) -> bool:
+    """Whether an int8 model's weights use all 8 bits (not msf-export's reduce_range): the
+    quantisation summary in its metadata says; a model that does not say is taken as full
+    range (the quantiser's default)."""
+    return info.quantization().get("reduce_range") is not True
+
+
+def check_int8_exact(info: ModelInfo, cpu: CpuInfo | None = None) -> None:
+    """Refuse to run an int8 model where the CPU engines compute wrong numbers: full-range
+    weights on a CPU without VNNI (see CpuInfo.int8_full_range). OpenVINO's AVX2 int8
+    kernels saturate too: a full-range u8 x s8 convolution was 276 off of 648 under the AVX2
+    cpuid proxy for both engines, exact natively (session 23)."""
+    if model_precision(info) != "int8" or not quantised_full_range(info):
+        return
+    cpu = cpu or detect_cpu()
+    if cpu.int8_full_range:
+        return
+    raise InputError(
+        "this int8 model has full-range (8-bit) weights, which the int8 kernels of ONNX "
+        "Runtime and OpenVINO saturate on CPUs without VNNI (this one: "
+        f"{' '.join(cpu.features()) or 'no AVX2'}): use an fp32 model, or an int8 export "
+        "with 7-bit weights (msf-export --weight-bits 7, exact on every CPU)",
+        info.path,
+    )
+
+
 __all__ = [
     "ENGINES",
     "PRECISIONS",
     "Engine",
     "ModelFile",
+    "check_int8_exact",
     "engine_name",
     "installed_engines",
     "model_file_path",
     "model_precision",
     "precision_name",
+    "quantised_full_range",
     "read_model_file",
 ]

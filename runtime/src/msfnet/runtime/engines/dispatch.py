@@ -559,6 +559,8 @@ def choose_engine(
             )
         if cpu.has_vnni:
             hw = "VNNI/AMX int8 dot products"
+        elif cpu.avx512f:  # Skylake-SP and the like: AVX-512BW kernels, never timed
+            hw = "no VNNI/AMX: int8 speed not measured on this CPU class"
         elif cpu.avx2:
             hw = "no VNNI/AMX: int8 emulated with AVX2, still faster than fp32"
         else:
@@ -630,14 +632,14 @@ def choose_engine(
         )
     if want_engine is not None:
         if not cpu.has_bf16:
-            note = "; no native bf16 on this CPU"
+            note = f"; {_no_bf16(cpu)}"
         elif want_engine == "onnxruntime":
             note = "; bf16 on this CPU would need --engine openvino"
         else:
             note = ""
         return pick(want_engine, "fp32", f"{what}, --engine given{note}")
     if not cpu.has_bf16:
-        why = "no native bf16 on this CPU"
+        why = _no_bf16(cpu)
     elif "openvino" not in have:
         why = f"CPU has native bf16 but OpenVINO is not installed ({_install_hint('openvino')})"
     else:
@@ -653,6 +655,17 @@ def choose_engine(
         "fp32",
         f"{what}; {why}; OpenVINO fp32 not measured faster on this CPU class ({cpu_class(cpu)})",
     )
+
+
+def _no_bf16(cpu: CpuInfo) -> str:
+    """Why the bf16 path is not taken, as far as the CPU's features say."""
+    if not cpu.detected:
+        return "CPU features could not be read (py-cpuinfo and /proc/cpuinfo failed): fp32"
+    if cpu.partial:
+        return "native bf16 unknown here (/proc/cpuinfo unreadable; cpuid alone lacks it)"
+    if "bf16" in cpu.all_flags:  # Arm's name (Neoverse V1, Graviton 3): not OpenVINO's x86 path
+        return "bf16 on this Arm CPU not measured"
+    return "no native bf16 on this CPU"
 
 
 def open_engine(
@@ -692,9 +705,10 @@ def open_engine(
             raise InputError(
                 f"--provider {provider}: ONNX Runtime only (use --device for OpenVINO)"
             )
+        from msfnet.runtime.engines.base import check_int8_exact
         from msfnet.runtime.engines.openvino import open_openvino
 
-        return open_openvino(
+        opened = open_openvino(
             path,
             threads=threads,
             precision=choice.precision,
@@ -702,6 +716,9 @@ def open_engine(
             device=device.target if device is not None else "CPU",
             file=file,
         )
+        if device is None:  # its CPU kernels saturate as ONNX Runtime's do
+            check_int8_exact(opened.info)
+        return opened
     raise InputError(f"unknown engine {choice.engine!r} (known: {', '.join(ENGINES)})")
 
 

@@ -11,10 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
 from msfnet.runtime.contract import ModelInfo
-from msfnet.runtime.engines.base import model_precision
+from msfnet.runtime.engines.base import check_int8_exact, model_precision, quantised_full_range
 from msfnet.runtime.engines.ort_session import ModelSession, create_session
 
 
@@ -93,30 +92,6 @@ def open_onnxruntime(
     if chunk is not None:
         engine.set_lights_per_call(chunk)
     return engine
-
-
-def quantised_full_range(info: ModelInfo) -> bool:
-    """Whether an int8 model's weights use all 8 bits (not msf-export's reduce_range): the
-    quantisation summary in its metadata says; a model that does not say is taken as full
-    range (the quantiser's default)."""
-    return info.quantization().get("reduce_range") is not True
-
-
-def check_int8_exact(info: ModelInfo, cpu: CpuInfo | None = None) -> None:
-    """Refuse to run an int8 model where ONNX Runtime would compute wrong numbers: full-range
-    weights on a CPU without VNNI (see CpuInfo.int8_full_range)."""
-    if model_precision(info) != "int8" or not quantised_full_range(info):
-        return
-    cpu = cpu or detect_cpu()
-    if cpu.int8_full_range:
-        return
-    raise InputError(
-        "this int8 model has full-range weights, which ONNX Runtime's int8 kernels saturate "
-        f"on CPUs without VNNI (this one: {' '.join(cpu.features()) or 'no AVX2'}): use "
-        "--engine openvino, an fp32 model, or an int8 export made on this CPU (msf-export "
-        "then quantises to 7-bit weights, exact everywhere)",
-        info.path,
-    )
 
 
 __all__ = ["OrtEngine", "check_int8_exact", "open_onnxruntime", "quantised_full_range"]

@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
+import re
 import stat
 import sys
 import threading
@@ -59,8 +60,10 @@ _HINTS = {"fp32": "f32", "bf16": "bf16"}
 # device and OpenVINO's version; precision and threads are applied when an entry is loaded; a
 # truncated entry is compiled again, other damage is not detected): a fresh process opened the
 # bundled int8 twin in 0.19 s from it against 0.45 s compiling (docs/benchmark.md, session
-# 15). "0" turns it off.
+# 15). MSFNET_OPENVINO_CACHE turns it off or on (spellings below; unset or empty: on).
 CACHE_ENV = "MSFNET_OPENVINO_CACHE"
+CACHE_OFF = ("0", "off", "false", "no")
+CACHE_ON = ("1", "on", "true", "yes")
 # lights per stage call for int8 models on the CPU (staged_loop.DEFAULT_CHUNK for the others,
 # and on GPU / NPU, not measured): each stage model keeps an arena sized by its call, and a
 # fresh process pays a page fault for every page of it (~415k on the cat at 4 lights). At 2
@@ -102,10 +105,11 @@ def _own_signal_stack() -> Iterator[None]:
 
 def compile_cache() -> Path | None:
     """The folder OpenVINO keeps compiled models in (msfnet's user cache, ``openvino/``), or
-    None: turned off by MSFNET_OPENVINO_CACHE=0, or no folder of this user's own here (no home,
-    a read-only one, a link, one other users may write into: its entries are loaded as they
-    are): then every process compiles, as before."""
-    if os.environ.get(CACHE_ENV, "1").strip() == "0":
+    None: turned off by MSFNET_OPENVINO_CACHE (``cache_wanted``), or no folder of this user's
+    own here (no home, a read-only one, a link, one other users may write into: its entries are
+    loaded as they are): then every process compiles, as before. InputError for a value of
+    MSFNET_OPENVINO_CACHE that is neither on nor off."""
+    if not cache_wanted():
         return None
     try:
         folder = cache_folder() / "openvino"
@@ -118,6 +122,23 @@ def compile_cache() -> Path | None:
     if not (mine and private and os.access(folder, os.W_OK | os.X_OK)):
         return None
     return folder
+
+
+def cache_wanted() -> bool:
+    """Whether MSFNET_OPENVINO_CACHE leaves the compile cache on: unset, empty or an on spelling
+    (CACHE_ON) is on, an off spelling (CACHE_OFF) off, either case-insensitive. Anything else
+    is refused (InputError) rather than guessed: a user turning the cache off for its risk
+    with a spelling taken for "on" would keep it without being told."""
+    raw = os.environ.get(CACHE_ENV, "")
+    value = raw.strip().lower()
+    if value in ("", *CACHE_ON):
+        return True
+    if value in CACHE_OFF:
+        return False
+    raise InputError(
+        f"{CACHE_ENV}={raw[:40]!r}: not an on/off value (off: {', '.join(CACHE_OFF)}; "
+        f"on: {', '.join(CACHE_ON)}, or empty)"
+    )
 
 
 INSTALL_HINT = "pip install openvino (part of msfnet's base install)"
@@ -351,10 +372,14 @@ def read_openvino(path: str | Path) -> ModelFile:
     input and output names). Where OpenVINO cannot read the file, does not expose its metadata
     or finds it wanting, ``read_model_file`` (ONNX Runtime) has the last word: so this reader
     refuses exactly what that one refuses, in the same line, and costs an ONNX Runtime session
-    only then. InputError if openvino is missing, or the file is missing, corrupt or not msfnet.
+    only then. InputError if openvino is missing, or the file is missing, corrupt or not msfnet,
+    or MSFNET_OPENVINO_CACHE has a value that is neither on nor off.
     """
     path = model_file_path(path)
     ov = import_openvino()
+    # checked here, with the choice of engine, too: from open_openvino alone a default choice
+    # would fall back to ONNX Runtime (dispatch.open_chosen) and the typo would go unrefused
+    cache_wanted()
     try:
         graph = _read_onnx(ov, path)
     except Exception:  # not ONNX, or nothing OpenVINO parses: ONNX Runtime says which
@@ -503,6 +528,27 @@ def _sub_model(ov: Any, model: Any, output: str) -> Any:
     return ov.Model([result], needed, output)
 
 
+# OpenVINO starts a message with one "Exception from <source file>:<line>:" line per layer it
+# passed through (core, plugin, ...): the first line never says what went wrong
+_LOCATION = re.compile(r"Exception from \S.*:\d+:")
+
+
+def openvino_cause(exc: BaseException, limit: int = 300) -> str:
+    """The cause in an OpenVINO exception's text, as one line of at most ~``limit`` characters:
+    its last lines that are not location lines (as many as fit; the last one cut if it alone is
+    longer), or "" where the text has none."""
+    lines = [line.strip() for line in str(exc).splitlines()]
+    said = [line for line in lines if line and not _LOCATION.fullmatch(line)]
+    if not said:
+        return ""
+    cause = said.pop()
+    if len(cause) > limit:
+        return cause[:limit] + " ..."
+    while said and len(said[-1]) + 1 + len(cause) <= limit:
+        cause = f"{said.pop()} {cause}"
+    return cause
+
+
 def open_openvino(
     path: str | Path,
     *,
@@ -591,9 +637,10 @@ def open_openvino(
     except InputError:
         raise
     except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
-        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else ""
+        cause = openvino_cause(exc)
         raise InputError(
-            f"OpenVINO cannot compile this model for {device} ({type(exc).__name__}: {first})",
+            f"OpenVINO cannot compile this model for {device} "
+            f"({type(exc).__name__}{': ' + cause if cause else ''})",
             info.path,
         ) from exc
     effective = _effective(next(iter(compiled.values())))
@@ -620,12 +667,16 @@ def open_openvino(
 
 __all__ = [
     "CACHE_ENV",
+    "CACHE_OFF",
+    "CACHE_ON",
     "INSTALL_HINT",
     "INT8_CHUNK",
     "OpenVinoEngine",
+    "cache_wanted",
     "compile_cache",
     "drop_output_requantisation",
     "import_openvino",
     "open_openvino",
+    "openvino_cause",
     "read_openvino",
 ]
