@@ -272,6 +272,9 @@ CPU_ORT = ["CPUExecutionProvider"]
         ("gpu", CPU_ORT, ["CPU", "GPU.0", "GPU.1"], "openvino", "GPU"),
         ("gpu.1", CPU_ORT, ["CPU", "GPU.0", "GPU.1"], "openvino", "GPU.1"),
         ("npu", CPU_ORT, ["CPU", "NPU"], "openvino", "NPU"),
+        # OpenVINO's name of a lone GPU / NPU accepts ".0" (review-dispatch23.md 9)
+        ("gpu.0", CPU_ORT, ["CPU", "GPU"], "openvino", "GPU"),
+        ("npu.0", CPU_ORT, ["CPU", "NPU"], "openvino", "NPU"),
     ],
 )
 def test_devices_resolve_to_their_engine(name, providers, ov, engine, target) -> None:
@@ -345,6 +348,25 @@ def test_open_chosen_falls_back_to_ort_only_for_defaults(monkeypatch: pytest.Mon
     assert reason.startswith("onnxruntime fp32: fallback, OpenVINO failed")
     with pytest.raises(InputError, match="cannot compile"):
         dispatch.open_chosen(choice, 1, requested=True)
+    # an OpenVINO-only install: OpenVINO's failure in one line, not "internal error:
+    # ModuleNotFoundError" (review-dispatch23.md 6)
+    monkeypatch.setattr(dispatch, "installed_engines", lambda: {"openvino"})
+    with pytest.raises(InputError, match=r"cannot compile .*ONNX Runtime, the fallback, is not"):
+        dispatch.open_chosen(choice, 1)
+
+
+def test_a_file_openvino_cannot_read_without_onnx_runtime_is_one_error(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import sys
+
+    from msfnet.runtime.engines import read_model_file
+
+    garbage = tmp_path / "garbage.onnx"
+    garbage.write_bytes(b"not a model")
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import onnxruntime fails
+    with pytest.raises(InputError, match="ONNX Runtime, the other reader, is not installed"):
+        read_model_file(garbage)
 
 
 @pytest.mark.filterwarnings("ignore:Specified provider")
@@ -595,3 +617,44 @@ def test_the_reason_says_when_the_cpus_features_were_not_all_read() -> None:
     graviton = CpuInfo.from_flags(["asimd", "sve", "bf16"], vendor="ARM")
     assert "bf16 on this Arm CPU not measured" in choose_engine(FP32, graviton, BOTH).reason
     assert "no native bf16 on this CPU" in choose_engine(FP32, ZEN3, BOTH).reason
+
+
+def test_after_an_openvino_fallback_the_bundled_reason_speaks_of_onnx_runtime(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """It kept OpenVINO's claims (int8 1.16x bf16, 0.30 deg) while ONNX Runtime int8 ran."""
+    import msfnet.common.cpu as cpumod
+    from msfnet.runtime.api import ModelOptions, _open_network
+
+    def broken(*args, **kwargs):
+        raise InputError("OpenVINO cannot compile this model for CPU (RuntimeError: test)")
+
+    monkeypatch.setattr("msfnet.runtime.engines.openvino.open_openvino", broken)
+    monkeypatch.setattr(cpumod, "detect_cpu", lambda: ZEN4)
+    net = _open_network(None, ModelOptions(threads=1))
+    assert net.engine.name == "onnxruntime" and net.engine.precision == "int8"
+    assert "bf16" not in net.reason.split("; onnxruntime int8")[0]
+    assert "0.30 deg" not in net.reason and "OpenVINO failed" in net.reason
+
+
+def test_an_npu_says_it_computes_in_fp16_and_refuses_fp32() -> None:
+    """It said "openvino fp32 on NPU" and took --precision fp32, and ran f16 (review 3)."""
+    npu = dispatch.resolve_device("npu", CPU_ORT, ["CPU", "NPU"])
+    choice = choose_engine(FP32_STAGED, AMX, BOTH, device=npu)
+    assert choice.reason.startswith("openvino fp16 on NPU") and "computes in f16" in choice.reason
+    with pytest.raises(InputError, match="runs fp16"):
+        choose_engine(FP32_STAGED, AMX, BOTH, "openvino", "fp32", device=npu)
+    gpu = dispatch.resolve_device("gpu", CPU_ORT, ["CPU", "GPU"])
+    assert choose_engine(FP32_STAGED, AMX, BOTH, None, "fp32", device=gpu).precision == "fp32"
+
+
+def test_more_threads_than_usable_cpus_are_noted(monkeypatch: pytest.MonkeyPatch) -> None:
+    """review-dispatch23.md 4: --threads 8 under taskset -c 0 ran ONNX Runtime 2.35x slower,
+    without a word."""
+    import msfnet.common.cpu as cpumod
+    from msfnet.runtime.api import ModelOptions, _open_network
+
+    monkeypatch.setattr(cpumod, "usable_cores", lambda: 1)
+    net = _open_network(None, ModelOptions(threads=2, engine="onnxruntime"))
+    assert "note: 2 threads on the 1 CPU this process may use" in net.reason
+    assert "note:" not in _open_network(None, ModelOptions(threads=1)).reason

@@ -794,6 +794,7 @@ def _open_network(path: Path | None, opts: ModelOptions) -> NetworkEstimator:
     from msfnet.common.cpu import detect_cpu
     from msfnet.runtime.engines import installed_engines
     from msfnet.runtime.engines.dispatch import (
+        bundled_precision,
         choose_engine,
         open_chosen,
         open_engine,
@@ -818,7 +819,35 @@ def _open_network(path: Path | None, opts: ModelOptions) -> NetworkEstimator:
     # a default OpenVINO choice falls back to ONNX Runtime if OpenVINO cannot compile the model
     asked = bool(opts.engine or opts.precision or opts.device)
     opened, reason = open_chosen(choice, opts.threads, requested=asked)
-    return NetworkEstimator(opened, prefix + reason)
+    if why and opened.name != choice.engine:
+        # OpenVINO failed: the bundled file's reason must speak of the engine that runs it
+        # (it had claimed OpenVINO's bf16 comparison and its 0.30 deg; review-dispatch23.md 7)
+        without = bundled_precision(
+            detect_cpu(), installed_engines() - {"openvino"}, engine, opts.precision, device
+        )
+        same = without.precision == choice.precision and without.reason
+        prefix = (
+            f"{without.reason}; "
+            if same
+            else f"bundled {choice.precision} model, chosen for OpenVINO; "
+        )
+    return NetworkEstimator(opened, prefix + reason + _oversubscribed(opts.threads))
+
+
+def _oversubscribed(threads: int | None) -> str:
+    """A note for the choice line when more threads are asked for than this process may run
+    at once (an affinity mask, taskset): ONNX Runtime's threads then wait on each other (the
+    8-light ball crop ran 2.35x slower at --threads 8 on 1 CPU than at 1; OpenVINO did not
+    slow down). Said, not capped: the user's number is run as given."""
+    from msfnet.common.cpu import usable_cores
+
+    cores = usable_cores()
+    if threads is None or threads <= cores:
+        return ""
+    return (
+        f"; note: {threads} threads on the {cores} CPU{'s' if cores > 1 else ''} this "
+        "process may use: extra threads only wait (ONNX Runtime ran 2.35x slower at 8 on 1)"
+    )
 
 
 def _placed(maps: MapOptions, load: LoadOptions | None) -> MapOptions:

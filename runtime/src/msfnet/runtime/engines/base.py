@@ -122,9 +122,15 @@ def read_model_file(path: str | Path) -> ModelInfo:
     does not expose ONNX metadata, or a file it cannot read: ``openvino.read_openvino``).
     InputError if missing, corrupt or not msfnet.
     """
-    import onnxruntime as ort
-
     path = model_file_path(path)
+    try:
+        import onnxruntime as ort
+    except ImportError as exc:  # an OpenVINO-only install, and a file OpenVINO could not read
+        raise InputError(
+            "cannot read this model: OpenVINO could not, and ONNX Runtime, the other reader, "
+            "is not installed (pip install onnxruntime)",
+            path,
+        ) from exc
     opts = ort.SessionOptions()
     opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_DISABLE_ALL
     opts.log_severity_level = 3

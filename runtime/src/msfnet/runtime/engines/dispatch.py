@@ -47,6 +47,7 @@ from msfnet.runtime.engines.base import (
     Engine,
     ModelFile,
     engine_name,
+    installed_engines,
     model_precision,
     precision_name,
     read_model_file,
@@ -309,8 +310,11 @@ def resolve_device(
         return Device(asked, engine, target)
     have = list(ov_devices if ov_devices is not None else available_devices(engine))
     target = target + (f".{index}" if index else "")
-    # OpenVINO names one GPU "GPU", several "GPU.0", "GPU.1", ...
+    # OpenVINO names one GPU "GPU", several "GPU.0", "GPU.1", ...; "GPU.0" is also the name
+    # of a lone "GPU" (OpenVINO accepts it)
     found = [d for d in have if d.upper() == target or d.upper().startswith(target + ".")]
+    if not found and index == "0" and base.upper() in (d.upper() for d in have):
+        found = [base.upper()]
     if not found:
         raise InputError(
             f"--device {asked}: OpenVINO sees no {target} here (devices: "
@@ -535,15 +539,20 @@ def choose_engine(
                 f"--device {device.name}: {device.engine} is not installed "
                 f"({_install_hint(device.engine)})"
             )
-        if want_prec not in (None, own):
+        # an NPU computes fp32 models in f16 (OpenVINO sets no f32 hint there, as it does on
+        # a GPU): said, and an explicit fp32 refused rather than quietly not honoured
+        computes = "fp16" if own == "fp32" and device.target.upper().startswith("NPU") else own
+        if want_prec not in (None, own) or (want_prec is not None and computes != own):
             raise InputError(
                 f"--precision {want_prec}: on --device {device.name} this {own} model runs "
-                f"{own} (bf16 is a CPU path; int8 needs an int8 export)"
+                f"{computes} (bf16 is a CPU path; int8 needs an int8 export"
+                + ("; the NPU computes in f16)" if computes != own else ")")
             )
+        note = " (the NPU computes in f16)" if computes != own else ""
         return EngineChoice(
             device.engine,
             own,
-            f"{device.engine} {own} on {device.target}: --device {device.name} given",
+            f"{device.engine} {computes} on {device.target}: --device {device.name} given{note}",
             info.path,
             device,
             file,
@@ -737,6 +746,10 @@ def open_chosen(
     except InputError as exc:
         if requested or choice.engine != "openvino" or choice.device is not None:
             raise
+        if "onnxruntime" not in installed_engines():  # an OpenVINO-only install
+            raise InputError(
+                f"{exc.message}; ONNX Runtime, the fallback, is not installed", exc.path
+            ) from exc
         precision = "int8" if choice.precision == "int8" else "fp32"
         fallback = EngineChoice("onnxruntime", precision, "", choice.model, file=choice.file)
         engine = open_engine(fallback, threads, chunk=chunk)
