@@ -225,7 +225,7 @@ def test_an_input_linked_from_inside_a_stack_folder_is_an_input(tmp_path: Path) 
     stack.mkdir()
     (stack / "001.png").write_bytes(b"x")
     (stack / "mask.png").symlink_to(out / "mask.png")
-    with pytest.raises(InputError, match="contains the input .*stk/mask.png"):
+    with pytest.raises(InputError, match=r"contains the input .*stk/mask\.png"):
         check_output(out, [stack], overwrite=True, folder=True)
     # a new output cannot replace it: nothing to refuse
     check_output(tmp_path / "new", [stack], folder=True)

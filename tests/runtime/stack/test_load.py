@@ -422,7 +422,7 @@ def test_one_grey_image_among_colour_ones_is_refused(tmp_path: Path) -> None:
     third = folder / sorted(p.name for p in folder.glob("0*.png"))[2]
     grey = cv2.cvtColor(cv2.imread(str(third), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2GRAY)
     cv2.imwrite(str(third), grey)
-    with pytest.raises(InputError, match="image is grey but .* is colour"):
+    with pytest.raises(InputError, match=r"image is grey but .* is colour"):
         load_stack(folder)
 
 

@@ -369,7 +369,7 @@ def test_unit_normals_of_any_numeric_input(dtype: type) -> None:
 
 
 def test_a_first_line_of_one_number_that_is_no_count_is_refused(tmp_path: Path) -> None:
-    """"3.7" above 8 rows was taken for a count line and dropped without a word."""
+    """ "3.7" above 8 rows was taken for a count line and dropped without a word."""
     path = tmp_path / "l.txt"
     path.write_text("3.7\n" + "0 0 1\n" * 8)
     with pytest.raises(InputError, match="count line must be a whole number"):
