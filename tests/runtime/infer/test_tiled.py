@@ -85,3 +85,15 @@ def test_model_results_of_an_integer_stack(tmp_path: Path) -> None:
     np.testing.assert_allclose(got.maps.albedo, want.maps.albedo, rtol=1e-5, atol=1e-6)
     l2 = Model.least_squares(maps=None)
     np.testing.assert_array_equal(l2(held).normals, l2(as_float32(held)).normals)
+
+
+def test_an_engine_failure_quotes_openvinos_cause_not_its_location_lines() -> None:
+    from msfnet.runtime.infer.tiled import _cause
+
+    text = (
+        "Exception from src/inference/src/cpp/infer_request.cpp:223:\n"
+        "Exception from src/plugins/intel_cpu/src/memory.cpp:91:\n"
+        "Cannot allocate 4096 MB"
+    )
+    assert _cause("openvino", RuntimeError(text)) == "Cannot allocate 4096 MB"
+    assert _cause("onnxruntime", RuntimeError("bad alloc\nmore")) == "bad alloc"

@@ -169,7 +169,7 @@ def infer_normals(
                 raise MsfError(
                     f"{model.info.path}: {model.name} failed on a "
                     f"{wx1 - wx0}x{wy1 - wy0} tile with {n} lights "
-                    f"({type(exc).__name__}: {first_line(exc)}); try a smaller "
+                    f"({type(exc).__name__}: {_cause(model.name, exc)}); try a smaller "
                     "--tile or --max-memory"
                 ) from exc
         with timer("postprocess"):
@@ -184,6 +184,16 @@ def infer_normals(
     with timer("postprocess"):
         normals = out[:h, :w] * stack.mask[:, :, None]
     return InferenceResult(np.ascontiguousarray(normals, np.float32), plan)
+
+
+def _cause(engine: str, exc: BaseException) -> str:
+    """An engine failure's cause in one line: OpenVINO's text starts with lines naming where in
+    its sources it was raised, which say nothing to a user."""
+    if engine == "openvino":
+        from msfnet.runtime.engines.openvino import openvino_cause
+
+        return openvino_cause(exc) or type(exc).__name__
+    return first_line(exc)
 
 
 __all__ = [
