@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import io
 import struct
+import zlib
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import pytest
+import tifffile
 
 from msfnet.common import imageio, matfile
 from msfnet.common.errors import InputError
@@ -144,6 +147,11 @@ def test_hidden_companion_files_are_not_images(tmp_path: Path) -> None:
         (".tif", IMAGES["grey16"], 16),
         (".jpg", IMAGES["rgb8"], 8),
         (".bmp", IMAGES["rgb8"], 8),
+        # TIFFs Pillow cannot open (their size was known only once decoded): read from the IFD
+        (".tif", IMAGES["rgb16"].astype(np.float32), 32),
+        (".tif", IMAGES["rgb16"].astype(np.float64), 64),
+        (".tif", IMAGES["grey16"].astype(np.int16), 16),
+        (".tif", IMAGES["grey16"].astype(np.uint32), 32),
     ],
 )
 def test_image_header_reads_the_size_without_decoding(
@@ -304,3 +312,347 @@ def test_an_unreadable_format_says_so_without_a_python_object(tmp_path: Path) ->
     with pytest.raises(InputError) as caught:
         read_image(path)
     assert "BytesIO" not in str(caught.value) and "0x" not in str(caught.value)
+
+
+# -- TIFF structure, read from the first IFD (review-stack23 findings 3, 7 and 12)
+
+
+def _tiff(
+    tags: dict[int, tuple[int, list[int]]],
+    data: bytes = b"",
+    *,
+    big: bool = False,
+    order: str = "<",
+    ifd_at: int | None = None,
+) -> bytes:
+    """A TIFF by hand: ``data`` at byte 16 (TIFF_DATA), then the values too long for their
+    field, then one IFD of ``tags`` ({tag: (field type, values)}) whose next-IFD pointer
+    points back at itself (a loop no reader may follow). ``ifd_at``: the first-IFD offset the
+    header gives, if not the real one."""
+    codes = {3: "H", 4: "I", 16: "Q"}
+    width = 8 if big else 4
+    out = bytearray(TIFF_DATA) + data
+    fields = []
+    for tag, (kind, values) in sorted(tags.items()):
+        raw = struct.pack(f"{order}{len(values)}{codes[kind]}", *values)
+        if len(raw) > width:
+            raw, out = struct.pack(order + ("Q" if big else "I"), len(out)), out + raw
+        head = struct.pack(order + ("HHQ" if big else "HHI"), tag, kind, len(values))
+        fields.append(head + raw.ljust(width, b"\0"))
+    ifd = len(out)
+    out += struct.pack(order + ("Q" if big else "H"), len(fields)) + b"".join(fields)
+    out += struct.pack(order + ("Q" if big else "I"), ifd)
+    first = ifd if ifd_at is None else ifd_at
+    magic = b"II" if order == "<" else b"MM"
+    if big:
+        out[:16] = magic + struct.pack(order + "HHHQ", 43, 8, 0, first)
+    else:
+        out[:8] = magic + struct.pack(order + "HI", 42, first)
+    return bytes(out)
+
+
+TIFF_DATA = 16  # where _tiff puts the image data
+
+
+def _grey_tiff(
+    img: np.ndarray, tags: dict[int, tuple[int, list[int]]] | None = None, **form: Any
+) -> bytes:
+    """An uncompressed 8-bit grey TIFF of ``img`` in one strip, made by _tiff (``tags`` added
+    or replaced; ``form``: _tiff's keywords)."""
+    h, w = img.shape
+    base = {
+        256: (4, [w]),
+        257: (4, [h]),
+        258: (3, [8]),
+        259: (3, [1]),
+        262: (3, [1]),
+        273: (4, [TIFF_DATA]),
+        277: (3, [1]),
+        278: (4, [h]),
+        279: (4, [img.size]),
+    }
+    return _tiff(base | (tags or {}), img.tobytes(), **form)
+
+
+TIFF_FORMS = [
+    pytest.param({}, id="classic little-endian"),
+    pytest.param({"order": ">"}, id="classic big-endian"),
+    pytest.param({"big": True}, id="BigTIFF little-endian"),
+    pytest.param({"big": True, "order": ">"}, id="BigTIFF big-endian"),
+]
+
+
+@pytest.mark.parametrize("form", TIFF_FORMS)
+@pytest.mark.parametrize("orientation", [1, 6, 8, 3])
+def test_a_tiff_is_read_as_stored_whatever_its_orientation_tag(
+    tmp_path: Path, form: dict[str, Any], orientation: int
+) -> None:
+    """OpenCV 5's TIFF decoder applies an Orientation tag (IMREAD_IGNORE_ORIENTATION or not):
+    a tagged stack was read turned, while the lights, mask and ground truth were not (MAE 3.6
+    -> 51 deg, exit 0). Every form of TIFF header is read as OpenCV reads it."""
+    img = RNG.integers(0, 256, (9, 13), np.uint8)
+    path = tmp_path / "a.tif"
+    data = _grey_tiff(img, {274: (3, [orientation])}, **form)
+    path.write_bytes(data)
+    np.testing.assert_array_equal(read_image(path), img)
+    header = imageio.image_header(path)
+    assert header is not None and (header.shape, header.bits) == ((9, 13), 8)
+    assert path.read_bytes() == data  # the file itself is not touched
+
+
+@pytest.mark.parametrize("orientation", [6, 7])
+def test_a_tiff_written_with_an_orientation_tag_reads_like_the_untagged_file(
+    tmp_path: Path, orientation: int
+) -> None:
+    """The reviewer's case: tifffile's RGB 16-bit TIFF with Orientation=6, image and mask."""
+    img = IMAGES["rgb16"]
+    for tag in (1, orientation):
+        extra = [(274, "H", 1, tag, True)]
+        tifffile.imwrite(tmp_path / f"{tag}.tif", img, photometric="rgb", extratags=extra)
+    tagged, plain = tmp_path / f"{orientation}.tif", tmp_path / "1.tif"
+    np.testing.assert_array_equal(read_image(tagged), read_image(plain))
+    np.testing.assert_array_equal(read_image(tagged), img)
+    mask = tmp_path / "mask.tif"
+    extra = [(274, "H", 1, orientation, True)]
+    tifffile.imwrite(mask, (img[:, :, 0] > 30000).astype(np.uint8) * 255, extratags=extra)
+    np.testing.assert_array_equal(imageio.read_mask(mask, (9, 13)), img[:, :, 0] > 30000)
+
+
+def _float_rgb_bomb(width: int, height: int, **form: Any) -> bytes:
+    """A few KB of deflate declaring a float32 RGB image, every strip the same zlib stream
+    (the reviewer's 11 KB file of 269 MP): Pillow cannot open it, OpenCV would decode it."""
+    rows = 16
+    strip = zlib.compress(bytes(width * 3 * 4 * rows), 9)
+    n = -(-height // rows)
+    tags = {
+        256: (4, [width]),
+        257: (4, [height]),
+        258: (3, [32, 32, 32]),
+        259: (3, [8]),
+        262: (3, [2]),
+        273: (4, [TIFF_DATA] * n),
+        277: (3, [3]),
+        278: (4, [rows]),
+        279: (4, [len(strip)] * n),
+        339: (3, [3, 3, 3]),
+    }
+    return _tiff(tags, strip, **form)
+
+
+@pytest.mark.parametrize("form", TIFF_FORMS)
+def test_a_float_rgb_tiff_bomb_is_refused_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, form: dict[str, Any]
+) -> None:
+    """Pillow cannot open float RGB TIFFs: no header, and OpenCV was handed 16400 x 16400 x 3
+    float32 (3.2 GB resident from an 11 KB file)."""
+    path = tmp_path / "001.tif"
+    path.write_bytes(_float_rgb_bomb(16_400, 16_400, **form))
+    assert path.stat().st_size < 20_000
+    monkeypatch.setattr(imageio.cv2, "imdecode", lambda *a, **k: pytest.fail("decoded"))
+    for read in (imageio.image_header, read_image):
+        with pytest.raises(InputError, match=r"16400x16400 \(269 MP\), above the 250 MP limit"):
+            read(path)
+
+
+def test_the_float_rgb_tiff_layout_under_the_limit_decodes(tmp_path: Path) -> None:
+    """The bomb's layout is a real TIFF: a small one decodes, and its header is read."""
+    path = tmp_path / "001.tif"
+    path.write_bytes(_float_rgb_bomb(20, 40))
+    header = imageio.image_header(path)
+    assert header is not None and (header.width, header.height, header.bits) == (20, 40, 32)
+    img = read_image(path)
+    assert img.shape == (40, 20, 3) and img.dtype == np.float32 and not img.any()
+
+
+def _hostile(kind: str) -> bytes:
+    img = np.zeros((9, 13), np.uint8)
+    if kind == "IFD past the end":
+        return _grey_tiff(img, ifd_at=10**6)
+    if kind == "IFD offset wraps":
+        return _grey_tiff(img, big=True, ifd_at=2**64 - 4)
+    if kind == "2**40 entries":
+        data = bytearray(_grey_tiff(img, big=True))
+        (ifd,) = struct.unpack("<Q", data[8:16])
+        data[ifd : ifd + 8] = struct.pack("<Q", 2**40)
+        return bytes(data)
+    if kind == "offsets array of 2**32 - 1":
+        data = bytearray(_grey_tiff(img))
+        (ifd,) = struct.unpack("<I", data[4:8])
+        entry = next(
+            ifd + 2 + 12 * i
+            for i in range(9)
+            if data[ifd + 2 + 12 * i : ifd + 4 + 12 * i] == b"\x11\x01"
+        )  # StripOffsets (273)
+        data[entry + 4 : entry + 8] = struct.pack("<I", 2**32 - 1)
+        return bytes(data)
+    if kind == "strip end wraps":
+        return _grey_tiff(img, {273: (16, [2**64 - 8]), 279: (16, [117])}, big=True)
+    if kind == "no width":
+        return _grey_tiff(img, {256: (4, [0])})
+    raise AssertionError(kind)
+
+
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("IFD past the end", r"image directory \(IFD\) at byte 1,000,000 runs past the end"),
+        ("IFD offset wraps", r"image directory \(IFD\) at byte 18,446,744,073,709,551,612 runs"),
+        ("2**40 entries", "its first IFD declares 1,099,511,627,776 entries"),
+        ("offsets array of 2**32 - 1", "tag 273's values at byte .* runs past the end"),
+        ("strip end wraps", "strip 1 of 1 ends at byte 18,446,744,073,709,551,725, past the end"),
+        ("no width", "no image width or height, or a zero one"),
+    ],
+)
+def test_a_hostile_tiff_structure_is_refused_as_damaged_without_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: str, message: str
+) -> None:
+    path = tmp_path / "003.tif"
+    path.write_bytes(_hostile(kind))
+    monkeypatch.setattr(imageio.cv2, "imdecode", lambda *a, **k: pytest.fail("decoded"))
+    with pytest.raises(InputError, match=rf"003\.tif: damaged or truncated TIFF \({message}"):
+        read_image(path)
+
+
+def test_a_truncated_tiff_is_named_as_one_in_one_line(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Cut in half, OpenCV's TIFF (IFD at the end) was "not a format this tool reads", and a
+    zlib TIFF cut at 60 % added a line of libtiff's (from Pillow's decoder) on stderr."""
+    img = RNG.integers(0, 65536, (64, 64, 3), np.uint16)
+    ok, buf = cv2.imencode(".tif", img)
+    assert ok
+    path = tmp_path / "003.tif"
+    path.write_bytes(buf.tobytes()[: len(buf) // 2])
+    with pytest.raises(InputError, match=r"003\.tif: damaged or truncated TIFF \(image directory"):
+        read_image(path)
+    tifffile.imwrite(path, img, photometric="rgb", compression="zlib", rowsperstrip=8)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) * 6 // 10])
+    with pytest.raises(InputError, match=r"damaged or truncated TIFF \(strip \d of 8 ends at"):
+        read_image(path)
+    assert capfd.readouterr().err == ""
+
+
+def test_damaged_data_inside_a_sound_tiff_is_one_line(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Damage inside a compressed strip: OpenCV fails quietly, and Pillow (whose libtiff
+    prints on stderr) is not tried on a TIFF."""
+    path = tmp_path / "003.tif"
+    tifffile.imwrite(path, IMAGES["rgb16"], photometric="rgb", compression="zlib")
+    with tifffile.TiffFile(path) as tif:
+        start, length = tif.pages[0].dataoffsets[0], tif.pages[0].databytecounts[0]
+    data = bytearray(path.read_bytes())
+    for i in range(start + 4, start + length - 4):
+        data[i] ^= 0x5A
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"003\.tif: cannot decode TIFF: damaged image data"):
+        read_image(path)
+    assert capfd.readouterr().err == ""
+
+
+# -- other formats no header reader knew: EXR read here, the rest refused before decoding
+
+
+def _exr(x1: int, y1: int) -> bytes:
+    def attribute(name: bytes, kind: bytes, value: bytes) -> bytes:
+        return name + b"\0" + kind + b"\0" + struct.pack("<i", len(value)) + value
+
+    return (
+        b"\x76\x2f\x31\x01"
+        + struct.pack("<I", 2)
+        + attribute(b"channels", b"chlist", b"R\0" + bytes(17) + b"\0")
+        + attribute(b"compression", b"compression", b"\0")
+        + attribute(b"dataWindow", b"box2i", struct.pack("<4i", 0, 0, x1, y1))
+        + b"\0"
+    )
+
+
+def test_an_exr_header_gives_the_size_before_decoding(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(imageio.cv2, "imdecode", lambda *a, **k: pytest.fail("decoded"))
+    path = tmp_path / "a.exr"
+    path.write_bytes(_exr(12, 8))
+    header = imageio.image_header(path)
+    assert header is not None and (header.width, header.height) == (13, 9)
+    path.write_bytes(_exr(19_999, 19_999))
+    with pytest.raises(InputError, match=r"20000x20000 .* above the 250 MP limit"):
+        read_image(path)
+    path.write_bytes(_exr(12, 8)[:40])
+    with pytest.raises(InputError, match=r"a\.exr: damaged or truncated EXR file"):
+        imageio.image_header(path)
+
+
+def test_an_image_whose_size_no_header_tells_is_not_decoded(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """OpenCV decodes PAM (and PFM, Radiance HDR) by their bytes, whatever the file's name;
+    Pillow reads none of their headers: a 20000 x 20000 PAM of a few bytes was handed to
+    OpenCV."""
+    path = tmp_path / "001.ppm"
+    pam = b"P7\nWIDTH 20000\nHEIGHT 20000\nDEPTH 3\nMAXVAL 255\nTUPLTYPE RGB\nENDHDR\n"
+    path.write_bytes(pam + bytes(64))
+    monkeypatch.setattr(imageio.cv2, "imdecode", lambda *a, **k: pytest.fail("decoded"))
+    with pytest.raises(InputError, match=r"001\.ppm: cannot decode image: not a format"):
+        read_image(path)
+
+
+# -- folders listed without filenames.txt (finding 10)
+
+
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        ("dangling link", r"003\.png: dangling link \(to /nonexistent/003\.png\)"),
+        ("link loop", r"003\.png: link loop \(to 003\.png\)"),
+        ("folder", r"003\.png: is a folder, not an image file"),
+    ],
+)
+def test_an_image_name_that_is_no_file_is_refused_naming_it(
+    tmp_path: Path, kind: str, message: str
+) -> None:
+    """Skipped by is_file(), it left 7 images for 8 lights and the light file was blamed."""
+    for name in ("001.png", "002.png"):
+        write_png(tmp_path / name, IMAGES["rgb8"])
+    entry = tmp_path / "003.png"
+    if kind == "dangling link":
+        entry.symlink_to("/nonexistent/003.png")
+    elif kind == "link loop":
+        entry.symlink_to("003.png")
+    else:
+        entry.mkdir()
+    with pytest.raises(InputError, match=message):
+        imageio.list_images(tmp_path)
+
+
+def test_entries_not_taken_as_images_may_be_anything(tmp_path: Path) -> None:
+    """Hidden names and masks are never images: a broken one is not the images' business
+    (the loader checks a mask it uses); a folder with another name neither."""
+    write_png(tmp_path / "001.png", IMAGES["rgb8"])
+    (tmp_path / ".002.png").symlink_to("/nonexistent")
+    (tmp_path / "mask.png").symlink_to("/nonexistent")
+    (tmp_path / "sub").mkdir()
+    assert [p.name for p in imageio.list_images(tmp_path)] == ["001.png"]
+
+
+# -- masks (finding 13a)
+
+
+@pytest.mark.parametrize(
+    ("img", "words"),
+    [
+        (np.full((9, 13), 255, np.uint16), "32639 of 65535, the 16-bit threshold"),
+        (np.full((9, 13), 127, np.uint8), "127"),
+        (np.full((9, 13, 3), 0.5, np.float32), "0.5, the threshold of a floating-point mask"),
+    ],
+)
+def test_an_empty_mask_can_be_refused_with_the_threshold_used(
+    tmp_path: Path, img: np.ndarray, words: str
+) -> None:
+    """A 16-bit mask whose object is 255 was "empty (no pixel above 127)": the threshold
+    stated is the one read_mask applied."""
+    path = tmp_path / ("mask.tif" if img.dtype == np.float32 else "mask.png")
+    encode_png(path, img)
+    assert not imageio.read_mask(path).any()
+    assert imageio.mask_threshold(path) == words

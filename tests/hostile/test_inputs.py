@@ -182,7 +182,7 @@ def test_a_link_to_a_listed_photo_is_the_same_photo(tmp_path: Path) -> None:
     names = (folder / "filenames.txt").read_text().split()
     names[3] = "copy.png"
     (folder / "filenames.txt").write_text("\n".join(names) + "\n")
-    with pytest.raises(InputError, match="listed twice"):
+    with pytest.raises(InputError, match=r"002\.png and copy\.png are the same photo"):
         load_stack(folder)
 
 

@@ -38,7 +38,14 @@ from tqdm import tqdm
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import folder_lock, vectors_text, write_atomic
-from msfnet.common.imageio import image_header, list_images, read_image, read_mask, write_png
+from msfnet.common.imageio import (
+    image_header,
+    list_images,
+    mask_threshold,
+    read_image,
+    read_mask,
+    write_png,
+)
 from msfnet.runtime.stack import (
     FILENAMES_FILE,
     INTENSITIES_FILE,
@@ -420,7 +427,8 @@ def check_mask(
     src = Path(mask) if isinstance(mask, (str, Path)) else None
     arr = read_mask(src) if src is not None else np.asarray(mask, bool)
     if not arr.any():
-        raise InputError("the mask is empty (no pixel > 127)", src)
+        what = f"no pixel above {mask_threshold(src)}" if src is not None else "no True pixel"
+        raise InputError(f"the mask is empty ({what})", src)
     if shape is not None and arr.shape != tuple(shape):
         raise InputError(
             f"mask is {arr.shape[1]}x{arr.shape[0]} but the camera delivers "

@@ -11,15 +11,22 @@ name holding a byte that is not UTF-8, such as a Latin-1 ``\xe9``.
 One size check before decoding: :func:`image_header` reads an image's size (and, where the
 header tells, its sample depth) without decoding it, and :func:`array_shape` does the same for
 ``.npy`` and MATLAB ``.mat`` arrays, so a caller can compare every file of a stack with the
-memory budget and with each other before a single pixel is inflated.
+memory budget and with each other before a single pixel is inflated. PNG, TIFF and EXR headers
+are read here, the others through Pillow; an image whose size no header tells is not decoded.
+
+Pixels are read as stored, in every format: a TIFF ``Orientation`` tag is not applied (OpenCV's
+TIFF decoder and Pillow would rotate the image, but not the light directions, the mask or the
+ground truth, which are all in stored pixels).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import os
 import re
+import stat
 import struct
 import tempfile
 import threading
@@ -43,8 +50,7 @@ MAX_PIXELS = 250_000_000
 # The largest image file read: the raw size of the largest image allowed (MAX_PIXELS of four
 # float32 channels), plus an eighth for headers, offset tables and metadata. Compression only
 # makes a file smaller than raw, so a larger file is no image we would decode. Checked before
-# the file is read: formats without a header reader here (EXR, float TIFF) have their pixels
-# counted only once decoded, after the whole file was in memory.
+# the file is read (the pixel limit, from the header, is checked before it is decoded).
 MAX_IMAGE_BYTES = MAX_PIXELS * 4 * 4 * 9 // 8
 
 # OpenCV logs decoder failures on stderr ("[ERROR:0@0.2] global grfmt_tiff.cpp ..."); msfnet
@@ -67,15 +73,18 @@ def natural_key(name: str) -> list[object]:
 
 def list_images(folder: Path, exclude: Iterable[str] = ("mask", "normal", "albedo")) -> list[Path]:
     """Image files of a folder in natural order, skipping masks, normal maps and the like, and
-    hidden files (macOS writes ``._001.png`` companions on foreign file systems)."""
+    hidden files (macOS writes ``._001.png`` companions on foreign file systems). An entry named
+    as an image that is no regular file (a dangling link, a link loop, a folder) is refused,
+    naming it: skipped, it left one image fewer than lights, and the light file was blamed."""
     files = [
         p
         for p in folder.iterdir()
-        if p.is_file()
-        and not p.name.startswith(".")
+        if not p.name.startswith(".")
         and p.suffix.lower() in IMAGE_SUFFIXES
         and not any(word in p.stem.lower() for word in exclude)
     ]
+    for p in files:
+        _check_file(p)
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
@@ -97,10 +106,28 @@ class ImageHeader:
 
 
 def _check_file(path: Path) -> None:
-    if not path.exists():
-        raise InputError("image file not found", path)
-    if not path.is_file():
+    """InputError unless ``path`` is (or links to) a regular file."""
+    try:
+        mode = path.stat().st_mode  # through links
+    except OSError as exc:
+        raise InputError(_missing_file(path, exc), path) from exc
+    if stat.S_ISDIR(mode):
+        raise InputError("is a folder, not an image file", path)
+    if not stat.S_ISREG(mode):
         raise InputError("not a regular file (expected an image)", path)
+
+
+def _missing_file(path: Path, exc: OSError) -> str:
+    """Why ``path`` cannot be opened (``exc``, from stat); a broken link names its target."""
+    try:
+        target: str | None = os.readlink(path)
+    except OSError:  # no link (or gone meanwhile)
+        target = None
+    if exc.errno == errno.ELOOP and target is not None:
+        return f"link loop (to {target})"
+    if exc.errno in (errno.ENOENT, errno.ENOTDIR):
+        return "image file not found" if target is None else f"dangling link (to {target})"
+    return f"cannot read it ({exc.strerror})"
 
 
 def _png_header(head: bytes) -> ImageHeader | None:
@@ -109,6 +136,180 @@ def _png_header(head: bytes) -> ImageHeader | None:
         return None
     w, h, depth = struct.unpack(">IIB", head[16:25])
     return ImageHeader(w, h, 16 if depth == 16 else 8)
+
+
+# -- TIFF: the first image directory (IFD), read here. Pillow cannot open many TIFFs OpenCV
+# decodes (float RGB, int16, uint32): without this, their size was known only once decoded,
+# and a few KB of deflate could declare gigabytes. It is also what lets a truncated TIFF be
+# named as one before a decoder fails on it (Pillow's libtiff prints its own line then), and
+# an Orientation tag be set aside.
+
+# First four bytes: byte order, and whether it is a BigTIFF (64-bit offsets)
+_TIFF_MAGIC = {
+    b"II*\x00": ("<", False),
+    b"MM\x00*": (">", False),
+    b"II+\x00": ("<", True),
+    b"MM\x00+": (">", True),
+}
+# The unsigned integer field types of the tags read: BYTE, SHORT, LONG, IFD, LONG8, IFD8
+_TIFF_UINTS = {1: "u1", 3: "u2", 4: "u4", 13: "u4", 16: "u8", 18: "u8"}
+_TIFF_MAX_ENTRIES = 65_535  # a classic TIFF's own limit; real files have a few dozen
+_WIDTH, _LENGTH, _BITS, _ORIENTATION = 256, 257, 258, 274
+_DATA_TAGS = {"strip": (273, 279), "tile": (324, 325)}  # (offsets, byte counts)
+_TIFF_TAGS = {_WIDTH, _LENGTH, _BITS, _ORIENTATION} | {t for p in _DATA_TAGS.values() for t in p}
+
+
+@dataclass(frozen=True)
+class _TiffLayout:
+    """What a TIFF's first IFD says, its structure checked against the file's length."""
+
+    header: ImageHeader
+    order: str  # "<" or ">"
+    big: bool  # BigTIFF
+    orientation_at: int | None  # where the Orientation entry starts, unless it says "as stored"
+
+
+def _tiff_layout(f: BinaryIO, path: Path) -> _TiffLayout:
+    """The first IFD of the TIFF open as ``f``: size, depth, and every strip or tile inside the
+    file; InputError naming the damage otherwise. Only the first IFD is read (the image the
+    decoders read), so no crafted chain of IFDs is ever followed, and every offset is checked
+    against the file's length before it is read."""
+    size = f.seek(0, os.SEEK_END)
+
+    def damaged(why: str) -> InputError:
+        return InputError(f"damaged or truncated TIFF ({why})", path)
+
+    def read(at: int, n: int, what: str) -> bytes:
+        if at + n > size:
+            raise damaged(f"{what} at byte {at:,} runs past the end of the {size:,}-byte file")
+        f.seek(at)
+        data = f.read(n)
+        if len(data) != n:  # shortened while read
+            raise damaged(f"{what} at byte {at:,} is cut off")
+        return data
+
+    order, big = _TIFF_MAGIC[read(0, 4, "header")]
+    width = 8 if big else 4  # of an offset, a count and a value field
+    first = read(4, 12 if big else 4, "header")
+    if big and struct.unpack(order + "HH", first[:4]) != (8, 0):
+        raise damaged("a BigTIFF header with an offset size other than 8")
+    (ifd,) = struct.unpack(order + ("Q" if big else "I"), first[-width:])
+    (n,) = struct.unpack(
+        order + ("Q" if big else "H"), read(ifd, width if big else 2, "image directory (IFD)")
+    )
+    if n == 0 or n > _TIFF_MAX_ENTRIES:
+        raise damaged(f"its first IFD declares {n:,} entries")
+    start = ifd + (8 if big else 2)
+    entry_size = 4 + 2 * width
+    block = read(start, n * entry_size, "image directory (IFD)")
+    entries: dict[int, tuple[int, int, bytes, int]] = {}  # tag: (type, count, value, position)
+    for i in range(n):
+        tag, kind, count = struct.unpack_from(
+            order + ("HHQ" if big else "HHI"), block, i * entry_size
+        )
+        if tag in _TIFF_TAGS and tag not in entries:
+            value = block[i * entry_size + 4 + width : (i + 1) * entry_size]
+            entries[tag] = (kind, count, value, start + i * entry_size)
+
+    def values(tag: int) -> np.ndarray | None:
+        if tag not in entries:
+            return None
+        kind, count, value, _ = entries[tag]
+        code = _TIFF_UINTS.get(kind)
+        if code is None or count == 0:
+            raise damaged(f"tag {tag} holds {count} values of field type {kind}")
+        nbytes = count * int(code[1])
+        if nbytes > width:  # stored elsewhere; the field holds their offset
+            (at,) = struct.unpack(order + ("Q" if big else "I"), value)
+            value = read(at, nbytes, f"tag {tag}'s values")
+        return np.frombuffer(value[:nbytes], order + code).astype(np.uint64)
+
+    w, h, bits = values(_WIDTH), values(_LENGTH), values(_BITS)
+    if w is None or h is None or not w[0] or not h[0]:
+        raise damaged("no image width or height, or a zero one")
+    header = ImageHeader(int(w[0]), int(h[0]), None if bits is None else int(bits.max()))
+    for kind, (offsets_tag, counts_tag) in _DATA_TAGS.items():
+        offsets, counts = values(offsets_tag), values(counts_tag)
+        if offsets is None or counts is None:
+            continue  # no such data (or byte counts for libtiff to work out)
+        if len(offsets) != len(counts):
+            raise damaged(f"{len(offsets)} {kind} offsets but {len(counts)} byte counts")
+        # offsets and counts apart: their sum could wrap around in 64 bits
+        past = (offsets > size) | (counts > np.uint64(size) - np.minimum(offsets, size))
+        if past.any():
+            k = int(np.argmax(past))
+            end = int(offsets[k]) + int(counts[k])
+            raise damaged(
+                f"{kind} {k + 1} of {len(offsets)} ends at byte {end:,}, past the end of the "
+                f"{size:,}-byte file"
+            )
+    if not any(offsets_tag in entries for offsets_tag, _ in _DATA_TAGS.values()):
+        raise damaged("no strip or tile offsets: no image data")
+    orientation_at = None
+    if _ORIENTATION in entries:
+        kind, count, value, at = entries[_ORIENTATION]
+        if (kind, count, value[:2]) != (3, 1, struct.pack(order + "H", 1)):
+            orientation_at = at
+    return _TiffLayout(header, order, big, orientation_at)
+
+
+def _as_stored(data: bytes, layout: _TiffLayout) -> bytes:
+    """``data`` with the TIFF's Orientation entry rewritten to 1 (top-left: as stored), so that
+    neither decoder turns the pixels. OpenCV 5's TIFF decoder applies the tag whatever the
+    flags (IMREAD_IGNORE_ORIENTATION too), Pillow on load; the file itself is not touched."""
+    if layout.orientation_at is None:
+        return data
+    at = layout.orientation_at
+    entry = struct.pack(
+        layout.order + ("HHQH6x" if layout.big else "HHIH2x"), _ORIENTATION, 3, 1, 1
+    )
+    return data[:at] + entry + data[at + len(entry) :]
+
+
+# -- OpenEXR: the header's dataWindow (Pillow reads no EXR; OpenCV may decode it)
+
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+_EXR_MAX_ATTRIBUTES = 1_000  # real headers have a dozen or two
+
+
+def _exr_header(f: BinaryIO, path: Path) -> ImageHeader:
+    """Width and height of the first part of an OpenEXR file, from its dataWindow attribute
+    (a sequence of name, type name, size, value; every read bounded by the file)."""
+    size = f.seek(0, os.SEEK_END)
+
+    def damaged(why: str) -> InputError:
+        return InputError(f"damaged or truncated EXR file ({why})", path)
+
+    def text(at: int) -> bytes:
+        f.seek(at)
+        chunk = f.read(256)  # names and type names are at most 255 bytes
+        if b"\0" not in chunk:
+            raise damaged(f"no attribute name ends at byte {at:,}")
+        return chunk[: chunk.index(b"\0")]
+
+    at = 8  # magic and version
+    for _ in range(_EXR_MAX_ATTRIBUTES):
+        name = text(at)
+        if not name:
+            break  # the end of the header
+        kind = text(at + len(name) + 1)
+        at += len(name) + len(kind) + 2
+        f.seek(at)
+        field = f.read(4)
+        if len(field) < 4:
+            raise damaged(f"the header is cut off at byte {at:,}")
+        (length,) = struct.unpack("<i", field)
+        at += 4
+        if length < 0 or at + length > size:
+            raise damaged(f"attribute {name.decode('latin-1')!r} runs past the end of the file")
+        if (name, kind, length) == (b"dataWindow", b"box2i", 16):
+            f.seek(at)
+            x0, y0, x1, y1 = struct.unpack("<4i", f.read(16))
+            if x1 < x0 or y1 < y0:
+                raise damaged(f"an empty dataWindow ({x0}, {y0}) - ({x1}, {y1})")
+            return ImageHeader(x1 - x0 + 1, y1 - y0 + 1, 32)  # OpenCV decodes EXR as float32
+        at += length
+    raise damaged("no dataWindow in its header")
 
 
 # Pillow modes whose sample depth is certain (others, e.g. 16-bit RGB TIFF, open as "RGB")
@@ -125,14 +326,8 @@ def _pillow_header(f: BinaryIO) -> ImageHeader | None:
             bits = _MODE_BITS.get(im.mode)
             if bits is None and im.format in ("JPEG", "BMP", "TGA"):
                 bits = 8
-            elif bits is None and im.format == "TIFF":
-                per_sample = im.tag_v2.get(258)  # BitsPerSample
-                if isinstance(per_sample, tuple) and per_sample:
-                    bits = int(max(per_sample))
-                elif isinstance(per_sample, int):
-                    bits = per_sample
             return ImageHeader(int(w), int(h), bits)
-    except Exception:  # a format Pillow does not know (EXR, float TIFF): no header to read
+    except Exception:  # a format Pillow does not know: no header to read
         return None
 
 
@@ -150,8 +345,20 @@ def _header(f: BinaryIO, path: Path) -> ImageHeader | None:
     """:func:`image_header` of the file open as ``f`` (read from its start, left there)."""
     head = f.read(32)
     f.seek(0)
-    header = _png_header(head) if head.startswith(b"\x89PNG") else _pillow_header(f)
+    if head.startswith(b"\x89PNG"):
+        header = _png_header(head)
+    elif head[:4] in _TIFF_MAGIC:
+        header = _tiff_layout(f, path).header
+    elif head.startswith(_EXR_MAGIC):
+        header = _exr_header(f, path)
+    else:
+        header = _pillow_header(f)
     f.seek(0)
+    _check_pixels(header, path)
+    return header
+
+
+def _check_pixels(header: ImageHeader | None, path: Path) -> None:
     if header is not None and header.pixels > MAX_PIXELS:
         w, h = header.width, header.height
         raise InputError(
@@ -159,7 +366,6 @@ def _header(f: BinaryIO, path: Path) -> ImageHeader | None:
             f"{MAX_PIXELS / 1e6:.0f} MP limit: refusing to decode it",
             path,
         )
-    return header
 
 
 def read_image(
@@ -185,7 +391,22 @@ def read_image(
                 path,
             )
         data = _checked_bytes(f.read(), path)
-    img = None if path.suffix.lower() == ".tga" else _decode_with_opencv(data, path)
+    if header is None:  # no header tells its size: refused rather than decoded blind
+        raise InputError("cannot decode image: not a format this tool reads", path)
+    tiff = data[:4] in _TIFF_MAGIC
+    if tiff:
+        # the bytes decoded, read again (the header came from the file before they were read)
+        layout = _tiff_layout(io.BytesIO(data), path)
+        _check_pixels(layout.header, path)
+        data = _as_stored(data, layout)
+    img = None if path.suffix.lower() == ".tga" and not tiff else _decode_with_opencv(data, path)
+    if img is None and tiff:
+        # OpenCV decodes every kind of TIFF Pillow writes: a sound structure it fails on holds
+        # damaged data, and Pillow's libtiff would print a line of its own before failing too
+        raise InputError(
+            "cannot decode TIFF: damaged image data, or a kind of TIFF OpenCV does not read",
+            path,
+        )
     if img is None:
         img = _decode_with_pillow(data, path)
     if img.ndim == 3 and img.shape[2] == 4:
@@ -321,17 +542,29 @@ def check_same_size(
 
 
 def read_mask(path: str | Path, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 of 255."""
+    """A boolean mask from a grey or RGB image; anti-aliased edges resolved as > 127 of 255
+    (> 32639 of 65535 at 16 bits, > 0.5 in a float image: :func:`mask_threshold`)."""
     img = read_image(path, shape, "mask")
     if img.ndim == 3:
         img = img.max(axis=2)
-    if img.dtype == np.uint16:
-        mask = img > 127 * 257
-    elif np.issubdtype(img.dtype, np.floating):
-        mask = img > 0.5
-    else:
-        mask = img > 127
-    return mask
+    return img > _mask_threshold(img.dtype)[0]
+
+
+def _mask_threshold(dtype: np.dtype) -> tuple[float, str]:
+    """The value above which a mask pixel of type ``dtype`` is object, and its wording."""
+    if dtype == np.uint16:
+        return 127 * 257, "32639 of 65535, the 16-bit threshold"
+    if np.issubdtype(dtype, np.floating):
+        return 0.5, "0.5, the threshold of a floating-point mask"
+    return 127, "127"
+
+
+def mask_threshold(path: str | Path) -> str:
+    """The threshold :func:`read_mask` applies to the mask at ``path``, in words, for the
+    message that refuses an empty mask ("no pixel above ..."): a 16-bit mask whose object is
+    255 is empty, and "above 127" would not say why. Decodes the file again: for the error
+    path only."""
+    return _mask_threshold(read_image(path).dtype)[1]
 
 
 # -- array files: shapes from their headers

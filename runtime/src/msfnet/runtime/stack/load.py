@@ -24,6 +24,7 @@ from msfnet.common.imageio import (
     ImageHeader,
     image_header,
     list_images,
+    mask_threshold,
     npy_header,
     read_image,
     read_mask,
@@ -511,7 +512,10 @@ def load_folder(
     mask_path = options.mask or _first_existing(folder, MASK_NAMES) or _other_mask(folder)
     mask_arr = t.mask(read_mask(mask_path, hw)) if mask_path else np.ones(images.shape[1:3], bool)
     if mask_path is not None and not mask_arr.any():  # the file's fault, not the stack's
-        raise InputError("mask is empty (no pixel above 127 inside the image read)", mask_path)
+        raise InputError(
+            f"mask is empty (no pixel above {mask_threshold(mask_path)} inside the image read)",
+            mask_path,
+        )
     gt_path = _first_existing(folder, GT_NAMES)
     gt = None
     if gt_path is not None:
