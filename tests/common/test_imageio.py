@@ -536,8 +536,8 @@ def test_a_truncated_tiff_is_named_as_one_in_one_line(
 def test_damaged_data_inside_a_sound_tiff_is_one_line(
     tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    """Damage inside a compressed strip: OpenCV fails quietly, and Pillow (whose libtiff
-    prints on stderr) is not tried on a TIFF."""
+    """Damage inside a compressed strip: OpenCV fails quietly, Pillow's libtiff complains on
+    stderr: its complaint goes into the one error line, not beside it."""
     path = tmp_path / "003.tif"
     tifffile.imwrite(path, IMAGES["rgb16"], photometric="rgb", compression="zlib")
     with tifffile.TiffFile(path) as tif:
@@ -656,3 +656,15 @@ def test_an_empty_mask_can_be_refused_with_the_threshold_used(
     encode_png(path, img)
     assert not imageio.read_mask(path).any()
     assert imageio.mask_threshold(path) == words
+
+
+@pytest.mark.parametrize("tile", [(16, 16), (48, 48)])
+def test_a_sound_tiff_opencv_cannot_decode_from_memory_is_read_by_pillow(
+    tmp_path: Path, tile: tuple[int, int]
+) -> None:
+    """review-today23.md 1: 8-bit TIFFs with small tiles (tifffile's) were refused as
+    damaged once OpenCV failed on them; Pillow reads them, as before."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (96, 96, 3), dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "t.tif", rgb, tile=tile, photometric="rgb")
+    np.testing.assert_array_equal(read_image(tmp_path / "t.tif"), rgb)

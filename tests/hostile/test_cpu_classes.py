@@ -279,3 +279,24 @@ def test_accuracy_measures_the_rest_on_a_cpu_without_bf16(
     assert [r["path"] for r in rows] == ["onnxruntime fp32", "onnxruntime fp32"]
     if "openvino" in installed_engines():  # else the row is left out as not installed
         assert any("bf16: skipped (no native bf16" in line for line in lines), lines
+
+
+def test_an_openvino_only_install_refuses_full_range_int8_without_blaming_the_fallback(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """review-today23.md 5: the refusal ended "ONNX Runtime, the fallback, is not installed"
+    (which would refuse it too), after OpenVINO had compiled the model."""
+    pytest.importorskip("openvino")
+    import msfnet.runtime.engines.base as basemod
+    import msfnet.runtime.engines.openvino as ovmod
+    from msfnet.runtime.engines import dispatch
+
+    path = _int8_model(tmp_path, False)
+    monkeypatch.setattr(basemod, "detect_cpu", lambda: AVX2)
+    monkeypatch.setattr(dispatch, "installed_engines", lambda: {"openvino"})
+    compiled: list[int] = []
+    monkeypatch.setattr(ovmod, "open_openvino", lambda *a, **k: compiled.append(1))
+    choice = dispatch.choose_engine(path, AVX2, {"openvino"})
+    with pytest.raises(InputError, match="saturate") as e:
+        dispatch.open_chosen(choice, 1)
+    assert "fallback" not in str(e.value) and not compiled

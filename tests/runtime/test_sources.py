@@ -124,3 +124,15 @@ def test_a_batch_with_a_stack_given_as_dot_writes_it_into_its_own_folder(
         "summary.json",
         "summary.md",
     ]
+
+
+def test_a_stray_broken_link_beside_the_stacks_does_not_stop_a_batch(tmp_path: Path) -> None:
+    """review-today23.md 2: a dangling preview.png at a batch's root, or in a sub-folder that is
+    no stack, ended the whole batch before any stack ran."""
+    for name in ("a", "b"):
+        save_stack(sphere_stack(seed=len(name)), tmp_path / "root" / name)
+    (tmp_path / "root" / "preview.png").symlink_to("gone.png")
+    (tmp_path / "root" / "misc").mkdir()
+    (tmp_path / "root" / "misc" / "old.png").symlink_to("../gone.png")
+    items = expand_stacks([tmp_path / "root"])
+    assert sorted(i.name for i in items) == ["a", "b"]

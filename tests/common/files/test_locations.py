@@ -209,62 +209,16 @@ def test_regular_files_and_own_folders_are_still_replaced(tmp_path: Path) -> Non
     assert (out / "b.txt").is_file()
 
 
-def _old_output(tmp_path: Path) -> Path:
+def test_a_hard_link_of_an_input_in_the_output_is_refused(tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir()
-    (out / "mask.png").write_bytes(b"mask")
     (out / "normals.png").write_bytes(b"normals")
-    return out
-
-
-def test_an_input_linked_from_inside_a_stack_folder_is_an_input(tmp_path: Path) -> None:
-    """review-stack23.md 1: a stack whose mask.png linked into an earlier output lost it to
-    that output's --overwrite (exit 0)."""
-    out = _old_output(tmp_path)
-    stack = tmp_path / "stk"
-    stack.mkdir()
-    (stack / "001.png").write_bytes(b"x")
-    (stack / "mask.png").symlink_to(out / "mask.png")
-    with pytest.raises(InputError, match=r"contains the input .*stk/mask\.png"):
-        check_output(out, [stack], overwrite=True, folder=True)
-    # a new output cannot replace it: nothing to refuse
-    check_output(tmp_path / "new", [stack], folder=True)
-
-
-def test_a_linked_sub_folder_and_a_link_one_level_down_are_inputs(tmp_path: Path) -> None:
-    out = _old_output(tmp_path)
-    stack = tmp_path / "stk"
-    (stack / "sub").mkdir(parents=True)
-    (stack / "sub" / "003.png").symlink_to(out / "normals.png")  # filenames.txt: sub/003.png
-    with pytest.raises(InputError, match="contains the input"):
-        check_output(out, [stack], overwrite=True, folder=True)
-    (stack / "sub" / "003.png").unlink()
-    (stack / "sublink").symlink_to(out)  # filenames.txt: sublink/normals.png
-    with pytest.raises(InputError, match="would replace an input"):
-        check_output(out, [stack], overwrite=True, folder=True)
-
-
-def test_a_hard_link_of_an_input_in_the_output_is_refused(tmp_path: Path) -> None:
-    out = _old_output(tmp_path)
     stack = tmp_path / "stk"
     stack.mkdir()
     os.link(out / "normals.png", stack / "003.png")
-    with pytest.raises(InputError, match=r"hard link\) of the input .*003.png"):
-        check_output(out, [stack], overwrite=True, folder=True)
-    with pytest.raises(InputError, match="hard link"):  # the file named directly, too
+    with pytest.raises(InputError, match=r"hard link\) of the input .*003\.png"):
         check_output(out, [stack / "003.png"], overwrite=True, folder=True)
-
-
-def test_a_folder_an_entry_links_to_may_hold_the_output(tmp_path: Path) -> None:
-    """Only what an entry reaches is an input: a stack that links to a wide folder (a home)
-    does not forbid writing elsewhere inside it."""
-    home = tmp_path / "home"
-    (home / "results").mkdir(parents=True)
-    stack = tmp_path / "stk"
-    stack.mkdir()
-    (stack / "001.png").write_bytes(b"x")
-    (stack / "home").symlink_to(home)
-    check_output(home / "results", [stack], overwrite=True, folder=True)
+    check_output(tmp_path / "new", [stack / "003.png"], folder=True)
 
 
 def test_an_output_under_a_link_loop_says_so(tmp_path: Path) -> None:

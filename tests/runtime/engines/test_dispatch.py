@@ -614,6 +614,8 @@ def test_the_reason_says_when_the_cpus_features_were_not_all_read() -> None:
     assert "CPU features could not be read" in choose_engine(FP32, blind, BOTH).reason
     partial = replace(CpuInfo.from_flags(["avx2", "avx512f"]), partial=True)
     assert "native bf16 unknown here" in choose_engine(FP32, partial, BOTH).reason
+    zen4_blind = replace(ZEN4_NO_BF16, partial=True)  # the default, int8, line says so too
+    assert "native bf16 unknown here" in dispatch.bundled_precision(zen4_blind, BOTH).reason
     graviton = CpuInfo.from_flags(["asimd", "sve", "bf16"], vendor="ARM")
     assert "bf16 on this Arm CPU not measured" in choose_engine(FP32, graviton, BOTH).reason
     assert "no native bf16 on this CPU" in choose_engine(FP32, ZEN3, BOTH).reason
@@ -658,3 +660,6 @@ def test_more_threads_than_usable_cpus_are_noted(monkeypatch: pytest.MonkeyPatch
     net = _open_network(None, ModelOptions(threads=2, engine="onnxruntime"))
     assert "note: 2 threads on the 1 CPU this process may use" in net.reason
     assert "note:" not in _open_network(None, ModelOptions(threads=1)).reason
+    # OpenVINO was measured not to slow down (review-today23.md 6): nothing to note
+    ov = _open_network(None, ModelOptions(threads=2, engine="openvino"))
+    assert "note:" not in ov.reason

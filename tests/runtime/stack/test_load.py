@@ -4,6 +4,7 @@ the type actually held."""
 
 from __future__ import annotations
 
+import os
 import tracemalloc
 from dataclasses import replace
 from pathlib import Path
@@ -394,6 +395,13 @@ def test_a_json_light_file_brings_its_intensities(tmp_path: Path) -> None:
     (folder / "light_intensities.txt").write_text("1 1 1\n" * len(ints))  # given twice
     with pytest.raises(InputError, match="intensities are given twice"):
         load_stack(folder)
+    # named with --lights, the JSON overrides the folder's files, intensities included
+    (folder / "lights.json").rename(tmp_path / "rig.json")
+    (folder / "light_directions.txt").write_text("0 0 1\n" * len(ints))
+    stack = load_stack(folder, LoadOptions(lights=tmp_path / "rig.json"))
+    np.testing.assert_allclose(stack.intensities, ints, rtol=1e-6)
+    (folder / "light_directions.txt").unlink()
+    (tmp_path / "rig.json").rename(folder / "lights.json")
     (folder / "light_intensities.txt").unlink()
 
     zero = {"lights": lights.tolist(), "intensities": [[0, 0, 0]] * len(ints)}
@@ -456,6 +464,55 @@ def test_a_linked_duplicate_photo_is_refused_with_or_without_filenames_txt(
     with pytest.raises(InputError, match=f"{names[0]} and zz.png are the same photo \\(lines 1"):
         load_stack(folder)
     (folder / "filenames.txt").unlink()
-    with pytest.raises(InputError, match=f"is the same photo as {names[0]}") as err:
+    with pytest.raises(InputError, match=f"is the same file as {names[0]}") as err:
         load_stack(folder)
     assert Path(str(err.value.path)).name == "zz.png"
+
+
+# ------------------------------------------------ review-stack23.md 1: reads through links
+
+
+def _old_output(tmp_path: Path) -> Path:
+    from _runtime_helpers import msfnet_folder
+
+    return msfnet_folder(tmp_path / "out", ("mask.png", "normals.png"))
+
+
+def test_what_a_stack_reads_through_links_is_an_input_of_the_output_checks(
+    tmp_path: Path,
+) -> None:
+    """A stack whose mask.png linked into an earlier output lost it to that output's
+    --overwrite (exit 0); a linked image was replaced."""
+    from msfnet.common.files import check_output
+    from msfnet.runtime.stack import linked_reads
+
+    out = _old_output(tmp_path)
+    stack = png_stack(tmp_path / "stk", 16)
+    (stack / "mask.png").unlink()
+    (stack / "mask.png").symlink_to(out / "mask.png")
+    assert linked_reads(stack) == [stack / "mask.png"]
+    with pytest.raises(InputError, match=r"contains the input .*stk/mask\.png"):
+        check_output(out, [stack, *linked_reads(stack)], overwrite=True, folder=True)
+
+    names = (stack / "filenames.txt").read_text().split()
+    (stack / "sub").symlink_to(out)  # filenames.txt reads through a linked sub-folder
+    (stack / "filenames.txt").write_text("\n".join([*names[:-1], "sub/normals.png"]) + "\n")
+    assert stack / "sub/normals.png" in linked_reads(stack)
+
+    (stack / "mask.png").unlink()
+    os.link(out / "mask.png", stack / "mask.png")  # a hard link: another name of it
+    assert stack / "mask.png" in linked_reads(stack)
+
+
+def test_a_link_the_stack_never_reads_is_no_input(tmp_path: Path) -> None:
+    """review-today23.md 3: a ``results`` link to the output, or a profile kept beside the
+    photos, blocked every --overwrite re-run."""
+    from msfnet.common.files import check_output
+    from msfnet.runtime.stack import linked_reads
+
+    out = _old_output(tmp_path)
+    stack = png_stack(tmp_path / "stk", 16)
+    (stack / "results").symlink_to(out)
+    (stack / "last_profile.json").symlink_to(out / "normals.png")
+    assert linked_reads(stack) == []
+    check_output(out, [stack, *linked_reads(stack)], overwrite=True, folder=True)

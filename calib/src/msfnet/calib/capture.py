@@ -384,7 +384,9 @@ def check_folder(
     if overwrite:
         return
     raw = out / "raw"
-    theirs = list_images(out) + (list_images(raw) if raw.is_dir() else [])
+    theirs = list_images(out, strict=False) + (
+        list_images(raw, strict=False) if raw.is_dir() else []
+    )
     if theirs:
         example = theirs[0].name
         how = ", or --overwrite to capture into it anyway" if overwrite_allowed else ""

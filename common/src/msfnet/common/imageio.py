@@ -71,11 +71,15 @@ def natural_key(name: str) -> list[object]:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
-def list_images(folder: Path, exclude: Iterable[str] = ("mask", "normal", "albedo")) -> list[Path]:
+def list_images(
+    folder: Path, exclude: Iterable[str] = ("mask", "normal", "albedo"), *, strict: bool = True
+) -> list[Path]:
     """Image files of a folder in natural order, skipping masks, normal maps and the like, and
     hidden files (macOS writes ``._001.png`` companions on foreign file systems). An entry named
     as an image that is no regular file (a dangling link, a link loop, a folder) is refused,
-    naming it: skipped, it left one image fewer than lights, and the light file was blamed."""
+    naming it: skipped, it left one image fewer than lights, and the light file was blamed.
+    ``strict=False`` skips such entries instead: for a look at a folder that is not being read
+    as a stack (is it one? how many images?), where a stray broken link stopped a whole batch."""
     files = [
         p
         for p in folder.iterdir()
@@ -83,8 +87,11 @@ def list_images(folder: Path, exclude: Iterable[str] = ("mask", "normal", "albed
         and p.suffix.lower() in IMAGE_SUFFIXES
         and not any(word in p.stem.lower() for word in exclude)
     ]
-    for p in files:
-        _check_file(p)
+    if strict:
+        for p in files:
+            _check_file(p)
+    else:
+        files = [p for p in files if p.is_file()]
     return sorted(files, key=lambda p: natural_key(p.name))
 
 
@@ -401,12 +408,28 @@ def read_image(
         data = _as_stored(data, layout)
     img = None if path.suffix.lower() == ".tga" and not tiff else _decode_with_opencv(data, path)
     if img is None and tiff:
-        # OpenCV decodes every kind of TIFF Pillow writes: a sound structure it fails on holds
-        # damaged data, and Pillow's libtiff would print a line of its own before failing too
-        raise InputError(
-            "cannot decode TIFF: damaged image data, or a kind of TIFF OpenCV does not read",
-            path,
-        )
+        # OpenCV 5.1 fails on some sound TIFFs from memory (8-bit or 1-bit with 16 x 16 or
+        # 48 x 48 tiles, as tifffile writes them): Pillow reads those; a structure checked
+        # sound that both fail on holds damaged data
+        # libtiff behind Pillow prints its complaint on stderr before failing: kept for the
+        # one error line; passed on as it came when the decode succeeds
+        with _captured_stderr() as said:
+            try:
+                img = _decode_with_pillow(data, path)
+            except InputError as exc:
+                failure: InputError | None = exc
+            else:
+                failure = None
+        if failure is not None:
+            told = said[0].strip().splitlines()
+            why = told[0].strip() if told else failure.message
+            raise InputError(
+                "cannot decode TIFF: damaged image data, or a kind of TIFF neither OpenCV nor "
+                f"Pillow reads ({why})",
+                path,
+            ) from failure
+        if said[0]:
+            os.write(2, said[0].encode())
     if img is None:
         img = _decode_with_pillow(data, path)
     if img.ndim == 3 and img.shape[2] == 4:
@@ -519,7 +542,9 @@ def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
 
         with Image.open(io.BytesIO(data)) as im:
             im.load()
-            if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr"):
+            if im.mode == "1":  # bilevel (a mask): 0 / 255, as OpenCV gives it
+                im = im.convert("L")
+            elif im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr"):
                 im = im.convert("RGB")
             return np.asarray(im)
     except Exception as exc:  # Pillow raises many types for corrupt files

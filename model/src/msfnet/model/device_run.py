@@ -68,7 +68,7 @@ class Summary:
     torch: str
     steps: int
     samples: int
-    train_seconds: float  # from the first to the last logged step
+    train_seconds: float  # from the first logged window to the last row (the stop)
     wall_seconds: float  # the whole command so far
     train_fraction: float  # train_seconds / wall_seconds
     samples_per_s_median: float | None
@@ -132,7 +132,9 @@ def summarise(work: Path, sampler: UtilSampler, exit_: str, batch: int) -> Summa
     stopped = next((r.get("stopped") for r in reversed(every) if "stopped" in r), None)
     if exit_ == "done" and stopped == "time_budget":
         exit_ = "time budget"  # the planned end of a device run: msf-train's --time-budget
-    span = rows[-1]["time"] - rows[0]["time"] if len(rows) > 1 else 0.0
+    # from the first logged window to the last row (the stop's): the span the steps reach
+    times = [r["time"] for r in every if isinstance(r.get("time"), (int, float))]
+    span = times[-1] - rows[0]["time"] if rows and times else 0.0
     wall = time.monotonic() - STARTED
     util = sampler.samples[2:]  # the first seconds are start-up
     device = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"

@@ -261,9 +261,12 @@ class Result:
         computed (``write_mask``: None = only then). Returns the files written."""
         from msfnet.common.files import check_output
         from msfnet.runtime.results.outputs import write_result
+        from msfnet.runtime.stack import linked_reads
 
         folder = Path(folder)
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
+        if self.stack.source is not None:  # and what the stack read from elsewhere
+            src += tuple(linked_reads(self.stack.source))
         with api_words():
             check_output(folder, src, overwrite=overwrite, folder=True)
             # an automatic mask is a result the user should be able to inspect and reuse
@@ -831,18 +834,19 @@ def _open_network(path: Path | None, opts: ModelOptions) -> NetworkEstimator:
             if same
             else f"bundled {choice.precision} model, chosen for OpenVINO; "
         )
-    return NetworkEstimator(opened, prefix + reason + _oversubscribed(opts.threads))
+    return NetworkEstimator(opened, prefix + reason + _oversubscribed(opts.threads, opened.name))
 
 
-def _oversubscribed(threads: int | None) -> str:
-    """A note for the choice line when more threads are asked for than this process may run
-    at once (an affinity mask, taskset): ONNX Runtime's threads then wait on each other (the
-    8-light ball crop ran 2.35x slower at --threads 8 on 1 CPU than at 1; OpenVINO did not
-    slow down). Said, not capped: the user's number is run as given."""
+def _oversubscribed(threads: int | None, engine: str) -> str:
+    """A note for the choice line when ONNX Runtime is given more threads than this process
+    may run at once (an affinity mask, taskset): its threads then wait on each other (the
+    8-light ball crop ran 2.35x slower at --threads 8 on 1 CPU than at 1). OpenVINO did not
+    slow down (1.66 against 1.61 s): no note there. Said, not capped: the user's number is
+    run as given."""
     from msfnet.common.cpu import usable_cores
 
     cores = usable_cores()
-    if threads is None or threads <= cores:
+    if engine != "onnxruntime" or threads is None or threads <= cores:
         return ""
     return (
         f"; note: {threads} threads on the {cores} CPU{'s' if cores > 1 else ''} this "

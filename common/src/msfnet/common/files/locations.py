@@ -86,42 +86,6 @@ def check_replaceable(target: str | Path, *, folder: bool = False) -> None:
     )
 
 
-# How far :func:`_linked_entries` looks into an input folder: its entries and those of its real
-# sub-folders (a stack's filenames.txt may list sub/x.png), at most this many in all.
-LINK_SCAN_LIMIT = 100_000
-
-
-def _linked_entries(folder: Path) -> list[Path]:
-    """The entries of an input folder (and of its real sub-folders, one level down) that may
-    be a file living elsewhere: symbolic links and files with other hard links. A stack
-    whose mask.png links into an earlier output was an input nothing checked: --overwrite of
-    that output deleted it."""
-    found: list[Path] = []
-    seen = 0
-    pending = [(folder, 0)]
-    while pending:
-        where, depth = pending.pop()
-        try:
-            entries = list(os.scandir(where))
-        except OSError:  # unreadable: the reader will say so
-            continue
-        for entry in entries:
-            seen += 1
-            if seen > LINK_SCAN_LIMIT:
-                return found
-            try:
-                if entry.is_symlink():
-                    found.append(Path(entry.path))
-                elif entry.is_dir(follow_symlinks=False):
-                    if depth == 0:
-                        pending.append((Path(entry.path), 1))
-                elif entry.stat(follow_symlinks=False).st_nlink > 1:
-                    found.append(Path(entry.path))
-            except OSError:
-                continue
-    return found
-
-
 def _file_ids(folder: Path) -> set[tuple[int, int]]:
     """(device, inode) of every regular file under ``folder``, links not followed."""
     ids = set()
@@ -149,22 +113,15 @@ def check_not_input(
     inputs: Iterable[str | Path | None] = (),
     *,
     folder: bool = False,
-    links: bool = True,
 ) -> Path:
-    """Refuse an output that is, contains or lies inside an input (symlinks resolved).
-
-    ``links``: an input folder's own entries count as inputs where they may live elsewhere
-    (a symlink, a hard-linked file; see :func:`_linked_entries`), and a hard link of an input
-    anywhere under an existing output folder is refused too. A caller that checks many
-    outputs under one folder it has checked already may leave that out.
+    """Refuse an output that is, contains or lies inside an input (symlinks resolved), or an
+    existing output folder that holds another name (a hard link) of an input file. Files a
+    stack folder reads from elsewhere are the caller's to name (``stack.linked_reads``).
     Returns the resolved target."""
     target = Path(target)
     real = resolved(target)
     given = [Path(item) for item in inputs if item is not None]
-    reached: list[Path] = []  # the input folders' linked entries
-    if links and os.path.lexists(target):  # only an existing output can replace anything
-        reached = [e for item in given if os.path.isdir(item) for e in _linked_entries(item)]
-    for item in given + reached:
+    for item in given:
         src = resolved(item)
         clash = real == src or same_file(real, src) or _is_within(src, real)
         if clash and not os.path.lexists(item):
@@ -172,7 +129,7 @@ def check_not_input(
             raise InputError("not found", item)
         if real == src or same_file(real, src):
             raise InputError(
-                "the output would replace an input; choose another output path", target
+                f"the output would replace an input ({item}); choose another output path", target
             )
         if _is_within(src, real):
             raise InputError(
@@ -180,24 +137,21 @@ def check_not_input(
                 f"{item}; choose another output path",
                 target,
             )
-        # (a folder an entry links to is read only where the stack lists it: an output inside
-        # it replaces nothing read, and it may be as wide as the user's home)
-        if src.is_dir() and _is_within(real, src) and item not in reached:
+        if src.is_dir() and _is_within(real, src):
             raise InputError(
                 f"the output lies inside the input folder {item}; inputs are "
                 "never written to: choose another output path",
                 target,
             )
-    if links and os.path.isdir(real):
-        linked = {i: item for item in given + reached if (i := _hard_linked(item)) is not None}
-        if linked and os.path.isdir(real):
-            both = next((linked[i] for i in _file_ids(real) if i in linked), None)
-            if both is not None:
-                raise InputError(
-                    f"the output {'folder ' if folder else ''}holds another name (a hard "
-                    f"link) of the input {both}; choose another output path",
-                    target,
-                )
+    linked = {i: item for item in given if (i := _hard_linked(item)) is not None}
+    if linked and os.path.isdir(real):  # only an existing output folder can hold one
+        both = next((linked[i] for i in _file_ids(real) if i in linked), None)
+        if both is not None:
+            raise InputError(
+                f"the output {'folder ' if folder else ''}holds another name (a hard link) of "
+                f"the input {both}; choose another output path",
+                target,
+            )
     return real
 
 
@@ -208,17 +162,16 @@ def check_output(
     overwrite: bool = False,
     folder: bool = False,
     command: str | None = None,
-    links: bool = True,
 ) -> Path:
     """Refuse, before any work, an output that would clash with an input or with existing data.
 
     ``folder``: the output is a folder of files (replaced only if msfnet wrote all of it, and
     only by the command that wrote it: ``command``, else the one of ``writing_as``; see
-    :func:`refuse_foreign`). ``links``: as for :func:`check_not_input`.
+    :func:`refuse_foreign`).
     Returns the target as given. Raises InputError naming the path.
     """
     target = Path(target)
-    real = check_not_input(target, inputs, folder=folder, links=links)
+    real = check_not_input(target, inputs, folder=folder)
     # a link on the way that leads nowhere (dangling, or a loop) would be "File exists" later
     for above in target.parents:
         if os.path.lexists(above) and not os.path.exists(above):

@@ -37,7 +37,7 @@ from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB
 from msfnet.runtime.results.maps import pictures
 from msfnet.runtime.results.outputs import normals_png, write_rgb_png
 from msfnet.runtime.results.provenance import Provenance
-from msfnet.runtime.stack import LoadOptions, load_stack
+from msfnet.runtime.stack import LoadOptions, linked_reads, load_stack
 from msfnet.runtime.stack.load import check_stack_files
 
 PROG = "msf-eval"
@@ -229,9 +229,13 @@ def evaluate(
     (a run over DiLiGenT takes minutes: logs and pipes see it move too)."""
     load = load or LoadOptions()
     check_unique(objects)
+    reached = [f for o in objects for f in linked_reads(o.folder)]  # read through links
     check_output(
         outdir,
-        [o.folder for o in objects] + [o.lights for o in objects if o.lights] + load.inputs(),
+        [o.folder for o in objects]
+        + [o.lights for o in objects if o.lights]
+        + load.inputs()
+        + reached,
         overwrite=overwrite,
         folder=True,
     )

@@ -199,10 +199,12 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         polarity=args.polarity,
     )
     from msfnet.runtime.cli.flags import load_options, model_options
+    from msfnet.runtime.stack import linked_reads
 
     # every file read is an input: the part, the reference, and the files the load and model
     # flags name (an --overwrite over a folder holding the --mask read deleted it)
     read = [args.input, args.reference, *load_options(args).inputs(), model_options(args).model]
+    read += linked_reads(args.input)  # what the part's stack reads from elsewhere
     inputs = tuple(p for p in read if p is not None)
     check_output(args.output, inputs, overwrite=args.overwrite, folder=True)
     writing = [f"--{d.replace('_', '-')}" for d in WRITING_FLAGS if getattr(args, d, None)]

@@ -35,7 +35,7 @@ from msfnet.runtime.cli.flags import (
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.profile import announce, announcing
-from msfnet.runtime.stack import LoadOptions, Stack
+from msfnet.runtime.stack import LoadOptions, Stack, linked_reads
 
 PROG = "msf-run"
 EXAMPLES = (
@@ -320,7 +320,9 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
         raise InputError("--workers is for --ray (workers of a batch on a cluster)")
     name = src.name if isinstance(src, Stack) else _default_name(src, stem=True)
     out = req.output if req.output is not None else numbered_folder(Path("msf-out") / name)
-    inputs = [*load.inputs(), req.model.model] + ([src] if isinstance(src, Path) else [])
+    inputs = [*load.inputs(), req.model.model]
+    if isinstance(src, Path):  # the stack, and what it reads from elsewhere through links
+        inputs += [src, *linked_reads(src)]
     check_output(out, inputs, overwrite=req.overwrite, folder=True)  # before any work
     model = Model(options=req.model)
     progress = sys.stderr.isatty() and req.chatty
@@ -378,27 +380,20 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
     # too: a batch's results never go inside the batch folder
     inputs = [*load.inputs(), req.model.model, *req.stacks]
     inputs += [p for i in items for p in i.options(load).inputs() if p not in inputs]
-    check_not_input(root, [*inputs, *(i.path for i in items)], folder=True)
+    stacks = [i.path for i in items]
+    # what the stacks read from elsewhere can only be replaced where the root exists already
+    reached = [f for p in stacks for f in linked_reads(p)] if os.path.lexists(root) else []
+    check_not_input(root, [*inputs, *stacks, *reached], folder=True)
     clash = next((i for i in items if i.name in SUMMARY_FILES), None)
     if clash is not None:  # found up front, not after the batch ran
         raise InputError(
             f"a stack is named {clash.name!r}, as the batch's summary file; rename it", clash.path
         )
     check_batch_root(root, [i.name for i in items], req.overwrite)
-    # the root's check has looked through the stacks' links into all of it: the outputs
-    # inside it need not again (a batch of n stacks would scan them n times)
     for item in items:
-        check_output(
-            root / item.name,
-            [*inputs, item.path],
-            overwrite=req.overwrite,
-            folder=True,
-            links=False,
-        )
+        check_output(root / item.name, [*inputs, item.path], overwrite=req.overwrite, folder=True)
     for name in SUMMARY_FILES:
-        check_output(
-            root / name, [*inputs, *(i.path for i in items)], overwrite=req.overwrite, links=False
-        )
+        check_output(root / name, [*inputs, *stacks], overwrite=req.overwrite)
     model = None
     if req.ray is not None:
         from msfnet.runtime.batch.ray_cluster import ModelSpec, import_ray, run_batch_ray

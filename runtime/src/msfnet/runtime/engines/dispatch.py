@@ -46,6 +46,7 @@ from msfnet.runtime.engines.base import (
     ENGINES,
     Engine,
     ModelFile,
+    check_int8_exact,
     engine_name,
     installed_engines,
     model_precision,
@@ -467,9 +468,11 @@ def bundled_precision(
     if speedup <= 1.0 or not default_allowed(int8.engine, "int8", True):
         return BundledChoice("fp32")
     m = MEASURED[(int8.engine, "int8", True)]
+    # features read without /proc/cpuinfo: bf16 unknown, not absent (review-today23.md 7)
+    unknown = f" ({_no_bf16(cpu)})" if over != "bf16" and not cpu.has_bf16 and cpu.partial else ""
     return BundledChoice(
         "int8",
-        f"bundled int8 model: the fp32 one would run in {over} here; int8 measured "
+        f"bundled int8 model: the fp32 one would run in {over} here{unknown}; int8 measured "
         f"{speedup}x {over} on this CPU class ({klass}), within {_up(m.worst_mean)} deg mean "
         f"of fp32 on DiLiGenT ball crops at {' and '.join(map(str, sorted(m.deg)))} lights",
     )
@@ -714,9 +717,10 @@ def open_engine(
             raise InputError(
                 f"--provider {provider}: ONNX Runtime only (use --device for OpenVINO)"
             )
-        from msfnet.runtime.engines.base import check_int8_exact
         from msfnet.runtime.engines.openvino import open_openvino
 
+        if device is None and file is not None:  # its CPU kernels saturate as ONNX Runtime's
+            check_int8_exact(file.info)  # do: refused before the compile
         opened = open_openvino(
             path,
             threads=threads,
@@ -725,7 +729,7 @@ def open_engine(
             device=device.target if device is not None else "CPU",
             file=file,
         )
-        if device is None:  # its CPU kernels saturate as ONNX Runtime's do
+        if device is None and file is None:
             check_int8_exact(opened.info)
         return opened
     raise InputError(f"unknown engine {choice.engine!r} (known: {', '.join(ENGINES)})")
@@ -741,6 +745,9 @@ def open_chosen(
     """``open_engine``, with ONNX Runtime fp32 as the fallback for a *default* OpenVINO CPU
     choice that OpenVINO cannot compile (``requested``: the user named the engine, precision or
     device, and a failure is theirs to see). Returns the engine and the reason line."""
+    if choice.file is not None and choice.device is None:
+        # refused by both engines alike: no fallback to speak of (nor one to miss)
+        check_int8_exact(choice.file.info)
     try:
         return open_engine(choice, threads, chunk=chunk), choice.reason
     except InputError as exc:

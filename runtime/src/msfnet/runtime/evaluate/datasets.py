@@ -71,7 +71,7 @@ def lights_file(folder: Path) -> Path | None:
 
 
 def has_images(folder: Path) -> bool:
-    return (folder / "filenames.txt").is_file() or bool(list_images(folder))
+    return (folder / "filenames.txt").is_file() or bool(list_images(folder, strict=False))
 
 
 def shared_lights_root(folder: Path) -> tuple[Path, list[Path]] | None:

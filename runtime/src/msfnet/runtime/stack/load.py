@@ -447,7 +447,13 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
         raise InputError(
             f"{len(light_dirs)} light directions for {len(paths)} images in {folder}", lights_path
         )
-    int_path = options.intensities or _intensity_file(folder, lights_path)
+    # a --lights JSON holding intensities brings them, over the folder's file, as it
+    # overrides the folder's directions (and as it does for an .npz)
+    int_path = options.intensities or (
+        companion_intensities(options.lights) if options.lights is not None else None
+    )
+    if int_path is None:
+        int_path = _intensity_file(folder, lights_path)
     if int_path is not None:
         ints = read_vectors(int_path, "light intensities")
         if len(ints) != len(paths):
@@ -470,6 +476,40 @@ def _intensity_file(folder: Path, lights_path: Path) -> Path | None:
             beside,
         )
     return own or beside
+
+
+def linked_reads(path: str | Path) -> list[Path]:
+    """The files a stack folder reads that live elsewhere: a symlink or a hard-linked file
+    among its images (as filenames.txt lists them, or the folder's), light, intensity, mask
+    and ground-truth files, or a file reached through a linked sub-folder. Output checks take
+    them as inputs: an earlier output's mask.png linked into a stack was deleted by that
+    output's --overwrite. Only these: a link the loader never reads (a ``results`` link to
+    the output) is no input. Lenient: a stack the loader will refuse lists what it can."""
+    folder = Path(path)
+    if not folder.is_dir():
+        return []
+    names_file = folder / "filenames.txt"
+    try:
+        if names_file.is_file():
+            listed = names_file.read_text(encoding="utf-8-sig").splitlines()
+            images = [folder / n.strip() for n in listed if n.strip()]
+        else:
+            images = list_images(folder, strict=False)
+        other = _other_mask(folder)
+    except (OSError, UnicodeDecodeError):
+        return []  # the loader says what is wrong
+    own = [folder / n for n in (*LIGHTS_NAMES, *INTENSITY_NAMES, *MASK_NAMES, *GT_NAMES)]
+    home = Path(os.path.realpath(folder))
+    found = []
+    for file in dict.fromkeys([*images, *own, *([other] if other is not None else [])]):
+        try:
+            hard = os.stat(file).st_nlink > 1
+        except OSError:  # missing, dangling, a loop: nothing there to replace
+            continue
+        real = Path(os.path.realpath(file))
+        if hard or (real != home and home not in real.parents):
+            found.append(file)
+    return found
 
 
 def check_stack_files(path: str | Path, options: LoadOptions | None = None) -> None:
@@ -556,7 +596,7 @@ def _refuse_repeats(paths: Sequence[Path], listing: Path | None = None) -> None:
             first = paths[seen[key] - 1]
             if listing is None:
                 raise InputError(
-                    f"is the same photo as {first.name} (a link to it): one photo cannot "
+                    f"is the same file as {first.name} (through a link): one photo cannot "
                     "stand for two lights",
                     path,
                 )
@@ -780,7 +820,7 @@ def count_images(folder: Path) -> int:
         return sum(
             1 for ln in names_file.read_text(encoding="utf-8-sig").splitlines() if ln.strip()
         )
-    return len(list_images(folder))
+    return len(list_images(folder, strict=False))
 
 
 def load_stack(path: str | Path, options: LoadOptions | None = None, **overrides: object) -> Stack:
