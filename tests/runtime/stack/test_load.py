@@ -491,17 +491,23 @@ def test_what_a_stack_reads_through_links_is_an_input_of_the_output_checks(
     (stack / "mask.png").unlink()
     (stack / "mask.png").symlink_to(out / "mask.png")
     assert linked_reads(stack) == [stack / "mask.png"]
-    with pytest.raises(InputError, match=r"contains the input .*stk/mask\.png"):
-        check_output(out, [stack, *linked_reads(stack)], overwrite=True, folder=True)
+    with pytest.raises(InputError, match=r"contains the input .*stk/mask\.png \(reached"):
+        check_output(out, [stack], overwrite=True, folder=True, reads=linked_reads(stack))
+    check_output(tmp_path / "new", [stack], folder=True, reads=linked_reads(stack))
 
+    (stack / "mask.png").unlink()
     names = (stack / "filenames.txt").read_text().split()
     (stack / "sub").symlink_to(out)  # filenames.txt reads through a linked sub-folder
     (stack / "filenames.txt").write_text("\n".join([*names[:-1], "sub/normals.png"]) + "\n")
-    assert stack / "sub/normals.png" in linked_reads(stack)
+    assert linked_reads(stack) == [stack / "sub/normals.png"]
+    with pytest.raises(InputError, match=r"contains the input .*sub/normals\.png"):
+        check_output(out, [stack], overwrite=True, folder=True, reads=linked_reads(stack))
 
-    (stack / "mask.png").unlink()
+    (stack / "filenames.txt").write_text("\n".join(names) + "\n")
     os.link(out / "mask.png", stack / "mask.png")  # a hard link: another name of it
-    assert stack / "mask.png" in linked_reads(stack)
+    assert linked_reads(stack) == [stack / "mask.png"]
+    with pytest.raises(InputError, match=r"contains the input .*stk/mask\.png"):
+        check_output(out, [stack], overwrite=True, folder=True, reads=linked_reads(stack))
 
 
 def test_a_link_the_stack_never_reads_is_no_input(tmp_path: Path) -> None:
@@ -515,4 +521,4 @@ def test_a_link_the_stack_never_reads_is_no_input(tmp_path: Path) -> None:
     (stack / "results").symlink_to(out)
     (stack / "last_profile.json").symlink_to(out / "normals.png")
     assert linked_reads(stack) == []
-    check_output(out, [stack, *linked_reads(stack)], overwrite=True, folder=True)
+    check_output(out, [stack], overwrite=True, folder=True, reads=linked_reads(stack))

@@ -265,10 +265,10 @@ class Result:
 
         folder = Path(folder)
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
-        if self.stack.source is not None:  # and what the stack read from elsewhere
-            src += tuple(linked_reads(self.stack.source))
+        # and what the stack read from elsewhere, through links
+        reads = linked_reads(self.stack.source) if self.stack.source is not None else []
         with api_words():
-            check_output(folder, src, overwrite=overwrite, folder=True)
+            check_output(folder, src, overwrite=overwrite, folder=True, reads=reads)
             # an automatic mask is a result the user should be able to inspect and reuse
             return write_result(
                 self,

@@ -100,6 +100,15 @@ def _file_ids(folder: Path) -> set[tuple[int, int]]:
     return ids
 
 
+def _file_id(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the regular file ``path`` names, through links; None otherwise."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
+
+
 def _hard_linked(path: Path) -> tuple[int, int] | None:
     try:
         st = os.stat(path)
@@ -113,11 +122,13 @@ def check_not_input(
     inputs: Iterable[str | Path | None] = (),
     *,
     folder: bool = False,
+    reads: Iterable[Path] = (),
 ) -> Path:
     """Refuse an output that is, contains or lies inside an input (symlinks resolved), or an
-    existing output folder that holds another name (a hard link) of an input file. Files a
-    stack folder reads from elsewhere are the caller's to name (``stack.linked_reads``).
-    Returns the resolved target."""
+    existing output folder holding a file that an input is another name of (a hard link),
+    or that one of ``reads`` reaches: the files a stack folder reads from elsewhere through
+    links (``stack.linked_reads``; compared as files, one stat each, so a batch of many
+    linked stacks is checked in a moment). Returns the resolved target."""
     target = Path(target)
     real = resolved(target)
     given = [Path(item) for item in inputs if item is not None]
@@ -143,13 +154,24 @@ def check_not_input(
                 "never written to: choose another output path",
                 target,
             )
+    if not os.path.isdir(real):  # only an existing output folder can hold one
+        return real
     linked = {i: item for item in given if (i := _hard_linked(item)) is not None}
-    if linked and os.path.isdir(real):  # only an existing output folder can hold one
-        both = next((linked[i] for i in _file_ids(real) if i in linked), None)
+    reached = {i: item for item in reads if (i := _file_id(item)) is not None}
+    if linked or reached:
+        held = _file_ids(real)
+        both = next((linked[i] for i in held if i in linked), None)
         if both is not None:
             raise InputError(
                 f"the output {'folder ' if folder else ''}holds another name (a hard link) of "
                 f"the input {both}; choose another output path",
+                target,
+            )
+        via = next((reached[i] for i in held if i in reached), None)
+        if via is not None:
+            raise InputError(
+                f"the output {'folder ' if folder else ''}contains the input {via} (reached "
+                "through a link); choose another output path",
                 target,
             )
     return real
@@ -162,8 +184,10 @@ def check_output(
     overwrite: bool = False,
     folder: bool = False,
     command: str | None = None,
+    reads: Iterable[Path] = (),
 ) -> Path:
     """Refuse, before any work, an output that would clash with an input or with existing data.
+    ``reads``: as for :func:`check_not_input`.
 
     ``folder``: the output is a folder of files (replaced only if msfnet wrote all of it, and
     only by the command that wrote it: ``command``, else the one of ``writing_as``; see
@@ -171,7 +195,7 @@ def check_output(
     Returns the target as given. Raises InputError naming the path.
     """
     target = Path(target)
-    real = check_not_input(target, inputs, folder=folder)
+    real = check_not_input(target, inputs, folder=folder, reads=reads)
     # a link on the way that leads nowhere (dangling, or a loop) would be "File exists" later
     for above in target.parents:
         if os.path.lexists(above) and not os.path.exists(above):

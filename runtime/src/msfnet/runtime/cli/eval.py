@@ -229,15 +229,12 @@ def evaluate(
     (a run over DiLiGenT takes minutes: logs and pipes see it move too)."""
     load = load or LoadOptions()
     check_unique(objects)
-    reached = [f for o in objects for f in linked_reads(o.folder)]  # read through links
     check_output(
         outdir,
-        [o.folder for o in objects]
-        + [o.lights for o in objects if o.lights]
-        + load.inputs()
-        + reached,
+        [o.folder for o in objects] + [o.lights for o in objects if o.lights] + load.inputs(),
         overwrite=overwrite,
         folder=True,
+        reads=[f for o in objects for f in linked_reads(o.folder)],  # read through links
     )
     runners: dict[str, Model] = {}
     if model is not None:

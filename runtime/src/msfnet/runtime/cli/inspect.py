@@ -204,9 +204,10 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     # every file read is an input: the part, the reference, and the files the load and model
     # flags name (an --overwrite over a folder holding the --mask read deleted it)
     read = [args.input, args.reference, *load_options(args).inputs(), model_options(args).model]
-    read += linked_reads(args.input)  # what the part's stack reads from elsewhere
     inputs = tuple(p for p in read if p is not None)
-    check_output(args.output, inputs, overwrite=args.overwrite, folder=True)
+    # and what the part's stack reads from elsewhere, through links
+    reads = linked_reads(args.input)
+    check_output(args.output, inputs, overwrite=args.overwrite, folder=True, reads=reads)
     writing = [f"--{d.replace('_', '-')}" for d in WRITING_FLAGS if getattr(args, d, None)]
     if writing:
         raise InputError(

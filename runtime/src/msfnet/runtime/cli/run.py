@@ -320,10 +320,10 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
         raise InputError("--workers is for --ray (workers of a batch on a cluster)")
     name = src.name if isinstance(src, Stack) else _default_name(src, stem=True)
     out = req.output if req.output is not None else numbered_folder(Path("msf-out") / name)
-    inputs = [*load.inputs(), req.model.model]
-    if isinstance(src, Path):  # the stack, and what it reads from elsewhere through links
-        inputs += [src, *linked_reads(src)]
-    check_output(out, inputs, overwrite=req.overwrite, folder=True)  # before any work
+    inputs = [*load.inputs(), req.model.model] + ([src] if isinstance(src, Path) else [])
+    # and what the stack reads from elsewhere, through links
+    reads = linked_reads(src) if isinstance(src, Path) else []
+    check_output(out, inputs, overwrite=req.overwrite, folder=True, reads=reads)  # before work
     model = Model(options=req.model)
     progress = sys.stderr.isatty() and req.chatty
     if item is not None:
@@ -382,8 +382,8 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
     inputs += [p for i in items for p in i.options(load).inputs() if p not in inputs]
     stacks = [i.path for i in items]
     # what the stacks read from elsewhere can only be replaced where the root exists already
-    reached = [f for p in stacks for f in linked_reads(p)] if os.path.lexists(root) else []
-    check_not_input(root, [*inputs, *stacks, *reached], folder=True)
+    reads = [f for p in stacks for f in linked_reads(p)] if os.path.lexists(root) else []
+    check_not_input(root, [*inputs, *stacks], folder=True, reads=reads)
     clash = next((i for i in items if i.name in SUMMARY_FILES), None)
     if clash is not None:  # found up front, not after the batch ran
         raise InputError(
