@@ -546,7 +546,7 @@ def test_damaged_data_inside_a_sound_tiff_is_one_line(
     for i in range(start + 4, start + length - 4):
         data[i] ^= 0x5A
     path.write_bytes(bytes(data))
-    with pytest.raises(InputError, match=r"003\.tif: cannot decode TIFF: damaged image data"):
+    with pytest.raises(InputError, match=r"003\.tif: cannot decode TIFF \(damaged image data"):
         read_image(path)
     assert capfd.readouterr().err == ""
 
@@ -668,3 +668,44 @@ def test_a_sound_tiff_opencv_cannot_decode_from_memory_is_read_by_pillow(
     rgb = rng.integers(0, 256, (96, 96, 3), dtype=np.uint8)
     tifffile.imwrite(tmp_path / "t.tif", rgb, tile=tile, photometric="rgb")
     np.testing.assert_array_equal(read_image(tmp_path / "t.tif"), rgb)
+
+
+def test_a_damaged_strip_opencv_decodes_as_zeros_is_refused(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """review-links23.md 2: OpenCV gave a damaged 8-bit deflate strip back as zeros, its
+    libtiff complaint silenced: a stack 4.8 -> 14.5 deg, exit 0."""
+    rng = np.random.default_rng(0)
+    grey = rng.integers(0, 256, (64, 64), dtype=np.uint8)
+    path = tmp_path / "003.tif"
+    tifffile.imwrite(path, grey, compression="zlib", rowsperstrip=16)
+    np.testing.assert_array_equal(read_image(path), grey)  # sound: read as it is
+    with tifffile.TiffFile(path) as tif:
+        start = tif.pages[0].dataoffsets[1]
+    data = bytearray(path.read_bytes())
+    for i in range(start + 2, start + 6):
+        data[i] ^= 0xA5
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"003\.tif: damaged TIFF \(ZIPDecode"):
+        read_image(path)
+    assert capfd.readouterr().err == ""
+
+
+def test_a_16_bit_tiff_with_separate_colour_planes_is_refused(tmp_path: Path) -> None:
+    """review-links23.md 3: OpenCV read its planes as interleaved samples (72 deg, exit 0)."""
+    rgb = np.random.default_rng(0).integers(0, 65536, (3, 32, 40), dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "p.tif", rgb, planarconfig="separate", photometric="rgb")
+    with pytest.raises(InputError, match="separate colour planes"):
+        read_image(tmp_path / "p.tif")
+    tifffile.imwrite(tmp_path / "c.tif", np.moveaxis(rgb, 0, -1), photometric="rgb")
+    np.testing.assert_array_equal(read_image(tmp_path / "c.tif"), np.moveaxis(rgb, 0, -1))
+
+
+def test_libtiff_lines_are_told_from_other_output() -> None:
+    """What another thread printed while Pillow decoded is passed on, not dropped (review 6)."""
+    from msfnet.common.imageio import _libtiff_lines
+
+    text = "progress 3/8\nZIPDecode: Decoding error at scanline 0\nTIFFFillStrip: Read error\n"
+    ours, other = _libtiff_lines(text)
+    assert ours == ["ZIPDecode: Decoding error at scanline 0", "TIFFFillStrip: Read error"]
+    assert other == ["progress 3/8"]

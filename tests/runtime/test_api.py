@@ -33,3 +33,20 @@ def test_the_maps_frame_follows_the_load_options(tmp_path: Path) -> None:
     assert kept.maps is not None and kept.maps.options.frame == Frame((1, 1), 1)
     whole = Model.least_squares(maps=MapOptions(maps=("height",)))(folder)
     assert whole.maps is not None and whole.maps.options.frame == Frame()
+
+
+def test_save_takes_the_files_the_load_options_named_as_inputs(tmp_path: Path) -> None:
+    """review-links23.md 4: ``m(stack, LoadOptions(mask="out/mask.png")).save("out",
+    overwrite=True)`` deleted the mask it had read (msf-run refused the same)."""
+    from msfnet.common.errors import InputError
+
+    m = Model.least_squares(maps=None)
+    first = m(save_stack(sphere_stack(), tmp_path / "a"), LoadOptions(auto_mask=True))
+    first.save(tmp_path / "out")
+    assert (tmp_path / "out" / "mask.png").is_file()
+    bare = save_stack(sphere_stack(seed=1), tmp_path / "b")
+    (bare / "mask.png").unlink()
+    again = m(bare, LoadOptions(mask=tmp_path / "out" / "mask.png"))
+    with pytest.raises(InputError, match=r"contains the input .*out/mask\.png"):
+        again.save(tmp_path / "out", overwrite=True)
+    assert (tmp_path / "out" / "mask.png").is_file()

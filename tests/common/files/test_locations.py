@@ -210,9 +210,7 @@ def test_regular_files_and_own_folders_are_still_replaced(tmp_path: Path) -> Non
 
 
 def test_a_hard_link_of_an_input_in_the_output_is_refused(tmp_path: Path) -> None:
-    out = tmp_path / "out"
-    out.mkdir()
-    (out / "normals.png").write_bytes(b"normals")
+    out = _msfnet_folder(tmp_path / "out", ("normals.png",))
     stack = tmp_path / "stk"
     stack.mkdir()
     os.link(out / "normals.png", stack / "003.png")
@@ -227,3 +225,28 @@ def test_an_output_under_a_link_loop_says_so(tmp_path: Path) -> None:
     (tmp_path / "loopB").symlink_to("loopA")
     with pytest.raises(InputError, match="loopA is a link that leads nowhere"):
         check_output(tmp_path / "loopA" / "sub", folder=True)
+
+
+def test_an_output_is_walked_for_linked_inputs_only_once_it_would_be_replaced(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """review-links23.md 5: `-o ~` with a stack of links walked 278k files (2.9-6.7 s) before
+    saying the folder was not empty."""
+    import msfnet.common.files.locations as loc
+
+    walked: list[Path] = []
+    real_walk = loc._file_ids
+    monkeypatch.setattr(loc, "_file_ids", lambda folder: walked.append(folder) or real_walk(folder))
+    home = tmp_path / "home"
+    home.mkdir()
+    (home / "notes.txt").write_text("x")
+    store = tmp_path / "store.png"
+    store.write_bytes(b"x")
+    link = tmp_path / "001.png"
+    link.symlink_to(store)
+    with pytest.raises(InputError, match="not empty"):
+        check_output(home, [], folder=True, reads=[link])
+    assert walked == []
+    out = _msfnet_folder(tmp_path / "out")
+    check_output(out, [], overwrite=True, folder=True, reads=[link])
+    assert walked == [out.resolve()]

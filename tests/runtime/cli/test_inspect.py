@@ -170,3 +170,22 @@ def test_auto_mask_is_a_load_option_msf_inspect_keeps(tmp_path: Path, capsys) ->
     assert inspect_main([*argv, "-q"]) == 0
     inspected = json.loads((out / "verdict.json").read_text())["pixels_inspected"]
     assert 0 < inspected < 40 * 48 == int(np.prod(load_stack(stack).shape))
+
+
+def test_a_reference_stack_reading_a_file_in_the_output_through_a_link_is_refused(
+    tmp_path: Path, capsys
+) -> None:
+    """review-links23.md 1: the reference's linked mask.png was replaced by --overwrite."""
+    part = png_stack(tmp_path / "part", 16)
+    ref = png_stack(tmp_path / "ref", 16, seed=1)
+    out = tmp_path / "verdict"
+    base = [str(part), "--method", "l2", "--depth", "0.01", "-q"]
+    assert inspect_main([*base, "-o", str(out)]) in (0, 1)
+    (ref / "mask.png").unlink()
+    (ref / "mask.png").symlink_to(out / "overlay.png")
+    before = (out / "overlay.png").read_bytes()
+    capsys.readouterr()
+    code = inspect_main([*base, "--reference", str(ref), "-o", str(out), "--overwrite"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "ref/mask.png (reached through a link)" in err[0], err
+    assert (out / "overlay.png").read_bytes() == before

@@ -244,9 +244,9 @@ def test_a_frame_replaced_after_the_header_check_is_refused_before_decoding(
     decoded: list[Path] = []
     decode = imageio._decode_with_opencv
 
-    def recording_decode(data: bytes, path: Path) -> np.ndarray | None:
+    def recording_decode(data: bytes, path: Path, listen: bool = False) -> np.ndarray | None:
         decoded.append(Path(path))
-        return decode(data, path)
+        return decode(data, path, listen)
 
     monkeypatch.setattr(load_module, "check_headers", check_then_swap)
     monkeypatch.setattr(imageio, "_decode_with_opencv", recording_decode)

@@ -161,9 +161,11 @@ _TIFF_MAGIC = {
 # The unsigned integer field types of the tags read: BYTE, SHORT, LONG, IFD, LONG8, IFD8
 _TIFF_UINTS = {1: "u1", 3: "u2", 4: "u4", 13: "u4", 16: "u8", 18: "u8"}
 _TIFF_MAX_ENTRIES = 65_535  # a classic TIFF's own limit; real files have a few dozen
-_WIDTH, _LENGTH, _BITS, _ORIENTATION = 256, 257, 258, 274
+_WIDTH, _LENGTH, _BITS, _COMPRESSION, _ORIENTATION, _PLANAR = 256, 257, 258, 259, 274, 284
 _DATA_TAGS = {"strip": (273, 279), "tile": (324, 325)}  # (offsets, byte counts)
-_TIFF_TAGS = {_WIDTH, _LENGTH, _BITS, _ORIENTATION} | {t for p in _DATA_TAGS.values() for t in p}
+_TIFF_TAGS = {_WIDTH, _LENGTH, _BITS, _COMPRESSION, _ORIENTATION, _PLANAR} | {
+    t for p in _DATA_TAGS.values() for t in p
+}
 
 
 @dataclass(frozen=True)
@@ -174,6 +176,8 @@ class _TiffLayout:
     order: str  # "<" or ">"
     big: bool  # BigTIFF
     orientation_at: int | None  # where the Orientation entry starts, unless it says "as stored"
+    planar: bool = False  # PlanarConfiguration 2: one plane a colour, not interleaved samples
+    compressed: bool = False  # Compression other than 1 (none): data a decoder may find damaged
 
 
 def _tiff_layout(f: BinaryIO, path: Path) -> _TiffLayout:
@@ -257,7 +261,15 @@ def _tiff_layout(f: BinaryIO, path: Path) -> _TiffLayout:
         kind, count, value, at = entries[_ORIENTATION]
         if (kind, count, value[:2]) != (3, 1, struct.pack(order + "H", 1)):
             orientation_at = at
-    return _TiffLayout(header, order, big, orientation_at)
+    planar, compression = values(_PLANAR), values(_COMPRESSION)
+    return _TiffLayout(
+        header,
+        order,
+        big,
+        orientation_at,
+        planar=planar is not None and planar[0] == 2,
+        compressed=compression is not None and compression[0] != 1,
+    )
 
 
 def _as_stored(data: bytes, layout: _TiffLayout) -> bytes:
@@ -401,18 +413,33 @@ def read_image(
     if header is None:  # no header tells its size: refused rather than decoded blind
         raise InputError("cannot decode image: not a format this tool reads", path)
     tiff = data[:4] in _TIFF_MAGIC
+    listen = False  # hear the decoder's complaints: only compressed data can be found damaged
     if tiff:
         # the bytes decoded, read again (the header came from the file before they were read)
         layout = _tiff_layout(io.BytesIO(data), path)
+        listen = layout.compressed
         _check_pixels(layout.header, path)
+        if layout.planar and (layout.header.bits or 8) > 8:
+            # OpenCV 5.1 reads its planes as if interleaved (R00 R01 R02 for R G B), Pillow
+            # has no 16-bit colour: 72 deg of garbage normals, without a word
+            raise InputError(
+                f"{layout.header.bits}-bit TIFF with separate colour planes "
+                "(PlanarConfiguration 2), which no decoder here reads right; save it with "
+                "interleaved samples (the default of most writers)",
+                path,
+            )
         data = _as_stored(data, layout)
-    img = None if path.suffix.lower() == ".tga" and not tiff else _decode_with_opencv(data, path)
+    img = (
+        None
+        if path.suffix.lower() == ".tga" and not tiff
+        else _decode_with_opencv(data, path, listen)
+    )
     if img is None and tiff:
         # OpenCV 5.1 fails on some sound TIFFs from memory (8-bit or 1-bit with 16 x 16 or
         # 48 x 48 tiles, as tifffile writes them): Pillow reads those; a structure checked
-        # sound that both fail on holds damaged data
-        # libtiff behind Pillow prints its complaint on stderr before failing: kept for the
-        # one error line; passed on as it came when the decode succeeds
+        # sound that both fail on holds damaged data. libtiff behind Pillow prints its
+        # complaint on stderr before failing: kept for the one error line, the rest (another
+        # thread's output) passed on as it came
         with _captured_stderr() as said:
             try:
                 img = _decode_with_pillow(data, path)
@@ -420,16 +447,17 @@ def read_image(
                 failure: InputError | None = exc
             else:
                 failure = None
+        libtiff, other = _libtiff_lines(said[0])
+        if other:
+            os.write(2, ("\n".join(other) + "\n").encode())
         if failure is not None:
-            told = said[0].strip().splitlines()
-            why = told[0].strip() if told else failure.message
+            cause = failure.__cause__
+            why = libtiff[0] if libtiff else first_line(cause) if cause else failure.message
             raise InputError(
-                "cannot decode TIFF: damaged image data, or a kind of TIFF neither OpenCV nor "
-                f"Pillow reads ({why})",
+                "cannot decode TIFF (damaged image data, or a kind of TIFF neither OpenCV nor "
+                f"Pillow reads: {why})",
                 path,
             ) from failure
-        if said[0]:
-            os.write(2, said[0].encode())
     if img is None:
         img = _decode_with_pillow(data, path)
     if img.ndim == 3 and img.shape[2] == 4:
@@ -507,14 +535,42 @@ def _captured_stderr() -> Iterator[list[str]]:
             text.append(sink.read().decode("utf-8", "replace"))
 
 
-def _decode_with_opencv(data: bytes, path: Path) -> np.ndarray | None:
+@contextlib.contextmanager
+def _opencv_log(level: int) -> Iterator[None]:
+    """OpenCV's log at ``level`` for the block (under _STDERR_LOCK, by the caller's capture)."""
     try:
-        return _opencv_decode(data, path)
+        before = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(level)
+    except AttributeError:  # older OpenCV has no logging module
+        yield
+        return
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(before)
+
+
+_OPENCV_LOG = re.compile(r"\[\s*(ERROR|WARN|INFO)[^\]]*\] ")
+# libtiff's messages are "<module>: <text>" (TIFFFillStrip: ..., ZIPDecode: ..., LZWDecode: ...)
+_LIBTIFF_LINE = re.compile(r"(TIFF\w*|\w+Decode\w*|\w+PreDecode|\w+SetupDecode): ")
+
+
+def _libtiff_lines(text: str) -> tuple[list[str], list[str]]:
+    """``text`` captured from stderr, split into libtiff's lines and everything else."""
+    lines = [line for line in text.splitlines() if line.strip()]
+    ours = [line.strip() for line in lines if _LIBTIFF_LINE.match(line.strip())]
+    return ours, [line for line in lines if not _LIBTIFF_LINE.match(line.strip())]
+
+
+def _decode_with_opencv(data: bytes, path: Path, listen: bool = False) -> np.ndarray | None:
+    """``listen``: hear libtiff's complaints (a compressed TIFF; decodes one at a time)."""
+    try:
+        return _opencv_decode(data, path, listen)
     except cv2.error as exc:  # OpenCV asserts on some inputs rather than returning None
         raise InputError(f"cannot decode image (OpenCV: {first_line(exc)})", path) from exc
 
 
-def _opencv_decode(data: bytes, path: Path) -> np.ndarray | None:
+def _opencv_decode(data: bytes, path: Path, listen: bool = False) -> np.ndarray | None:
     buf = np.frombuffer(data, np.uint8)
     if data.startswith(b"\xff\xd8"):
         with _captured_stderr() as said:
@@ -529,6 +585,23 @@ def _opencv_decode(data: bytes, path: Path) -> np.ndarray | None:
             os.write(2, ("\n".join(other) + "\n").encode())
         if damage:
             raise InputError(f"corrupt JPEG ({damage[0].strip()})", path)
+    elif listen:
+        # libtiff's complaints go through OpenCV's log, silenced: heard here, or a damaged
+        # deflate strip decodes as zeros without a word (a stack 4.8 -> 14.5 deg, exit 0).
+        # The capture holds stderr, so compressed TIFFs decode one at a time; uncompressed
+        # ones (most cameras') have nothing to complain of and decode in parallel
+        with _captured_stderr() as said, _opencv_log(cv2.utils.logging.LOG_LEVEL_ERROR):
+            img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        damage, other = [], []
+        for line in said[0].splitlines():
+            # OpenCV's log lines ("[ERROR:0@0.1] global grfmt_tiff.cpp:117 TIFF_Error ...")
+            if line.strip():
+                (damage if _OPENCV_LOG.match(line) else other).append(line)
+        if other:  # not the decoder's: another thread's output, passed on as it was
+            os.write(2, ("\n".join(other) + "\n").encode())
+        told = [line.split("TIFF_Error", 1)[1].strip() for line in damage if "TIFF_Error" in line]
+        if told and img is not None:  # (None: Pillow is tried next, and says its own)
+            raise InputError(f"damaged TIFF ({told[0]})", path)
     else:
         img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
     if img is not None and img.ndim == 3:
@@ -542,9 +615,9 @@ def _decode_with_pillow(data: bytes, path: Path) -> np.ndarray:
 
         with Image.open(io.BytesIO(data)) as im:
             im.load()
-            if im.mode == "1":  # bilevel (a mask): 0 / 255, as OpenCV gives it
-                im = im.convert("L")
-            elif im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr"):
+            if im.mode in ("1", "LA"):  # bilevel (a mask): 0 / 255; grey + alpha: grey,
+                im = im.convert("L")  # as OpenCV gives them
+            elif im.mode in ("P", "PA", "RGBA", "CMYK", "YCbCr"):
                 im = im.convert("RGB")
             return np.asarray(im)
     except Exception as exc:  # Pillow raises many types for corrupt files

@@ -265,6 +265,10 @@ class Result:
 
         folder = Path(folder)
         src = tuple(p for p in (self.stack.source, *inputs) if p is not None)
+        # the files given in place of the stack's own (LoadOptions lights=, intensities=,
+        # mask=) were read too: an --overwrite of the folder holding one deleted it
+        given = self.input or {}
+        src += tuple(Path(str(given[k])) for k in ("lights", "intensities", "mask") if given.get(k))
         # and what the stack read from elsewhere, through links
         reads = linked_reads(self.stack.source) if self.stack.source is not None else []
         with api_words():

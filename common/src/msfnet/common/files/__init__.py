@@ -36,6 +36,7 @@ from msfnet.common.files.atomic import (
     written_outputs,
 )
 from msfnet.common.files.locations import (
+    check_not_holding,
     check_not_input,
     check_output,
     check_replaceable,
@@ -59,6 +60,7 @@ __all__ = [
     "MANIFEST",
     "STAGING_TAG",
     "FolderBusy",
+    "check_not_holding",
     "check_not_input",
     "check_output",
     "check_replaceable",

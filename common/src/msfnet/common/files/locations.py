@@ -123,12 +123,14 @@ def check_not_input(
     *,
     folder: bool = False,
     reads: Iterable[Path] = (),
+    holding: bool = True,
 ) -> Path:
     """Refuse an output that is, contains or lies inside an input (symlinks resolved), or an
     existing output folder holding a file that an input is another name of (a hard link),
     or that one of ``reads`` reaches: the files a stack folder reads from elsewhere through
     links (``stack.linked_reads``; compared as files, one stat each, so a batch of many
-    linked stacks is checked in a moment). Returns the resolved target."""
+    linked stacks is checked in a moment). ``holding=False`` leaves that last part (a walk
+    of the folder) to the caller (:func:`check_not_holding`). Returns the resolved target."""
     target = Path(target)
     real = resolved(target)
     given = [Path(item) for item in inputs if item is not None]
@@ -154,8 +156,26 @@ def check_not_input(
                 "never written to: choose another output path",
                 target,
             )
+    if holding:
+        check_not_holding(target, given, reads, folder=folder)
+    return real
+
+
+def check_not_holding(
+    target: str | Path,
+    inputs: Iterable[str | Path | None] = (),
+    reads: Iterable[Path] = (),
+    *,
+    folder: bool = False,
+) -> None:
+    """Refuse an existing output folder holding a file that an input is another name of (a
+    hard link), or that one of ``reads`` reaches through links (compared as files). Walks
+    the folder: :func:`check_output` runs it only once the folder is one it would replace."""
+    target = Path(target)
+    real = resolved(target)
     if not os.path.isdir(real):  # only an existing output folder can hold one
-        return real
+        return
+    given = [Path(item) for item in inputs if item is not None]
     linked = {i: item for item in given if (i := _hard_linked(item)) is not None}
     reached = {i: item for item in reads if (i := _file_id(item)) is not None}
     if linked or reached:
@@ -174,7 +194,6 @@ def check_not_input(
                 "through a link); choose another output path",
                 target,
             )
-    return real
 
 
 def check_output(
@@ -195,7 +214,8 @@ def check_output(
     Returns the target as given. Raises InputError naming the path.
     """
     target = Path(target)
-    real = check_not_input(target, inputs, folder=folder, reads=reads)
+    inputs = list(inputs)
+    real = check_not_input(target, inputs, folder=folder, holding=False)
     # a link on the way that leads nowhere (dangling, or a loop) would be "File exists" later
     for above in target.parents:
         if os.path.lexists(above) and not os.path.exists(above):
@@ -220,6 +240,8 @@ def check_output(
                         target,
                     )
                 refuse_foreign(target, current_writer(command))
+                # a folder it will replace: does it hold a file an input is (walked only now)
+                check_not_holding(target, inputs, reads, folder=folder)
         elif not overwrite:
             raise InputError("output exists; pass --overwrite to replace it", target)
         # replacing means renaming in the parent folder (and, for a folder, reading it)
@@ -244,6 +266,7 @@ def numbered_folder(base: str | Path) -> Path:
 
 
 __all__ = [
+    "check_not_holding",
     "check_not_input",
     "check_output",
     "check_replaceable",

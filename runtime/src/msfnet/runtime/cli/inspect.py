@@ -205,8 +205,10 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     # flags name (an --overwrite over a folder holding the --mask read deleted it)
     read = [args.input, args.reference, *load_options(args).inputs(), model_options(args).model]
     inputs = tuple(p for p in read if p is not None)
-    # and what the part's stack reads from elsewhere, through links
-    reads = linked_reads(args.input)
+    # and what the part's and the reference's stacks read from elsewhere, through links
+    reads = linked_reads(args.input) + (
+        linked_reads(args.reference) if args.reference is not None else []
+    )
     check_output(args.output, inputs, overwrite=args.overwrite, folder=True, reads=reads)
     writing = [f"--{d.replace('_', '-')}" for d in WRITING_FLAGS if getattr(args, d, None)]
     if writing:

@@ -14,7 +14,13 @@ from pathlib import Path
 
 from msfnet.common.cli import command_main, make_parser, path_arg, positive_int
 from msfnet.common.errors import InputError
-from msfnet.common.files import check_not_input, check_output, json_text, numbered_folder
+from msfnet.common.files import (
+    check_not_holding,
+    check_not_input,
+    check_output,
+    json_text,
+    numbered_folder,
+)
 from msfnet.runtime.api import Model, Result
 from msfnet.runtime.batch.ray_cluster import WORKER_MEMORY_MB
 from msfnet.runtime.batch.runner import (
@@ -382,14 +388,16 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
     inputs += [p for i in items for p in i.options(load).inputs() if p not in inputs]
     stacks = [i.path for i in items]
     # what the stacks read from elsewhere can only be replaced where the root exists already
-    reads = [f for p in stacks for f in linked_reads(p)] if os.path.lexists(root) else []
-    check_not_input(root, [*inputs, *stacks], folder=True, reads=reads)
+    check_not_input(root, [*inputs, *stacks], folder=True, holding=False)
     clash = next((i for i in items if i.name in SUMMARY_FILES), None)
     if clash is not None:  # found up front, not after the batch ran
         raise InputError(
             f"a stack is named {clash.name!r}, as the batch's summary file; rename it", clash.path
         )
     check_batch_root(root, [i.name for i in items], req.overwrite)
+    if os.path.lexists(root):  # one it will replace: does it hold a file the stacks read
+        reads = [f for p in stacks for f in linked_reads(p)]
+        check_not_holding(root, [*inputs, *stacks], reads, folder=True)
     for item in items:
         check_output(root / item.name, [*inputs, item.path], overwrite=req.overwrite, folder=True)
     for name in SUMMARY_FILES:
