@@ -701,11 +701,11 @@ def test_a_16_bit_tiff_with_separate_colour_planes_is_refused(tmp_path: Path) ->
     np.testing.assert_array_equal(read_image(tmp_path / "c.tif"), np.moveaxis(rgb, 0, -1))
 
 
-def test_libtiff_lines_are_told_from_other_output() -> None:
+def test_libtiff_lines_are_told_from_other_output(capfd: pytest.CaptureFixture[str]) -> None:
     """What another thread printed while Pillow decoded is passed on, not dropped (review 6)."""
-    from msfnet.common.imageio import _libtiff_lines
+    from msfnet.common.imageio import _LIBTIFF_LINE, _decoder_lines
 
     text = "progress 3/8\nZIPDecode: Decoding error at scanline 0\nTIFFFillStrip: Read error\n"
-    ours, other = _libtiff_lines(text)
+    ours = _decoder_lines(text, lambda line: _LIBTIFF_LINE.match(line.strip()))
     assert ours == ["ZIPDecode: Decoding error at scanline 0", "TIFFFillStrip: Read error"]
-    assert other == ["progress 3/8"]
+    assert capfd.readouterr().err == "progress 3/8\n"

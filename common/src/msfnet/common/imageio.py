@@ -31,7 +31,7 @@ import struct
 import tempfile
 import threading
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -447,9 +447,7 @@ def read_image(
                 failure: InputError | None = exc
             else:
                 failure = None
-        libtiff, other = _libtiff_lines(said[0])
-        if other:
-            os.write(2, ("\n".join(other) + "\n").encode())
+        libtiff = _decoder_lines(said[0], lambda line: _LIBTIFF_LINE.match(line.strip()))
         if failure is not None:
             cause = failure.__cause__
             why = libtiff[0] if libtiff else first_line(cause) if cause else failure.message
@@ -555,11 +553,15 @@ _OPENCV_LOG = re.compile(r"\[\s*(ERROR|WARN|INFO)[^\]]*\] ")
 _LIBTIFF_LINE = re.compile(r"(TIFF\w*|\w+Decode\w*|\w+PreDecode|\w+SetupDecode): ")
 
 
-def _libtiff_lines(text: str) -> tuple[list[str], list[str]]:
-    """``text`` captured from stderr, split into libtiff's lines and everything else."""
+def _decoder_lines(text: str, ours: Callable[[str], object]) -> list[str]:
+    """The lines of ``text`` (stderr captured around a decode) that ``ours`` claims for the
+    decoder, stripped; every other non-blank line, another thread's output, is passed on to
+    stderr as it came."""
     lines = [line for line in text.splitlines() if line.strip()]
-    ours = [line.strip() for line in lines if _LIBTIFF_LINE.match(line.strip())]
-    return ours, [line for line in lines if not _LIBTIFF_LINE.match(line.strip())]
+    other = [line for line in lines if not ours(line)]
+    if other:
+        os.write(2, ("\n".join(other) + "\n").encode())
+    return [line.strip() for line in lines if ours(line)]
 
 
 def _decode_with_opencv(data: bytes, path: Path, listen: bool = False) -> np.ndarray | None:
@@ -575,16 +577,12 @@ def _opencv_decode(data: bytes, path: Path, listen: bool = False) -> np.ndarray 
     if data.startswith(b"\xff\xd8"):
         with _captured_stderr() as said:
             img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
-        damage: list[str] = []
-        other: list[str] = []
-        for line in said[0].splitlines():
-            if _benign_padding(line):
-                continue
-            (damage if line.startswith(_JPEG_DAMAGE) else other).append(line)
-        if other:  # not the decoder's: another thread's output, passed on as it was
-            os.write(2, ("\n".join(other) + "\n").encode())
+        libjpeg = _decoder_lines(
+            said[0], lambda line: _benign_padding(line) or line.startswith(_JPEG_DAMAGE)
+        )
+        damage = [line for line in libjpeg if not _benign_padding(line)]
         if damage:
-            raise InputError(f"corrupt JPEG ({damage[0].strip()})", path)
+            raise InputError(f"corrupt JPEG ({damage[0]})", path)
     elif listen:
         # libtiff's complaints go through OpenCV's log, silenced: heard here, or a damaged
         # deflate strip decodes as zeros without a word (a stack 4.8 -> 14.5 deg, exit 0).
@@ -592,14 +590,9 @@ def _opencv_decode(data: bytes, path: Path, listen: bool = False) -> np.ndarray 
         # ones (most cameras') have nothing to complain of and decode in parallel
         with _captured_stderr() as said, _opencv_log(cv2.utils.logging.LOG_LEVEL_ERROR):
             img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
-        damage, other = [], []
-        for line in said[0].splitlines():
-            # OpenCV's log lines ("[ERROR:0@0.1] global grfmt_tiff.cpp:117 TIFF_Error ...")
-            if line.strip():
-                (damage if _OPENCV_LOG.match(line) else other).append(line)
-        if other:  # not the decoder's: another thread's output, passed on as it was
-            os.write(2, ("\n".join(other) + "\n").encode())
-        told = [line.split("TIFF_Error", 1)[1].strip() for line in damage if "TIFF_Error" in line]
+        # OpenCV's log lines ("[ERROR:0@0.1] global grfmt_tiff.cpp:117 TIFF_Error ...")
+        logged = _decoder_lines(said[0], _OPENCV_LOG.match)
+        told = [line.split("TIFF_Error", 1)[1].strip() for line in logged if "TIFF_Error" in line]
         if told and img is not None:  # (None: Pillow is tried next, and says its own)
             raise InputError(f"damaged TIFF ({told[0]})", path)
     else:
