@@ -100,21 +100,16 @@ def _file_ids(folder: Path) -> set[tuple[int, int]]:
     return ids
 
 
-def _file_id(path: Path) -> tuple[int, int] | None:
-    """(device, inode) of the regular file ``path`` names, through links; None otherwise."""
+def _file_id(path: Path, *, hard_linked: bool = False) -> tuple[int, int] | None:
+    """(device, inode) of the regular file ``path`` names, through links (``hard_linked``:
+    only if the file has other names too); None otherwise."""
     try:
         st = os.stat(path)
     except OSError:
         return None
-    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) else None
-
-
-def _hard_linked(path: Path) -> tuple[int, int] | None:
-    try:
-        st = os.stat(path)
-    except OSError:
+    if not stat.S_ISREG(st.st_mode) or (hard_linked and st.st_nlink < 2):
         return None
-    return (st.st_dev, st.st_ino) if stat.S_ISREG(st.st_mode) and st.st_nlink > 1 else None
+    return (st.st_dev, st.st_ino)
 
 
 def check_not_input(
@@ -122,15 +117,13 @@ def check_not_input(
     inputs: Iterable[str | Path | None] = (),
     *,
     folder: bool = False,
-    reads: Iterable[Path] = (),
     holding: bool = True,
 ) -> Path:
     """Refuse an output that is, contains or lies inside an input (symlinks resolved), or an
-    existing output folder holding a file that an input is another name of (a hard link),
-    or that one of ``reads`` reaches: the files a stack folder reads from elsewhere through
-    links (``stack.linked_reads``; compared as files, one stat each, so a batch of many
-    linked stacks is checked in a moment). ``holding=False`` leaves that last part (a walk
-    of the folder) to the caller (:func:`check_not_holding`). Returns the resolved target."""
+    existing output folder holding a file that an input is another name of (a hard link).
+    ``holding=False`` leaves that last part (a walk of the folder) to the caller
+    (:func:`check_not_holding`, which also takes the files stacks read through links).
+    Returns the resolved target."""
     target = Path(target)
     real = resolved(target)
     given = [Path(item) for item in inputs if item is not None]
@@ -157,7 +150,7 @@ def check_not_input(
                 target,
             )
     if holding:
-        check_not_holding(target, given, reads, folder=folder)
+        check_not_holding(target, given, folder=folder)
     return real
 
 
@@ -169,14 +162,16 @@ def check_not_holding(
     folder: bool = False,
 ) -> None:
     """Refuse an existing output folder holding a file that an input is another name of (a
-    hard link), or that one of ``reads`` reaches through links (compared as files). Walks
-    the folder: :func:`check_output` runs it only once the folder is one it would replace."""
+    hard link), or that one of ``reads`` reaches: the files stack folders read from elsewhere
+    through links (``stack.linked_reads``; compared as files, one stat each, so a batch of
+    many linked stacks is checked in a moment). Walks the folder: :func:`check_output` runs
+    it only once the folder is one it would replace."""
     target = Path(target)
     real = resolved(target)
     if not os.path.isdir(real):  # only an existing output folder can hold one
         return
     given = [Path(item) for item in inputs if item is not None]
-    linked = {i: item for item in given if (i := _hard_linked(item)) is not None}
+    linked = {i: item for item in given if (i := _file_id(item, hard_linked=True)) is not None}
     reached = {i: item for item in reads if (i := _file_id(item)) is not None}
     if linked or reached:
         held = _file_ids(real)
@@ -206,7 +201,7 @@ def check_output(
     reads: Iterable[Path] = (),
 ) -> Path:
     """Refuse, before any work, an output that would clash with an input or with existing data.
-    ``reads``: as for :func:`check_not_input`.
+    ``reads``: as for :func:`check_not_holding`.
 
     ``folder``: the output is a folder of files (replaced only if msfnet wrote all of it, and
     only by the command that wrote it: ``command``, else the one of ``writing_as``; see
