@@ -41,7 +41,7 @@ from msfnet.runtime.cli.flags import (
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.profile import announce, announcing
-from msfnet.runtime.stack import LoadOptions, Stack, linked_reads
+from msfnet.runtime.stack import LoadOptions, Stack, folder_name, linked_reads
 
 PROG = "msf-run"
 EXAMPLES = (
@@ -300,12 +300,11 @@ def _say(req: RunRequest, line: str | None) -> None:
         print(line)
 
 
-def _default_name(path: Path, stem: bool = False) -> str:
-    """The name a default output folder takes after its input, from the path made absolute:
-    ``ballPNG/..`` is named after the folder it means, not "..", which sent the output into
-    the current folder."""
-    full = Path(os.path.abspath(path))
-    return (full.stem if stem else full.name) or "stack"
+def _default_name(path: Path) -> str:
+    """The name a single run's default output folder takes after its stack: the stem of the
+    path made absolute (``part.npz`` -> part; ``ballPNG/..`` is named after the folder it
+    means, not "..", which sent the output into the current folder)."""
+    return Path(os.path.abspath(path)).stem or "stack"
 
 
 @contextmanager
@@ -324,7 +323,7 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
     load = req.load
     if req.workers is not None:
         raise InputError("--workers is for --ray (workers of a batch on a cluster)")
-    name = src.name if isinstance(src, Stack) else _default_name(src, stem=True)
+    name = src.name if isinstance(src, Stack) else _default_name(src)
     out = req.output if req.output is not None else numbered_folder(Path("msf-out") / name)
     inputs = [*load.inputs(), req.model.model] + ([src] if isinstance(src, Path) else [])
     # and what the stack reads from elsewhere, through links
@@ -378,7 +377,7 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
     else:
         one_folder = len(req.stacks) == 1 and req.stacks[0].is_dir()
         root = numbered_folder(
-            Path("msf-out") / (_default_name(req.stacks[0]) if one_folder else "batch")
+            Path("msf-out") / (folder_name(req.stacks[0]) if one_folder else "batch")
         )
     # Everything is checked, and the model opened, before anything is made: bad input leaves
     # no output, not even an empty folder (the stacks' folders and the summary create it).

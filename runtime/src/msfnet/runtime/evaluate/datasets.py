@@ -13,7 +13,7 @@ from pathlib import Path
 
 from msfnet.common.errors import InputError
 from msfnet.common.imageio import list_images
-from msfnet.runtime.stack import LIGHTS_NAMES
+from msfnet.runtime.stack import LIGHTS_NAMES, folder_name
 
 PROTOCOL_SELECT = {"bearPNG": "21-96"}  # object folder -> the images the benchmark uses
 PROTOCOL_WHY = {"bearPNG": "DiLiGenT's protocol: bear's first 20 images are corrupted"}
@@ -31,13 +31,6 @@ PUBLISHED_MAE: dict[str, dict[str, float]] = {
     "harvestPNG": {"L2 (paper)": 30.62, "PS-FCN": 12.39, "MSF-Net (paper)": 10.80},
 }
 PUBLISHED_METHODS = ("PS-FCN", "MSF-Net (paper)")
-
-
-def folder_name(path: Path) -> str:
-    """The name a stack folder goes by, also when it is given as ``.`` or ``sub/..`` (whose
-    ``Path.name`` is empty or ``..``: results were written into a batch's root, and msf-eval
-    failed)."""
-    return Path(os.path.abspath(path)).name or "stack"
 
 
 def known_object(folder: Path) -> str:

@@ -465,6 +465,13 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
     return _FolderFiles(paths, lights_path, light_dirs, ints)
 
 
+def folder_name(path: str | Path) -> str:
+    """The name a stack folder goes by, also when it is given as ``.`` or ``sub/..`` (whose
+    ``Path.name`` is empty or ``..``: results were written into a batch's root, and msf-eval
+    failed)."""
+    return Path(os.path.abspath(path)).name or "stack"
+
+
 def _intensity_file(folder: Path, lights_path: Path) -> Path | None:
     """The stack's intensities: its JSON light file's own, or a file of INTENSITY_NAMES; both
     is refused (which one the rig's is cannot be guessed)."""
@@ -563,7 +570,7 @@ def load_folder(
         # one parse of a .mat; an .npy or image checked from the handle read
         gt = t.normals(read_normals(gt_path, check_gt_header(gt_path, hw), shape=hw))
     stack = Stack(
-        Path(os.path.abspath(folder)).name or "stack",
+        folder_name(folder),
         images,
         light_dirs,
         ints,
