@@ -114,7 +114,7 @@ FAILURES: dict[str, tuple[BaseException, int, str, str]] = {
     ),
     # msf-x has no --max-memory: the advice must not name one (test below for msf-run's)
     "out of memory": (MemoryError(), 2, "msf-x: error: out of memory", "smaller inputs"),
-    "internal failure": (MsfError("engine failed\ndetails"), 1, "msf-x: error:", "engine failed"),
+    "engine failure": (MsfError("engine failed\ndetails"), 2, "msf-x: error:", "engine failed"),
     "nested json": (
         RecursionError("maximum recursion depth exceeded"),
         2,
@@ -156,11 +156,11 @@ def test_run_command_turns_failures_into_one_line(case: str, capfd) -> None:
 @pytest.mark.parametrize(
     "exc", [MemoryError(), OSError(errno.ENOSPC, "No space left on device", "v/verdict.json")]
 )
-def test_a_full_disk_or_memory_is_no_bad_input_where_2_means_only_that(exc, capfd) -> None:
-    """msf-inspect's 2 is "bad input" to a PLC; out of memory or a full disk is a failure of
-    the run (3), not of the part's data."""
-    assert run_command("msf-inspect", _raise(exc)) == 3
-    assert run_command("msf-run", _raise(exc)) == 2  # its documented code stays
+def test_a_full_disk_or_memory_is_exit_2_in_every_command(exc, capfd) -> None:
+    """One rule (issue #48): 2 is bad input or output, which a full disk or memory is; 3 (a
+    crash to a PLC reading msf-inspect) only for a failure of the tool itself."""
+    assert run_command("msf-inspect", _raise(exc)) == 2
+    assert run_command("msf-run", _raise(exc)) == 2
     assert capfd.readouterr().err.count("\n") == 2
 
 
@@ -208,7 +208,7 @@ def test_a_module_missing_inside_an_installed_optional_package_is_no_install_hin
     assert err.startswith("msf-x: internal error: ModuleNotFoundError") and "torch._C" in err
 
 
-@pytest.mark.parametrize("case", ["input error", "disk full", "unexpected", "internal failure"])
+@pytest.mark.parametrize("case", ["input error", "disk full", "unexpected", "engine failure"])
 def test_debug_shows_the_traceback(case: str) -> None:
     exc = FAILURES[case][0]
     with pytest.raises(type(exc)):

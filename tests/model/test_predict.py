@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 from _runtime_helpers import sphere_stack
 
+pytest.importorskip("torch", reason="needs torch: the [train] extra")
+
 from msfnet.model.checkpoint import default_checkpoint_path
 from msfnet.model.predict import main
 from msfnet.runtime.stack import save_stack

@@ -1,9 +1,11 @@
 """What every msfnet command shares: common flags, validated option types, one-line errors.
 
-:func:`run_command` is the only place where exceptions become exit codes: InputError -> one
-line, exit 2; Ctrl-C -> one line, exit 130; SIGTERM -> exit 143; anything unexpected -> one line
-and exit 1. Tracebacks reach the user only with ``--debug``; so do library warnings (numpy's
-RuntimeWarnings and the like are noise on a user's terminal and would break the one-line rule).
+:func:`run_command` is the only place where exceptions become exit codes: InputError and
+every other failure the user can act on (output, disk, memory, the engine on their model) ->
+one line, exit 2; Ctrl-C -> one line, exit 130; SIGTERM -> exit 143; anything unexpected -> one
+line and exit 1 (msf-inspect: 3). Tracebacks reach the user only with ``--debug``; so do
+library warnings (numpy's RuntimeWarnings and the like are noise on a user's terminal and would
+break the one-line rule).
 """
 
 from __future__ import annotations
@@ -365,7 +367,7 @@ def command_main(
         if prog not in _FAILURE_EXIT:
             raise  # --debug: Python prints the traceback and exits 1
         traceback.print_exc()  # the traceback --debug asks for, but never exit 1 (a verdict)
-        return 2 if isinstance(exc, InputError) else _FAILURE_EXIT[prog]
+        return 2 if isinstance(exc, _ACTIONABLE) else _FAILURE_EXIT[prog]
     finally:
         _command.reset(token)
 
@@ -400,16 +402,18 @@ _MEMORY_ADVICE = {
 }
 
 
-# A command whose exit code 1 means a result (msf-inspect: defects found) reports its own
-# failures with another code, so a PLC never reads a crash as a verdict.
+# The one exit-code rule: 0 done (msf-inspect: pass), 2 anything the user can change (bad
+# input, an unwritable output, a full disk, out of memory, an engine that fails on the model
+# or tile given), and the command's failure code only for a failure of the tool itself (an
+# internal error). That code is 1, except where 1 is a verdict (msf-inspect: defects found),
+# so a PLC never reads a crash as a verdict, nor a full disk as a crash.
 _FAILURE_EXIT = {"msf-inspect": 3}
+# what --debug re-raises that still exits 2 by that rule (a broken pipe is no failure)
+_ACTIONABLE = (InputError, MsfError, OSError, MemoryError, RecursionError)
 
 
 def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
     failed = _FAILURE_EXIT.get(prog, 1)
-    # out of memory or a full disk is no bad input: where 2 means only that (msf-inspect),
-    # such a failure takes the command's failure code
-    resources = 2 if failed == 1 else failed
 
     def fail(message: str, code: int) -> int:
         print(f"{prog}: {one_line(message)}", file=sys.stderr)
@@ -433,7 +437,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
             raise
         # advice only with the options the command has (msf-calib has no --max-memory)
         advice = _MEMORY_ADVICE.get(prog, "close other programs or give smaller inputs")
-        return fail(f"error: out of memory; {advice}", resources)
+        return fail(f"error: out of memory; {advice}", 2)
     except BrokenPipeError as exc:
         if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
             return fail(f"error: {exc.filename}: {exc.strerror}", 2)
@@ -448,13 +452,13 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
             raise
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         if exc.strerror:
-            return fail(f"error: {where}{exc.strerror}", resources)
+            return fail(f"error: {where}{exc.strerror}", 2)
         # no errno: e.g. numpy's short write "4752 requested and 1968 written"
-        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", resources)
+        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", 2)
     except MsfError as exc:
         if debug:
             raise
-        return fail(f"error: {first_line(exc, 500)}", failed)
+        return fail(f"error: {first_line(exc, 500)}", 2)
     except RecursionError as exc:  # e.g. absurdly nested JSON given as input
         if debug:
             raise

@@ -3,8 +3,10 @@
 :class:`InputError`: a problem with what the user gave (a file, an option, the data in a stack).
 Every command prints it as one line ``<command>: error: <file>: <problem>`` and exits with 2, so
 its message must name the offending file or option and say what is wrong.
-:class:`MsfError`: msfnet itself could not do its job (an engine failed, a verification did not
-pass); printed as one line too, exit 1 (msf-inspect: 3, its 1 being a verdict).
+:class:`MsfError`: msfnet could not do its job with what it was given (an engine failed on the
+model or tile, a verification did not pass); printed as one line too, exit 2 like every failure
+the user can act on. Only internal errors (bugs) take a command's failure code: 1, or 3 for
+msf-inspect, whose 1 is a verdict.
 """
 
 from __future__ import annotations

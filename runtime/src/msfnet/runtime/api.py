@@ -28,7 +28,6 @@ not yet divided by their lights' intensities, so a calibrated rig's must be pass
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -43,7 +42,7 @@ import numpy as np
 import numpy.typing as npt
 
 from msfnet.common.errors import InputError, MsfError
-from msfnet.common.files import API_WRITER, current_writer
+from msfnet.common.files import API_WRITER, current_writer, json_text
 from msfnet.runtime.engines.base import Engine
 
 if TYPE_CHECKING:
@@ -323,7 +322,7 @@ class Result:
 
     def to_json(self, indent: int | None = 2) -> str:
         """:meth:`as_dict` as JSON text (one line with ``indent=None``, for a log)."""
-        return json.dumps(self.as_dict(), indent=indent, default=_plain)
+        return json_text(self.as_dict(), indent).rstrip("\n")
 
     @overload
     def plot(self, what: str = ..., *, figure: Literal[False] = ...) -> np.ndarray: ...
@@ -400,17 +399,6 @@ class Result:
         n, h, w = self.stack.images.shape[:3]
         stack = replace(self.stack, images=np.empty((n, h, w, 0), np.float32))
         return replace(self, stack=stack)
-
-
-def _plain(value: object) -> object:
-    """JSON for the odd values of a profile (numpy scalars, paths, tuples)."""
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, (Path, os.PathLike)):
-        return str(value)
-    if isinstance(value, (set, frozenset)):
-        return sorted(value)
-    return str(value)
 
 
 def load_stack(

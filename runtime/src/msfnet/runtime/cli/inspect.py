@@ -5,8 +5,9 @@
                                                                       # pipeline first
     msf-inspect out/part17 --reference out/golden --depth 0.02 -o v/ # against a good part
 
-Exit code: 0 pass (no defect), 1 defects found, 2 bad input (one line on stderr, nothing
-written), 3 a failure of the tool itself (never read as a verdict; Ctrl-C 130, SIGTERM 143).
+Exit code: 0 pass (no defect), 1 defects found, 2 bad input or output (one line on stderr,
+nothing written; a full disk and out of memory too), 3 a failure of the tool itself (never read
+as a verdict; Ctrl-C 130, SIGTERM 143).
 The verdict (verdict.json) and the overlay picture (overlay.png, the input's size)
 are written together into the -o folder, or not at all.
 """

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError, first_line
+from msfnet.common.files import json_text
 from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import Frame, read_tiff
 
@@ -128,7 +129,7 @@ class Verdict:
         }
 
     def json_text(self) -> str:
-        return json.dumps(self.as_dict(), indent=2) + "\n"
+        return json_text(self.as_dict())
 
 
 @dataclass

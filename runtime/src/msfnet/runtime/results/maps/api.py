@@ -7,7 +7,6 @@ Wiring into a run is two lines (``stack``: the loaded Stack, ``normals``: the es
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -17,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from msfnet.common.errors import InputError
-from msfnet.common.files import write_atomic
+from msfnet.common.files import json_text, write_atomic
 from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, checked_albedo, display_level
 from msfnet.runtime.results.maps.budget import MapsBudget
 from msfnet.runtime.results.maps.curvature import DEFAULT_SIGMA, curvature_maps
@@ -636,7 +635,7 @@ def write_maps(
 
         jobs.append(("mesh.ply", mesh_writer))
     summary = maps.summary()
-    jobs.append(("maps.json", _bytes_writer((json.dumps(summary, indent=2) + "\n").encode())))
+    jobs.append(("maps.json", _bytes_writer(json_text(summary).encode())))
     if report:
         meta: dict[str, object] = {**provenance(profile), "pixels": summary["pixels"]}
         meta["height integration"] = maps.options.method
