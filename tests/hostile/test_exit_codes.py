@@ -75,3 +75,22 @@ def test_an_unwritable_output_folder_is_exit_2(plate_run: Path, tmp_path: Path, 
     assert inspect_main([str(plate_run), "--depth", "0.1", "-o", str(blocker / "v")]) == 2
     assert capsys.readouterr().err.startswith("msf-inspect: error:")
     assert np.array_equal(np.frombuffer(blocker.read_bytes(), np.uint8), [ord("x")])
+
+
+def test_result_to_json_is_strict_json_with_non_finite_values() -> None:
+    """A flat stack's result wrote NaN / Infinity into Result.to_json(), which no strict JSON
+    reader takes; the one JSON writer turns them into null."""
+    import json
+    from dataclasses import replace
+
+    from _runtime_helpers import sphere_stack
+
+    result = Model.least_squares()(sphere_stack(n=6, h=16, w=16))
+    result = replace(result, input={"odd": float("nan"), "big": float("inf"), "set": {2, 1}})
+
+    def refuse(name: str) -> object:
+        raise ValueError(f"bare {name} in the JSON")
+
+    parsed = json.loads(result.to_json(indent=None), parse_constant=refuse)
+    assert parsed["input"] == {"odd": None, "big": None, "set": [1, 2]}
+    assert "\n" not in result.to_json(indent=None)
