@@ -290,3 +290,41 @@ def test_load_options_still_load_a_plain_stack(tmp_path: Path) -> None:
     folder = save_stack(sphere_stack(n=6), tmp_path / "s")
     s = load_stack(folder, LoadOptions(max_memory_mb=64))
     assert s.num_lights == 6 and s.images.dtype == np.uint16
+
+
+# -- round three (issue #48): a NUL byte in filenames.txt was an internal error (os.stat's
+# ValueError "embedded null byte" from the output checks' look for linked inputs)
+
+
+def test_a_nul_byte_in_filenames_txt_is_one_line(tmp_path: Path) -> None:
+    folder = save_stack(sphere_stack(n=6, h=16, w=16), tmp_path / "s")
+    names = (folder / "filenames.txt").read_text().splitlines()
+    names[0] = names[0][:2] + "\0" + names[0][2:]
+    (folder / "filenames.txt").write_text("\n".join(names) + "\n")
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "msfnet.runtime.cli.run", str(folder), "-o", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "filenames.txt" in lines[0] and "NUL" in lines[0], lines
+    assert not out.exists()
+
+
+def test_msf_calib_refuses_one_capture_given_twice(tmp_path: Path, capsys) -> None:
+    """`msf-calib directions A A/` averaged a capture with itself (weighed double beside a
+    third), silently."""
+    from msfnet.calib.cli import main as calib_main
+
+    capture = tmp_path / "chrome"
+    capture.mkdir()
+    (tmp_path / "link").symlink_to(capture)
+    for second in (f"{capture}/", str(tmp_path / "link")):
+        out = tmp_path / "l.txt"
+        assert calib_main(["directions", str(capture), second, "-o", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "given twice" in err[0], err
+        assert not out.exists()

@@ -34,7 +34,7 @@ from msfnet.common.cli import (
     positive_float,
 )
 from msfnet.common.errors import InputError
-from msfnet.common.files import check_output, staged_files, vectors_text
+from msfnet.common.files import check_output, same_file, staged_files, vectors_text
 from msfnet.common.imageio import (
     IMAGE_SUFFIXES,
     encode_png,
@@ -255,6 +255,10 @@ def cmd_directions(args: argparse.Namespace) -> int:
     _check_options(args)
     out = Path(args.output)
     folders = [Path(f) for f in args.images_dir]
+    for k, folder in enumerate(folders):  # one capture twice would weigh double in the mean
+        twin = next((f for f in folders[:k] if same_file(f, folder)), None)
+        if twin is not None:
+            raise InputError(f"given twice (also as {twin}): give each capture once", folder)
     diag_paths = _diagnostic_paths(args, out, len(folders))
     conf_path = out.with_name(out.stem + "_confidence.txt")
     inputs: list[Path | None] = [*folders, args.mask, args.ambient]

@@ -56,6 +56,7 @@ from msfnet.runtime.infer.estimators import (
     LeastSquaresEstimator,
     NetworkEstimator,
     TilingOptions,
+    for_light_count,
 )
 from msfnet.runtime.infer.fine_detail import FineDetailEstimator
 from msfnet.runtime.infer.ladder import RUNGS, reduced_network
@@ -684,7 +685,8 @@ class Model:
                         )
                     else:
                         loaded = read_stack(stack, load)
-                est = self.estimator.estimate(loaded, tiling, timer, progress)
+                estimator = for_light_count(self.estimator, loaded)
+                est = estimator.estimate(loaded, tiling, timer, progress)
                 normals = est.normals
                 if loaded.roi_box is not None:
                     # grown by a halo for context: every output is the requested ROI's
@@ -712,7 +714,7 @@ class Model:
             result = Result(
                 loaded,
                 normals,
-                self.describe(),
+                estimator.describe(),
                 prof,
                 metrics,
                 err,

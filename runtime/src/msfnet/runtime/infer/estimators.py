@@ -101,11 +101,31 @@ class LeastSquaresEstimator:
         return Estimate(normals, None, 0.0)
 
 
+# The network needs this many lights. With three (least squares' minimum) it guessed: on a
+# rendered 12-light plate it was 25 deg off where least squares was 0.5 (docs/benchmark.md).
+NETWORK_MIN_LIGHTS = 4
+
+
+def for_light_count(estimator: Estimator, stack: Stack) -> Estimator:
+    """The estimator that runs on ``stack``: ``estimator``, or least squares where the stack has
+    too few lights for the network (the stack's warnings say so, as msf-run prints them)."""
+    n = stack.num_lights
+    if estimator.method != "msf" or n >= NETWORK_MIN_LIGHTS:
+        return estimator
+    stack.warnings.append(
+        f"{n} lights are too few for the network (it needs {NETWORK_MIN_LIGHTS} or more): "
+        "least squares ran instead"
+    )
+    return LeastSquaresEstimator()
+
+
 __all__ = [
+    "NETWORK_MIN_LIGHTS",
     "Engine",
     "Estimate",
     "Estimator",
     "LeastSquaresEstimator",
     "NetworkEstimator",
     "TilingOptions",
+    "for_light_count",
 ]

@@ -191,6 +191,8 @@ def _listed_images(folder: Path, names_file: Path) -> list[Path]:
         ln.strip() for ln in names_file.read_text(encoding="utf-8-sig").splitlines() if ln.strip()
     ]
     for name in names:
+        if "\0" in name:  # no file system takes it; os.stat raised a bare ValueError
+            raise InputError(f"entry {name[:80]!r} holds a NUL byte: no file name does", names_file)
         part = Path(os.path.normpath(name))  # sub/../002.png is 002.png
         if part.is_absolute() or part.parts[:1] == ("..",):
             raise InputError(
@@ -499,12 +501,11 @@ def linked_reads(path: str | Path) -> list[Path]:
     names_file = folder / "filenames.txt"
     try:
         if names_file.is_file():
-            listed = names_file.read_text(encoding="utf-8-sig").splitlines()
-            images = [folder / n.strip() for n in listed if n.strip()]
+            images = _listed_images(folder, names_file)
         else:
             images = list_images(folder, strict=False)
         other = _other_mask(folder)
-    except (OSError, UnicodeDecodeError):
+    except (OSError, UnicodeDecodeError, InputError):
         return []  # the loader says what is wrong
     own = [folder / n for n in (*LIGHTS_NAMES, *INTENSITY_NAMES, *MASK_NAMES, *GT_NAMES)]
     found = []
