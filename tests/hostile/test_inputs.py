@@ -328,3 +328,31 @@ def test_msf_calib_refuses_one_capture_given_twice(tmp_path: Path, capsys) -> No
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "given twice" in err[0], err
         assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [
+        (["--intrinsics", "100", "100", "1e308", "1e308"], "principal point"),
+        (["--pixel-size", "1e-310"], "pixel size"),
+    ],
+    ids=["principal point 1e308", "subnormal pixel size"],
+)
+def test_settings_the_maps_cannot_use_are_refused_before_the_estimate(
+    extra: list[str], words: str, tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Both passed the checks and ended in internal errors during the maps, after the whole
+    run (a ZeroDivisionError, a singular factor)."""
+    from msfnet.runtime.cli.run import main as run_main
+    from msfnet.runtime.infer import estimators
+
+    def never(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the estimate ran")
+
+    monkeypatch.setattr(estimators.LeastSquaresEstimator, "estimate", never)
+    folder = save_stack(sphere_stack(n=6, h=16, w=16), tmp_path / "s")
+    out = tmp_path / "out"
+    assert run_main([str(folder), "--method", "l2", "-o", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("msf-run: error:") and words in err[0], err
+    assert not out.exists()

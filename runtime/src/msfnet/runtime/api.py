@@ -685,6 +685,8 @@ class Model:
                         )
                     else:
                         loaded = read_stack(stack, load)
+                if self.maps is not None:  # settings the maps refuse: before the estimate
+                    _placed(self.maps, load or placed).check_shape(loaded.inner().shape)
                 estimator = for_light_count(self.estimator, loaded)
                 est = estimator.estimate(loaded, tiling, timer, progress)
                 normals = est.normals

@@ -44,6 +44,7 @@ from msfnet.runtime.results.maps.validate import check_normals
 from msfnet.runtime.stack import Stack
 
 MAP_NAMES = ("albedo", "height", "curvature", "mesh")
+PIXEL_SIZE_MM = (1e-6, 1e4)  # 1 nm (microscopes) to 10 m (aerial) a pixel
 # what the registered TIFFs hold where there is no value (maps.json "outside_mask"; docs/run.md)
 OUTSIDE_MASK = (
     "NaN, except normals.tif: (0, 0, 0) (no normal); albedo.tif is NaN inside the mask too "
@@ -130,6 +131,10 @@ class MapOptions:
             )
             if not ok:
                 raise InputError(f"{name.replace('_', ' ')} {v}: must be a positive number")
+        lo, hi = PIXEL_SIZE_MM
+        if self.pixel_size_mm is not None and not lo <= self.pixel_size_mm <= hi:
+            # a subnormal size passed as positive, then divided into infinities in the maps
+            raise InputError(f"pixel size {self.pixel_size_mm:g} mm: must lie in {lo:g}..{hi:g} mm")
         unknown = [m for m in self.maps if m not in MAP_NAMES]
         if unknown:
             raise InputError(
@@ -145,6 +150,16 @@ class MapOptions:
 
     def wants(self, name: str) -> bool:
         return name in self.maps or (name == "height" and "mesh" in self.maps)
+
+    def check_shape(self, shape: tuple[int, int]) -> None:
+        """Refuse settings that cannot work on (H, W) maps, before any work: a local size
+        above the maps' longer side, intrinsics absurd for the image (a principal point at
+        1e308 px ran the whole stack, then failed in the height solve)."""
+        if self.wants("height") and self.intrinsics is None:  # the local shape's Gaussian sums
+            check_local_size(self.local_size_px, shape)
+        intrinsics = Intrinsics.coerce(self.intrinsics)  # __post_init__ made it one
+        if intrinsics is not None:
+            intrinsics.check_for(shape)
 
 
 @dataclass
@@ -306,8 +321,7 @@ def compute_maps(
     if opts.wants("albedo") and (images is None or lights is None or intensities is None):
         raise InputError("the albedo needs the images, lights and intensities")
     m = np.asarray(mask, bool)
-    if opts.wants("height") and opts.intrinsics is None:  # the local shape's Gaussian sums
-        check_local_size(opts.local_size_px, (int(m.shape[0]), int(m.shape[1])))
+    opts.check_shape((int(m.shape[0]), int(m.shape[1])))
     budget = MapsBudget(
         max_memory_mb,
         int(m.size),
