@@ -356,3 +356,22 @@ def test_settings_the_maps_cannot_use_are_refused_before_the_estimate(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("msf-run: error:") and words in err[0], err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("name", [b"caf\xc3\xa9", LATIN1], ids=["utf-8", "latin-1"])
+def test_any_name_prints_under_an_ascii_locale(name: bytes, tmp_path: Path) -> None:
+    """Under LANG=C / PYTHONIOENCODING=ascii a non-ASCII name ended in a UnicodeEncodeError,
+    once after the output was written (the summary line names the stack)."""
+    folder = save_stack(sphere_stack(n=6, h=16, w=16), _latin1(tmp_path, name))
+    out = _latin1(tmp_path, name + b"_out")
+    env = {**os.environ, "LANG": "C", "LC_ALL": "C", "PYTHONIOENCODING": "ascii"}
+    argv = [os.fsencode(folder), "--no-maps", "--method", "l2", "-o", os.fsencode(out)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "msfnet.runtime.cli.run", *argv],
+        capture_output=True,
+        env=env,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-500:]
+    assert b"caf\\" in proc.stdout and b"Error" not in proc.stderr  # escaped, not raised
+    assert (out / "normals.npy").is_file()

@@ -20,7 +20,7 @@ import re
 import sys
 import traceback
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
@@ -387,11 +387,33 @@ def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
     previous = install_signal_handlers()
     forget_written()
     try:
-        with interrupt_once():  # a second Ctrl-C never interrupts the cleanup or the line
+        with interrupt_once(), _printable_streams():
+            # (a second Ctrl-C never interrupts the cleanup or the line)
             return _run_body(prog, body, debug)
     finally:
         # in-process callers (tests, the Python API) get their own handlers back
         restore_signal_handlers(previous)
+
+
+@contextlib.contextmanager
+def _printable_streams() -> Iterator[None]:
+    """Any name prints, whatever the terminal's encoding: under LANG=C or
+    PYTHONIOENCODING=ascii a path with a non-ASCII (or undecodable) byte ended in a
+    UnicodeEncodeError, once after the output was written. Such characters print escaped."""
+    changed = []
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        errors = getattr(stream, "errors", None)
+        if reconfigure is not None and errors in ("strict", "surrogateescape"):
+            with contextlib.suppress(ValueError, OSError):
+                reconfigure(errors="backslashreplace")
+                changed.append((reconfigure, errors))
+    try:
+        yield
+    finally:
+        for reconfigure, errors in changed:
+            with contextlib.suppress(ValueError, OSError):
+                reconfigure(errors=errors)
 
 
 _MEMORY_ADVICE = {
