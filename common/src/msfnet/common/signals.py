@@ -42,30 +42,35 @@ def _interrupted_at_startup(signum: int, frame: object) -> None:
     if _Command.done:  # after the command's own last line, exiting: nothing more to say
         return
     prog = os.path.basename(sys.argv[0]) or "msfnet"
+    what = "interrupted" if signum == signal.SIGINT else f"terminated (signal {signum})"
     with contextlib.suppress(OSError):  # os.write: print is not safe inside a handler
-        os.write(2, f"{prog}: interrupted while starting; nothing was written\n".encode())
-    os._exit(130)
+        os.write(2, f"{prog}: {what} while starting; nothing was written\n".encode())
+    os._exit(128 + signum)
 
 
 def guard_startup() -> None:
     """Ctrl-C while an msfnet command is still importing (seconds: numpy, OpenCV, ONNX Runtime)
-    printed Python's 22-57 line traceback: from the first msfnet import of a command's
-    process on, it is one line and exit 130 instead; :func:`interrupt_once` takes over when
-    the command's body starts. Only in the main process of an ``msf-*`` program, and only
-    where Ctrl-C has its default meaning (a background job's ignored SIGINT stays ignored):
+    printed Python's 22-57 line traceback, and SIGTERM / SIGHUP ended it without a word: from
+    the first msfnet import of a command's process on, each is one line and exit 128 + signal;
+    :func:`interrupt_once` takes over when the command's body starts. Only in the main process
+    of an ``msf-*`` program, and only where the signal has its default meaning (a background
+    job's ignored SIGINT stays ignored):
     a Python program importing msfnet keeps its own Ctrl-C."""
     if not os.path.basename(sys.argv[0] if sys.argv else "").startswith("msf-"):
         return
     if threading.current_thread() is not threading.main_thread():
         return
-    import multiprocessing
-
-    if multiprocessing.parent_process() is not None:  # a worker started by the command
+    # a worker the command started has multiprocessing loaded already; importing it here
+    # would cost the guard tens of ms of the start-up it protects
+    multiprocessing = sys.modules.get("multiprocessing")
+    if multiprocessing is not None and multiprocessing.parent_process() is not None:
         return
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        with contextlib.suppress(ValueError):
-            signal.signal(signal.SIGINT, _interrupted_at_startup)
-            _Command.guarded = True
+    for signum in _SIGNALS:  # a kill while importing said nothing either
+        now = signal.getsignal(signum)
+        if now is signal.default_int_handler or now is signal.SIG_DFL:
+            with contextlib.suppress(ValueError):
+                signal.signal(signum, _interrupted_at_startup)
+                _Command.guarded = True
 
 
 @contextmanager
