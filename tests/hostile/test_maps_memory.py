@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _runtime_helpers import sphere_stack
 
 pytest.importorskip("resource", reason="peak memory via resource (POSIX)")
 pytest.importorskip("psutil", reason="the budget is checked against resident memory (psutil)")
@@ -154,3 +155,26 @@ def test_a_float64_npz_that_fits_is_read_within_what_was_counted(float64_npz: Pa
     got = _load(float64_npz, 100)
     assert got["error"] is None and got["dtype"] == "float32", got
     assert got["grew"] <= 69 + 12, got
+
+
+def test_msf_inspect_reads_a_maps_size_from_its_header_first(tmp_path: Path, capsys) -> None:
+    """Issue #48: a few-KB sparse BigTIFF declaring 60000 x 60000 float32 as local_shape.tif
+    reached 13.8 GB before the mismatch was reported; msf-run refused the same header up
+    front."""
+    import tifffile
+
+    from msfnet import Model
+    from msfnet.runtime.cli.inspect import main as inspect_main
+    from msfnet.runtime.results.maps import MapOptions
+
+    run = tmp_path / "run"
+    Model.least_squares(maps=MapOptions(maps=("height",)))(sphere_stack(n=6, h=24, w=24)).save(run)
+    (run / "local_shape.tif").unlink()
+    with tifffile.TiffWriter(run / "local_shape.tif", bigtiff=True) as tw:
+        tw.write(shape=(60000, 60000), dtype=np.float32)  # declared, never written: sparse
+    assert (run / "local_shape.tif").stat().st_blocks * 512 < 10**6
+    out = tmp_path / "v"
+    assert inspect_main([str(run), "--depth", "0.1", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "local_shape.tif" in err[0] and "MP limit" in err[0], err
+    assert not out.exists()

@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.imageio import image_header
 from msfnet.runtime.results.maps.extent import mask_box
 
 DEFAULT_LOCAL_SIZE_PX = 12.0
@@ -313,6 +314,7 @@ def read_tiff(path: Path) -> np.ndarray:
     samples are refused (a cast would keep the real part without a word)."""
     import tifffile
 
+    image_header(path)  # the size from the header first: a few KB can declare 3600 MP
     data = np.asarray(tifffile.imread(path))
     if data.dtype.kind not in "fiub":
         raise InputError(f"expected real numbers, found {data.dtype}", path)
