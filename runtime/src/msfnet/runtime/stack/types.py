@@ -120,6 +120,24 @@ class Stack:
         )
         return stack.validate()
 
+    def __repr__(self) -> str:
+        """One line (the dataclass's own printed every array: ~330 lines for a small stack)."""
+        h, w = self.shape
+        parts = [
+            repr(self.name),
+            f"{self.num_lights} lights",
+            f"{w}x{h}",
+            str(self.images.dtype),
+            f"mask_px={int(np.count_nonzero(self.mask))}",
+        ]
+        if self.normals_gt is not None:
+            parts.append("ground truth")
+        if self.roi_box is not None:
+            parts.append(f"roi_box={self.roi_box}")
+        if self.source is not None:
+            parts.append(f"source={str(self.source)!r}")
+        return f"Stack({', '.join(parts)})"
+
     @property
     def num_lights(self) -> int:
         return int(self.images.shape[0])
