@@ -172,8 +172,6 @@ def test_real_benchmarks_load_without_warnings(ball_dir: Path, psm_dir: Path) ->
 
 def test_repr_is_one_line_of_what_the_stack_is() -> None:
     """repr(Stack) printed every array: ~330 lines for a small stack (issue #49)."""
-    from _runtime_helpers import sphere_stack
-
     text = repr(sphere_stack(n=8, h=36, w=44))
     assert "\n" not in text and len(text) < 200
     assert text == "Stack('sphere', 8 lights, 44x36, float32, mask_px=788, ground truth)"
