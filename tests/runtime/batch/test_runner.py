@@ -334,8 +334,9 @@ def test_one_stack_refused_while_running_names_the_stack(
 ) -> None:
     (stack,) = _stacks(tmp_path / "in", 1)
     out = tmp_path / "out"
-    # a 179-degree camera for a 28 x 32 image: no float32 depth holds what the normals say
-    argv = ["--method", "l2", str(stack), "-o", str(out), "--intrinsics", ".05", ".05", "16", "14"]
+    # a ~175-degree camera for a 28 x 32 image (within what the intrinsics check takes before
+    # the run): no float32 depth holds what the normals say
+    argv = ["--method", "l2", str(stack), "-o", str(out), "--intrinsics", ".4", ".4", "16", "14"]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"msf-run: error: {stack}: perspective depth"), err

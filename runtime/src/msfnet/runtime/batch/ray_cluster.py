@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import signal
 import socket
 import tempfile
@@ -55,6 +56,71 @@ WORKER_MEMORY_MB = 1024
 # Seconds without any worker started before the batch says why it waits: a worker starts once
 # Ray has its CPUs, which another job may hold for as long as it runs.
 STALL_NOTE_S = 60.0
+
+
+# Seconds the driver waits for a TCP answer from a cluster address before giving up: Ray's own
+# connect retried a closed HOST:PORT forever, and a ray:// address for ~34 s.
+CONNECT_TIMEOUT_S = 5.0
+RAY_CLIENT_PORT = 10001  # a ray://HOST address without a port: the Ray client's own
+_HOST = re.compile(
+    r"(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+    r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*"
+)
+
+
+def cluster_endpoint(address: str) -> tuple[str, int] | None:
+    """(host, port) of a --ray address, None for one Ray resolves itself (a local instance,
+    'auto', 'local'); InputError for an address that cannot be valid (a port beyond 65535,
+    ``256.1.1.1``, ``ray://:::::``), before any connection is tried."""
+    if address in ("", "auto", "local"):
+        return None
+    client = address.startswith("ray://")
+    rest = address.removeprefix("ray://")
+    if rest.startswith("["):  # [IPv6]:port
+        host, _, port_text = rest[1:].partition("]")
+        port_text = port_text.removeprefix(":")
+        valid = _is_ip(host, 6)
+    else:
+        host, _, port_text = rest.rpartition(":") if ":" in rest else (rest, "", "")
+        valid = _is_ip(host, 4) if re.fullmatch(r"[\d.]+", host) else bool(_HOST.fullmatch(host))
+    if not port_text and client:
+        port_text = str(RAY_CLIENT_PORT)
+    if not valid or not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+        raise InputError(
+            f"--ray {address}: not a cluster address (expected HOST:PORT, ray://HOST[:PORT] "
+            "or auto; a port in 1..65535)"
+        )
+    return host, int(port_text)
+
+
+def _is_ip(text: str, version: int) -> bool:
+    import ipaddress
+
+    try:
+        return ipaddress.ip_address(text).version == version
+    except ValueError:
+        return False
+
+
+def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """One TCP connection to the address, within ``timeout_s``: InputError naming why none
+    came (nothing listening, an unknown host, no answer)."""
+    endpoint = cluster_endpoint(address)
+    if endpoint is None:
+        return
+    try:
+        socket.create_connection(endpoint, timeout=timeout_s).close()
+    except socket.gaierror as exc:
+        why = f"unknown host {endpoint[0]!r} ({exc.strerror})"
+    except ConnectionRefusedError:
+        why = "nothing listens there (is the Ray head running? ray start --head)"
+    except TimeoutError:
+        why = f"no answer within {timeout_s:g} s"
+    except OSError as exc:
+        why = exc.strerror or type(exc).__name__
+    else:
+        return
+    raise InputError(f"--ray {address}: cannot connect: {why}")
 
 
 def import_ray() -> Any:
@@ -329,10 +395,12 @@ def run_batch_ray(
     from tqdm import tqdm
 
     ray = import_ray()
-    if (address or os.environ.get("RAY_ADDRESS") or "").startswith("ray://"):
+    given = address or os.environ.get("RAY_ADDRESS") or ""
+    if given.startswith("ray://"):
         _check_client()
     started = not ray.is_initialized()
     if started:
+        check_reachable(given)
         try:
             init_keeping_sigterm(
                 ray, address=address, include_dashboard=False, logging_level="WARNING"

@@ -173,6 +173,10 @@ class RunRequest:
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> RunRequest:
         load = load_options(args)
+        if args.ray:  # an address that cannot be valid: before any work, not after Ray's tries
+            from msfnet.runtime.batch.ray_cluster import cluster_endpoint
+
+            cluster_endpoint(args.ray)
         return cls(
             tuple(args.stacks),
             args.demo,
