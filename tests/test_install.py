@@ -35,10 +35,11 @@ def test_ci_runs_the_readme_test_command() -> None:
 
 def test_torch_is_installed_first_from_the_cpu_index() -> None:
     """A bare ``pip install torch`` takes the CUDA build (GBs) on an ordinary machine; the
-    pinned CPU wheel must come first, from PyTorch's CPU index, before any extra needs torch."""
+    CPU build, pinned by its local version (which PyPI cannot offer), must come first, from
+    PyTorch's CPU index, before any extra needs torch."""
     first, *rest = _readme_command(2).split(" && ")
     words = shlex.split(first)
-    assert words[:3] == ["pip", "install", "torch==2.13.0"], first
+    assert words[:3] == ["pip", "install", "torch==2.13.0+cpu"], first
     assert words[words.index("--extra-index-url") + 1] == CPU_INDEX
     assert any("[export" in step for step in rest)  # the extras that need torch come after
     assert "torch" not in _readme_command(1)  # the edge install stays torch-free
