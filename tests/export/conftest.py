@@ -46,8 +46,11 @@ def zero_ckpt(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def calib_npz(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A small rendered stack (12 lights, 64 px sphere) as an .npz, for int8 calibration."""
-    stack = sphere_stack(n=12, h=64, w=64, seed=3)
+    """A small rendered stack (96 lights, 64 px sphere) as an .npz, for int8 calibration. With
+    96 lights no rendered many-light objects are added (quantize.with_many_light_stacks, tested
+    on its own): an int8 export of the bundled model takes ~25 s instead of ~2 min (AMD EPYC,
+    2 cores), 0.18 deg mean from its fp32 graph."""
+    stack = sphere_stack(n=96, h=64, w=64, seed=3)
     path = tmp_path_factory.mktemp("calib") / "sphere.npz"
     np.savez(
         path,
