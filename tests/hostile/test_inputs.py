@@ -375,3 +375,19 @@ def test_any_name_prints_under_an_ascii_locale(name: bytes, tmp_path: Path) -> N
     assert proc.returncode == 0, proc.stderr[-500:]
     assert b"caf\\" in proc.stdout and b"Error" not in proc.stderr  # escaped, not raised
     assert (out / "normals.npy").is_file()
+
+
+def test_an_objects_txt_entry_with_a_space_is_one_folder(tmp_path: Path) -> None:
+    """Issue #48: a folder named with a space was read as a folder plus a selection."""
+    from _runtime_helpers import png_stack
+
+    from msfnet.runtime.evaluate.datasets import find_objects
+
+    png_stack(tmp_path / "my part", 16)
+    png_stack(tmp_path / "bear part 2", 16)
+    (tmp_path / "objects.txt").write_text("my part\nbear part 2 2-7  # a selection\n")
+    found = find_objects(tmp_path)
+    assert [(o.folder.name, o.select) for o in found] == [("my part", None), ("bear part 2", "2-7")]
+    (tmp_path / "objects.txt").write_text("no such part 1-4\n")
+    with pytest.raises(InputError, match="'no such part' listed but not found"):
+        find_objects(tmp_path)

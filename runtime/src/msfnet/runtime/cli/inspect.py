@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
         PROG,
         "Find relief defects (scratches, dents, bumps) in a part's local shape and "
         "curvature; printed marks (albedo only) are not defects. Exit code: 0 pass, 1 "
-        "defects found, 2 bad input, 3 a failure of the tool itself.",
+        "defects found, 2 bad input or output, 3 a failure of the tool itself.",
         examples=(
             "msf-inspect out/part17 --depth 0.02 -o verdicts/part17",
             "msf-inspect captures/part17 --pixel-size 0.05 --depth 0.02 -o verdicts/part17",

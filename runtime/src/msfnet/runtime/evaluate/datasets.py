@@ -8,6 +8,7 @@ the standard protocol (the MSF-Net paper's too) uses images 21-96. Published mea
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,6 +96,16 @@ def _check_listed_select(select: str, folder: Path, listing: Path) -> None:
         raise InputError(f"object {folder.name}: selection {select!r}: {detail}", listing) from exc
 
 
+def _listed_object(entry: str, root: Path) -> tuple[str, str | None]:
+    """(folder name, image selection or None) of one objects.txt entry: the whole entry where
+    it names a folder (``my part`` was read as the folder ``my`` and the selection ``part``),
+    else the name before a trailing selection (``bearPNG 21-96``)."""
+    name, _, last = entry.rpartition(" ")
+    if (root / entry).is_dir() or not name or not re.fullmatch(r"[\d,\-]+", last):
+        return entry, None
+    return name.rstrip(), last
+
+
 def find_objects(root: Path, *, select_given: bool = False) -> list[BenchObject]:
     """The objects of a benchmark root in benchmark order: those listed in objects.txt (one
     folder per line, optionally followed by an image selection), the root itself when it is a
@@ -115,13 +126,12 @@ def find_objects(root: Path, *, select_given: bool = False) -> list[BenchObject]
     if listing.is_file():
         out = []
         for line in listing.read_text(encoding="utf-8-sig").splitlines():
-            parts = line.split("#", 1)[0].split()
-            if not parts:
+            name, select = _listed_object(line.split("#", 1)[0].strip(), root)
+            if not name:
                 continue
-            folder = root / parts[0]
+            folder = root / name
             if not folder.is_dir():
-                raise InputError(f"object folder {parts[0]!r} listed but not found", listing)
-            select = parts[1] if len(parts) > 1 else None
+                raise InputError(f"object folder {name!r} listed but not found", listing)
             if select is not None and not select_given:
                 _check_listed_select(select, folder, listing)
             out.append(BenchObject(folder, select))
