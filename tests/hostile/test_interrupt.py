@@ -7,6 +7,7 @@ ignored signal stays ignored across exec)."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -144,6 +145,54 @@ def test_msf_run_with_a_spinning_model_stops_on_ctrl_c(tmp_path: Path) -> None:
     time.sleep(6)  # loaded and spinning (the stack is tiny; msf-run starts in ~2 s)
     assert proc.poll() is None, proc.communicate()
     code, err = _interrupt(proc)
+    assert code == 130, err
+    assert err.strip().splitlines()[-1].startswith("msf-run: interrupted"), err
+    assert not out.exists()
+
+
+def slow_compiling_model(path: Path, nodes: int = 8000) -> Path:
+    """tiny_msfnet_onnx whose normals pass through ``nodes`` multiplications by one: ONNX
+    Runtime opens it in a second; OpenVINO's compile grows faster than the node count (here
+    2,000 nodes 1.4 s, 8,000 nodes 47 s on 2 AMD EPYC Zen 4 cores)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import helper, numpy_helper
+
+    tiny_msfnet_onnx(path)
+    model = onnx.load(str(path))
+    graph = model.graph
+    graph.node[-1].output[0] = "t0"
+    graph.initializer.append(numpy_helper.from_array(np.array(1.0, np.float32), "one"))
+    names = [f"t{i}" for i in range(nodes)] + ["normals"]
+    graph.node.extend(
+        helper.make_node("Mul", [names[i], "one"], [names[i + 1]]) for i in range(nodes)
+    )
+    onnx.save(model, str(path))
+    return path
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_an_openvino_compile_that_takes_minutes(tmp_path: Path) -> None:
+    """Issue #48: a valid model that OpenVINO compiles for minutes held msf-run on that engine,
+    deaf to Ctrl-C (the compile ran on the main thread, where Python's handler waits for it)."""
+    pytest.importorskip("openvino", reason="openvino not installed")
+    model = slow_compiling_model(tmp_path / "slow.onnx")
+    folder = save_stack(sphere_stack(n=6, h=24, w=28), tmp_path / "s")
+    out = tmp_path / "o"
+    env = {**os.environ, "MSFNET_OPENVINO_CACHE": "off"}  # compiled afresh, not from a cache
+    proc = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "msfnet.runtime.cli.run", str(folder), "--onnx", str(model)),
+            *("--engine", "openvino", "--no-maps", "-o", str(out)),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_sigint,
+        env=env,
+    )
+    time.sleep(8)  # started (~2 s) and compiling (47 s on an idle machine)
+    assert proc.poll() is None, proc.communicate()
+    code, err = _interrupt(proc, wait_s=25)  # the grace period (5 s) and the exit
     assert code == 130, err
     assert err.strip().splitlines()[-1].startswith("msf-run: interrupted"), err
     assert not out.exists()

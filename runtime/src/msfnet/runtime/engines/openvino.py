@@ -28,7 +28,7 @@ import re
 import stat
 import sys
 import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -101,6 +101,26 @@ def _own_signal_stack() -> Iterator[None]:
     finally:
         if libc is not None and libc.sigaltstack(ctypes.byref(before), None) != 0:
             libc.sigaltstack(ctypes.byref(_SignalStack(None, _SS_DISABLE, 0)), None)
+
+
+def compile_stoppable(
+    compile_all: Callable[[], dict[str, Any]], fallback: Callable[[], dict[str, Any]] | None
+) -> dict[str, Any]:
+    """``compile_all()`` where Ctrl-C and SIGTERM reach it: a model OpenVINO compiles for
+    minutes (thousands of trivial nodes) held msf-run, deaf to Ctrl-C, as a run of a model that
+    never finishes did (interrupt.py; a compile cannot be cancelled, so the process ends once
+    the command has said its line). Where it fails, ``fallback()`` if given."""
+
+    def work() -> dict[str, Any]:
+        with _own_signal_stack():  # the compiling thread's, see there
+            try:
+                return compile_all()
+            except Exception:
+                if fallback is None:
+                    raise
+                return fallback()
+
+    return run_interruptible(work, cancel=lambda: None)
 
 
 def compile_cache() -> Path | None:
@@ -625,15 +645,12 @@ def open_openvino(
         if own == "int8" and not requantise_outputs and device.upper().startswith("CPU"):
             graph = graph.clone()  # the file's graph stays as read
             drop_output_requantisation(graph)
-        with _own_signal_stack():
-            try:
-                cached = {**props, "CACHE_DIR": str(cache)} if cache else props
-                compiled = compile_all(graph, cached)
-            except Exception:
-                if cache is None:
-                    raise
-                # the cache is a speed-up, never a new way to fail: compile as before
-                compiled = compile_all(graph, props)
+        cached = {**props, "CACHE_DIR": str(cache)} if cache else props
+        compiled = compile_stoppable(
+            lambda: compile_all(graph, cached),
+            # the cache is a speed-up, never a new way to fail: without it, as before
+            (lambda: compile_all(graph, props)) if cache else None,
+        )
     except InputError:
         raise
     except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
