@@ -196,3 +196,36 @@ def test_ctrl_c_stops_an_openvino_compile_that_takes_minutes(tmp_path: Path) -> 
     assert code == 130, err
     assert err.strip().splitlines()[-1].startswith("msf-run: interrupted"), err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["run", "inspect"])
+def test_a_model_that_never_ends_stops_at_the_time_limit(tmp_path: Path, command: str) -> None:
+    """Issue #48: a model with an endless Loop hung msf-run and msf-inspect --onnx for good;
+    --timeout bounds every compile and call: one line, exit 2, nothing written."""
+    model = spinning_model(tmp_path / "spin.onnx")
+    folder = save_stack(sphere_stack(n=6, h=24, w=28), tmp_path / "s")
+    out = tmp_path / "o"
+    extra = ["--depth", "0.1"] if command == "inspect" else ["--no-maps"]
+    proc = subprocess.run(
+        [
+            *(sys.executable, "-m", f"msfnet.runtime.cli.{command}", str(folder), "--onnx"),
+            *(str(model), "--engine", "onnxruntime", "--timeout", "2", "-o", str(out), *extra),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,  # a hang guard: without the limit it spins for years
+    )
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert "did not finish within the time limit (2 s)" in lines[-1], lines
+    assert lines[-1].startswith(f"msf-{command}: error:"), lines
+    assert not out.exists()
+
+
+def test_the_time_limit_is_a_positive_number_of_seconds() -> None:
+    from msfnet.common.errors import InputError
+    from msfnet.runtime.options import ModelOptions
+
+    with pytest.raises(InputError, match="timeout"):
+        ModelOptions(timeout_s=0)
+    assert ModelOptions(timeout_s=1.5).timeout_s == 1.5

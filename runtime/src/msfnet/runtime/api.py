@@ -49,6 +49,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from msfnet.runtime.engines.dispatch import Device
+from msfnet.runtime.engines.interrupt import time_limit
 from msfnet.runtime.evaluate.metrics import NormalMetrics, error_map, normal_metrics
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import (
@@ -480,7 +481,8 @@ class Model:
         elif engine_given:
             self.estimator = NetworkEstimator(model)  # type: ignore[arg-type]
         else:
-            self.estimator = _open_network(opts.model, opts)  # None: the bundled pair
+            with time_limit(opts.timeout_s):  # the engine's compile
+                self.estimator = _open_network(opts.model, opts)  # None: the bundled pair
         if isinstance(self.estimator, NetworkEstimator):
             self.estimator.edge_context = opts.edge_context
             # --speed: the network on fewer pixels / lights; the detail fusion below gives the
@@ -688,7 +690,8 @@ class Model:
                 if self.maps is not None:  # settings the maps refuse: before the estimate
                     _placed(self.maps, load or placed).check_shape(loaded.inner().shape)
                 estimator = for_light_count(self.estimator, loaded)
-                est = estimator.estimate(loaded, tiling, timer, progress)
+                with time_limit(self.options.timeout_s):
+                    est = estimator.estimate(loaded, tiling, timer, progress)
                 normals = est.normals
                 if loaded.roi_box is not None:
                     # grown by a halo for context: every output is the requested ROI's

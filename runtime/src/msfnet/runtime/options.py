@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import numbers
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -170,6 +171,14 @@ class ModelOptions:
         type=tta_count,
         metavar="K",
     )
+    timeout_s: float | None = flag(
+        None,
+        "stop a model compile or a stack's inference still running after S seconds (exit 2; "
+        "a model that never ends, e.g. an endless Loop); default: no limit",
+        name="--timeout",
+        type=positive_float,
+        metavar="S",
+    )
     maps: MapOptions | None = DEFAULT_MAPS  # msf-run builds it from its map flags
 
     def __post_init__(self) -> None:
@@ -226,6 +235,10 @@ class ModelOptions:
                 "test-time augmentation (--tta, tta=) averages the network over turned "
                 "copies; least squares (--method l2) gives the same normals for every copy"
             )
+        if self.timeout_s is not None and not (
+            math.isfinite(self.timeout_s) and self.timeout_s > 0
+        ):
+            raise InputError(f"timeout {self.timeout_s}: must be a positive number of seconds")
         if not self.max_memory_mb > 0:
             raise InputError(f"max memory {self.max_memory_mb}: must be a positive number of MB")
         if self.threads is not None:

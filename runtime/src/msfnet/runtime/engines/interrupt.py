@@ -18,9 +18,11 @@ import contextlib
 import os
 import sys
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 from typing import TypeVar
 
+from msfnet.common.errors import InputError
 from msfnet.common.signals import Terminated
 
 T = TypeVar("T")
@@ -28,6 +30,38 @@ T = TypeVar("T")
 GRACE_S = 5.0  # how long a cancelled call may take to return
 _POLL_S = 0.2
 _hard_exit: list[int] = []  # the exit code, once an engine would not stop
+_limits: list[tuple[float, float]] = []  # (monotonic deadline, seconds) of time_limit blocks
+
+
+class TimeLimit(InputError):
+    """An engine compile or call still running when its time limit ran out."""
+
+    def __init__(self, seconds: float) -> None:
+        super().__init__(
+            f"the model did not finish within the time limit ({seconds:g} s): a model that "
+            "never ends, or a limit too short for this stack and CPU"
+        )
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float | None) -> Iterator[None]:
+    """Engine compiles and calls in the block stop once ``seconds`` have passed since it began
+    (TimeLimit, exit 2 in a command); None: no limit. Blocks nest: the earliest deadline wins."""
+    if seconds is None:
+        yield
+        return
+    _limits.append((time.monotonic() + seconds, seconds))
+    try:
+        yield
+    finally:
+        _limits.pop()
+
+
+def _check_limit() -> None:
+    if _limits:
+        deadline, seconds = min(_limits)
+        if time.monotonic() > deadline:
+            raise TimeLimit(seconds)
 
 
 def _exit_now() -> None:
@@ -41,7 +75,13 @@ def _exit_hard_at_exit(exc: BaseException) -> None:
     """End the process without waiting for the stuck native call (see the module notes)."""
     if _hard_exit:
         return
-    code = 128 + exc.signum if isinstance(exc, Terminated) else 130
+    code = (
+        128 + exc.signum
+        if isinstance(exc, Terminated)
+        else 2
+        if isinstance(exc, InputError)
+        else 130
+    )
     _hard_exit.append(code)
     atexit.register(_exit_now)
 
@@ -67,8 +107,8 @@ def run_interruptible(call: Callable[[], T], cancel: Callable[[], None]) -> T:
     worker.start()
     try:
         while not done.wait(_POLL_S):
-            pass
-    except BaseException as exc:  # KeyboardInterrupt, Terminated: stop the engine, then go on
+            _check_limit()
+    except BaseException as exc:  # a signal or the time limit: stop the engine, then go on
         cancel()
         try:
             stopped = done.wait(GRACE_S)
@@ -82,4 +122,4 @@ def run_interruptible(call: Callable[[], T], cancel: Callable[[], None]) -> T:
     return result[0]
 
 
-__all__ = ["GRACE_S", "run_interruptible"]
+__all__ = ["GRACE_S", "TimeLimit", "run_interruptible", "time_limit"]
