@@ -284,9 +284,10 @@ def test_the_whole_image_row_is_never_scaled_to_other_sizes():
 def test_the_int8_default_path_has_its_own_variant() -> None:
     """msf-run's default where the int8 twin is (OpenVINO int8, staged) is timed on (a)-(c)
     as ov-int8-staged, on the staged int8 export (which needs the calibration stacks)."""
-    from msfnet.bench.cli import INT8_MODEL_VARIANTS, MODEL_OF_VARIANT
+    from msfnet.bench.cli import INT8_MODEL_VARIANTS
     from msfnet.bench.report import PATH_VARIANT
+    from msfnet.bench.workloads import VARIANTS
 
     assert PATH_VARIANT[("openvino", "int8", "staged")] == "ov-int8-staged"
-    assert MODEL_OF_VARIANT["ov-int8-staged"] == "int8_staged"
+    assert VARIANTS["ov-int8-staged"].model == "int8_staged"
     assert set(INT8_MODEL_VARIANTS) == {"ort-int8", "ov-int8-staged"}

@@ -31,8 +31,6 @@ from msfnet.bench.edge import run_module
 from msfnet.bench.peak import engine_peaks, merge_peaks
 from msfnet.bench.report import write_report
 from msfnet.bench.workloads import (
-    BF16_VARIANTS,
-    OPENVINO_VARIANTS,
     QUICK_WORKLOADS,
     VARIANTS,
     WORKLOADS,
@@ -79,14 +77,8 @@ PER_LIGHT_FULL_MAX_LIGHTS = 16
 PER_LIGHT_FULL_REPEATS = 2  # timed runs in its one process: the median of two
 MAX_BENCH_LIGHTS = 10_000  # only to refuse absurd values at parse time
 
-MODEL_OF_VARIANT = {
-    "ort-int8": "int8",
-    "ort-fp32-staged": "fp32_staged",
-    "ov-bf16-staged": "fp32_staged",
-    "ov-int8-staged": "int8_staged",
-}
 # variants that need the int8 exports (and so the calibration stacks)
-INT8_MODEL_VARIANTS = tuple(v for v, m in MODEL_OF_VARIANT.items() if m.startswith("int8"))
+INT8_MODEL_VARIANTS = tuple(n for n, v in VARIANTS.items() if v.model.startswith("int8"))
 
 
 def thread_counts(text: str) -> list[int]:
@@ -383,11 +375,11 @@ def plan_run(args: argparse.Namespace) -> Plan:
     )  # --overwrite replaces an earlier report, nothing else
     notes: list[str] = []
     engines = installed_engines()
-    for v in [v for v in variants if v in OPENVINO_VARIANTS]:
+    for v in [v for v in variants if VARIANTS[v].engine == "openvino"]:
         if "openvino" not in engines:
             notes.append(f"{v} skipped: openvino not installed (pip install openvino)")
             variants.remove(v)
-        elif v in BF16_VARIANTS and not detect_cpu().has_bf16:
+        elif VARIANTS[v].precision == "bf16" and not detect_cpu().has_bf16:
             notes.append(f"{v} skipped: this CPU has no native bf16 (OpenVINO would run fp32)")
             variants.remove(v)
     return Plan(variants, notes, sorted(set(args.threads), reverse=True), checkpoint)
@@ -505,7 +497,7 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
         "machine": machine_description(),
         "quick": args.quick,
-        "variants": {v: VARIANTS[v] for v in variants},
+        "variants": {v: VARIANTS[v].about for v in variants},
         "notes": plan.notes,
         "data": {"stack": str(args.stack), "calib": [str(p) for p in args.calib]},
         "lights": args.lights,  # --lights: (d) on N lights against a measured per-light loop
@@ -533,7 +525,7 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
             "repeats": reps,
             "input": str(inputs[wl.key][0]),
             "checkpoint": models["checkpoint"],
-            "onnx": models[MODEL_OF_VARIANT.get(v, "fp32")],
+            "onnx": models[VARIANTS[v].model],
             "output": str(scratch / "out.npy"),
             "result": str(scratch / "result.json"),
         }

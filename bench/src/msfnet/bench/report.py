@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from msfnet.bench.workloads import ENGINE_OF_VARIANT, VARIANT_PEAK
+from msfnet.bench.workloads import VARIANTS
 from msfnet.common.files import write_atomic, write_json, write_text
 
 FULL_IMAGE_NOTE = (
@@ -69,7 +69,8 @@ def add_ratios(result: dict) -> None:
         r["fraction_fp32_peak"] = r["gflops_per_s"] / peak if peak else None
         # the variant's own precision on its own engine's kernels (int8 rows: GFLOP/s of the
         # analytic count over int8 GOP/s, a lower bound since part of the int8 model is fp32)
-        engine, dtype = VARIANT_PEAK.get(r["variant"], ("torch", "fp32"))
+        row = VARIANTS.get(r["variant"])
+        engine, dtype = (row.engine, row.precision) if row else ("torch", "fp32")
         own = _peak(result, dtype, r["threads"], engine)
         r["own_peak"] = f"{engine} {dtype}"
         r["fraction_own_peak"] = r["gflops_per_s"] / own if own else None
@@ -187,8 +188,9 @@ def add_e2e_ratios(result: dict) -> None:
 
 # (engine, precision, graph) of a run -> the (a)-(c) variant that times the same path
 PATH_VARIANT = {
-    (engine, precision, "staged" if v.endswith("-staged") else "monolithic"): v
-    for v, (engine, precision) in ENGINE_OF_VARIANT.items()
+    (v.engine, v.precision, "staged" if v.model.endswith("_staged") else "monolithic"): name
+    for name, v in VARIANTS.items()
+    if v.through_runtime
 }
 # the full-stack targets (docs/benchmark.md): >= 60x the per-light loop, <= 1.5 GiB
 FULL_STACK_X, FULL_STACK_MIB = 60.0, 1536.0
@@ -249,7 +251,7 @@ def targets(result: dict) -> list[str]:
             if r["workload"] == "b"
             and r["threads"] == t
             and r.get("fraction_own_peak")
-            and r["variant"] in VARIANT_PEAK
+            and r["variant"] in VARIANTS
         ),
         key=lambda r: r["median_s"],
         default=None,

@@ -47,46 +47,76 @@ class Workload:
 WORKLOADS = (Workload("a", 16, 64), Workload("b", 32, 128), Workload("c", 96, 128))
 QUICK_WORKLOADS = (Workload("a", 16, 64), Workload("b", 8, 64))
 
-# variant -> what it runs; "precision" is what the variant asks for
+
+@dataclass(frozen=True)
+class BenchVariant:
+    """One way of running the network that msf-bench times: ``engine`` / ``precision`` are
+    what it asks the runtime's dispatch for (``torch``: the PyTorch reference, outside the
+    runtime) and the matmul peak it is compared with; ``model`` the export it runs."""
+
+    name: str
+    about: str
+    engine: str  # onnxruntime, openvino or torch
+    precision: str  # fp32, bf16 or int8
+    model: str = "fp32"  # the export: fp32, fp32_staged, int8 or int8_staged
+
+    @property
+    def through_runtime(self) -> bool:
+        return self.engine != "torch"
+
+
 VARIANTS = {
-    "ort-fp32": "ONNX Runtime CPU, fp32 model (untiled)",
-    "ort-fp32-staged": (
-        f"ONNX Runtime CPU, staged fp32 model (msf-export --staged), {DEFAULT_CHUNK} lights a call"
-    ),
-    "ort-int8": "ONNX Runtime CPU, int8 QDQ model (extractor convs, calibrated on real stacks)",
-    "ov-bf16": "OpenVINO CPU, fp32 model with INFERENCE_PRECISION_HINT=bf16 (native bf16 only)",
-    "ov-bf16-staged": (
-        f"OpenVINO CPU, staged fp32 model in bf16, four sub-models, {DEFAULT_CHUNK} lights a call"
-    ),
-    "ov-int8-staged": (
-        f"OpenVINO CPU, staged int8 model (msf-export --variant staged-int8, as the bundled "
-        f"twin), {INT8_CHUNK} lights a call: msf-run's default where the twin is"
-    ),
-    "torch-fp32": "PyTorch eager fp32, lights folded into the batch",
-    "per-light": "PyTorch per-light loop (published style: recomputes stages)",
+    v.name: v
+    for v in (
+        BenchVariant("ort-fp32", "ONNX Runtime CPU, fp32 model (untiled)", "onnxruntime", "fp32"),
+        BenchVariant(
+            "ort-fp32-staged",
+            "ONNX Runtime CPU, staged fp32 model (msf-export --staged), "
+            f"{DEFAULT_CHUNK} lights a call",
+            "onnxruntime",
+            "fp32",
+            "fp32_staged",
+        ),
+        BenchVariant(
+            "ort-int8",
+            "ONNX Runtime CPU, int8 QDQ model (extractor convs, calibrated on real stacks)",
+            "onnxruntime",
+            "int8",
+            "int8",
+        ),
+        BenchVariant(
+            "ov-bf16",
+            "OpenVINO CPU, fp32 model with INFERENCE_PRECISION_HINT=bf16 (native bf16 only)",
+            "openvino",
+            "bf16",
+        ),
+        BenchVariant(
+            "ov-bf16-staged",
+            "OpenVINO CPU, staged fp32 model in bf16, four sub-models, "
+            f"{DEFAULT_CHUNK} lights a call",
+            "openvino",
+            "bf16",
+            "fp32_staged",
+        ),
+        BenchVariant(
+            "ov-int8-staged",
+            "OpenVINO CPU, staged int8 model (msf-export --variant staged-int8, as the bundled "
+            f"twin), {INT8_CHUNK} lights a call: msf-run's default where the twin is",
+            "openvino",
+            "int8",
+            "int8_staged",
+        ),
+        BenchVariant(
+            "torch-fp32", "PyTorch eager fp32, lights folded into the batch", "torch", "fp32"
+        ),
+        BenchVariant(
+            "per-light",
+            "PyTorch per-light loop (published style: recomputes stages)",
+            "torch",
+            "fp32",
+        ),
+    )
 }
-# variant -> (engine, precision) of the matmul peak it is compared with ("share of its own peak")
-VARIANT_PEAK = {
-    "ort-fp32": ("onnxruntime", "fp32"),
-    "ort-fp32-staged": ("onnxruntime", "fp32"),
-    "ort-int8": ("onnxruntime", "int8"),
-    "ov-bf16": ("openvino", "bf16"),
-    "ov-bf16-staged": ("openvino", "bf16"),
-    "ov-int8-staged": ("openvino", "int8"),
-    "torch-fp32": ("torch", "fp32"),
-    "per-light": ("torch", "fp32"),
-}
-# variant -> (engine, precision) it asks msfnet.runtime.engines.dispatch.open_engine for
-ENGINE_OF_VARIANT = {
-    "ort-fp32": ("onnxruntime", "fp32"),
-    "ort-fp32-staged": ("onnxruntime", "fp32"),
-    "ort-int8": ("onnxruntime", "int8"),
-    "ov-bf16": ("openvino", "bf16"),
-    "ov-bf16-staged": ("openvino", "bf16"),
-    "ov-int8-staged": ("openvino", "int8"),
-}
-OPENVINO_VARIANTS = tuple(v for v, (e, _) in ENGINE_OF_VARIANT.items() if e == "openvino")
-BF16_VARIANTS = tuple(v for v, (_, p) in ENGINE_OF_VARIANT.items() if p == "bf16")
 
 
 def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
@@ -136,13 +166,13 @@ finally:
 def _runner(variant: str, spec: dict):
     """Build the variant once; return (callable(images, lights) -> normals (1,3,H,W), info)."""
     threads = int(spec["threads"])
-    if variant in ENGINE_OF_VARIANT:
+    row = VARIANTS[variant]
+    if row.through_runtime:
         # through the runtime's own engines: the bench times what msf-run would run
         from msfnet.runtime.engines.dispatch import EngineChoice, open_engine
 
-        engine_key, precision = ENGINE_OF_VARIANT[variant]
         engine = open_engine(
-            EngineChoice(engine_key, precision, "msf-bench", Path(spec["onnx"])), threads
+            EngineChoice(row.engine, row.precision, "msf-bench", Path(spec["onnx"])), threads
         )
         return engine.run, {"precision": engine.precision, "engine": engine.describe()}
     import torch
@@ -311,13 +341,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 __all__ = [
-    "BF16_VARIANTS",
-    "ENGINE_OF_VARIANT",
-    "OPENVINO_VARIANTS",
     "QUICK_WORKLOADS",
     "VARIANTS",
-    "VARIANT_PEAK",
     "WORKLOADS",
+    "BenchVariant",
     "Workload",
     "asdict",
     "full_input",
