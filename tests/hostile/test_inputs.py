@@ -391,3 +391,17 @@ def test_an_objects_txt_entry_with_a_space_is_one_folder(tmp_path: Path) -> None
     (tmp_path / "objects.txt").write_text("no such part 1-4\n")
     with pytest.raises(InputError, match="'no such part' listed but not found"):
         find_objects(tmp_path)
+
+
+def test_msf_eval_says_one_line_when_the_budget_cannot_hold_a_stack(
+    ball_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """Issue #48: msf-eval printed bear's protocol line before its one-line error (the budget
+    was checked only when the first stack was decoded, after the notes)."""
+    from msfnet.runtime.cli.eval import main as eval_main
+
+    out = tmp_path / "e"
+    assert eval_main([str(ball_dir.parent), "--max-memory", "100", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "above --max-memory 100 MB" in err[0], err
+    assert not out.exists()

@@ -823,7 +823,7 @@ def _open_network(path: Path | None, opts: ModelOptions) -> NetworkEstimator:
     opened, reason = open_chosen(choice, opts.threads, requested=asked)
     if why and opened.name != choice.engine:
         # OpenVINO failed: the bundled file's reason must speak of the engine that runs it
-        # (it had claimed OpenVINO's bf16 comparison and its 0.30 deg; review-dispatch23.md 7)
+        # (it had claimed OpenVINO's bf16 comparison and its 0.30 deg)
         without = bundled_precision(
             detect_cpu(), installed_engines() - {"openvino"}, engine, opts.precision, device
         )

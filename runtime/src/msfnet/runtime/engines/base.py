@@ -154,8 +154,7 @@ def quantised_full_range(info: ModelInfo) -> bool:
 def check_int8_exact(info: ModelInfo, cpu: CpuInfo | None = None) -> None:
     """Refuse to run an int8 model where the CPU engines compute wrong numbers: full-range
     weights on a CPU without VNNI (see CpuInfo.int8_full_range). OpenVINO's AVX2 int8
-    kernels saturate too: a full-range u8 x s8 convolution was 252 off of 624 under the AVX2
-    cpuid proxy for both engines, exact natively (session 23)."""
+    kernels saturate too (scripts/int8_saturation.py, docs/benchmark.md)."""
     if model_precision(info) != "int8" or not quantised_full_range(info):
         return
     cpu = cpu or detect_cpu()

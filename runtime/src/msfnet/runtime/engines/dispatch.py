@@ -68,11 +68,9 @@ class Measured:
         return max(mean for mean, _ in self.deg.values())
 
 
-# (engine, precision, staged) -> measurement (docs/benchmark.md, "Dispatch measurements")
-# int8: exports with percentile activation ranges (msf-export since 2026-12-02); older ones
-# are judged by MINMAX_INT8_MEASURED below. The int8 rows since session 17: the bundled twin
-# (staged) and the same recipe exported plain (`--variant int8 --weight-bits 7`), OpenVINO
-# with its convolution outputs in f32 (engines.openvino.drop_output_requantisation).
+# (engine, precision, staged) -> measurement (docs/benchmark.md, "Dispatch measurements").
+# int8: the bundled twin's recipe (percentile ranges, 7-bit weights, OpenVINO's convolution
+# outputs in f32); exports with min/max ranges are judged by MINMAX_INT8_MEASURED below.
 MEASURED: dict[tuple[str, str, bool], Measured] = {
     ("onnxruntime", "int8", False): Measured({32: (0.265, 1.377), 96: (0.388, 2.723)}),
     ("onnxruntime", "int8", True): Measured({32: (0.310, 1.215), 96: (0.426, 2.725)}),
@@ -127,10 +125,9 @@ def cpu_class(cpu: CpuInfo) -> str:
 # median of interleaved runs (docs/benchmark.md, "Dispatch measurements"). Normals identical
 # (0.000 deg). A class missing here keeps ONNX Runtime fp32: nothing was measured there.
 OV_FP32_SPEEDUP: dict[str, float] = {
-    "avx2": 1.36,  # AMD EPYC, AVX2 only (another session; the issue's own run read 1.60)
+    "avx2": 1.36,  # AMD EPYC, AVX2 only
     "amx": 1.43,  # Intel Xeon with AMX
-    # AMD EPYC Zen 4, native (session 18): cat 7.75 against 8.36 s, 8-light ball 2.55 / 2.92 s
-    "zen4": 1.11,
+    "zen4": 1.11,  # AMD EPYC Zen 4, natively
 }
 
 
@@ -157,13 +154,10 @@ def int8_class(cpu: CpuInfo) -> str:
     return "avx2" if cpu.avx2 else "other"
 
 
-# int8 class -> an int8 export over the same model in fp32 through the same engine, same run:
-# workload (b) (128 px crop, 32 lights, 2 threads), medians of 5 interleaved rounds, the slower
-# engine's ratio (docs/benchmark.md, 2026-12-02 session 14); avx2_vnni: the bundled twin on
-# ONNX Runtime over the fp32 file on ONNX Runtime, whole 12-light psmImages cat (session 15).
-# avx2, avx2_vnni and vnni were measured in the cpuid proxy (msfnet.bench.cpu_proxy) on an AMX
-# Xeon; zen4 natively, the twin over the fp32 file end to end on the cat and the 8-light ball
-# (session 18); avx512 (AVX-512 without VNNI) and other were not measured: the fp32 file there.
+# int8 class -> an int8 export over the same model in fp32 through the same engine, same run,
+# the slower engine's ratio (docs/benchmark.md, "Dispatch measurements": workloads, runs and
+# which classes were measured in the cpuid proxy). avx512 (AVX-512 without VNNI) and other
+# were not measured: the fp32 file there.
 INT8_SPEEDUP: dict[str, float] = {
     "avx2": 1.52,  # OpenVINO 1.52-1.55x, ONNX Runtime 1.89x (7-bit weights)
     "avx2_vnni": 1.74,  # 5.64 against 9.83 s (load ~2)
@@ -171,12 +165,9 @@ INT8_SPEEDUP: dict[str, float] = {
     "zen4": 1.70,  # ONNX Runtime 1.92x cat, 1.50x ball; OpenVINO 2.29x / 1.44x
     "amx": 1.80,  # ONNX Runtime 1.80x, OpenVINO 2.98x (bf16 is faster still: 4.7x)
 }
-# int8 class -> OpenVINO int8 over ONNX Runtime int8: the bundled twin, msf-run end to end in
-# fresh processes with OpenVINO's compile cache warm, medians of 5 interleaved rounds, the
-# geometric mean of the 12-light psmImages cat and the 8-light full DiLiGenT ball; OpenVINO's
-# int8 convolution outputs f32 (engines.openvino.drop_output_requantisation). Session 17,
-# load ~1.7 (docs/benchmark.md); avx2* and vnni in the cpuid proxy; 4 lights a call (before
-# engines.openvino.INT8_CHUNK). zen4: natively in session 18, 2 lights a call.
+# int8 class -> OpenVINO int8 over ONNX Runtime int8: the bundled twin, msf-run end to end,
+# the geometric mean of the 12-light psmImages cat and the 8-light full DiLiGenT ball
+# (docs/benchmark.md, "Dispatch measurements").
 OV_INT8_SPEEDUP: dict[str, float] = {
     "avx2": 1.00,  # cat 5.58 against 5.53 s, ball 2.01 against 2.05 s
     "avx2_vnni": 1.00,  # cat 4.25 / 4.11 s, ball 1.64 / 1.69 s
@@ -190,13 +181,8 @@ OV_INT8_SPEEDUP: dict[str, float] = {
 # 5 and Intel Cooper Lake (avx512-bf16) were not measured with OpenVINO int8 (on Zen 5 ONNX
 # Runtime int8 ran 1.94x ONNX Runtime fp32 and bf16 3.31x, field notes).
 INT8_OVER_BF16: dict[str, float] = {
-    # AMD EPYC Zen 4 (2 cores, 2 threads), natively: msf-run end to end in fresh processes,
-    # medians of 5 interleaved rounds, the geometric mean of the 12-light cat (3.39 against
-    # 4.26 s) and the 8-light full ball (1.77 against 1.90 s); session 18, docs/benchmark.md
-    "zen4": 1.16,
-    # Intel Xeon with AMX: bf16 tiles beat int8 on these convolutions (workload (b), the 128 px
-    # crop: OpenVINO int8 2.98x OpenVINO fp32 against bf16 4.7x, session 14)
-    "amx": 0.63,
+    "zen4": 1.16,  # AMD EPYC Zen 4, natively: the cat and the 8-light full ball, end to end
+    "amx": 0.63,  # Intel Xeon with AMX: bf16 tiles beat int8 on these convolutions
 }
 
 
@@ -468,7 +454,7 @@ def bundled_precision(
     if speedup <= 1.0 or not default_allowed(int8.engine, "int8", True):
         return BundledChoice("fp32")
     m = MEASURED[(int8.engine, "int8", True)]
-    # features read without /proc/cpuinfo: bf16 unknown, not absent (review-today23.md 7)
+    # features read without /proc/cpuinfo: bf16 unknown, not absent
     unknown = f" ({_no_bf16(cpu)})" if over != "bf16" and not cpu.has_bf16 and cpu.partial else ""
     return BundledChoice(
         "int8",

@@ -66,10 +66,8 @@ CACHE_OFF = ("0", "off", "false", "no")
 CACHE_ON = ("1", "on", "true", "yes")
 # lights per stage call for int8 models on the CPU (staged_loop.DEFAULT_CHUNK for the others,
 # and on GPU / NPU, not measured): each stage model keeps an arena sized by its call, and a
-# fresh process pays a page fault for every page of it (~415k on the cat at 4 lights). At 2
-# lights, AVX2 proxy, fresh msf-run, 5 interleaved rounds: 12-light cat 5.01 -> 4.79 s (AVX-512
-# VNNI proxy 2.74 -> 2.63 s), 8-light ball 1.94 -> 1.91 s, 96-light ball 13.2-13.5 -> 13.4-13.8
-# s at 1,245 -> 973 MiB peak (session 17).
+# fresh process pays a page fault for every page of it; 2 lights a call kept the times and
+# cut the 96-light ball's peak by a fifth (docs/benchmark.md).
 INT8_CHUNK = 2
 _SS_DISABLE = 2  # sigaltstack's flag for "no alternate stack" (Linux)
 
@@ -506,10 +504,8 @@ def drop_output_requantisation(graph: Any) -> int:
     Why: those pairs only round a convolution's f32 result to 8 bits and back. OpenVINO's CPU
     plugin runs them as separate kernels (Convert, Subtract, Reorder: ~15 % of an int8 run on
     AVX2), while the convolution itself stays int8 through its input and weight quantisation.
-    Without them the bundled twin came closer to fp32 (DiLiGenT crops: at most 0.30 against
-    0.45 deg mean) and ran faster: the 8-light ball 4-5 % in fresh processes in the AVX2 and
-    AVX2-VNNI proxies, the 12-light cat 1.09x (proxy) and 1.19x (AMX) from the second call of
-    a process on (docs/benchmark.md, session 17). ONNX Runtime needs the pairs for its own
+    Without them the bundled twin came closer to fp32 and ran faster (docs/benchmark.md).
+    ONNX Runtime needs the pairs for its own
     int8 fusion (1.8x slower without): the file keeps them, and this edits OpenVINO's graph
     only. Only the exact FakeQuantize -> Convert -> Convert -> [Subtract] -> Multiply shape of
     a pair is removed."""
@@ -626,7 +622,7 @@ def open_openvino(
     if cache is not None:
         # a model loaded from the cache otherwise reads its weights from the mapped entry at
         # every call: another process rewriting that entry turned a running engine's normals
-        # into NaN (review, session 15); read into memory it costs nothing measurable
+        # into NaN; read into memory it costs nothing measurable
         with contextlib.suppress(Exception):
             core.set_property({"ENABLE_MMAP": False})
 

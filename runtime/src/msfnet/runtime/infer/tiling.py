@@ -33,7 +33,7 @@ HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window orig
 BYTES_PER_PIXEL_LIGHT = 3000
 # OpenVINO int8 (the bundled twin, convolution outputs f32, 2 lights a call: its arenas per
 # pixel-light grow as the call shrinks): 8 lights on a 384 px window peaked at 1,641 MiB at 2
-# lights a call, ~4,600 B a pixel-light besides the base (3,900 at 4 lights; review, session 17)
+# lights a call, ~4,600 B a pixel-light besides the base (3,900 at 4 lights)
 ACTIVATION_BYTES = {
     ("onnxruntime", "fp32"): 3600,
     ("openvino", "fp32"): 3800,

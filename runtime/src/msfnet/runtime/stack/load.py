@@ -523,14 +523,20 @@ def linked_reads(path: str | Path) -> list[Path]:
 
 def check_stack_files(path: str | Path, options: LoadOptions | None = None) -> None:
     """What :func:`load_stack` checks before decoding an image (the folder, its image list,
-    light and intensity files and their counts, --select / --max-lights), in milliseconds:
-    a command over many stacks finds a mismatch before its first stack runs, not after."""
+    light and intensity files and their counts, --select / --max-lights, and the first
+    kept image's header against the memory budget), in milliseconds: a command over many
+    stacks finds a mismatch before its first stack runs, not after."""
     opts = options or LoadOptions()
     path = Path(path)
     if path.suffix.lower() == ".npz":
         return  # one file, read whole: load_npz checks it as it opens it
     files = _folder_files(path, opts)
-    selection(len(files.paths), opts.select, opts.max_lights)
+    keep = selection(len(files.paths), opts.select, opts.max_lights)
+    header = image_header(files.paths[keep[0]])
+    if header is not None:  # the ROI without its halo: the exact check comes with the load
+        t = opts.transforms()
+        hh, ww = _held_size(header.shape, t, files.paths[keep[0]])
+        check_stack_size(len(keep), hh, ww, opts.max_memory_mb, path, _held_from_header(header, t))
 
 
 def load_folder(
