@@ -178,3 +178,25 @@ def test_msf_inspect_reads_a_maps_size_from_its_header_first(tmp_path: Path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "local_shape.tif" in err[0] and "MP limit" in err[0], err
     assert not out.exists()
+
+
+def test_msf_inspect_holds_a_run_folders_maps_to_max_memory(tmp_path: Path, capsys) -> None:
+    """Issue #48: --max-memory did not apply to msf-inspect on a run folder (msf-run refuses
+    the same headers up front). A 3000 x 3000 map needs about 650 MB to inspect."""
+    import tifffile
+
+    from msfnet import Model
+    from msfnet.runtime.cli.inspect import main as inspect_main
+    from msfnet.runtime.results.maps import MapOptions
+
+    run = tmp_path / "run"
+    Model.least_squares(maps=MapOptions(maps=("height",)))(sphere_stack(n=6, h=24, w=24)).save(run)
+    (run / "local_shape.tif").unlink()
+    with tifffile.TiffWriter(run / "local_shape.tif") as tw:
+        tw.write(shape=(3000, 3000), dtype=np.float32)  # declared, never written: sparse
+    out = tmp_path / "v"
+    argv = [str(run), "--depth", "0.1", "-o", str(out), "--max-memory", "500"]
+    assert inspect_main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "above --max-memory 500 MB" in err[0], err
+    assert not out.exists()

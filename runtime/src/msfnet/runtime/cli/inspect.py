@@ -29,6 +29,7 @@ from msfnet.runtime.results.defects import (
     DefectOptions,
     InspectionInput,
     Verdict,
+    check_run_memory,
     find_defects,
     from_maps,
     overlay_picture,
@@ -229,11 +230,14 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
             "leave them out, or give the stack",
             runs[0],
         )
+    budget = model_options(args).max_memory_mb
     for path in (args.input, args.reference):
         if path is not None:
             if not path.exists():  # the reference too, before the part's whole run
                 raise InputError("no such file or folder", path)
             _check_input_kind(path)
+            if _is_run(path):
+                check_run_memory(path, budget, args.reference is not None)
     part = _prepare(args.input, args)
     reference = None if args.reference is None else _prepare(args.reference, args)
     verdict, labels = find_defects(part, options, reference)
