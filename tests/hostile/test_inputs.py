@@ -5,6 +5,7 @@ Each test reproduces a case the audit found; each fails on the code before the f
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -405,3 +406,24 @@ def test_msf_eval_says_one_line_when_the_budget_cannot_hold_a_stack(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "above --max-memory 100 MB" in err[0], err
     assert not out.exists()
+
+
+def test_a_stack_without_shading_is_said(tmp_path: Path) -> None:
+    """Issue #48: a flat stack (one frame for every light) ran silently, exit 0."""
+    from dataclasses import replace
+
+    stack = sphere_stack(n=8, h=24, w=24)
+    flat = replace(stack, images=np.repeat(stack.images[:1], 8, axis=0))
+    folder = save_stack(flat, tmp_path / "flat")
+    out = tmp_path / "out"
+    argv = [str(folder), "--method", "l2", "--no-maps", "-o", str(out)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "msfnet.runtime.cli.run", *argv],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "warning: every image is the same inside the mask" in proc.stderr
+    assert json.loads((out / "profile.json").read_text())["warnings"]
+    assert not stack.validate().warnings  # a shaded stack says nothing

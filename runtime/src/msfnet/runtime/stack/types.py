@@ -283,6 +283,22 @@ class Stack:
         self.warnings = [
             *self.load_warnings,
             *self._dark_images(mean / self.intensities.astype(np.float64).mean(axis=1), src),
+            *self._unshaded(peak, low, mean),
+        ]
+
+    def _unshaded(self, peak: np.ndarray, low: np.ndarray, mean: np.ndarray) -> list[str]:
+        """A warning where every image is the same inside the mask: no shading between the
+        lights (they did not switch, or one frame was saved N times). Compared in full only
+        where each image's extremes and mean agree, which almost never happens otherwise."""
+        if np.ptp(peak) or np.ptp(low) or np.ptp(mean):
+            return []
+        first = self.images[0][self.mask]
+        if any(not np.array_equal(img[self.mask], first) for img in self.images[1:]):
+            return []
+        return [
+            "every image is the same inside the mask: no shading between the lights (did "
+            "they switch?); the normals are a guess unless the lights lie on one cone around "
+            "the view, as a ring light over a flat part"
         ]
 
     def _dark_images(self, brightness: np.ndarray, src: str | Path | None) -> list[str]:
