@@ -94,3 +94,33 @@ def test_fine_detail_says_it_runs_twice(
         "fine detail, pass 1 of 2: the network on the stack enlarged to 96x80",
         "fine detail, pass 2 of 2: the network on the stack as it is",
     ]
+
+
+def test_the_status_line_ticks_while_a_step_runs(capsys) -> None:
+    """It showed the time a step started and never moved (issue #49)."""
+    import time
+
+    with run_cli.stage_status("part", True) as step:
+        step("estimating the normals")
+        time.sleep(1.3)  # one tick of the status line
+    shown = capsys.readouterr().err
+    assert "estimating the normals ... (0.0 s)" in shown
+    assert "estimating the normals ... (1." in shown, shown
+
+
+def test_in_a_pipe_each_step_is_a_line_on_stdout(
+    random_onnx: Path, stack_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """A run in a pipe said nothing for minutes (issue #49); its steps are lines beside the
+    result lines on stdout, stderr keeps warnings and the one error line."""
+    argv = [str(stack_dir), "--onnx", str(random_onnx), "--tile", "0", "-o", str(tmp_path / "p")]
+    assert run_main(argv) == 0
+    seen = capsys.readouterr()
+    assert seen.err == ""
+    lines = seen.out.splitlines()
+    assert lines[:2] == [
+        "msf-run: sphere: reading the stack ...",
+        "msf-run: sphere: estimating the normals ...",
+    ], lines
+    assert run_main([*argv, "-q", "--overwrite"]) == 0
+    assert capsys.readouterr().out == ""

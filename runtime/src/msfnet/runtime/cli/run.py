@@ -6,6 +6,7 @@ import argparse
 import os
 import re
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -276,25 +277,46 @@ def _terminal() -> bool:
 
 
 @contextmanager
-def stage_status(name: str, enabled: bool) -> Iterator[Callable[[str], None]]:
-    """A status line on stderr naming the step under way and the time so far (a run without
-    tiles is otherwise silent for a minute or two). On a terminal only, and erased when the
-    run ends, so what stays is the result, or one error line."""
+def stage_status(name: str, enabled: bool, lines: bool = False) -> Iterator[Callable[[str], None]]:
+    """Where a run stands, so that long work does not look dead. On a terminal (``enabled``):
+    a status line on stderr naming the step under way and the time so far, ticking each
+    second (it showed the time a step started, and never moved), erased when the run ends,
+    so what stays is the result, or one error line. In a pipe (``lines``): one line a step on
+    stdout, beside the result lines a log keeps (a run said nothing there for minutes)."""
+    started = time.perf_counter()
+    current = [""]
     bar = None
+    done = threading.Event()
+
+    def show() -> None:
+        if bar is not None and current[0]:
+            took = time.perf_counter() - started
+            bar.set_description_str(f"{PROG}: {name}: {current[0]} ... ({took:.1f} s)", True)
+
+    def step(what: str) -> None:
+        current[0] = what
+        if lines:
+            print(f"{PROG}: {name}: {what} ...", flush=True)
+        show()
+
+    ticker = None
     if enabled:
         from tqdm import tqdm
 
         bar = tqdm(total=0, bar_format="{desc}", leave=False, file=sys.stderr, dynamic_ncols=True)
-    started = time.perf_counter()
 
-    def step(what: str) -> None:
-        if bar is not None:
-            took = time.perf_counter() - started
-            bar.set_description_str(f"{PROG}: {name}: {what} ... ({took:.1f} s)", refresh=True)
+        def tick() -> None:
+            while not done.wait(1.0):
+                show()
 
+        ticker = threading.Thread(target=tick, name="msfnet-status", daemon=True)
+        ticker.start()
     try:
         yield step
     finally:
+        done.set()
+        if ticker is not None:
+            ticker.join(2.0)
         if bar is not None:
             bar.close()
 
@@ -338,7 +360,7 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
     if item is not None:
         _say(req, item.note(load))
     with (
-        stage_status(name, enabled=not req.quiet and _terminal()) as step,
+        stage_status(name, not req.quiet and _terminal(), req.chatty and not _terminal()) as step,
         announcing(step),
         naming_the_stack(src),
     ):
