@@ -35,9 +35,12 @@ def test_bundled_model_is_an_msfnet_model_with_dynamic_lights() -> None:
         np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, atol=1e-4)
 
 
-def test_demo_main_job_writes_outputs_and_metrics(tmp_path: Path, capsys) -> None:
-    out = tmp_path / "demo"
-    assert run_main(["--demo", "-o", str(out), "--threads", "2"]) == 0
+def test_demo_main_job_writes_outputs_and_metrics(
+    tmp_path: Path, capsys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "msf-out" / "msfnet-sample"  # not msf-out/demo: a user's capture's name
+    assert run_main(["--demo", "--threads", "2"]) == 0
     printed = capsys.readouterr().out
     assert "MAE" in printed and "least squares on the same stack" in printed
     metrics = json.loads((out / "metrics.json").read_text())

@@ -13,7 +13,12 @@ from msfnet.runtime.stack import Stack, load_stack
 DEMO_FILE = Path(__file__).resolve().parent / "data" / "demo_stack.npz"
 
 
+# the sample's name, and so its default output folder (msf-out/msfnet-sample): not "demo", which
+# a user's own capture folder may well be called (it then landed in msf-out/demo-2)
+DEMO_NAME = "msfnet-sample"
+
+
 def demo_stack() -> Stack:
     stack = load_stack(DEMO_FILE)
-    stack.name = "demo"
+    stack.name = DEMO_NAME
     return stack
