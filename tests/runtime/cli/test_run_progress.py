@@ -124,3 +124,15 @@ def test_in_a_pipe_each_step_is_a_line_on_stdout(
     ], lines
     assert run_main([*argv, "-q", "--overwrite"]) == 0
     assert capsys.readouterr().out == ""
+
+
+def test_the_engine_choice_is_one_short_line_and_whole_in_the_profile(
+    stack_dir: Path, tmp_path: Path, capsys
+) -> None:
+    """The ~400-character reason filled a station's log line (issue #49)."""
+    out = tmp_path / "e"
+    assert run_main([str(stack_dir), "--no-maps", "-o", str(out)]) == 0
+    choice = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("engine choice")]
+    reason = json.loads((out / "profile.json").read_text())["choice"]
+    assert len(choice) == 1 and len(choice[0]) <= 160, choice
+    assert choice[0].removeprefix("engine choice: ").split(" (every reason")[0] in reason

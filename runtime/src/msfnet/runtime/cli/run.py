@@ -221,8 +221,9 @@ def print_result(result: Result, outdir: Path, files: list[Path], req: RunReques
         f"{result.stack.name}: {p['lights']} lights, {p['width']}x{p['height']}, "
         f"{p['mask_pixels']} mask px, {p['method']} ({p['engine']} {p['precision']})"
     )
-    if p.get("choice"):
-        print(f"engine choice: {p['choice']}")
+    if p.get("choice"):  # its first reason: the whole (~400 characters) filled a log's line
+        first, _, more = str(p["choice"]).partition("; ")
+        print(f"engine choice: {first}" + (" (every reason: profile.json, choice)" if more else ""))
     tiles = p.get("tiles")
     if isinstance(tiles, dict):
         size = tiles["tile_px"] or "untiled"
