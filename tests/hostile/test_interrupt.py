@@ -229,3 +229,21 @@ def test_the_time_limit_is_a_positive_number_of_seconds() -> None:
     with pytest.raises(InputError, match="timeout"):
         ModelOptions(timeout_s=0)
     assert ModelOptions(timeout_s=1.5).timeout_s == 1.5
+
+
+@pytest.mark.slow
+def test_msf_bench_holds_each_format_to_its_time_limit(ball_dir: Path, tmp_path: Path) -> None:
+    """Issue #48: a model with an endless Loop hung `msf-bench --onnx` (no per-format limit);
+    with --timeout each format's row fails at its limit and the report is written."""
+    model = spinning_model(tmp_path / "spin.onnx")
+    out = tmp_path / "bench"
+    argv = ["--onnx", str(model), "--timeout", "3", "--data", str(ball_dir.parents[1])]
+    proc = subprocess.run(
+        [sys.executable, "-m", "msfnet.bench.cli", *argv, "-o", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,  # a hang guard: without the limit the first row never ends
+    )
+    assert proc.returncode == 0, proc.stderr
+    report = (out / "REPORT.md").read_text()
+    assert report.count("did not finish within the time limit (3 s)") >= 1, report

@@ -27,9 +27,9 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.bench.data import ENV_VAR, data_root
-from msfnet.bench.edge import run_module
 from msfnet.bench.peak import engine_peaks, merge_peaks
 from msfnet.bench.report import write_report
+from msfnet.bench.worker import row_time_limit, run_module
 from msfnet.bench.workloads import (
     QUICK_WORKLOADS,
     VARIANTS,
@@ -224,6 +224,13 @@ run, never cached between runs, so a report always measures the models it holds.
         action="store_true",
         help="time and peak memory by image size x light count x engine (default engine and "
         "ONNX Runtime fp32), whole stacks through the runtime; with --quick a small grid",
+    )
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        metavar="S",
+        help="stop a row, cell or speed rung still running after S seconds and report it as "
+        "failed (a model that never ends; default: no limit)",
     )
     p.add_argument(
         "--overwrite",
@@ -910,10 +917,11 @@ def _body(args: argparse.Namespace, argv: list[str]) -> int:
         print(f"{PROG}: running as {args.cpu_proxy} (cpuid proxy)", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os.execvpe(sys.executable, [sys.executable, "-m", "msfnet.bench.cli", *argv], env)
-    if _edge_mode(args):
-        _refuse_torch_options(args)
-        return _run_edge(args)
-    return _run(args)
+    with row_time_limit(args.timeout):
+        if _edge_mode(args):
+            _refuse_torch_options(args)
+            return _run_edge(args)
+        return _run(args)
 
 
 def _refuse_torch_options(args: argparse.Namespace) -> None:

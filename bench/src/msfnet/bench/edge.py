@@ -20,7 +20,6 @@ from __future__ import annotations
 import json
 import math
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -31,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from msfnet.bench.ladder import REPEAT
+from msfnet.bench.worker import run_module
 from msfnet.common.errors import InputError
 
 if TYPE_CHECKING:
@@ -259,18 +259,6 @@ def measure_requirement(spec: dict) -> dict:
         "peak_mb": peak_rss_mb(),
         "engine": f"{d['engine']} {d['precision']}",
     }
-
-
-def run_module(module: str, spec: dict, spec_file: Path) -> dict:
-    """``python -m module spec_file`` in a fresh process (its peak memory its own); the worker
-    writes its answer to ``spec["result"]``. {"error": its last stderr line} if it failed."""
-    spec_file.write_text(json.dumps(spec))
-    proc = subprocess.run(
-        [sys.executable, "-m", module, str(spec_file)], capture_output=True, text=True
-    )
-    if proc.returncode != 0:
-        return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1][:300]}
-    return json.loads(Path(spec["result"]).read_text())
 
 
 CROP_FIELDS = ("images", "lights", "mask", "gt")

@@ -9,7 +9,6 @@ does, so it runs on an edge install.
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -18,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msfnet.bench.worker import run_process
 from msfnet.common.errors import InputError
 from msfnet.common.files import writing_as
 
@@ -143,11 +143,9 @@ def ladder_rows(
         }
         spec_file = scratch / f"ladder-{name}.spec.json"
         spec_file.write_text(json.dumps(spec))
-        proc = subprocess.run(
-            [sys.executable, "-m", "msfnet.bench.ladder", str(spec_file)],
-            capture_output=True,
-            text=True,
-        )
+        proc = run_process([sys.executable, "-m", "msfnet.bench.ladder", str(spec_file)])
+        if isinstance(proc, str):
+            raise RuntimeError(f"speed rung {name}: {proc}")
         if proc.returncode == 2 and result.is_file():  # the input, in the worker's words
             refused = json.loads(result.read_text())
             raise InputError(f"speed rung {name}: {refused['input_error']}", refused["path"])
