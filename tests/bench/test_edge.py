@@ -329,7 +329,7 @@ def test_a_ladder_worker_refusing_its_input_is_an_input_error(tmp_path: Path, mo
         returncode = 2
         stderr = ""
 
-    monkeypatch.setattr(ladder.subprocess, "run", lambda *a, **k: Done())
+    monkeypatch.setattr(ladder, "run_process", lambda argv: Done())
     with pytest.raises(InputError, match=r"^m.onnx: speed rung full: exported for exactly 8"):
         ladder.ladder_rows(None, tmp_path, rungs=("full",), scratch=tmp_path)
 

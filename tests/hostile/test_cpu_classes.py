@@ -176,6 +176,7 @@ def test_the_quantise_pass_hands_weight_bits_to_the_quantiser(
     model); 8 on an AVX2 CPU is the user's call; none: the exporting CPU decides. Through the
     quantise-int8 pass itself, with ONNX Runtime's quantiser replaced by a recorder."""
     onnx = pytest.importorskip("onnx")
+    pytest.importorskip("torch", reason="msf-export's passes need the [export] extra")
     from msfnet.export.passes import PASSES, PassContext
     from msfnet.export.variants import ExportOptions, get_variant
 
