@@ -388,3 +388,27 @@ def test_synth_on_a_full_disk_is_one_line(full: Path, world: Path, capfd) -> Non
         capfd,
         world,
     )
+
+
+def test_a_capture_after_a_killed_one_leaves_no_staging(tmp_path: Path) -> None:
+    """Issue #48: SIGKILL during msf-capture left its session's staging file, and a resumed
+    capture that did not write session.json again left it for good. A dead writer's staging
+    of any file is swept when the next capture takes the folder (kill -9 cannot be caught)."""
+    from msfnet.calib.capture_cli import main as capture_main
+    from msfnet.common.files.staging import new_staging
+
+    out = tmp_path / "cap"
+    argv = [str(out), "--camera", "sim", "--light-rig", "sim", "--count", "4", "-q"]
+    assert capture_main(argv) == 0
+    dead = subprocess.run(  # the staging a killed writer leaves: its pid is gone
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    ).stdout.strip()
+    left = [
+        new_staging(out / "session.json", folder=False),
+        new_staging(out / "raw" / "x.png", folder=False),
+    ]
+    for path in left:
+        mine = path.name.split(".msf-partial-")[1].split("@")[0]
+        path.rename(path.with_name(path.name.replace(f"-{mine}@", f"-{dead}@")))
+    assert capture_main(argv) == 0  # resumes: every frame is there, session.json unchanged
+    assert not [p for p in out.rglob("*") if ".msf-partial-" in p.name]

@@ -37,7 +37,12 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.common.errors import InputError
-from msfnet.common.files import folder_lock, vectors_text, write_atomic
+from msfnet.common.files import (
+    folder_lock,
+    remove_stale_staging_in,
+    vectors_text,
+    write_atomic,
+)
 from msfnet.common.imageio import (
     image_header,
     list_images,
@@ -521,6 +526,9 @@ def capture_stack(
     """
     out = Path(out_dir)
     with folder_lock(out, "msf-capture"):
+        # what a capture killed with kill -9 was writing (it cannot clean up after itself)
+        remove_stale_staging_in(out)
+        remove_stale_staging_in(out / "raw")
         return _capture(
             camera,
             lights,

@@ -52,7 +52,12 @@ from msfnet.common.files.manifest import (
     refuse_foreign,
     writing_as,
 )
-from msfnet.common.files.staging import STAGING_TAG, remove_stale_staging, scratch_folder
+from msfnet.common.files.staging import (
+    STAGING_TAG,
+    remove_stale_staging,
+    remove_stale_staging_in,
+    scratch_folder,
+)
 from msfnet.common.files.text import json_text, to_jsonable, vectors_text
 
 __all__ = [
@@ -72,6 +77,7 @@ __all__ = [
     "numbered_folder",
     "refuse_foreign",
     "remove_stale_staging",
+    "remove_stale_staging_in",
     "same_file",
     "scratch_folder",
     "staged_files",

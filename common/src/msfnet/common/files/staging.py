@@ -99,14 +99,25 @@ def _writer_is_dead(pid_text: str, where: str, entry: Path) -> bool:
 def remove_stale_staging(target: Path) -> None:
     """Remove staging left beside ``target`` by writers that no longer run (kill -9, a power
     cut); staging named without a pid space (older versions) counts as this one's."""
-    parent = target.parent
-    if not parent.is_dir():
-        return
-    prefix = staging_prefix(target)
+    if target.parent.is_dir():
+        _sweep(target.parent, staging_prefix(target))
+
+
+def remove_stale_staging_in(folder: Path) -> None:
+    """:func:`remove_stale_staging` for every target in ``folder``: a command that owns the
+    folder (msf-capture's session) sweeps what its killed predecessor was writing, also files
+    this run will not write again (a resumed capture left a dead run's session.json staging)."""
+    if folder.is_dir():
+        _sweep(folder, ".")
+
+
+def _sweep(parent: Path, prefix: str) -> None:
     for entry in parent.iterdir():
-        if not entry.name.startswith(prefix):
+        name = entry.name
+        if not name.startswith(prefix) or STAGING_TAG not in name:
             continue
-        pid_text, _, where = entry.name[len(prefix) :].split("-", 1)[0].partition("@")
+        rest = name[len(prefix) :] if prefix != "." else name.partition(STAGING_TAG)[2]
+        pid_text, _, where = rest.split("-", 1)[0].partition("@")
         if _writer_is_dead(pid_text, where, entry):
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)
