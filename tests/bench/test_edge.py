@@ -23,7 +23,10 @@ def test_edge_table_has_the_ultralytics_columns() -> None:
         edge.EdgeRow("--device cuda", "skipped: ONNX Runtime has no CUDA", 4.27, None, None, None),
     ]
     text = edge.edge_table(rows).splitlines()
-    assert text[0].startswith("| format | status | size (MB) | MAE (deg, 12 lights) | ms")
+    assert text[0].startswith(
+        "| format | status | size (MB) | MAE (deg, mean of DiLiGenT ball / bear / harvest 128 px "
+        "crops, 12 lights) | ms"
+    )
     assert text[2] == "| OpenVINO bf16 | ✅ | 4.3 | 4.12 | 812 | 567 |"
     assert text[3] == "| --device cuda | ❌ skipped: ONNX Runtime has no CUDA | 4.3 | - | - | - |"
 
