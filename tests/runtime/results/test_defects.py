@@ -18,6 +18,7 @@ from msfnet.runtime.results.defects import (
     align_shift,
     find_defects,
     from_maps,
+    read_run,
     shift_map,
 )
 from msfnet.runtime.results.maps import MapOptions
@@ -429,3 +430,19 @@ def test_older_run_folders_and_curvature_only_runs_keep_their_frame_and_units(
     mm = MapOptions(maps=("curvature",), pixel_size_mm=0.05)
     Model.least_squares(maps=mm)(plate.stack).save(curv)
     assert read_run(curv).units == {"depth": "mm", "curvature": "1/mm"}
+
+
+def test_the_judged_map_statistics_are_printed_and_kept(plate_run: Path, tmp_path: Path, capsys):
+    """msf-inspect printed no statistics of the map it judges, so a user could not choose a
+    threshold (issue #49): p50 / p99 / max of |local shape| in its units, beside the threshold."""
+    out = tmp_path / "v"
+    inspect_main([str(plate_run), "--depth", "0.1", "-o", str(out)])
+    printed = capsys.readouterr().out.splitlines()
+    stats = json.loads((out / "verdict.json").read_text())["statistics"]
+    assert [s["map"] for s in stats] == ["local shape"] and stats[0]["units"] == "px"
+    part = read_run(plate_run)
+    assert part.local_shape is not None
+    values = np.abs(part.local_shape[part.mask])
+    assert stats[0]["p99"] == pytest.approx(float(np.percentile(values, 99)), rel=1e-5)
+    assert stats[0]["max"] == pytest.approx(float(values.max()), rel=1e-6)
+    assert printed[-1].startswith("local shape: p50 ") and "(threshold 0.1 px)" in printed[-1]

@@ -248,6 +248,8 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         encode_png(tmp / "overlay.png", picture)
     if not args.quiet:
         print(_summary(verdict, args.output))
+        for judged in verdict.statistics:  # what a threshold is chosen from, in its units
+            print(judged.line())
     return verdict.exit_code
 
 

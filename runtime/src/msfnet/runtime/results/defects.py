@@ -89,9 +89,28 @@ class Region:
 
 
 @dataclass(frozen=True)
+class JudgedStatistics:
+    """One judged map inside the inspected pixels, toward the rule's polarity (what a
+    threshold is chosen from): its median, 99th percentile and maximum, in ``units``."""
+
+    map: str  # "local shape" or "curvature"
+    units: str
+    threshold: float
+    p50: float
+    p99: float
+    max: float
+
+    def line(self) -> str:
+        return (
+            f"{self.map}: p50 {self.p50:.3g}, p99 {self.p99:.3g}, max {self.max:.3g} "
+            f"{self.units} (threshold {self.threshold:g} {self.units})"
+        )
+
+
+@dataclass(frozen=True)
 class Verdict:
     """``passed``: no region found. ``units``: of depth and curvature. ``shift``: the
-    reference's alignment (x, y px) when one was used."""
+    reference's alignment (x, y px) when one was used. ``statistics``: of each judged map."""
 
     passed: bool
     regions: tuple[Region, ...]
@@ -105,6 +124,7 @@ class Verdict:
     frame: Frame = field(default_factory=Frame)
     aligned_on: str | None = None  # "albedo" or "local shape": what the shift came from
     provenance: dict[str, str | None] | None = None  # what produced the maps (Provenance)
+    statistics: tuple[JudgedStatistics, ...] = ()
 
     @property
     def exit_code(self) -> int:
@@ -127,6 +147,7 @@ class Verdict:
             "frame": self.frame.as_dict(),
             "notes": list(self.notes),
             "provenance": self.provenance,
+            "statistics": [asdict(st) for st in self.statistics],
         }
 
     def json_text(self) -> str:
@@ -505,14 +526,18 @@ def find_defects(
     signed_curv = None if curv is None else np.nan_to_num(curv)
     high = np.zeros(mask.shape, bool)
     low = np.zeros(mask.shape, bool)
+    judged: list[JudgedStatistics] = []
     if options.depth is not None:
         size = _toward(signed, options.polarity)
         high |= size >= options.depth
         low |= size >= 0.5 * options.depth
+        judged.append(_statistics("local shape", part.units["depth"], options.depth, size, mask))
     if options.curvature is not None and signed_curv is not None:
         bend = _toward(signed_curv, options.polarity)
         high |= bend >= options.curvature
         low |= bend >= 0.5 * options.curvature
+        unit = part.units["curvature"]
+        judged.append(_statistics("curvature", unit, options.curvature, bend, mask))
     high &= mask
     low &= mask
     _, labels, stats, cents = cv2.connectedComponentsWithStats(low.astype(np.uint8), connectivity=8)
@@ -563,8 +588,17 @@ def find_defects(
         source=part.source,
         frame=frame,
         aligned_on=aligned_on,
+        statistics=tuple(judged),
     )
     return verdict, out
+
+
+def _statistics(
+    name: str, units: str, threshold: float, values: np.ndarray, mask: np.ndarray
+) -> JudgedStatistics:
+    inside = values[mask]
+    p50, p99 = (float(v) for v in np.percentile(inside, (50, 99)))
+    return JudgedStatistics(name, units, threshold, p50, p99, float(inside.max()))
 
 
 def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
@@ -601,6 +635,7 @@ __all__ = [
     "POLARITIES",
     "DefectOptions",
     "InspectionInput",
+    "JudgedStatistics",
     "Region",
     "Verdict",
     "align_shift",
