@@ -362,9 +362,22 @@ def test_settings_the_maps_cannot_use_are_refused_before_the_estimate(
 @pytest.mark.parametrize("name", [b"caf\xc3\xa9", LATIN1], ids=["utf-8", "latin-1"])
 def test_any_name_prints_under_an_ascii_locale(name: bytes, tmp_path: Path) -> None:
     """Under LANG=C / PYTHONIOENCODING=ascii a non-ASCII name ended in a UnicodeEncodeError,
-    once after the output was written (the summary line names the stack)."""
+    once after the output was written (the summary line names the stack). Under LANG=C alone
+    an undecodable name still prints as its own bytes (a script reads the path back)."""
     folder = save_stack(sphere_stack(n=6, h=16, w=16), _latin1(tmp_path, name))
     out = _latin1(tmp_path, name + b"_out")
+    if name == LATIN1:
+        env = {**os.environ, "LANG": "C", "LC_ALL": "C"}
+        env.pop("PYTHONIOENCODING", None)
+        argv = [os.fsencode(folder), "--no-maps", "--method", "l2", "-o", os.fsencode(out)]
+        proc = subprocess.run(
+            [sys.executable, "-m", "msfnet.runtime.cli.run", *argv],
+            capture_output=True,
+            env=env,
+            timeout=120,
+        )
+        assert proc.returncode == 0 and os.fsencode(out) in proc.stdout, proc.stdout[-300:]
+        out = _latin1(tmp_path, name + b"_out2")
     env = {**os.environ, "LANG": "C", "LC_ALL": "C", "PYTHONIOENCODING": "ascii"}
     argv = [os.fsencode(folder), "--no-maps", "--method", "l2", "-o", os.fsencode(out)]
     proc = subprocess.run(
@@ -389,6 +402,8 @@ def test_an_objects_txt_entry_with_a_space_is_one_folder(tmp_path: Path) -> None
     (tmp_path / "objects.txt").write_text("my part\nbear part 2 2-7  # a selection\n")
     found = find_objects(tmp_path)
     assert [(o.folder.name, o.select) for o in found] == [("my part", None), ("bear part 2", "2-7")]
+    (tmp_path / "objects.txt").write_text("my part\t1:3\n")  # a tab, a colon range
+    assert [(o.folder.name, o.select) for o in find_objects(tmp_path)] == [("my part", "1:3")]
     (tmp_path / "objects.txt").write_text("no such part 1-4\n")
     with pytest.raises(InputError, match="'no such part' listed but not found"):
         find_objects(tmp_path)

@@ -247,3 +247,44 @@ def test_msf_bench_holds_each_format_to_its_time_limit(ball_dir: Path, tmp_path:
     assert proc.returncode == 0, proc.stderr
     report = (out / "REPORT.md").read_text()
     assert report.count("did not finish within the time limit (3 s)") >= 1, report
+
+
+def test_a_time_limit_belongs_to_its_thread_and_pickles_whole() -> None:
+    """Review: the limits were one process-wide list; a 0.05 s block in another thread
+    cancelled the main thread's unlimited call, and a limit did nothing off the main thread."""
+    import pickle
+    import threading
+
+    from msfnet.runtime.engines.interrupt import TimeLimit, run_interruptible, time_limit
+
+    inside = threading.Event()
+    leave = threading.Event()
+
+    def other() -> None:
+        with time_limit(0.05):
+            inside.set()
+            leave.wait(5)
+
+    thread = threading.Thread(target=other)
+    thread.start()
+    inside.wait(5)
+    try:  # the main thread has no limit: its 0.6 s call runs to its end
+        assert run_interruptible(lambda: time.sleep(0.6) or "done", lambda: None) == "done"
+    finally:
+        leave.set()
+        thread.join()
+    seen: list[BaseException] = []
+
+    def limited() -> None:  # off the main thread, the limit holds too
+        with time_limit(0.2):
+            try:
+                run_interruptible(lambda: time.sleep(1.0), lambda: None)
+            except TimeLimit as exc:
+                seen.append(exc)
+
+    worker = threading.Thread(target=limited)
+    worker.start()
+    worker.join(10)
+    assert len(seen) == 1 and seen[0].seconds == 0.2
+    copy = pickle.loads(pickle.dumps(seen[0]))
+    assert isinstance(copy, TimeLimit) and str(copy) == str(seen[0])

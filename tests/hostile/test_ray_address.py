@@ -30,6 +30,8 @@ from msfnet.runtime.stack import save_stack
         ("head.example:6379", ("head.example", 6379)),
         ("ray://head", ("head", RAY_CLIENT_PORT)),
         ("ray://[::1]:10001", ("::1", 10001)),
+        ("ray_head:6379", ("ray_head", 6379)),  # a Docker service name
+        ("head.example.com.:6379", ("head.example.com.", 6379)),  # absolute
     ],
 )
 def test_addresses_ray_takes(address: str, endpoint: tuple[str, int] | None) -> None:

@@ -175,3 +175,5 @@ def test_repr_is_one_line_of_what_the_stack_is() -> None:
     text = repr(sphere_stack(n=8, h=36, w=44))
     assert "\n" not in text and len(text) < 200
     assert text == "Stack('sphere', 8 lights, 44x36, float32, mask_px=788, ground truth)"
+    broken = Stack("x", np.zeros((4, 5)), np.zeros((1, 3)), np.ones((1, 3)), np.ones((4, 5), bool))
+    assert repr(broken) == "Stack('x', not a valid stack)"  # repr runs in debuggers too

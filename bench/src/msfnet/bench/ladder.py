@@ -144,8 +144,8 @@ def ladder_rows(
         spec_file = scratch / f"ladder-{name}.spec.json"
         spec_file.write_text(json.dumps(spec))
         proc = run_process([sys.executable, "-m", "msfnet.bench.ladder", str(spec_file)])
-        if isinstance(proc, str):
-            raise RuntimeError(f"speed rung {name}: {proc}")
+        if isinstance(proc, str):  # the model given did not finish: the user's to change
+            raise InputError(f"speed rung {name}: {proc}")
         if proc.returncode == 2 and result.is_file():  # the input, in the worker's words
             refused = json.loads(result.read_text())
             raise InputError(f"speed rung {name}: {refused['input_error']}", refused["path"])

@@ -404,15 +404,17 @@ def _printable_streams() -> Iterator[None]:
     for stream in (sys.stdout, sys.stderr):
         reconfigure = getattr(stream, "reconfigure", None)
         errors = getattr(stream, "errors", None)
-        if reconfigure is not None and errors in ("strict", "surrogateescape"):
-            with contextlib.suppress(ValueError, OSError):
+        # strict only: a surrogateescape stream (LANG=C) prints an undecodable name back as
+        # its own bytes, which a script reading the output path needs
+        if reconfigure is not None and errors == "strict":
+            with contextlib.suppress(ValueError, OSError, TypeError):
                 reconfigure(errors="backslashreplace")
                 changed.append((reconfigure, errors))
     try:
         yield
     finally:
         for reconfigure, errors in changed:
-            with contextlib.suppress(ValueError, OSError):
+            with contextlib.suppress(ValueError, OSError, TypeError):
                 reconfigure(errors=errors)
 
 

@@ -116,8 +116,11 @@ def _sweep(parent: Path, prefix: str) -> None:
         name = entry.name
         if not name.startswith(prefix) or STAGING_TAG not in name:
             continue
-        rest = name[len(prefix) :] if prefix != "." else name.partition(STAGING_TAG)[2]
-        pid_text, _, where = rest.split("-", 1)[0].partition("@")
+        folder_wide = prefix == "."
+        rest = name.partition(STAGING_TAG)[2] if folder_wide else name[len(prefix) :]
+        pid_text, at, where = rest.split("-", 1)[0].partition("@")
+        if folder_wide and not at:  # an older version's name: its pid is not this host's to ask
+            continue
         if _writer_is_dead(pid_text, where, entry):
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry, ignore_errors=True)

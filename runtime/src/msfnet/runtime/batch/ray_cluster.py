@@ -62,10 +62,9 @@ STALL_NOTE_S = 60.0
 # connect retried a closed HOST:PORT forever, and a ray:// address for ~34 s.
 CONNECT_TIMEOUT_S = 5.0
 RAY_CLIENT_PORT = 10001  # a ray://HOST address without a port: the Ray client's own
-_HOST = re.compile(
-    r"(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
-    r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*"
-)
+# a host name as resolvers take it: "_" too (Docker service names), a trailing dot (absolute)
+_LABEL = r"[A-Za-z0-9_](?:[A-Za-z0-9_-]{0,61}[A-Za-z0-9_])?"
+_HOST = re.compile(rf"(?=.{{1,254}}$){_LABEL}(?:\.{_LABEL})*\.?")
 
 
 def cluster_endpoint(address: str) -> tuple[str, int] | None:

@@ -189,7 +189,7 @@ def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
     result = model(stack)
     assert result.maps is not None
     part = from_maps(result.maps, str(path))
-    part.method = model.describe()
+    part.method = result.method  # what ran (least squares where too few lights for the net)
     return part
 
 

@@ -295,9 +295,13 @@ def stage_status(name: str, enabled: bool, lines: bool = False) -> Iterator[Call
             bar.set_description_str(f"{PROG}: {name}: {current[0]} ... ({took:.1f} s)", True)
 
     def step(what: str) -> None:
+        nonlocal lines
         current[0] = what
         if lines:
-            print(f"{PROG}: {name}: {what} ...", flush=True)
+            try:
+                print(f"{PROG}: {name}: {what} ...", flush=True)
+            except BrokenPipeError:  # `| head -1`: the run goes on to write its outputs
+                lines = False
         show()
 
     ticker = None
@@ -316,10 +320,12 @@ def stage_status(name: str, enabled: bool, lines: bool = False) -> Iterator[Call
         yield step
     finally:
         done.set()
-        if ticker is not None:
-            ticker.join(2.0)
-        if bar is not None:
-            bar.close()
+        try:
+            if ticker is not None:
+                ticker.join(2.0)
+        finally:
+            if bar is not None:
+                bar.close()
 
 
 def _say(req: RunRequest, line: str | None) -> None:

@@ -20,9 +20,10 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextvars import ContextVar
 from typing import TypeVar
 
-from msfnet.common.errors import InputError
+from msfnet.common.errors import InputError, MsfError
 from msfnet.common.signals import Terminated
 
 T = TypeVar("T")
@@ -30,36 +31,51 @@ T = TypeVar("T")
 GRACE_S = 5.0  # how long a cancelled call may take to return
 _POLL_S = 0.2
 _hard_exit: list[int] = []  # the exit code, once an engine would not stop
-_limits: list[tuple[float, float]] = []  # (monotonic deadline, seconds) of time_limit blocks
+# (monotonic deadline, seconds) of the time_limit blocks this thread / task is in
+_limits: ContextVar[tuple[tuple[float, float], ...]] = ContextVar("msfnet_limits", default=())
+
+
+def _limit_text(seconds: float) -> str:
+    return f"the model did not finish within the time limit ({seconds:g} s)"
 
 
 class TimeLimit(InputError):
-    """An engine compile or call still running when its time limit ran out."""
+    """An engine compile or call still running when its time limit ran out (and stopped)."""
 
     def __init__(self, seconds: float) -> None:
         super().__init__(
-            f"the model did not finish within the time limit ({seconds:g} s): a model that "
-            "never ends, or a limit too short for this stack and CPU"
+            f"{_limit_text(seconds)}: a model that never ends, or a limit too short for this "
+            "stack and CPU"
         )
+        self.seconds = seconds
+
+    def __reduce__(self) -> tuple[type, tuple[float]]:  # pickled whole (process pools)
+        return (type(self), (self.seconds,))
+
+
+class EngineStuck(MsfError):
+    """The engine did not stop when its time limit ran out: it cannot run another stack (a
+    batch or stream stops here), and the process ends after the command's line."""
 
 
 @contextlib.contextmanager
 def time_limit(seconds: float | None) -> Iterator[None]:
-    """Engine compiles and calls in the block stop once ``seconds`` have passed since it began
-    (TimeLimit, exit 2 in a command); None: no limit. Blocks nest: the earliest deadline wins."""
+    """Engine compiles and calls in the block, in this thread, stop once ``seconds`` have
+    passed since it began (TimeLimit, exit 2 in a command); None: no limit. Blocks nest: the
+    earliest deadline wins."""
     if seconds is None:
         yield
         return
-    _limits.append((time.monotonic() + seconds, seconds))
+    token = _limits.set((*_limits.get(), (time.monotonic() + seconds, seconds)))
     try:
         yield
     finally:
-        _limits.pop()
+        _limits.reset(token)
 
 
-def _check_limit() -> None:
-    if _limits:
-        deadline, seconds = min(_limits)
+def _check_limit(limits: tuple[tuple[float, float], ...]) -> None:
+    if limits:
+        deadline, seconds = min(limits)
         if time.monotonic() > deadline:
             raise TimeLimit(seconds)
 
@@ -87,9 +103,10 @@ def _exit_hard_at_exit(exc: BaseException) -> None:
 
 
 def run_interruptible(call: Callable[[], T], cancel: Callable[[], None]) -> T:
-    """``call()``, stoppable by a signal through ``cancel()``. Outside the main thread (which
-    receives no signals) the call runs directly."""
-    if threading.current_thread() is not threading.main_thread():
+    """``call()``, stoppable by a signal or its time limit through ``cancel()``. Outside the
+    main thread (which alone receives signals) and without a limit, the call runs directly."""
+    limits = _limits.get()
+    if threading.current_thread() is not threading.main_thread() and not limits:
         return call()
     done = threading.Event()
     result: list[T] = []
@@ -107,7 +124,7 @@ def run_interruptible(call: Callable[[], T], cancel: Callable[[], None]) -> T:
     worker.start()
     try:
         while not done.wait(_POLL_S):
-            _check_limit()
+            _check_limit(limits)
     except BaseException as exc:  # a signal or the time limit: stop the engine, then go on
         cancel()
         try:
@@ -116,10 +133,15 @@ def run_interruptible(call: Callable[[], T], cancel: Callable[[], None]) -> T:
             stopped = False
         if not stopped:
             _exit_hard_at_exit(exc)
+            if isinstance(exc, TimeLimit):  # not one stack's failure: the engine is busy
+                raise EngineStuck(
+                    f"{_limit_text(exc.seconds)} and did not stop when told to; the "
+                    "process ends after this line"
+                ) from exc
         raise
     if error:
         raise error[0]
     return result[0]
 
 
-__all__ = ["GRACE_S", "TimeLimit", "run_interruptible", "time_limit"]
+__all__ = ["GRACE_S", "EngineStuck", "TimeLimit", "run_interruptible", "time_limit"]

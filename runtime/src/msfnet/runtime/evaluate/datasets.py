@@ -100,10 +100,10 @@ def _listed_object(entry: str, root: Path) -> tuple[str, str | None]:
     """(folder name, image selection or None) of one objects.txt entry: the whole entry where
     it names a folder (``my part`` was read as the folder ``my`` and the selection ``part``),
     else the name before a trailing selection (``bearPNG 21-96``)."""
-    name, _, last = entry.rpartition(" ")
-    if (root / entry).is_dir() or not name or not re.fullmatch(r"[\d,\-]+", last):
+    split = re.fullmatch(r"(.*?)\s+([\d,:\-]+)", entry)
+    if (root / entry).is_dir() or split is None:
         return entry, None
-    return name.rstrip(), last
+    return split.group(1), split.group(2)
 
 
 def find_objects(root: Path, *, select_given: bool = False) -> list[BenchObject]:

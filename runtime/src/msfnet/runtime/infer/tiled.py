@@ -163,8 +163,10 @@ def infer_normals(
         with timer("inference"):
             try:
                 y = model.run(x, lights)
-            except (MemoryError, InputError):  # an InputError names the model's own fault
+            except (MemoryError, InputError, MsfError):  # they say what went wrong already
                 raise
+            except (TypeError, AttributeError, IndexError, KeyError, NameError):
+                raise  # a bug of ours, not the engine's: an internal error, not bad input
             except Exception as exc:  # engines' own error types (e.g. allocation failure)
                 raise MsfError(
                     f"{model.info.path}: {model.name} failed on a "

@@ -122,6 +122,12 @@ class Stack:
 
     def __repr__(self) -> str:
         """One line (the dataclass's own printed every array: ~330 lines for a small stack)."""
+        try:
+            return self._summary()
+        except (AttributeError, IndexError, TypeError, ValueError):  # not validated, malformed
+            return f"Stack({self.name!r}, not a valid stack)"
+
+    def _summary(self) -> str:
         h, w = self.shape
         parts = [
             repr(self.name),
