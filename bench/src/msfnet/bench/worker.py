@@ -28,6 +28,11 @@ def row_time_limit(seconds: float | None) -> Iterator[None]:
         _limit.reset(token)
 
 
+def row_limit() -> float | None:
+    """The time limit of the rows started now (None: none)."""
+    return _limit.get()
+
+
 def run_process(argv: list[str]) -> subprocess.CompletedProcess[str] | str:
     """``argv`` run to its end, or the line saying it was stopped at the time limit."""
     limit = _limit.get()
@@ -49,4 +54,4 @@ def run_module(module: str, spec: dict, spec_file: Path) -> dict:
     return json.loads(Path(spec["result"]).read_text())
 
 
-__all__ = ["row_time_limit", "run_module", "run_process"]
+__all__ = ["row_limit", "row_time_limit", "run_module", "run_process"]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from msfnet.bench.worker import row_limit, run_process
 from msfnet.common.errors import InputError
 from msfnet.runtime.engines.openvino import INT8_CHUNK
 from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK
@@ -253,6 +254,9 @@ def time_msf_run(
     ]
     if max_lights:
         cmd += ["--max-lights", str(max_lights)]
+    limit = row_limit()
+    if limit is not None:  # msf-bench --timeout: msf-run bounds its own compile and inference
+        cmd += ["--timeout", f"{limit:g}"]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
@@ -315,8 +319,6 @@ def time_warm_model(
     """The default path in one warm process (``Model`` opened once, a warm-up call, then
     ``repeats`` timed calls on the stack path: loading, inference, fusion, metrics; no files):
     the per-stack time of a stream or a station loop, without process start and compile."""
-    import subprocess
-
     spec = {
         "stack": str(stack_dir),
         "threads": threads,
@@ -324,9 +326,9 @@ def time_warm_model(
         "max_lights": max_lights,
         "repeats": repeats,
     }
-    proc = subprocess.run(
-        [sys.executable, "-c", _WARM_WORKER, json.dumps(spec)], capture_output=True, text=True
-    )
+    proc = run_process([sys.executable, "-c", _WARM_WORKER, json.dumps(spec)])
+    if isinstance(proc, str):
+        raise InputError(f"the warm model run {proc}")
     if proc.returncode != 0:
         raise RuntimeError(f"warm model run failed ({proc.returncode}): {proc.stderr[-400:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
