@@ -222,8 +222,11 @@ def print_result(result: Result, outdir: Path, files: list[Path], req: RunReques
         f"{p['mask_pixels']} mask px, {p['method']} ({p['engine']} {p['precision']})"
     )
     if p.get("choice"):  # its first reason: the whole (~400 characters) filled a log's line
-        first, _, more = str(p["choice"]).partition("; ")
-        print(f"engine choice: {first}" + (" (every reason: profile.json, choice)" if more else ""))
+        whole = str(p["choice"])
+        first = whole.partition("; ")[0]
+        first = first if len(first) <= 110 else first[:107] + "..."
+        rest = " (every reason: profile.json, choice)" if first != whole else ""
+        print(f"engine choice: {first}{rest}")
     tiles = p.get("tiles")
     if isinstance(tiles, dict):
         size = tiles["tile_px"] or "untiled"
