@@ -359,6 +359,18 @@ def test_settings_the_maps_cannot_use_are_refused_before_the_estimate(
     assert not out.exists()
 
 
+def _l2_run(folder: Path, out: Path, **env: str) -> subprocess.CompletedProcess[bytes]:
+    """msf-run --method l2 in a C locale (with ``env`` on top), names passed as bytes."""
+    environ = {k: v for k, v in os.environ.items() if k != "PYTHONIOENCODING"}
+    argv = [os.fsencode(folder), "--no-maps", "--method", "l2", "-o", os.fsencode(out)]
+    return subprocess.run(
+        [sys.executable, "-m", "msfnet.runtime.cli.run", *argv],
+        capture_output=True,
+        env={**environ, "LANG": "C", "LC_ALL": "C", **env},
+        timeout=120,
+    )
+
+
 @pytest.mark.parametrize("name", [b"caf\xc3\xa9", LATIN1], ids=["utf-8", "latin-1"])
 def test_any_name_prints_under_an_ascii_locale(name: bytes, tmp_path: Path) -> None:
     """Under LANG=C / PYTHONIOENCODING=ascii a non-ASCII name ended in a UnicodeEncodeError,
@@ -367,25 +379,10 @@ def test_any_name_prints_under_an_ascii_locale(name: bytes, tmp_path: Path) -> N
     folder = save_stack(sphere_stack(n=6, h=16, w=16), _latin1(tmp_path, name))
     out = _latin1(tmp_path, name + b"_out")
     if name == LATIN1:
-        env = {**os.environ, "LANG": "C", "LC_ALL": "C"}
-        env.pop("PYTHONIOENCODING", None)
-        argv = [os.fsencode(folder), "--no-maps", "--method", "l2", "-o", os.fsencode(out)]
-        proc = subprocess.run(
-            [sys.executable, "-m", "msfnet.runtime.cli.run", *argv],
-            capture_output=True,
-            env=env,
-            timeout=120,
-        )
+        proc = _l2_run(folder, out)
         assert proc.returncode == 0 and os.fsencode(out) in proc.stdout, proc.stdout[-300:]
         out = _latin1(tmp_path, name + b"_out2")
-    env = {**os.environ, "LANG": "C", "LC_ALL": "C", "PYTHONIOENCODING": "ascii"}
-    argv = [os.fsencode(folder), "--no-maps", "--method", "l2", "-o", os.fsencode(out)]
-    proc = subprocess.run(
-        [sys.executable, "-m", "msfnet.runtime.cli.run", *argv],
-        capture_output=True,
-        env=env,
-        timeout=120,
-    )
+    proc = _l2_run(folder, out, PYTHONIOENCODING="ascii")
     assert proc.returncode == 0, proc.stderr[-500:]
     assert b"caf\\" in proc.stdout and b"Error" not in proc.stderr  # escaped, not raised
     assert (out / "normals.npy").is_file()
