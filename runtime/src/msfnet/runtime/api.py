@@ -689,7 +689,7 @@ class Model:
                         loaded = read_stack(stack, load)
                 if self.maps is not None:  # settings the maps refuse: before the estimate
                     _placed(self.maps, load or placed).check_shape(loaded.inner().shape)
-                estimator = for_light_count(self.estimator, loaded)
+                estimator, loaded = for_light_count(self.estimator, loaded)
                 with time_limit(self.options.timeout_s):
                     est = estimator.estimate(loaded, tiling, timer, progress)
                 normals = est.normals

@@ -271,8 +271,10 @@ def evaluate(
             stack = load_stack(obj.folder, opts)
             (tmp / obj.name).mkdir()
             outs, errors, scores = {}, {}, {}
+            said: dict[str, None] = dict.fromkeys(stack.warnings)  # and each run's own
             for m, runner in runners.items():
                 res = runner(stack, progress=progress)
+                said.update(dict.fromkeys(res.stack.warnings))
                 outs[m] = res.normals
                 write_rgb_png(
                     tmp / obj.name / f"{m}_normals.png", normals_png(res.normals, stack.mask)
@@ -302,7 +304,7 @@ def evaluate(
                 scores,
                 published=PUBLISHED_MAE.get(known_object(obj.folder), {}) if gt else None,
                 detail_ratio=detail,
-                warnings=tuple(stack.warnings),
+                warnings=tuple(said),
             )
             results.append(row)
             if lines:

@@ -8,7 +8,7 @@ normalisation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -106,17 +106,18 @@ class LeastSquaresEstimator:
 NETWORK_MIN_LIGHTS = 4
 
 
-def for_light_count(estimator: Estimator, stack: Stack) -> Estimator:
+def for_light_count(estimator: Estimator, stack: Stack) -> tuple[Estimator, Stack]:
     """The estimator that runs on ``stack``: ``estimator``, or least squares where the stack has
-    too few lights for the network (the stack's warnings say so, as msf-run prints them)."""
+    too few lights for the network, with a copy of the stack (arrays shared) whose warnings say
+    so, as msf-run prints them (the caller's own Stack is left as it was)."""
     n = stack.num_lights
     if estimator.method != "msf" or n >= NETWORK_MIN_LIGHTS:
-        return estimator
-    stack.warnings.append(
+        return estimator, stack
+    said = (
         f"{n} lights are too few for the network (it needs {NETWORK_MIN_LIGHTS} or more): "
         "least squares ran instead"
     )
-    return LeastSquaresEstimator()
+    return LeastSquaresEstimator(), replace(stack, warnings=[*stack.warnings, said])
 
 
 __all__ = [
