@@ -19,7 +19,12 @@ import numpy as np
 from msfnet.common.files import write_atomic
 from msfnet.common.imageio import encode_png
 from msfnet.runtime.api import Model
-from msfnet.runtime.results.defects import DefectOptions, find_defects, from_maps, overlay_picture
+from msfnet.runtime.inspection.defects import (
+    DefectOptions,
+    find_defects,
+    from_maps,
+    overlay_picture,
+)
 from msfnet.runtime.results.maps import MapOptions
 from msfnet.runtime.results.maps.registered import signed_view
 from msfnet.synth.plates import PlateOptions, render_plate

@@ -39,6 +39,7 @@ RUNTIME_RANK = {
     "evaluate": 2,
     "demo": 2,
     "results": 3,
+    "inspection": 7,  # defects from maps, the station (on the API) and its watch loop
     "infer": 4,
     "options": 5,
     "sources": 5,  # stack sources and decode-ahead, for the API's stream and the batch runner

@@ -31,10 +31,22 @@ _guard_startup()
 if TYPE_CHECKING:
     __version__: str
     from msfnet.runtime.api import Model, Result, load_stack
+    from msfnet.runtime.inspection.defects import DefectOptions
+    from msfnet.runtime.inspection.station import Station
     from msfnet.runtime.results.maps import MapOptions
     from msfnet.runtime.stack import LoadOptions, Stack
 
-__all__ = ["LoadOptions", "MapOptions", "Model", "Result", "Stack", "__version__", "load_stack"]
+__all__ = [
+    "DefectOptions",
+    "LoadOptions",
+    "MapOptions",
+    "Model",
+    "Result",
+    "Stack",
+    "Station",
+    "__version__",
+    "load_stack",
+]
 
 
 def __getattr__(name: str) -> object:
@@ -54,6 +66,10 @@ def __getattr__(name: str) -> object:
         from msfnet.runtime import stack
 
         return getattr(stack, name)
+    if name in ("Station", "DefectOptions"):  # Station(DefectOptions(depth=...)).inspect(part)
+        from msfnet.runtime.inspection import defects, station
+
+        return getattr(station if name == "Station" else defects, name)
     if name == "MapOptions":  # Model(maps=MapOptions(...)): which inspection maps, and how
         from msfnet.runtime.results.maps import MapOptions
 

@@ -4,6 +4,8 @@
     msf-inspect captures/part17 --pixel-size 0.05 --depth 0.02 -o v/  # a stack: runs msf-run's
                                                                       # pipeline first
     msf-inspect out/part17 --reference out/golden --depth 0.02 -o v/ # against a good part
+    msf-inspect --watch incoming/ --reference golden/ --depth 0.1 -o station/  # a line: each
+                                            # part that appears in incoming/, judged once
 
 Exit code: 0 pass (no defect), 1 defects found, 2 bad input or output (one line on stderr,
 nothing written; a full disk and out of memory too), 3 a failure of the tool itself (never read
@@ -20,11 +22,19 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from msfnet.common.cli import command_main, make_parser, path_arg, positive_float, positive_int
+from msfnet.common.cli import (
+    add_flags,
+    command_main,
+    make_parser,
+    options_from_args,
+    path_arg,
+    positive_float,
+    positive_int,
+)
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, staged_folder
 from msfnet.common.imageio import encode_png
-from msfnet.runtime.results.defects import (
+from msfnet.runtime.inspection.defects import (
     POLARITIES,
     DefectOptions,
     InspectionInput,
@@ -35,6 +45,7 @@ from msfnet.runtime.results.defects import (
     overlay_picture,
     read_run,
 )
+from msfnet.runtime.inspection.watch import WatchOptions
 from msfnet.runtime.results.provenance import Provenance
 
 PROG = "msf-inspect"
@@ -50,6 +61,10 @@ _OWN = (
     "reference",
     "quiet",
     "debug",
+    "watch",
+    "once",
+    "poll_s",
+    "stale_s",
 )
 
 
@@ -78,10 +93,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "input",
         type=path_arg,
+        nargs="?",
         help="an msf-run output folder (maps.json, local_shape.tif) or a stack (then msf-run's "
-        "pipeline runs first, with the flags below)",
+        "pipeline runs first, with the flags below); not with --watch",
     )
-    p.add_argument("-o", "--output", type=path_arg, required=True, help="folder for the verdict")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=path_arg,
+        required=True,
+        help="folder for the verdict (with --watch: the station's folder, resumed if it exists)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an earlier verdict folder")
     t = p.add_argument_group("thresholds (in the maps' units: mm with --pixel-size, else px)")
     t.add_argument("--depth", type=_finite, help="|local shape| at or above this is a defect")
@@ -103,6 +125,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="a good part (run folder or stack, same fixture and size): only what differs "
         "from it counts (aligned by phase correlation first)",
     )
+    s = p.add_argument_group(
+        "station (a warm loop: the model and reference loaded once, then each part that "
+        "appears in DIR judged once; one JSON line per part in OUT/parts.jsonl)"
+    )
+    s.add_argument(
+        "--watch",
+        type=path_arg,
+        metavar="DIR",
+        help="judge each complete part (a stack sub-folder) that appears in DIR; stop with "
+        "SIGTERM or Ctrl-C (after the part in hand)",
+    )
+    add_flags(s, WatchOptions)
     # when INPUT is a stack: how it is run (msf-run's own flags)
     add_model_flags(p)
     add_load_flags(p, camera=True)
@@ -193,13 +227,21 @@ def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
     return part
 
 
-def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
-    options = DefectOptions(
+def _rule(args: argparse.Namespace) -> DefectOptions:
+    return DefectOptions(
         depth=args.depth,
         curvature=args.curvature,
         min_area_px=args.min_area,
         polarity=args.polarity,
     )
+
+
+def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
+    if args.watch is not None:
+        return _station(args)
+    if args.input is None:
+        raise InputError("give INPUT (a run folder or a stack), or --watch DIR")
+    options = _rule(args)
     from msfnet.runtime.cli.flags import load_options, model_options
     from msfnet.runtime.stack import linked_reads
 
@@ -251,6 +293,60 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         for judged in verdict.statistics:  # what a threshold is chosen from, in its units
             print(judged.line())
     return verdict.exit_code
+
+
+def _station(args: argparse.Namespace) -> int:
+    """--watch: the warm loop (inspection.watch) until a signal, or once with --once."""
+    from msfnet.runtime.cli.flags import load_options, model_options
+    from msfnet.runtime.inspection.station import Station
+    from msfnet.runtime.inspection.watch import JOURNAL, watch
+
+    rule = _rule(args)
+    if args.input is not None:
+        raise InputError(f"INPUT ({args.input}) and --watch: give one")
+    if args.overwrite:
+        raise InputError(
+            "--overwrite with --watch: a station's folder is resumed, never replaced; give a "
+            "new -o to start afresh"
+        )
+    folder, out = args.watch, args.output
+    if not folder.is_dir():
+        raise InputError("no such folder" if not folder.exists() else "not a folder", folder)
+    if args.reference is not None and not args.reference.exists():
+        raise InputError("no such file or folder", args.reference)
+    load, opts = load_options(args), model_options(args)
+    inputs = [folder, args.reference, *load.inputs(), opts.model]
+    held = out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir())
+    if held and not (out / JOURNAL).is_file():
+        raise InputError(f"holds other files and no {JOURNAL}: give a new or empty folder", out)
+    check_output(out / JOURNAL, [p for p in inputs if p is not None], overwrite=True)
+    station = Station(rule, opts, load=load, reference=args.reference)
+    report = (lambda record: None) if args.quiet else _print_part
+    summary = watch(
+        station,
+        folder,
+        out,
+        options_from_args(WatchOptions, args),
+        skip=tuple(p for p in (args.reference,) if p is not None),
+        report=report,
+    )
+    if not args.quiet:
+        print("\n".join(summary.lines()))
+    return summary.exit_code if args.once else 0
+
+
+def _print_part(record: object) -> None:
+    from msfnet.runtime.inspection.watch import PartRecord
+
+    assert isinstance(record, PartRecord)
+    ms = record.times_ms.get("total")
+    took = f" ({ms:.0f} ms)" if ms is not None else ""
+    if record.verdict == "error":
+        print(f"{record.part}: error: {record.error}", flush=True)
+    elif record.verdict == "pass":
+        print(f"{record.part}: PASS{took}", flush=True)
+    else:
+        print(f"{record.part}: FAIL, {record.defects} defect(s){took}", flush=True)
 
 
 def _provenance(args: argparse.Namespace, part: InspectionInput) -> Provenance:

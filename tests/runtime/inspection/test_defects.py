@@ -1,4 +1,4 @@
-"""The defect step (results.defects and msf-inspect): every relief defect of a rendered plate
+"""The defect step (inspection.defects and msf-inspect): every relief defect of a rendered plate
 found, no printed mark reported, a golden reference aligned, bad input refused with exit 2."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from msfnet.common.errors import InputError
 from msfnet.runtime.api import Model
 from msfnet.runtime.cli.inspect import main as inspect_main
-from msfnet.runtime.results.defects import (
+from msfnet.runtime.inspection.defects import (
     DefectOptions,
     InspectionInput,
     align_shift,
@@ -412,7 +412,7 @@ def test_older_run_folders_and_curvature_only_runs_keep_their_frame_and_units(
 ) -> None:
     """A run from before maps.json had "frame" read as the whole image (its --roi is in
     profile.json); a curvature-only run in mm read as px (no local_shape unit written)."""
-    from msfnet.runtime.results.defects import read_run
+    from msfnet.runtime.inspection.defects import read_run
 
     run = tmp_path / "run"
     maps = MapOptions(maps=("albedo", "height", "curvature"))

@@ -1,0 +1,163 @@
+"""The inspection station: the model, the rule and the reference loaded once, then one verdict
+per part, computing only the maps the rule reads.
+
+A line inspects part after part with the same settings, so everything that does not change
+between parts (the engine, the reference's maps) is made once in :class:`Station`, and each
+part pays only decode -> normals -> the judged maps -> judge. The rule decides the maps: a
+depth threshold needs the height (for the local shape), a curvature threshold the curvature;
+the albedo is computed only for the overlay picture's grey base when asked (``pictures``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from msfnet.common.errors import InputError
+from msfnet.runtime.api import Model
+from msfnet.runtime.inspection.defects import (
+    DefectOptions,
+    InspectionInput,
+    Verdict,
+    find_defects,
+    from_maps,
+    overlay_picture,
+    read_run,
+)
+from msfnet.runtime.options import ModelOptions
+from msfnet.runtime.results.maps import MapOptions
+from msfnet.runtime.stack import LoadOptions, Stack, load_stack
+
+STAGES = ("decode", "normals", "maps", "judge")
+
+
+@dataclass(frozen=True)
+class StageTimes:
+    """Seconds one part spent in each stage (decode is 0 for a Stack given in memory)."""
+
+    decode: float
+    normals: float
+    maps: float
+    judge: float
+
+    @property
+    def total(self) -> float:
+        return self.decode + self.normals + self.maps + self.judge
+
+    def milliseconds(self) -> dict[str, float]:
+        times = {s: getattr(self, s) for s in STAGES} | {"total": self.total}
+        return {s: round(t * 1e3, 2) for s, t in times.items()}
+
+
+@dataclass
+class Inspection:
+    """One part's verdict, its regions' label image (0 = none), the maps judged and the time
+    each stage took."""
+
+    name: str
+    verdict: Verdict
+    labels: np.ndarray
+    part: InspectionInput
+    times: StageTimes
+
+    @property
+    def passed(self) -> bool:
+        return self.verdict.passed
+
+    def overlay(self) -> np.ndarray:
+        """(H, W, 3) uint8 RGB: the part with each region outlined and numbered."""
+        return overlay_picture(self.part, self.labels)
+
+    def __repr__(self) -> str:
+        word = "PASS" if self.passed else f"FAIL ({len(self.verdict.regions)} defects)"
+        return f"Inspection({self.name}: {word}, {self.times.total * 1e3:.0f} ms)"
+
+
+def rule_maps(rule: DefectOptions, pictures: bool) -> tuple[str, ...]:
+    """The maps a rule reads: the height (whose local shape a depth threshold judges), the
+    curvature, and the albedo for the overlay's grey base when pictures are wanted."""
+    wanted = (rule.depth is not None, rule.curvature is not None, pictures)
+    return tuple(n for n, w in zip(("height", "curvature", "albedo"), wanted, strict=True) if w)
+
+
+class Station:
+    """A warm per-part inspection: ``Station(rule, options).inspect(stack)``.
+
+    ``rule``: the thresholds (:class:`DefectOptions`). ``options``: how a part is run (the
+    model, ``method="l2"`` for least squares, ``speed``, the maps' units and local size: only
+    the maps the rule needs are computed, whatever ``options.maps`` lists). ``load``: how a
+    part's folder is read. ``reference``: a good part (a stack, a stack folder or an msf-run
+    output folder) mapped once with these settings; each part is then judged on what differs
+    from it. ``pictures``: compute the albedo too, for the overlay's grey base.
+    """
+
+    def __init__(
+        self,
+        rule: DefectOptions,
+        options: ModelOptions | None = None,
+        *,
+        load: LoadOptions | None = None,
+        reference: Stack | str | Path | None = None,
+        pictures: bool = False,
+    ) -> None:
+        opts = options or ModelOptions()
+        maps = replace(opts.maps or MapOptions(), maps=rule_maps(rule, pictures))
+        self.rule = rule
+        self.load = load or LoadOptions()
+        self.model = Model(options=opts.replace(maps=maps))
+        self.reference: InspectionInput | None = None
+        if reference is not None:
+            self.reference = self._reference(reference)
+
+    def _reference(self, given: Stack | str | Path) -> InspectionInput:
+        if isinstance(given, Stack):
+            return self._maps(given, "reference")[0]
+        path = Path(given)
+        if not path.exists():
+            raise InputError("no such file or folder", path)
+        if path.is_dir() and (path / "maps.json").is_file():
+            return read_run(path)  # an msf-run output: its maps as written
+        return self._maps(self.read(path)[0], str(path))[0]
+
+    def read(self, path: str | Path) -> tuple[Stack, float]:
+        """A part's stack decoded with the station's load options, and the seconds it took
+        (safe to call from another thread: the station decodes the next part meanwhile)."""
+        start = time.perf_counter()
+        stack = load_stack(Path(path), self.load)
+        return stack, time.perf_counter() - start
+
+    def _maps(self, stack: Stack, source: str) -> tuple[InspectionInput, float, float]:
+        result = self.model(stack)
+        assert result.maps is not None
+        maps_s = result.timings.median_s("maps")
+        normals_s = result.timings.median_s("total") - maps_s
+        part = from_maps(result.maps, source)
+        part.method = result.method  # what ran (least squares where too few lights for the net)
+        return part, normals_s, maps_s
+
+    def inspect(self, part: Stack | str | Path, name: str | None = None) -> Inspection:
+        """Judge one part (a Stack, or a stack folder read with the station's load options)."""
+        decode_s = 0.0
+        if not isinstance(part, Stack):
+            name = name or Path(part).name
+            part, decode_s = self.read(part)
+        return self.judge(part, name or "part", decode_s)
+
+    def judge(self, stack: Stack, name: str, decode_s: float = 0.0) -> Inspection:
+        """Judge a decoded part; ``decode_s``: what decoding it took, for its times."""
+        maps, normals_s, maps_s = self._maps(stack, name)
+        start = time.perf_counter()
+        verdict, labels = find_defects(maps, self.rule, self.reference)
+        judge_s = time.perf_counter() - start
+        times = StageTimes(decode_s, normals_s, maps_s, judge_s)
+        return Inspection(name, verdict, labels, maps, times)
+
+    def __repr__(self) -> str:
+        ref = "" if self.reference is None else f", reference={self.reference.source}"
+        return f"Station({self.model!r}, {self.rule}{ref})"
+
+
+__all__ = ["STAGES", "Inspection", "StageTimes", "Station", "rule_maps"]
