@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from _runtime_helpers import staging_leftovers
 
 from msfnet.runtime.cli.inspect import main as inspect_main
 from msfnet.runtime.inspection.defects import DefectOptions
@@ -22,7 +23,6 @@ from msfnet.runtime.inspection.watch import JOURNAL, READY, WatchOptions, watch
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.stack import save_stack
 from msfnet.synth.plates import PlateOptions, render_plate
-from tests._runtime_helpers import staging_leftovers
 
 ONCE = WatchOptions(once=True)
 

@@ -177,3 +177,17 @@ def test_repr_is_one_line_of_what_the_stack_is() -> None:
     assert text == "Stack('sphere', 8 lights, 44x36, float32, mask_px=788, ground truth)"
     broken = Stack("x", np.zeros((4, 5)), np.zeros((1, 3)), np.ones((1, 3)), np.ones((4, 5), bool))
     assert repr(broken) == "Stack('x', not a valid stack)"  # repr runs in debuggers too
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.float64])
+def test_masked_extremes_agree_with_numpy_for_every_held_type(dtype) -> None:
+    from msfnet.runtime.stack.types import _masked_extremes
+
+    rng = np.random.default_rng(1)
+    img = (rng.random((40, 50, 3)) * 200).astype(dtype)
+    mask = rng.random((40, 50)) > 0.4
+    fast = dtype in (np.uint8, np.uint16, np.float32)
+    mask3 = np.repeat(mask, 3, axis=1).view(np.uint8) if fast else None
+    inside = img[mask]
+    want = (inside.max(), inside.min(), inside.mean(dtype=np.float64))
+    assert _masked_extremes(img, mask, mask3) == pytest.approx(want, rel=1e-12, abs=1e-9)

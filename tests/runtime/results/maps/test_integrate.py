@@ -384,3 +384,33 @@ def test_every_multigrid_level_smooths_without_diverging(
         root = sp.diags(np.sqrt(step))
         top = sla.eigsh(root @ a @ root, k=1, which="LA", return_eigenvectors=False, tol=1e-4)
         assert top[0] < 1.6  # 4/3 aimed at; 2.0-2.1 on levels 4-6 with omega fixed at 2/3
+
+
+def test_a_hierarchy_kept_from_the_last_part_solves_the_next_alike() -> None:
+    """The graph and multigrid kept for a mask precondition the next part's system (other
+    normals, same mask): heights within the solver's tolerance of a fresh hierarchy's."""
+    from msfnet.runtime.results.maps import integrate
+
+    rng = np.random.default_rng(5)
+    h, w = 70, 90
+    rows, cols = np.mgrid[0:h, 0:w]
+    valid = (rows - 35) ** 2 / 30**2 + (cols - 45) ** 2 / 40**2 < 1
+
+    def normals(tilt: float, bump: float) -> np.ndarray:
+        z = tilt * cols + bump * np.exp(-((rows - 30) ** 2 + (cols - 50) ** 2) / 40.0)
+        z = z + 0.01 * rng.normal(size=z.shape)
+        dy, dx = np.gradient(z)
+        n = np.dstack([-dx, dy, np.ones_like(z)])
+        return n / np.linalg.norm(n, axis=2, keepdims=True)
+
+    first, second = normals(0.05, 2.0), normals(-0.1, 4.0)
+    integrate._Kept.mask = None
+    integrate.integrate_normals(first, valid, "poisson")
+    kept = integrate.integrate_normals(second, valid, "poisson")
+    assert kept.builds == 0  # the first part's hierarchy was used
+    integrate._Kept.mask = None
+    fresh = integrate.integrate_normals(second, valid, "poisson")
+    assert fresh.builds == 1
+    np.testing.assert_allclose(kept.height, fresh.height, atol=1e-5, equal_nan=True)
+    smaller = valid & (cols > 10)
+    assert integrate.integrate_normals(second, smaller, "poisson").builds == 1  # another mask

@@ -195,3 +195,28 @@ def test_map_options_refuse_bad_numbers() -> None:
     for bad in ({"pixel_size_mm": float("nan")}, {"local_size_px": 0.0}, {"curvature_sigma": -1}):
         with pytest.raises(InputError, match="must be a positive number"):
             MapOptions(**bad)  # type: ignore[arg-type]
+
+
+def test_the_trend_weights_kept_for_a_mask_give_what_a_fresh_fit_gives() -> None:
+    """A station's parts share a mask: the second trend reuses the first's weights, exactly;
+    another mask of the same shape gets its own."""
+    from msfnet.runtime.results.maps import registered
+
+    rng = np.random.default_rng(3)
+    valid = np.ones((80, 90), bool)
+    valid[60:] = False
+    other = valid.copy()
+    other[:, :5] = False
+    z1, z2 = rng.normal(size=(2, 80, 90)).cumsum(axis=2)
+
+    def fresh(z: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        registered._TrendCache.mask = None
+        return registered.local_trend(z, mask, 6.0)
+
+    first, second = fresh(z1, valid), registered.local_trend(z2, valid, 6.0)
+    assert registered._TrendCache.mask is not None  # kept, and used for z2
+    np.testing.assert_array_equal(second, fresh(z2, valid))
+    np.testing.assert_array_equal(first, fresh(z1, valid))
+    moved = registered.local_trend(z2, other, 6.0)
+    np.testing.assert_array_equal(moved, fresh(z2, other))
+    assert np.isnan(moved[:, :5]).all()

@@ -148,6 +148,8 @@ class Station:
 
     def judge(self, stack: Stack, name: str, decode_s: float = 0.0) -> Inspection:
         """Judge a decoded part; ``decode_s``: what decoding it took, for its times."""
+        if stack.normals_gt is not None:  # a rendered part's: scoring it is not the station's job
+            stack = replace(stack, normals_gt=None)
         maps, normals_s, maps_s = self._maps(stack, name)
         start = time.perf_counter()
         verdict, labels = find_defects(maps, self.rule, self.reference)

@@ -51,6 +51,7 @@ pixel at that distance), and height = (the component's largest depth) - depth.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -85,6 +86,9 @@ COARSE_SIZE = 400  # unknowns on the coarsest multigrid level, solved by SuperLU
 # the deep levels of a 2.4 M-pixel part, whose setup then took 4.8-5.6 s against 1.7 s (CG
 # needs 12 steps instead of 7, each cheaper: docs/benchmark.md).
 AGGREGATE = 3
+# the graph and multigrid hierarchy kept for the next surface with the same mask (a station's
+# parts), up to a 1 MP mask
+KEEP_PIXELS = 1 << 20
 STRENGTH = 0.08
 RIDGE = 1e-10  # relative diagonal ridge of the normal equations (see _system)
 # damping of the Jacobi smoother and of the prolongator smoothing: 4 / (3 rho), rho the
@@ -496,6 +500,34 @@ def _to_grid(values: np.ndarray, g: _Graph) -> np.ndarray:
     return out
 
 
+class _Kept:
+    """The last mask's graph and multigrid hierarchy (one entry, up to KEEP_PIXELS pixels).
+    A hierarchy built for one part's weights preconditions the next part's system as well
+    (the weights are the normals' confidences, alike on parts of one fixture): CG still
+    solves each system to CG_RTOL, and ``_solve`` builds a fresh hierarchy should it stall."""
+
+    lock = threading.Lock()
+    mask: np.ndarray | None = None
+    graph: _Graph | None = None
+    hierarchy: Multigrid | None = None
+
+
+def _kept_for(valid: np.ndarray) -> tuple[_Graph, Multigrid | None]:
+    """The kept graph and hierarchy when ``valid`` is the kept mask, else a new graph."""
+    with _Kept.lock:
+        held, graph, hierarchy = _Kept.mask, _Kept.graph, _Kept.hierarchy
+    if held is not None and held.shape == valid.shape and np.array_equal(held, valid):
+        assert graph is not None
+        return graph, hierarchy
+    return _graph(valid), None
+
+
+def _keep(valid: np.ndarray, graph: _Graph, hierarchy: Multigrid) -> None:
+    if graph.pixels <= KEEP_PIXELS:
+        with _Kept.lock:
+            _Kept.mask, _Kept.graph, _Kept.hierarchy = valid.copy(), graph, hierarchy
+
+
 def least_squares_surface(
     grad: Gradients,
     *,
@@ -512,14 +544,18 @@ def least_squares_surface(
     pixels, so k = 2 treats a jump of a pixel or more as a discontinuity). ``max_iter`` and
     ``tol`` (relative change of the energy) stop the reweighting.
     """
-    g = _graph(grad.valid)
+    g, mg = _kept_for(grad.valid)
     if g.pixels == 0:
         return np.full(grad.valid.shape, np.nan), 0, 0
     weights = _side_weights(None, grad.valid, k, scale)
     alpha, beta, t_a, t_b = _edge_terms(grad, g, *weights)
     mat, b = _system(g, alpha, beta, t_a, t_b)
-    mg = Multigrid(mat, g.index)
-    builds, iterations = 1, 1
+    builds, iterations = 0, 1
+    if mg is None or discontinuities:
+        mg = Multigrid(mat, g.index)
+        builds = 1
+        if not discontinuities:
+            _keep(grad.valid, g, mg)
     z = _solve(mat, b, np.zeros_like(b), mg)
     if not discontinuities:
         return _to_grid(z, g), iterations, builds

@@ -29,6 +29,7 @@ Conventions (documented in maps.json too):
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
@@ -49,6 +50,9 @@ TREND_TRUNCATE = 4.0  # the trend's Gaussian weights end at 4 sigma (as OpenCV's
 # 150-600 px maps (Zen 4, 2026-12-04)
 TREND_FFT_RADIUS = 24
 TREND_CHUNK = 1 << 16  # pixels whose 6 x 6 systems are solved together
+# the trend weights kept for the next map with the same mask (48 B a pixel): a station's
+# parts, up to a 1 MP mask
+TREND_CACHE_PIXELS = 1 << 20
 VIEW_PERCENTILE = 99.5  # a view's range: this percentile of |value| (one hot pixel does not set it)
 
 
@@ -236,7 +240,9 @@ def local_trend(
 
     The polynomial is written in offsets from the pixel, so its constant term is the trend
     there and every normal equation is a Gaussian-weighted moment of the mask or of the
-    masked values: one filter each, on the mask's bounding box only."""
+    masked values: one filter each, on the mask's bounding box only. The trend is linear in
+    the values' moments, with weights that depend on the mask alone (:func:`_trend_weights`,
+    kept for the next call with the same mask: a station's parts share their fixture's)."""
     if values.shape != valid.shape or values.ndim != 2:
         raise ValueError(f"heights {values.shape} and mask {valid.shape}: expected one (H, W)")
     h, w = values.shape
@@ -245,34 +251,70 @@ def local_trend(
     if box is None:
         return out
     ok = valid[box]
-    m = ok.astype(np.float64)
     z = np.where(ok, np.nan_to_num(values[box]), 0.0).astype(np.float64)
     # a constant is in the fit: take the mean out for precision, put it back at the end
     level = float(z[ok].mean())
     z -= level
-    z *= m
-    powers = [(a, d - a) for d in range(degree + 1) for a in range(d, -1, -1)]  # 1, x, y, ...
-    k = len(powers)
+    z *= ok
     filters = _Moments(sigma, (int(ok.shape[0]), int(ok.shape[1])), 2 * degree)
-    of_mask, of_values = filters.of(m), filters.of(z)
-    del m, z
-    # each moment once, at the mask's pixels only (8 B a pixel each); the 6 x 6 systems are
+    weights = _trend_weights(ok, sigma, degree, filters)
+    of_values = filters.of(z)
+    del z
+    trend = np.zeros(weights.shape[1])
+    for row, (a, b) in zip(weights, _powers(degree), strict=True):
+        trend += row * of_values(a, b)[ok]
+    out[box][ok] = trend + level
+    return out
+
+
+def _powers(degree: int) -> list[tuple[int, int]]:
+    """The polynomial's terms as (x power, y power): 1, x, y, x^2, xy, y^2, ..."""
+    return [(a, d - a) for d in range(degree + 1) for a in range(d, -1, -1)]
+
+
+class _TrendCache:
+    """The last mask's trend weights (one entry, up to TREND_CACHE_PIXELS pixels)."""
+
+    lock = threading.Lock()
+    key: tuple[float, int] | None = None
+    mask: np.ndarray | None = None
+    weights: np.ndarray | None = None
+
+
+def _trend_weights(ok: np.ndarray, sigma: float, degree: int, filters: _Moments) -> np.ndarray:
+    """(K, P) float64: per mask pixel, the first row of the inverse of its K x K normal
+    equations (Gaussian-weighted moments of the mask), so that the trend there is that row
+    times the K moments of the values."""
+    key = (float(sigma), degree)
+    with _TrendCache.lock:
+        held, kept = _TrendCache.mask, _TrendCache.weights
+        same = held is not None and held.shape == ok.shape and np.array_equal(held, ok)
+        if same and _TrendCache.key == key and kept is not None:
+            return kept
+    powers = _powers(degree)
+    k = len(powers)
+    of_mask = filters.of(ok.astype(np.float64))
+    # each moment once, at the mask's pixels only (8 B a pixel each); the K x K systems are
     # then built and solved a chunk of pixels at a time
     sums = [(ai + aj, bi + bj) for ai, bi in powers for aj, bj in powers]
     of_m = {key: of_mask(*key)[ok] for key in dict.fromkeys(sums)}
-    of_z = [of_values(ai, bi)[ok] for ai, bi in powers]
-    trend = np.empty(len(of_z[0]))
-    for start in range(0, len(trend), TREND_CHUNK):
+    pixels = len(next(iter(of_m.values())))
+    weights = np.empty((k, pixels))
+    first = np.zeros((1, k, 1))
+    first[0, 0, 0] = 1.0
+    for start in range(0, pixels, TREND_CHUNK):
         part = slice(start, start + TREND_CHUNK)
         a = np.stack([of_m[key][part] for key in sums], axis=-1).reshape(-1, k, k)
-        b = np.stack([v[part] for v in of_z], axis=-1)
         # a ridge on the non-constant terms: a one-pixel strip has no slope across it
         ridge = 1e-6 * a[:, 0, 0]
         for i in range(1, k):
             a[:, i, i] += ridge
-        trend[part] = np.linalg.solve(a, b[..., None])[:, 0, 0]
-    out[box][ok] = trend + level
-    return out
+        # the systems are symmetric: the inverse's first column is its first row
+        weights[:, part] = np.linalg.solve(a, np.broadcast_to(first, (len(a), k, 1)))[..., 0].T
+    if pixels <= TREND_CACHE_PIXELS:
+        with _TrendCache.lock:
+            _TrendCache.key, _TrendCache.mask, _TrendCache.weights = key, ok.copy(), weights
+    return weights
 
 
 def local_shape(height: np.ndarray, valid: np.ndarray, size_px: float) -> np.ndarray:
