@@ -399,12 +399,14 @@ def test_a_plain_part_is_compared_in_place_not_at_a_peak_of_noise() -> None:
         assert len(verdict.regions) == 1 and verdict.regions[0].peak == (64, 88)
 
 
-def test_a_reference_too_far_off_names_the_reference() -> None:
+def test_a_reference_too_far_off_is_a_mismatch_verdict() -> None:
+    """A part 40 px from where the reference lies is not judged against it: a verdict of its
+    own (exit 4) a station logs and goes on from, not an input error."""
     part = _part(_bumpy())
     golden = _part(_bumpy(shift=40.0), source="golden")
-    with pytest.raises(InputError, match="more than 32 px") as err:
-        find_defects(part, DefectOptions(depth=0.01), golden)
-    assert err.value.path == Path("golden")
+    verdict, labels = find_defects(part, DefectOptions(depth=0.01), golden)
+    assert verdict.word == "mismatch" and verdict.exit_code == 4 and not labels.any()
+    assert verdict.mismatch is not None and "px off the reference (over 32)" in verdict.mismatch
 
 
 def test_older_run_folders_and_curvature_only_runs_keep_their_frame_and_units(

@@ -9,7 +9,8 @@
 
 Exit code: 0 pass (no defect), 1 defects found, 2 bad input or output (one line on stderr,
 nothing written; a full disk and out of memory too), 3 a failure of the tool itself (never read
-as a verdict; Ctrl-C 130, SIGTERM 143).
+as a verdict; Ctrl-C 130, SIGTERM 143), 4 the part does not match its reference or variation
+model (another part, or not in its place). --watch exits 0 when stopped by SIGTERM / Ctrl-C.
 The verdict (verdict.json) and the overlay picture (overlay.png, the input's size)
 are written together into the -o folder, or not at all.
 """
@@ -28,14 +29,11 @@ from msfnet.common.cli import (
     make_parser,
     options_from_args,
     path_arg,
-    positive_float,
-    positive_int,
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, staged_folder
 from msfnet.common.imageio import encode_png
 from msfnet.runtime.inspection.defects import (
-    POLARITIES,
     DefectOptions,
     InspectionInput,
     Verdict,
@@ -56,9 +54,11 @@ _OWN = (
     "overwrite",
     "depth",
     "curvature",
-    "min_area",
+    "min_area_px",
     "polarity",
+    "sigmas",
     "reference",
+    "train_good",
     "quiet",
     "debug",
     "watch",
@@ -68,14 +68,6 @@ _OWN = (
 )
 
 
-def _finite(text: str) -> float:
-    """A threshold: positive and finite (NaN and inf are refused with the flag's name)."""
-    value = positive_float(text)
-    if value != value or value in (float("inf"), float("-inf")):
-        raise argparse.ArgumentTypeError(f"must be a positive, finite number, got {text!r}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     from msfnet.runtime.cli.flags import add_load_flags, add_map_flags, add_model_flags
 
@@ -83,11 +75,14 @@ def build_parser() -> argparse.ArgumentParser:
         PROG,
         "Find relief defects (scratches, dents, bumps) in a part's local shape and "
         "curvature; printed marks (albedo only) are not defects. Exit code: 0 pass, 1 "
-        "defects found, 2 bad input or output, 3 a failure of the tool itself.",
+        "defects found, 2 bad input or output, 3 a failure of the tool itself, 4 the part "
+        "does not match its reference.",
         examples=(
             "msf-inspect out/part17 --depth 0.02 -o verdicts/part17",
             "msf-inspect captures/part17 --pixel-size 0.05 --depth 0.02 -o verdicts/part17",
             "msf-inspect out/part17 --reference out/golden --depth 0.02 -o v17",
+            "msf-inspect --train-good good1 good2 good3 good4 good5 -o model",
+            "msf-inspect --watch incoming/ --reference model --depth 0.05 -o station/",
         ),
     )
     p.add_argument(
@@ -106,24 +101,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--overwrite", action="store_true", help="replace an earlier verdict folder")
     t = p.add_argument_group("thresholds (in the maps' units: mm with --pixel-size, else px)")
-    t.add_argument("--depth", type=_finite, help="|local shape| at or above this is a defect")
-    t.add_argument(
-        "--curvature", type=_finite, help="|mean curvature| at or above this is a defect"
-    )
-    t.add_argument(
-        "--min-area", type=positive_int, default=4, metavar="PX", help="smallest region (px)"
-    )
-    t.add_argument(
-        "--polarity",
-        choices=POLARITIES,
-        default="both",
-        help="down: dents and scratches only; up: bumps only (default both)",
-    )
+    add_flags(t, DefectOptions)
     t.add_argument(
         "--reference",
         type=path_arg,
-        help="a good part (run folder or stack, same fixture and size): only what differs "
-        "from it counts (aligned by phase correlation first)",
+        help="a good part (run folder or stack, same fixture and size), or a variation model "
+        "(--train-good): only what differs from it counts (aligned by phase correlation "
+        "first); a part that differs over more than 20 %% of its pixels is a MISMATCH (exit 4)",
+    )
+    t.add_argument(
+        "--train-good",
+        type=path_arg,
+        nargs="+",
+        metavar="GOOD",
+        help="learn a variation model from these good parts (run folders or stacks, 3 or "
+        "more; 5+ recommended) into -o, for --reference; prints a suggested --depth",
     )
     s = p.add_argument_group(
         "station (a warm loop: the model and reference loaded once, then each part that "
@@ -228,15 +220,12 @@ def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
 
 
 def _rule(args: argparse.Namespace) -> DefectOptions:
-    return DefectOptions(
-        depth=args.depth,
-        curvature=args.curvature,
-        min_area_px=args.min_area,
-        polarity=args.polarity,
-    )
+    return options_from_args(DefectOptions, args)
 
 
 def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
+    if args.train_good is not None:
+        return _train(args)
     if args.watch is not None:
         return _station(args)
     if args.input is None:
@@ -295,6 +284,27 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     return verdict.exit_code
 
 
+def _train(args: argparse.Namespace) -> int:
+    """--train-good: a variation model from good parts (inspection.variation)."""
+    from msfnet.runtime.inspection.variation import train_variation
+
+    if args.input is not None or args.watch is not None or args.reference is not None:
+        raise InputError("--train-good takes no INPUT, --watch or --reference")
+    goods = list(args.train_good)
+    for path in goods:
+        if not path.exists():
+            raise InputError("no such file or folder", path)
+        _check_input_kind(path)
+    check_output(args.output, goods, overwrite=args.overwrite, folder=True)
+    model = train_variation([_prepare(path, args) for path in goods])
+    model.save(args.output, overwrite=args.overwrite)
+    if not args.quiet:
+        print(f"variation model of {len(goods)} good parts -> {args.output}")
+        if model.statistics is not None:
+            print(model.statistics.line())
+    return 0
+
+
 def _station(args: argparse.Namespace) -> int:
     """--watch: the warm loop (inspection.watch) until a signal, or once with --once."""
     from msfnet.runtime.cli.flags import load_options, model_options
@@ -345,6 +355,8 @@ def _print_part(record: object) -> None:
         print(f"{record.part}: error: {record.error}", flush=True)
     elif record.verdict == "pass":
         print(f"{record.part}: PASS{took}", flush=True)
+    elif record.verdict == "mismatch":
+        print(f"{record.part}: MISMATCH (not the reference's part, or misplaced){took}", flush=True)
     else:
         print(f"{record.part}: FAIL, {record.defects} defect(s){took}", flush=True)
 
@@ -363,6 +375,8 @@ def _provenance(args: argparse.Namespace, part: InspectionInput) -> Provenance:
 
 
 def _summary(verdict: Verdict, output: Path) -> str:
+    if verdict.mismatch is not None:
+        return f"MISMATCH: {verdict.mismatch}: another part, or not in its place -> {output}"
     if verdict.passed:
         return f"PASS: no defect ({verdict.pixels} px inspected) -> {output}"
     by_depth = verdict.options.depth is not None

@@ -28,6 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from msfnet.common.cli import flag, positive_float, positive_int
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import json_text
 from msfnet.common.imageio import image_header
@@ -35,6 +36,10 @@ from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import Frame, read_tiff
 
 POLARITIES = ("both", "down", "up")
+EXIT_MISMATCH = 4
+# above this share of the inspected pixels beyond the threshold, a part is not the one the
+# reference shows (or not in its place): flagging "defects" over most of it says nothing
+MISMATCH_FRACTION = 0.2
 MAX_SHIFT_PX = 32  # a reference further off than this is not "the same fixture"
 # The phase correlation's peak below which two maps share no feature to align on. Measured on
 # rendered plates (each map less its mean): plain parts' albedo and local shape, noise only,
@@ -44,19 +49,39 @@ MIN_ALIGN_RESPONSE = 0.3
 
 @dataclass(frozen=True)
 class DefectOptions:
-    """depth: |local shape| threshold in the maps' height units; curvature: |mean curvature|
-    threshold in the maps' curvature units (None: not used); min_area_px: smallest region;
-    polarity: "down" (dents, scratches), "up" (bumps) or "both"."""
+    """The rule, in the maps' units (mm with a pixel size, else px). depth: |local shape|
+    threshold (with a variation model: the floor under ``sigmas`` spreads); curvature: |mean
+    curvature| threshold (None: not used); min_area_px: smallest region; polarity: "down"
+    (dents, scratches), "up" (bumps) or "both"; sigmas: with a variation model, how many
+    robust standard deviations of the good parts a pixel must leave their centre by."""
 
-    depth: float | None = None
-    curvature: float | None = None
-    min_area_px: int = 4
-    polarity: str = "both"
+    depth: float | None = flag(
+        None, "|local shape| at or above this is a defect", type=positive_float
+    )
+    curvature: float | None = flag(
+        None, "|mean curvature| at or above this is a defect", type=positive_float
+    )
+    min_area_px: int = flag(
+        4, "smallest region (px)", name="--min-area", type=positive_int, metavar="PX"
+    )
+    polarity: str = flag(
+        "both",
+        "down: dents and scratches only; up: bumps only (default both)",
+        choices=("both", "down", "up"),
+    )
+    sigmas: float = flag(
+        4.0,
+        "with a variation model as --reference (--train-good): a pixel is a defect where it "
+        "leaves the good parts' centre by more than K of their robust standard deviations "
+        "and by --depth (default 4)",
+        type=positive_float,
+        metavar="K",
+    )
 
     def __post_init__(self) -> None:
         if self.depth is None and self.curvature is None:
             raise InputError("give a depth threshold (--depth) or a curvature one (--curvature)")
-        for name in ("depth", "curvature"):
+        for name in ("depth", "curvature", "sigmas"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
                 raise InputError(f"--{name} {v}: must be a positive, finite number")
@@ -125,15 +150,25 @@ class Verdict:
     aligned_on: str | None = None  # "albedo" or "local shape": what the shift came from
     provenance: dict[str, str | None] | None = None  # what produced the maps (Provenance)
     statistics: tuple[JudgedStatistics, ...] = ()
+    # why the part is not the reference's (it leaves it over more than MISMATCH_FRACTION of
+    # its pixels, or lies more than MAX_SHIFT_PX off it): another part, or not in its place
+    # (regions are then not listed: they would be the whole part)
+    mismatch: str | None = None
+
+    @property
+    def word(self) -> str:
+        return "mismatch" if self.mismatch is not None else "pass" if self.passed else "fail"
 
     @property
     def exit_code(self) -> int:
-        """What a PLC script reads: 0 pass, 1 defects found (2, bad input, is raised)."""
-        return 0 if self.passed else 1
+        """What a PLC script reads: 0 pass, 1 defects found, 4 the part does not match its
+        reference or model (2, bad input, is raised)."""
+        return EXIT_MISMATCH if self.mismatch is not None else 0 if self.passed else 1
 
     def as_dict(self) -> dict[str, object]:
         return {
-            "verdict": "pass" if self.passed else "fail",
+            "verdict": self.word,
+            "mismatch": self.mismatch,
             "exit_code": self.exit_code,
             "defects": len(self.regions),
             "regions": [asdict(r) for r in self.regions],
@@ -170,6 +205,9 @@ class InspectionInput:
     frame: Frame = field(default_factory=Frame)
     perspective: bool = False
     method: dict[str, object] | None = None  # the Model's describe() when run in process
+    # a variation model's centre (inspection.variation) carries the good parts' spreads
+    local_shape_spread: np.ndarray | None = None
+    curvature_spread: np.ndarray | None = None
 
     @property
     def _any_map(self) -> np.ndarray:
@@ -286,6 +324,8 @@ def read_run(folder: Path) -> InspectionInput:
         if local.is_file()
         else first,
         albedo=_read(alb, 3, first.shape) if alb.is_file() else None,
+        local_shape_spread=_spread(folder, "local_shape", first.shape),
+        curvature_spread=_spread(folder, "curvature", first.shape),
         units=units,
         pixel_size_mm=size,
         source=str(folder),
@@ -295,6 +335,12 @@ def read_run(folder: Path) -> InspectionInput:
         else _frame_of_older_run(folder),
         perspective=perspective,
     )
+
+
+def _spread(folder: Path, name: str, size: tuple[int, ...]) -> np.ndarray | None:
+    """A variation model's spread map (inspection.variation), None in a plain run."""
+    path = folder / f"spread_{name}.tif"
+    return _read(path, 2, size) if path.is_file() else None
 
 
 def _positive(value: object, name: str, where: Path) -> float | None:
@@ -397,13 +443,15 @@ def shift_map(values: np.ndarray, dx: float, dy: float) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class _Aligned:
-    """The reference's maps moved onto the part's pixels."""
+class Aligned:
+    """The reference's maps moved onto the part's pixels (spreads: a variation model's)."""
 
     local_shape: np.ndarray | None
     curvature: np.ndarray | None
     shift: tuple[float, float]
     aligned_on: str
+    local_shape_spread: np.ndarray | None = None
+    curvature_spread: np.ndarray | None = None
 
 
 def _check_alike(part: InspectionInput, reference: InspectionInput) -> None:
@@ -441,7 +489,7 @@ def _check_alike(part: InspectionInput, reference: InspectionInput) -> None:
         )
 
 
-def _reference_pair(part: InspectionInput, reference: InspectionInput) -> _Aligned:
+def align_to(part: InspectionInput, reference: InspectionInput, *, limit: bool = True) -> Aligned:
     """The reference's maps aligned to the part's, on whichever they share most of: the
     albedo (print, texture) or the local shape (a uniform part's albedo is only noise, and
     aligning on it kept a 2 px misplacement)."""
@@ -463,12 +511,21 @@ def _reference_pair(part: InspectionInput, reference: InspectionInput) -> _Align
         # nothing to align on (a plain part): the fixture's place, not a peak of noise (one
         # put a 0.34 px dent 13 px outside the compared area and passed the part)
         name, dx, dy = "none (no features: taken as in place)", 0.0, 0.0
-    _check_shift(dx, dy, reference.source)
+    if limit:
+        _check_shift(dx, dy, reference.source)
 
     def moved(values: np.ndarray | None) -> np.ndarray | None:
         return None if values is None else shift_map(values, dx, dy)
 
-    return _Aligned(moved(reference.local_shape), moved(reference.curvature), (dx, dy), name)
+    r = reference
+    return Aligned(
+        moved(r.local_shape),
+        moved(r.curvature),
+        (dx, dy),
+        name,
+        moved(r.local_shape_spread),
+        moved(r.curvature_spread),
+    )
 
 
 def _check_shift(dx: float, dy: float, source: str | None = None) -> None:
@@ -490,62 +547,133 @@ def _toward(signed: np.ndarray, polarity: str) -> np.ndarray:
     return np.abs(signed)
 
 
+@dataclass
+class _Judged:
+    """What the rule compares: the part's maps less the aligned reference's (if any), the
+    pixels both hold, and each map's threshold (a number, or per pixel with a variation
+    model's spreads)."""
+
+    mask: np.ndarray
+    local: np.ndarray | None
+    curv: np.ndarray | None
+    depth: float | np.ndarray | None
+    bend: float | np.ndarray | None
+    aligned: Aligned | None = None
+    mismatch: str | None = None  # not the reference's part: nothing to compare
+
+
+def _against_reference(
+    part: InspectionInput, options: DefectOptions, reference: InspectionInput | None
+) -> _Judged:
+    mask, local, curv = part.mask, part.local_shape, part.curvature
+    judged = _Judged(mask, local, curv, options.depth, options.curvature)
+    if reference is None:
+        return judged
+    ref = align_to(part, reference, limit=False)
+    dx, dy = ref.shift
+    if max(abs(dx), abs(dy)) > MAX_SHIFT_PX:
+        judged.aligned = ref
+        judged.mismatch = f"it lies {dx:+.1f}, {dy:+.1f} px off the reference (over {MAX_SHIFT_PX})"
+        return judged
+    for name, ref_map in (("local_shape", ref.local_shape), ("curvature", ref.curvature)):
+        wanted = options.depth if name == "local_shape" else options.curvature
+        if wanted is not None and getattr(part, name) is not None and ref_map is None:
+            raise InputError(f"the reference has no {name.replace('_', ' ')} map", reference.source)
+    if ref.local_shape is not None and local is not None:
+        mask = mask & np.isfinite(ref.local_shape)
+        local = local - ref.local_shape
+    if ref.curvature is not None and curv is not None:
+        mask = mask & np.isfinite(ref.curvature)
+        curv = curv - ref.curvature
+    if not mask.any():
+        raise InputError("the part and the aligned reference share no pixel", part.source)
+    judged = _Judged(mask, local, curv, options.depth, options.curvature, ref)
+    # a variation model: the threshold is K spreads where the good parts varied more than
+    # the floor allows (NaN spreads, where fewer good parts held the pixel: the floor)
+    if ref.local_shape_spread is not None and options.depth is not None:
+        judged.depth = np.fmax(options.depth, options.sigmas * ref.local_shape_spread)
+    if ref.curvature_spread is not None and options.curvature is not None:
+        judged.bend = np.fmax(options.curvature, options.sigmas * ref.curvature_spread)
+    return judged
+
+
 def find_defects(
     part: InspectionInput, options: DefectOptions, reference: InspectionInput | None = None
 ) -> tuple[Verdict, np.ndarray]:
-    """The verdict and an (H, W) int32 label image of the regions (0 = none)."""
-    mask = part.mask
-    if not mask.any():
+    """The verdict and an (H, W) int32 label image of the regions (0 = none). ``reference``:
+    a good part, or a variation model's centre (with spreads: per-pixel thresholds)."""
+    if not part.mask.any():
         raise InputError("the mask is empty: nothing to inspect", part.source)
     if options.depth is not None and part.local_shape is None:
         why = " (a perspective run has none: use --curvature)" if part.perspective else ""
         raise InputError(f"--depth needs local_shape.tif{why}", part.source)
     if options.curvature is not None and part.curvature is None:
         raise InputError("--curvature needs curvature.tif in the run folder", part.source)
-    local, curv = part.local_shape, part.curvature
-    shift = aligned_on = None
-    if reference is not None:
-        ref = _reference_pair(part, reference)
-        shift, aligned_on = ref.shift, ref.aligned_on
-        for name, ref_map in (("local_shape", ref.local_shape), ("curvature", ref.curvature)):
-            own = getattr(part, name)
-            wanted = options.depth if name == "local_shape" else options.curvature
-            if wanted is not None and own is not None and ref_map is None:
-                raise InputError(
-                    f"the reference has no {name.replace('_', ' ')} map", reference.source
-                )
-        if ref.local_shape is not None and local is not None:
-            mask = mask & np.isfinite(ref.local_shape)
-            local = local - ref.local_shape
-        if ref.curvature is not None and curv is not None:
-            mask = mask & np.isfinite(ref.curvature)
-            curv = curv - ref.curvature
-        if not mask.any():
-            raise InputError("the part and the aligned reference share no pixel", part.source)
-    signed = np.zeros(mask.shape, np.float32) if local is None else np.nan_to_num(local)
-    signed_curv = None if curv is None else np.nan_to_num(curv)
+    j = _against_reference(part, options, reference)
+    mask = j.mask
+    signed = np.zeros(mask.shape, np.float32) if j.local is None else np.nan_to_num(j.local)
+    signed_curv = None if j.curv is None else np.nan_to_num(j.curv)
     high = np.zeros(mask.shape, bool)
     low = np.zeros(mask.shape, bool)
     judged: list[JudgedStatistics] = []
-    if options.depth is not None:
+    if options.depth is not None and j.depth is not None:
         size = _toward(signed, options.polarity)
-        high |= size >= options.depth
-        low |= size >= 0.5 * options.depth
+        high |= size >= j.depth
+        low |= size >= 0.5 * j.depth
         judged.append(_statistics("local shape", part.units["depth"], options.depth, size, mask))
-    if options.curvature is not None and signed_curv is not None:
+    if options.curvature is not None and signed_curv is not None and j.bend is not None:
         bend = _toward(signed_curv, options.polarity)
-        high |= bend >= options.curvature
-        low |= bend >= 0.5 * options.curvature
+        high |= bend >= j.bend
+        low |= bend >= 0.5 * j.bend
         unit = part.units["curvature"]
         judged.append(_statistics("curvature", unit, options.curvature, bend, mask))
     high &= mask
     low &= mask
-    _, labels, stats, cents = cv2.connectedComponentsWithStats(low.astype(np.uint8), connectivity=8)
+    flooded = float(np.count_nonzero(high)) / max(int(np.count_nonzero(mask)), 1)
+    mismatch = j.mismatch
+    if mismatch is None and reference is not None and flooded > MISMATCH_FRACTION:
+        mismatch = (
+            f"it leaves the reference over {100 * flooded:.0f} % of its pixels (over "
+            f"{100 * MISMATCH_FRACTION:.0f} %)"
+        )
+    regions: list[Region] = []
     out = np.zeros(mask.shape, np.int32)
+    if mismatch is None:
+        # the peak: the deepest point, or with curvature alone the most bent one
+        score = np.abs(signed if signed_curv is None or options.depth is not None else signed_curv)
+        regions, out = _regions(part, options, high, low, signed, signed_curv, score)
+    verdict = Verdict(
+        passed=not regions and mismatch is None,
+        regions=tuple(regions),
+        options=options,
+        units=dict(part.units),
+        pixels=int(mask.sum()),
+        reference=None if reference is None else reference.source,
+        shift=None if j.aligned is None else j.aligned.shift,
+        source=part.source,
+        frame=part.frame,
+        aligned_on=None if j.aligned is None else j.aligned.aligned_on,
+        statistics=tuple(judged),
+        mismatch=mismatch,
+    )
+    return verdict, out
+
+
+def _regions(
+    part: InspectionInput,
+    options: DefectOptions,
+    high: np.ndarray,
+    low: np.ndarray,
+    signed: np.ndarray,
+    signed_curv: np.ndarray | None,
+    score: np.ndarray,
+) -> tuple[list[Region], np.ndarray]:
+    """Hysteresis: the connected regions of ``low`` that hold a ``high`` pixel, at least
+    min_area_px each; their records and label image."""
+    _, labels, stats, cents = cv2.connectedComponentsWithStats(low.astype(np.uint8), connectivity=8)
+    out = np.zeros(low.shape, np.int32)
     regions: list[Region] = []
     seeded = np.unique(labels[high])
-    # the peak: the deepest point, or with curvature alone the most bent one
-    score = np.abs(signed if options.depth is not None or signed_curv is None else signed_curv)
     frame = part.frame
     for lab in seeded[seeded > 0]:
         area = int(stats[lab, cv2.CC_STAT_AREA])
@@ -555,7 +683,7 @@ def find_defects(
         k = len(regions) + 1
         out[sel] = k
         i = int(np.argmax(np.where(sel, score, -1.0)))
-        py, px_ = divmod(i, mask.shape[1])
+        py, px_ = divmod(i, low.shape[1])
         peak = float(signed.flat[i])
         px = part.pixel_size_mm
         x, y, w, h = (int(v) for v in stats[lab, :4])
@@ -577,20 +705,7 @@ def find_defects(
                 image_bbox=(x0 + kk * x, y0 + kk * y, kk * w, kk * h),
             )
         )
-    verdict = Verdict(
-        passed=not regions,
-        regions=tuple(regions),
-        options=options,
-        units=dict(part.units),
-        pixels=int(mask.sum()),
-        reference=None if reference is None else reference.source,
-        shift=shift,
-        source=part.source,
-        frame=frame,
-        aligned_on=aligned_on,
-        statistics=tuple(judged),
-    )
-    return verdict, out
+    return regions, out
 
 
 def _statistics(
@@ -632,13 +747,17 @@ def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
 
 
 __all__ = [
+    "EXIT_MISMATCH",
+    "MISMATCH_FRACTION",
     "POLARITIES",
+    "Aligned",
     "DefectOptions",
     "InspectionInput",
     "JudgedStatistics",
     "Region",
     "Verdict",
     "align_shift",
+    "align_to",
     "check_run_memory",
     "find_defects",
     "from_maps",

@@ -90,8 +90,8 @@ class Station:
     model, ``method="l2"`` for least squares, ``speed``, the maps' units and local size: only
     the maps the rule needs are computed, whatever ``options.maps`` lists). ``load``: how a
     part's folder is read. ``reference``: a good part (a stack, a stack folder or an msf-run
-    output folder) mapped once with these settings; each part is then judged on what differs
-    from it. ``pictures``: compute the albedo too, for the overlay's grey base.
+    output folder) mapped once with these settings, or a variation model (its folder, or
+    ``VariationModel.centre``); each part is then judged on what differs from it. ``pictures``: compute the albedo too, for the overlay's grey base.
     """
 
     def __init__(
@@ -100,7 +100,7 @@ class Station:
         options: ModelOptions | None = None,
         *,
         load: LoadOptions | None = None,
-        reference: Stack | str | Path | None = None,
+        reference: Stack | InspectionInput | str | Path | None = None,
         pictures: bool = False,
     ) -> None:
         opts = options or ModelOptions()
@@ -112,7 +112,9 @@ class Station:
         if reference is not None:
             self.reference = self._reference(reference)
 
-    def _reference(self, given: Stack | str | Path) -> InspectionInput:
+    def _reference(self, given: Stack | InspectionInput | str | Path) -> InspectionInput:
+        if isinstance(given, InspectionInput):  # e.g. a VariationModel's centre
+            return given
         if isinstance(given, Stack):
             return self._maps(given, "reference")[0]
         path = Path(given)

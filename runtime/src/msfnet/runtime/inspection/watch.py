@@ -78,7 +78,7 @@ class PartRecord:
     """One line of the journal."""
 
     part: str
-    verdict: str  # "pass", "fail" or "error"
+    verdict: str  # "pass", "fail", "mismatch" (not the reference's part) or "error"
     defects: int = 0
     times_ms: dict[str, float] = field(default_factory=dict)
     regions: tuple[dict[str, object], ...] = ()
@@ -110,6 +110,7 @@ class WatchSummary:
 
     passed: int = 0
     failed: int = 0
+    mismatched: int = 0
     errors: int = 0
     earlier: int = 0  # parts the journal held when the loop started
     times: dict[str, list[float]] = field(default_factory=dict)
@@ -120,6 +121,8 @@ class WatchSummary:
             return
         if record.verdict == "pass":
             self.passed += 1
+        elif record.verdict == "mismatch":
+            self.mismatched += 1
         else:
             self.failed += 1
         for stage, ms in record.times_ms.items():
@@ -127,7 +130,7 @@ class WatchSummary:
 
     @property
     def parts(self) -> int:
-        return self.passed + self.failed + self.errors
+        return self.passed + self.failed + self.mismatched + self.errors
 
     def statistics(self) -> list[StageStatistics]:
         out = []
@@ -140,14 +143,16 @@ class WatchSummary:
 
     @property
     def exit_code(self) -> int:
-        """--once's: 2 if a part could not be judged, else 1 if one had defects, else 0."""
-        return 2 if self.errors else 1 if self.failed else 0
+        """--once's: 2 if a part could not be judged, else 4 if one did not match the
+        reference, else 1 if one had defects, else 0."""
+        return 2 if self.errors else 4 if self.mismatched else 1 if self.failed else 0
 
     def as_dict(self) -> dict[str, object]:
         return {
             "parts": self.parts,
             "passed": self.passed,
             "failed": self.failed,
+            "mismatched": self.mismatched,
             "errors": self.errors,
             "earlier_parts": self.earlier,
             "stages_ms": [s.__dict__ for s in self.statistics()],
@@ -156,7 +161,7 @@ class WatchSummary:
     def lines(self) -> list[str]:
         head = (
             f"judged {self.parts} part(s): {self.passed} pass, {self.failed} fail, "
-            f"{self.errors} error(s)"
+            f"{self.mismatched} mismatch, {self.errors} error(s)"
         )
         rows = [
             f"  {s.stage:<8} p50 {s.p50_ms:8.1f} ms   p99 {s.p99_ms:8.1f} ms"
