@@ -91,7 +91,8 @@ class Station:
     the maps the rule needs are computed, whatever ``options.maps`` lists). ``load``: how a
     part's folder is read. ``reference``: a good part (a stack, a stack folder or an msf-run
     output folder) mapped once with these settings, or a variation model (its folder, or
-    ``VariationModel.centre``); each part is then judged on what differs from it. ``pictures``: compute the albedo too, for the overlay's grey base.
+    ``VariationModel.centre``); each part is then judged on what differs from it.
+    ``pictures``: compute the albedo too, for the overlay's grey base.
     """
 
     def __init__(
