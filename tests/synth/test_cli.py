@@ -121,3 +121,29 @@ def test_the_hard_presets_dark_objects_follow_materials(
     argv = [str(tmp_path / "s"), *SMALL, "--preset", "hard", "--materials", materials]
     assert main(argv) == 0
     assert seen[0].very_dark == dark
+
+
+def test_plates_preset_renders_a_line_with_its_truth(tmp_path: Path, capfd) -> None:
+    """--preset plates: 5 good parts to learn from, and parts whose odd ones carry the relief
+    defects truth.json lists; a station judges them as the truth says."""
+    import json
+
+    from msfnet.runtime.cli.inspect import main as inspect_main
+
+    out = tmp_path / "line"
+    assert main([str(out), "--preset", "plates", "--objects", "4", "--size", "96"]) == 0
+    assert sorted(p.name for p in (out / "good").iterdir()) == [f"g{i}" for i in range(1, 6)]
+    truth = json.loads((out / "truth.json").read_text())
+    assert [bool(truth[f"p00{i}"]) for i in range(1, 5)] == [False, True, False, True]
+    goods = [str(p) for p in sorted((out / "good").iterdir())]
+    assert inspect_main(["--train-good", *goods, "--method", "l2", "-o", str(out / "m")]) == 0
+    argv = ["--watch", str(out / "parts"), "--reference", str(out / "m"), "--once"]
+    code = inspect_main([*argv, "--depth", "0.05", "--method", "l2", "-o", str(tmp_path / "s")])
+    assert code == 1  # two parts with defects
+    verdicts = {
+        r["part"]: r["verdict"]
+        for r in map(json.loads, (tmp_path / "s" / "parts.jsonl").read_text().splitlines())
+    }
+    assert verdicts == {p: "fail" if truth[p] else "pass" for p in truth}
+    assert main([str(tmp_path / "small"), "--preset", "plates", "--size", "64"]) == 2
+    assert "at least 96 px" in capfd.readouterr().err

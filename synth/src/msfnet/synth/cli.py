@@ -16,7 +16,7 @@ from msfnet.common.cli import (
     positive_int,
 )
 from msfnet.common.errors import InputError
-from msfnet.common.files import check_output, staged_folder
+from msfnet.common.files import check_output, json_text, staged_folder
 from msfnet.runtime.stack import save_stack
 from msfnet.synth.materials import ALL_KINDS
 from msfnet.synth.render import PRESETS, RenderOptions, render_set
@@ -37,12 +37,15 @@ def build_parser() -> argparse.ArgumentParser:
         (
             "msf-synth synth8/                       # 8 objects, 32 lights, 128 px",
             "msf-synth big/ --objects 2 --size 256 --lights 96 --seed 3",
+            "msf-synth line/ --preset plates --objects 20 --size 256   # an inspection line",
         ),
     )
     p.add_argument("outdir", type=path_arg, help="output benchmark root (one folder per object)")
     p.add_argument("--objects", type=positive_int, default=8, help="number of objects (default 8)")
     p.add_argument(
-        "--lights", type=int_range(3, MAX_LIGHTS), default=32, help="lights per object (default 32)"
+        "--lights",
+        type=int_range(3, MAX_LIGHTS),
+        help="lights per object (default 32; plates 12)",
     )
     p.add_argument(
         "--size",
@@ -53,11 +56,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=nonnegative_int, default=0, help="random seed (default 0)")
     p.add_argument(
         "--preset",
-        choices=PRESETS,
+        choices=(*PRESETS, "plates"),
         default="default",
-        help="'default' (the renderer of docs/model-card.md's held-out figures) or 'hard': "
+        help="'default' (the renderer of docs/model-card.md's held-out figures), 'hard': "
         "steep rims, folds and cups with inter-reflections, pixel-scale relief, "
-        "rough / painted / very dark materials, LED rings, mostly 8-bit",
+        "rough / painted / very dark materials, LED rings, mostly 8-bit; or 'plates': an "
+        "inspection line, good/ (5 good parts to learn from) and parts/ (every other one "
+        "with scratches and dents, listed in truth.json) under a 12-LED ring",
     )
     p.add_argument(
         "--shapes",
@@ -95,9 +100,12 @@ def _names(spec: str, allowed: tuple[str, ...], what: str) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> list[str]:
+    if args.preset == "plates":
+        return _plates(args)
     from tqdm import tqdm
 
     out: Path = args.outdir
+    args.lights = args.lights or 32
     base = RenderOptions.preset(args.preset)
     shapes = base.shapes if args.shapes is None else _names(args.shapes, ALL_SHAPES, "shapes")
     materials = (
@@ -138,6 +146,56 @@ def run(args: argparse.Namespace) -> list[str]:
         print(
             f"msf-synth: wrote {len(names)} objects ({args.lights} lights, {args.size}x"
             f"{args.size}) to {out} in {time.perf_counter() - t0:.1f} s"
+        )
+    return names
+
+
+GOOD_PLATES = 5  # --preset plates: the good parts a variation model learns from
+
+
+def _plates(args: argparse.Namespace) -> list[str]:
+    """--preset plates: good/g1..g5 and parts/p001.. (odd ones with relief defects), the
+    parts' truth in truth.json; one plate per seed (its tilt, bow and LED jitter)."""
+    from msfnet.synth.plates import PlateOptions, render_plate
+
+    out: Path = args.outdir
+    if args.size < 96:
+        raise InputError(f"--size {args.size}: a plate is at least 96 px")
+    check_output(out, overwrite=args.overwrite, folder=True, command=PROG)
+    lights = args.lights or 12
+    noise = 0.0 if args.no_noise else 1e-3
+    truth: dict[str, object] = {}
+    names: list[str] = []
+    with staged_folder(out, overwrite=args.overwrite, command=PROG) as tmp:
+        for i in range(GOOD_PLATES + args.objects):
+            good = i < GOOD_PLATES
+            name = f"good/g{i + 1}" if good else f"parts/p{i - GOOD_PLATES + 1:03d}"
+            relief = not good and (i - GOOD_PLATES) % 2 == 1
+            opts = PlateOptions(
+                height=args.size,
+                width=args.size,
+                lights=lights,
+                mask_edge=None,
+                relief=relief,
+                noise=noise,
+                seed=args.seed * 10_000 + i,
+            )
+            plate = render_plate(opts)
+            stack = plate.stack
+            if args.bit_depth == 8:
+                stack.images = stack.images / 257.0
+            save_stack(stack, tmp / name, bit_depth=args.bit_depth)
+            names.append(name)
+            if not good:
+                truth[name.split("/")[1]] = [
+                    {"kind": d.kind, "depth_px": d.depth, "width_px": d.width}
+                    for d in plate.defect_list
+                ]
+        (tmp / "truth.json").write_text(json_text(truth), encoding="utf-8")
+    if not getattr(args, "quiet", False):
+        print(
+            f"msf-synth: wrote {GOOD_PLATES} good parts and {args.objects} parts ({lights} "
+            f"lights, {args.size}x{args.size}) to {out}"
         )
     return names
 
