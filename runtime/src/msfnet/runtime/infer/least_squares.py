@@ -97,7 +97,13 @@ def grey_values(pixels: np.ndarray, intensities: np.ndarray) -> np.ndarray:
     integer arithmetic); the copy lives only here."""
     if pixels.dtype.kind != "f":
         pixels = pixels.astype(np.float32)
-    return (pixels / intensities[:, None, :]).mean(axis=2).astype(np.float64)
+    ratio = pixels / intensities[:, None, :]
+    # the channels' mean, summed as numpy's mean sums three (the same bits), without its
+    # reduction over a 3-long last axis: 3x faster on a station's 256 x 256 part
+    grey = ratio[..., 0] + ratio[..., 1]
+    grey += ratio[..., 2]
+    grey /= grey.dtype.type(3)
+    return grey.astype(np.float64)
 
 
 def _solve(

@@ -114,6 +114,8 @@ class WatchSummary:
     errors: int = 0
     earlier: int = 0  # parts the journal held when the loop started
     times: dict[str, list[float]] = field(default_factory=dict)
+    busy_s: float = 0.0  # wall time spent taking parts (idle polls left out)
+    cpu_s: float = 0.0  # process CPU time meanwhile (all threads: decode ahead included)
 
     def add(self, record: PartRecord) -> None:
         if record.verdict == "error":
@@ -155,6 +157,8 @@ class WatchSummary:
             "mismatched": self.mismatched,
             "errors": self.errors,
             "earlier_parts": self.earlier,
+            "busy_wall_s": round(self.busy_s, 3),
+            "busy_cpu_s": round(self.cpu_s, 3),
             "stages_ms": [s.__dict__ for s in self.statistics()],
         }
 
@@ -167,6 +171,10 @@ class WatchSummary:
             f"  {s.stage:<8} p50 {s.p50_ms:8.1f} ms   p99 {s.p99_ms:8.1f} ms"
             for s in self.statistics()
         ]
+        judged = self.passed + self.failed + self.mismatched
+        if judged:
+            wall, cpu = 1e3 * self.busy_s / judged, 1e3 * self.cpu_s / judged
+            rows.append(f"  a part every {wall:.1f} ms wall, {cpu:.1f} ms CPU (decode overlapped)")
         return [head, *rows]
 
 
@@ -399,7 +407,11 @@ def _watch(
             for path, why in finder.stale(now):
                 if path.name not in journal.done:
                     record(PartRecord(path.name, "error", error=why))
+            wall, cpu = time.perf_counter(), time.process_time()
             _judge_all(station, parts, pool, finder, record, stop.event, output)
+            if parts:
+                summary.busy_s += time.perf_counter() - wall
+                summary.cpu_s += time.process_time() - cpu
             if options.once:
                 break
             stop.event.wait(options.poll_s)
