@@ -448,3 +448,32 @@ def test_the_judged_map_statistics_are_printed_and_kept(plate_run: Path, tmp_pat
     assert stats[0]["p99"] == pytest.approx(float(np.percentile(values, 99)), rel=1e-5)
     assert stats[0]["max"] == pytest.approx(float(values.max()), rel=1e-6)
     assert printed[-1].startswith("local shape: p50 ") and "(threshold 0.1 px)" in printed[-1]
+
+
+def test_region_shapes_tell_a_scratch_from_a_dent_a_pit_and_a_bump() -> None:
+    from msfnet.runtime.inspection.defects import region_shape
+
+    rows, cols = np.mgrid[0:40, 0:40]
+    line = (np.abs(rows - cols) <= 1) & (rows > 5) & (rows < 35)  # a 45 deg scratch
+    disk = (rows - 20) ** 2 + (cols - 20) ** 2 <= 16
+    dot = (rows - 20) ** 2 + (cols - 20) ** 2 <= 1
+    scratch = region_shape(*np.nonzero(line), sunk=True)
+    assert scratch.kind == "scratch" and scratch.orientation_deg == pytest.approx(45, abs=1)
+    assert scratch.length_px == pytest.approx(29 * 2**0.5, rel=0.1) and scratch.width_px < 4
+    assert region_shape(*np.nonzero(disk), sunk=True).kind == "dent"
+    assert region_shape(*np.nonzero(dot), sunk=True).kind == "pit"
+    assert region_shape(*np.nonzero(line), sunk=False).kind == "bump"
+    across = region_shape(*np.nonzero((rows == 20) & (cols > 3)), sunk=True)
+    assert across.orientation_deg == pytest.approx(0, abs=0.5) and across.width_px == 1
+
+
+def test_the_plate_defects_come_out_by_kind_in_the_verdict_and_its_table(plate) -> None:
+    result = Model.least_squares(maps=MAPS)(plate.stack)
+    verdict, _ = find_defects(from_maps(result.maps, "plate"), DefectOptions(depth=DEPTH_PX))  # type: ignore[arg-type]
+    truth = sorted(d.kind for d in plate.defect_list)
+    assert sorted(r.kind for r in verdict.regions) == truth
+    rows = verdict.csv_text().splitlines()
+    assert len(rows) == 1 + len(verdict.regions)
+    header = rows[0].split(",")
+    assert {"kind", "length_px", "width_px", "centroid_x", "bbox_h"} <= set(header)
+    assert all(len(r.split(",")) == len(header) for r in rows[1:])

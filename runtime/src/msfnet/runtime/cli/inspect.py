@@ -11,8 +11,9 @@ Exit code: 0 pass (no defect), 1 defects found, 2 bad input or output (one line 
 nothing written; a full disk and out of memory too), 3 a failure of the tool itself (never read
 as a verdict; Ctrl-C 130, SIGTERM 143), 4 the part does not match its reference or variation
 model (another part, or not in its place). --watch exits 0 when stopped by SIGTERM / Ctrl-C.
-The verdict (verdict.json) and the overlay picture (overlay.png, the input's size)
-are written together into the -o folder, or not at all.
+The verdict (verdict.json), its regions as a table (regions.csv: size, length, width,
+orientation, depth, kind) and the overlay picture (overlay.png, the input's size) are written
+together into the -o folder, or not at all.
 """
 
 from __future__ import annotations
@@ -276,6 +277,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     picture = overlay_picture(part, labels)
     with staged_folder(args.output, overwrite=args.overwrite) as tmp:
         (tmp / "verdict.json").write_text(verdict.json_text(), encoding="utf-8")
+        (tmp / "regions.csv").write_text(verdict.csv_text(), encoding="utf-8")
         encode_png(tmp / "overlay.png", picture)
     if not args.quiet:
         print(_summary(verdict, args.output))
@@ -358,7 +360,11 @@ def _print_part(record: object) -> None:
     elif record.verdict == "mismatch":
         print(f"{record.part}: MISMATCH (not the reference's part, or misplaced){took}", flush=True)
     else:
-        print(f"{record.part}: FAIL, {record.defects} defect(s){took}", flush=True)
+        kinds: dict[str, int] = {}
+        for region in record.regions:
+            kinds[str(region.get("kind"))] = kinds.get(str(region.get("kind")), 0) + 1
+        what = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items(), key=lambda kv: -kv[1]))
+        print(f"{record.part}: FAIL, {record.defects} defect(s): {what}{took}", flush=True)
 
 
 def _provenance(args: argparse.Namespace, part: InspectionInput) -> Provenance:
@@ -389,7 +395,8 @@ def _summary(verdict: Verdict, output: Path) -> str:
         else f"most bent {worst.curvature:.4g} {verdict.units['curvature']}"
     )
     return (
-        f"FAIL: {len(verdict.regions)} defect(s); {size} at {where}x={x:.0f}, y={y:.0f} -> {output}"
+        f"FAIL: {len(verdict.regions)} defect(s) ({verdict.kinds()}); {size} at "
+        f"{where}x={x:.0f}, y={y:.0f} -> {output}"
     )
 
 

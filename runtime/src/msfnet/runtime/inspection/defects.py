@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import cv2
@@ -97,7 +97,10 @@ class Region:
     dent or scratch) at ``peak``; ``area_px`` (and area_mm2 with a pixel size); ``peak``,
     ``centroid`` (x, y) and ``bbox`` (x, y, w, h) in map pixels (overlay.png's); the same
     in the camera image's pixels (``image_*``, see :class:`Frame`); the largest |mean
-    curvature|."""
+    curvature|. Shape (:func:`region_shape`): ``length_px`` and ``width_px`` of the region's
+    smallest rotated rectangle, ``orientation_deg`` of its long axis (0 along x, 90 along y,
+    rows down), ``mean_depth`` (mean |local shape|), and ``kind``: scratch, dent, pit or
+    bump."""
 
     label: int
     area_px: int
@@ -111,6 +114,56 @@ class Region:
     image_peak: tuple[float, float] = (0.0, 0.0)
     image_centroid: tuple[float, float] = (0.0, 0.0)
     image_bbox: tuple[int, int, int, int] = (0, 0, 0, 0)
+    kind: str = ""
+    length_px: float = 0.0
+    width_px: float = 0.0
+    orientation_deg: float = 0.0
+    mean_depth: float = 0.0
+
+
+# A region at least this many times longer than wide is a scratch (a dent seen at an angle
+# stays under 2); a sunk one at most PIT_WIDTH_PX wide, a pit.
+SCRATCH_ELONGATION = 3.0
+PIT_WIDTH_PX = 3.0
+KINDS = ("scratch", "dent", "pit", "bump")
+
+
+@dataclass(frozen=True)
+class RegionShape:
+    length_px: float
+    width_px: float
+    orientation_deg: float
+    kind: str
+
+
+def region_shape(rows: np.ndarray, cols: np.ndarray, sunk: bool) -> RegionShape:
+    """The shape of a region given its pixels: length and width of the smallest rotated
+    rectangle holding the pixel squares, the long axis' direction (second moments: steadier
+    than the rectangle's on a blob), and its kind: raised -> bump; sunk and elongated ->
+    scratch; sunk, compact and narrow -> pit; else dent."""
+    points = np.column_stack([cols, rows]).astype(np.float32)
+    (_, _), (w, h), _ = cv2.minAreaRect(points)
+    length, width = max(w, h) + 1.0, min(w, h) + 1.0
+    x, y = cols - cols.mean(), rows - rows.mean()
+    sxx, syy, sxy = float((x * x).mean()), float((y * y).mean()), float((x * y).mean())
+    angle = 0.5 * math.degrees(math.atan2(2 * sxy, sxx - syy)) % 180.0
+    if not sunk:
+        kind = "bump"
+    elif length >= SCRATCH_ELONGATION * width:
+        kind = "scratch"
+    else:
+        kind = "pit" if width <= PIT_WIDTH_PX else "dent"
+    return RegionShape(round(float(length), 2), round(float(width), 2), round(angle, 1), kind)
+
+
+_PAIRS = {
+    "centroid": 2,
+    "bbox": 4,
+    "peak": 2,
+    "image_peak": 2,
+    "image_centroid": 2,
+    "image_bbox": 4,
+}
 
 
 @dataclass(frozen=True)
@@ -187,6 +240,35 @@ class Verdict:
 
     def json_text(self) -> str:
         return json_text(self.as_dict())
+
+    def kinds(self) -> str:
+        """ "3 scratch, 2 dent": the regions by kind, most first."""
+        counts: dict[str, int] = {}
+        for r in self.regions:
+            counts[r.kind] = counts.get(r.kind, 0) + 1
+        return ", ".join(f"{n} {k}" for k, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+
+    def csv_text(self) -> str:
+        """regions.csv: one row per region (the fields of :class:`Region`; pairs and boxes as
+        their x / y / w / h columns), for a spreadsheet or a line's database."""
+        import csv
+        import io
+
+        columns = [f.name for f in fields(Region)]
+        out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\n")
+        header: list[str] = []
+        for name in columns:
+            axes = "xywh"[: _PAIRS[name]] if name in _PAIRS else ""
+            header += [f"{name}_{a}" for a in axes] if axes else [name]
+        writer.writerow(header)
+        for region in self.regions:
+            row: list[object] = []
+            for name in columns:
+                value = getattr(region, name)
+                row += list(value) if isinstance(value, tuple) else [value]
+            writer.writerow(row)
+        return out.getvalue()
 
 
 @dataclass
@@ -689,6 +771,8 @@ def _regions(
         x, y, w, h = (int(v) for v in stats[lab, :4])
         cx, cy = float(cents[lab][0]), float(cents[lab][1])
         (x0, y0), kk = frame.origin_xy, frame.downscale
+        rows, cols = np.nonzero(sel)
+        shape = region_shape(rows, cols, sunk=peak < 0)
         regions.append(
             Region(
                 label=k,
@@ -703,6 +787,11 @@ def _regions(
                 image_peak=frame.image_xy(px_, py),
                 image_centroid=frame.image_xy(cx, cy),
                 image_bbox=(x0 + kk * x, y0 + kk * y, kk * w, kk * h),
+                kind=shape.kind,
+                length_px=shape.length_px,
+                width_px=shape.width_px,
+                orientation_deg=shape.orientation_deg,
+                mean_depth=float(np.abs(signed[sel]).mean()),
             )
         )
     return regions, out
@@ -748,6 +837,7 @@ def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
 
 __all__ = [
     "EXIT_MISMATCH",
+    "KINDS",
     "MISMATCH_FRACTION",
     "POLARITIES",
     "Aligned",

@@ -360,6 +360,7 @@ def _write_part(output: Path, inspection: Inspection) -> float:
     start = time.perf_counter()
     with staged_folder(output / inspection.name) as tmp:
         (tmp / "verdict.json").write_text(inspection.verdict.json_text(), encoding="utf-8")
+        (tmp / "regions.csv").write_text(inspection.verdict.csv_text(), encoding="utf-8")
         encode_png(tmp / "overlay.png", inspection.overlay())
     return time.perf_counter() - start
 
