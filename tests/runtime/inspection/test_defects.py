@@ -477,3 +477,20 @@ def test_the_plate_defects_come_out_by_kind_in_the_verdict_and_its_table(plate) 
     header = rows[0].split(",")
     assert {"kind", "length_px", "width_px", "centroid_x", "bbox_h"} <= set(header)
     assert all(len(r.split(",")) == len(header) for r in rows[1:])
+
+
+def test_a_keep_out_leaves_the_rim_where_the_mask_ends_on_the_part() -> None:
+    """A rim 2 px inside the mask's edge (what a mask on a part's own edge draws) is a defect
+    without a keep-out and none with --keep-out 4; the image's border is not an edge."""
+    h, w = 60, 80
+    local = np.zeros((h, w), np.float32)
+    local[:, 60:62] = -0.3  # a rim 2-3 px inside the mask's edge (column 63 is its last)
+    local[20:24, 2:6] = -0.3  # a dent 2 px from the image's left border: still judged
+    local[:, 64:] = np.nan
+    part = InspectionInput(local, None, None, {"depth": "px", "curvature": "1/px"}, None, "p")
+    plain, _ = find_defects(part, DefectOptions(depth=0.1))
+    kept, labels = find_defects(part, DefectOptions(depth=0.1, keep_out_px=4))
+    assert len(plain.regions) == 2 and len(kept.regions) == 1
+    assert labels[20:24, 2:6].all() and not labels[:, 58:].any()
+    with pytest.raises(InputError, match="leaves nothing"):
+        find_defects(part, DefectOptions(depth=0.1, keep_out_px=100))

@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from msfnet.common.cli import flag, positive_float, positive_int
+from msfnet.common.cli import flag, nonnegative_float, positive_float, positive_int
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import json_text
 from msfnet.common.imageio import image_header
@@ -69,6 +69,14 @@ class DefectOptions:
         "down: dents and scratches only; up: bumps only (default both)",
         choices=("both", "down", "up"),
     )
+    keep_out_px: float = flag(
+        0.0,
+        "leave out the pixels within PX of the mask's edge (map px): where the mask ends on "
+        "the part's own edge its normals there draw a rim; 6 is a start (default 0)",
+        name="--keep-out",
+        type=nonnegative_float,
+        metavar="PX",
+    )
     sigmas: float = flag(
         4.0,
         "with a variation model as --reference (--train-good): a pixel is a defect where it "
@@ -85,6 +93,8 @@ class DefectOptions:
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
                 raise InputError(f"--{name} {v}: must be a positive, finite number")
+        if not (np.isfinite(self.keep_out_px) and self.keep_out_px >= 0):
+            raise InputError(f"--keep-out {self.keep_out_px}: must be 0 or more px")
         if self.min_area_px < 1:
             raise InputError(f"--min-area {self.min_area_px}: must be at least 1 px")
         if self.polarity not in POLARITIES:
@@ -644,10 +654,25 @@ class _Judged:
     mismatch: str | None = None  # not the reference's part: nothing to compare
 
 
+def _kept_in(mask: np.ndarray, keep_out_px: float) -> np.ndarray:
+    """The mask less its pixels within ``keep_out_px`` of where it ends (the image's own
+    border is not an edge of the part: the surface may go on beyond it)."""
+    if keep_out_px <= 0:
+        return mask
+    padded = cv2.copyMakeBorder(mask.astype(np.uint8), 1, 1, 1, 1, cv2.BORDER_REPLICATE)
+    distance = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    return mask & (distance > keep_out_px)
+
+
 def _against_reference(
     part: InspectionInput, options: DefectOptions, reference: InspectionInput | None
 ) -> _Judged:
-    mask, local, curv = part.mask, part.local_shape, part.curvature
+    mask, local, curv = _kept_in(part.mask, options.keep_out_px), part.local_shape, part.curvature
+    if not mask.any():
+        raise InputError(
+            f"--keep-out {options.keep_out_px:g} px leaves nothing of the mask to inspect",
+            part.source,
+        )
     judged = _Judged(mask, local, curv, options.depth, options.curvature)
     if reference is None:
         return judged
