@@ -65,3 +65,41 @@ def test_design_doc_names_every_command() -> None:
         commands = tomllib.load(f)["project"]["scripts"]
     design = (REPO / "docs" / "design.md").read_text(encoding="utf-8")
     assert [c for c in commands if c not in design] == []
+
+
+def _readme_block(after: str) -> list[str]:
+    """The commands of the first ```sh block after the text ``after`` in the README, one per
+    line, their trailing comments dropped."""
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    start = text.index("```sh\n", text.index(after)) + len("```sh\n")
+    block = text[start : text.index("```", start)]
+    return [line.split("  #")[0].strip() for line in block.splitlines() if line.strip()]
+
+
+@pytest.mark.slow
+def test_the_readme_inspection_recipe_runs_as_written(tmp_path: Path) -> None:
+    """Each command of the README's inspection block, in a fresh folder, exits as the README
+    says: the line rendered, the model learnt, p002 (a defective part) fails, the station
+    judges the line and exits 1 (some of its parts have defects)."""
+    import shutil
+    import subprocess
+
+    commands = _readme_block("**Inspect parts**")
+    assert [c.split()[0] for c in commands] == [
+        "msf-synth",
+        "msf-inspect",
+        "msf-inspect",
+        "msf-inspect",
+    ]
+    if shutil.which("msf-inspect") is None:
+        pytest.skip("the msf-* commands are not installed (pip install -e .)")
+    codes = []
+    for command in commands:
+        done = subprocess.run(
+            command, shell=True, cwd=tmp_path, capture_output=True, text=True, timeout=600
+        )
+        codes.append(done.returncode)
+        assert done.returncode in (0, 1), (command, done.stderr)
+    assert codes == [0, 0, 1, 1]
+    journal = (tmp_path / "line" / "station" / "parts.jsonl").read_text().splitlines()
+    assert len(journal) == 20
