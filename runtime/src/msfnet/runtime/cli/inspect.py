@@ -45,6 +45,7 @@ from msfnet.runtime.inspection.defects import (
     read_run,
 )
 from msfnet.runtime.inspection.watch import WatchOptions
+from msfnet.runtime.inspection.zones import Zones, read_zones
 from msfnet.runtime.results.provenance import Provenance
 
 PROG = "msf-inspect"
@@ -60,6 +61,7 @@ _OWN = (
     "sigmas",
     "reference",
     "train_good",
+    "zones",
     "quiet",
     "debug",
     "watch",
@@ -109,6 +111,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="a good part (run folder or stack, same fixture and size), or a variation model "
         "(--train-good): only what differs from it counts (aligned by phase correlation "
         "first); a part that differs over more than 20 %% of its pixels is a MISMATCH (exit 4)",
+    )
+    t.add_argument(
+        "--zones",
+        type=path_arg,
+        metavar="JSON",
+        help='areas with their own --depth / --curvature, or left out: {"zones": [{"name": '
+        '"logo", "polygon": [[x, y], ...], "ignore": true}, ...]} in camera image pixels',
     )
     t.add_argument(
         "--train-good",
@@ -235,9 +244,11 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     from msfnet.runtime.cli.flags import load_options, model_options
     from msfnet.runtime.stack import linked_reads
 
+    zones = _zones(args)
     # every file read is an input: the part, the reference, and the files the load and model
     # flags name (an --overwrite over a folder holding the --mask read deleted it)
-    read = [args.input, args.reference, *load_options(args).inputs(), model_options(args).model]
+    read = [args.input, args.reference, args.zones, *load_options(args).inputs()]
+    read.append(model_options(args).model)
     inputs = tuple(p for p in read if p is not None)
     # and what the part's and the reference's stacks read from elsewhere, through links
     reads = linked_reads(args.input) + (
@@ -272,7 +283,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
                 check_run_memory(path, budget, args.reference is not None)
     part = _prepare(args.input, args)
     reference = None if args.reference is None else _prepare(args.reference, args)
-    verdict, labels = find_defects(part, options, reference)
+    verdict, labels = find_defects(part, options, reference, zones)
     verdict = replace(verdict, provenance=_provenance(args, part).as_dict())
     picture = overlay_picture(part, labels)
     with staged_folder(args.output, overwrite=args.overwrite) as tmp:
@@ -284,6 +295,11 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         for judged in verdict.statistics:  # what a threshold is chosen from, in its units
             print(judged.line())
     return verdict.exit_code
+
+
+def _zones(args: argparse.Namespace) -> Zones | None:
+    """--zones, read and checked before any part is run."""
+    return None if args.zones is None else read_zones(args.zones)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -314,6 +330,7 @@ def _station(args: argparse.Namespace) -> int:
     from msfnet.runtime.inspection.watch import JOURNAL, watch
 
     rule = _rule(args)
+    zones = _zones(args)
     if args.input is not None:
         raise InputError(f"INPUT ({args.input}) and --watch: give one")
     if args.overwrite:
@@ -327,12 +344,12 @@ def _station(args: argparse.Namespace) -> int:
     if args.reference is not None and not args.reference.exists():
         raise InputError("no such file or folder", args.reference)
     load, opts = load_options(args), model_options(args)
-    inputs = [folder, args.reference, *load.inputs(), opts.model]
+    inputs = [folder, args.reference, args.zones, *load.inputs(), opts.model]
     held = out.is_dir() and any(not p.name.startswith(".") for p in out.iterdir())
     if held and not (out / JOURNAL).is_file():
         raise InputError(f"holds other files and no {JOURNAL}: give a new or empty folder", out)
     check_output(out / JOURNAL, [p for p in inputs if p is not None], overwrite=True)
-    station = Station(rule, opts, load=load, reference=args.reference)
+    station = Station(rule, opts, load=load, reference=args.reference, zones=zones)
     report = (lambda record: None) if args.quiet else _print_part
     summary = watch(
         station,

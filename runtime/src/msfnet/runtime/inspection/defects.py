@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import cv2
@@ -32,6 +32,7 @@ from msfnet.common.cli import flag, nonnegative_float, positive_float, positive_
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import json_text
 from msfnet.common.imageio import image_header
+from msfnet.runtime.inspection.zones import Zones
 from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import Frame, read_tiff
 
@@ -129,6 +130,7 @@ class Region:
     width_px: float = 0.0
     orientation_deg: float = 0.0
     mean_depth: float = 0.0
+    zone: str = ""  # the zone of its peak (--zones), "" outside every zone
 
 
 # A region at least this many times longer than wide is a scratch (a dent seen at an angle
@@ -652,6 +654,7 @@ class _Judged:
     bend: float | np.ndarray | None
     aligned: Aligned | None = None
     mismatch: str | None = None  # not the reference's part: nothing to compare
+    zone_of: np.ndarray | None = None  # each pixel's zone (Zones.labels), -1 none
 
 
 def _kept_in(mask: np.ndarray, keep_out_px: float) -> np.ndarray:
@@ -664,16 +667,40 @@ def _kept_in(mask: np.ndarray, keep_out_px: float) -> np.ndarray:
     return mask & (distance > keep_out_px)
 
 
-def _against_reference(
-    part: InspectionInput, options: DefectOptions, reference: InspectionInput | None
-) -> _Judged:
-    mask, local, curv = _kept_in(part.mask, options.keep_out_px), part.local_shape, part.curvature
+def _floors(
+    part: InspectionInput, options: DefectOptions, zones: Zones | None
+) -> tuple[np.ndarray, float | np.ndarray | None, float | np.ndarray | None, np.ndarray | None]:
+    """The pixels judged (the mask less the keep-out and ignored zones) and the thresholds
+    before any variation model: the rule's, or a zone's own inside it; the zone labels."""
+    mask = _kept_in(part.mask, options.keep_out_px)
+    depth: float | np.ndarray | None = options.depth
+    bend: float | np.ndarray | None = options.curvature
+    zone_of = None
+    if zones is not None:
+        zone_of = zones.labels(part.shape, part.frame)
+        for i, zone in enumerate(zones.zones):
+            inside = zone_of == i
+            if zone.ignore:
+                mask = mask & ~inside
+            if zone.depth is not None and depth is not None:
+                depth = np.where(inside, zone.depth, depth)
+            if zone.curvature is not None and bend is not None:
+                bend = np.where(inside, zone.curvature, bend)
     if not mask.any():
-        raise InputError(
-            f"--keep-out {options.keep_out_px:g} px leaves nothing of the mask to inspect",
-            part.source,
-        )
-    judged = _Judged(mask, local, curv, options.depth, options.curvature)
+        what = "--keep-out and the ignored zones leave" if zones else "--keep-out leaves"
+        raise InputError(f"{what} nothing of the mask to inspect", part.source)
+    return mask, depth, bend, zone_of
+
+
+def _against_reference(
+    part: InspectionInput,
+    options: DefectOptions,
+    reference: InspectionInput | None,
+    zones: Zones | None = None,
+) -> _Judged:
+    mask, depth, bend, zone_of = _floors(part, options, zones)
+    local, curv = part.local_shape, part.curvature
+    judged = _Judged(mask, local, curv, depth, bend, zone_of=zone_of)
     if reference is None:
         return judged
     ref = align_to(part, reference, limit=False)
@@ -694,21 +721,25 @@ def _against_reference(
         curv = curv - ref.curvature
     if not mask.any():
         raise InputError("the part and the aligned reference share no pixel", part.source)
-    judged = _Judged(mask, local, curv, options.depth, options.curvature, ref)
+    judged = _Judged(mask, local, curv, depth, bend, ref, zone_of=zone_of)
     # a variation model: the threshold is K spreads where the good parts varied more than
     # the floor allows (NaN spreads, where fewer good parts held the pixel: the floor)
-    if ref.local_shape_spread is not None and options.depth is not None:
-        judged.depth = np.fmax(options.depth, options.sigmas * ref.local_shape_spread)
-    if ref.curvature_spread is not None and options.curvature is not None:
-        judged.bend = np.fmax(options.curvature, options.sigmas * ref.curvature_spread)
+    if ref.local_shape_spread is not None and depth is not None:
+        judged.depth = np.fmax(depth, options.sigmas * ref.local_shape_spread)
+    if ref.curvature_spread is not None and bend is not None:
+        judged.bend = np.fmax(bend, options.sigmas * ref.curvature_spread)
     return judged
 
 
 def find_defects(
-    part: InspectionInput, options: DefectOptions, reference: InspectionInput | None = None
+    part: InspectionInput,
+    options: DefectOptions,
+    reference: InspectionInput | None = None,
+    zones: Zones | None = None,
 ) -> tuple[Verdict, np.ndarray]:
     """The verdict and an (H, W) int32 label image of the regions (0 = none). ``reference``:
-    a good part, or a variation model's centre (with spreads: per-pixel thresholds)."""
+    a good part, or a variation model's centre (with spreads: per-pixel thresholds);
+    ``zones``: areas with their own thresholds, or left out."""
     if not part.mask.any():
         raise InputError("the mask is empty: nothing to inspect", part.source)
     if options.depth is not None and part.local_shape is None:
@@ -716,7 +747,7 @@ def find_defects(
         raise InputError(f"--depth needs local_shape.tif{why}", part.source)
     if options.curvature is not None and part.curvature is None:
         raise InputError("--curvature needs curvature.tif in the run folder", part.source)
-    j = _against_reference(part, options, reference)
+    j = _against_reference(part, options, reference, zones)
     mask = j.mask
     signed = np.zeros(mask.shape, np.float32) if j.local is None else np.nan_to_num(j.local)
     signed_curv = None if j.curv is None else np.nan_to_num(j.curv)
@@ -749,6 +780,10 @@ def find_defects(
         # the peak: the deepest point, or with curvature alone the most bent one
         score = np.abs(signed if signed_curv is None or options.depth is not None else signed_curv)
         regions, out = _regions(part, options, high, low, signed, signed_curv, score)
+        if zones is not None and j.zone_of is not None:
+            names = ["", *(z.name for z in zones.zones)]  # label -1 (no zone) -> ""
+            zone_of = j.zone_of
+            regions = [replace(r, zone=names[int(zone_of[r.peak[::-1]]) + 1]) for r in regions]
     verdict = Verdict(
         passed=not regions and mismatch is None,
         regions=tuple(regions),

@@ -27,6 +27,7 @@ from msfnet.runtime.inspection.defects import (
     overlay_picture,
     read_run,
 )
+from msfnet.runtime.inspection.zones import Zones, read_zones
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.maps import MapOptions
 from msfnet.runtime.stack import LoadOptions, Stack, load_stack
@@ -91,7 +92,8 @@ class Station:
     the maps the rule needs are computed, whatever ``options.maps`` lists). ``load``: how a
     part's folder is read. ``reference``: a good part (a stack, a stack folder or an msf-run
     output folder) mapped once with these settings, or a variation model (its folder, or
-    ``VariationModel.centre``); each part is then judged on what differs from it.
+    ``VariationModel.centre``); each part is then judged on what differs from it. ``zones``:
+    areas with their own thresholds or left out (a JSON file, :mod:`.zones`).
     ``pictures``: compute the albedo too, for the overlay's grey base.
     """
 
@@ -102,11 +104,13 @@ class Station:
         *,
         load: LoadOptions | None = None,
         reference: Stack | InspectionInput | str | Path | None = None,
+        zones: Zones | str | Path | None = None,
         pictures: bool = False,
     ) -> None:
         opts = options or ModelOptions()
         maps = replace(opts.maps or MapOptions(), maps=rule_maps(rule, pictures))
         self.rule = rule
+        self.zones = read_zones(Path(zones)) if isinstance(zones, (str, Path)) else zones
         self.load = load or LoadOptions()
         self.model = Model(options=opts.replace(maps=maps))
         self.reference: InspectionInput | None = None
@@ -155,7 +159,7 @@ class Station:
             stack = replace(stack, normals_gt=None)
         maps, normals_s, maps_s = self._maps(stack, name)
         start = time.perf_counter()
-        verdict, labels = find_defects(maps, self.rule, self.reference)
+        verdict, labels = find_defects(maps, self.rule, self.reference, self.zones)
         judge_s = time.perf_counter() - start
         times = StageTimes(decode_s, normals_s, maps_s, judge_s)
         return Inspection(name, verdict, labels, maps, times)
