@@ -285,7 +285,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     reference = None if args.reference is None else _prepare(args.reference, args)
     verdict, labels = find_defects(part, options, reference, zones)
     verdict = replace(verdict, provenance=_provenance(args, part).as_dict())
-    picture = overlay_picture(part, labels)
+    picture = overlay_picture(part, labels, verdict.regions)
     with staged_folder(args.output, overwrite=args.overwrite) as tmp:
         (tmp / "verdict.json").write_text(verdict.json_text(), encoding="utf-8")
         (tmp / "regions.csv").write_text(verdict.csv_text(), encoding="utf-8")

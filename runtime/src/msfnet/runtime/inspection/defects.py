@@ -865,9 +865,22 @@ def _statistics(
     return JudgedStatistics(name, units, threshold, p50, p99, float(inside.max()))
 
 
-def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 RGB at the maps' size: the albedo (or the local shape) in grey, each
-    region's outline in red with its number, the mask's outside darkened."""
+# outline colours by kind (RGB), told apart also by people who do not see red and green well
+KIND_COLOURS = {
+    "scratch": (255, 60, 60),
+    "dent": (255, 170, 0),
+    "pit": (230, 80, 255),
+    "bump": (0, 200, 255),
+    "": (255, 60, 60),
+}
+
+
+def overlay_picture(
+    part: InspectionInput, labels: np.ndarray, regions: tuple[Region, ...] = ()
+) -> np.ndarray:
+    """(H, W, 3) uint8 RGB at the maps' size: the albedo (or the local shape) in grey, the
+    mask's outside darkened, each region outlined in its kind's colour (KIND_COLOURS) and
+    labelled beside it: its number, and with ``regions`` (the verdict's) its kind and depth."""
     mask = part.mask
     if part.albedo is not None:
         base = np.nan_to_num(part.albedo.mean(axis=2))
@@ -885,13 +898,22 @@ def overlay_picture(part: InspectionInput, labels: np.ndarray) -> np.ndarray:
     grey = np.clip((base - lo) / (hi - lo if hi > lo else 1.0), 0, 1) * 200 + 30
     grey = np.where(mask, grey, grey * 0.3).astype(np.uint8)
     rgb = np.ascontiguousarray(np.repeat(grey[..., None], 3, axis=2))
+    by_label = {r.label: r for r in regions}
+    h, w = labels.shape
     for k in range(1, int(labels.max()) + 1):
         sel = (labels == k).astype(np.uint8)
+        region = by_label.get(k)
+        colour = KIND_COLOURS.get(region.kind if region else "", KIND_COLOURS[""])
         contours, _ = cv2.findContours(sel, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        cv2.drawContours(rgb, contours, -1, (255, 0, 0), 1)
+        cv2.drawContours(rgb, contours, -1, colour, 1)
+        text = str(k) if region is None else f"{k} {region.kind} {region.depth:.2g}"
         ys, xs = np.nonzero(sel)
-        org = (int(xs.max()) + 2, max(8, int(ys.min()) + 6))
-        cv2.putText(rgb, str(k), org, cv2.FONT_HERSHEY_PLAIN, 0.8, (255, 220, 0), 1, cv2.LINE_AA)
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_PLAIN, 0.8, 1)
+        # beside the region, kept inside the picture (a region at the right edge: left of it)
+        x = int(xs.max()) + 3 if int(xs.max()) + 3 + tw < w else max(0, int(xs.min()) - 3 - tw)
+        y = min(max(th + 1, int(ys.min()) + th), h - 2)
+        for at, ink in (((x + 1, y + 1), (0, 0, 0)), ((x, y), colour)):  # a shadow, then the text
+            cv2.putText(rgb, text, at, cv2.FONT_HERSHEY_PLAIN, 0.8, ink, 1, cv2.LINE_AA)
     return rgb
 
 

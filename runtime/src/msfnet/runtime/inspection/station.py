@@ -70,7 +70,7 @@ class Inspection:
 
     def overlay(self) -> np.ndarray:
         """(H, W, 3) uint8 RGB: the part with each region outlined and numbered."""
-        return overlay_picture(self.part, self.labels)
+        return overlay_picture(self.part, self.labels, self.verdict.regions)
 
     def __repr__(self) -> str:
         word = "PASS" if self.passed else f"FAIL ({len(self.verdict.regions)} defects)"
