@@ -99,6 +99,13 @@ def test_a_broken_part_is_recorded_and_the_next_one_judged(line, station, tmp_pa
     assert by_part["p0"]["verdict"] == "error" and "003.png" in by_part["p0"]["error"]
     assert by_part["empty"]["verdict"] == "error"
     assert not (out / "p0").exists() and not staging_leftovers(out)
+    shutil.copy(line / "parts" / "p0" / "003.png", folder / "p0" / "003.png")  # mended
+    again = watch(station, folder, out, ONCE)  # errors are taken again; p1 is done
+    assert (again.passed, again.failed, again.errors) == (1, 0, 1)
+    assert [(r["part"], r["verdict"]) for r in _journal(out)][3:] == [
+        ("empty", "error"),
+        ("p0", "pass"),
+    ]
 
 
 def test_an_incomplete_part_waits_until_it_is_complete_or_stale(line, station, tmp_path):
@@ -114,6 +121,7 @@ def test_an_incomplete_part_waits_until_it_is_complete_or_stale(line, station, t
     assert not finder.failed(path, InputError("no lights"), 0.5)  # still waiting
     assert finder.ready(1.0) == [] and finder.stale(1.0) == []  # not offered again unchanged
     assert [p.name for p, _ in finder.stale(5.1)] == ["p0"]  # given up on
+    assert finder.stale(9.0) == [] and finder.ready(9.0) == []  # once per state
     shutil.copy(line / "parts" / "p0" / "light_directions.txt", folder / "p0")
     assert finder.ready(6.0) == []  # changed: looked at again once it settles
     assert [p.name for p in finder.ready(6.5)] == ["p0"]

@@ -5,7 +5,7 @@ are not). It is complete when it holds a file named ``READY`` (a capture script 
 when it is done writes one last), or else when its listing (names, sizes, times) has not
 changed between two polls and it reads as a stack. One that stays unreadable and unchanged for
 ``stale_s`` (a capture that stopped half-way) is recorded as an error and left alone until it
-changes.
+changes (a part whose last record is an error is taken again after a restart).
 
 The output folder holds ``parts.jsonl`` (one JSON line per part taken: its verdict, regions and
 per-stage times, or its error) and one folder per judged part (verdict.json, overlay.png),
@@ -199,11 +199,15 @@ class Journal:
         if torn:  # the last line was cut by a kill: its part is taken again
             with open(self.path, "r+", encoding="utf-8") as f:
                 f.truncate(len((whole + "\n").encode()) if whole else 0)
+        last: dict[str, str] = {}
         for n, line in enumerate(whole.splitlines(), 1):
             try:
-                self.done.add(str(json.loads(line)["part"]))
+                record = json.loads(line)
+                last[str(record["part"])] = str(record["verdict"])
             except (ValueError, KeyError, TypeError):
                 raise InputError(f"line {n} is not a station record", self.path) from None
+        # a part whose last line is an error is taken again (it may have been completed since)
+        self.done.update(part for part, verdict in last.items() if verdict != "error")
 
     def _adopt_written(self, output: Path) -> None:
         """A part folder written just before a kill, whose line was not: the line, from its
@@ -224,7 +228,8 @@ class Journal:
             f.write(record.line())
             f.flush()
             os.fsync(f.fileno())
-        self.done.add(record.part)
+        if record.verdict != "error":
+            self.done.add(record.part)
 
 
 # ---------------------------------------------------------------- finding complete parts
@@ -248,6 +253,7 @@ class _Seen:
     listing: tuple[tuple[str, int, int], ...]
     since: float  # when the listing last changed
     failed: str | None = None  # why it did not read, at this listing
+    recorded: bool = False  # its error is in the journal: not again until it changes
 
 
 class PartFinder:
@@ -298,21 +304,26 @@ class PartFinder:
         return out
 
     def failed(self, path: Path, why: InputError, now: float) -> bool:
-        """A part that did not read: True when it is given up (an error to record), False
-        while it may still be completing."""
-        seen = self.seen.get(path.name)
-        if seen is None or self.options.once or any(n == READY for n, *_ in seen.listing):
-            return True
+        """A part that did not read: True when it is given up (an error to record, once per
+        state of its folder), False while it may still be completing. Either way it is not
+        offered again until its folder changes."""
+        seen = self.seen.setdefault(path.name, _Seen((), now))
         seen.failed = str(why)
-        return now - seen.since >= self.options.stale_s
+        marked = any(n == READY for n, *_ in seen.listing)
+        if self.options.once or marked or now - seen.since >= self.options.stale_s:
+            seen.recorded = True
+        return seen.recorded
 
     def stale(self, now: float) -> list[tuple[Path, str]]:
-        """Parts that failed to read and have not changed for ``stale_s``."""
-        return [
-            (self.folder / name, seen.failed)
-            for name, seen in self.seen.items()
-            if seen.failed is not None and now - seen.since >= self.options.stale_s
-        ]
+        """Parts that failed to read and have not changed for ``stale_s`` (each returned once
+        per state of its folder)."""
+        out = []
+        for name, seen in self.seen.items():
+            waited = now - seen.since >= self.options.stale_s
+            if seen.failed is not None and not seen.recorded and waited:
+                seen.recorded = True
+                out.append((self.folder / name, seen.failed))
+        return out
 
 
 # ---------------------------------------------------------------- the loop
@@ -406,8 +417,7 @@ def _watch(
             now = time.monotonic()
             parts = finder.ready(now)
             for path, why in finder.stale(now):
-                if path.name not in journal.done:
-                    record(PartRecord(path.name, "error", error=why))
+                record(PartRecord(path.name, "error", error=why))
             wall, cpu = time.perf_counter(), time.process_time()
             _judge_all(station, parts, pool, finder, record, stop.event, output)
             if parts:
