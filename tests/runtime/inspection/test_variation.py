@@ -17,6 +17,7 @@ from msfnet.runtime.inspection.defects import (
     DefectOptions,
     InspectionInput,
     find_defects,
+    from_maps,
     read_run,
 )
 from msfnet.runtime.inspection.variation import train_variation
@@ -72,13 +73,26 @@ def test_a_part_unlike_the_reference_is_a_mismatch_not_defects(goods) -> None:
     other.local_shape[:] = 0.05 * np.sin(COLS / 3.0)  # type: ignore[index]
     verdict, labels = find_defects(other, DefectOptions(depth=0.03), goods[0])
     assert verdict.mismatch is not None and "off the reference" in verdict.mismatch
+    assert not verdict.regions and not labels.any()  # nothing compared
     flat = _part(np.random.default_rng(3), 0.0)
     flat.local_shape[DENT] = 0.0  # type: ignore[index]
-    flat.local_shape[:, 30:] += 0.2  # type: ignore[index]
+    flat.local_shape[:, 8:] += 0.2  # type: ignore[index]
     verdict, _ = find_defects(flat, DefectOptions(depth=0.03), goods[3])
-    assert verdict.mismatch is not None and "% of its pixels" in verdict.mismatch
+    assert verdict.mismatch is not None and "one region covers 9" in verdict.mismatch
     assert verdict.exit_code == EXIT_MISMATCH and verdict.as_dict()["verdict"] == "mismatch"
-    assert not verdict.regions and not labels.any() and not verdict.passed
+    assert len(verdict.regions) == 1 and not verdict.passed
+
+
+def test_many_real_defects_at_a_low_threshold_are_defects_not_a_mismatch() -> None:
+    """A plate's five defects, their halos joined at a threshold 10x below their depth, are
+    still a failed part with its regions, not "another part"."""
+    model = Model.least_squares(maps=MapOptions(maps=("albedo", "height", "curvature")))
+    good = render_plate(PlateOptions(seed=4, relief=False, mask_edge=None))
+    bad = render_plate(PlateOptions(seed=4, mask_edge=None))
+    ref = from_maps(model(good.stack).maps, "good")  # type: ignore[arg-type]
+    part = from_maps(model(bad.stack).maps, "bad")  # type: ignore[arg-type]
+    verdict, _ = find_defects(part, DefectOptions(depth=0.02), ref)
+    assert verdict.word == "fail" and verdict.regions and verdict.mismatch is None
 
 
 def test_fewer_than_three_good_parts_are_refused(goods) -> None:

@@ -38,9 +38,11 @@ from msfnet.runtime.results.maps.registered import Frame, read_tiff
 
 POLARITIES = ("both", "down", "up")
 EXIT_MISMATCH = 4
-# above this share of the inspected pixels beyond the threshold, a part is not the one the
-# reference shows (or not in its place): flagging "defects" over most of it says nothing
-MISMATCH_FRACTION = 0.2
+# a region over this share of the inspected pixels: the part is not the one the reference shows
+# (or not in its place). A defect is compact; many of them with their halos (the local shape
+# spreads a dent over about the local size) joined into one region of 54 % of a 96 px plate at
+# a threshold 20x below their depth; a rendered relief judged against a plate's model: 96-99 %.
+MISMATCH_FRACTION = 0.8
 MAX_SHIFT_PX = 32  # a reference further off than this is not "the same fixture"
 # The phase correlation's peak below which two maps share no feature to align on. Measured on
 # rendered plates (each map less its mean): plain parts' albedo and local shape, noise only,
@@ -215,9 +217,8 @@ class Verdict:
     aligned_on: str | None = None  # "albedo" or "local shape": what the shift came from
     provenance: dict[str, str | None] | None = None  # what produced the maps (Provenance)
     statistics: tuple[JudgedStatistics, ...] = ()
-    # why the part is not the reference's (it leaves it over more than MISMATCH_FRACTION of
-    # its pixels, or lies more than MAX_SHIFT_PX off it): another part, or not in its place
-    # (regions are then not listed: they would be the whole part)
+    # why the part is not the reference's (one region covers more than MISMATCH_FRACTION of
+    # it, or it lies more than MAX_SHIFT_PX off): another part, or not in its place
     mismatch: str | None = None
 
     @property
@@ -767,16 +768,9 @@ def find_defects(
         judged.append(_statistics("curvature", unit, options.curvature, bend, mask))
     high &= mask
     low &= mask
-    flooded = float(np.count_nonzero(high)) / max(int(np.count_nonzero(mask)), 1)
-    mismatch = j.mismatch
-    if mismatch is None and reference is not None and flooded > MISMATCH_FRACTION:
-        mismatch = (
-            f"it leaves the reference over {100 * flooded:.0f} % of its pixels (over "
-            f"{100 * MISMATCH_FRACTION:.0f} %)"
-        )
     regions: list[Region] = []
     out = np.zeros(mask.shape, np.int32)
-    if mismatch is None:
+    if j.mismatch is None:  # aligned: the regions (too far off, nothing is compared)
         # the peak: the deepest point, or with curvature alone the most bent one
         score = np.abs(signed if signed_curv is None or options.depth is not None else signed_curv)
         regions, out = _regions(part, options, high, low, signed, signed_curv, score)
@@ -784,6 +778,14 @@ def find_defects(
             names = ["", *(z.name for z in zones.zones)]  # label -1 (no zone) -> ""
             zone_of = j.zone_of
             regions = [replace(r, zone=names[int(zone_of[r.peak[::-1]]) + 1]) for r in regions]
+    mismatch = j.mismatch
+    inspected = max(int(np.count_nonzero(mask)), 1)
+    largest = max((r.area_px for r in regions), default=0) / inspected
+    if mismatch is None and reference is not None and largest > MISMATCH_FRACTION:
+        mismatch = (
+            f"one region covers {100 * largest:.0f} % of it (over "
+            f"{100 * MISMATCH_FRACTION:.0f} %)"
+        )
     verdict = Verdict(
         passed=not regions and mismatch is None,
         regions=tuple(regions),
