@@ -65,7 +65,13 @@ def test_a_pixel_is_judged_against_how_much_good_parts_varied_there(goods) -> No
     assert len(with_model.regions) == 1 and labels[DENT].all() and not labels[ZONE].any()
     golden, _ = find_defects(part, rule, goods[0])  # one good part knows no variation
     assert len(golden.regions) == 2
-    assert model.statistics is not None and 0 < model.statistics.suggested_depth < 0.04
+    stats = model.statistics
+    assert stats is not None and stats.held_out and len(stats.needed) == len(goods)
+    # the suggestion covers the neediest held-out good part, with a margin
+    assert max(stats.needed) <= stats.suggested_depth <= 1.3 * max(stats.needed)
+    for good in goods:  # and at the suggestion every good part passes the whole model
+        verdict, _ = find_defects(good, DefectOptions(depth=stats.suggested_depth), model.centre)
+        assert verdict.passed
 
 
 def test_a_part_unlike_the_reference_is_a_mismatch_not_defects(goods) -> None:

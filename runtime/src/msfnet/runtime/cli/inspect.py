@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -110,7 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=path_arg,
         help="a good part (run folder or stack, same fixture and size), or a variation model "
         "(--train-good): only what differs from it counts (aligned by phase correlation "
-        "first); a part that differs over more than 20 %% of its pixels is a MISMATCH (exit 4)",
+        "first); a part one of whose regions covers over 80 %% of it is a MISMATCH (exit 4)",
     )
     t.add_argument(
         "--zones",
@@ -308,13 +309,27 @@ def _train(args: argparse.Namespace) -> int:
 
     if args.input is not None or args.watch is not None or args.reference is not None:
         raise InputError("--train-good takes no INPUT, --watch or --reference")
+    from msfnet.runtime.inspection.variation import MIN_GOOD_PARTS
+
     goods = list(args.train_good)
+    if len(goods) < MIN_GOOD_PARTS:
+        raise InputError(
+            f"a variation model needs at least {MIN_GOOD_PARTS} good parts (5 or more "
+            f"recommended), got {len(goods)}"
+        )
+    seen: dict[str, Path] = {}
     for path in goods:
         if not path.exists():
             raise InputError("no such file or folder", path)
         _check_input_kind(path)
+        real = os.path.realpath(path)
+        if real in seen:
+            raise InputError(f"given twice (also as {seen[real]}): each good part once", path)
+        seen[real] = path
     check_output(args.output, goods, overwrite=args.overwrite, folder=True)
-    model = train_variation([_prepare(path, args) for path in goods])
+    # the rule the parts will be judged by, its depth searched per good part
+    rule = options_from_args(DefectOptions, args, overrides={"depth": 1.0, "curvature": None})
+    model = train_variation([_prepare(path, args) for path in goods], rule)
     model.save(args.output, overwrite=args.overwrite)
     if not args.quiet:
         print(f"variation model of {len(goods)} good parts -> {args.output}")

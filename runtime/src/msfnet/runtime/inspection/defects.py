@@ -724,7 +724,7 @@ def _against_reference(
         raise InputError("the part and the aligned reference share no pixel", part.source)
     judged = _Judged(mask, local, curv, depth, bend, ref, zone_of=zone_of)
     # a variation model: the threshold is K spreads where the good parts varied more than
-    # the floor allows (NaN spreads, where fewer good parts held the pixel: the floor)
+    # the floor allows (pixels fewer than 3 good parts held have no centre: left out above)
     if ref.local_shape_spread is not None and depth is not None:
         judged.depth = np.fmax(depth, options.sigmas * ref.local_shape_spread)
     if ref.curvature_spread is not None and bend is not None:
@@ -783,8 +783,7 @@ def find_defects(
     largest = max((r.area_px for r in regions), default=0) / inspected
     if mismatch is None and reference is not None and largest > MISMATCH_FRACTION:
         mismatch = (
-            f"one region covers {100 * largest:.0f} % of it (over "
-            f"{100 * MISMATCH_FRACTION:.0f} %)"
+            f"one region covers {100 * largest:.0f} % of it (over {100 * MISMATCH_FRACTION:.0f} %)"
         )
     verdict = Verdict(
         passed=not regions and mismatch is None,

@@ -26,39 +26,40 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import json_text, staged_folder
-from msfnet.runtime.inspection.defects import InspectionInput, align_to
+from msfnet.runtime.inspection.defects import DefectOptions, InspectionInput, align_to, find_defects
 from msfnet.runtime.results.maps.registered import write_tiff
 
 MIN_GOOD_PARTS = 3  # a median and a spread of fewer say nothing
 MAD_TO_SIGMA = 1.4826  # the median absolute deviation of a normal distribution, in sigmas
 VARIATION_FILE = "variation.json"
-SUGGEST_FACTOR = 1.5  # the suggested --depth: this times the good parts' 99.9th percentile
+SUGGEST_FACTOR = 1.25  # the suggested --depth: this times the depth the worst good part needs
+SEARCH_STEPS = 24  # bisection steps (log scale) for the depth a good part needs
 
 
 @dataclass(frozen=True)
 class GoodPartsStatistics:
-    """How far the good parts themselves leave the centre (|local shape - centre|, in the
-    depth units) where they agree best (the pixels of the lower half of the spread): there the
-    depth floor, not the spread, decides, so the floor is chosen from these."""
+    """``needed``: per good part, the smallest depth threshold at which it passes the rule
+    (its min-area, polarity, sigmas and keep-out) against a model of the *other* good parts
+    (against all of them when there are only MIN_GOOD_PARTS: ``held_out`` False)."""
 
     units: str
-    p99: float
-    p999: float
-    max: float
+    needed: tuple[float, ...]
+    held_out: bool
 
     @property
     def suggested_depth(self) -> float:
-        """SUGGEST_FACTOR x the 99.9th percentile, rounded up to 2 significant digits."""
-        value = SUGGEST_FACTOR * self.p999
+        """SUGGEST_FACTOR x the largest need, rounded up to 2 significant digits."""
+        value = SUGGEST_FACTOR * max(self.needed, default=0.0)
         if not (math.isfinite(value) and value > 0):
             return 0.0
         digits = 1 - math.floor(math.log10(value))
         return math.ceil(value * 10**digits) / 10**digits
 
     def line(self) -> str:
+        how = "left out of the model" if self.held_out else "in the model (3 parts: none held out)"
         return (
-            f"where good parts agree best they leave the centre by p99 {self.p99:.3g}, p99.9 "
-            f"{self.p999:.3g}, max {self.max:.3g} {self.units}: suggested --depth "
+            f"each good part, {how}, passes from --depth {min(self.needed):.2g} to "
+            f"{max(self.needed):.2g} {self.units}: suggested --depth "
             f"{self.suggested_depth:g} {self.units}"
         )
 
@@ -94,13 +95,14 @@ class VariationModel:
             "frame": c.frame.as_dict(),
             "options": {"intrinsics": None},
         }
+        stats = self.statistics
         record = {
             "kind": "msfnet variation model",
             "version": 1,
             "good_parts": list(self.parts),
             "shifts_px": [list(s) for s in self.shifts],
-            "statistics": None if self.statistics is None else self.statistics.__dict__,
-            "suggested_depth": None if self.statistics is None else self.statistics.suggested_depth,
+            "depth_needed_by_good_parts": None if stats is None else list(stats.needed),
+            "suggested_depth": None if stats is None else stats.suggested_depth,
         }
         with staged_folder(folder, overwrite=overwrite) as tmp:
             for name, values in maps.items():
@@ -111,9 +113,13 @@ class VariationModel:
         return folder
 
 
-def train_variation(parts: Sequence[InspectionInput]) -> VariationModel:
+def train_variation(
+    parts: Sequence[InspectionInput], rule: DefectOptions | None = None
+) -> VariationModel:
     """The model of ``parts`` (good parts mapped alike; aligned to the first as a reference
-    is). InputError for fewer than MIN_GOOD_PARTS or parts that cannot be aligned."""
+    is), and the depth threshold each needs to pass ``rule`` (its depth is searched; the rest
+    of it, min-area, polarity, sigmas and keep-out, as the parts will be judged).
+    InputError for fewer than MIN_GOOD_PARTS or parts that cannot be aligned."""
     if len(parts) < MIN_GOOD_PARTS:
         raise InputError(
             f"a variation model needs at least {MIN_GOOD_PARTS} good parts (5 or more "
@@ -146,8 +152,8 @@ def train_variation(parts: Sequence[InspectionInput]) -> VariationModel:
         source="variation model",
     )
     stats = None
-    if centre_l is not None and spread_l is not None:
-        stats = _good_statistics(np.stack(local), centre_l, spread_l, first.units["depth"])
+    if centre_l is not None:
+        stats = _needed_depths(first, local, rule or DefectOptions(depth=1.0))
     return VariationModel(centre, tuple(p.source for p in parts), tuple(shifts), stats)
 
 
@@ -167,19 +173,30 @@ def _centre_spread(maps: list[np.ndarray]) -> tuple[np.ndarray | None, np.ndarra
     return centre.astype(np.float32), spread.astype(np.float32)
 
 
-def _good_statistics(
-    local: np.ndarray, centre: np.ndarray, spread: np.ndarray, units: str
+def _needed_depths(
+    first: InspectionInput, local: list[np.ndarray], rule: DefectOptions
 ) -> GoodPartsStatistics:
-    held = np.isfinite(spread)
-    if not held.any():
-        return GoodPartsStatistics(units, 0.0, 0.0, 0.0)
-    quiet = held & (spread <= np.median(spread[held]))
-    dev = np.abs(local[:, quiet] - centre[None, quiet])
-    values = dev[np.isfinite(dev)]
-    if values.size == 0:
-        return GoodPartsStatistics(units, 0.0, 0.0, 0.0)
-    p99, p999 = (float(v) for v in np.percentile(values, (99, 99.9)))
-    return GoodPartsStatistics(units, p99, p999, float(values.max()))
+    """Per good part (aligned local shape in ``local``), the smallest --depth at which the
+    rule passes it against the model of the others: the rule itself decides (hysteresis,
+    min-area and all), searched by bisection on a log scale."""
+    held_out = len(local) > MIN_GOOD_PARTS
+    needed = []
+    for i, own in enumerate(local):
+        others = [m for k, m in enumerate(local) if k != i] if held_out else local
+        centre, spread = _centre_spread(others)
+        model = replace(
+            first, local_shape=centre, curvature=None, albedo=None, local_shape_spread=spread
+        )
+        part = replace(first, local_shape=own, curvature=None, albedo=None, source=f"good {i}")
+        deviation = np.abs(own - centre)
+        hi = 2.0 * float(np.nanmax(deviation)) + 1e-12 if np.isfinite(deviation).any() else 1.0
+        lo = hi * 1e-6
+        for _ in range(SEARCH_STEPS):
+            mid = math.sqrt(lo * hi)
+            verdict, _ = find_defects(part, replace(rule, depth=mid, curvature=None), model)
+            lo, hi = (lo, mid) if verdict.passed else (mid, hi)
+        needed.append(hi)
+    return GoodPartsStatistics(first.units["depth"], tuple(needed), held_out)
 
 
 __all__ = [
