@@ -46,7 +46,10 @@ def test_a_station_finds_each_defect_and_computes_only_what_the_rule_reads(plate
     assert not fail.passed and ok.passed
     hit = {int(bad.defects[fail.labels == k].max()) for k in range(1, fail.labels.max() + 1)}
     assert hit == set(range(1, len(bad.defect_list) + 1))  # each defect, nothing else
-    assert fail.part.albedo is None and fail.part.curvature is None
+    # the albedo (what the reference is aligned on), the height; no curvature
+    assert fail.part.albedo is not None and fail.part.curvature is None
+    alone = Station(RULE, L2).inspect(bad.stack)  # no reference: the height only
+    assert alone.part.albedo is None and alone.part.curvature is None
     assert fail.times.decode == 0.0 and fail.times.normals > 0 and fail.times.maps > 0
     assert "FAIL" in repr(fail) and "PASS" in repr(ok)
 
@@ -77,3 +80,18 @@ def test_a_part_folder_is_decoded_with_its_time(plates, tmp_path: Path) -> None:
 def test_a_missing_reference_is_refused_at_once(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no such file"):
         Station(RULE, L2, reference=tmp_path / "nowhere")
+
+
+def test_a_curvature_rule_alone_still_tells_dents_and_scratches(plates) -> None:
+    """No local shape computed: the kind's sign comes from the curvature (review 5)."""
+    bad, _ = plates
+    found = Station(DefectOptions(curvature=0.02), L2).inspect(bad.stack)
+    kinds = {r.kind for r in found.verdict.regions}
+    assert found.part.local_shape is None and kinds and "bump" not in kinds
+
+
+def test_a_reference_without_the_rules_map_is_refused_at_start(plates, tmp_path: Path) -> None:
+    _, good = plates
+    Model(options=L2.replace(maps=MapOptions(maps=("height",))))(good.stack).save(tmp_path / "ref")
+    with pytest.raises(InputError, match="no curvature map"):
+        Station(DefectOptions(curvature=0.02), L2, reference=tmp_path / "ref")

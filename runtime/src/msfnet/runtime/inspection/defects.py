@@ -597,6 +597,12 @@ def align_to(part: InspectionInput, reference: InspectionInput, *, limit: bool =
         if mine is not None and theirs is not None:
             candidates.append((name.replace("_", " "), theirs, mine))
             break
+    if not candidates:
+        raise InputError(
+            "the reference shares no map with the part to align on (albedo, local shape or "
+            "curvature): map it with the rule's maps",
+            reference.source,
+        )
     best = max(
         ((name, *_align(moving, fixed)) for name, moving, fixed in candidates),
         key=lambda c: c[3],
@@ -833,7 +839,10 @@ def _regions(
         cx, cy = float(cents[lab][0]), float(cents[lab][1])
         (x0, y0), kk = frame.origin_xy, frame.downscale
         rows, cols = np.nonzero(sel)
-        shape = region_shape(rows, cols, sunk=peak < 0)
+        # sunk or raised: the local shape's sign, or with curvature alone the curvature's
+        # (concave, a dent's or a scratch's, is negative)
+        sign = peak if part.local_shape is not None or signed_curv is None else signed_curv.flat[i]
+        shape = region_shape(rows, cols, sunk=float(sign) < 0)
         regions.append(
             Region(
                 label=k,

@@ -84,6 +84,27 @@ def rule_maps(rule: DefectOptions, pictures: bool) -> tuple[str, ...]:
     return tuple(n for n, w in zip(("height", "curvature", "albedo"), wanted, strict=True) if w)
 
 
+def _given_maps(reference: Stack | InspectionInput | str | Path | None) -> InspectionInput | None:
+    """A reference whose maps are given (in memory, or an msf-run output folder); None for a
+    stack (mapped by the station) or none. InputError for a path that is not there."""
+    if reference is None or isinstance(reference, Stack):
+        return None
+    if isinstance(reference, InspectionInput):  # e.g. a VariationModel's centre
+        return reference
+    path = Path(reference)
+    if not path.exists():
+        raise InputError("no such file or folder", path)
+    return read_run(path) if path.is_dir() and (path / "maps.json").is_file() else None
+
+
+def _check_reference(reference: InspectionInput, rule: DefectOptions) -> None:
+    """The reference holds the maps the rule judges (else every part would fail alike)."""
+    if rule.depth is not None and reference.local_shape is None:
+        raise InputError("the reference has no local shape map for --depth", reference.source)
+    if rule.curvature is not None and reference.curvature is None:
+        raise InputError("the reference has no curvature map for --curvature", reference.source)
+
+
 class Station:
     """A warm per-part inspection: ``Station(rule, options).inspect(stack)``.
 
@@ -108,26 +129,22 @@ class Station:
         pictures: bool = False,
     ) -> None:
         opts = options or ModelOptions()
-        maps = replace(opts.maps or MapOptions(), maps=rule_maps(rule, pictures))
         self.rule = rule
         self.zones = read_zones(Path(zones)) if isinstance(zones, (str, Path)) else zones
         self.load = load or LoadOptions()
+        given = _given_maps(reference)
+        # the albedo is what alignment to a reference uses first: computed for every part
+        # when the reference has one (a stack mapped here gets one)
+        albedo = pictures or (reference is not None and (given is None or given.albedo is not None))
+        maps = replace(opts.maps or MapOptions(), maps=rule_maps(rule, albedo))
         self.model = Model(options=opts.replace(maps=maps))
-        self.reference: InspectionInput | None = None
-        if reference is not None:
-            self.reference = self._reference(reference)
-
-    def _reference(self, given: Stack | InspectionInput | str | Path) -> InspectionInput:
-        if isinstance(given, InspectionInput):  # e.g. a VariationModel's centre
-            return given
-        if isinstance(given, Stack):
-            return self._maps(given, "reference")[0]
-        path = Path(given)
-        if not path.exists():
-            raise InputError("no such file or folder", path)
-        if path.is_dir() and (path / "maps.json").is_file():
-            return read_run(path)  # an msf-run output: its maps as written
-        return self._maps(self.read(path)[0], str(path))[0]
+        self.reference: InspectionInput | None = given
+        if reference is not None and given is None:
+            assert not isinstance(reference, InspectionInput)  # those are given maps
+            stack = reference if isinstance(reference, Stack) else self.read(Path(reference))[0]
+            self.reference = self._maps(stack, str(stack.source or reference))[0]
+        if self.reference is not None:
+            _check_reference(self.reference, rule)
 
     def read(self, path: str | Path) -> tuple[Stack, float]:
         """A part's stack decoded with the station's load options, and the seconds it took
