@@ -109,11 +109,12 @@ def test_a_broken_part_is_recorded_and_the_next_one_judged(line, station, tmp_pa
 
 
 def test_an_incomplete_part_waits_until_it_is_complete_or_stale(line, station, tmp_path):
-    from msfnet.runtime.inspection.watch import PartFinder
+    from msfnet.runtime.inspection.watch import Journal, PartFinder
 
     folder = _parts(line, tmp_path, ("p0",))
     (folder / "p0" / "light_directions.txt").unlink()
-    finder = PartFinder(folder, WatchOptions(stale_s=5.0), set(), ())
+    (tmp_path / "out").mkdir()
+    finder = PartFinder(folder, WatchOptions(stale_s=5.0), Journal(tmp_path / "out"), ())
     assert finder.ready(0.0) == []  # first look: it may still be being written
     (path,) = finder.ready(0.5)  # unchanged: offered
     from msfnet.common.errors import InputError
@@ -194,3 +195,79 @@ def test_a_running_station_takes_new_parts_and_stops_cleanly_on_sigterm(line, tm
     assert proc.returncode == 0, stderr
     assert "p0: PASS" in stdout and "p1: FAIL" in stdout and "judged 2 part(s)" in stdout
     assert (out / "station.json").is_file() and not staging_leftovers(out)
+
+
+def test_a_folder_name_used_again_is_another_part_and_temporaries_wait(line, station, tmp_path):
+    """review-session25 4, 9, 15: a new folder under a judged name is judged as name~2; a
+    folder being written as p.tmp is not a part; a part named like the station's journal gets
+    its own output name."""
+    folder, out = _parts(line, tmp_path, ("p0",)), tmp_path / "station"
+    watch(station, folder, out, ONCE)
+    shutil.rmtree(folder / "p0")
+    shutil.copytree(line / "parts" / "p1", folder / "p0")  # a defective part, same name
+    shutil.copytree(line / "parts" / "p2", folder / "p2.tmp")  # still being written
+    shutil.copytree(line / "parts" / "p2", folder / JOURNAL)
+    again = watch(station, folder, out, ONCE)
+    records = _journal(out)[1:]
+    assert [(r["part"], r.get("folder"), r["verdict"]) for r in records] == [
+        ("p0~2", "p0", "fail"),
+        ("parts.jsonl~2", "parts.jsonl", "pass"),
+    ]
+    assert again.exit_code == 1 and (out / "p0~2" / "verdict.json").is_file()
+    assert watch(station, folder, out, ONCE).parts == 0  # each judged once
+
+
+def test_once_exits_by_every_part_in_the_folder_not_only_this_runs(line, station, tmp_path):
+    folder, out = _parts(line, tmp_path, ("p0", "p1")), tmp_path / "station"
+    assert watch(station, folder, out, ONCE).exit_code == 1
+    rerun = watch(station, folder, out, ONCE)  # after a kill, say: nothing new to judge
+    assert rerun.parts == 0 and rerun.exit_code == 1  # p1 failed, and is still there
+    shutil.rmtree(folder / "p1")
+    assert watch(station, folder, out, ONCE).exit_code == 0
+
+
+def test_a_part_the_tool_fails_on_is_recorded_and_the_line_goes_on(
+    line, station, tmp_path, monkeypatch
+) -> None:
+    folder, out = _parts(line, tmp_path, ("p0", "p1")), tmp_path / "station"
+    judge = station.judge
+
+    def flaky(stack, name, decode_s=0.0):
+        if name == "p0":
+            raise ValueError("a bug on this part")
+        return judge(stack, name, decode_s)
+
+    monkeypatch.setattr(station, "judge", flaky)
+    summary = watch(station, folder, out, ONCE)
+    verdicts = {r["part"]: r for r in _journal(out)}
+    assert "internal error: ValueError" in verdicts["p0"]["error"]
+    assert verdicts["p1"]["verdict"] == "fail" and summary.exit_code == 2
+
+
+def test_two_stations_of_one_process_never_share_an_output(line, station, tmp_path) -> None:
+    import threading
+
+    from msfnet.common.errors import InputError
+    from msfnet.runtime.inspection import watch as watching
+
+    folder, out = _parts(line, tmp_path, ("p0",)), tmp_path / "station"
+    started, release = threading.Event(), threading.Event()
+    judge = station.judge
+
+    def slow(stack, name, decode_s=0.0):
+        started.set()
+        release.wait(30)
+        return judge(stack, name, decode_s)
+
+    station.judge = slow  # type: ignore[method-assign]
+    try:
+        first = threading.Thread(target=watching.watch, args=(station, folder, out, ONCE))
+        first.start()
+        assert started.wait(30)
+        with pytest.raises(InputError, match="another station of this process"):
+            watching.watch(station, folder, out, ONCE)
+        release.set()
+        first.join(30)
+    finally:
+        del station.judge
+    assert [r["part"] for r in _journal(out)] == ["p0"]

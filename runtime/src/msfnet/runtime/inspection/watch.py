@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import signal
 import threading
@@ -77,19 +78,32 @@ class WatchOptions:
 class PartRecord:
     """One line of the journal."""
 
-    part: str
+    part: str  # its output folder's name: the folder's, or "name~2" for a name used again
     verdict: str  # "pass", "fail", "mismatch" (not the reference's part) or "error"
     defects: int = 0
     times_ms: dict[str, float] = field(default_factory=dict)
     regions: tuple[dict[str, object], ...] = ()
     error: str | None = None
+    folder: str | None = None  # the watched sub-folder, where it differs from ``part``
+    # the folder's identity when judged (inode and modification time): a new folder under an
+    # old name, or one changed since, differs
+    identity: str | None = None
 
     @classmethod
-    def of(cls, inspection: Inspection, write_s: float) -> PartRecord:
+    def of(cls, inspection: Inspection, write_s: float, taken: Taken) -> PartRecord:
         v = inspection.verdict.as_dict()
         times = inspection.times.milliseconds() | {"write": round(write_s * 1e3, 2)}
         regions = tuple(dict(r) for r in v["regions"])  # type: ignore[attr-defined]
-        return cls(inspection.name, str(v["verdict"]), len(regions), times, regions)
+        verdict = str(v["verdict"])
+        return cls(taken.name, verdict, len(regions), times, regions, None, *taken.identity)
+
+    @classmethod
+    def failure(cls, taken: Taken, why: str) -> PartRecord:
+        return cls(taken.name, "error", error=why, folder=taken.identity[0])
+
+    @property
+    def source(self) -> str:
+        return self.folder or self.part
 
     def line(self) -> str:
         data = {k: v for k, v in self.__dict__.items() if v not in (None, (), {})}
@@ -116,6 +130,9 @@ class WatchSummary:
     times: dict[str, list[float]] = field(default_factory=dict)
     busy_s: float = 0.0  # wall time spent taking parts (idle polls left out)
     cpu_s: float = 0.0  # process CPU time meanwhile (all threads: decode ahead included)
+    # --once: the last verdict of each part now in the watched folder (this run's or an
+    # earlier one's), what its exit code says
+    present: dict[str, str] | None = None
 
     def add(self, record: PartRecord) -> None:
         if record.verdict == "error":
@@ -145,9 +162,23 @@ class WatchSummary:
 
     @property
     def exit_code(self) -> int:
-        """--once's: 2 if a part could not be judged, else 4 if one did not match the
-        reference, else 1 if one had defects, else 0."""
-        return 2 if self.errors else 4 if self.mismatched else 1 if self.failed else 0
+        """--once's, over the parts in the folder (``present``; else this run's): 2 if a part
+        could not be judged, else 4 if one did not match the reference, else 1 if one had
+        defects, else 0."""
+        words = (
+            set(self.present.values())
+            if self.present is not None
+            else {
+                w
+                for w, n in (
+                    ("error", self.errors),
+                    ("mismatch", self.mismatched),
+                    ("fail", self.failed),
+                )
+                if n
+            }
+        )
+        return 2 if "error" in words else 4 if "mismatch" in words else 1 if "fail" in words else 0
 
     def as_dict(self) -> dict[str, object]:
         return {
@@ -182,11 +213,15 @@ class WatchSummary:
 
 
 class Journal:
-    """``parts.jsonl`` in the output folder: the parts already taken, and where new lines go."""
+    """``parts.jsonl`` in the output folder: the parts already judged, and where new lines go.
+    ``judged``: watched folder name -> the identity of the folder judged under it (None: not
+    known); ``names``: the output names taken; ``last``: each folder's last verdict."""
 
     def __init__(self, output: Path) -> None:
         self.path = output / JOURNAL
-        self.done: set[str] = set()
+        self.judged: dict[str, str | None] = {}
+        self.names: set[str] = set()
+        self.last: dict[str, str] = {}
         if self.path.is_file():
             self._read()
         else:  # the folder is a station's from its first moment (a restart resumes it)
@@ -199,22 +234,29 @@ class Journal:
         if torn:  # the last line was cut by a kill: its part is taken again
             with open(self.path, "r+", encoding="utf-8") as f:
                 f.truncate(len((whole + "\n").encode()) if whole else 0)
-        last: dict[str, str] = {}
         for n, line in enumerate(whole.splitlines(), 1):
             try:
-                record = json.loads(line)
-                last[str(record["part"])] = str(record["verdict"])
-            except (ValueError, KeyError, TypeError):
+                data = json.loads(line)
+                part, verdict = str(data["part"]), str(data["verdict"])
+                folder, identity = data.get("folder"), data.get("identity")
+            except (ValueError, KeyError, TypeError, AttributeError):
                 raise InputError(f"line {n} is not a station record", self.path) from None
-        # a part whose last line is an error is taken again (it may have been completed since)
-        self.done.update(part for part, verdict in last.items() if verdict != "error")
+            self._note(part, verdict, None if folder is None else str(folder), identity)
+
+    def _note(self, part: str, verdict: str, folder: str | None, identity: object) -> None:
+        source = folder or part
+        self.last[source] = verdict
+        # a part whose last record is an error is taken again (it may be complete now)
+        if verdict != "error":
+            self.judged[source] = identity if isinstance(identity, str) else None
+            self.names.add(part)
 
     def _adopt_written(self, output: Path) -> None:
         """A part folder written just before a kill, whose line was not: the line, from its
         verdict.json (so the part is not judged twice)."""
         for entry in sorted(output.iterdir()):
             verdict = entry / "verdict.json"
-            if entry.name in self.done or entry.name.startswith(".") or not verdict.is_file():
+            if entry.name in self.names or entry.name.startswith(".") or not verdict.is_file():
                 continue
             try:
                 v = json.loads(verdict.read_text(encoding="utf-8"))
@@ -228,8 +270,7 @@ class Journal:
             f.write(record.line())
             f.flush()
             os.fsync(f.fileno())
-        if record.verdict != "error":
-            self.done.add(record.part)
+        self._note(record.part, record.verdict, record.folder, record.identity)
 
 
 # ---------------------------------------------------------------- finding complete parts
@@ -256,16 +297,46 @@ class _Seen:
     recorded: bool = False  # its error is in the journal: not again until it changes
 
 
+# names a part folder being written under, to be renamed when done: never a part
+TEMPORARY = (".tmp", ".part", ".partial", ".incomplete", "~")
+RESERVED = (JOURNAL, STATION_SUMMARY)  # the station's own files in its output folder
+
+
+@dataclass(frozen=True)
+class Taken:
+    """A part taken: its folder, and the output name it is judged under."""
+
+    path: Path
+    name: str
+    fingerprint: str | None
+
+    @property
+    def identity(self) -> tuple[str | None, str | None]:
+        """(the folder's name where the output name differs, else None; its fingerprint)."""
+        return (self.path.name if self.name != self.path.name else None, self.fingerprint)
+
+
+def _fingerprint(entry: os.DirEntry[str]) -> str:
+    """A folder's identity: its inode and last change of its entries (a folder removed and
+    made again may get the same inode, not the same time)."""
+    try:
+        st = entry.stat()
+    except OSError:
+        return ""
+    return f"{st.st_ino}:{st.st_mtime_ns}"
+
+
 class PartFinder:
     """The complete parts in the watched folder, in name order, each offered until taken."""
 
     def __init__(
-        self, folder: Path, options: WatchOptions, done: set[str], skip: tuple[Path, ...]
+        self, folder: Path, options: WatchOptions, journal: Journal, skip: tuple[Path, ...]
     ) -> None:
         self.folder = folder
         self.options = options
-        self.done = done
+        self.journal = journal
         self.seen: dict[str, _Seen] = {}
+        self.fingerprints: dict[str, str] = {}
         self._skip = {os.path.realpath(p) for p in skip}
 
     def candidates(self) -> list[Path]:
@@ -275,12 +346,32 @@ class PartFinder:
             raise InputError("the watched folder is gone", self.folder) from None
         out = []
         for e in entries:
-            if e.name.startswith(".") or e.name in self.done or not e.is_dir():
+            if e.name.startswith(".") or e.name.endswith(TEMPORARY) or not e.is_dir():
                 continue
+            judged = self.journal.judged.get(e.name, "")
+            mark = _fingerprint(e)
+            if judged != "" and (judged is None or judged == mark):
+                continue  # judged already (a new folder under the name is another part)
             if os.path.realpath(e.path) in self._skip:
                 continue
+            self.fingerprints[e.name] = mark
             out.append(Path(e.path))
         return out
+
+    def take(self, path: Path) -> Taken:
+        """The part at ``path`` with the name it is judged under: its own, or "name~2", ...
+        when the name was judged before (a folder name used again) or is the station's."""
+        name, k = path.name, 1
+        while name in self.journal.names or name in RESERVED:
+            k += 1
+            name = f"{path.name}~{k}"
+        return Taken(path, name, self.fingerprints.get(path.name))
+
+    def present(self) -> dict[str, str]:
+        """The last verdict of each part folder now in the watched folder."""
+        with os.scandir(self.folder) as it:
+            here = {e.name for e in it if e.is_dir()}
+        return {name: v for name, v in self.journal.last.items() if name in here}
 
     def ready(self, now: float) -> list[Path]:
         """The parts to take now (and forget the state of parts no longer there)."""
@@ -297,7 +388,7 @@ class PartFinder:
             seen = self.seen.get(path.name)
             if seen is None or seen.listing != listing:
                 self.seen[path.name] = seen = _Seen(listing, now)
-                if not (self.options.once or any(n == READY for n, *_ in listing)):
+                if not any(n == READY for n, *_ in listing):
                     continue  # changed since the last look: it may still be being written
             if seen.failed is None:
                 out.append(path)
@@ -376,6 +467,27 @@ def _write_part(output: Path, inspection: Inspection) -> float:
     return time.perf_counter() - start
 
 
+_WATCHED: set[str] = set()  # output folders a watch loop of this process writes
+_WATCHED_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _one_station(output: Path) -> Iterator[None]:
+    """One loop per output folder: another process is kept out by the folder's lock, another
+    thread of this one (for which that lock is re-entrant) here."""
+    key = os.path.realpath(output)
+    with _WATCHED_LOCK:
+        if key in _WATCHED:
+            raise InputError("another station of this process writes here", output)
+        _WATCHED.add(key)
+    try:
+        with folder_lock(output, "msf-inspect --watch"):
+            yield
+    finally:
+        with _WATCHED_LOCK:
+            _WATCHED.discard(key)
+
+
 def watch(
     station: Station,
     folder: Path,
@@ -390,7 +502,7 @@ def watch(
     ``folder`` that are not parts (a reference); ``report`` is called with each part's record
     as it is written."""
     options = options or WatchOptions()
-    with folder_lock(output, "msf-inspect --watch"):  # one station per folder
+    with _one_station(output):
         return _watch(station, folder, output, options, skip, report)
 
 
@@ -403,8 +515,8 @@ def _watch(
     report: Callable[[PartRecord], None],
 ) -> WatchSummary:
     journal = Journal(output)
-    summary = WatchSummary(earlier=len(journal.done))
-    finder = PartFinder(folder, options, journal.done, (*skip, output))
+    summary = WatchSummary(earlier=len(journal.names))
+    finder = PartFinder(folder, options, journal, (*skip, output))
     stop = _Stop()
 
     def record(rec: PartRecord) -> None:
@@ -412,49 +524,75 @@ def _watch(
         summary.add(rec)
         report(rec)
 
-    with stop.on_signals(), ThreadPoolExecutor(1, thread_name_prefix="decode") as pool:
-        while not stop.event.is_set():
-            now = time.monotonic()
-            parts = finder.ready(now)
-            for path, why in finder.stale(now):
-                record(PartRecord(path.name, "error", error=why))
-            wall, cpu = time.perf_counter(), time.process_time()
-            _judge_all(station, parts, pool, finder, record, stop.event, output)
-            if parts:
-                summary.busy_s += time.perf_counter() - wall
-                summary.cpu_s += time.process_time() - cpu
-            if options.once:
-                break
-            stop.event.wait(options.poll_s)
+    pool = ThreadPoolExecutor(1, thread_name_prefix="decode")
+    finished = False
+    try:
+        with stop.on_signals():
+            looks = 0
+            while not stop.event.is_set():
+                now = time.monotonic()
+                parts = [finder.take(p) for p in finder.ready(now)]
+                looks += 1
+                for path, why in finder.stale(now):
+                    record(PartRecord.failure(finder.take(path), why))
+                wall, cpu = time.perf_counter(), time.process_time()
+                _judge_all(station, parts, pool, finder, record, stop.event, output)
+                if parts:
+                    summary.busy_s += time.perf_counter() - wall
+                    summary.cpu_s += time.process_time() - cpu
+                # --once: a second look, a poll later, takes the parts that have not changed
+                if options.once and looks >= 2:
+                    break
+                stop.event.wait(options.poll_s)
+        finished = True
+    finally:
+        # a second signal stops at once: the decode ahead (a stalled read) is not waited for
+        pool.shutdown(wait=finished, cancel_futures=True)
+    if options.once and not stop.event.is_set():
+        summary.present = finder.present()
     _write_summary(output, summary)
     return summary
 
 
+MAX_FAILING = 3  # parts in a row failing inside the tool: a fault of the station, not a part's
+
+
 def _judge_all(
     station: Station,
-    parts: list[Path],
+    parts: list[Taken],
     pool: ThreadPoolExecutor,
     finder: PartFinder,
     record: Callable[[PartRecord], None],
     stop: threading.Event,
     output: Path,
 ) -> None:
-    """Judge ``parts`` in order, decoding each next one while the current one is judged."""
+    """Judge ``parts`` in order, decoding each next one while the current one is judged. A
+    part the tool fails on (not bad input) is recorded as an error and the loop goes on,
+    unless MAX_FAILING in a row do."""
     ahead: Future[Decoded] | None = None
-    for i, path in enumerate(parts):
+    failing = 0
+    for i, taken in enumerate(parts):
         if stop.is_set():
             break
-        decoding = ahead or pool.submit(station.read, path)
-        ahead = pool.submit(station.read, parts[i + 1]) if i + 1 < len(parts) else None
+        decoding = ahead or pool.submit(station.read, taken.path)
+        ahead = pool.submit(station.read, parts[i + 1].path) if i + 1 < len(parts) else None
         try:
             stack, decode_s = decoding.result()
-            inspection = station.judge(stack, path.name, decode_s)
+            inspection = station.judge(stack, taken.name, decode_s)
             write_s = _write_part(output, inspection)
         except InputError as exc:
-            if finder.failed(path, exc, time.monotonic()):
-                record(PartRecord(path.name, "error", error=str(exc)))
+            if finder.failed(taken.path, exc, time.monotonic()):
+                record(PartRecord.failure(taken, str(exc)))
             continue
-        record(PartRecord.of(inspection, write_s))
+        except Exception as exc:
+            failing += 1
+            if failing >= MAX_FAILING:
+                raise
+            finder.failed(taken.path, InputError(str(exc)), math.inf)
+            record(PartRecord.failure(taken, f"internal error: {type(exc).__name__}: {exc}"))
+            continue
+        failing = 0
+        record(PartRecord.of(inspection, write_s, taken))
     if ahead is not None:
         ahead.cancel()
 
