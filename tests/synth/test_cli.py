@@ -147,3 +147,13 @@ def test_plates_preset_renders_a_line_with_its_truth(tmp_path: Path, capfd) -> N
     assert verdicts == {p: "fail" if truth[p] else "pass" for p in truth}
     assert main([str(tmp_path / "small"), "--preset", "plates", "--size", "64"]) == 2
     assert "at least 96 px" in capfd.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("extra", "words"),
+    [(["--lights", "65"], "3-64 lights"), (["--shapes", "sphere"], "not plates")],
+)
+def test_plates_refuse_what_plates_cannot_be(tmp_path: Path, capfd, extra, words) -> None:
+    assert main([str(tmp_path / "x"), "--preset", "plates", *extra]) == 2
+    _one_line(capfd, [words])
+    assert not (tmp_path / "x").exists()

@@ -271,3 +271,10 @@ def test_two_stations_of_one_process_never_share_an_output(line, station, tmp_pa
     finally:
         del station.judge
     assert [r["part"] for r in _journal(out)] == ["p0"]
+
+
+def test_the_loops_flags_without_a_loop_are_refused(line, tmp_path, capsys) -> None:
+    part = str(line / "parts" / "p0")
+    code = _cli(part, "--depth", "0.1", "--once", "-o", str(tmp_path / "v"))
+    err = capsys.readouterr().err
+    assert code == 2 and "--once: for a station's loop, with --watch DIR" in err

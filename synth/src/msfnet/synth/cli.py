@@ -161,6 +161,10 @@ def _plates(args: argparse.Namespace) -> list[str]:
     out: Path = args.outdir
     if args.size < 96:
         raise InputError(f"--size {args.size}: a plate is at least 96 px")
+    if args.lights is not None and not 3 <= args.lights <= 64:
+        raise InputError(f"--lights {args.lights}: a plate's LED ring has 3-64 lights")
+    if args.shapes is not None or args.materials is not None:
+        raise InputError("--shapes and --materials are for the object presets, not plates")
     check_output(out, overwrite=args.overwrite, folder=True, command=PROG)
     lights = args.lights or 12
     noise = 0.0 if args.no_noise else 1e-3

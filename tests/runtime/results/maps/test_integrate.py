@@ -414,3 +414,27 @@ def test_a_hierarchy_kept_from_the_last_part_solves_the_next_alike() -> None:
     np.testing.assert_allclose(kept.height, fresh.height, atol=1e-5, equal_nan=True)
     smaller = valid & (cols > 10)
     assert integrate.integrate_normals(second, smaller, "poisson").builds == 1  # another mask
+
+
+def test_a_kept_hierarchy_that_does_not_fit_the_next_part_is_replaced() -> None:
+    """review-session25 10: a hierarchy kept from an odd part slowed every later part; one
+    that does not bring the new system to tolerance within the probe is rebuilt and kept."""
+    from msfnet.runtime.results.maps import integrate
+
+    rows, cols = np.mgrid[0:70, 0:90]
+    valid = (rows - 35) ** 2 / 30**2 + (cols - 45) ** 2 / 40**2 < 1
+    z = 0.05 * cols + 2.0 * np.exp(-((rows - 30) ** 2 + (cols - 50) ** 2) / 40.0)
+    dy, dx = np.gradient(z)
+    n = np.dstack([-dx, dy, np.ones_like(z)])
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    integrate.forget_kept()
+    fresh = integrate.integrate_normals(n, valid, "poisson")
+
+    class NoHelp:  # as poor a preconditioner as there is: the identity
+        def solve(self, r: np.ndarray) -> np.ndarray:
+            return r.copy()
+
+    integrate._Kept.hierarchy = NoHelp()  # type: ignore[assignment]
+    again = integrate.integrate_normals(n, valid, "poisson")
+    assert again.builds == 1 and isinstance(integrate._Kept.hierarchy, integrate.Multigrid)
+    np.testing.assert_allclose(again.height, fresh.height, atol=1e-5, equal_nan=True)

@@ -239,6 +239,13 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         return _train(args)
     if args.watch is not None:
         return _station(args)
+    loop = [
+        f
+        for f, d in (("--once", "once"), ("--poll", "poll_s"), ("--stale", "stale_s"))
+        if getattr(args, d) != getattr(WatchOptions(), d)
+    ]
+    if loop:
+        raise InputError(f"{', '.join(loop)}: for a station's loop, with --watch DIR")
     if args.input is None:
         raise InputError("give INPUT (a run folder or a stack), or --watch DIR")
     options = _rule(args)

@@ -7,12 +7,13 @@ changed between two polls and it reads as a stack. One that stays unreadable and
 ``stale_s`` (a capture that stopped half-way) is recorded as an error and left alone until it
 changes (a part whose last record is an error is taken again after a restart).
 
-The output folder holds ``parts.jsonl`` (one JSON line per part taken: its verdict, regions and
-per-stage times, or its error) and one folder per judged part (verdict.json, overlay.png),
-each written whole. The journal is the state: a part named in it is never taken again, so a
-restart neither skips nor repeats a part. A part folder is written before its line; a restart
-adds the line of a folder that was written just before a kill, and drops a line cut short by
-one. The next complete part is decoded in a background thread while the current one is judged.
+The output folder holds ``parts.jsonl`` (one JSON line per attempt: its verdict, regions and
+per-stage times, or its error; a part's last line stands) and one folder per judged part
+(verdict.json, regions.csv, overlay.png), each written whole. The journal is the state: a part
+judged is not taken again, so a restart neither skips nor repeats a part; a folder name used
+again (another folder, told by its inode and modification time) is judged as ``name~2``. A part
+folder is written before its line; a restart adds the line of a folder that was written just
+before a kill, and drops a line cut short by one. The next complete part is decoded in a background thread while the current one is judged.
 The loop stops after the part in hand on SIGTERM or Ctrl-C (a second one stops at once).
 """
 

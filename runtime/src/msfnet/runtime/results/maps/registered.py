@@ -281,6 +281,12 @@ class _TrendCache:
     weights: np.ndarray | None = None
 
 
+def forget_trend_weights() -> None:
+    """Drop the kept trend weights (tests that compare cold and warm trends)."""
+    with _TrendCache.lock:
+        _TrendCache.key, _TrendCache.mask, _TrendCache.weights = None, None, None
+
+
 def _trend_weights(ok: np.ndarray, sigma: float, degree: int, filters: _Moments) -> np.ndarray:
     """(K, P) float64: per mask pixel, the first row of the inverse of its K x K normal
     equations (Gaussian-weighted moments of the mask), so that the trend there is that row
@@ -311,7 +317,7 @@ def _trend_weights(ok: np.ndarray, sigma: float, degree: int, filters: _Moments)
             a[:, i, i] += ridge
         # the systems are symmetric: the inverse's first column is its first row
         weights[:, part] = np.linalg.solve(a, np.broadcast_to(first, (len(a), k, 1)))[..., 0].T
-    if pixels <= TREND_CACHE_PIXELS:
+    if pixels <= TREND_CACHE_PIXELS and ok.size <= 4 * TREND_CACHE_PIXELS:
         with _TrendCache.lock:
             _TrendCache.key, _TrendCache.mask, _TrendCache.weights = key, ok.copy(), weights
     return weights
