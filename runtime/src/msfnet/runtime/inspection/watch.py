@@ -13,7 +13,8 @@ per-stage times, or its error; a part's last line stands) and one folder per jud
 judged is not taken again, so a restart neither skips nor repeats a part; a folder name used
 again (another folder, told by its inode and modification time) is judged as ``name~2``. A part
 folder is written before its line; a restart adds the line of a folder that was written just
-before a kill, and drops a line cut short by one. The next complete part is decoded in a background thread while the current one is judged.
+before a kill, and drops a line cut short by one. The next complete part is decoded in a
+background thread while the current one is judged.
 The loop stops after the part in hand on SIGTERM or Ctrl-C (a second one stops at once).
 """
 
