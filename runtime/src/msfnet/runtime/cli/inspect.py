@@ -42,6 +42,7 @@ from msfnet.runtime.inspection.defects import (
     check_run_memory,
     find_defects,
     from_maps,
+    kinds_text,
     overlay_picture,
     read_run,
 )
@@ -399,10 +400,7 @@ def _print_part(record: object) -> None:
     elif record.verdict == "mismatch":
         print(f"{record.part}: MISMATCH (not the reference's part, or misplaced){took}", flush=True)
     else:
-        kinds: dict[str, int] = {}
-        for region in record.regions:
-            kinds[str(region.get("kind"))] = kinds.get(str(region.get("kind")), 0) + 1
-        what = ", ".join(f"{n} {k}" for k, n in sorted(kinds.items(), key=lambda kv: -kv[1]))
+        what = kinds_text(str(region.get("kind")) for region in record.regions)
         print(f"{record.part}: FAIL, {record.defects} defect(s): {what}{took}", flush=True)
 
 

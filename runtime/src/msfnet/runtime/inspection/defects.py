@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections import Counter
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -170,6 +172,11 @@ def region_shape(rows: np.ndarray, cols: np.ndarray, sunk: bool) -> RegionShape:
     return RegionShape(round(float(length), 2), round(float(width), 2), round(angle, 1), kind)
 
 
+def kinds_text(kinds: Iterable[str]) -> str:
+    """Regions counted by kind, most first: "3 scratch, 2 dent"."""
+    return ", ".join(f"{n} {k}" for k, n in Counter(kinds).most_common())
+
+
 _PAIRS = {
     "centroid": 2,
     "bbox": 4,
@@ -255,11 +262,8 @@ class Verdict:
         return json_text(self.as_dict())
 
     def kinds(self) -> str:
-        """ "3 scratch, 2 dent": the regions by kind, most first."""
-        counts: dict[str, int] = {}
-        for r in self.regions:
-            counts[r.kind] = counts.get(r.kind, 0) + 1
-        return ", ".join(f"{n} {k}" for k, n in sorted(counts.items(), key=lambda kv: -kv[1]))
+        """The regions by kind, most first: "3 scratch, 2 dent"."""
+        return kinds_text(r.kind for r in self.regions)
 
     def csv_text(self) -> str:
         """regions.csv: one row per region (the fields of :class:`Region`; pairs and boxes as
