@@ -278,3 +278,15 @@ def test_the_loops_flags_without_a_loop_are_refused(line, tmp_path, capsys) -> N
     code = _cli(part, "--depth", "0.1", "--once", "-o", str(tmp_path / "v"))
     err = capsys.readouterr().err
     assert code == 2 and "--once: for a station's loop, with --watch DIR" in err
+
+
+def test_a_station_folder_resumed_with_another_rule_is_refused(line, station, tmp_path) -> None:
+    """review-session25 16: verdicts of one station folder are all made alike."""
+    from msfnet.common.errors import InputError
+
+    folder, out = _parts(line, tmp_path, ("p0",)), tmp_path / "station"
+    watch(station, folder, out, ONCE)
+    other = Station(DefectOptions(depth=0.2), ModelOptions(method="l2"), reference=line / "golden")
+    with pytest.raises(InputError, match=r"other settings \(rule\)"):
+        watch(other, folder, out, ONCE)
+    assert watch(station, folder, out, ONCE).parts == 0  # the same settings resume

@@ -11,7 +11,7 @@ the albedo is computed only for the overlay picture's grey base when asked (``pi
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -145,6 +145,24 @@ class Station:
             self.reference = self._maps(stack, str(stack.source or reference))[0]
         if self.reference is not None:
             _check_reference(self.reference, rule)
+        self._options = opts.replace(maps=maps)
+
+    def settings(self) -> dict[str, object]:
+        """What decides a verdict, for a station folder to hold: the rule, the reference and
+        zones, how parts are run and mapped, and how they are read (resource settings such as
+        threads, engine or memory left out: they change times, not verdicts)."""
+        o = self._options
+        kept = ("model", "method", "speed", "fine_detail", "detail_fusion", "edge_context", "tta")
+        run = {k: v for k, v in o.describe().items() if k in kept}
+        maps = o.maps or MapOptions()
+        return {
+            "rule": asdict(self.rule),
+            "reference": None if self.reference is None else self.reference.source,
+            "zones": None if self.zones is None else self.zones.source,
+            "run": run,
+            "maps": {"local_size_px": maps.local_size_px, "pixel_size_mm": maps.pixel_size_mm},
+            "load": self.load.describe(),
+        }
 
     def read(self, path: str | Path) -> tuple[Stack, float]:
         """A part's stack decoded with the station's load options, and the seconds it took

@@ -45,6 +45,7 @@ from msfnet.runtime.stack import Stack
 JOURNAL = "parts.jsonl"
 READY = "READY"
 STATION_SUMMARY = "station.json"
+SETTINGS = "settings.json"  # what decides the verdicts: a restart must give the same
 
 
 @dataclass(frozen=True)
@@ -301,7 +302,7 @@ class _Seen:
 
 # names a part folder being written under, to be renamed when done: never a part
 TEMPORARY = (".tmp", ".part", ".partial", ".incomplete", "~")
-RESERVED = (JOURNAL, STATION_SUMMARY)  # the station's own files in its output folder
+RESERVED = (JOURNAL, STATION_SUMMARY, SETTINGS)  # the station's own files in its output folder
 
 
 @dataclass(frozen=True)
@@ -517,6 +518,7 @@ def _watch(
     report: Callable[[PartRecord], None],
 ) -> WatchSummary:
     journal = Journal(output)
+    _check_settings(output, station.settings())
     summary = WatchSummary(earlier=len(journal.names))
     finder = PartFinder(folder, options, journal, (*skip, output))
     stop = _Stop()
@@ -554,6 +556,30 @@ def _watch(
         summary.present = finder.present()
     _write_summary(output, summary)
     return summary
+
+
+def _check_settings(output: Path, settings: dict[str, object]) -> None:
+    """A station folder's verdicts are all made alike: its settings are written when it
+    starts, and a restart with other ones (another rule, reference, zones or model) refused."""
+    path = output / SETTINGS
+    text = json_text(settings)
+    if not path.is_file():
+        if (output / JOURNAL).is_file() and (output / JOURNAL).stat().st_size:
+            return  # a folder of an earlier version, without settings: resumed as it is
+        write_text(path, text)
+        return
+    try:
+        held = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"unreadable ({exc}): remove it to start afresh", path) from None
+    now = json.loads(text)
+    differ = sorted(k for k in set(held) | set(now) if held.get(k) != now.get(k))
+    if differ:
+        raise InputError(
+            f"this station folder was started with other settings ({', '.join(differ)}): its "
+            "verdicts would not compare; give a new -o (or the same settings)",
+            output,
+        )
 
 
 MAX_FAILING = 3  # parts in a row failing inside the tool: a fault of the station, not a part's
