@@ -494,3 +494,20 @@ def test_a_keep_out_leaves_the_rim_where_the_mask_ends_on_the_part() -> None:
     assert labels[20:24, 2:6].all() and not labels[:, 58:].any()
     with pytest.raises(InputError, match="leaves nothing"):
         find_defects(part, DefectOptions(depth=0.1, keep_out_px=100))
+
+
+def test_the_deviation_picture_has_one_scale_the_threshold_sets() -> None:
+    """deviation.png: grey where the part is as it should be, full red at a sunk pixel at the
+    threshold, blue raised, dark outside, whatever the map's own range; a bar below."""
+    from msfnet.runtime.inspection.defects import BAR_PX, deviation_picture
+
+    local = np.zeros((40, 50), np.float32)
+    local[10, 10], local[20, 20] = -0.1, 0.1  # at the threshold, sunk and raised
+    local[:, 45:] = np.nan
+    part = InspectionInput(local, None, None, {"depth": "px", "curvature": "1/px"}, None, "p")
+    verdict, _ = find_defects(part, DefectOptions(depth=0.1, min_area_px=1))
+    rgb = deviation_picture(verdict)
+    assert rgb.shape == (40 + BAR_PX, 50, 3)
+    assert tuple(rgb[30, 30]) == (150, 150, 150)  # calm
+    assert tuple(rgb[10, 10]) == (230, 40, 40) and tuple(rgb[20, 20]) == (40, 90, 235)
+    assert rgb[5, 47].max() < 40  # not inspected

@@ -68,7 +68,8 @@ def test_each_part_is_judged_once_across_restarts(line, station, tmp_path: Path)
     assert records[1]["defects"] == len(records[1]["regions"]) >= 1
     assert set(records[0]["times_ms"]) >= {"decode", "normals", "maps", "judge", "write"}
     for name in ("p0", "p1", "p2"):
-        assert {"overlay.png", "verdict.json"} <= {p.name for p in (out / name).iterdir()}
+        written = {p.name for p in (out / name).iterdir()}
+        assert {"overlay.png", "deviation.png", "verdict.json", "regions.csv"} <= written
     summary = json.loads((out / "station.json").read_text())
     assert summary["parts"] == 1 and summary["earlier_parts"] == 2
     assert {s["stage"] for s in summary["stages_ms"]} >= {"decode", "normals", "total"}

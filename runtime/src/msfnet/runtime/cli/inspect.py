@@ -12,8 +12,9 @@ nothing written; a full disk and out of memory too), 3 a failure of the tool its
 as a verdict; Ctrl-C 130, SIGTERM 143), 4 the part does not match its reference or variation
 model (another part, or not in its place). --watch exits 0 when stopped by SIGTERM / Ctrl-C.
 The verdict (verdict.json), its regions as a table (regions.csv: size, length, width,
-orientation, depth, kind) and the overlay picture (overlay.png, the input's size) are written
-together into the -o folder, or not at all.
+orientation, depth, kind), the overlay picture (overlay.png, the input's size) and the
+deviation picture (deviation.png: the judged map over its threshold, one fixed scale, a colour
+bar) are written together into the -o folder, or not at all.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from msfnet.runtime.inspection.defects import (
     InspectionInput,
     Verdict,
     check_run_memory,
+    deviation_picture,
     find_defects,
     from_maps,
     kinds_text,
@@ -299,6 +301,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         (tmp / "verdict.json").write_text(verdict.json_text(), encoding="utf-8")
         (tmp / "regions.csv").write_text(verdict.csv_text(), encoding="utf-8")
         encode_png(tmp / "overlay.png", picture)
+        encode_png(tmp / "deviation.png", deviation_picture(verdict))
     if not args.quiet:
         print(_summary(verdict, args.output))
         for judged in verdict.statistics:  # what a threshold is chosen from, in its units

@@ -224,6 +224,9 @@ class Verdict:
     aligned_on: str | None = None  # "albedo" or "local shape": what the shift came from
     provenance: dict[str, str | None] | None = None  # what produced the maps (Provenance)
     statistics: tuple[JudgedStatistics, ...] = ()
+    # (H, W) the judged map over its threshold (signed: < 0 sunk or concave), NaN where not
+    # inspected: what deviation.png draws (not written to verdict.json)
+    deviation: np.ndarray | None = field(default=None, repr=False, compare=False)
     # why the part is not the reference's (one region covers more than MISMATCH_FRACTION of
     # it, or it lies more than MAX_SHIFT_PX off): another part, or not in its place
     mismatch: str | None = None
@@ -778,6 +781,11 @@ def find_defects(
         judged.append(_statistics("curvature", unit, options.curvature, bend, mask))
     high &= mask
     low &= mask
+    if options.depth is not None and j.depth is not None:
+        ratio = signed / j.depth
+    else:
+        ratio = (np.zeros(mask.shape) if signed_curv is None else signed_curv) / (j.bend or 1.0)
+    deviation = np.where(mask, ratio, np.nan).astype(np.float32)
     regions: list[Region] = []
     out = np.zeros(mask.shape, np.int32)
     if j.mismatch is None:  # aligned: the regions (too far off, nothing is compared)
@@ -808,6 +816,7 @@ def find_defects(
         aligned_on=None if j.aligned is None else j.aligned.aligned_on,
         statistics=tuple(judged),
         mismatch=mismatch,
+        deviation=deviation,
     )
     return verdict, out
 
@@ -889,6 +898,45 @@ KIND_COLOURS = {
 }
 
 
+DEVIATION_RANGE = 2.0  # deviation.png's scale ends at twice the threshold
+BAR_PX = 26  # its colour bar's height
+
+
+def deviation_picture(verdict: Verdict) -> np.ndarray:
+    """(H + BAR_PX, W, 3) uint8 RGB: the judged map over its threshold at one fixed scale, so a
+    good part looks calm whatever its own range: grey at 0, full colour at the threshold (red
+    sunk or concave, blue raised or convex), darker up to DEVIATION_RANGE thresholds; dark
+    where not inspected; a colour bar below, in thresholds (t: the rule's, or a pixel's own
+    spread limit against a variation model)."""
+    dev = verdict.deviation
+    assert dev is not None, "a verdict from find_defects carries its deviation"
+    w = dev.shape[1]
+    t = np.clip(np.nan_to_num(dev) / DEVIATION_RANGE, -1.0, 1.0)
+    rgb = _diverging(t)
+    rgb[~np.isfinite(dev)] = (25, 25, 25)
+    bar = np.zeros((BAR_PX, w, 3), np.uint8)
+    bar[:8] = _diverging(np.linspace(-1.0, 1.0, w))[None]
+    for value in (-2, -1, 0, 1, 2):
+        x = round((value / DEVIATION_RANGE + 1) / 2 * (w - 1))
+        label = "0" if value == 0 else f"{value:+d}t"
+        (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_PLAIN, 0.8, 1)
+        x0 = min(max(0, x - tw // 2), w - tw)
+        bar[8:11, max(0, x - 1) : x + 1] = 200
+        cv2.putText(bar, label, (x0, BAR_PX - 3), cv2.FONT_HERSHEY_PLAIN, 0.8, (220, 220, 220), 1)
+    return np.concatenate([rgb, bar], axis=0)
+
+
+def _diverging(t: np.ndarray) -> np.ndarray:
+    """t in [-1, 1] (a deviation over DEVIATION_RANGE thresholds) -> RGB: grey at 0, full red
+    (sunk) or blue (raised) at the threshold, darker beyond it, half as bright at the end."""
+    grey = np.array([150.0, 150.0, 150.0])
+    a = np.abs(t)[..., None] * DEVIATION_RANGE  # in thresholds
+    colour = np.where((t < 0)[..., None], [230.0, 40.0, 40.0], [40.0, 90.0, 235.0])
+    rgb = grey + (colour - grey) * np.minimum(a, 1.0)
+    rgb *= 1.0 - 0.5 * np.clip((a - 1.0) / (DEVIATION_RANGE - 1.0), 0.0, 1.0)
+    return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
 def overlay_picture(
     part: InspectionInput, labels: np.ndarray, regions: tuple[Region, ...] = ()
 ) -> np.ndarray:
@@ -945,6 +993,7 @@ __all__ = [
     "align_shift",
     "align_to",
     "check_run_memory",
+    "deviation_picture",
     "find_defects",
     "from_maps",
     "overlay_picture",

@@ -39,6 +39,7 @@ from msfnet.common.cli import flag, positive_float
 from msfnet.common.errors import InputError
 from msfnet.common.files import folder_lock, json_text, staged_folder, write_text
 from msfnet.common.imageio import encode_png
+from msfnet.runtime.inspection.defects import deviation_picture
 from msfnet.runtime.inspection.station import STAGES, Inspection, Station
 from msfnet.runtime.stack import Stack
 
@@ -467,6 +468,7 @@ def _write_part(output: Path, inspection: Inspection) -> float:
         (tmp / "verdict.json").write_text(inspection.verdict.json_text(), encoding="utf-8")
         (tmp / "regions.csv").write_text(inspection.verdict.csv_text(), encoding="utf-8")
         encode_png(tmp / "overlay.png", inspection.overlay())
+        encode_png(tmp / "deviation.png", deviation_picture(inspection.verdict))
     return time.perf_counter() - start
 
 
