@@ -340,7 +340,12 @@ def _train(args: argparse.Namespace) -> int:
     check_output(args.output, goods, overwrite=args.overwrite, folder=True)
     # the rule the parts will be judged by, its depth searched per good part
     rule = options_from_args(DefectOptions, args, overrides={"depth": 1.0, "curvature": None})
-    model = train_variation([_prepare(path, args) for path in goods], rule)
+    mapped = []
+    for i, path in enumerate(goods, 1):  # seconds each with the network: say where it is
+        mapped.append(_prepare(path, args))
+        if not args.quiet:
+            print(f"mapped good part {i}/{len(goods)}: {path}", flush=True)
+    model = train_variation(mapped, rule)
     model.save(args.output, overwrite=args.overwrite)
     if not args.quiet:
         print(f"variation model of {len(goods)} good parts -> {args.output}")
