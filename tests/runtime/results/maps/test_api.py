@@ -71,7 +71,7 @@ def test_write_maps_files_report_and_json(stack, tmp_path: Path) -> None:
     assert info["pixels"] == int(stack.mask.sum())
     page = (tmp_path / "report.html").read_text()
     pngs = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
-    assert len(pngs) == 6  # inputs, normals, albedo, height, curvature, error
+    assert len(pngs) == 7  # inputs, normals, albedo, height, local shape, curvature, error
     for data in pngs:
         assert base64.b64decode(data)[:8] == b"\x89PNG\r\n\x1a\n"
     assert "inference" in page and "maps: curvature" in page  # the latency table

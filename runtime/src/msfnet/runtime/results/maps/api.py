@@ -517,6 +517,9 @@ def _bytes_writer(data: bytes) -> Any:
     return lambda tmp: tmp.write_bytes(data)
 
 
+Job = tuple[str, Any]  # an output's name and its writer (bytes, or a function of the path)
+
+
 def write_maps(
     folder: str | Path,
     maps: InspectionMaps,
@@ -545,14 +548,11 @@ def write_maps(
     is ever left half-written.
     """
     import msfnet.runtime.results.maps.pictures as pictures
-    from msfnet.runtime.results.maps.mesh import albedo_colors, height_mesh, write_ply
-    from msfnet.runtime.results.maps.report import build_report
 
     folder = Path(folder)
     m = maps.mask
-    jobs: list[tuple[str, Any]] = []
-    figures: list[tuple[str, bytes]] = []
     draw = pictures.can_draw()  # without Pillow no figures, all else written
+    figures: list[tuple[str, bytes]] = []
     if images is not None and draw:
         figures.append(
             (
@@ -569,13 +569,47 @@ def write_maps(
                 or pictures.png_bytes(pictures.normals_picture(maps.normals, m)),
             )
         )
+    jobs, views = _view_jobs(maps, draw)
+    figures += views
+    jobs += _data_jobs(maps)
+    if error_deg is not None and draw:
+        figures.append(
+            (
+                "angular error vs ground truth",
+                done.get("error") or pictures.png_bytes(pictures.error_picture(error_deg, m)),
+            )
+        )
+    summary = maps.summary()
+    jobs.append(("maps.json", _bytes_writer(json_text(summary).encode())))
+    if report:
+        heading = title or f"inspection maps: {folder.name}"
+        text = _report_text(maps, summary, figures, profile, draw, heading)
+        jobs.append(("report.html", _bytes_writer(text.encode("utf-8"))))
+    written = []
+    for name, writer in jobs:
+        path = folder / name
+        if name == "mesh.ply":
+            writer(path)  # write_ply goes through write_atomic itself
+        else:
+            write_atomic(path, writer)
+        written.append(path)
+    return written
+
+
+def _view_jobs(maps: InspectionMaps, draw: bool) -> tuple[list[Job], list[tuple[str, bytes]]]:
+    """The maps' registered views and data (albedo, height, local shape, curvature) and their
+    report figures (with axes and colour bars: only in the report)."""
+    import msfnet.runtime.results.maps.pictures as pictures
+
+    m = maps.mask
+    jobs: list[Job] = []
+    figures: list[tuple[str, bytes]] = []
     if maps.albedo is not None:
         png = linear_png(pictures.png_bytes(albedo_png(maps.albedo, m)), ALBEDO_PNG_NOTE)
         jobs.append(("albedo.png", _bytes_writer(png)))
         jobs.append(("albedo.npy", _npy_writer(maps.albedo)))
         if draw:
             figures.append(("albedo", pictures.png_bytes(pictures.albedo_picture(maps.albedo, m))))
-    # registered views (the input's size; figures with axes only in the report)
     if maps.height is not None:
         units = "px" if maps.options.intrinsics is None else "depth_ref units"
         if draw:
@@ -589,13 +623,14 @@ def write_maps(
         if maps.depth is not None:
             jobs.append(("depth.npy", _npy_writer(maps.depth)))
     if maps.local_shape is not None:
+        if draw:  # the map msf-inspect judges, with its colour bar
+            size = maps.options.local_size_px
+            drawn = pictures.local_shape_picture(maps.local_shape, m, size)
+            figures.append(("local shape", pictures.png_bytes(drawn)))
         rgb, top = signed_view(maps.local_shape, m)
         note = f"local shape, red up / blue down, +-{top:.4g} px full colour; values in .tif"
         jobs.append(
-            (
-                "local_shape.png",
-                _bytes_writer(described_png(pictures.png_bytes(rgb), note)),
-            )
+            ("local_shape.png", _bytes_writer(described_png(pictures.png_bytes(rgb), note)))
         )
     if maps.curvature is not None:
         if draw:
@@ -605,13 +640,18 @@ def write_maps(
         note = f"mean curvature, red convex / blue concave, +-{top:.4g} 1/px full colour"
         jobs += [
             ("curvature.npy", _npy_writer(maps.curvature)),
-            (
-                "curvature.png",
-                _bytes_writer(described_png(pictures.png_bytes(rgb), note)),
-            ),
+            ("curvature.png", _bytes_writer(described_png(pictures.png_bytes(rgb), note))),
         ]
         if maps.shape_index is not None:
             jobs.append(("shape_index.npy", _npy_writer(maps.shape_index)))
+    return jobs, figures
+
+
+def _data_jobs(maps: InspectionMaps) -> list[Job]:
+    """The registered TIFFs and the mesh, each made only when its turn to be written comes."""
+    from msfnet.runtime.results.maps.mesh import albedo_colors, height_mesh, write_ply
+
+    jobs: list[Job] = []
     if maps.options.tiff:
         reg_units = maps.registered_units()
         placement = tiff_placement(maps.options.frame, maps.options.image_pixel_size_mm)
@@ -623,14 +663,8 @@ def write_maps(
                     lambda tmp, n=name, t=text: write_tiff(tmp, maps.physical_map(n), t, placement),
                 )
             )
-    if error_deg is not None and draw:
-        figures.append(
-            (
-                "angular error vs ground truth",
-                done.get("error") or pictures.png_bytes(pictures.error_picture(error_deg, m)),
-            )
-        )
     if "mesh" in maps.options.maps and maps.height is not None and "mesh" not in maps.skipped:
+        m = maps.mask
 
         def mesh_writer(tmp: Path) -> None:
             # built when its turn comes and dropped after: one output held at a time
@@ -648,34 +682,35 @@ def write_maps(
             write_ply(tmp, mesh)
 
         jobs.append(("mesh.ply", mesh_writer))
-    summary = maps.summary()
-    jobs.append(("maps.json", _bytes_writer(json_text(summary).encode())))
-    if report:
-        meta: dict[str, object] = {**provenance(profile), "pixels": summary["pixels"]}
-        meta["height integration"] = maps.options.method
-        if not draw:
-            meta["figures"] = pictures.missing_note()
-        if maps.integration is not None:
-            meta["integration iterations"] = maps.integration.iterations
-        if "height_range" in summary:
-            meta["height range"] = height_range_text(summary["height_range"], maps.options)
-        html_text = build_report(
-            title or f"inspection maps: {folder.name}",
-            figures,
-            meta=meta,
-            profile=profile,
-            map_seconds=maps.timings,
-        )
-        jobs.append(("report.html", _bytes_writer(html_text.encode("utf-8"))))
-    written = []
-    for name, writer in jobs:
-        path = folder / name
-        if name == "mesh.ply":
-            writer(path)  # write_ply goes through write_atomic itself
-        else:
-            write_atomic(path, writer)
-        written.append(path)
-    return written
+    return jobs
+
+
+def _report_text(
+    maps: InspectionMaps,
+    summary: dict[str, Any],
+    figures: list[tuple[str, bytes]],
+    profile: Mapping[str, object] | None,
+    draw: bool,
+    title: str,
+) -> str:
+    import msfnet.runtime.results.maps.pictures as pictures
+    from msfnet.runtime.results.maps.report import build_report
+
+    meta: dict[str, object] = {**provenance(profile), "pixels": summary["pixels"]}
+    meta["height integration"] = maps.options.method
+    if not draw:
+        meta["figures"] = pictures.missing_note()
+    if maps.integration is not None:
+        meta["integration iterations"] = maps.integration.iterations
+    if "height_range" in summary:
+        meta["height range"] = height_range_text(summary["height_range"], maps.options)
+    return build_report(
+        title,
+        figures,
+        meta=meta,
+        profile=profile,
+        map_seconds=maps.timings,
+    )
 
 
 __all__ = [

@@ -611,6 +611,27 @@ def curvature_picture(
     )
 
 
+def local_shape_picture(
+    local: np.ndarray, mask: np.ndarray, size_px: float, *, percentile: float = 99.0
+) -> np.ndarray:
+    """The local shape (height less its trend at ``size_px``: what msf-inspect's --depth
+    judges) on the curvature's diverging map (red up, blue down), symmetric range from the
+    ``percentile`` of its magnitude, with a colour bar in px."""
+    valid = mask & np.isfinite(local)
+    if not valid.any():
+        return _empty("local shape")
+    top = symmetric_range(local[valid], percentile)
+    return _scalar_picture(
+        local,
+        valid,
+        cmap=CURVATURE_CMAP,
+        vmin=-top,
+        vmax=top,
+        title=f"local shape at {size_px:g} px (red up, blue down)",
+        label="local shape (px)",
+    )
+
+
 def albedo_picture(albedo: np.ndarray, mask: np.ndarray, percentile: float = 99.5) -> np.ndarray:
     """Albedo as a colour picture, scaled so the ``percentile`` of the brightest channel is
     white (relative: the absolute values are in albedo.npy)."""
