@@ -366,23 +366,7 @@ def compute_maps(
         )
         maps.timings["albedo"] = time.perf_counter() - start
     if opts.wants("height") and fits("height"):
-        start = time.perf_counter()
-        integ = integrate_normals(
-            unit,
-            valid,
-            opts.method,
-            intrinsics=opts.intrinsics,
-            depth_ref=opts.depth_ref,
-            min_nz=opts.min_nz,
-            k=opts.bini_k,
-            max_iter=opts.bini_max_iter,
-            tol=opts.bini_tol,
-        )
-        maps.integration, maps.height, maps.depth = integ, integ.height, integ.depth
-        maps.timings[f"height ({opts.method})"] = time.perf_counter() - start
-        if opts.intrinsics is None:  # a perspective height is log-depth based: no local shape
-            maps.local_shape = local_shape(integ.height, valid, opts.local_size_px)
-        del integ
+        _height_maps(maps, unit, valid)
     elif "mesh" in wanted and "height" in skipped:
         skipped.append("mesh")  # a mesh is the height's
         needs["mesh"] = needs["height"]
@@ -400,6 +384,27 @@ def compute_maps(
         maps.skipped = tuple(skipped)
         maps.warning = budget.skipped_line(skipped, needs, every=False)
     return maps
+
+
+def _height_maps(maps: InspectionMaps, unit: np.ndarray, valid: np.ndarray) -> None:
+    """The height (and depth with intrinsics) and the local shape, into ``maps``."""
+    opts = maps.options
+    start = time.perf_counter()
+    integ = integrate_normals(
+        unit,
+        valid,
+        opts.method,
+        intrinsics=opts.intrinsics,
+        depth_ref=opts.depth_ref,
+        min_nz=opts.min_nz,
+        k=opts.bini_k,
+        max_iter=opts.bini_max_iter,
+        tol=opts.bini_tol,
+    )
+    maps.integration, maps.height, maps.depth = integ, integ.height, integ.depth
+    maps.timings[f"height ({opts.method})"] = time.perf_counter() - start
+    if opts.intrinsics is None:  # a perspective height is log-depth based: no local shape
+        maps.local_shape = local_shape(integ.height, valid, opts.local_size_px)
 
 
 def stack_maps(
