@@ -291,3 +291,31 @@ def test_a_station_folder_resumed_with_another_rule_is_refused(line, station, tm
     with pytest.raises(InputError, match=r"other settings \(rule\)"):
         watch(other, folder, out, ONCE)
     assert watch(station, folder, out, ONCE).parts == 0  # the same settings resume
+
+
+def test_a_folder_that_cannot_be_listed_for_a_moment_is_looked_at_again(
+    line, tmp_path, monkeypatch
+) -> None:
+    """review-session25 16: a network share's ESTALE ends no station; with --once it is one
+    line."""
+    import errno
+
+    from msfnet.common.errors import InputError
+    from msfnet.runtime.inspection import watch as watching
+
+    folder = _parts(line, tmp_path, ("p0",))
+    (tmp_path / "out").mkdir()
+    finder = watching.PartFinder(folder, WatchOptions(), watching.Journal(tmp_path / "out"), ())
+    real = os.scandir
+
+    def stale(path):
+        raise OSError(errno.ESTALE, "Stale file handle")
+
+    monkeypatch.setattr(watching.os, "scandir", stale)
+    with pytest.warns(UserWarning, match="trying again"):
+        assert finder.candidates() == []
+    once = watching.PartFinder(folder, ONCE, finder.journal, ())
+    with pytest.raises(InputError, match="cannot list"):
+        once.candidates()
+    monkeypatch.setattr(watching.os, "scandir", real)
+    assert [p.name for p in finder.candidates()] == ["p0"]

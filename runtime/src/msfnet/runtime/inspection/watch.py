@@ -27,6 +27,7 @@ import os
 import signal
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -348,6 +349,11 @@ class PartFinder:
             entries = sorted(os.scandir(self.folder), key=lambda e: e.name)
         except FileNotFoundError:
             raise InputError("the watched folder is gone", self.folder) from None
+        except OSError as exc:  # a network share's hiccup (ESTALE, EIO): the next look retries
+            if not self.options.once:
+                warnings.warn(f"{self.folder}: cannot list ({exc}); trying again", stacklevel=2)
+                return []
+            raise InputError(f"cannot list the folder ({exc})", self.folder) from None
         out = []
         for e in entries:
             if e.name.startswith(".") or e.name.endswith(TEMPORARY) or not e.is_dir():
