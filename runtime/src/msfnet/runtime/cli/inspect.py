@@ -44,6 +44,7 @@ from msfnet.runtime.inspection.defects import (
     deviation_picture,
     find_defects,
     from_maps,
+    is_run,
     kinds_text,
     overlay_picture,
     read_run,
@@ -169,10 +170,6 @@ RESOURCE_FLAGS = (
 )
 
 
-def _is_run(path: Path) -> bool:
-    return path.is_dir() and (path / "maps.json").is_file()
-
-
 def _stack_flags(argv: list[str] | None) -> list[str]:
     """The msf-run flags on the command line that change what a stack's maps mean (given at
     all, defaults included: "--local-size 12" on a 30 px run would be ignored just the same)."""
@@ -196,7 +193,7 @@ def _stack_flags(argv: list[str] | None) -> list[str]:
 
 def _check_input_kind(path: Path) -> None:
     """A folder msfnet wrote that holds no maps is named as such, not read as a stack."""
-    if _is_run(path) or not path.is_dir():
+    if is_run(path) or not path.is_dir():
         return
     if (path / "summary.json").is_file():
         raise InputError("an msf-run batch output: give one stack's folder inside it", path)
@@ -211,7 +208,7 @@ def _check_input_kind(path: Path) -> None:
 def _prepare(path: Path, args: argparse.Namespace) -> InspectionInput:
     """A run folder's maps, or a stack run through msf-run's pipeline (in memory); ``path``
     exists (:func:`_run` checks both inputs first)."""
-    if _is_run(path):
+    if is_run(path):
         return read_run(path)
     from msfnet.runtime.api import Model
     from msfnet.runtime.cli.flags import load_options, model_options
@@ -273,7 +270,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
             "verdict and overlay"
         )
     given = _stack_flags(argv)
-    runs = [p for p in (args.input, args.reference) if p is not None and _is_run(p)]
+    runs = [p for p in (args.input, args.reference) if p is not None and is_run(p)]
     if given and len(runs) == (1 if args.reference is None else 2):
         # a run folder's maps are used as written: --pixel-size 0.05 --depth 0.005 on a px
         # run was 0.005 px, silently
@@ -290,7 +287,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
             if not path.exists():  # the reference too, before the part's whole run
                 raise InputError("no such file or folder", path)
             _check_input_kind(path)
-            if _is_run(path):
+            if is_run(path):
                 check_run_memory(path, budget, args.reference is not None)
     part = _prepare(args.input, args)
     reference = None if args.reference is None else _prepare(args.reference, args)
@@ -415,7 +412,7 @@ def _print_part(record: object) -> None:
 def _provenance(args: argparse.Namespace, part: InspectionInput) -> Provenance:
     """What made the part's maps: this run's model, or the run folder's own record."""
     method: dict[str, object] = dict(part.method or {})
-    if not method and _is_run(args.input):
+    if not method and is_run(args.input):
         try:
             profile = json.loads((args.input / "profile.json").read_text(encoding="utf-8"))
             method = dict(profile.get("provenance") or {})

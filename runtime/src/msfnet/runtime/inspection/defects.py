@@ -375,6 +375,11 @@ def check_run_memory(folder: Path, max_memory_mb: float, reference: bool) -> Non
         )
 
 
+def is_run(path: Path) -> bool:
+    """An msf-run output folder with maps (or a variation model): what :func:`read_run` reads."""
+    return path.is_dir() and (path / "maps.json").is_file()
+
+
 def read_run(folder: Path) -> InspectionInput:
     """The maps of an msf-run output folder (local_shape.tif and/or curvature.tif, albedo.tif,
     maps.json's units, local size and frame); InputError naming what is missing."""
@@ -996,6 +1001,7 @@ __all__ = [
     "deviation_picture",
     "find_defects",
     "from_maps",
+    "is_run",
     "overlay_picture",
     "read_run",
     "shift_map",

@@ -24,6 +24,7 @@ from msfnet.runtime.inspection.defects import (
     Verdict,
     find_defects,
     from_maps,
+    is_run,
     overlay_picture,
     read_run,
 )
@@ -94,7 +95,7 @@ def _given_maps(reference: Stack | InspectionInput | str | Path | None) -> Inspe
     path = Path(reference)
     if not path.exists():
         raise InputError("no such file or folder", path)
-    return read_run(path) if path.is_dir() and (path / "maps.json").is_file() else None
+    return read_run(path) if is_run(path) else None
 
 
 def _check_reference(reference: InspectionInput, rule: DefectOptions) -> None:
