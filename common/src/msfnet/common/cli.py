@@ -33,6 +33,7 @@ from msfnet.common.signals import (
     interrupt_once,
     restore_signal_handlers,
 )
+from msfnet.common.vocabulary import Flag, speaking_as
 
 
 def _number(text: str, kind: type) -> float:
@@ -173,57 +174,33 @@ def make_parser(
 T = TypeVar("T")
 
 
-@dataclasses.dataclass(frozen=True)
-class Flag:
-    """How one field of an options dataclass appears on a command line. The flag's value is
-    stored under the field's name, so :func:`options_from_args` can build the options back.
-
-    ``name``: the flag (default ``--field-name``); ``action="store_true"`` for booleans;
-    ``type`` converts and validates the text (an ``argparse.ArgumentTypeError`` becomes the
-    usual one-line error)."""
-
-    help: str
-    name: str | None = None
-    aliases: tuple[str, ...] = ()
-    type: Callable[[str], Any] | None = None
-    choices: tuple[str, ...] | None = None
-    metavar: str | tuple[str, ...] | None = None
-    action: str | None = None
-    nargs: int | str | None = None
-
-    def flag_name(self, field_name: str) -> str:
-        return self.name or "--" + field_name.replace("_", "-")
+def _flags_of(cls: type) -> dict[str, Flag]:
+    return {f.name: f.metadata["flag"] for f in dataclasses.fields(cls) if "flag" in f.metadata}
 
 
-def flag(default: Any, help: str, **spec: Any) -> Any:
-    """A dataclass field with its command-line spelling (see :class:`Flag`)."""
-    return dataclasses.field(default=default, metadata={"flag": Flag(help, **spec)})
-
-
-def _flags_of(cls: type, extra: Mapping[str, Flag] | None) -> dict[str, Flag]:
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    out = {n: f.metadata["flag"] for n, f in fields.items() if "flag" in f.metadata}
-    for name, spec in (extra or {}).items():
-        if name not in fields:  # a table that drifted from its dataclass: a bug, said at once
-            raise TypeError(f"{cls.__name__} has no field {name!r} for the flag {spec}")
-        out[name] = spec
-    return out
+def flag_names(cls: type, category: str) -> tuple[str, ...]:
+    """The fields of ``cls`` whose flag is in ``category``, in declaration order."""
+    return tuple(n for n, spec in _flags_of(cls).items() if spec.category == category)
 
 
 def add_flags(
     parser: argparse.ArgumentParser | argparse._ArgumentGroup,
     cls: type,
     *,
-    flags: Mapping[str, Flag] | None = None,
+    only: Sequence[str] | None = None,
     skip: Sequence[str] = (),
     help_override: Mapping[str, str] | None = None,
 ) -> None:
-    """Add one flag per field of the dataclass ``cls`` that has a :class:`Flag` (in its field
-    metadata, or in ``flags`` for dataclasses that do not carry their own), except ``skip``.
-    Defaults come from the dataclass, so a command and the Python API cannot drift apart."""
+    """Add one flag per field of the dataclass ``cls`` that declares one (:func:`flag`), all
+    of them or ``only`` those, except ``skip``. Defaults come from the dataclass, so a command
+    and the Python API cannot drift apart."""
     defaults = {f.name: f.default for f in dataclasses.fields(cls)}
-    for name, spec in _flags_of(cls, flags).items():
-        if name in skip:
+    flags = _flags_of(cls)
+    unknown = [n for n in (only or ()) if n not in flags]
+    if unknown:  # a list that drifted from its dataclass: a bug, said at once
+        raise TypeError(f"{cls.__name__} declares no flag for {unknown}")
+    for name, spec in flags.items():
+        if name in skip or (only is not None and name not in only):
             continue
         kwargs: dict[str, Any] = {"dest": name, "help": (help_override or {}).get(name, spec.help)}
         if spec.action:
@@ -238,15 +215,11 @@ def add_flags(
 
 
 def options_from_args(
-    cls: type[T],
-    args: argparse.Namespace,
-    *,
-    flags: Mapping[str, Flag] | None = None,
-    overrides: Mapping[str, Any] | None = None,
+    cls: type[T], args: argparse.Namespace, *, overrides: Mapping[str, Any] | None = None
 ) -> T:
     """The ``cls`` instance the parsed flags describe (fields without a flag keep their
     defaults; ``overrides`` win). Flags a command did not add keep the defaults too."""
-    values = {n: getattr(args, n) for n in _flags_of(cls, flags) if hasattr(args, n)}
+    values = {n: getattr(args, n) for n in _flags_of(cls) if hasattr(args, n)}
     values = {n: tuple(v) if isinstance(v, list) else v for n, v in values.items()}
     return cls(**{**values, **(overrides or {})})
 
@@ -350,13 +323,14 @@ def command_main(
     checkpoint is required unless --list-variants), run right after parsing; it reports with
     ``parser.error``, so a broken rule reads and exits as any other usage error, before any
     body code runs."""
-    args = parser.parse_args(argv)
-    if check is not None:
-        check(parser, args)
+    with speaking_as(prog):  # also the options' own checks, made while parsing
+        args = parser.parse_args(argv)
+        if check is not None:
+            check(parser, args)
     typed = (prog, *(sys.argv[1:] if argv is None else argv))
 
     def run() -> int:
-        with writing_as(prog):
+        with writing_as(prog), speaking_as(prog):
             return body(args)
 
     token = _command.set(typed)
@@ -512,7 +486,7 @@ __all__ = [
     "command_main",
     "current_command",
     "finite_float",
-    "flag",
+    "flag_names",
     "float_range",
     "install_hint",
     "int_range",

@@ -13,7 +13,6 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, get_args, get_type_hints
 
 from msfnet.common.cli import (
-    flag,
     int_range,
     nonnegative_float,
     nonnegative_int,
@@ -23,6 +22,7 @@ from msfnet.common.cli import (
     thread_count,
 )
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import flag, options_type
 from msfnet.runtime.stack.types import MIN_LIGHTS
 from msfnet.synth.render import PRESETS, RenderOptions
 
@@ -90,6 +90,7 @@ def crop_size(text: str) -> int:
     return value
 
 
+@options_type
 @dataclass
 class TrainConfig:
     """One training run's settings. The fields with a ``flag`` are msf-train's options: the

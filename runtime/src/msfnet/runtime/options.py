@@ -16,9 +16,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-from msfnet.common.cli import flag, path_arg, positive_float, thread_count
+from msfnet.common.cli import path_arg, positive_float, thread_count
 from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import flag, options_type
 from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
 from msfnet.runtime.results.maps.api import MAP_NAMES, MapOptions
@@ -63,6 +64,7 @@ def map_options(maps: MapOptions | str | Iterable[str] | None) -> MapOptions | N
     return MapOptions(maps=names)  # unknown names refused there
 
 
+@options_type
 @dataclass(frozen=True)
 class ModelOptions:
     """Every setting of a :class:`~msfnet.runtime.api.Model`, checked once on creation.
@@ -90,6 +92,7 @@ class ModelOptions:
         "inference engine (default: chosen for this CPU and the installed engines; the "
         "choice and its reason are printed and kept in profile.json)",
         choices=("onnxruntime", "openvino"),
+        category="resources",
     )
     precision: str | None = flag(
         None,
@@ -99,17 +102,20 @@ class ModelOptions:
         "through OpenVINO where the CPU has it natively, else fp32; int8 with --onnx needs "
         "an int8 export)",
         choices=("fp32", "bf16", "int8"),
+        category="resources",
     )
     threads: int | None = flag(
         None,
         "inference threads (default: all available cores; msf-run --ray: 1 per worker)",
         type=thread_count,
         metavar="T",
+        category="resources",
     )
     provider: str | None = flag(
         None,
         "ONNX Runtime execution provider: cpu (default), cuda, ... when installed",
         metavar="P",
+        category="resources",
     )
     tile: int | None = flag(
         None,
@@ -117,6 +123,7 @@ class ModelOptions:
         "default: the largest tile that fits --max-memory",
         type=int,
         metavar="S",
+        category="resources",
     )
     max_memory_mb: float = flag(
         DEFAULT_MAX_MEMORY_MB,
@@ -125,6 +132,7 @@ class ModelOptions:
         name="--max-memory",
         type=positive_float,
         metavar="MB",
+        category="resources",
     )
     fine_detail: bool = flag(
         False,
@@ -162,6 +170,7 @@ class ModelOptions:
         "run on an accelerator instead of the CPU: cuda or tensorrt (ONNX Runtime), gpu, "
         "gpu.N or npu (OpenVINO); refused in one line where it is absent",
         metavar="D",
+        category="resources",
     )
     tta: int = flag(
         1,

@@ -1,8 +1,7 @@
 """The option groups msf-run and msf-eval share, generated from the option dataclasses.
 
 Model settings come from :class:`~msfnet.runtime.options.ModelOptions`' own field metadata;
-:class:`~msfnet.runtime.stack.LoadOptions` (a stack-level type that knows nothing of command
-lines) gets its spellings from :data:`LOAD_FLAGS`, checked against its fields when used. Each
+:class:`~msfnet.runtime.stack.LoadOptions` declares its own by category. Each
 command adds the groups it needs and builds the options once, in :func:`model_options` /
 :func:`load_options`.
 """
@@ -13,68 +12,18 @@ import argparse
 from collections.abc import Sequence
 
 from msfnet.common.cli import (
-    Flag,
     add_flags,
+    flag_names,
     nonnegative_float,
     options_from_args,
-    path_arg,
     positive_float,
-    positive_int,
 )
 from msfnet.common.errors import InputError
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.maps import MAP_NAMES, MapOptions
 from msfnet.runtime.results.maps.integrate import METHODS as INTEGRATION_METHODS
 from msfnet.runtime.results.maps.registered import Frame, check_local_size
-from msfnet.runtime.stack import LoadOptions, parse_roi
-
-LOAD_FLAGS: dict[str, Flag] = {
-    "lights": Flag("light directions file (txt or json), overrides the stack's", type=path_arg),
-    "intensities": Flag("light intensities file (txt or json)", type=path_arg),
-    "mask": Flag("mask image (> 127 is object)", type=path_arg),
-    "select": Flag(
-        "1-based image subset, e.g. 21-96 or 1,3,5-9 (default: all images, or the "
-        "benchmark's own selection, e.g. DiLiGenT bear 21-96, which a line reports and "
-        "--select overrides)",
-        metavar="SPEC",
-    ),
-    "max_lights": Flag("use K evenly spaced lights", type=positive_int, metavar="K"),
-}
-CAMERA_FLAGS: dict[str, Flag] = {
-    "roi": Flag(
-        "crop images, mask and ground truth to this rectangle (pixels of the stored images, "
-        "origin top-left); the network also sees a halo of the image around it, the outputs "
-        "are the rectangle's",
-        type=parse_roi,
-        metavar="X,Y,W,H",
-    ),
-    "downscale": Flag(
-        "average each K x K block (integer K; mask: majority of the block)",
-        type=positive_int,
-        metavar="K",
-    ),
-    "white_level": Flag(
-        "full-scale value for --srgb / --gamma (default 255 / 65535 by bit depth; needed for "
-        "floating-point images above 1)",
-        type=positive_float,
-        metavar="V",
-    ),
-    "auto_mask": Flag(
-        "compute the object mask from the stack (object on a dark background); written beside "
-        "the outputs as mask.png",
-        action="store_true",
-    ),
-}
-LINEARISE_FLAGS: dict[str, Flag] = {
-    "srgb": Flag(
-        "images are sRGB-encoded (8-bit camera output): linearise them", action="store_true"
-    ),
-    "gamma": Flag(
-        "images are power-law encoded: linear = (value / white) ** G",
-        type=positive_float,
-        metavar="G",
-    ),
-}
+from msfnet.runtime.stack import LoadOptions
 
 
 def add_model_flags(
@@ -87,19 +36,17 @@ def add_model_flags(
 def add_load_flags(
     parser: argparse.ArgumentParser, names: Sequence[str] | None = None, *, camera: bool = False
 ) -> None:
-    """The stack-reading flags (``names``: a subset of :data:`LOAD_FLAGS`); ``camera``: the
-    real-camera group too (ROI -> downscale -> linearise -> auto-mask)."""
-    chosen = {n: f for n, f in LOAD_FLAGS.items() if names is None or n in names}
-    add_flags(parser, LoadOptions, flags=chosen)
+    """The stack-reading flags (LoadOptions' "stack" category, or only ``names`` of it);
+    ``camera``: the real-camera group too (ROI -> downscale -> linearise -> auto-mask)."""
+    stack = [n for n in flag_names(LoadOptions, "stack") if names is None or n in names]
+    add_flags(parser, LoadOptions, only=stack)
     if camera:
         cam = parser.add_argument_group(
             "real-camera inputs (applied while loading: ROI -> downscale -> linearise -> auto-mask)"
         )
-        add_flags(cam, LoadOptions, flags={"roi": CAMERA_FLAGS["roi"]})
-        add_flags(cam, LoadOptions, flags={"downscale": CAMERA_FLAGS["downscale"]})
-        add_flags(cam.add_mutually_exclusive_group(), LoadOptions, flags=LINEARISE_FLAGS)
-        rest = {n: CAMERA_FLAGS[n] for n in ("white_level", "auto_mask")}
-        add_flags(cam, LoadOptions, flags=rest)
+        add_flags(cam, LoadOptions, only=("roi", "downscale"))
+        add_flags(cam.add_mutually_exclusive_group(), LoadOptions, only=("srgb", "gamma"))
+        add_flags(cam, LoadOptions, only=("white_level", "auto_mask"))
 
 
 def parse_maps(text: str) -> tuple[str, ...]:
@@ -210,15 +157,11 @@ def load_options(args: argparse.Namespace) -> LoadOptions:
             "--white-level is the full scale for linearising: it applies with "
             "--srgb or --gamma only"
         )
-    flags = {**LOAD_FLAGS, **CAMERA_FLAGS, **LINEARISE_FLAGS}
     budget = {"max_memory_mb": getattr(args, "max_memory_mb", None)}
-    return options_from_args(LoadOptions, args, flags=flags, overrides=budget)
+    return options_from_args(LoadOptions, args, overrides=budget)
 
 
 __all__ = [
-    "CAMERA_FLAGS",
-    "LINEARISE_FLAGS",
-    "LOAD_FLAGS",
     "add_load_flags",
     "add_map_flags",
     "add_model_flags",

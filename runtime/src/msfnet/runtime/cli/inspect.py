@@ -29,6 +29,7 @@ from pathlib import Path
 from msfnet.common.cli import (
     add_flags,
     command_main,
+    flag_names,
     make_parser,
     options_from_args,
     path_arg,
@@ -51,6 +52,7 @@ from msfnet.runtime.inspection.defects import (
 )
 from msfnet.runtime.inspection.watch import WatchOptions
 from msfnet.runtime.inspection.zones import Zones, read_zones
+from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.provenance import Provenance
 
 PROG = "msf-inspect"
@@ -158,16 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
 WRITING_FLAGS = ("no_maps", "maps", "no_tiff", "no_report")
 # how a stack would be run, not what its maps mean: harmless beside a run folder (a PLC
 # wrapper that always caps threads and memory must keep working)
-RESOURCE_FLAGS = (
-    "threads",
-    "max_memory",
-    "max_memory_mb",
-    "engine",
-    "precision",
-    "provider",
-    "tile",
-    "device",
-)
+RESOURCE_FLAGS = flag_names(ModelOptions, "resources")
 
 
 def _stack_flags(argv: list[str] | None) -> list[str]:

@@ -30,10 +30,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from msfnet.common.cli import flag, nonnegative_float, positive_float, positive_int
+from msfnet.common.cli import nonnegative_float, positive_float, positive_int
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import json_text
 from msfnet.common.imageio import image_header
+from msfnet.common.vocabulary import flag, options_type
 from msfnet.runtime.inspection.zones import Zones
 from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import Frame, read_tiff
@@ -52,6 +53,7 @@ MAX_SHIFT_PX = 32  # a reference further off than this is not "the same fixture"
 MIN_ALIGN_RESPONSE = 0.3
 
 
+@options_type
 @dataclass(frozen=True)
 class DefectOptions:
     """The rule, in the maps' units (mm with a pixel size, else px). depth: |local shape|

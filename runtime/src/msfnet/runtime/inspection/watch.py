@@ -36,10 +36,11 @@ from types import FrameType
 
 import numpy as np
 
-from msfnet.common.cli import flag, positive_float
+from msfnet.common.cli import positive_float
 from msfnet.common.errors import InputError
 from msfnet.common.files import folder_lock, json_text, staged_folder, write_text
 from msfnet.common.imageio import encode_png
+from msfnet.common.vocabulary import flag, options_type
 from msfnet.runtime.inspection.defects import deviation_picture
 from msfnet.runtime.inspection.station import STAGES, Inspection, Station
 from msfnet.runtime.stack import Stack
@@ -50,6 +51,7 @@ STATION_SUMMARY = "station.json"
 SETTINGS = "settings.json"  # what decides the verdicts: a restart must give the same
 
 
+@options_type
 @dataclass(frozen=True)
 class WatchOptions:
     """How the loop watches: ``once``: judge what is complete now and stop; ``poll_s``:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from msfnet.common.cli import path_arg, positive_float, positive_int
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files.locations import same_file
 from msfnet.common.imageio import (
@@ -30,6 +31,7 @@ from msfnet.common.imageio import (
     read_image,
     read_mask,
 )
+from msfnet.common.vocabulary import flag, options_type
 from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.stack.readers import (
     check_gt_header,
@@ -39,7 +41,14 @@ from msfnet.runtime.stack.readers import (
     unit_normals,
 )
 from msfnet.runtime.stack.select import selection
-from msfnet.runtime.stack.transforms import Roi, Transforms, auto_mask, check_roi, halo_roi
+from msfnet.runtime.stack.transforms import (
+    Roi,
+    Transforms,
+    auto_mask,
+    check_roi,
+    halo_roi,
+    parse_roi,
+)
 from msfnet.runtime.stack.types import (
     Stack,
     as_held,
@@ -66,24 +75,83 @@ STACK_KINDS = (
 )
 
 
+@options_type
 @dataclass(frozen=True)
 class LoadOptions:
     """How to read a stack: files that override the stack's own, and which images to keep."""
 
-    lights: Path | None = None  # light directions file (txt/json)
-    intensities: Path | None = None  # light intensities file
-    mask: Path | None = None  # mask image (> 127 is object)
-    select: str | None = None  # 1-based image subset, e.g. "21-96"
-    max_lights: int | None = None  # keep this many, evenly spaced
+    # Each user-set field carries its command-line spelling (common.vocabulary), by category:
+    # "stack" (files that override the stack's own, which images), "camera" (real-camera
+    # inputs, applied while loading in this order: ROI -> downscale -> linearise -> auto-mask)
+    # and "linearise" (one of two encodings).
+    lights: Path | None = flag(
+        None,
+        "light directions file (txt or json), overrides the stack's",
+        type=path_arg,
+        category="stack",
+    )
+    intensities: Path | None = flag(
+        None, "light intensities file (txt or json)", type=path_arg, category="stack"
+    )
+    mask: Path | None = flag(None, "mask image (> 127 is object)", type=path_arg, category="stack")
+    select: str | None = flag(
+        None,
+        "1-based image subset, e.g. 21-96 or 1,3,5-9 (default: all images, or the "
+        "benchmark's own selection, e.g. DiLiGenT bear 21-96, which a line reports and "
+        "--select overrides)",
+        metavar="SPEC",
+        category="stack",
+    )
+    max_lights: int | None = flag(
+        None, "use K evenly spaced lights", type=positive_int, metavar="K", category="stack"
+    )
     threads: int = 4  # decoding threads
-    # real-camera inputs, applied in this order while loading (see .transforms)
-    roi: Roi | None = None  # x, y, w, h in pixels of the stored images
-    downscale: int = 1  # integer factor, area averaging
-    srgb: bool = False  # undo the sRGB encoding (8-bit camera JPEG/PNG output)
-    gamma: float | None = None  # undo a plain power-law encoding: linear = value ** gamma
-    white_level: float | None = None  # full scale; default 255 / 65535 / 1.0 by image type
-    auto_mask: bool = False  # mask from the stack itself (Otsu + morphology)
-    # refuse, before decoding, a stack whose images alone (as held) exceed this (--max-memory)
+    roi: Roi | None = flag(
+        None,
+        "crop images, mask and ground truth to this rectangle (pixels of the stored images, "
+        "origin top-left); the network also sees a halo of the image around it, the outputs "
+        "are the rectangle's",
+        type=parse_roi,
+        metavar="X,Y,W,H",
+        category="camera",
+    )
+    downscale: int = flag(
+        1,
+        "average each K x K block (integer K; mask: majority of the block)",
+        type=positive_int,
+        metavar="K",
+        category="camera",
+    )
+    srgb: bool = flag(
+        False,
+        "images are sRGB-encoded (8-bit camera output): linearise them",
+        action="store_true",
+        category="linearise",
+    )
+    gamma: float | None = flag(
+        None,
+        "images are power-law encoded: linear = (value / white) ** G",
+        type=positive_float,
+        metavar="G",
+        category="linearise",
+    )
+    white_level: float | None = flag(
+        None,
+        "full-scale value for --srgb / --gamma (default 255 / 65535 by bit depth; needed for "
+        "floating-point images above 1)",
+        type=positive_float,
+        metavar="V",
+        category="camera",
+    )
+    auto_mask: bool = flag(
+        False,
+        "compute the object mask from the stack (object on a dark background); written beside "
+        "the outputs as mask.png",
+        action="store_true",
+        category="camera",
+    )
+    # refuse, before decoding, a stack whose images alone (as held) exceed this (the model's
+    # memory budget, declared there)
     max_memory_mb: float | None = None
     # grow the ROI by this many held pixels on every side (clipped to the image) and record
     # the ROI's box on the stack (Stack.roi_box): the network then sees the real image around
