@@ -75,6 +75,10 @@ def options_type(cls: type[T]) -> type[T]:
     return cls
 
 
+# a setting of every command that writes outputs, held by no options type
+declare("overwrite", "--overwrite", "store_true")
+
+
 def word(keyword: str) -> Word:
     """The setting ``keyword`` (a field's name). One declared nowhere is spelled by the rule
     (``--max-lights``); tests/test_vocabulary_contract.py checks that every name a message
@@ -105,8 +109,8 @@ def speaking_command() -> str | None:
 _NOTHING: Any = object()
 
 
-class _Shown(str):
-    """A value written as it is on both front ends (a number already formatted)."""
+class verbatim(str):  # lower case: used as a function, opt("depth", verbatim(f"{d:.2g}"))
+    """A value written as it is on both front ends (a number formatted by the message)."""
 
     def __repr__(self) -> str:
         return str(self)
@@ -118,7 +122,7 @@ def opt(keyword: str, value: Any = _NOTHING, *, quote: bool = False) -> str:
     writes a text value quoted on the command line too (``--select '1,,3'``)."""
     w = word(keyword)
     if isinstance(value, float):  # 512.0 MB reads as 512 on both fronts
-        value = _Shown(f"{value:g}")
+        value = verbatim(f"{value:g}")
     if _front is not None:
         if value is _NOTHING or w.action is not None:
             return w.flag
@@ -139,5 +143,6 @@ __all__ = [
     "options_type",
     "speaking_as",
     "speaking_command",
+    "verbatim",
     "word",
 ]
