@@ -159,8 +159,10 @@ def test_run_command_turns_failures_into_one_line(case: str, capfd) -> None:
 def test_a_full_disk_or_memory_is_exit_2_in_every_command(exc, capfd) -> None:
     """One rule (issue #48): 2 is bad input or output, which a full disk or memory is; 3 (a
     crash to a PLC reading msf-inspect) only for a failure of the tool itself."""
-    assert run_command("msf-inspect", _raise(exc)) == 2
-    assert run_command("msf-run", _raise(exc)) == 2
+    from msfnet.runtime.cli import inspect, run
+
+    assert run_command(inspect.COMMAND, _raise(exc)) == 2
+    assert run_command(run.COMMAND, _raise(exc)) == 2
     assert capfd.readouterr().err.count("\n") == 2
 
 
@@ -477,18 +479,21 @@ def test_commands_needing_torch_parse_their_options_without_it(module: str) -> N
 
 
 @pytest.mark.parametrize(
-    ("prog", "advice"),
+    ("module", "prog", "advice"),
     [
-        ("msf-run", "lower --max-memory (or --tile)"),
-        ("msf-calib", "close other programs or give smaller inputs"),
+        ("msfnet.runtime.cli.run", "msf-run", "lower --max-memory (or --tile)"),
+        ("msfnet.calib.cli", "msf-calib", "close other programs or give smaller inputs"),
     ],
 )
 def test_out_of_memory_advice_names_only_options_the_command_has(
-    prog: str, advice: str, capfd
+    module: str, prog: str, advice: str, capfd
 ) -> None:
     """Every command advised "lower --max-memory (or --tile)", options msf-calib, msf-average
-    or msf-synth do not have."""
-    assert run_command(prog, _raise(MemoryError())) == 2
+    or msf-synth do not have: each command passes its own advice (or none) to command_main."""
+    import importlib
+
+    own = importlib.import_module(module)
+    assert run_command(getattr(own, "COMMAND", prog), _raise(MemoryError())) == 2
     line = capfd.readouterr().err.strip()
     assert line == f"{prog}: error: out of memory; {advice}"
 

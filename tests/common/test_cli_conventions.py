@@ -82,19 +82,22 @@ def test_common_flags_before_or_after_the_sub_command() -> None:
 
 
 @pytest.mark.parametrize(
-    ("prog", "module", "extra"),
+    ("command", "module", "extra"),
     [
-        ("msf-bench", "onnx", "bench"),  # was [export]: msf-bench also needs matplotlib
-        ("msf-bench", "torch", "bench"),
-        ("msf-bench", "matplotlib", "bench"),
-        ("msf-export", "onnx", "export"),
-        ("msf-train", "torch", "train"),
-        ("msf-run", "ray", "ray"),
-        ("msf-x", "torch", "export,train"),  # no extra of its own: the torch side's
+        ("msfnet.bench.cli", "onnx", "bench"),  # was [export]: msf-bench also needs matplotlib
+        ("msfnet.bench.cli", "torch", "bench"),
+        ("msfnet.bench.cli", "matplotlib", "bench"),
+        ("msfnet.export.cli", "onnx", "export"),
+        ("msfnet.model.train_cli", "torch", "train"),
+        ("msfnet.runtime.cli.run", "ray", "ray"),
+        ("msfnet.synth.cli", "torch", "export,train"),  # no extra of its own: the torch side's
     ],
 )
-def test_install_hint_names_the_commands_own_extra(prog: str, module: str, extra: str) -> None:
-    from msfnet.common.cli import install_hint
+def test_install_hint_names_the_commands_own_extra(command: str, module: str, extra: str) -> None:
+    import importlib
 
-    hint = install_hint(module, prog)
+    from msfnet.common.cli import Command, install_hint
+
+    own = getattr(importlib.import_module(command), "COMMAND", Command("msf-x"))
+    hint = install_hint(module, own.extra)
     assert f"pip install 'msfnet[{extra}]'" in hint and f"-e '.[{extra}]'" in hint, hint

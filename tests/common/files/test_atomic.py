@@ -168,7 +168,7 @@ def test_concurrent_folder_writers_never_mix(tmp_path: Path) -> None:
     (tmp1 / "only_in_1.txt").write_text("run 1")
     (tmp2 / "normals.npy").write_text("run 2")
     first.__exit__(None, None, None)
-    with pytest.raises(InputError, match=r"appeared while running.*--overwrite"):
+    with pytest.raises(InputError, match=r"appeared while running.*overwrite=True"):
         second.__exit__(None, None, None)
     assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "normals.npy", "only_in_1.txt"]
     assert (out / "normals.npy").read_text() == "run 1"

@@ -48,7 +48,7 @@ REFUSED: dict[str, tuple[str, bool, bool, str]] = {
     "inside the input through a symlink": ("link_to_stack/res", True, False, "inside the input"),
     "parent path is a file": ("a_file/out", True, False, "is a file, not a folder"),
     "deeper under a file": ("a_file/x/y/out.txt", False, False, "is a file, not a folder"),
-    "file output exists": ("a_file", False, False, "--overwrite"),
+    "file output exists": ("a_file", False, False, "overwrite=True"),
     "folder output is an existing file": ("a_file", True, True, "not a folder"),
     "file output is an existing folder": ("a_dir", False, True, "is a folder"),
 }
@@ -80,7 +80,7 @@ def test_check_output_folder_rules(tmp_path: Path) -> None:
     out.mkdir()
     check_output(out, folder=True)  # empty: fine without --overwrite
     (out / "mine.txt").write_text("the user's")
-    with pytest.raises(InputError, match="--overwrite"):
+    with pytest.raises(InputError, match="overwrite=True"):
         check_output(out, folder=True)
     with pytest.raises(InputError, match=r"did not write.*mine\.txt"):
         check_output(out, folder=True, overwrite=True)

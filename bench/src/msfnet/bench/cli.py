@@ -41,6 +41,7 @@ from msfnet.bench.workloads import (
     time_warm_model,
 )
 from msfnet.common.cli import (
+    Command,
     command_main,
     int_range,
     make_parser,
@@ -68,6 +69,7 @@ STACK_IN_DATA = Path("DiLiGenT") / "ballPNG"
 CALIB_IN_DATA = [STACK_IN_DATA, *(Path("psmImages") / o for o in ("cat", "owl", "horse"))]
 
 PROG = "msf-bench"
+COMMAND = Command(PROG, extra="bench", memory_advice="lower --max-memory")
 DEFAULT_THREADS = [2, 1]
 
 # --lights N: the per-light loop is timed on (d)'s whole N-light image up to this many lights
@@ -970,7 +972,7 @@ def _refuse_torch_options(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     given = list(sys.argv[1:] if argv is None else argv)
-    return command_main(PROG, build_parser(), lambda args: _body(args, given), argv)
+    return command_main(COMMAND, build_parser(), lambda args: _body(args, given), argv)
 
 
 __all__ = [

@@ -20,6 +20,7 @@ from msfnet.calib.capture import (
 )
 from msfnet.calib.lights import Lights
 from msfnet.common.cli import (
+    Command,
     command_main,
     finite_float,
     float_range,
@@ -37,6 +38,7 @@ from msfnet.runtime.stack import MIN_LIGHTS
 from msfnet.runtime.stack.readers import MAX_LIGHTS
 
 PROG = "msf-capture"
+COMMAND = Command(PROG, extra="camera")
 MAX_INTERVAL = 7 * 24 * 3600.0  # seconds
 EXAMPLES = (
     "msf-capture calib/ --camera sim --sim-scene chrome       # no hardware: a chrome sphere",
@@ -452,7 +454,7 @@ def _main(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), _main, argv)
+    return command_main(COMMAND, build_parser(), _main, argv)
 
 
 if __name__ == "__main__":

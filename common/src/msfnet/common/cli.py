@@ -255,23 +255,29 @@ _EXTRAS = {
     "serial": ("camera",),
     "ray": ("ray",),
 }
-# the extra each torch-side command is installed with (msf-bench needs [bench], not [export])
-_COMMAND_EXTRA = {
-    "msf-bench": "bench",
-    "msf-export": "export",
-    "msf-train": "train",
-    "msf-average": "train",
-    "msf-capture": "camera",
-}
 
 
-def install_hint(module: str, prog: str | None = None) -> str:
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """What :func:`run_command` knows of a command beyond its name: each command's main
+    passes its own (nothing here lists commands)."""
+
+    prog: str  # "msf-run"
+    extra: str | None = None  # the pip extra it is installed with, named by its install hints
+    failure_exit: int = 1  # a failure of the tool itself (msf-inspect: 3, its 1 is a verdict)
+    memory_advice: str = "close other programs or give smaller inputs"  # its own options only
+
+
+def _as_command(command: str | Command) -> Command:
+    return command if isinstance(command, Command) else Command(command)
+
+
+def install_hint(module: str, own: str | None = None) -> str:
     """How to install the optional package imported as ``module`` (a top-level name): the
-    extra of the command ``prog`` where that extra brings the package."""
+    extra ``own`` (the command's) where that extra brings the package."""
     extras = _EXTRAS.get(module)
     if extras is None:
         return f"pip install {module}"
-    own = _COMMAND_EXTRA.get(prog or "")
     extra = own if own in extras else extras[0]
     how = f"pip install 'msfnet[{extra}]' (in a checkout: pip install -e '.[{extra}]')"
     if module == "torch":  # PyPI's default torch for Linux is the multi-GB CUDA build
@@ -308,7 +314,7 @@ def _left_behind() -> str:
 
 
 def command_main(
-    prog: str,
+    command: str | Command,
     parser: argparse.ArgumentParser,
     body: Callable[[argparse.Namespace], int],
     argv: Sequence[str] | None = None,
@@ -317,12 +323,14 @@ def command_main(
 ) -> int:
     """A command's whole ``main``: parse ``argv``, then run ``body(args)`` through
     :func:`run_command` (one-line errors and exit codes), with every output manifest naming
-    ``prog`` as its writer.
+    the command as its writer.
 
     ``check(parser, args)``: rules between flags that argparse cannot state (msf-export's
     checkpoint is required unless --list-variants), run right after parsing; it reports with
     ``parser.error``, so a broken rule reads and exits as any other usage error, before any
     body code runs."""
+    cmd = _as_command(command)
+    prog = cmd.prog
     with speaking_as(prog):  # also the options' own checks, made while parsing
         args = parser.parse_args(argv)
         if check is not None:
@@ -336,12 +344,12 @@ def command_main(
     token = _command.set(typed)
     debug = bool(getattr(args, "debug", False))
     try:
-        return run_command(prog, run, debug=debug)
+        return run_command(cmd, run, debug=debug)
     except Exception as exc:
-        if prog not in _FAILURE_EXIT:
+        if cmd.failure_exit == 1:
             raise  # --debug: Python prints the traceback and exits 1
         traceback.print_exc()  # the traceback --debug asks for, but never exit 1 (a verdict)
-        return 2 if isinstance(exc, _ACTIONABLE) else _FAILURE_EXIT[prog]
+        return 2 if isinstance(exc, _ACTIONABLE) else cmd.failure_exit
     finally:
         _command.reset(token)
 
@@ -356,14 +364,14 @@ def current_command() -> tuple[str, ...] | None:
     return _command.get()
 
 
-def run_command(prog: str, body: Callable[[], int], debug: bool = False) -> int:
+def run_command(command: str | Command, body: Callable[[], int], debug: bool = False) -> int:
     """Run a command's body and turn every failure into one line and an exit code."""
     previous = install_signal_handlers()
     forget_written()
     try:
         with interrupt_once(), _printable_streams():
             # (a second Ctrl-C never interrupts the cleanup or the line)
-            return _run_body(prog, body, debug)
+            return _run_body(_as_command(command), body, debug)
     finally:
         # in-process callers (tests, the Python API) get their own handlers back
         restore_signal_handlers(previous)
@@ -392,26 +400,17 @@ def _printable_streams() -> Iterator[None]:
                 reconfigure(errors=errors)
 
 
-_MEMORY_ADVICE = {
-    "msf-run": "lower --max-memory (or --tile)",
-    "msf-eval": "lower --max-memory (or --tile)",
-    "msf-inspect": "lower --max-memory (or --tile)",
-    "msf-bench": "lower --max-memory",
-}
-
-
 # The one exit-code rule: 0 done (msf-inspect: pass), 2 anything the user can change (bad
 # input, an unwritable output, a full disk, out of memory, an engine that fails on the model
 # or tile given), and the command's failure code only for a failure of the tool itself (an
-# internal error). That code is 1, except where 1 is a verdict (msf-inspect: defects found),
-# so a PLC never reads a crash as a verdict, nor a full disk as a crash.
-_FAILURE_EXIT = {"msf-inspect": 3}
+# internal error). That code is 1, except where 1 is a verdict (msf-inspect: defects found,
+# Command.failure_exit), so a PLC never reads a crash as a verdict, nor a full disk as a crash.
 # what --debug re-raises that still exits 2 by that rule (a broken pipe is no failure)
 _ACTIONABLE = (InputError, MsfError, OSError, MemoryError, RecursionError)
 
 
-def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
-    failed = _FAILURE_EXIT.get(prog, 1)
+def _run_body(command: Command, body: Callable[[], int], debug: bool) -> int:
+    prog, failed = command.prog, command.failure_exit
 
     def fail(message: str, code: int) -> int:
         print(f"{prog}: {one_line(message)}", file=sys.stderr)
@@ -433,9 +432,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
     except MemoryError:
         if debug:
             raise
-        # advice only with the options the command has (msf-calib has no --max-memory)
-        advice = _MEMORY_ADVICE.get(prog, "close other programs or give smaller inputs")
-        return fail(f"error: out of memory; {advice}", 2)
+        return fail(f"error: out of memory; {command.memory_advice}", 2)
     except BrokenPipeError as exc:
         if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
             return fail(f"error: {exc.filename}: {exc.strerror}", 2)
@@ -468,7 +465,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
         if missing:  # an optional part not installed, not a bug of ours
             return fail(
                 f"error: needs the Python package {missing!r}, which is not "
-                f"installed: {install_hint(missing, prog)}",
+                f"installed: {install_hint(missing, command.extra)}",
                 2,
             )
         return fail(
@@ -479,6 +476,7 @@ def _run_body(prog: str, body: Callable[[], int], debug: bool) -> int:
 
 
 __all__ = [
+    "Command",
     "Flag",
     "Parser",
     "add_common_flags",

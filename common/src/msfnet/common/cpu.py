@@ -23,6 +23,10 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt
+
+# --threads of every command that runs a model (ModelOptions.threads, msf-bench, msf-predict)
+declare("threads", "--threads")
 
 # The features that matter here, under the names Linux's /proc/cpuinfo uses.
 FEATURES = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "avx_vnni")
@@ -150,9 +154,11 @@ class CpuInfo:
 MAX_THREADS = 1024
 
 
-def check_threads(threads: int, option: str = "--threads") -> int:
-    """``threads`` if it lies in 1..MAX_THREADS: the one bound of every command and engine."""
+def check_threads(threads: int, option: str | None = None) -> int:
+    """``threads`` if it lies in 1..MAX_THREADS: the one bound of every command and engine.
+    ``option``: the setting named in the message (default ``threads``, as its reader sets it)."""
     if isinstance(threads, bool) or not isinstance(threads, int) or not 1 <= threads <= MAX_THREADS:
+        option = option or opt("threads")
         raise InputError(f"{option} must be an integer in 1..{MAX_THREADS}, got {threads!r}")
     return threads
 

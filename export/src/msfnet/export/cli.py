@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from msfnet.common.cli import (
+    Command,
     command_main,
     int_range,
     make_parser,
@@ -36,6 +37,7 @@ from msfnet.export.variants import (
 )
 
 PROG = "msf-export"
+COMMAND = Command(PROG, extra="export")
 
 
 def _static(text: str) -> StaticShape:
@@ -225,7 +227,7 @@ def _body(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), _body, argv, check=_check_args)
+    return command_main(COMMAND, build_parser(), _body, argv, check=_check_args)
 
 
 _CHECKPOINT_SUFFIXES = (".pth", ".pt", ".ckpt")

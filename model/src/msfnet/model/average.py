@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from msfnet.common.cli import command_main, make_parser, path_arg
+from msfnet.common.cli import Command, command_main, make_parser, path_arg
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, same_file
 
@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     import torch
 
 PROG = "msf-average"
+COMMAND = Command(PROG, extra="train")
 
 
 def average_state_dicts(paths: Sequence[str | Path]) -> dict[str, torch.Tensor]:
@@ -144,7 +145,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), _run, argv)
+    return command_main(COMMAND, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
-from msfnet.common.cli import add_flags, command_main, int_range, make_parser, path_arg
+from msfnet.common.cli import Command, add_flags, command_main, int_range, make_parser, path_arg
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import STAGING_TAG, check_not_input, folder_lock
 from msfnet.common.files.locks import LOCK_NAME
@@ -31,6 +31,7 @@ from msfnet.model.train_config import (
 from msfnet.runtime.stack.types import MIN_LIGHTS
 
 PROG = "msf-train"
+COMMAND = Command(PROG, extra="train")
 # What msf-train writes into OUT: --overwrite deletes these and nothing else.
 # (Checkpoints are written through files.write_atomic; the ".*.pth.tmp" names are temporaries
 # that earlier msfnet versions left behind when killed with kill -9.)
@@ -455,7 +456,7 @@ def _announce_duration(trainer: Any, cfg: TrainConfig) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()  # --time-budget's zero: before torch is imported
-    return command_main(PROG, build_parser(), lambda args: _run(args, argv, started), argv)
+    return command_main(COMMAND, build_parser(), lambda args: _run(args, argv, started), argv)
 
 
 if __name__ == "__main__":

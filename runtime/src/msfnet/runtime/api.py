@@ -30,19 +30,19 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import warnings
 from collections.abc import Callable, Generator, Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 import numpy.typing as npt
 
-from msfnet.common.errors import InputError, MsfError
-from msfnet.common.files import API_WRITER, current_writer, json_text
+from msfnet.common.errors import InputError
+from msfnet.common.files import json_text
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.engines.base import Engine
 
 if TYPE_CHECKING:
@@ -81,6 +81,9 @@ from msfnet.runtime.stack import LoadOptions, Stack, prepare_stack
 from msfnet.runtime.stack import load_stack as read_stack
 from msfnet.runtime.stream import Skipped, Stream, given_source
 
+# msf-run --repeat: Model.__call__'s repeat (a timing, not a setting of the model)
+declare("repeat", "--repeat")
+
 WEIGHTS = Path(__file__).resolve().parent / "weights"
 
 
@@ -92,93 +95,6 @@ def default_model_path(precision: str = "fp32") -> Path:
     if precision not in ("fp32", "int8"):
         raise InputError(f"bundled model precision {precision!r}: expected fp32 or int8")
     return WEIGHTS / ("msfnet_default.onnx" if precision == "fp32" else "msfnet_default_int8.onnx")
-
-
-# ---------------------------------------------------------------- errors in the API's words
-# The library's messages name command-line flags (what msf-run prints). A Python caller gets
-# the same message with each flag written as the keyword it passes instead: "pass --overwrite"
-# becomes "pass overwrite=True", "--select '1-x'" becomes "select='1-x'", "--no-detail-fusion"
-# "detail_fusion=False", "--threads must be ..." "threads must be ...", and a valued flag with
-# no value after it ("pass --lights") "lights=...".
-
-# Words that follow a valued flag in a message as prose, not as its value ("--threads must
-# be", "--tile or --max-memory"): the keyword is then written alone.
-_PROSE_WORDS = (
-    "a an and applied are as at beside both can cannot contradict does each evenly for from "
-    "given has holds in inside is keeps leaves may must names needs not of on only or "
-    "override overrides per profiles promises read runs takes than the to too was when with"
-)
-_PROSE = frozenset(_PROSE_WORDS.split())
-
-
-def _keywords() -> dict[str, tuple[str, bool, tuple[str, ...]]]:
-    """Flag -> (keyword, is a switch, the values it takes as words)."""
-    table: dict[str, tuple[str, bool, tuple[str, ...]]] = {
-        "--overwrite": ("overwrite", True, ()),
-        "--repeat": ("repeat", False, ()),
-        "--no-maps": ("maps=None", True, ()),
-    }
-    for f in fields(ModelOptions):
-        spec = f.metadata.get("flag")
-        if spec is not None:
-            if spec.action == "store_false":  # --no-detail-fusion: detail_fusion=False
-                table[spec.flag_name(f.name)] = (f"{f.name}=False", True, ())
-                continue
-            switch = spec.action == "store_true"
-            table[spec.flag_name(f.name)] = (f.name, switch, tuple(spec.choices or ()))
-    for f in fields(LoadOptions):
-        switch = f.default is False  # srgb, auto_mask
-        table.setdefault("--" + f.name.replace("_", "-"), (f.name, switch, ()))
-    return table
-
-
-_FLAG = re.compile(
-    r"--([a-z][a-z0-9-]*)"
-    r"((?: (?:'[^']*'|\"[^\"]*\"|-?[\d][\d.,]*|(?:True|False|None)\b))|(?: [a-z0-9]+))?"
-)
-_HAS_KEYWORD = re.compile(r"\b[a-z_]+=")  # a message that already speaks both
-
-
-def api_message(text: str) -> str:
-    """``text`` with every known flag written as its keyword (see above)."""
-    if _HAS_KEYWORD.search(text):
-        return text
-    table = _keywords()
-
-    def keyword(m: re.Match[str]) -> str:
-        flag, value = "--" + m.group(1), m.group(2) or ""
-        if flag not in table:
-            return m.group(0)
-        name, switch, words = table[flag]
-        if switch:
-            return (name if "=" in name else f"{name}=True") + value
-        word = value.strip()
-        if word and (word[0] in "'\"-" or word[0].isdigit() or word[0].isupper()):
-            return f"{name}={word}"
-        if word in words:
-            return f"{name}={word!r}"
-        if word in _PROSE:
-            return f"{name}{value}"
-        return f"{name}=...{value}"
-
-    return _FLAG.sub(keyword, text)
-
-
-@contextmanager
-def api_words() -> Iterator[None]:
-    """Re-raise an InputError or an MsfError in the API's words, unless a command (msf-run,
-    ...) is running, which prints its own. An MsfError keeps its cause and traceback."""
-    try:
-        yield
-    except InputError as exc:
-        if current_writer() != API_WRITER:
-            raise
-        raise InputError(api_message(exc.message), exc.path) from None
-    except MsfError as exc:
-        text = str(exc)
-        if current_writer() != API_WRITER or api_message(text) == text:
-            raise
-        raise MsfError(api_message(text)).with_traceback(exc.__traceback__) from exc.__cause__
 
 
 @contextmanager
@@ -272,16 +188,15 @@ class Result:
         src += tuple(Path(str(given[k])) for k in ("lights", "intensities", "mask") if given.get(k))
         # and what the stack read from elsewhere, through links
         reads = linked_reads(self.stack.source) if self.stack.source is not None else []
-        with api_words():
-            check_output(folder, src, overwrite=overwrite, folder=True, reads=reads)
-            # an automatic mask is a result the user should be able to inspect and reuse
-            return write_result(
-                self,
-                folder,
-                overwrite=overwrite,
-                report=report,
-                write_mask=self.auto_mask if write_mask is None else write_mask,
-            )
+        check_output(folder, src, overwrite=overwrite, folder=True, reads=reads)
+        # an automatic mask is a result the user should be able to inspect and reuse
+        return write_result(
+            self,
+            folder,
+            overwrite=overwrite,
+            report=report,
+            write_mask=self.auto_mask if write_mask is None else write_mask,
+        )
 
     # ------------------------------------------------------------ for a person or a log
 
@@ -341,8 +256,7 @@ class Result:
         ``figure=True`` needs matplotlib (the ``[pictures]`` extra): without it, an InputError
         that says how to install it."""
         with _needs_matplotlib():
-            with api_words():
-                rgb = self._picture(what)
+            rgb = self._picture(what)
             if not figure:
                 return rgb
             from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -412,12 +326,11 @@ def load_stack(
     object's images is read with the benchmark's selection, as ``model(path)``, streams and
     msf-run read it (DiLiGenT's ``bearPNG``: images 21-96, with a UserWarning that says so);
     a ``select`` of your own overrides it."""
-    with api_words():
-        given = options if options is not None else LoadOptions()
-        if overrides:
-            given = replace(given, **overrides)
-        path = Path(path)
-        return read_stack(path, _protocol(path, given, stacklevel=3)[0])
+    given = options if options is not None else LoadOptions()
+    if overrides:
+        given = replace(given, **overrides)
+    path = Path(path)
+    return read_stack(path, _protocol(path, given, stacklevel=3)[0])
 
 
 def _protocol(
@@ -431,7 +344,7 @@ def _protocol(
     note = item.note(load)
     if note is None:
         return load, None
-    warnings.warn(api_message(note), UserWarning, stacklevel=stacklevel)
+    warnings.warn(note, UserWarning, stacklevel=stacklevel)
     return item.options(load), item
 
 
@@ -460,8 +373,7 @@ class Model:
         options: ModelOptions | None = None,
         **settings: Any,
     ) -> None:
-        with api_words():
-            self._open(model, options, settings)
+        self._open(model, options, settings)
 
     def _open(
         self, model: str | Path | Engine | None, options: ModelOptions | None, settings: Any
@@ -504,8 +416,7 @@ class Model:
         maps: MapOptions | str | Iterable[str] | None = DEFAULT_MAPS,
     ) -> Model:
         """Per-pixel least squares (Woodham 1980): no network, the same inputs and outputs."""
-        with api_words():
-            opts = ModelOptions(method="l2", max_memory_mb=max_memory_mb, maps=map_options(maps))
+        opts = ModelOptions(method="l2", max_memory_mb=max_memory_mb, maps=map_options(maps))
         return cls(options=opts)
 
     @property
@@ -542,14 +453,13 @@ class Model:
         the latency profile. For many stacks (a folder, a list, a capture loop) see
         :meth:`stream`.
         """
-        with api_words():
-            if isinstance(stack, (list, tuple)) or not isinstance(stack, (Stack, str, Path)):
-                raise InputError(
-                    f"model(...) runs one stack (a Stack or a path), got "
-                    f"{type(stack).__name__}; for several use model.stream(...), which "
-                    "yields one Result at a time"
-                )
-            return self._run(stack, load, repeat, progress)
+        if isinstance(stack, (list, tuple)) or not isinstance(stack, (Stack, str, Path)):
+            raise InputError(
+                f"model(...) runs one stack (a Stack or a path), got "
+                f"{type(stack).__name__}; for several use model.stream(...), which "
+                "yields one Result at a time"
+            )
+        return self._run(stack, load, repeat, progress)
 
     def stream(
         self,
@@ -579,46 +489,42 @@ class Model:
         Ctrl-C, an error) never drops a stack taken from the source: ``stream.stop()``
         returns those not run (:class:`~msfnet.runtime.stream.Stream`).
         """
-        with api_words():
-            if on_error not in ("raise", "skip"):
-                raise InputError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
-            opts = self._loading(load if load is not None else LoadOptions())
-            items, total = stream_items(source, select_given=opts.select is not None)
+        if on_error not in ("raise", "skip"):
+            raise InputError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+        opts = self._loading(load if load is not None else LoadOptions())
+        items, total = stream_items(source, select_given=opts.select is not None)
 
         def results(taken: Leftovers, skipped: list[Skipped]) -> Generator[Result, None, None]:
             def skip(error: InputError, item: StackSource) -> None:
-                if current_writer() == API_WRITER:  # the API's words, as raised ones
-                    error = InputError(api_message(error.message), error.path)
                 source = given_source(item)
                 skipped.append(Skipped(source, error))
                 where = "" if error.path is not None else f"{source.name}: "
                 warnings.warn(f"{where}{error}; skipped", RuntimeWarning, stacklevel=4)
 
-            with api_words():
-                for decoded in decode_ahead(
-                    items, opts, prefetch=prefetch, total=total, unprocessed=taken
-                ):
-                    if decoded.error is not None:
-                        if on_error == "raise":
-                            raise decoded.error
-                        skip(decoded.error, decoded.item)
-                        continue
-                    item = decoded.item
-                    note = item.note(opts) if isinstance(item, BatchItem) else None
-                    if note is not None:  # a benchmark's selection, as model(path) says it
-                        warnings.warn(api_message(note), UserWarning, stacklevel=3)
-                    try:
-                        result = self._run_decoded(decoded, opts)
-                    except InputError as exc:  # e.g. intrinsics its normals cannot use
-                        if on_error == "raise":
-                            taken.items.append(decoded.item)
-                            raise
-                        skip(exc, decoded.item)
-                        continue
-                    except BaseException:  # interrupted or failed: the caller gets it back
+            for decoded in decode_ahead(
+                items, opts, prefetch=prefetch, total=total, unprocessed=taken
+            ):
+                if decoded.error is not None:
+                    if on_error == "raise":
+                        raise decoded.error
+                    skip(decoded.error, decoded.item)
+                    continue
+                item = decoded.item
+                note = item.note(opts) if isinstance(item, BatchItem) else None
+                if note is not None:  # a benchmark's selection, as model(path) says it
+                    warnings.warn(note, UserWarning, stacklevel=3)
+                try:
+                    result = self._run_decoded(decoded, opts)
+                except InputError as exc:  # e.g. intrinsics its normals cannot use
+                    if on_error == "raise":
                         taken.items.append(decoded.item)
                         raise
-                    yield result
+                    skip(exc, decoded.item)
+                    continue
+                except BaseException:  # interrupted or failed: the caller gets it back
+                    taken.items.append(decoded.item)
+                    raise
+                yield result
 
         return Stream(results, warn_unprocessed=total is None)
 
@@ -665,7 +571,7 @@ class Model:
         frame when ``load`` is None."""
         tiling = self.tiling if tiling is None else tiling
         if repeat < 1:
-            raise InputError(f"--repeat must be at least 1, got {repeat}")
+            raise InputError(f"{opt('repeat')} must be at least 1, got {repeat}")
         if load is not None:
             load = self._loading(load)
         recorded = None if load is None else load.describe()  # Result.input
@@ -747,15 +653,14 @@ class Model:
         not divided yet: pass ``intensities=stack.intensities`` (or run ``model(stack)``), or
         the normals bend toward the brighter lights (15.6 deg instead of 4.1 on DiLiGenT's
         ball with least squares, 8 lights)."""
-        with api_words():
-            stack = Stack.from_arrays(
-                images,
-                lights,
-                mask=mask,
-                intensities=intensities,
-                normals_gt=normals_gt,
-                name="array",
-            )
+        stack = Stack.from_arrays(
+            images,
+            lights,
+            mask=mask,
+            intensities=intensities,
+            normals_gt=normals_gt,
+            name="array",
+        )
         return self(stack)
 
 
@@ -784,7 +689,7 @@ def _bundled_model(opts: ModelOptions, device: Device | None) -> tuple[Path, str
         what = "int8 model (its twin)" if pick.precision == "int8" else "model"
         raise InputError(
             f"no model given and no bundled {what} at {path}; export one "
-            "with msf-export, or use least squares (--method l2)"
+            f"with msf-export, or use least squares ({opt('method', 'l2')})"
         )
     return path, pick.reason
 
@@ -870,8 +775,6 @@ __all__ = [
     "Model",
     "ModelOptions",
     "Result",
-    "api_message",
-    "api_words",
     "bundled_model_path",
     "default_model_path",
     "load_stack",

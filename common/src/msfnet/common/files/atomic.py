@@ -42,6 +42,7 @@ from msfnet.common.files.staging import (
 )
 from msfnet.common.files.text import json_text, vectors_text
 from msfnet.common.signals import signals_deferred
+from msfnet.common.vocabulary import opt
 
 # Outputs this process has put in place, so an interrupted command can say truthfully what it
 # left behind (a multi-stack msf-run interrupted on its second stack has written the first).
@@ -148,7 +149,8 @@ def _commit_lock(folders: Iterable[Path]) -> Iterator[None]:
 
 def _appeared(path: Path) -> InputError:
     return InputError(
-        "output appeared while running (another command wrote it?); pass --overwrite to replace it",
+        f"output appeared while running (another command wrote it?); pass {opt('overwrite')} "
+        "to replace it",
         path,
     )
 
@@ -296,7 +298,7 @@ def _commit(tmp: Path, outdir: Path, overwrite: bool, command: str | None = None
             if not overwrite:
                 raise InputError(
                     "output folder appeared while running (another command wrote "
-                    "it?); pass --overwrite to replace it",
+                    f"it?); pass {opt('overwrite')} to replace it",
                     outdir,
                 )
             refuse_foreign(outdir, current_writer(command))

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from msfnet.common.errors import InputError
 from msfnet.common.files.manifest import current_writer, refuse_foreign
+from msfnet.common.vocabulary import opt
 
 
 def resolved(path: str | Path) -> Path:
@@ -81,7 +82,7 @@ def check_replaceable(target: str | Path, *, folder: bool = False) -> None:
         return
     raise InputError(
         f"output is {_kind(mode)}, not a regular file; msfnet never replaces it, not even "
-        "with --overwrite: choose another path",
+        f"with {opt('overwrite')}: choose another path",
         target,
     )
 
@@ -231,14 +232,15 @@ def check_output(
             if any(target.iterdir()):
                 if not overwrite:
                     raise InputError(
-                        "output folder exists and is not empty; pass --overwrite to replace it",
+                        "output folder exists and is not empty; pass "
+                        f"{opt('overwrite')} to replace it",
                         target,
                     )
                 refuse_foreign(target, current_writer(command))
                 # a folder it will replace: does it hold a file an input is (walked only now)
                 check_not_holding(target, inputs, reads, folder=folder)
         elif not overwrite:
-            raise InputError("output exists; pass --overwrite to replace it", target)
+            raise InputError(f"output exists; pass {opt('overwrite')} to replace it", target)
         # replacing means renaming in the parent folder (and, for a folder, reading it)
         if not os.access(real.parent, os.W_OK):
             raise InputError(f"cannot replace the output: {real.parent} is not writable", target)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 
 MANIFEST = ".msfnet-output.json"
 
@@ -106,7 +107,7 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
     manifest = read_manifest(folder)
     if manifest is None and (folder / MANIFEST).exists():
         raise InputError(
-            f"--overwrite: the folder's {MANIFEST} is damaged, so msfnet cannot "
+            f"{opt('overwrite')}: the folder's {MANIFEST} is damaged, so msfnet cannot "
             "tell its own files; refusing to delete anything",
             folder,
         )
@@ -115,14 +116,14 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
         subs = [f for f in foreign if f.endswith("/") and f[:-1] in manifest.files]
         if subs == foreign:  # only sub-folders msfnet wrote, whose contents it cannot vouch for
             raise InputError(
-                f"--overwrite: an older msfnet wrote this folder and listed only its top level, "
-                f"so what is inside {subs[0]} cannot be told from files of yours; remove the "
-                "folder yourself or choose another",
+                f"{opt('overwrite')}: an older msfnet wrote this folder and listed only its top "
+                f"level, so what is inside {subs[0]} cannot be told from files of yours; remove "
+                "the folder yourself or choose another",
                 folder,
             )
     if foreign:
         raise InputError(
-            f"--overwrite: the folder holds files msfnet did not write (e.g. "
+            f"{opt('overwrite')}: the folder holds files msfnet did not write (e.g. "
             f"{foreign[0]}); refusing to delete them",
             folder,
         )
@@ -132,7 +133,7 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
     if writer in SAME_OUTPUT and command in SAME_OUTPUT:
         return
     raise InputError(
-        f"--overwrite: the folder is {writer}'s output, not {command}'s; "
+        f"{opt('overwrite')}: the folder is {writer}'s output, not {command}'s; "
         "refusing to replace it (choose another folder)",
         folder,
     )

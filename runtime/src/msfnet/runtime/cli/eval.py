@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.common.cli import command_main, make_parser, path_arg
+from msfnet.common.cli import Command, command_main, make_parser, path_arg
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, json_text, staged_folder
 from msfnet.runtime.api import Model
@@ -41,6 +41,7 @@ from msfnet.runtime.stack import LoadOptions, linked_reads, load_stack
 from msfnet.runtime.stack.load import check_stack_files
 
 PROG = "msf-eval"
+COMMAND = Command(PROG, memory_advice="lower --max-memory (or --tile)")
 COLUMNS = ("mae_deg", "err15", "err30")
 
 
@@ -433,7 +434,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), _run, argv)
+    return command_main(COMMAND, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from msfnet.common.cli import (
+    Command,
     add_flags,
     command_main,
     flag_names,
@@ -56,6 +57,7 @@ from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.provenance import Provenance
 
 PROG = "msf-inspect"
+COMMAND = Command(PROG, failure_exit=3, memory_advice="lower --max-memory (or --tile)")
 # msf-inspect's own options: never "a flag for running a stack"
 _OWN = (
     "input",
@@ -436,7 +438,7 @@ def _summary(verdict: Verdict, output: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), lambda args: _run(args, argv), argv)
+    return command_main(COMMAND, build_parser(), lambda args: _run(args, argv), argv)
 
 
 if __name__ == "__main__":

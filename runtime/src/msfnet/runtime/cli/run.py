@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from msfnet.common.cli import command_main, make_parser, path_arg, positive_int
+from msfnet.common.cli import Command, command_main, make_parser, path_arg, positive_int
 from msfnet.common.errors import InputError
 from msfnet.common.files import (
     check_not_holding,
@@ -45,6 +45,7 @@ from msfnet.runtime.results.profile import announce, announcing
 from msfnet.runtime.stack import LoadOptions, Stack, folder_name, linked_reads
 
 PROG = "msf-run"
+COMMAND = Command(PROG, memory_advice="lower --max-memory (or --tile)")
 EXAMPLES = (
     "msf-run --demo                                   # bundled model on a bundled sample",
     "msf-run ../shared/data/DiLiGenT/ballPNG          # -> msf-out/ballPNG/",
@@ -541,7 +542,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), _run, argv)
+    return command_main(COMMAND, build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from msfnet.common.errors import InputError
 from msfnet.common.imageio import list_images
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.stack import LIGHTS_NAMES, folder_name
 
 PROTOCOL_SELECT = {"bearPNG": "21-96"}  # object folder -> the images the benchmark uses
@@ -23,7 +24,7 @@ PROTOCOL_WHY = {"bearPNG": "DiLiGenT's protocol: bear's first 20 images are corr
 def protocol_note(folder: Path, select: str) -> str:
     """The line a command prints when a benchmark's selection applies by the folder's name."""
     why = PROTOCOL_WHY.get(known_object(folder), "the benchmark's protocol")
-    return f"{folder_name(folder)}: using images {select} ({why}); --select overrides"
+    return f"{folder_name(folder)}: using images {select} ({why}); {opt('select')} overrides"
 
 
 PUBLISHED_MAE: dict[str, dict[str, float]] = {
@@ -92,7 +93,7 @@ def _check_listed_select(select: str, folder: Path, listing: Path) -> None:
     try:
         parse_select(select, n)
     except InputError as exc:
-        detail = exc.message.replace(f"--select {select!r}: ", "")
+        detail = exc.message.replace(f"{opt('select', select, quote=True)}: ", "")
         raise InputError(f"object {folder.name}: selection {select!r}: {detail}", listing) from exc
 
 

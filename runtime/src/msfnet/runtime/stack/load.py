@@ -31,7 +31,7 @@ from msfnet.common.imageio import (
     read_image,
     read_mask,
 )
-from msfnet.common.vocabulary import flag, options_type
+from msfnet.common.vocabulary import flag, opt, options_type
 from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.stack.readers import (
     check_gt_header,
@@ -188,7 +188,7 @@ class LoadOptions:
                 object.__setattr__(self, name, Path(value))
         self.transforms()  # refuse contradictory options before any decoding
         if self.auto_mask and self.mask is not None:
-            raise InputError("--auto-mask and --mask both give the mask: choose one")
+            raise InputError(f"{opt('auto_mask')} and {opt('mask')} both give the mask: choose one")
         if self.white_level is not None and not self.white_level > 0:
             raise InputError(f"white level {self.white_level}: must be positive")
         if self.roi_halo < 0:
@@ -287,8 +287,9 @@ def check_stack_size(
     if max_memory_mb is not None and need > max_memory_mb:
         size = f"{need:.0f}" if need >= 1 else f"{need:.2g}"  # "1536", "2", "0.14"
         raise InputError(
-            f"{n} images of {w}x{h} take {size} MB loaded, above --max-memory "
-            f"{max_memory_mb:g} MB (use --select/--max-lights or a larger budget)",
+            f"{n} images of {w}x{h} take {size} MB loaded, above "
+            f"{opt('max_memory_mb', max_memory_mb)} MB (use "
+            f"{opt('select')}/{opt('max_lights')} or a larger budget)",
             src,
         )
 
@@ -417,7 +418,7 @@ def _check_float_scale(img: np.ndarray, transforms: Transforms, src: str | Path 
     if float(np.max(img)) > 1.0:
         raise InputError(
             "floating-point images with values above 1: give the full-scale "
-            "value (--white-level) to linearise them",
+            f"value ({opt('white_level')}) to linearise them",
             src,
         )
 
@@ -439,9 +440,10 @@ def _finish(stack: Stack, options: LoadOptions, own_mask: str = "mask") -> Stack
         if iou < MASK_AGREEMENT_IOU:
             notes = (
                 *notes,
-                f"{stack.source or stack.name}: --auto-mask finds {int(found.sum()):,} px, "
-                f"the stack's {own_mask} {int(stack.mask.sum()):,} px (IoU {iou:.2f}): "
-                "the automatic one is used; leave out --auto-mask to use the stack's own",
+                f"{stack.source or stack.name}: {opt('auto_mask')} finds "
+                f"{int(found.sum()):,} px, the stack's {own_mask} {int(stack.mask.sum()):,} px "
+                f"(IoU {iou:.2f}): the automatic one is used; leave out {opt('auto_mask')} to "
+                "use the stack's own",
             )
     # never alter a caller's stack
     return _check_box(replace(stack, mask=found, load_warnings=notes)).validate()
@@ -510,7 +512,8 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
     lights_path = options.lights or _first_existing(folder, LIGHTS_NAMES)
     if lights_path is None:
         raise InputError(
-            "no light directions: expected light_directions.txt or lights.txt (or pass --lights)",
+            "no light directions: expected light_directions.txt or lights.txt (or pass "
+            f"{opt('lights')})",
             folder,
         )
     light_dirs = read_vectors(lights_path, "light directions")
@@ -550,7 +553,7 @@ def _intensity_file(folder: Path, lights_path: Path) -> Path | None:
     if own is not None and beside is not None and not same_file(own, beside):
         raise InputError(
             f"light intensities are given twice: in {own.name} and in this file; keep one "
-            "(or name the one to use with --intensities)",
+            f"(or name the one to use with {opt('intensities')})",
             beside,
         )
     return own or beside
@@ -769,7 +772,8 @@ def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: fl
         if need > max_memory_mb:
             raise InputError(
                 f"npz images are {dtype} {shape}: reading them holds {need:.0f} MB (the "
-                f"stored array and its {held} copy), above --max-memory {max_memory_mb:g} MB "
+                f"stored array and its {held} copy), above "
+                f"{opt('max_memory_mb', max_memory_mb)} MB "
                 "(save them as float32 or uint16, or use a larger budget)",
                 path,
             )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.stack.types import MIN_LIGHTS
 
 
@@ -15,21 +16,22 @@ def parse_select(spec: str, n: int) -> list[int]:
     image adds no information but skews the normalisation over lights).
     """
     out: list[int] = []
-    usage = f"--select {spec!r}: expected 1-based indices like 21-96 or 1,3,5-9"
+    given = opt("select", spec, quote=True)
+    usage = f"{given}: expected 1-based indices like 21-96 or 1,3,5-9"
     for part in spec.split(","):
         part = part.strip()
         if not part:  # "" or "1,,3": a typo, not "all images" (omit --select for that)
-            raise InputError(f"{usage} (an empty part; leave out --select for all images)")
+            raise InputError(f"{usage} (an empty part; leave out {opt('select')} for all images)")
         try:
             if "-" in part or ":" in part:
                 a, b = part.replace(":", "-").split("-", 1)
                 lo, hi = int(a) if a.strip() else 1, int(b) if b.strip() else n
                 if hi < lo:
-                    raise InputError(f"--select {spec!r}: range {part} runs backwards")
+                    raise InputError(f"{given}: range {part} runs backwards")
                 # check the ends before expanding: "1-999999999999" must not fill the memory
                 for end in (lo, hi):
                     if not 1 <= end <= n:
-                        raise InputError(f"--select {spec!r}: index {end} is outside 1..{n}")
+                        raise InputError(f"{given}: index {end} is outside 1..{n}")
                 out.extend(range(lo - 1, hi))
             else:
                 out.append(int(part) - 1)
@@ -41,11 +43,11 @@ def parse_select(spec: str, n: int) -> list[int]:
         raise InputError(usage)
     bad = [i + 1 for i in out if not 0 <= i < n]
     if bad:
-        raise InputError(f"--select {spec!r}: index {bad[0]} is outside 1..{n}")
+        raise InputError(f"{given}: index {bad[0]} is outside 1..{n}")
     seen: set[int] = set()
     for i in out:
         if i in seen:
-            raise InputError(f"--select {spec!r}: image {i + 1} is selected more than once")
+            raise InputError(f"{given}: image {i + 1} is selected more than once")
         seen.add(i)
     return out
 
@@ -60,6 +62,8 @@ def selection(n: int, select: str | None, max_lights: int | None) -> list[int]:
     keep = parse_select(select, n) if select is not None else list(range(n))
     if max_lights is not None and max_lights < len(keep):
         if max_lights < MIN_LIGHTS:
-            raise InputError(f"--max-lights {max_lights}: at least {MIN_LIGHTS} lights are needed")
+            raise InputError(
+                f"{opt('max_lights', max_lights)}: at least {MIN_LIGHTS} lights are needed"
+            )
         keep = [keep[i] for i in evenly_spaced(len(keep), max_lights)]
     return keep

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt, verbatim
 from msfnet.runtime.stack.types import as_held
 
 Roi = tuple[int, int, int, int]  # x, y, width, height in pixels of the stored images
@@ -42,7 +43,8 @@ def check_roi(roi: Roi, shape: tuple[int, int], src: object = None) -> None:
     x, y, w, h = roi
     ih, iw = shape
     if x + w > iw or y + h > ih:
-        raise InputError(f"--roi {x},{y},{w},{h} reaches past the {iw}x{ih} image", src)  # type: ignore[arg-type]
+        box = verbatim(f"{x},{y},{w},{h}")
+        raise InputError(f"{opt('roi', box)} reaches past the {iw}x{ih} image", src)  # type: ignore[arg-type]
 
 
 def halo_roi(
@@ -99,7 +101,7 @@ def area_downscale(arr: np.ndarray, k: int) -> np.ndarray:
     h, w = arr.shape[0] // k, arr.shape[1] // k
     if h == 0 or w == 0:
         raise InputError(
-            f"--downscale {k}: the image ({arr.shape[1]}x{arr.shape[0]}) is "
+            f"{opt('downscale', k)}: the image ({arr.shape[1]}x{arr.shape[0]}) is "
             f"smaller than one {k}x{k} block"
         )
     block = arr[: h * k, : w * k].reshape(h, k, w, k, *arr.shape[2:])
@@ -259,8 +261,8 @@ def auto_mask(images: np.ndarray, *, min_share: float = 0.1) -> np.ndarray:
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     if count <= 1:
         raise InputError(
-            "--auto-mask found no object: the per-pixel maximum over the stack "
-            "has no bright region against a dark background (give --mask)"
+            f"{opt('auto_mask')} found no object: the per-pixel maximum over the stack "
+            f"has no bright region against a dark background (give {opt('mask')})"
         )
     areas = stats[1:, cv2.CC_STAT_AREA]
     keep = np.flatnonzero(areas >= min_share * areas.max()) + 1
@@ -279,11 +281,12 @@ class Transforms:
 
     def __post_init__(self) -> None:
         if self.srgb and self.gamma is not None:
-            raise InputError("--srgb and --gamma both linearise: give one of them")
+            raise InputError(f"{opt('srgb')} and {opt('gamma')} both linearise: give one of them")
         if self.gamma is not None and not (np.isfinite(self.gamma) and self.gamma > 0):
-            raise InputError(f"--gamma {self.gamma}: must be a positive number (e.g. 2.2)")
+            gamma = opt("gamma", verbatim(f"{self.gamma}"))
+            raise InputError(f"{gamma}: must be a positive number (e.g. 2.2)")
         if self.downscale < 1:
-            raise InputError(f"--downscale {self.downscale}: must be a positive integer")
+            raise InputError(f"{opt('downscale', self.downscale)}: must be a positive integer")
 
     @property
     def active(self) -> bool:

@@ -12,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 
 # The fewest lights photometric stereo can work with: a normal and an albedo are three unknowns
 # per pixel, so fewer images leave them undetermined. The one minimum of every command (stacks,
@@ -325,7 +326,7 @@ class Stack:
             out.append(
                 f"{where}: (nearly) black inside the mask ({brightness[i] / typical:.1%} "
                 "of a typical image's brightness): a dead light or a missed trigger? "
-                "It is used as it is (leave it out with --select)"
+                f"It is used as it is (leave it out with {opt('select')})"
             )
         return out
 
