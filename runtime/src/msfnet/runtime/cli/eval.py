@@ -214,6 +214,63 @@ def detail_table(rows: list[ObjectResult]) -> str:
     return "\n".join(lines)
 
 
+def _runners(model: Model | None, use_l2: bool) -> dict[str, Model]:
+    """What is scored: the model ("msf") and least squares ("l2", normals only)."""
+    runners: dict[str, Model] = {}
+    if model is not None:
+        runners["msf"] = model
+    if use_l2:
+        budget = model.tiling.max_memory_mb if model is not None else DEFAULT_MAX_MEMORY_MB
+        runners["l2"] = Model.least_squares(max_memory_mb=budget, maps=None)
+    if not runners:
+        raise InputError("nothing to evaluate: both the model and l2 are switched off")
+    return runners
+
+
+def _score(
+    obj: BenchObject, opts: LoadOptions, runners: dict[str, Model], out: Path, progress: bool
+) -> ObjectResult:
+    """Run every method on one object; its normals (and error pictures) into ``out``."""
+    stack = load_stack(obj.folder, opts)
+    out.mkdir()
+    outs, errors, scores = {}, {}, {}
+    said: dict[str, None] = dict.fromkeys(stack.warnings)  # and each run's own
+    for m, runner in runners.items():
+        res = runner(stack, progress=progress)
+        said.update(dict.fromkeys(res.stack.warnings))
+        outs[m] = res.normals
+        write_rgb_png(out / f"{m}_normals.png", normals_png(res.normals, stack.mask))
+        scored = res.metrics is not None and res.error_deg is not None
+        if res.error_deg is not None:
+            errors[m] = res.error_deg
+        scores[m] = MethodScore(res.timings.median_s("total"), res.metrics if scored else None)
+    # one colour range for every method of an object, so the pictures compare
+    vmax = max((pictures.error_range(e, stack.mask) for e in errors.values()), default=None)
+    for m, err in errors.items() if pictures.can_draw() else ():
+        picture = pictures.error_picture(err, stack.mask, vmax=vmax)
+        (out / f"{m}_error.png").write_bytes(pictures.png_bytes(picture))
+    gt = stack.normals_gt is not None
+    both = not gt and "msf" in outs and "l2" in outs
+    return ObjectResult(
+        obj.name,
+        stack.num_lights,
+        opts.select,
+        scores,
+        published=PUBLISHED_MAE.get(known_object(obj.folder), {}) if gt else None,
+        detail_ratio=detail_ratio(outs["msf"], outs["l2"], stack.mask) if both else None,
+        warnings=tuple(said),
+    )
+
+
+def _done_line(row: ObjectResult, k: int, n: int, seconds: float) -> str:
+    got = [f"{m} {s.metrics.mae_deg:.2f} deg" for m, s in row.scores.items() if s.metrics]
+    if row.detail_ratio is not None:
+        got.append(f"detail msf / l2 {row.detail_ratio:.2f}")
+    return f"{PROG}: [{k}/{n}] {row.name}: {row.lights} lights, {', '.join(got) or 'done'} " + (
+        f"({seconds:.1f} s)"
+    )
+
+
 def evaluate(
     objects: list[BenchObject],
     outdir: Path,
@@ -237,19 +294,7 @@ def evaluate(
         folder=True,
         reads=[f for o in objects for f in linked_reads(o.folder)],  # read through links
     )
-    runners: dict[str, Model] = {}
-    if model is not None:
-        runners["msf"] = model
-    if use_l2:
-        runners["l2"] = Model.least_squares(
-            max_memory_mb=model.tiling.max_memory_mb
-            if model is not None
-            else DEFAULT_MAX_MEMORY_MB,
-            maps=None,
-        )  # scoring needs normals only
-    if not runners:
-        raise InputError("nothing to evaluate: both the model and l2 are switched off")
-    methods = list(runners)
+    runners = _runners(model, use_l2)
 
     def options_for(obj: BenchObject) -> LoadOptions:
         # --select / --lights override the benchmark's selection and shared light file
@@ -264,73 +309,23 @@ def evaluate(
             if load.select is None and obj.select is not None:
                 print(f"{PROG}: {protocol_note(obj.folder, obj.select)}", file=sys.stderr)
     results = []
-    draw = pictures.can_draw()  # the error pictures need Pillow; the scores do not
     with staged_folder(outdir, overwrite=overwrite) as tmp:
         for k, obj in enumerate(objects, 1):
-            opts = options_for(obj)
             started = time.perf_counter()
-            stack = load_stack(obj.folder, opts)
-            (tmp / obj.name).mkdir()
-            outs, errors, scores = {}, {}, {}
-            said: dict[str, None] = dict.fromkeys(stack.warnings)  # and each run's own
-            for m, runner in runners.items():
-                res = runner(stack, progress=progress)
-                said.update(dict.fromkeys(res.stack.warnings))
-                outs[m] = res.normals
-                write_rgb_png(
-                    tmp / obj.name / f"{m}_normals.png", normals_png(res.normals, stack.mask)
-                )
-                scored = res.metrics is not None and res.error_deg is not None
-                if res.error_deg is not None:
-                    errors[m] = res.error_deg
-                scores[m] = MethodScore(
-                    res.timings.median_s("total"), res.metrics if scored else None
-                )
-            # one colour range for every method of an object, so the pictures compare
-            vmax = max((pictures.error_range(e, stack.mask) for e in errors.values()), default=None)
-            for m, err in errors.items() if draw else ():
-                (tmp / obj.name / f"{m}_error.png").write_bytes(
-                    pictures.png_bytes(pictures.error_picture(err, stack.mask, vmax=vmax))
-                )
-            gt = stack.normals_gt is not None
-            detail = (
-                detail_ratio(outs["msf"], outs["l2"], stack.mask)
-                if not gt and "msf" in outs and "l2" in outs
-                else None
-            )
-            row = ObjectResult(
-                obj.name,
-                stack.num_lights,
-                opts.select,
-                scores,
-                published=PUBLISHED_MAE.get(known_object(obj.folder), {}) if gt else None,
-                detail_ratio=detail,
-                warnings=tuple(said),
-            )
+            row = _score(obj, options_for(obj), runners, tmp / obj.name, progress)
             results.append(row)
             if lines:
-                got = [
-                    f"{m} {s.metrics.mae_deg:.2f} deg"
-                    for m, s in scores.items()
-                    if s.metrics is not None
-                ]
-                if detail is not None:
-                    got.append(f"detail msf / l2 {detail:.2f}")
-                print(
-                    f"{PROG}: [{k}/{len(objects)}] {row.name}: {row.lights} lights, "
-                    f"{', '.join(got) or 'done'} ({time.perf_counter() - started:.1f} s)",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                took = time.perf_counter() - started
+                print(_done_line(row, k, len(objects), took), file=sys.stderr, flush=True)
         first = runners["msf"] if "msf" in runners else runners["l2"]
         summary = EvalSummary(
             [str(o.folder) for o in objects],
             runners["msf"].describe().get("model") if "msf" in runners else None,  # type: ignore[arg-type]
-            methods,
+            list(runners),
             results,
             fine_detail="msf" in runners and "fine_detail" in runners["msf"].describe(),
             provenance=Provenance.of([o.folder for o in objects], first.describe()),
-            figures=draw,
+            figures=pictures.can_draw(),
         )
         (tmp / "results.json").write_text(json_text(summary.as_dict()))
         (tmp / "results.md").write_text(summary.markdown())

@@ -401,9 +401,10 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
     return 0
 
 
-def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
-    from tqdm import tqdm  # the batch's progress bar; its lines are written above it
-
+def _batch_root(req: RunRequest, items: list[BatchItem]) -> Path:
+    """The batch's output folder, checked with every stack's before anything is made: bad
+    input leaves no output, not even an empty folder (the stacks' folders and the summary
+    create it)."""
     load = req.load
     if req.repeat != 1:
         raise InputError("--repeat profiles one stack; give a single STACK")
@@ -416,8 +417,6 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
         root = numbered_folder(
             Path("msf-out") / (folder_name(req.stacks[0]) if one_folder else "batch")
         )
-    # Everything is checked, and the model opened, before anything is made: bad input leaves
-    # no output, not even an empty folder (the stacks' folders and the summary create it).
     # the folders named on the command line and a light file the stacks share are inputs
     # too: a batch's results never go inside the batch folder
     inputs = [*load.inputs(), req.model.model, *req.stacks]
@@ -438,20 +437,12 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
         check_output(root / item.name, [*inputs, item.path], overwrite=req.overwrite, folder=True)
     for name in SUMMARY_FILES:
         check_output(root / name, [*inputs, *stacks], overwrite=req.overwrite)
-    model = None
-    if req.ray is not None:
-        from msfnet.runtime.batch.ray_cluster import ModelSpec, import_ray, run_batch_ray
+    return root
 
-        import_ray()  # not installed: say so now
-        one_thread = req.model.replace(threads=req.model.threads or 1)
-        spec = ModelSpec.of(one_thread)
-        # the workers open it far away; a file they would all refuse is refused here, once
-        Model(options=one_thread.replace(threads=1))
-    else:
-        model = Model(options=req.model)
-    show = req.chatty
-    for item in items:
-        _say(req, item.note(load))
+
+def _batch_reporter(req: RunRequest) -> Callable[[StackRow, Result | None], None]:
+    """What msf-run prints as each stack of a batch ends (above the batch's progress bar)."""
+    from tqdm import tqdm
 
     def report(row: StackRow, result: Result | None) -> None:
         if row.error is not None:
@@ -464,7 +455,7 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
                 p.name for p in Path(row.output or ".").iterdir() if not p.name.startswith(".")
             )
             print_result(result, Path(row.output or "."), [Path(f) for f in files], req)
-        elif show:
+        elif req.chatty:
             mae = row.metrics.mae_deg if row.metrics else None
             score = "" if mae is None else f", MAE {mae:.2f} deg"
             tqdm.write(
@@ -473,7 +464,27 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
                 f"{row.compute_s:.2f} s -> {row.output}/"
             )
 
-    progress = None if show else False
+    return report
+
+
+def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
+    load = req.load
+    root = _batch_root(req, items)
+    model = None
+    if req.ray is not None:
+        from msfnet.runtime.batch.ray_cluster import ModelSpec, import_ray, run_batch_ray
+
+        import_ray()  # not installed: say so now
+        one_thread = req.model.replace(threads=req.model.threads or 1)
+        spec = ModelSpec.of(one_thread)
+        # the workers open it far away; a file they would all refuse is refused here, once
+        Model(options=one_thread.replace(threads=1))
+    else:
+        model = Model(options=req.model)
+    for item in items:
+        _say(req, item.note(load))
+    report = _batch_reporter(req)
+    progress = None if req.chatty else False
     if model is None:
         summary = run_batch_ray(
             spec,
