@@ -158,6 +158,26 @@ run, never cached between runs, so a report always measures the models it holds.
         help="report folder, written as a whole: REPORT.md, report.json, "
         "latency.png, models/, e2e/ (default ./msf-bench-out)",
     )
+    _add_run_flags(p)
+    _add_edge_flags(p)
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        metavar="S",
+        help="stop a row, cell or speed rung still running after S seconds and report it as "
+        "failed (a model that never ends; default: no limit)",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an earlier report folder (only one msfnet wrote: a folder "
+        "holding other files is refused, never deleted)",
+    )
+    return p
+
+
+def _add_run_flags(p: argparse.ArgumentParser) -> None:
+    """What the full benchmark measures: variants, threads, CPU class, workload (d)."""
     p.add_argument(
         "--quick",
         action="store_true",
@@ -203,6 +223,10 @@ run, never cached between runs, so a report always measures the models it holds.
         "the (d) target is then >= 60x on CPUs with native bf16, >= 30x elsewhere "
         "(default: every light, per-light time extrapolated from (b))",
     )
+
+
+def _add_edge_flags(p: argparse.ArgumentParser) -> None:
+    """The torch-free modes: a given ONNX file, the speed ladder, the requirements grid."""
     edge = p.add_argument_group(
         "torch-free modes (run on an edge install; each writes REPORT.md and report.json)"
     )
@@ -227,20 +251,6 @@ run, never cached between runs, so a report always measures the models it holds.
         help="time and peak memory by image size x light count x engine (default engine and "
         "ONNX Runtime fp32), whole stacks through the runtime; with --quick a small grid",
     )
-    p.add_argument(
-        "--timeout",
-        type=positive_float,
-        metavar="S",
-        help="stop a row, cell or speed rung still running after S seconds and report it as "
-        "failed (a model that never ends; default: no limit)",
-    )
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace an earlier report folder (only one msfnet wrote: a folder "
-        "holding other files is refused, never deleted)",
-    )
-    return p
 
 
 def machine_description() -> dict[str, object]:

@@ -328,7 +328,8 @@ def plot(result: dict, path: Path) -> bool:
     return True
 
 
-def markdown(result: dict, has_plot: bool) -> str:
+def _machine_lines(result: dict) -> list[str]:
+    """The report's header about the machine: CPU, features, libraries, matmul peaks."""
     m = result["machine"]
     peaks = ", ".join(
         f"{p.get('engine', 'torch')} {p['dtype']} {p['threads']} thr {p['gflops']:.1f}"
@@ -348,18 +349,7 @@ def markdown(result: dict, has_plot: bool) -> str:
         )
         if k in feats
     )
-    models = result["models"]
-    weights = (
-        "seeded random weights (no trained checkpoint given): the deviation columns "
-        "measure numerics only"
-        if models.get("random_weights")
-        else f"checkpoint {models['checkpoint']}"
-    )
-    lines = [
-        "# msf-bench report",
-        "",
-        f"- date: {result['date']}; mode: {'quick' if result['quick'] else 'full'}; "
-        f"elapsed {result['elapsed_s'] / 60:.1f} min",
+    return [
         f"- machine: {m['cpu']}, {m['cores']} cores, ISA {' '.join(m['isa_flags'])}; "
         f"{m['platform']}; Python {m['python']}, onnxruntime {m['onnxruntime']}",
         *(
@@ -380,6 +370,23 @@ def markdown(result: dict, has_plot: bool) -> str:
         ),
         f"- matmul peaks measured in this run, each engine's own kernels (GFLOP/s; int8: "
         f"GOP/s; the fastest call of two measurements, before and after the cells): {peaks}",
+    ]
+
+
+def markdown(result: dict, has_plot: bool) -> str:
+    models = result["models"]
+    weights = (
+        "seeded random weights (no trained checkpoint given): the deviation columns "
+        "measure numerics only"
+        if models.get("random_weights")
+        else f"checkpoint {models['checkpoint']}"
+    )
+    lines = [
+        "# msf-bench report",
+        "",
+        f"- date: {result['date']}; mode: {'quick' if result['quick'] else 'full'}; "
+        f"elapsed {result['elapsed_s'] / 60:.1f} min",
+        *_machine_lines(result),
         *[
             f"- dispatch on this machine, {k} model: {v}"
             for k, v in (result.get("dispatch") or {}).items()
