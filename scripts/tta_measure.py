@@ -20,7 +20,7 @@ import numpy as np
 from msfnet.runtime.api import Model
 from msfnet.runtime.evaluate.metrics import normal_metrics
 from msfnet.runtime.infer.tta import normals_back, transform_stack, tta_transforms
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack.load import LoadOptions, load_stack
 
 OBJECTS = {"ball": ("ballPNG", None), "bear": ("bearPNG", "21-96"), "harvest": ("harvestPNG", None)}

@@ -34,17 +34,18 @@ ALLOWED = {
 # a stack is read, inferred on by engines, measured, written; the API, batches and CLIs on top).
 RUNTIME_RANK = {
     "contract": 0,
+    "instrument": 0,  # the stage timer and memory readings every stage measures with
     "stack": 1,
     "engines": 1,
     "evaluate": 2,
     "demo": 2,
-    "results": 3,
-    "inspection": 7,  # defects from maps, the station (on the API) and its watch loop
-    "infer": 4,
+    "infer": 3,
+    "results": 4,
     "options": 5,
     "sources": 5,  # stack sources and decode-ahead, for the API's stream and the batch runner
     "stream": 5,  # what Model.stream returns: its results, and the stacks it did not run
     "api": 6,
+    "inspection": 7,  # defects from maps, the station (on the API) and its watch loop
     "batch": 7,
     "cli": 8,
 }

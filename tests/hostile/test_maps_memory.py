@@ -31,7 +31,7 @@ from msfnet.runtime.stack import Stack
 from msfnet.runtime.infer.least_squares import memory_in_use_mb
 
 # VmHWM on Linux: ru_maxrss would count the test runner's size at fork time (kept over exec)
-from msfnet.runtime.results.profile import peak_rss_mb as peak
+from msfnet.runtime.instrument import peak_rss_mb as peak
 
 room, out = float(sys.argv[1]), Path(sys.argv[2])
 n, h, w = 16, 600, 800  # a sphere filling the frame: every pixel in the mask

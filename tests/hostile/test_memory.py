@@ -29,7 +29,7 @@ CHILD = """
 import json, sys
 from pathlib import Path
 
-from msfnet.runtime.results.profile import peak_rss_mb as peak_mb  # VmHWM: not the parent's
+from msfnet.runtime.instrument import peak_rss_mb as peak_mb  # VmHWM: not the parent's
 
 from msfnet.common.errors import InputError
 from msfnet.runtime.stack import LoadOptions, load_stack
@@ -198,7 +198,7 @@ stack = Stack.from_arrays(images, lights)
 del images
 out = least_squares_normals(stack, trim_shadows=0.2, max_memory_mb=budget)
 # VmHWM on Linux: ru_maxrss would count the test runner's size at fork time (kept over exec)
-from msfnet.runtime.results.profile import peak_rss_mb
+from msfnet.runtime.instrument import peak_rss_mb
 peak = peak_rss_mb()
 print(json.dumps({"peak": peak, "stack": stack.images.nbytes / 2**20, "ok": bool(out.any())}))
 """

@@ -18,7 +18,7 @@ from msfnet.common.errors import InputError
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import Estimate, TilingOptions
 from msfnet.runtime.infer.least_squares import memory_in_use_mb
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack import Stack
 
 pytest.importorskip("psutil", reason="the budget is checked against resident memory (psutil)")
@@ -29,7 +29,7 @@ import numpy as np
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import LeastSquaresEstimator, TilingOptions
 from msfnet.runtime.infer.least_squares import memory_in_use_mb
-from msfnet.runtime.results.profile import StageTimer, peak_rss_mb
+from msfnet.runtime.instrument import StageTimer, peak_rss_mb
 from msfnet.runtime.stack import Stack
 
 room = float(sys.argv[1])

@@ -18,7 +18,7 @@ from msfnet.runtime.infer.ladder import (
     rung,
     shrink_stack,
 )
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 
 
 class FakeNetwork:

@@ -17,7 +17,7 @@ from msfnet.runtime.infer.tta import (
     tta_transforms,
     with_tta,
 )
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 from msfnet.synth.render import RenderOptions, render_stack
 
 ALL = tta_transforms(8)

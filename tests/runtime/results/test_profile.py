@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from msfnet.runtime.results.profile import memory_in_use_mb, peak_rss_mb
+from msfnet.runtime.instrument import memory_in_use_mb, peak_rss_mb
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/status is Linux's")

@@ -165,7 +165,7 @@ def _open(spec: dict):  # type: ignore[no-untyped-def]
 def measure_path(spec: dict) -> dict:
     """One --onnx row, in this process."""
     from msfnet.runtime.evaluate.metrics import normal_metrics
-    from msfnet.runtime.results.profile import peak_rss_mb
+    from msfnet.runtime.instrument import peak_rss_mb
 
     engine = _open(spec)
     crops = read_crops(Path(spec["crops"]))  # cut by the parent: peak MB is the engine's
@@ -226,7 +226,7 @@ def measure_requirement(spec: dict) -> dict:
     import cv2
 
     from msfnet.runtime.api import Model
-    from msfnet.runtime.results.profile import peak_rss_mb
+    from msfnet.runtime.instrument import peak_rss_mb
     from msfnet.runtime.stack import Stack, load_stack
 
     model = Model(

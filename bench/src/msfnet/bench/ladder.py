@@ -66,7 +66,7 @@ def measure_rung(spec: dict) -> dict:
     from msfnet.runtime.evaluate.detail_ratio import detail_ratio
     from msfnet.runtime.infer.estimators import LeastSquaresEstimator, TilingOptions
     from msfnet.runtime.infer.ladder import rung
-    from msfnet.runtime.results.profile import StageTimer, peak_rss_mb
+    from msfnet.runtime.instrument import StageTimer, peak_rss_mb
 
     step = rung(spec["rung"])
     model = Model(

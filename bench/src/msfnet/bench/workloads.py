@@ -147,7 +147,7 @@ def full_input(stack_dir: Path, lights: int) -> dict[str, np.ndarray]:
 
 def _max_rss_mb() -> float:
     """Peak RSS of this process (VmHWM on Linux: see msfnet.runtime.results.profile.peak_rss_mb)."""
-    from msfnet.runtime.results.profile import peak_rss_mb
+    from msfnet.runtime.instrument import peak_rss_mb
 
     return peak_rss_mb()
 

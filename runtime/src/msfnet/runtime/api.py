@@ -63,10 +63,11 @@ from msfnet.runtime.infer.fine_detail import FineDetailEstimator
 from msfnet.runtime.infer.ladder import RUNGS, reduced_network
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO, TilePlan
 from msfnet.runtime.infer.tta import TTAEstimator
+from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions, map_options
 from msfnet.runtime.results.maps import InspectionMaps, MapOptions, stack_maps
 from msfnet.runtime.results.maps.registered import Frame
-from msfnet.runtime.results.profile import BatchStats, Profile, StageTimer
+from msfnet.runtime.results.profile import BatchStats, Profile
 from msfnet.runtime.sources import (
     BatchItem,
     Decoded,

@@ -40,8 +40,8 @@ from msfnet.runtime.cli.flags import (
     model_options,
 )
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
+from msfnet.runtime.instrument import announce, announcing
 from msfnet.runtime.options import ModelOptions
-from msfnet.runtime.results.profile import announce, announcing
 from msfnet.runtime.stack import LoadOptions, Stack, folder_name, linked_reads
 
 PROG = "msf-run"
