@@ -239,7 +239,7 @@ def test_resume_with_another_exposure_is_refused(tmp_path):
     session["camera"] = {"backend": "opencv", "device": "0", "exposure": -6.0, "gain": 0.0}
     (out / "session.json").write_text(json.dumps(session))
     cam = Configured(rig, exposure=-5.0, gain=0.0)
-    with pytest.raises(InputError, match=r"exposure=-6\.0.*exposure=-5\.0.*--overwrite") as exc:
+    with pytest.raises(InputError, match=r"exposure=-6\.0.*exposure=-5\.0.*overwrite=True") as exc:
         capture_stack(cam, SimulatedLights(rig), out, progress=False, log=lambda m: None)
     assert exc.value.path == out / "session.json" and "gain" not in str(exc.value)
     assert rig.frames == 3 and len(list((out / "raw").iterdir())) == 3

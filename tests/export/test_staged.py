@@ -66,7 +66,7 @@ def test_staged_and_static_do_not_combine(tmp_path) -> None:
     from msfnet.export.pipeline import export_variant
     from msfnet.export.variants import ExportOptions, StaticShape
 
-    with pytest.raises(InputError, match="--staged and --static"):
+    with pytest.raises(InputError, match="staged=True and static do"):
         export_variant(
             tmp_path / "none.pth",
             "staged",

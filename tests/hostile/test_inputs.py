@@ -267,7 +267,7 @@ def test_threads_are_bounded_by_one_validator(threads: int) -> None:
 def test_bench_peaks_refuse_absurd_threads_before_measuring() -> None:
     from msfnet.bench.peak import engine_peaks
 
-    with pytest.raises(InputError, match="--threads"):
+    with pytest.raises(InputError, match="threads must be"):
         engine_peaks([2, 100_000], {"onnxruntime"}, torch_peaks=False)
 
 

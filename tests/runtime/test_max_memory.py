@@ -12,6 +12,7 @@ import pytest
 from _runtime_helpers import sphere_stack, write_npz_bomb
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import speaking_as
 from msfnet.runtime.infer.least_squares import least_squares_normals, rows_for_memory
 from msfnet.runtime.stack import LoadOptions, load_stack, save_stack
 
@@ -45,13 +46,20 @@ def test_least_squares_stays_within_the_budget(budget_mb: float) -> None:
 @pytest.mark.parametrize("value", [0.001, 1.0, 5.0])
 def test_least_squares_refuses_a_budget_below_the_stack(value: float) -> None:
     stack = sphere_stack(n=24, h=120, w=160)
-    with pytest.raises(InputError, match=rf"--max-memory {value:g} MB .* least squares"):
+    with (
+        speaking_as("msf-run"),
+        pytest.raises(
+            InputError, match=rf"^--max-memory {value:g} MB is too small for least squares"
+        ),
+    ):
         rows_for_memory(value, stack, in_use_mb=0)
+    with pytest.raises(InputError, match=rf"^max_memory_mb={value:g} MB is too small"):
+        rows_for_memory(value, stack, in_use_mb=0)  # from Python: the keyword
 
 
 @pytest.mark.parametrize("value", [float("nan"), float("inf"), 0.0, -1.0])
 def test_least_squares_refuses_nonsense_budgets(value: float) -> None:
-    with pytest.raises(InputError, match="--max-memory"):
+    with pytest.raises(InputError, match=r"^max_memory_mb must be a positive number of MB"):
         least_squares_normals(sphere_stack(), max_memory_mb=value)
 
 
@@ -62,7 +70,7 @@ def test_folder_loader_refuses_before_decoding(tmp_path: Path, monkeypatch) -> N
     decoded: list[Path] = []
     real = load.read_image
     monkeypatch.setattr(load, "read_image", lambda p, *a: decoded.append(p) or real(p, *a))
-    with pytest.raises(InputError, match=r"8 images of 160x120 take 0.88 MB.*--max-memory 0.5 MB"):
+    with pytest.raises(InputError, match=r"8 images of 160x120 take 0.88 MB.*max_memory_mb=0.5 MB"):
         load_stack(folder, LoadOptions(max_memory_mb=0.5))
     assert decoded == []  # refused from the headers alone
     assert load_stack(folder, LoadOptions(max_memory_mb=0.5, select="1-3")).num_lights == 3

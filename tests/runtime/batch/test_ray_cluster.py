@@ -13,6 +13,7 @@ import pytest
 from _runtime_helpers import sphere_stack
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import speaking_as
 from msfnet.runtime.api import Model
 from msfnet.runtime.batch import ray_cluster
 from msfnet.runtime.batch.ray_cluster import (
@@ -57,7 +58,7 @@ def test_a_worker_reports_a_bad_stack_as_text(random_onnx: Path, tmp_path: Path)
 
 @pytest.mark.parametrize("options", [{"engine": "openvino"}, {"precision": "bf16"}])
 def test_least_squares_refuses_engine_options_before_any_work(options: dict[str, str]) -> None:
-    with pytest.raises(InputError, match="--method l2 has no network"):
+    with speaking_as("msf-run"), pytest.raises(InputError, match="--method l2 has no network"):
         ModelSpec.of(ModelOptions(method="l2", **options))
     with pytest.raises(InputError, match="method='l2' has no network"):  # the API's words
         Model(method="l2", **options)
@@ -78,8 +79,10 @@ def _nodes(cpus: list[float]) -> list[RayNode]:
 def plan_workers(
     cpus: list[float], threads: int, stacks: int, max_memory_mb: float, workers: int | None = None
 ) -> WorkerPlan:
-    """The plan on nodes n0, n1, ... with these CPUs."""
-    return _plan_workers(_nodes(cpus), threads, stacks, max_memory_mb, workers)
+    """The plan on nodes n0, n1, ... with these CPUs, as msf-run --ray makes it (its messages
+    name msf-run's flags)."""
+    with speaking_as("msf-run"):
+        return _plan_workers(_nodes(cpus), threads, stacks, max_memory_mb, workers)
 
 
 def _counts(plan: WorkerPlan) -> dict[str | None, int]:

@@ -9,6 +9,7 @@ import pytest
 
 from msfnet.common.cpu import CpuInfo
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import speaking_as
 from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines import dispatch
 from msfnet.runtime.engines.dispatch import (
@@ -220,7 +221,9 @@ def test_open_engine_needs_a_model() -> None:
 
 
 def test_engine_override_reason_points_at_the_faster_path() -> None:
-    assert "--engine openvino" in choose_engine(FP32, AMX, BOTH, "onnxruntime").reason
+    with speaking_as("msf-run"):  # the reason names settings as its reader sets them
+        assert "--engine openvino" in choose_engine(FP32, AMX, BOTH, "onnxruntime").reason
+    assert "engine='openvino'" in choose_engine(FP32, AMX, BOTH, "onnxruntime").reason
     # an int8 export without percentile ranges (made before them) is measured above the bound
     over = choose_engine(INT8, AMX, BOTH, "openvino").reason
     assert "above the 0.5 deg bound" in over and "percentile" in over
@@ -284,7 +287,7 @@ def test_devices_resolve_to_their_engine(name, providers, ov, engine, target) ->
     choice = choose_engine(FP32_STAGED, AMX, BOTH, device=device)
     # the device's engine, the model's precision (no bf16 off the CPU), said in the reason
     assert (choice.engine, choice.precision, choice.device) == (engine, "fp32", device)
-    assert f"--device {device.name}" in choice.reason
+    assert f"device={device.name!r} given" in choice.reason  # from Python: the keyword
     assert choose_engine(INT8, AMX, BOTH, device=device).precision == "int8"
 
 
@@ -314,7 +317,12 @@ def test_absent_devices_are_one_line_refusals(name, providers, ov, message) -> N
 def test_device_conflicts_are_errors() -> None:
     cuda = dispatch.Device("cuda", "onnxruntime", "CUDAExecutionProvider")
     gpu = dispatch.Device("gpu", "openvino", "GPU")
-    with pytest.raises(InputError, match="runs on onnxruntime, not --engine openvino"):
+    with (
+        speaking_as("msf-run"),
+        pytest.raises(
+            InputError, match=r"^--device cuda runs on onnxruntime, not --engine openvino$"
+        ),
+    ):
         choose_engine(FP32, AMX, BOTH, "openvino", device=cuda)
     with pytest.raises(InputError, match="bf16 is a CPU path"):
         choose_engine(FP32, AMX, BOTH, None, "bf16", device=gpu)
@@ -327,7 +335,8 @@ def test_this_machine_refuses_absent_devices_in_one_line() -> None:
     # where one is present the device resolves instead
     for name in ("cuda", "tensorrt", "gpu", "npu"):
         try:
-            device = dispatch.resolve_device(name)
+            with speaking_as("msf-run"):
+                device = dispatch.resolve_device(name)
         except InputError as exc:
             assert "\n" not in str(exc) and f"--device {name}" in str(exc)
         else:
@@ -401,7 +410,7 @@ def test_open_engine_bounds_threads_with_the_shared_constant(threads: int) -> No
     from msfnet.common.cpu import MAX_THREADS
 
     choice = dispatch.EngineChoice("onnxruntime", "fp32", "test", Path("missing.onnx"))
-    with pytest.raises(InputError, match=rf"--threads must be an integer in 1\.\.{MAX_THREADS}"):
+    with pytest.raises(InputError, match=rf"threads must be an integer in 1\.\.{MAX_THREADS}"):
         open_engine(choice, threads)
 
 

@@ -15,6 +15,7 @@ import pytest
 from _runtime_helpers import ring_lights
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import speaking_as
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import Estimate, TilingOptions
 from msfnet.runtime.infer.least_squares import memory_in_use_mb
@@ -95,6 +96,12 @@ def test_a_budget_too_small_is_refused_before_the_network() -> None:
     net = _Network()
     held = memory_in_use_mb()
     assert held is not None
-    with pytest.raises(InputError, match=r"too small for the detail fusion .*--no-detail-fusion"):
+    with (
+        speaking_as("msf-run"),
+        pytest.raises(
+            InputError,
+            match=r"too small for the detail fusion \(--no-detail-fusion runs without it\)",
+        ),
+    ):
         DetailFusionEstimator(net).estimate(stack, TilingOptions(None, held + 1.0), StageTimer())
     assert not net.ran

@@ -7,6 +7,7 @@ import pytest
 from _runtime_helpers import sphere_stack
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import speaking_as
 from msfnet.runtime.api import Model
 from msfnet.runtime.evaluate.detail_ratio import highpass_energy, masked_smooth
 from msfnet.runtime.infer.fine_detail import enlarge, fuse, shrink
@@ -28,8 +29,18 @@ def test_enlarge_keeps_dtype_lights_and_the_outline() -> None:
     # boundary it fits, a hair under it is refused
     need = BASE_MEMORY_MB + 5 * stack.images.nbytes / 2**20
     enlarge(stack, 2, max_memory_mb=need)
-    with pytest.raises(InputError, match=r"its 2x enlargement beside .* above --max-memory"):
+    with (
+        speaking_as("msf-run"),
+        pytest.raises(
+            InputError,
+            match=r": --fine-detail holds the stack and its 2x .* above --max-memory [\d.]+ MB",
+        ),
+    ):
         enlarge(stack, 2, max_memory_mb=need - 0.01)
+    with pytest.raises(
+        InputError, match=r"above max_memory_mb=.* \(use roi, downscale, max_lights"
+    ):
+        enlarge(stack, 2, max_memory_mb=need - 0.01)  # from Python: the keywords
     with pytest.raises(InputError, match=r"runtime's 300 MB"):  # the stack's 5x alone fits
         enlarge(stack, 2, max_memory_mb=5.1 * stack.images.nbytes / 2**20)
 
@@ -140,7 +151,7 @@ def test_the_bundled_model_keeps_more_true_relief_with_fine_detail(
 
 
 def test_least_squares_has_no_fine_detail_mode() -> None:
-    with pytest.raises(InputError, match="--fine-detail"):
+    with pytest.raises(InputError, match=r"fine detail \(fine_detail=True\) runs the network a"):
         Model(method="l2", fine_detail=True)
 
 

@@ -355,7 +355,7 @@ def test_curvature_keeps_the_polarity_and_the_reference() -> None:
     assert len(both.regions) == 2
     against_itself, _ = find_defects(part, DefectOptions(curvature=0.1), part)
     assert against_itself.passed
-    with pytest.raises(InputError, match=r"--depth needs local_shape\.tif"):
+    with pytest.raises(InputError, match=r"^part: depth needs local_shape\.tif"):
         find_defects(part, DefectOptions(depth=0.1))
 
 

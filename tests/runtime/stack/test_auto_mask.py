@@ -63,7 +63,7 @@ def test_a_folder_mask_far_from_the_auto_mask_gets_one_warning(tmp_path: Path) -
     stack = load_stack(folder, auto_mask=True)
     assert _iou(stack.mask, truth) > 0.9  # the automatic mask is the one used...
     (line,) = stack.warnings  # ...and it says so, once
-    assert "--auto-mask" in line and "mask.png" in line and "IoU 0.5" in line
+    assert "auto_mask=True finds" in line and "mask.png" in line and "IoU 0.5" in line
     # kept when the stack is validated again (Model(stack) does) or a subset taken
     assert stack.validate().warnings == [line]
     assert stack.subset([0, 1, 2]).validate().warnings == [line]

@@ -146,7 +146,7 @@ def test_max_memory_counts_the_type_held(
     decoded: list[Path] = []
     real = load.read_image
     monkeypatch.setattr(load, "read_image", lambda p, *a: decoded.append(p) or real(p, *a))
-    with pytest.raises(InputError, match=rf"take {said} MB loaded, above --max-memory 0.1 MB"):
+    with pytest.raises(InputError, match=rf"take {said} MB loaded, above max_memory_mb=0.1 MB"):
         load_stack(folder, LoadOptions(max_memory_mb=0.1, **options))
     assert decoded == []  # refused from the headers, before decoding any image
     s = load_stack(folder, LoadOptions(max_memory_mb=mb * 1.01, **options))

@@ -225,7 +225,7 @@ def test_roi_argument_type() -> None:
 
 def test_float_images_need_a_white_level_to_be_linearised() -> None:
     stack = sphere_stack(n=4, h=20, w=20)  # float values up to ~48000
-    with pytest.raises(InputError, match="--white-level"):
+    with pytest.raises(InputError, match=r"value \(white_level\) to linearise"):
         prepare_stack(stack, LoadOptions(srgb=True))
     out = prepare_stack(stack, LoadOptions(srgb=True, white_level=65535.0))
     assert out.images.max() < stack.images.max()  # the EOTF lowers every value below white

@@ -51,6 +51,7 @@ from msfnet.common.imageio import (
     read_mask,
     write_png,
 )
+from msfnet.common.vocabulary import declare, opt, verbatim
 from msfnet.runtime.stack import (
     FILENAMES_FILE,
     INTENSITIES_FILE,
@@ -75,6 +76,9 @@ if TYPE_CHECKING:
     from msfnet.runtime.api import Model, Result
     from msfnet.runtime.stack import LoadOptions
 
+# msf-capture's --light-intensities (--srgb and --gamma are LoadOptions', spelled the same)
+declare("light_intensities", "--light-intensities")
+
 SESSION = "session.json"
 # Ground truth as earlier msf-capture versions wrote it: still read on resume, and kept while
 # unchanged (the loader reads it too); new ground truth goes to Normal_gt.mat like save_stack's.
@@ -91,9 +95,11 @@ class Linearisation:
 
     def __post_init__(self) -> None:
         if self.srgb and self.gamma is not None:
-            raise InputError("--srgb and --gamma both linearise: give one of them")
+            raise InputError(f"{opt('srgb')} and {opt('gamma')} both linearise: give one of them")
         if self.gamma is not None and not self.gamma > 0:
-            raise InputError(f"--gamma {self.gamma}: must be a positive number")
+            raise InputError(
+                f"{opt('gamma', verbatim(str(self.gamma)))}: must be a positive number"
+            )
 
     @property
     def active(self) -> bool:
@@ -212,7 +218,9 @@ _BUILT_KEYS = ("linearisation", "ambient_subtracted", "stack_white_level")
 def _instead(overwrite_allowed: bool) -> str:
     """What to do instead, naming --overwrite only where the caller has it (msf-capture
     --loop refuses it)."""
-    return "use another folder or --overwrite" if overwrite_allowed else "use another folder"
+    return (
+        f"use another folder or {opt('overwrite')}" if overwrite_allowed else "use another folder"
+    )
 
 
 def _load_session(path: Path, count: int, camera: dict, overwrite_allowed: bool = True) -> dict:
@@ -223,8 +231,8 @@ def _load_session(path: Path, count: int, camera: dict, overwrite_allowed: bool 
     data = read_session(path)
     if data.get("discarding"):
         raise InputError(
-            "an earlier --overwrite was interrupted while discarding this session: run it with "
-            "--overwrite again to start over"
+            f"an earlier {opt('overwrite')} was interrupted while discarding this session: run "
+            f"it with {opt('overwrite')} again to start over"
             + ("" if overwrite_allowed else ", or use another folder"),
             path,
         )
@@ -317,9 +325,9 @@ def _check_new_names(out: Path, count: int) -> None:
         for p in (out / _name(i), out / "raw" / _name(i)):
             if os.path.lexists(p):
                 raise InputError(
-                    f"--overwrite: {p.relative_to(out)} is not the previous session's (it had "
-                    f"{old} lights) and a {count}-light session would replace it: move it away "
-                    "or use another folder",
+                    f"{opt('overwrite')}: {p.relative_to(out)} is not the previous session's "
+                    f"(it had {old} lights) and a {count}-light session would replace it: move "
+                    "it away or use another folder",
                     out,
                 )
 
@@ -381,7 +389,7 @@ def check_folder(
     clash = _capture_names(out)
     if clash:
         raise InputError(
-            f"{'--overwrite: ' if overwrite else ''}{clash[0].relative_to(out)} is not "
+            f"{opt('overwrite') + ': ' if overwrite else ''}{clash[0].relative_to(out)} is not "
             "msf-capture's (the folder has no session.json) and would be replaced; "
             "msf-capture replaces only what it captured: move it away or use another folder",
             out,
@@ -394,7 +402,7 @@ def check_folder(
     )
     if theirs:
         example = theirs[0].name
-        how = ", or --overwrite to capture into it anyway" if overwrite_allowed else ""
+        how = f", or {opt('overwrite')} to capture into it anyway" if overwrite_allowed else ""
         raise InputError(
             f"the folder holds images msf-capture did not take (e.g. {example}, "
             f"and no session.json): use another folder{how}",
@@ -635,7 +643,7 @@ def _capture(
     if not pending and not unchecked and _finished(out, n) and sess_path.is_file():
         log(
             f"stack complete: all {n} frames are already in {raw}; nothing to capture "
-            "(kept as it is; --overwrite captures again)"
+            f"(kept as it is; {opt('overwrite')} captures again)"
         )
         judge_all()
         return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt, log=log)
@@ -781,7 +789,7 @@ def finish_stack(
             (out / INTENSITIES_FILE).unlink()
             log(
                 f"removed {INTENSITIES_FILE}: it was for the previous light directions "
-                "(give --light-intensities to add new ones)"
+                f"(give {opt('light_intensities')} to add new ones)"
             )
     if ints is not None and _text_changed(out / INTENSITIES_FILE, vectors_text(ints), log):
         write_intensities(out, ints)

@@ -21,6 +21,7 @@ import numpy as np
 from msfnet.calib.sphere import Circle, finite_lstsq
 from msfnet.common.camera import Intrinsics
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.evaluate.metrics import angular_error_deg
 
 
@@ -392,7 +393,10 @@ def _why_none(failed: list[list[LightEstimate]], fitted: bool = False) -> str:
     else:
         cause = "light off, sphere mask wrong, or exposure too low"
     if fitted:
-        return f"the sphere fitted from the images may be wrong: pass a mask (--mask); else {cause}"
+        return (
+            f"the sphere fitted from the images may be wrong: pass a mask ({opt('mask')}); "
+            f"else {cause}"
+        )
     return cause
 
 

@@ -17,6 +17,12 @@ import numpy as np
 from msfnet.calib.directions import Intrinsics, sphere_geometry
 from msfnet.calib.sphere import Circle
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt
+
+# msf-calib intensities' --target, --normal and --accept-poor-fit
+declare("target", "--target")
+declare("normal", "--normal")
+declare("accept_poor_fit", "--accept-poor-fit", "store_true")
 
 # Relative fit residual ||I - e s|| / ||I|| over the used pixels of every light. Measured:
 # right lights: rendered Lambertian spheres 0.0002 (16-bit), 0.005 (8-bit), 0.04 (1 % noise);
@@ -26,10 +32,13 @@ from msfnet.common.errors import InputError
 # plane 0.41; a mirror sphere 0.34 (rendered) / 0.99 (psmImages/chrome).
 FIT_WARN = 0.15
 FIT_REFUSE = 0.20
-_FIT_HINT = (
-    "a wrong lights file, axis convention (x right, y up, z toward the camera) or target "
-    "shape (--target, --normal), or a glossy / non-matte target"
-)
+
+
+def _fit_hint() -> str:
+    return (
+        "a wrong lights file, axis convention (x right, y up, z toward the camera) or target "
+        f"shape ({opt('target')}, {opt('normal')}), or a glossy / non-matte target"
+    )
 
 
 def target_normals(
@@ -151,13 +160,13 @@ def estimate_intensities(
         raise InputError(
             f"the target does not fit matte shading under these light directions (fit "
             f"residual {residual:.0%}, at most {FIT_REFUSE:.0%} accepted): check for "
-            f"{_FIT_HINT} (--accept-poor-fit writes them anyway)",
+            f"{_fit_hint()} ({opt('accept_poor_fit')} writes them anyway)",
             source,
         )
     if residual > FIT_WARN:
         warnings.append(
             f"{source or 'the images'}: the target fits matte shading poorly (fit residual "
-            f"{residual:.0%}): check for {_FIT_HINT}"
+            f"{residual:.0%}): check for {_fit_hint()}"
         )
     return out / out.mean(), warnings
 

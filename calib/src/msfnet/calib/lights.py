@@ -18,6 +18,10 @@ from collections.abc import Callable
 from typing import Protocol
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt
+
+# msf-capture's --count
+declare("count", "--count")
 
 
 class Lights(Protocol):
@@ -71,7 +75,7 @@ class SerialLights:
         self.count = count if count is not None else (reported or 0)
         if self.count <= 0:
             raise InputError(
-                f"controller did not report its light count (reply {reply!r}); pass --count"
+                f"controller did not report its light count (reply {reply!r}); pass {opt('count')}"
             )
         if level is not None:
             self._command(f"LEVEL {int(level)}")

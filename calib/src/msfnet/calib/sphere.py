@@ -12,6 +12,11 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt
+
+# msf-calib's --mask (LoadOptions.mask, spelled the same) and --spheres
+declare("mask", "--mask")
+declare("spheres", "--spheres")
 
 
 @dataclass(frozen=True)
@@ -172,11 +177,14 @@ def fit_circles_from_images(
         if len(found) >= count:
             break
     if not found:
-        raise InputError("could not find the sphere in the images: pass a mask (--mask)", source)
+        raise InputError(
+            f"could not find the sphere in the images: pass a mask ({opt('mask')})", source
+        )
     if len(found) < count:
         raise InputError(
             f"found only {len(found)} sphere{'s' if len(found) > 1 else ''} in the images, "
-            f"not {count} (--spheres {count}): pass a mask (--mask) or a lower --spheres",
+            f"not {count} ({opt('spheres', count)}): pass a mask ({opt('mask')}) or a lower "
+            f"{opt('spheres')}",
             source,
         )
     return sorted(found, key=lambda c: c.cx)

@@ -21,6 +21,7 @@ import onnx
 import torch
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.export.variants import StaticShape
 from msfnet.model.network import MSFNet
 
@@ -229,7 +230,9 @@ def simplify(proto: onnx.ModelProto) -> onnx.ModelProto:
     try:
         import onnxslim
     except ImportError as exc:
-        raise InputError("--simplify needs the onnxslim package: pip install onnxslim") from exc
+        raise InputError(
+            f"{opt('simplify')} needs the onnxslim package: pip install onnxslim"
+        ) from exc
     simplified = onnxslim.slim(proto)
     if _dims(simplified) != _dims(proto):
         raise InputError(

@@ -27,6 +27,7 @@ import torch
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, write_atomic
 from msfnet.common.signals import Terminated
+from msfnet.common.vocabulary import opt
 from msfnet.export.onnx_export import STAGED_CHECK_CHUNK, default_checks
 from msfnet.export.passes import PASSES, PassContext
 from msfnet.export.variants import (
@@ -121,7 +122,7 @@ def run_export(
     if variant.graph == "staged" and not (model.mfe and model.mff):
         raise InputError(
             "an ablation checkpoint (msf-train --no-mfe / --no-mff): the staged "
-            "graph needs the full network; export it with --plain",
+            f"graph needs the full network; export it with {opt('plain')}",
             checkpoint,
         )
     stacks = load_stacks(calib)

@@ -26,9 +26,13 @@ import numpy as np
 import onnx
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.contract import METADATA_KEYS, TRAIN_LIGHTS
 from msfnet.runtime.infer.normalise import network_input
 from msfnet.runtime.stack import Stack, load_stack
+
+# msf-export's --calib (also declared by export.variants, which this module does not import)
+declare("calib", "--calib")
 
 CALIB_TILE = 64
 # Up to 96 lights: the max over more lights reaches larger feature values, so a calibration at
@@ -48,11 +52,11 @@ MIN_CALIB_LIGHTS = 8
 def check_calibration(stacks: Sequence[Stack]) -> None:
     """Refuse calibration stacks too small to set int8 ranges from, naming the minimum."""
     if not stacks:
-        raise InputError("--calib: give at least one stack to calibrate on")
+        raise InputError(f"{opt('calib')}: give at least one stack to calibrate on")
     for s in stacks:
         if s.num_lights < MIN_CALIB_LIGHTS:
             raise InputError(
-                f"--calib: {s.num_lights} lights; int8 calibration needs at least "
+                f"{opt('calib')}: {s.num_lights} lights; int8 calibration needs at least "
                 f"{MIN_CALIB_LIGHTS} per stack",
                 s.source or s.name,
             )
@@ -60,7 +64,7 @@ def check_calibration(stacks: Sequence[Stack]) -> None:
     if pixels < MIN_CALIB_PIXELS:
         sizes = ", ".join(f"{s.name} {s.shape[1]}x{s.shape[0]}" for s in stacks)
         raise InputError(
-            f"--calib: {pixels} object pixel(s) in all ({sizes}); int8 calibration needs at "
+            f"{opt('calib')}: {pixels} object pixel(s) in all ({sizes}); int8 calibration needs at "
             f"least {MIN_CALIB_PIXELS} (a {MIN_CALIB_SIDE} x {MIN_CALIB_SIDE} patch of object)"
         )
 

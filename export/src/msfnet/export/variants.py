@@ -23,10 +23,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
+from msfnet.common.vocabulary import declare, opt, verbatim
 from msfnet.runtime.contract import TRAIN_LIGHTS
 
 if TYPE_CHECKING:
     pass
+
+# msf-export's flags (its parser's own; ExportOptions' fields and variant_for's parameters)
+declare("static", "--static")
+declare("staged", "--staged", "store_true")
+declare("plain", "--plain", "store_true")
+declare("int8", "--int8", "store_true")
+declare("fp16_weights", "--fp16-weights", "store_true")
+declare("calib", "--calib")
+declare("opset", "--opset")
+declare("train_lights", "--train-lights")
+declare("tolerance_deg", "--tolerance")
+declare("weight_bits", "--weight-bits")
+declare("simplify", "--simplify", "store_true")
 
 Graph = Literal["dynamic", "static", "staged"]
 Precision = Literal["fp32", "fp16-weights", "int8"]
@@ -247,13 +261,15 @@ def variant_for(
 
     if staged and static:
         raise InputError(
-            "--staged and --static do not combine (the staged graph's entry "
+            f"{opt('staged')} and {opt('static')} do not combine (the staged graph's entry "
             "points need dynamic shapes)"
         )
     if staged and plain:
-        raise InputError("--staged and --plain contradict each other")
+        raise InputError(f"{opt('staged')} and {opt('plain')} contradict each other")
     if int8 and fp16_weights:
-        raise InputError("--int8 and --fp16-weights do not combine (int8 stores its own weights)")
+        raise InputError(
+            f"{opt('int8')} and {opt('fp16_weights')} do not combine (int8 stores its own weights)"
+        )
     graph: Graph = "static" if static else "dynamic" if plain else "staged"
     precision: Precision = "int8" if int8 else "fp16-weights" if fp16_weights else "fp32"
     for v in VARIANTS:
@@ -370,35 +386,40 @@ def check_options(variant: Variant, options: ExportOptions, calib: Sequence[obje
     from msfnet.common.errors import InputError
 
     if not MIN_OPSET <= options.opset <= MAX_OPSET:
-        raise InputError(f"--opset {options.opset}: supported opsets are {MIN_OPSET}-{MAX_OPSET}")
+        raise InputError(
+            f"{opt('opset', options.opset)}: supported opsets are {MIN_OPSET}-{MAX_OPSET}"
+        )
     if variant.needs_calibration and options.opset < MIN_INT8_OPSET:
         raise InputError(
-            f"--opset {options.opset}: int8 needs opset {MIN_INT8_OPSET} or "
+            f"{opt('opset', options.opset)}: int8 needs opset {MIN_INT8_OPSET} or "
             "higher (per-channel quantisation)"
         )
     if options.train_lights < 1:
-        raise InputError(f"--train-lights must be positive, got {options.train_lights}")
+        raise InputError(f"{opt('train_lights')} must be positive, got {options.train_lights}")
     tol = options.tolerance_deg
     if tol is not None and not (math.isfinite(tol) and tol > 0):
-        raise InputError(f"--tolerance must be a positive number of degrees, got {tol}")
+        raise InputError(f"{opt('tolerance_deg')} must be a positive number of degrees, got {tol}")
     if variant.graph == "staged" and options.static is not None:
         raise InputError(
-            "--staged and --static do not combine (the staged graph's entry "
+            f"{opt('staged')} and {opt('static')} do not combine (the staged graph's entry "
             "points need dynamic shapes)"
         )
     if variant.needs_shape and options.static is None:
-        raise InputError(f"variant {variant.name} needs --static N,H,W")
+        raise InputError(f"variant {variant.name} needs {opt('static', verbatim('N,H,W'))}")
     if not variant.needs_shape and options.static is not None:
-        raise InputError(f"--static N,H,W is for the static variants, not {variant.name}")
+        raise InputError(
+            f"{opt('static', verbatim('N,H,W'))} is for the static variants, not {variant.name}"
+        )
     if options.weight_bits not in (None, 7, 8):
-        raise InputError(f"--weight-bits {options.weight_bits}: expected 7 or 8")
+        raise InputError(f"{opt('weight_bits', options.weight_bits)}: expected 7 or 8")
     if options.weight_bits is not None and not variant.needs_calibration:
         raise InputError(
-            f"--weight-bits: only the int8 variants quantise weights, not {variant.name}"
+            f"{opt('weight_bits')}: only the int8 variants quantise weights, not {variant.name}"
         )
     if variant.needs_calibration and not calib:
         raise InputError(
-            f"{variant.name} needs --calib STACK [STACK ...] (real stacks to calibrate on)"
+            f"{variant.name} needs {opt('calib', verbatim('STACK [STACK ...]'))} "
+            "(real stacks to calibrate on)"
         )
 
 

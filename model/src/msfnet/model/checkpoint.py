@@ -20,7 +20,11 @@ import torch
 
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import write_atomic
+from msfnet.common.vocabulary import declare, opt
 from msfnet.model.network import MSFNet
+
+# msf-average's --fp16 (save_checkpoint's fp16)
+declare("fp16", "--fp16", "store_true")
 
 
 def default_checkpoint_path() -> Path:
@@ -299,7 +303,7 @@ def checkpoint_content(
         big = [k for k, v in state.items() if v.is_floating_point() and v.abs().max() > 65504]
         if big:
             raise CheckpointError(
-                f"{big[0]} holds values beyond fp16's range (65504); write it without --fp16"
+                f"{big[0]} holds values beyond fp16's range (65504); write it without {opt('fp16')}"
             )
         state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
     return {"state_dict": state, "model": "MSF_Net", **extra}

@@ -27,10 +27,14 @@ import torch
 
 from msfnet.common.errors import InputError
 from msfnet.common.imageio import read_image
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.contract import TRAIN_LIGHTS
 from msfnet.runtime.infer.normalise import normalise
 from msfnet.runtime.stack import MIN_LIGHTS, Stack, as_held, read_normals, unit_lights
 from msfnet.synth.render import RenderOptions, render_stack
+
+# msf-train's --lights (its parser's own; LoadOptions' --lights is spelled the same)
+declare("lights", "--lights")
 
 
 @dataclass
@@ -259,7 +263,7 @@ def check_blobby_samples(pairs: Sequence[tuple[Path, Path]], lights: int) -> Non
         folder = image_list.parent
         if len(names) < lights:
             fix = (
-                f"lower --lights or the curriculum's LMAX to {len(names)}, or "
+                f"lower {opt('lights')} or the curriculum's LMAX to {len(names)}, or "
                 if len(names) >= MIN_LIGHTS
                 else ""
             )

@@ -30,6 +30,7 @@ from msfnet.common.cpu import usable_cores
 from msfnet.common.errors import InputError
 from msfnet.common.files import STAGING_TAG, folder_lock, staged_files, to_jsonable, write_atomic
 from msfnet.common.files.locks import LOCK_NAME
+from msfnet.common.vocabulary import opt, verbatim
 from msfnet.model.checkpoint import (
     check_state_dict,
     checkpoint_content,
@@ -163,10 +164,11 @@ def bf16_available() -> bool:
 def resolve_device(name: str) -> torch.device:
     """``auto`` = cuda when torch sees a GPU, else cpu; ``cuda`` without one is an error."""
     if name not in ("auto", "cpu", "cuda"):
-        raise InputError(f"--device {name!r}: choose auto, cpu or cuda")
+        raise InputError(f"{opt('device', name, quote=True)}: choose auto, cpu or cuda")
     if name == "cuda" and not torch.cuda.is_available():
         raise InputError(
-            "--device cuda: torch sees no CUDA GPU (a CPU-only torch build, or no driver)"
+            f"{opt('device', 'cuda')}: torch sees no CUDA GPU (a CPU-only torch build, or no "
+            "driver)"
         )
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
@@ -264,13 +266,15 @@ class Trainer:
         self.device = resolve_device(cfg.device)
         self.workers = default_workers(self.device) if cfg.workers is None else cfg.workers
         if self.workers < 0:
-            raise InputError("--workers must be >= 0")
+            raise InputError(f"{opt('workers')} must be >= 0")
         if cfg.render_on not in ("cpu", "device"):
-            raise InputError(f"--render-on {cfg.render_on!r}: choose cpu or device")
+            raise InputError(f"{opt('render_on', cfg.render_on, quote=True)}: choose cpu or device")
         self.on_device = cfg.render_on == "device"
         if self.on_device:
             if cfg.data != "synth":
-                raise InputError("--render-on device renders synthetic data; drop --data")
+                raise InputError(
+                    f"{opt('render_on', 'device')} renders synthetic data; drop {opt('data')}"
+                )
             self.workers = 0  # nothing to render on the CPU
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
@@ -285,7 +289,8 @@ class Trainer:
         can_bf16 = torch.cuda.is_bf16_supported() if cuda else bf16_available()
         if cfg.precision == "bf16" and not can_bf16:
             raise InputError(
-                f"--precision bf16: this {self.device.type.upper()}/torch cannot run bf16 autocast"
+                f"{opt('precision', 'bf16')}: this {self.device.type.upper()}/torch cannot run "
+                "bf16 autocast"
             )
         self.bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and can_bf16)
         if cuda:
@@ -368,8 +373,8 @@ class Trainer:
             else f"last.pth is left at step {self.saved_step}"
         )
         return InputError(
-            f"training diverged: {what} at step {step} (a learning rate too high? --lr "
-            f"{self.cfg.lr:g}); {kept}",
+            f"training diverged: {what} at step {step} (a learning rate too high? "
+            f"{opt('lr', verbatim(f'{self.cfg.lr:g}'))}); {kept}",
             self.out,
         )
 
@@ -402,7 +407,7 @@ class Trainer:
             raise InputError(
                 f"last.pth is from step {saved} but last_state.pth from step "
                 f"{st['step']} (the run was stopped while saving); start a new "
-                "run with --init on last.pth",
+                f"run with {opt('init')} on last.pth",
                 self.out,
             )
         try:
@@ -670,7 +675,7 @@ class Trainer:
             if report:
                 print(
                     f"msf-train: the run ended before its first last.pth; kept in {self.out}: "
-                    f"{', '.join(weights)} (start a new run from one with --init)",
+                    f"{', '.join(weights)} (start a new run from one with {opt('init')})",
                     flush=True,
                 )
             return

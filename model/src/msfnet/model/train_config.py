@@ -22,7 +22,7 @@ from msfnet.common.cli import (
     thread_count,
 )
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import flag, options_type
+from msfnet.common.vocabulary import flag, opt, options_type
 from msfnet.runtime.stack.types import MIN_LIGHTS
 from msfnet.synth.render import PRESETS, RenderOptions
 
@@ -42,10 +42,11 @@ class Phase:
     crop: int
 
 
-def parse_curriculum(spec: str, source: str = "--curriculum") -> list[Phase]:
+def parse_curriculum(spec: str, source: str | None = None) -> list[Phase]:
     """``"0:8-16:32,4:16-32:32"`` -> phases (start epoch : lights range : crop size).
-    ``source``: what errors name as the curriculum's origin (the option the user typed)."""
-    where = f"{source} {spec!r}"
+    ``source``: what errors name as the curriculum's origin (default: the ``curriculum``
+    setting, as its reader sets it)."""
+    where = opt("curriculum", spec, quote=True) if source is None else f"{source} {spec!r}"
     phases = []
     try:
         for part in spec.split(","):

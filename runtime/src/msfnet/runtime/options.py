@@ -19,7 +19,7 @@ from pathlib import Path
 from msfnet.common.cli import path_arg, positive_float, thread_count
 from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import flag, options_type
+from msfnet.common.vocabulary import flag, opt, options_type, verbatim
 from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
 from msfnet.runtime.results.maps.api import MAP_NAMES, MapOptions
@@ -208,41 +208,43 @@ class ModelOptions:
         if self.method == "l2":
             if self.model is not None:
                 raise InputError(
-                    "least squares (--method l2, method='l2') needs no model; drop --onnx / model"
+                    f"least squares ({opt('method', 'l2')}) needs no model; drop {opt('model')}"
                 )
             if self.engine or self.precision:
                 raise InputError(
-                    "engine / precision (--engine / --precision) choose how the network runs; "
-                    "--method l2 has no network"
+                    f"{opt('engine')} / {opt('precision')} choose how the network runs; "
+                    f"{opt('method', 'l2')} has no network"
                 )
             if self.fine_detail:
                 raise InputError(
-                    "fine detail (--fine-detail, fine_detail=True) runs the network a second "
-                    "time; --method l2 has no network (least squares keeps all detail, and its "
-                    "noise)"
+                    f"fine detail ({opt('fine_detail')}) runs the network a second time; "
+                    f"{opt('method', 'l2')} has no network (least squares keeps all detail, "
+                    "and its noise)"
                 )
         if self.method == "l2" and (self.speed != "full" or self.device):
             raise InputError(
-                "speed / device (--speed / --device) choose how the network runs; "
-                "--method l2 has no network"
+                f"{opt('speed')} / {opt('device')} choose how the network runs; "
+                f"{opt('method', 'l2')} has no network"
             )
         if self.speed not in ("full", "balanced", "fast"):
             raise InputError(f"speed {self.speed!r}: expected full, balanced or fast")
         if self.speed != "full" and self.fine_detail:
             raise InputError(
-                f"--speed {self.speed} runs the network at a reduced resolution, --fine-detail "
-                "at twice the full one: choose one"
+                f"{opt('speed', self.speed)} runs the network at a reduced resolution, "
+                f"{opt('fine_detail')} at twice the full one: choose one"
             )
         if self.device and self.provider:
             raise InputError(
-                "--device and --provider both pick where ONNX Runtime runs: use --device"
+                f"{opt('device')} and {opt('provider')} both pick where ONNX Runtime runs: "
+                f"use {opt('device')}"
             )
         if self.tta not in TTA_COUNTS:
             raise InputError(f"tta {self.tta!r}: expected 1 (off), 4 or 8 copies")
         if self.tta > 1 and self.method == "l2":
             raise InputError(
-                "test-time augmentation (--tta, tta=) averages the network over turned "
-                "copies; least squares (--method l2) gives the same normals for every copy"
+                f"test-time augmentation ({opt('tta')}) averages the network over turned "
+                f"copies; least squares ({opt('method', 'l2')}) gives the same normals for "
+                "every copy"
             )
         if self.timeout_s is not None and not (
             math.isfinite(self.timeout_s) and self.timeout_s > 0
@@ -259,7 +261,8 @@ class ModelOptions:
             or (tile != 0 and (tile < MIN_TILE or tile % INPUT_MULTIPLE))
         ):
             raise InputError(
-                f"--tile {tile!r}: expected 0 (no tiling) or a window edge in px, a multiple "
+                f"{opt('tile', verbatim(repr(tile)))}: expected 0 (no tiling) or a window "
+                "edge in px, a multiple "
                 f"of {INPUT_MULTIPLE} and at least {MIN_TILE} (2 x {HALO} px halo + "
                 f"{INPUT_MULTIPLE})"
             )

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import writing_as
+from msfnet.common.vocabulary import declare, opt, speaking_as
 from msfnet.runtime.batch.runner import BatchItem, BatchSummary, OnResult, StackRow, row_for
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.options import ModelOptions
@@ -48,6 +49,9 @@ from msfnet.runtime.stack import LoadOptions, load_stack
 if TYPE_CHECKING:
     from msfnet.runtime.api import Model, Result
 
+# msf-run's --ray ADDRESS and --workers K (Ray's batch; no options type holds them)
+declare("ray", "--ray")
+declare("workers", "--workers")
 
 # The least share of --max-memory a worker is started with when --workers is not given: a full
 # DiLiGenT object (96 lights, 612 x 512) peaks at 1.0-1.3 GiB at the default budget
@@ -86,7 +90,7 @@ def cluster_endpoint(address: str) -> tuple[str, int] | None:
         port_text = str(RAY_CLIENT_PORT)
     if not valid or not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
         raise InputError(
-            f"--ray {address}: not a cluster address (expected HOST:PORT, ray://HOST[:PORT] "
+            f"{opt('ray', address)}: not a cluster address (expected HOST:PORT, ray://HOST[:PORT] "
             "or auto; a port in 1..65535)"
         )
     return host, int(port_text)
@@ -119,7 +123,7 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
         why = exc.strerror or type(exc).__name__
     else:
         return
-    raise InputError(f"--ray {address}: cannot connect: {why}")
+    raise InputError(f"{opt('ray', address)}: cannot connect: {why}")
 
 
 def import_ray() -> Any:
@@ -127,7 +131,7 @@ def import_ray() -> Any:
         import ray
     except ImportError as exc:
         raise InputError(
-            "--ray needs Ray, which is not installed: pip install "
+            f"{opt('ray')} needs Ray, which is not installed: pip install "
             "'msfnet[ray]' (on the driver and on every cluster node)"
         ) from exc
     return ray
@@ -138,7 +142,7 @@ def _check_client() -> None:
     without it Ray fails with an import error deep inside ``ray.init``."""
     if importlib.util.find_spec("grpc") is None:
         raise InputError(
-            "--ray ray://...: a ray:// address needs Ray's client (gRPC), which is not "
+            f"{opt('ray', 'ray://...')}: a ray:// address needs Ray's client (gRPC), which is not "
             "installed: pip install 'msfnet[ray]' (it brings ray[client])"
         )
 
@@ -194,7 +198,7 @@ class StackWorker:
         try:
             # the driver is msf-run: its errors keep the command's words (flags), not the
             # Python API's keywords
-            with writing_as("msf-run"):
+            with writing_as("msf-run"), speaking_as("msf-run"):
                 load = self.model._loading(load)  # an ROI grown by the halo
                 stack = load_stack(Path(path), load)
                 decode_s = time.perf_counter() - start
@@ -306,16 +310,16 @@ def plan_workers(
     share would not exceed the runtime's own floor (tiling.BASE_MEMORY_MB)."""
     if not any(n.cpus > 0 for n in nodes):
         raise InputError(
-            "--ray: no Ray node with CPUs has joined the cluster yet (the head may have been "
-            "started with --num-cpus=0, or the autoscaler is at zero nodes): start a worker "
-            "node (ray start --address=HEAD:PORT) or wait for one, then run again"
+            f"{opt('ray')}: no Ray node with CPUs has joined the cluster yet (the head may have "
+            "been started as ray start --num-cpus=0, or the autoscaler is at zero nodes): start a "
+            "worker node (ray start --address=HEAD:PORT) or wait for one, then run again"
         )
     room = [int(n.cpus // threads) for n in nodes]
     capacity = sum(room)
     if capacity == 0:
         raise InputError(
-            f"--threads {threads}: no Ray node has {threads} CPUs for a worker (the largest "
-            f"has {max(n.cpus for n in nodes):g}); use fewer --threads"
+            f"{opt('threads', threads)}: no Ray node has {threads} CPUs for a worker (the "
+            f"largest has {max(n.cpus for n in nodes):g}); use fewer {opt('threads')}"
         )
     if workers is None:
         most = max(1, int(max_memory_mb // WORKER_MEMORY_MB))
@@ -323,10 +327,10 @@ def plan_workers(
         count = max(1, min(stacks, sum(limits)))
     elif workers > capacity:
         raise InputError(
-            f"--workers {workers}: the Ray cluster runs at most {capacity} worker(s) of "
+            f"{opt('workers', workers)}: the Ray cluster runs at most {capacity} worker(s) of "
             f"{threads} thread(s) at once ({sum(n.cpus for n in nodes):g} CPUs on "
-            f"{len(nodes)} node(s)); more would wait for CPUs forever. Use fewer --workers "
-            "or --threads"
+            f"{len(nodes)} node(s)); more would wait for CPUs forever. Use fewer "
+            f"{opt('workers')} or {opt('threads')}"
         )
     else:
         limits, count = room, workers
@@ -335,10 +339,10 @@ def plan_workers(
     share = max_memory_mb / busiest
     if share <= BASE_MEMORY_MB:
         raise InputError(
-            f"--max-memory {max_memory_mb:g} MB is one node's budget, shared by the "
+            f"{opt('max_memory_mb', max_memory_mb)} MB is one node's budget, shared by the "
             f"{busiest} Ray workers that run at once on a node: {share:.0f} MB each, not "
             f"above the {BASE_MEMORY_MB} MB a worker takes before any stack (use a larger "
-            "--max-memory, or fewer --workers or more --threads)"
+            f"{opt('max_memory_mb')}, or fewer {opt('workers')} or more {opt('threads')})"
         )
     return WorkerPlan(
         tuple(
@@ -406,7 +410,7 @@ def run_batch_ray(
             )
         except (ConnectionError, ValueError, RuntimeError) as exc:
             raise InputError(
-                f"--ray {address or os.environ.get('RAY_ADDRESS') or ''}: cannot "
+                f"{opt('ray', address or os.environ.get('RAY_ADDRESS') or '')}: cannot "
                 f"connect to Ray ({exc})".replace(":  ", ": ")
             ) from exc
     try:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import MANIFEST, STAGING_TAG, json_text, write_text
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.evaluate.metrics import NormalMetrics
 from msfnet.runtime.sources import (
     BatchItem,
@@ -227,13 +228,13 @@ def check_batch_root(root: Path, names: Sequence[str], overwrite: bool) -> None:
         return  # absent (or a file: check_output names that problem for each stack)
     if not overwrite:
         raise InputError(
-            "output folder exists and is not empty; pass --overwrite to write "
+            f"output folder exists and is not empty; pass {opt('overwrite')} to write "
             "the batch into it (replacing its earlier results)",
             root,
         )
     if (root / MANIFEST).exists():
         raise InputError(
-            "--overwrite: the folder is one stack's output, not a batch's; "
+            f"{opt('overwrite')}: the folder is one stack's output, not a batch's; "
             "choose another folder for the batch",
             root,
         )
@@ -247,7 +248,7 @@ def check_batch_root(root: Path, names: Sequence[str], overwrite: bool) -> None:
     )
     if foreign:
         raise InputError(
-            f"--overwrite: the folder holds files msfnet did not write (e.g. "
+            f"{opt('overwrite')}: the folder holds files msfnet did not write (e.g. "
             f"{foreign[0]}); refusing to write the batch among them",
             root,
         )

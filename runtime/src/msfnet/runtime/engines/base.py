@@ -18,6 +18,7 @@ import numpy as np
 
 from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.ort_session import check_io
 
@@ -59,7 +60,9 @@ def engine_name(name: str) -> str:
     """'ort' / 'ov' / full names -> the canonical engine name; InputError if unknown."""
     canonical = ENGINE_ALIASES.get(name.strip().lower())
     if canonical is None:
-        raise InputError(f"--engine {name!r}: expected one of {', '.join(ENGINES)} (or ort, ov)")
+        raise InputError(
+            f"{opt('engine', name, quote=True)}: expected one of {', '.join(ENGINES)} (or ort, ov)"
+        )
     return canonical
 
 
@@ -67,7 +70,9 @@ def precision_name(name: str) -> str:
     p = name.strip().lower()
     p = {"float32": "fp32", "f32": "fp32", "bfloat16": "bf16", "i8": "int8"}.get(p, p)
     if p not in PRECISIONS:
-        raise InputError(f"--precision {name!r}: expected one of {', '.join(PRECISIONS)}")
+        raise InputError(
+            f"{opt('precision', name, quote=True)}: expected one of {', '.join(PRECISIONS)}"
+        )
     return p
 
 

@@ -41,6 +41,7 @@ from pathlib import Path
 
 from msfnet.common.cpu import CpuInfo, check_threads
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines.base import (
     ENGINES,
@@ -281,8 +282,8 @@ def resolve_device(
         index and (base not in ("gpu", "npu") or not index.isdigit())
     ):
         raise InputError(
-            f"--device {name!r}: expected one of {', '.join(DEVICE_TARGETS)} (gpu.N for the "
-            "N-th OpenVINO GPU)"
+            f"{opt('device', name, quote=True)}: expected one of "
+            f"{', '.join(DEVICE_TARGETS)} (gpu.N for the N-th OpenVINO GPU)"
         )
     if base == "cpu":
         return None
@@ -291,7 +292,7 @@ def resolve_device(
         have = list(ort_providers if ort_providers is not None else available_devices(engine))
         if target not in have:
             raise InputError(
-                f"--device {asked}: ONNX Runtime has no {target} here (providers: "
+                f"{opt('device', asked)}: ONNX Runtime has no {target} here (providers: "
                 f"{', '.join(have) or 'none'}); {DEVICE_HINTS[base]}"
             )
         return Device(asked, engine, target)
@@ -304,7 +305,7 @@ def resolve_device(
         found = [base.upper()]
     if not found:
         raise InputError(
-            f"--device {asked}: OpenVINO sees no {target} here (devices: "
+            f"{opt('device', asked)}: OpenVINO sees no {target} here (devices: "
             f"{', '.join(have) or 'none, or OpenVINO is not installed'}); {DEVICE_HINTS[base]}"
         )
     return Device(asked, engine, found[0] if index else target)
@@ -437,7 +438,7 @@ def bundled_precision(
     to ``choose_engine``, which words the error."""
     want = precision_name(requested_precision) if requested_precision else None
     if want == "int8":
-        return BundledChoice("int8", "bundled int8 model: --precision int8 given")
+        return BundledChoice("int8", f"bundled int8 model: {opt('precision', 'int8')} given")
     if want is not None or device is not None or requested_engine is not None:
         # a named engine alone keeps the fp32 file: `--engine onnxruntime` stays the fp32
         # reference it always was
@@ -513,7 +514,9 @@ def choose_engine(
     what = f"{own} {graph}model"
 
     if want_engine is not None and want_engine not in have:
-        raise InputError(f"--engine {want_engine}: not installed ({_install_hint(want_engine)})")
+        raise InputError(
+            f"{opt('engine', want_engine)}: not installed ({_install_hint(want_engine)})"
+        )
 
     def pick(engine: str, precision: str, why: str) -> EngineChoice:
         return EngineChoice(engine, precision, f"{engine} {precision}: {why}", info.path, file=file)
@@ -521,11 +524,12 @@ def choose_engine(
     if device is not None:  # rule 0: the device decides the engine, the model the precision
         if want_engine is not None and want_engine != device.engine:
             raise InputError(
-                f"--device {device.name} runs on {device.engine}, not --engine {want_engine}"
+                f"{opt('device', device.name)} runs on {device.engine}, "
+                f"not {opt('engine', want_engine)}"
             )
         if device.engine not in have:
             raise InputError(
-                f"--device {device.name}: {device.engine} is not installed "
+                f"{opt('device', device.name)}: {device.engine} is not installed "
                 f"({_install_hint(device.engine)})"
             )
         # an NPU computes fp32 models in f16 (OpenVINO sets no f32 hint there, as it does on
@@ -533,15 +537,16 @@ def choose_engine(
         computes = "fp16" if own == "fp32" and device.target.upper().startswith("NPU") else own
         if want_prec not in (None, own) or (want_prec is not None and computes != own):
             raise InputError(
-                f"--precision {want_prec}: on --device {device.name} this {own} model runs "
-                f"{computes} (bf16 is a CPU path; int8 needs an int8 export"
+                f"{opt('precision', want_prec)}: on {opt('device', device.name)} this {own} "
+                f"model runs {computes} (bf16 is a CPU path; int8 needs an int8 export"
                 + ("; the NPU computes in f16)" if computes != own else ")")
             )
         note = " (the NPU computes in f16)" if computes != own else ""
         return EngineChoice(
             device.engine,
             own,
-            f"{device.engine} {computes} on {device.target}: --device {device.name} given{note}",
+            f"{device.engine} {computes} on {device.target}: {opt('device', device.name)} "
+            f"given{note}",
             info.path,
             device,
             file,
@@ -551,7 +556,7 @@ def choose_engine(
     if own == "int8":
         if want_prec not in (None, "int8"):
             raise InputError(
-                f"--precision {want_prec}: this is an int8 model; export an fp32 "
+                f"{opt('precision', want_prec)}: this is an int8 model; export an fp32 "
                 "model (msf-export without --int8) for fp32 or bf16",
                 info.path,
             )
@@ -565,7 +570,7 @@ def choose_engine(
             hw = "no AVX2, VNNI or AMX: int8 speed not measured on this CPU"
         if want_engine is not None:
             note = _int8_note(want_engine, info)
-            return pick(want_engine, "int8", f"{what}, --engine given ({hw})" + note)
+            return pick(want_engine, "int8", f"{what}, {opt('engine')} given ({hw})" + note)
         klass = int8_class(cpu)
         ov_lead = ov_int8_preferred(cpu, info)
         use_ov = "openvino" in have and (ov_lead or "onnxruntime" not in have)
@@ -583,39 +588,43 @@ def choose_engine(
     # fp32 exports
     if want_prec == "int8":
         raise InputError(
-            "--precision int8 needs an int8 export (msf-export --int8); this model is fp32",
+            f"{opt('precision', 'int8')} needs an int8 export (msf-export --int8); "
+            "this model is fp32",
             info.path,
         )
     if want_prec == "bf16":
         if want_engine == "onnxruntime":
             raise InputError(
-                "--precision bf16: ONNX Runtime's CPU provider has no bf16 path; "
-                "use --engine openvino"
+                f"{opt('precision', 'bf16')}: ONNX Runtime's CPU provider has no bf16 path; "
+                f"use {opt('engine', 'openvino')}"
             )
         if "openvino" not in have:
             raise InputError(
-                f"--precision bf16 runs on OpenVINO, which is not installed "
+                f"{opt('precision', 'bf16')} runs on OpenVINO, which is not installed "
                 f"({_install_hint('openvino')})"
             )
         if not cpu.has_bf16:
             raise InputError(
-                f"--precision bf16: this CPU ({cpu.model}) has no native bf16 "
+                f"{opt('precision', 'bf16')}: this CPU ({cpu.model}) has no native bf16 "
                 "(avx512_bf16 or AMX); bf16 would be emulated, slower than fp32"
             )
         return pick(
             "openvino",
             "bf16",
-            f"{what}, --precision bf16 given" + _bound_note("openvino", "bf16", info.staged),
+            f"{what}, {opt('precision', 'bf16')} given"
+            + _bound_note("openvino", "bf16", info.staged),
         )
     ov_fp32 = "openvino" in have and ov_fp32_preferred(cpu)
     speedup = OV_FP32_SPEEDUP.get(cpu_class(cpu))
     ov_why = f"measured {speedup}x ONNX Runtime fp32 on this CPU class ({cpu_class(cpu)})"
     if want_prec == "fp32":
         if want_engine is not None:
-            return pick(want_engine, "fp32", f"{what}, --precision fp32 and --engine given")
+            return pick(
+                want_engine, "fp32", f"{what}, {opt('precision', 'fp32')} and {opt('engine')} given"
+            )
         if ov_fp32:
-            return pick("openvino", "fp32", f"{what}, --precision fp32 given; {ov_why}")
-        return pick("onnxruntime", "fp32", f"{what}, --precision fp32 given")
+            return pick("openvino", "fp32", f"{what}, {opt('precision', 'fp32')} given; {ov_why}")
+        return pick("onnxruntime", "fp32", f"{what}, {opt('precision', 'fp32')} given")
 
     # no precision asked for: the fastest default within the accuracy bound
     bf16_ok = default_allowed("openvino", "bf16", info.staged)
@@ -632,10 +641,10 @@ def choose_engine(
         if not cpu.has_bf16:
             note = f"; {_no_bf16(cpu)}"
         elif want_engine == "onnxruntime":
-            note = "; bf16 on this CPU would need --engine openvino"
+            note = f"; bf16 on this CPU would need {opt('engine', 'openvino')}"
         else:
             note = ""
-        return pick(want_engine, "fp32", f"{what}, --engine given{note}")
+        return pick(want_engine, "fp32", f"{what}, {opt('engine')} given{note}")
     if not cpu.has_bf16:
         why = _no_bf16(cpu)
     elif "openvino" not in have:
@@ -701,7 +710,7 @@ def open_engine(
     if choice.engine == "openvino":
         if provider not in (None, "cpu"):
             raise InputError(
-                f"--provider {provider}: ONNX Runtime only (use --device for OpenVINO)"
+                f"{opt('provider', provider)}: ONNX Runtime only (use {opt('device')} for OpenVINO)"
             )
         from msfnet.runtime.engines.openvino import open_openvino
 

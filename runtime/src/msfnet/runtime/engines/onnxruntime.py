@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines.base import check_int8_exact, model_precision, quantised_full_range
 from msfnet.runtime.engines.ort_session import ModelSession, create_session
@@ -79,7 +80,7 @@ def open_onnxruntime(
     engine = OrtEngine(create_session(path, threads=threads, provider=provider, arena=arena))
     if precision is not None and precision != engine.precision:
         hint = (
-            "OpenVINO (--engine openvino) runs fp32 models in bf16"
+            f"OpenVINO ({opt('engine', 'openvino')}) runs fp32 models in bf16"
             if precision == "bf16"
             else "export a model of that precision with msf-export"
         )

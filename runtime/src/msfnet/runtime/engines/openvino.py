@@ -37,6 +37,7 @@ import numpy as np
 from msfnet.common.cpu import cache_folder, check_threads
 from msfnet.common.errors import InputError
 from msfnet.common.privacy import telemetry_allowed
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.base import (
     ModelFile,
@@ -610,7 +611,9 @@ def open_openvino(
             "NUM_STREAMS": 1,  # one request at a time: all threads on it
         }
     elif precision == "bf16":
-        raise InputError(f"--precision bf16 is a CPU path; {device} runs the model's precision")
+        raise InputError(
+            f"{opt('precision', 'bf16')} is a CPU path; {device} runs the model's precision"
+        )
     elif device.upper().startswith("GPU"):
         # GPUs default to f16; f32 keeps the parity with CPU fp32 that --device promises
         props = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
@@ -662,7 +665,7 @@ def open_openvino(
     elif precision == "bf16" and effective != "bf16":
         raise InputError(
             "OpenVINO runs bf16 only on CPUs with native bf16 (AVX-512 bf16 or "
-            f"AMX); here it would compute {effective}: use --precision fp32"
+            f"AMX); here it would compute {effective}: use {opt('precision', 'fp32')}"
         )
     version = getattr(ov, "__version__", "") or str(ov.get_version())
     return OpenVinoEngine(

@@ -15,6 +15,7 @@ import numpy as np
 
 from msfnet.common.cpu import MAX_THREADS, check_threads, usable_cores
 from msfnet.common.errors import InputError, first_line
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.interrupt import run_interruptible
 from msfnet.runtime.engines.staged_loop import (
@@ -118,7 +119,7 @@ def resolve_provider(name: str | None) -> str:
     available = _ort().get_available_providers()
     if provider not in available:
         raise InputError(
-            f"--provider {name!r}: not available in this onnxruntime build "
+            f"{opt('provider', name, quote=True)}: not available in this onnxruntime build "
             f"(available: {', '.join(available)})"
         )
     return provider

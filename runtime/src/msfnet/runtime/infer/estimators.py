@@ -18,7 +18,7 @@ from msfnet.runtime.infer.flops import inference_flops
 from msfnet.runtime.infer.least_squares import least_squares_normals
 from msfnet.runtime.infer.tiled import choose_plan, infer_normals
 from msfnet.runtime.infer.tiling import DEFAULT_MAX_MEMORY_MB, TilePlan
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack import Stack
 
 

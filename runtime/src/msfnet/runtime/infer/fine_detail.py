@@ -19,12 +19,16 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.evaluate.detail_ratio import SIGMA_PX, masked_smooth
 from msfnet.runtime.infer.estimators import Estimate, NetworkEstimator, TilingOptions
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
-from msfnet.runtime.results.profile import StageTimer, announce
+from msfnet.runtime.instrument import StageTimer, announce
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.readers import unit_normals
+
+# ModelOptions.fine_detail (msf-run's --fine-detail), declared again where infer sees it
+declare("fine_detail", "--fine-detail", "store_true")
 
 FACTOR = 2
 
@@ -37,9 +41,10 @@ def enlarge(stack: Stack, factor: int = FACTOR, max_memory_mb: float | None = No
     need = BASE_MEMORY_MB + stack.images.nbytes * (1 + factor * factor) / 2**20
     if max_memory_mb is not None and need > max_memory_mb:
         raise InputError(
-            f"--fine-detail holds the stack and its {factor}x enlargement beside the "
-            f"runtime's {BASE_MEMORY_MB} MB: {need:.0f} MB, above --max-memory "
-            f"{max_memory_mb:g} MB (use --roi, --downscale, --max-lights or a larger budget)",
+            f"{opt('fine_detail')} holds the stack and its {factor}x enlargement beside the "
+            f"runtime's {BASE_MEMORY_MB} MB: {need:.0f} MB, above "
+            f"{opt('max_memory_mb', float(max_memory_mb))} MB (use {opt('roi')}, "
+            f"{opt('downscale')}, {opt('max_lights')} or a larger budget)",
             stack.source or stack.name,
         )
     size = (w * factor, h * factor)

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator, FusionOptions
 from msfnet.runtime.infer.estimators import (
     Estimate,
@@ -37,7 +38,7 @@ from msfnet.runtime.infer.estimators import (
     NetworkEstimator,
     TilingOptions,
 )
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack import Stack, evenly_spaced
 from msfnet.runtime.stack.readers import unit_normals
 
@@ -79,7 +80,7 @@ def rung(name: str) -> Rung:
     """``--speed`` value -> its Rung; InputError naming the rungs otherwise."""
     found = RUNGS.get(name.strip().lower())
     if found is None:
-        raise InputError(f"--speed {name!r}: expected one of {', '.join(RUNGS)}")
+        raise InputError(f"{opt('speed', name, quote=True)}: expected one of {', '.join(RUNGS)}")
     return found
 
 

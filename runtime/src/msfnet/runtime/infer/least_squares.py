@@ -10,9 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.infer.normalise import network_lights
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
-from msfnet.runtime.results.profile import memory_in_use_mb
+from msfnet.runtime.instrument import memory_in_use_mb
 from msfnet.runtime.stack import MIN_LIGHTS, Stack
 
 # working set per (mask pixel x light): the RGB gather (as held: 12 B float32, 6 B uint16; an
@@ -70,7 +71,9 @@ def rows_for_memory(
     run (e.g. a network's output, computed after this check); ``what``: the step the message
     names."""
     if not (np.isfinite(max_memory_mb) and max_memory_mb > 0):
-        raise InputError(f"--max-memory must be a positive number of MB, got {max_memory_mb}")
+        raise InputError(
+            f"{opt('max_memory_mb')} must be a positive number of MB, got {max_memory_mb}"
+        )
     h, w = stack.shape
     per_row = w * stack.num_lights * bytes_per_pixel_light
     stack_mb = stack.images.nbytes / 2**20
@@ -84,7 +87,7 @@ def rows_for_memory(
     if rows < min(MIN_ROWS, h):
         need = held_mb + min(MIN_ROWS, h) * per_row / 2**20
         raise InputError(
-            f"--max-memory {max_memory_mb:g} MB is too small for {what} on "
+            f"{opt('max_memory_mb', float(max_memory_mb))} MB is too small for {what} on "
             f"this stack: it takes {stack_mb:.1f} MB loaded, the process "
             f"{in_use_mb:.0f} MB besides, and at least {need:.1f} MB in all"
         )

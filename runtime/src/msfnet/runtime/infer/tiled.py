@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError, MsfError, first_line
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.infer.normalise import network_input
 from msfnet.runtime.infer.tiling import (
     DEFAULT_MAX_MEMORY_MB,
@@ -24,7 +25,7 @@ from msfnet.runtime.infer.tiling import (
     plan_tiles,
     tile_size_for_memory,
 )
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack import Stack
 
 if TYPE_CHECKING:
@@ -98,7 +99,7 @@ def choose_plan(
         if n != stack.num_lights:
             raise InputError(
                 f"this model was exported for exactly {n} lights (static shape) but "
-                f"the stack has {stack.num_lights}; use --select/--max-lights or a "
+                f"the stack has {stack.num_lights}; use {opt('select')}/{opt('max_lights')} or a "
                 "dynamic export",
                 model.info.path,
             )
@@ -172,7 +173,7 @@ def infer_normals(
                     f"{model.info.path}: {model.name} failed on a "
                     f"{wx1 - wx0}x{wy1 - wy0} tile with {n} lights "
                     f"({type(exc).__name__}: {_cause(model.name, exc)}); try a smaller "
-                    "--tile or --max-memory"
+                    f"{opt('tile')} or {opt('max_memory_mb')}"
                 ) from exc
         with timer("postprocess"):
             cy0, cy1, cx0, cx1 = t.core

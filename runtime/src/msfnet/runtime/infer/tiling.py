@@ -16,10 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.contract import INPUT_MULTIPLE as MULTIPLE
 from msfnet.runtime.engines.staged_loop import STORED_BYTES_PER_PIXEL_LIGHT
 from msfnet.runtime.infer.flops import receptive_field
 from msfnet.runtime.infer.normalise import padded_size
+
+# ModelOptions.max_memory_mb (msf-run's --max-memory), declared again where infer sees it
+declare("max_memory_mb", "--max-memory")
 
 HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
 # Activations per (network-input pixel x light of one call): 3000 B, first measured with ONNX
@@ -118,7 +122,7 @@ def tile_size_for_memory(
     if side < smallest:
         need = BASE_MEMORY_MB + stack_mb + smallest**2 * per_pixel / 2**20
         raise InputError(
-            f"--max-memory {max_memory_mb:g} MB is too small for {lights} lights: "
+            f"{opt('max_memory_mb', float(max_memory_mb))} MB is too small for {lights} lights: "
             f"the loaded stack and the smallest tile ({smallest} px) need about "
             f"{need:.0f} MB"
         )
@@ -160,7 +164,7 @@ def plan_tiles(
         assert tile is not None
         if tile % MULTIPLE or tile < 2 * halo + MULTIPLE:
             raise InputError(
-                f"--tile {tile}: must be a multiple of {MULTIPLE} and at least "
+                f"{opt('tile', tile)}: must be a multiple of {MULTIPLE} and at least "
                 f"{2 * halo + MULTIPLE} (2 x {halo} px halo + 4)"
             )
         core_y = core_x = tile - 2 * halo

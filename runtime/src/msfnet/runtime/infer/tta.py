@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from msfnet.runtime.infer.estimators import Estimate, Estimator, TilingOptions
-from msfnet.runtime.results.profile import StageTimer
+from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack import Stack
 
 TTA_COUNTS = (1, 4, 8)

@@ -34,10 +34,16 @@ from msfnet.common.cli import nonnegative_float, positive_float, positive_int
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import json_text
 from msfnet.common.imageio import image_header
-from msfnet.common.vocabulary import flag, options_type
+from msfnet.common.vocabulary import declare, flag, opt, options_type, verbatim
 from msfnet.runtime.inspection.zones import Zones
 from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import Frame, read_tiff
+
+# msf-run's (and msf-inspect's) map flags, which MapOptions holds under these names
+declare("local_size_px", "--local-size")
+declare("image_pixel_size_mm", "--pixel-size")
+declare("maps", "--maps")
+declare("intrinsics", "--intrinsics")
 
 POLARITIES = ("both", "down", "up")
 EXIT_MISMATCH = 4
@@ -95,17 +101,23 @@ class DefectOptions:
 
     def __post_init__(self) -> None:
         if self.depth is None and self.curvature is None:
-            raise InputError("give a depth threshold (--depth) or a curvature one (--curvature)")
+            raise InputError(
+                f"give a depth threshold ({opt('depth')}) or a curvature one ({opt('curvature')})"
+            )
         for name in ("depth", "curvature", "sigmas"):
             v = getattr(self, name)
             if v is not None and not (np.isfinite(v) and v > 0):
-                raise InputError(f"--{name} {v}: must be a positive, finite number")
+                raise InputError(
+                    f"{opt(name, verbatim(f'{v}'))}: must be a positive, finite number"
+                )
         if not (np.isfinite(self.keep_out_px) and self.keep_out_px >= 0):
-            raise InputError(f"--keep-out {self.keep_out_px}: must be 0 or more px")
+            keep_out = opt("keep_out_px", verbatim(f"{self.keep_out_px}"))
+            raise InputError(f"{keep_out}: must be 0 or more px")
         if self.min_area_px < 1:
-            raise InputError(f"--min-area {self.min_area_px}: must be at least 1 px")
+            raise InputError(f"{opt('min_area_px', self.min_area_px)}: must be at least 1 px")
         if self.polarity not in POLARITIES:
-            raise InputError(f"--polarity {self.polarity!r}: expected one of {POLARITIES}")
+            polarity = opt("polarity", self.polarity, quote=True)
+            raise InputError(f"{polarity}: expected one of {POLARITIES}")
 
 
 @dataclass(frozen=True)
@@ -371,8 +383,8 @@ def check_run_memory(folder: Path, max_memory_mb: float, reference: bool) -> Non
     if need > max_memory_mb:
         raise InputError(
             f"maps of {header.width}x{header.height} need about {need:.0f} MB to inspect"
-            f"{' against a reference' if reference else ''}, above --max-memory "
-            f"{max_memory_mb:g} MB",
+            f"{' against a reference' if reference else ''}, above "
+            f"{opt('max_memory_mb', max_memory_mb)} MB",
             maps[0],
         )
 
@@ -406,8 +418,8 @@ def read_run(folder: Path) -> InspectionInput:
     alb = folder / "albedo.tif"
     if not local.is_file() and not curv.is_file():
         why = (
-            "a perspective run (--intrinsics) has no local shape; run msf-run with "
-            "curvature in --maps and inspect with --curvature"
+            f"a perspective run ({opt('intrinsics')}) has no local shape; run msf-run with "
+            f"curvature in {opt('maps')} and inspect with {opt('curvature')}"
             if perspective
             else "run msf-run with the height or curvature map and TIFF output"
         )
@@ -593,7 +605,8 @@ def _check_alike(part: InspectionInput, reference: InspectionInput) -> None:
     if differ:
         raise InputError(
             f"the reference was mapped differently from the part ({'; '.join(differ)}): "
-            "map both with the same --pixel-size, --local-size, --roi and --downscale",
+            f"map both with the same {opt('image_pixel_size_mm')}, {opt('local_size_px')}, "
+            f"{opt('roi')} and {opt('downscale')}",
             reference.source,
         )
 
@@ -708,7 +721,8 @@ def _floors(
             if zone.curvature is not None and bend is not None:
                 bend = np.where(inside, zone.curvature, bend)
     if not mask.any():
-        what = "--keep-out and the ignored zones leave" if zones else "--keep-out leaves"
+        keep_out = opt("keep_out_px")
+        what = f"{keep_out} and the ignored zones leave" if zones else f"{keep_out} leaves"
         raise InputError(f"{what} nothing of the mask to inspect", part.source)
     return mask, depth, bend, zone_of
 
@@ -764,10 +778,10 @@ def find_defects(
     if not part.mask.any():
         raise InputError("the mask is empty: nothing to inspect", part.source)
     if options.depth is not None and part.local_shape is None:
-        why = " (a perspective run has none: use --curvature)" if part.perspective else ""
-        raise InputError(f"--depth needs local_shape.tif{why}", part.source)
+        why = f" (a perspective run has none: use {opt('curvature')})" if part.perspective else ""
+        raise InputError(f"{opt('depth')} needs local_shape.tif{why}", part.source)
     if options.curvature is not None and part.curvature is None:
-        raise InputError("--curvature needs curvature.tif in the run folder", part.source)
+        raise InputError(f"{opt('curvature')} needs curvature.tif in the run folder", part.source)
     j = _against_reference(part, options, reference, zones)
     mask = j.mask
     signed = np.zeros(mask.shape, np.float32) if j.local is None else np.nan_to_num(j.local)

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.api import Model
 from msfnet.runtime.inspection.defects import (
     DefectOptions,
@@ -101,9 +102,13 @@ def _given_maps(reference: Stack | InspectionInput | str | Path | None) -> Inspe
 def _check_reference(reference: InspectionInput, rule: DefectOptions) -> None:
     """The reference holds the maps the rule judges (else every part would fail alike)."""
     if rule.depth is not None and reference.local_shape is None:
-        raise InputError("the reference has no local shape map for --depth", reference.source)
+        raise InputError(
+            f"the reference has no local shape map for {opt('depth')}", reference.source
+        )
     if rule.curvature is not None and reference.curvature is None:
-        raise InputError("the reference has no curvature map for --curvature", reference.source)
+        raise InputError(
+            f"the reference has no curvature map for {opt('curvature')}", reference.source
+        )
 
 
 class Station:

@@ -26,6 +26,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import json_text, staged_folder
+from msfnet.common.vocabulary import opt, verbatim
 from msfnet.runtime.inspection.defects import DefectOptions, InspectionInput, align_to, find_defects
 from msfnet.runtime.results.maps.registered import write_tiff
 
@@ -57,10 +58,11 @@ class GoodPartsStatistics:
 
     def line(self) -> str:
         how = "left out of the model" if self.held_out else "in the model (3 parts: none held out)"
+        least = opt("depth", verbatim(f"{min(self.needed):.2g}"))
         return (
-            f"each good part, {how}, passes from --depth {min(self.needed):.2g} to "
-            f"{max(self.needed):.2g} {self.units}: suggested --depth "
-            f"{self.suggested_depth:g} {self.units}"
+            f"each good part, {how}, passes from {least} to "
+            f"{max(self.needed):.2g} {self.units}: suggested "
+            f"{opt('depth', self.suggested_depth)} {self.units}"
         )
 
 

@@ -20,12 +20,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from msfnet.common.vocabulary import declare, opt, verbatim
+from msfnet.runtime.instrument import memory_in_use_mb
 from msfnet.runtime.results.maps.albedo import (
     BYTES_PER_PIXEL_LIGHT,
     CHUNK_PIXELS,
     MIN_CHUNK_PIXELS,
 )
-from msfnet.runtime.results.profile import memory_in_use_mb
+
+# ModelOptions.max_memory_mb (msf-run's --max-memory), declared again where results see it
+declare("max_memory_mb", "--max-memory")
+# msf-run's map flags: --maps (MapOptions.maps, Model(maps=...)) and --no-maps, which Python
+# writes maps=None (that text is its keyword)
+declare("maps", "--maps")
+declare("maps=None", "--no-maps")
 
 MB = 2**20
 # bytes per image pixel (H x W) and per mask pixel of each stage's working set
@@ -104,16 +112,17 @@ class MapsBudget:
     def skipped_line(self, names: list[str], needs: dict[str, float], every: bool) -> str:
         """The one warning line naming what was skipped, how much more it needed and the
         budget (``every``: not even the maps' shared start fitted)."""
+        budget = opt("max_memory_mb", verbatim(f"{self.max_memory_mb:g}"))
         if every:
             return (
-                f"--max-memory {self.max_memory_mb:g} MB leaves too little for the inspection "
-                f"maps: skipped {', '.join(names)} (~{max(needs.values()):.0f} MB more needed); "
-                "the normals are written (raise --max-memory, or use --no-maps)"
+                f"{budget} MB leaves too little for the inspection maps: "
+                f"skipped {', '.join(names)} (~{max(needs.values()):.0f} MB more needed); "
+                f"the normals are written (raise {opt('max_memory_mb')}, or use {opt('maps=None')})"
             )
         said = ", ".join(f"{n} (~{needs[n]:.0f} MB more needed)" for n in names)
         return (
-            f"--max-memory {self.max_memory_mb:g} MB: skipped the {said}; the normals and the "
-            "other maps are written (raise --max-memory, or choose --maps)"
+            f"{budget} MB: skipped the {said}; the normals and the other maps are written "
+            f"(raise {opt('max_memory_mb')}, or choose {opt('maps')})"
         )
 
 

@@ -41,7 +41,11 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.imageio import image_header
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.results.maps.extent import mask_box
+
+# msf-run's (and msf-inspect's) --local-size, which MapOptions holds as local_size_px
+declare("local_size_px", "--local-size")
 
 DEFAULT_LOCAL_SIZE_PX = 12.0
 TREND_DEGREE = 2  # the local shape's trend: a quadric around each pixel (see local_trend)
@@ -123,9 +127,10 @@ def check_local_size(size_px: float, shape: tuple[int, int]) -> None:
     longer = max(shape)
     if size_px > max(longer, DEFAULT_LOCAL_SIZE_PX):
         raise InputError(
-            f"--local-size {size_px:g} px is larger than the maps' longer side ({longer} px "
-            f"for {shape[1]} x {shape[0]}, after --roi / --downscale): the trend would span "
-            f"the whole part; give at most {max(longer, int(DEFAULT_LOCAL_SIZE_PX))}"
+            f"{opt('local_size_px', float(size_px))} px is larger than the maps' longer side "
+            f"({longer} px for {shape[1]} x {shape[0]}, after {opt('roi')} / {opt('downscale')}): "
+            "the trend would span the whole part; "
+            f"give at most {max(longer, int(DEFAULT_LOCAL_SIZE_PX))}"
         )
 
 
