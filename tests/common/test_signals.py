@@ -27,7 +27,7 @@ WRAPPER = """
 import sys, time
 from pathlib import Path
 import msfnet.runtime.infer.estimators as estimators
-import msfnet.runtime.results.outputs as outputs
+import msfnet.runtime.results.result as outputs
 
 phase, marker = sys.argv[1], Path(sys.argv[2])
 fill = outputs.fill_result_folder

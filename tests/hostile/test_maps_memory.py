@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from msfnet.runtime.api import Model
 from msfnet.runtime.options import ModelOptions
-from msfnet.runtime.results.outputs import write_result
+from msfnet.runtime.results.result import write_result
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.infer.least_squares import memory_in_use_mb
 
