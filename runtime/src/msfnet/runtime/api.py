@@ -47,7 +47,7 @@ if TYPE_CHECKING:
     from msfnet.runtime.engines.dispatch import Device
 from msfnet.runtime.engines.interrupt import time_limit
 from msfnet.runtime.evaluate.metrics import error_map, normal_metrics
-from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
+from msfnet.runtime.infer.compose import build_estimator
 from msfnet.runtime.infer.estimators import (
     Estimator,
     LeastSquaresEstimator,
@@ -55,10 +55,8 @@ from msfnet.runtime.infer.estimators import (
     TilingOptions,
     for_light_count,
 )
-from msfnet.runtime.infer.fine_detail import FineDetailEstimator
-from msfnet.runtime.infer.ladder import RUNGS, reduced_network
+from msfnet.runtime.infer.ladder import RUNGS
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
-from msfnet.runtime.infer.tta import TTAEstimator
 from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.options import DEFAULT_MAPS, ModelOptions, map_options
 from msfnet.runtime.results.maps import MapOptions, stack_maps
@@ -173,18 +171,7 @@ class Model:
         else:
             with time_limit(opts.timeout_s):  # the engine's compile
                 self.estimator = _open_network(opts.model, opts)  # None: the bundled pair
-        if isinstance(self.estimator, NetworkEstimator):
-            self.estimator.edge_context = opts.edge_context
-            # --speed: the network on fewer pixels / lights; the detail fusion below gives the
-            # full-resolution detail back (infer.ladder)
-            self.estimator = reduced_network(self.estimator, opts.speed)
-        if opts.fine_detail and isinstance(self.estimator, NetworkEstimator):
-            self.estimator = FineDetailEstimator(self.estimator)
-        if opts.tta > 1 and self.estimator.method == "msf":
-            # inside detail fusion: the turned copies average the network's part only
-            self.estimator = TTAEstimator(self.estimator, opts.tta)
-        if opts.detail_fusion and self.estimator.method == "msf":
-            self.estimator = DetailFusionEstimator(self.estimator)
+        self.estimator = build_estimator(self.estimator, opts.layers())
 
     @classmethod
     def least_squares(

@@ -21,6 +21,7 @@ from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import flag, opt, options_type, verbatim
 from msfnet.runtime.contract import INPUT_MULTIPLE
+from msfnet.runtime.infer.compose import Layers
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
 from msfnet.runtime.results.maps.api import MAP_NAMES, MapOptions
 
@@ -270,6 +271,10 @@ class ModelOptions:
     @property
     def is_network(self) -> bool:
         return self.method == "msf"
+
+    def layers(self) -> Layers:
+        """What wraps the base estimator (infer.compose)."""
+        return Layers(self.edge_context, self.speed, self.fine_detail, self.tta, self.detail_fusion)
 
     def replace(self, **changes: object) -> ModelOptions:
         return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
