@@ -219,9 +219,9 @@ def test_model_opens_the_int8_twin_over_bf16_on_zen4(monkeypatch: pytest.MonkeyP
     assert "would run in bf16 here" in str(d["choice"]) and "(zen4)" in str(d["choice"])
     # the fp32 file in bf16 is one option away (which file only: opening bf16 where the real
     # CPU computes f32 is refused, as --precision bf16 is there)
-    from msfnet.runtime.api import ModelOptions, _bundled_model
+    from msfnet.runtime.engines.bundled import EngineRequest, bundled_model
 
-    assert _bundled_model(ModelOptions(precision="bf16"), None)[0] == default_model_path()
+    assert bundled_model(EngineRequest(precision="bf16"))[0] == default_model_path()
 
 
 def test_a_missing_int8_twin_leaves_the_fp32_file(
@@ -229,11 +229,11 @@ def test_a_missing_int8_twin_leaves_the_fp32_file(
 ) -> None:
     """An install without the int8 file (a trimmed wheel) still runs: the fp32 file, unless
     int8 was asked for, which is then a one-line error naming the file."""
-    import msfnet.runtime.api as api
+    import msfnet.runtime.engines.bundled as bundled
     from msfnet.common.errors import InputError
 
     (tmp_path / "msfnet_default.onnx").symlink_to(default_model_path())
-    monkeypatch.setattr(api, "WEIGHTS", tmp_path)
+    monkeypatch.setattr(bundled, "WEIGHTS", tmp_path)
     _cpu(monkeypatch, ZEN3)
     d = Model(threads=1).describe()
     assert Path(str(d["model"])) == tmp_path / "msfnet_default.onnx"

@@ -635,17 +635,17 @@ def test_after_an_openvino_fallback_the_bundled_reason_speaks_of_onnx_runtime(
 ) -> None:
     """It kept OpenVINO's claims (int8 1.16x bf16, 0.30 deg) while ONNX Runtime int8 ran."""
     import msfnet.common.cpu as cpumod
-    from msfnet.runtime.api import ModelOptions, _open_network
+    from msfnet.runtime.engines.bundled import EngineRequest, open_network
 
     def broken(*args, **kwargs):
         raise InputError("OpenVINO cannot compile this model for CPU (RuntimeError: test)")
 
     monkeypatch.setattr("msfnet.runtime.engines.openvino.open_openvino", broken)
     monkeypatch.setattr(cpumod, "detect_cpu", lambda: ZEN4)
-    net = _open_network(None, ModelOptions(threads=1))
-    assert net.engine.name == "onnxruntime" and net.engine.precision == "int8"
-    assert "bf16" not in net.reason.split("; onnxruntime int8")[0]
-    assert "0.30 deg" not in net.reason and "OpenVINO failed" in net.reason
+    engine, reason = open_network(None, EngineRequest(threads=1))
+    assert engine.name == "onnxruntime" and engine.precision == "int8"
+    assert "bf16" not in reason.split("; onnxruntime int8")[0]
+    assert "0.30 deg" not in reason and "OpenVINO failed" in reason
 
 
 def test_an_npu_says_it_computes_in_fp16_and_refuses_fp32() -> None:
@@ -660,15 +660,14 @@ def test_an_npu_says_it_computes_in_fp16_and_refuses_fp32() -> None:
 
 
 def test_more_threads_than_usable_cpus_are_noted(monkeypatch: pytest.MonkeyPatch) -> None:
-    """review-dispatch23.md 4: --threads 8 under taskset -c 0 ran ONNX Runtime 2.35x slower,
-    without a word."""
+    """--threads 8 under taskset -c 0 ran ONNX Runtime 2.35x slower, without a word."""
     import msfnet.common.cpu as cpumod
-    from msfnet.runtime.api import ModelOptions, _open_network
+    from msfnet.runtime.engines.bundled import EngineRequest, open_network
 
     monkeypatch.setattr(cpumod, "usable_cores", lambda: 1)
-    net = _open_network(None, ModelOptions(threads=2, engine="onnxruntime"))
-    assert "note: 2 threads on the 1 CPU this process may use" in net.reason
-    assert "note:" not in _open_network(None, ModelOptions(threads=1)).reason
-    # OpenVINO was measured not to slow down (review-today23.md 6): nothing to note
-    ov = _open_network(None, ModelOptions(threads=2, engine="openvino"))
-    assert "note:" not in ov.reason
+    reason = open_network(None, EngineRequest(threads=2, engine="onnxruntime"))[1]
+    assert "note: 2 threads on the 1 CPU this process may use" in reason
+    assert "note:" not in open_network(None, EngineRequest(threads=1))[1]
+    # OpenVINO was measured not to slow down: nothing to note
+    ov = open_network(None, EngineRequest(threads=2, engine="openvino"))[1]
+    assert "note:" not in ov

@@ -42,9 +42,14 @@ import numpy.typing as npt
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.engines.base import Engine
+from msfnet.runtime.engines.bundled import (
+    bundled_model_path,
+    default_model_path,
+    open_network,
+)
 
 if TYPE_CHECKING:
-    from msfnet.runtime.engines.dispatch import Device
+    pass
 from msfnet.runtime.engines.interrupt import time_limit
 from msfnet.runtime.evaluate.metrics import error_map, normal_metrics
 from msfnet.runtime.infer.compose import build_estimator
@@ -79,18 +84,6 @@ from msfnet.runtime.stream import Skipped, Stream, given_source
 
 # msf-run --repeat: Model.__call__'s repeat (a timing, not a setting of the model)
 declare("repeat", "--repeat")
-
-WEIGHTS = Path(__file__).resolve().parent / "weights"
-
-
-def default_model_path(precision: str = "fp32") -> Path:
-    """The bundled model, shipped with the runtime: the fp32 export
-    (msfnet/runtime/weights/msfnet_default.onnx) or its int8 twin (msfnet_default_int8.onnx:
-    staged int8, 7-bit weights, exact on every CPU), which ``Model()`` opens where
-    engines.dispatch.bundled_precision says it is the faster default."""
-    if precision not in ("fp32", "int8"):
-        raise InputError(f"bundled model precision {precision!r}: expected fp32 or int8")
-    return WEIGHTS / ("msfnet_default.onnx" if precision == "fp32" else "msfnet_default_int8.onnx")
 
 
 def load_stack(
@@ -170,7 +163,9 @@ class Model:
             self.estimator = NetworkEstimator(model)  # type: ignore[arg-type]
         else:
             with time_limit(opts.timeout_s):  # the engine's compile
-                self.estimator = _open_network(opts.model, opts)  # None: the bundled pair
+                # None: the bundled pair's file for this CPU
+                engine, why = open_network(opts.model, opts.engine_request())
+                self.estimator = NetworkEstimator(engine, why)
         self.estimator = build_estimator(self.estimator, opts.layers())
 
     @classmethod
@@ -427,100 +422,6 @@ class Model:
             name="array",
         )
         return self(stack)
-
-
-def bundled_model_path() -> Path:
-    """The bundled file ``Model()`` opens here when nothing is named (the fp32 export or its
-    int8 twin, engines.dispatch.bundled_precision): what msf-bench reports it measured."""
-    return _bundled_model(ModelOptions(), None)[0]
-
-
-def _bundled_model(opts: ModelOptions, device: Device | None) -> tuple[Path, str]:
-    """The bundled file to open (fp32 or its int8 twin, engines.dispatch.bundled_precision)
-    and why; the fp32 file where the int8 one is missing and was not asked for. ``device``:
-    ``opts.device`` resolved (dispatch.resolve_device)."""
-    from msfnet.common.cpu import detect_cpu
-    from msfnet.runtime.engines import installed_engines
-    from msfnet.runtime.engines.dispatch import BundledChoice, bundled_precision
-
-    pick = bundled_precision(detect_cpu(), installed_engines(), opts.engine, opts.precision, device)
-    if opts.provider is not None and opts.precision is None:
-        pick = BundledChoice("fp32")  # an ONNX Runtime execution provider (a GPU): as a device
-    path = default_model_path(pick.precision)
-    if not path.is_file() and pick.precision == "int8" and opts.precision is None:
-        path = default_model_path()
-        pick = BundledChoice("fp32", "bundled fp32 model: its int8 twin is not installed")
-    if not path.is_file():
-        what = "int8 model (its twin)" if pick.precision == "int8" else "model"
-        raise InputError(
-            f"no model given and no bundled {what} at {path}; export one "
-            f"with msf-export, or use least squares ({opt('method', 'l2')})"
-        )
-    return path, pick.reason
-
-
-def _open_network(path: Path | None, opts: ModelOptions) -> NetworkEstimator:
-    """Pick the engine and precision for this CPU and model (or honour the overrides).
-    ``path`` None: the bundled pair's file for this CPU and request, and the choice line says
-    how it was chosen."""
-    from msfnet.common.cpu import detect_cpu
-    from msfnet.runtime.engines import installed_engines
-    from msfnet.runtime.engines.dispatch import (
-        bundled_precision,
-        choose_engine,
-        open_chosen,
-        open_engine,
-        resolve_device,
-    )
-
-    engine = opts.engine
-    if opts.provider is not None and engine is None:
-        engine = "onnxruntime"  # execution providers are ONNX Runtime's
-    device = resolve_device(opts.device)
-    why = ""
-    if path is None:
-        path, why = _bundled_model(opts, device)
-    choice = choose_engine(
-        path, detect_cpu(), installed_engines(), engine, opts.precision, device=device
-    )
-    prefix = f"{why}; " if why else ""
-    if opts.provider is not None:
-        return NetworkEstimator(
-            open_engine(choice, opts.threads, provider=opts.provider), prefix + choice.reason
-        )
-    # a default OpenVINO choice falls back to ONNX Runtime if OpenVINO cannot compile the model
-    asked = bool(opts.engine or opts.precision or opts.device)
-    opened, reason = open_chosen(choice, opts.threads, requested=asked)
-    if why and opened.name != choice.engine:
-        # OpenVINO failed: the bundled file's reason must speak of the engine that runs it
-        # (it had claimed OpenVINO's bf16 comparison and its 0.30 deg)
-        without = bundled_precision(
-            detect_cpu(), installed_engines() - {"openvino"}, engine, opts.precision, device
-        )
-        same = without.precision == choice.precision and without.reason
-        prefix = (
-            f"{without.reason}; "
-            if same
-            else f"bundled {choice.precision} model, chosen for OpenVINO; "
-        )
-    return NetworkEstimator(opened, prefix + reason + _oversubscribed(opts.threads, opened.name))
-
-
-def _oversubscribed(threads: int | None, engine: str) -> str:
-    """A note for the choice line when ONNX Runtime is given more threads than this process
-    may run at once (an affinity mask, taskset): its threads then wait on each other (the
-    8-light ball crop ran 2.35x slower at --threads 8 on 1 CPU than at 1). OpenVINO did not
-    slow down (1.66 against 1.61 s): no note there. Said, not capped: the user's number is
-    run as given."""
-    from msfnet.common.cpu import usable_cores
-
-    cores = usable_cores()
-    if engine != "onnxruntime" or threads is None or threads <= cores:
-        return ""
-    return (
-        f"; note: {threads} threads on the {cores} CPU{'s' if cores > 1 else ''} this "
-        "process may use: extra threads only wait (ONNX Runtime ran 2.35x slower at 8 on 1)"
-    )
 
 
 def _placed(maps: MapOptions, load: LoadOptions | None) -> MapOptions:

@@ -21,6 +21,7 @@ from msfnet.common.cpu import check_threads
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import flag, opt, options_type, verbatim
 from msfnet.runtime.contract import INPUT_MULTIPLE
+from msfnet.runtime.engines.bundled import EngineRequest
 from msfnet.runtime.infer.compose import Layers
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
 from msfnet.runtime.results.maps.api import MAP_NAMES, MapOptions
@@ -271,6 +272,10 @@ class ModelOptions:
     @property
     def is_network(self) -> bool:
         return self.method == "msf"
+
+    def engine_request(self) -> EngineRequest:
+        """What is asked of the engine (engines.bundled)."""
+        return EngineRequest(self.engine, self.precision, self.provider, self.device, self.threads)
 
     def layers(self) -> Layers:
         """What wraps the base estimator (infer.compose)."""
