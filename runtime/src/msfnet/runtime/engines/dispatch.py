@@ -505,126 +505,161 @@ def choose_engine(
     else:
         reader = likely_engine(cpu, installed, requested_engine, requested_precision, device)
         file = read_for(model, reader)
-    info = file.info
-    have = {engine_name(e) for e in installed}
-    want_engine = engine_name(requested_engine) if requested_engine else None
-    want_prec = precision_name(requested_precision) if requested_precision else None
-    own = model_precision(info)
-    graph = "staged " if info.staged else ""
-    what = f"{own} {graph}model"
-
-    if want_engine is not None and want_engine not in have:
+    ask = _Ask(
+        file,
+        {engine_name(e) for e in installed},
+        engine_name(requested_engine) if requested_engine else None,
+        precision_name(requested_precision) if requested_precision else None,
+    )
+    if ask.engine is not None and ask.engine not in ask.have:
         raise InputError(
-            f"{opt('engine', want_engine)}: not installed ({_install_hint(want_engine)})"
+            f"{opt('engine', ask.engine)}: not installed ({_install_hint(ask.engine)})"
         )
-
-    def pick(engine: str, precision: str, why: str) -> EngineChoice:
-        return EngineChoice(engine, precision, f"{engine} {precision}: {why}", info.path, file=file)
-
     if device is not None:  # rule 0: the device decides the engine, the model the precision
-        if want_engine is not None and want_engine != device.engine:
-            raise InputError(
-                f"{opt('device', device.name)} runs on {device.engine}, "
-                f"not {opt('engine', want_engine)}"
-            )
-        if device.engine not in have:
-            raise InputError(
-                f"{opt('device', device.name)}: {device.engine} is not installed "
-                f"({_install_hint(device.engine)})"
-            )
-        # an NPU computes fp32 models in f16 (OpenVINO sets no f32 hint there, as it does on
-        # a GPU): said, and an explicit fp32 refused rather than quietly not honoured
-        computes = "fp16" if own == "fp32" and device.target.upper().startswith("NPU") else own
-        if want_prec not in (None, own) or (want_prec is not None and computes != own):
-            raise InputError(
-                f"{opt('precision', want_prec)}: on {opt('device', device.name)} this {own} "
-                f"model runs {computes} (bf16 is a CPU path; int8 needs an int8 export"
-                + ("; the NPU computes in f16)" if computes != own else ")")
-            )
-        note = " (the NPU computes in f16)" if computes != own else ""
-        return EngineChoice(
-            device.engine,
-            own,
-            f"{device.engine} {computes} on {device.target}: {opt('device', device.name)} "
-            f"given{note}",
-            info.path,
-            device,
-            file,
+        return _on_device(ask, device)
+    if ask.own == "int8":
+        return _for_int8(ask, cpu)
+    return _for_fp32(ask, cpu)
+
+
+@dataclass(frozen=True)
+class _Ask:
+    """A model file and what was asked of it: the engines here, the engine and precision
+    requested (None: this CPU's default)."""
+
+    file: ModelFile
+    have: set[str]
+    engine: str | None
+    precision: str | None
+
+    @property
+    def info(self) -> ModelInfo:
+        return self.file.info
+
+    @property
+    def own(self) -> str:
+        return model_precision(self.info)
+
+    @property
+    def what(self) -> str:
+        return f"{self.own} {'staged ' if self.info.staged else ''}model"
+
+    def pick(self, engine: str, precision: str, why: str) -> EngineChoice:
+        reason = f"{engine} {precision}: {why}"
+        return EngineChoice(engine, precision, reason, self.info.path, file=self.file)
+
+
+def _on_device(ask: _Ask, device: Device) -> EngineChoice:
+    if ask.engine is not None and ask.engine != device.engine:
+        raise InputError(
+            f"{opt('device', device.name)} runs on {device.engine}, not {opt('engine', ask.engine)}"
         )
+    if device.engine not in ask.have:
+        raise InputError(
+            f"{opt('device', device.name)}: {device.engine} is not installed "
+            f"({_install_hint(device.engine)})"
+        )
+    own = ask.own
+    # an NPU computes fp32 models in f16 (OpenVINO sets no f32 hint there, as it does on a
+    # GPU): said, and an explicit fp32 refused rather than quietly not honoured
+    computes = "fp16" if own == "fp32" and device.target.upper().startswith("NPU") else own
+    if ask.precision not in (None, own) or (ask.precision is not None and computes != own):
+        raise InputError(
+            f"{opt('precision', ask.precision)}: on {opt('device', device.name)} this {own} "
+            f"model runs {computes} (bf16 is a CPU path; int8 needs an int8 export"
+            + ("; the NPU computes in f16)" if computes != own else ")")
+        )
+    note = " (the NPU computes in f16)" if computes != own else ""
+    return EngineChoice(
+        device.engine,
+        own,
+        f"{device.engine} {computes} on {device.target}: {opt('device', device.name)} given{note}",
+        ask.info.path,
+        device,
+        ask.file,
+    )
 
-    # int8 exports: quantised weights and activations, nothing else to choose but the engine
-    if own == "int8":
-        if want_prec not in (None, "int8"):
-            raise InputError(
-                f"{opt('precision', want_prec)}: this is an int8 model; export an fp32 "
-                "model (msf-export without --int8) for fp32 or bf16",
-                info.path,
-            )
-        if cpu.has_vnni:
-            hw = "VNNI/AMX int8 dot products"
-        elif cpu.avx512f:  # Skylake-SP and the like: AVX-512BW kernels, never timed
-            hw = "no VNNI/AMX: int8 speed not measured on this CPU class"
-        elif cpu.avx2:
-            hw = "no VNNI/AMX: int8 emulated with AVX2, still faster than fp32"
-        else:
-            hw = "no AVX2, VNNI or AMX: int8 speed not measured on this CPU"
-        if want_engine is not None:
-            note = _int8_note(want_engine, info)
-            return pick(want_engine, "int8", f"{what}, {opt('engine')} given ({hw})" + note)
-        klass = int8_class(cpu)
-        ov_lead = ov_int8_preferred(cpu, info)
-        use_ov = "openvino" in have and (ov_lead or "onnxruntime" not in have)
-        engine = "openvino" if use_ov else "onnxruntime"
-        if engine == "openvino" and ov_lead:
-            hw += (
-                f"; OpenVINO measured {OV_INT8_SPEEDUP[klass]:.2f}x ONNX Runtime int8 "
-                f"on this CPU class ({klass})"
-            )
-            if ov_int8_closer(info):
-                hw += ", closer to fp32"
-        note = _int8_note(engine, info)
-        return pick(engine, "int8", f"{what} ({hw})" + note)
 
-    # fp32 exports
-    if want_prec == "int8":
+def _int8_hardware(cpu: CpuInfo) -> str:
+    if cpu.has_vnni:
+        return "VNNI/AMX int8 dot products"
+    if cpu.avx512f:  # Skylake-SP and the like: AVX-512BW kernels, never timed
+        return "no VNNI/AMX: int8 speed not measured on this CPU class"
+    if cpu.avx2:
+        return "no VNNI/AMX: int8 emulated with AVX2, still faster than fp32"
+    return "no AVX2, VNNI or AMX: int8 speed not measured on this CPU"
+
+
+def _for_int8(ask: _Ask, cpu: CpuInfo) -> EngineChoice:
+    """int8 exports: quantised weights and activations, nothing to choose but the engine."""
+    info = ask.info
+    if ask.precision not in (None, "int8"):
+        raise InputError(
+            f"{opt('precision', ask.precision)}: this is an int8 model; export an fp32 "
+            "model (msf-export without --int8) for fp32 or bf16",
+            info.path,
+        )
+    hw = _int8_hardware(cpu)
+    if ask.engine is not None:
+        note = _int8_note(ask.engine, info)
+        return ask.pick(ask.engine, "int8", f"{ask.what}, {opt('engine')} given ({hw})" + note)
+    klass = int8_class(cpu)
+    ov_lead = ov_int8_preferred(cpu, info)
+    use_ov = "openvino" in ask.have and (ov_lead or "onnxruntime" not in ask.have)
+    engine = "openvino" if use_ov else "onnxruntime"
+    if engine == "openvino" and ov_lead:
+        hw += (
+            f"; OpenVINO measured {OV_INT8_SPEEDUP[klass]:.2f}x ONNX Runtime int8 "
+            f"on this CPU class ({klass})"
+        )
+        if ov_int8_closer(info):
+            hw += ", closer to fp32"
+    return ask.pick(engine, "int8", f"{ask.what} ({hw})" + _int8_note(engine, info))
+
+
+def _asked_bf16(ask: _Ask, cpu: CpuInfo) -> EngineChoice:
+    if ask.engine == "onnxruntime":
+        raise InputError(
+            f"{opt('precision', 'bf16')}: ONNX Runtime's CPU provider has no bf16 path; "
+            f"use {opt('engine', 'openvino')}"
+        )
+    if "openvino" not in ask.have:
+        raise InputError(
+            f"{opt('precision', 'bf16')} runs on OpenVINO, which is not installed "
+            f"({_install_hint('openvino')})"
+        )
+    if not cpu.has_bf16:
+        raise InputError(
+            f"{opt('precision', 'bf16')}: this CPU ({cpu.model}) has no native bf16 "
+            "(avx512_bf16 or AMX); bf16 would be emulated, slower than fp32"
+        )
+    why = f"{ask.what}, {opt('precision', 'bf16')} given"
+    return ask.pick("openvino", "bf16", why + _bound_note("openvino", "bf16", ask.info.staged))
+
+
+def _for_fp32(ask: _Ask, cpu: CpuInfo) -> EngineChoice:
+    """fp32 exports: bf16 where the CPU has it natively and it was measured within the
+    bound, OpenVINO fp32 where it was measured faster, else ONNX Runtime fp32."""
+    info, what, have, want_engine = ask.info, ask.what, ask.have, ask.engine
+    if ask.precision == "int8":
         raise InputError(
             f"{opt('precision', 'int8')} needs an int8 export (msf-export --int8); "
             "this model is fp32",
             info.path,
         )
-    if want_prec == "bf16":
-        if want_engine == "onnxruntime":
-            raise InputError(
-                f"{opt('precision', 'bf16')}: ONNX Runtime's CPU provider has no bf16 path; "
-                f"use {opt('engine', 'openvino')}"
-            )
-        if "openvino" not in have:
-            raise InputError(
-                f"{opt('precision', 'bf16')} runs on OpenVINO, which is not installed "
-                f"({_install_hint('openvino')})"
-            )
-        if not cpu.has_bf16:
-            raise InputError(
-                f"{opt('precision', 'bf16')}: this CPU ({cpu.model}) has no native bf16 "
-                "(avx512_bf16 or AMX); bf16 would be emulated, slower than fp32"
-            )
-        return pick(
-            "openvino",
-            "bf16",
-            f"{what}, {opt('precision', 'bf16')} given"
-            + _bound_note("openvino", "bf16", info.staged),
-        )
+    if ask.precision == "bf16":
+        return _asked_bf16(ask, cpu)
     ov_fp32 = "openvino" in have and ov_fp32_preferred(cpu)
     speedup = OV_FP32_SPEEDUP.get(cpu_class(cpu))
     ov_why = f"measured {speedup}x ONNX Runtime fp32 on this CPU class ({cpu_class(cpu)})"
-    if want_prec == "fp32":
+    pick = ask.pick
+    if ask.precision == "fp32":
+        given = f"{what}, {opt('precision', 'fp32')}"
         if want_engine is not None:
-            return pick(
-                want_engine, "fp32", f"{what}, {opt('precision', 'fp32')} and {opt('engine')} given"
-            )
+            return pick(want_engine, "fp32", f"{given} and {opt('engine')} given")
         if ov_fp32:
-            return pick("openvino", "fp32", f"{what}, {opt('precision', 'fp32')} given; {ov_why}")
-        return pick("onnxruntime", "fp32", f"{what}, {opt('precision', 'fp32')} given")
+            return pick("openvino", "fp32", f"{given} given; {ov_why}")
+        return pick("onnxruntime", "fp32", f"{given} given")
 
     # no precision asked for: the fastest default within the accuracy bound
     bf16_ok = default_allowed("openvino", "bf16", info.staged)
