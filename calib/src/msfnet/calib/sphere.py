@@ -14,8 +14,6 @@ import numpy as np
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import declare, opt
 
-# msf-calib's --mask (LoadOptions.mask, spelled the same) and --spheres
-declare("mask", "--mask")
 declare("spheres", "--spheres")
 
 

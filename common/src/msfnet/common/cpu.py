@@ -23,10 +23,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import declare, opt
-
-# --threads of every command that runs a model (ModelOptions.threads, msf-bench, msf-predict)
-declare("threads", "--threads")
+from msfnet.common.vocabulary import opt
 
 # The features that matter here, under the names Linux's /proc/cpuinfo uses.
 FEATURES = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8", "avx_vnni")

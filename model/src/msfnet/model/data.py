@@ -27,14 +27,11 @@ import torch
 
 from msfnet.common.errors import InputError
 from msfnet.common.imageio import read_image
-from msfnet.common.vocabulary import declare, opt
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import TRAIN_LIGHTS
 from msfnet.runtime.infer.normalise import normalise
 from msfnet.runtime.stack import MIN_LIGHTS, Stack, as_held, read_normals, unit_lights
 from msfnet.synth.render import RenderOptions, render_stack
-
-# msf-train's --lights (its parser's own; LoadOptions' --lights is spelled the same)
-declare("lights", "--lights")
 
 
 @dataclass

@@ -16,14 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import declare, opt
+from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import INPUT_MULTIPLE as MULTIPLE
 from msfnet.runtime.engines.staged_loop import STORED_BYTES_PER_PIXEL_LIGHT
 from msfnet.runtime.infer.flops import receptive_field
 from msfnet.runtime.infer.normalise import padded_size
-
-# ModelOptions.max_memory_mb (msf-run's --max-memory), declared again where infer sees it
-declare("max_memory_mb", "--max-memory")
 
 HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
 # Activations per (network-input pixel x light of one call): 3000 B, first measured with ONNX

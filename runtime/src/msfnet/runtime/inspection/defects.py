@@ -34,16 +34,10 @@ from msfnet.common.cli import nonnegative_float, positive_float, positive_int
 from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import json_text
 from msfnet.common.imageio import image_header
-from msfnet.common.vocabulary import declare, flag, opt, options_type, verbatim
+from msfnet.common.vocabulary import flag, opt, options_type, verbatim
 from msfnet.runtime.inspection.zones import Zones
 from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import Frame, read_tiff
-
-# msf-run's (and msf-inspect's) map flags, which MapOptions holds under these names
-declare("local_size_px", "--local-size")
-declare("image_pixel_size_mm", "--pixel-size")
-declare("maps", "--maps")
-declare("intrinsics", "--intrinsics")
 
 POLARITIES = ("both", "down", "up")
 EXIT_MISMATCH = 4

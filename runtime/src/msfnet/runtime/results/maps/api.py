@@ -17,6 +17,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import json_text, write_atomic
+from msfnet.common.vocabulary import declare
 from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, checked_albedo, display_level
 from msfnet.runtime.results.maps.budget import MapsBudget
 from msfnet.runtime.results.maps.curvature import DEFAULT_SIGMA, curvature_maps
@@ -42,6 +43,15 @@ from msfnet.runtime.results.maps.registered import (
 )
 from msfnet.runtime.results.maps.validate import check_normals
 from msfnet.runtime.stack import Stack
+
+# MapOptions' settings under their command-line spellings (msf-run's map group, built by hand
+# in runtime.cli.flags: its --integration is MapOptions.method, which ModelOptions.method would
+# clash with as a keyword). --no-maps is Model(maps=None), that text its keyword.
+declare("maps", "--maps")
+declare("maps=None", "--no-maps")
+declare("intrinsics", "--intrinsics")
+declare("image_pixel_size_mm", "--pixel-size")
+declare("local_size_px", "--local-size")
 
 MAP_NAMES = ("albedo", "height", "curvature", "mesh")
 PIXEL_SIZE_MM = (1e-6, 1e4)  # 1 nm (microscopes) to 10 m (aerial) a pixel

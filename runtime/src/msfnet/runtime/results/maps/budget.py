@@ -20,20 +20,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from msfnet.common.vocabulary import declare, opt, verbatim
+from msfnet.common.vocabulary import opt, verbatim
 from msfnet.runtime.instrument import memory_in_use_mb
 from msfnet.runtime.results.maps.albedo import (
     BYTES_PER_PIXEL_LIGHT,
     CHUNK_PIXELS,
     MIN_CHUNK_PIXELS,
 )
-
-# ModelOptions.max_memory_mb (msf-run's --max-memory), declared again where results see it
-declare("max_memory_mb", "--max-memory")
-# msf-run's map flags: --maps (MapOptions.maps, Model(maps=...)) and --no-maps, which Python
-# writes maps=None (that text is its keyword)
-declare("maps", "--maps")
-declare("maps=None", "--no-maps")
 
 MB = 2**20
 # bytes per image pixel (H x W) and per mask pixel of each stage's working set
