@@ -180,3 +180,22 @@ def test_editors_resolve_every_msfnet_import() -> None:
 
 if __name__ == "__main__":
     sys.stdout.write(surface())
+
+
+MAX_FUNCTION_LINES = 100
+
+
+def test_no_function_is_longer_than_a_screenful_or_two() -> None:
+    """A function over 100 lines does several jobs: each step gets its own name."""
+    import ast
+
+    from _layout import source_files
+
+    long = []
+    for module, path in source_files().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                lines = (node.end_lineno or node.lineno) - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    long.append(f"{module}.{node.name}: {lines} lines")
+    assert not long, long

@@ -558,6 +558,190 @@ def capture_stack(
         )
 
 
+@dataclass(frozen=True)
+class _Given:
+    """What :func:`capture_stack` was given, checked before the first frame."""
+
+    count: int  # lights
+    linearisation: Linearisation
+    light_directions: np.ndarray | None
+    light_intensities: np.ndarray | None
+    shape: tuple[int, int] | None  # the frames' (H, W), when known before capturing
+    mask: np.ndarray | None
+    camera_info: dict
+
+
+def _check_given(
+    camera: Any,
+    lights: Any,
+    out: Path,
+    *,
+    light_directions: np.ndarray | str | Path | None,
+    light_intensities: np.ndarray | str | Path | None,
+    mask: np.ndarray | str | Path | None,
+    overwrite: bool,
+    overwrite_allowed: bool,
+    linearisation: Linearisation | None,
+) -> _Given:
+    """Everything given, checked before the first frame (and before anything is discarded):
+    a bad lights file or mask must not cost a capture session."""
+    n = int(lights.count)
+    if n < 1:
+        raise InputError("the light back-end reports no lights")
+    lin = linearisation or Linearisation()
+    check_inputs(out, (light_directions, light_intensities, mask))
+    check_folder(out, overwrite, overwrite_allowed, count=n)
+    dirs = check_vectors(light_directions, n, "light directions")
+    ints = check_vectors(light_intensities, n, "light intensities")
+    shape = _frame_shape(camera, out / "raw")
+    mask_arr = check_mask(mask, shape)
+    info = camera.info()  # before discarding anything: a device failing here costs nothing
+    return _Given(n, lin, dirs, ints, shape, mask_arr, info)
+
+
+@dataclass
+class _Session:
+    """A session being captured into ``out``: session.json's contents, and the exposure
+    check of each frame recorded in them."""
+
+    out: Path
+    data: dict[str, Any]  # session.json's contents; "frames": the exposure records
+    camera: Any
+    count: int
+    mask: np.ndarray | None
+    max_saturated: float
+    min_level: float
+    log: Log
+
+    @property
+    def path(self) -> Path:
+        return self.out / SESSION
+
+    @property
+    def records(self) -> dict[str, Any]:
+        return self.data["frames"]
+
+    def save(self) -> None:
+        text = json.dumps(self.data, indent=1, sort_keys=True)
+        write_atomic(self.path, lambda t: t.write_text(text))
+
+    def fits(self, frame: np.ndarray) -> None:
+        """Refuse a frame that is not of the mask's size."""
+        if self.mask is not None and self.mask.shape != frame.shape[:2]:
+            raise InputError(
+                f"mask is {self.mask.shape[1]}x{self.mask.shape[0]} but the "
+                f"camera delivers {frame.shape[1]}x{frame.shape[0]} frames"
+            )
+
+    def check(self, name: str, frame: np.ndarray) -> None:
+        """Record the frame's exposure in the session; problems are logged as warnings."""
+        self.fits(frame)
+        chk = exposure_check(
+            frame, self.camera.white_level, self.mask, self.max_saturated, self.min_level
+        )
+        self.records[name] = {**asdict(chk), "time": time.time()}
+        if chk.problems():
+            self.log(f"warning: {name}: " + ", ".join(chk.problems()))
+
+    def recorded(self, name: str) -> Exposure | None:
+        """The frame's recorded exposure, judged under this run's limits (None: no record)."""
+        return Exposure.from_record(self.records.get(name), self.max_saturated, self.min_level)
+
+    def judge_all(self, strict: bool) -> None:
+        """``strict``: every frame's recorded exposure judged, those taken before an
+        interruption included, as an uninterrupted run judges them."""
+        if not strict:
+            return
+        problems = []
+        for i in range(self.count):
+            chk = self.recorded(_name(i))
+            if chk is not None and chk.problems():
+                problems.append(f"{_name(i)}: " + ", ".join(chk.problems()))
+        if problems:
+            raise InputError("exposure problems: " + "; ".join(problems), self.out)
+
+
+@dataclass(frozen=True)
+class _Frames:
+    """The session's frames (name, light index; None: the ambient frame) and which of them
+    are still to capture or, on disk without an exposure record, to check."""
+
+    todo: list[tuple[str, int | None]]
+    pending: list[tuple[str, int | None]]
+    unchecked: list[str]
+
+
+def _frames(sess: _Session, ambient: bool, shape: tuple[int, int] | None) -> _Frames:
+    """What is left to do, a resume's frames on disk checked (size, bit depth) first."""
+    raw = sess.out / "raw"
+    todo: list[tuple[str, int | None]] = [("ambient.png", None)] if ambient else []
+    todo += [(_name(i), i) for i in range(sess.count)]
+    _check_frames(raw, [name for name, _ in todo], shape)  # a resume's frames, before capturing
+    pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
+    # frames on disk without a usable exposure record (an older version wrote the frame
+    # before its record): checked again from raw/ below
+    unchecked = [
+        name
+        for name, i in todo
+        if i is not None and (raw / name).is_file() and sess.recorded(name) is None
+    ]
+    return _Frames(todo, pending, unchecked)
+
+
+def _start(sess: _Session, frames: _Frames, camera_info: dict) -> None:
+    """Make the folder the session's: session.json records the setup (and forgets a stack
+    built before new frames), a resume is reported and frames without a record checked."""
+    raw = sess.out / "raw"
+    log = sess.log
+    raw.mkdir(parents=True, exist_ok=True)
+    sess.data.update(count=sess.count, camera=camera_info, white_level=sess.camera.white_level)
+    if frames.pending:  # new frames: a stack built before no longer shows them
+        for key in _BUILT_KEYS:
+            sess.data.pop(key, None)
+    todo, pending = frames.todo, frames.pending
+    if not pending:  # every frame is on disk but the stack was never built (killed then)
+        log(f"all {len(todo)} frames already in {raw}; building the stack")
+    elif len(pending) < len(todo):
+        log(f"resuming: {len(todo) - len(pending)} of {len(todo)} frames already in {raw}")
+    if frames.unchecked:
+        log(
+            f"checking the exposure of {len(frames.unchecked)} frame(s) in {raw} that have "
+            "no record"
+        )
+        for name in frames.unchecked:
+            sess.check(name, read_image(raw / name))
+    sess.save()  # from here on the folder is msf-capture's (check_folder)
+
+
+def _take(
+    sess: _Session, lights: Any, pending: list[tuple[str, int | None]], progress: bool | None
+) -> None:
+    """Capture the pending frames, each recorded in the session before it is written."""
+    raw = sess.out / "raw"
+    try:
+        # disable=None: a bar on a terminal, nothing in a log file
+        for name, i in tqdm(
+            pending, desc="capture", unit="frame", disable=True if progress is False else None
+        ):
+            if i is None:
+                lights.off()
+            else:
+                lights.on(i)
+            frame = _to_uint(np.asarray(sess.camera.capture()))
+            sess.fits(frame)
+            if i is not None:
+                sess.check(name, frame)
+            # The record first, then the frame: an interruption between the two leaves a
+            # record without its frame, which the resume captures (and records) again; never
+            # a frame on disk that nothing has checked.
+            sess.save()
+            write_png(raw / name, frame)  # atomic: a crash never leaves half a frame
+    finally:
+        # never hide the original error behind a light-controller error
+        with contextlib.suppress(Exception):
+            lights.off()
+
+
 def _capture(
     camera: Any,
     lights: Any,
@@ -579,117 +763,48 @@ def _capture(
     overwrite_allowed: bool,
 ) -> Path:
     """:func:`capture_stack`'s work, with the folder held."""
-    raw = out / "raw"
-    n = int(lights.count)
-    if n < 1:
-        raise InputError("the light back-end reports no lights")
-    lin = linearisation or Linearisation()
-    # everything given is checked before the first frame
-    check_inputs(out, (light_directions, light_intensities, mask))
-    check_folder(out, overwrite, overwrite_allowed, count=n)
-    dirs = check_vectors(light_directions, n, "light directions")
-    ints = check_vectors(light_intensities, n, "light intensities")
-    shape = _frame_shape(camera, raw)
-    mask_arr = check_mask(mask, shape)
-    info = camera.info()  # before discarding anything: a device failing here costs nothing
+    given = _check_given(
+        camera,
+        lights,
+        out,
+        light_directions=light_directions,
+        light_intensities=light_intensities,
+        mask=mask,
+        overwrite=overwrite,
+        overwrite_allowed=overwrite_allowed,
+        linearisation=linearisation,
+    )
+    n = given.count
     if overwrite:
         _discard(out)
-    sess_path = out / SESSION
-    session = _load_session(sess_path, n, info, overwrite_allowed)
+    session = _load_session(out / SESSION, n, given.camera_info, overwrite_allowed)
     if not isinstance(session.get("frames"), dict):
         session["frames"] = {}
-    records: dict[str, Any] = session["frames"]
-    todo = ([("ambient.png", None)] if ambient else []) + [(_name(i), i) for i in range(n)]
-    _check_frames(raw, [name for name, _ in todo], shape)  # a resume's frames, before capturing
-    pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
-    # frames on disk without a usable exposure record (an older version wrote the frame
-    # before its record): checked again from raw/ below
-    unchecked = [
-        name
-        for name, i in todo
-        if i is not None
-        and (raw / name).is_file()
-        and Exposure.from_record(records.get(name), max_saturated, min_level) is None
-    ]
+    sess = _Session(out, session, camera, n, given.mask, max_saturated, min_level, log)
+    frames = _frames(sess, ambient, given.shape)
 
-    def fits(frame: np.ndarray) -> None:
-        if mask_arr is not None and mask_arr.shape != frame.shape[:2]:
-            raise InputError(
-                f"mask is {mask_arr.shape[1]}x{mask_arr.shape[0]} but the "
-                f"camera delivers {frame.shape[1]}x{frame.shape[0]} frames"
-            )
+    def finish() -> Path:
+        sess.judge_all(strict)
+        return finish_stack(
+            out,
+            given.light_directions,
+            given.light_intensities,
+            given.mask,
+            subtract_ambient,
+            given.linearisation,
+            normals_gt,
+            log=log,
+        )
 
-    def check(name: str, frame: np.ndarray) -> None:
-        """Record the frame's exposure in the session; problems are logged as warnings."""
-        fits(frame)
-        chk = exposure_check(frame, camera.white_level, mask_arr, max_saturated, min_level)
-        records[name] = {**asdict(chk), "time": time.time()}
-        if chk.problems():
-            log(f"warning: {name}: " + ", ".join(chk.problems()))
-
-    def judge_all() -> None:
-        """``strict``: every frame's recorded exposure judged, those taken before an
-        interruption included, as an uninterrupted run judges them."""
-        if not strict:
-            return
-        problems = []
-        for i in range(n):
-            chk = Exposure.from_record(records.get(_name(i)), max_saturated, min_level)
-            if chk is not None and chk.problems():
-                problems.append(f"{_name(i)}: " + ", ".join(chk.problems()))
-        if problems:
-            raise InputError("exposure problems: " + "; ".join(problems), out)
-
-    if not pending and not unchecked and _finished(out, n) and sess_path.is_file():
+    if not frames.pending and not frames.unchecked and _finished(out, n) and sess.path.is_file():
         log(
-            f"stack complete: all {n} frames are already in {raw}; nothing to capture "
+            f"stack complete: all {n} frames are already in {out / 'raw'}; nothing to capture "
             f"(kept as it is; {opt('overwrite')} captures again)"
         )
-        judge_all()
-        return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt, log=log)
-    raw.mkdir(parents=True, exist_ok=True)
-    session.update(count=n, camera=info, white_level=camera.white_level)
-    if pending:  # new frames: a stack built before no longer shows them
-        for key in _BUILT_KEYS:
-            session.pop(key, None)
-
-    def save_session() -> None:
-        text = json.dumps(session, indent=1, sort_keys=True)
-        write_atomic(sess_path, lambda t: t.write_text(text))
-
-    if not pending:  # every frame is on disk but the stack was never built (killed then)
-        log(f"all {len(todo)} frames already in {raw}; building the stack")
-    elif len(pending) < len(todo):
-        log(f"resuming: {len(todo) - len(pending)} of {len(todo)} frames already in {raw}")
-    if unchecked:
-        log(f"checking the exposure of {len(unchecked)} frame(s) in {raw} that have no record")
-        for name in unchecked:
-            check(name, read_image(raw / name))
-    save_session()  # from here on the folder is msf-capture's (check_folder)
-    try:
-        # disable=None: a bar on a terminal, nothing in a log file
-        for name, i in tqdm(
-            pending, desc="capture", unit="frame", disable=True if progress is False else None
-        ):
-            if i is None:
-                lights.off()
-            else:
-                lights.on(i)
-            frame = _to_uint(np.asarray(camera.capture()))
-            fits(frame)
-            if i is not None:
-                check(name, frame)
-            # The record first, then the frame: an interruption between the two leaves a
-            # record without its frame, which the resume captures (and records) again; never
-            # a frame on disk that nothing has checked.
-            save_session()
-            write_png(raw / name, frame)  # atomic: a crash never leaves half a frame
-    finally:
-        # never hide the original error behind a light-controller error
-        with contextlib.suppress(Exception):
-            lights.off()
-    judge_all()
-    return finish_stack(out, dirs, ints, mask_arr, subtract_ambient, lin, normals_gt, log=log)
+        return finish()
+    _start(sess, frames, given.camera_info)
+    _take(sess, lights, frames.pending, progress)
+    return finish()
 
 
 def _finished(out: Path, n: int) -> bool:

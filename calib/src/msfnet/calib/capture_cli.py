@@ -62,6 +62,14 @@ def add_device_arguments(
     caller adds --mask and --overwrite, whose meaning it owns.
     """
     g = p.add_argument_group("capture devices")
+    _add_camera_arguments(g, camera_default)
+    _add_light_rig_arguments(g, lights_flag)
+    _add_session_arguments(g)
+    _add_linearisation_arguments(g)
+
+
+def _add_camera_arguments(g: argparse._ArgumentGroup, camera_default: str | None) -> None:
+    """The camera back-end and its settings (exposure, gain, white balance, focus ...)."""
     g.add_argument(
         "--camera",
         choices=("oak", "opencv", "sim"),
@@ -95,6 +103,10 @@ def add_device_arguments(
     g.add_argument(
         "--average", type=positive_int, default=1, help="OpenCV: frames averaged per light"
     )
+
+
+def _add_light_rig_arguments(g: argparse._ArgumentGroup, lights_flag: str) -> None:
+    """The light back-end (named by ``lights_flag``) and its settings."""
     g.add_argument(
         lights_flag,
         dest="light_rig",
@@ -120,6 +132,11 @@ def add_device_arguments(
         help="--light-rig serial: seconds to wait after switching a light (default 0.05; "
         "the manual and sim rigs do not wait)",
     )
+
+
+def _add_session_arguments(g: argparse._ArgumentGroup) -> None:
+    """The simulated scene, the light files put in the stack, and how frames are kept
+    (ambient frame, exposure checks)."""
     g.add_argument(
         "--sim-scene",
         choices=("chrome", "matte"),
@@ -140,6 +157,10 @@ def add_device_arguments(
         help="do not subtract the ambient frame from the stack images",
     )
     g.add_argument("--strict", action="store_true", help="fail on saturated/under-exposed frames")
+
+
+def _add_linearisation_arguments(g: argparse._ArgumentGroup) -> None:
+    """The camera's encoding, undone when the stack is built: --srgb or --gamma, not both."""
     lin = g.add_mutually_exclusive_group()
     lin.add_argument(
         "--srgb",

@@ -25,6 +25,7 @@ from msfnet.calib.directions import (
 from msfnet.calib.intensities import estimate_intensities, target_normals
 from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 from msfnet.common.cli import (
+    Parser,
     add_common_flags,
     command_main,
     finite_float,
@@ -385,53 +386,46 @@ def cmd_intensities(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = make_parser(
-        PROG,
-        "Light directions from mirror-sphere images; RGB light intensities from a matte "
-        "white target. All outputs of a run are written together or not at all.",
-        (
-            "msf-calib directions chrome/ -o light_directions.txt",
-            "msf-calib intensities white/ --lights light_directions.txt -o light_intensities.txt",
-        ),
+def _add_common(sp: argparse.ArgumentParser) -> None:
+    """The options both sub-commands take, after their own: output, mask, ambient frame,
+    camera model, --overwrite."""
+    add_common_flags(sp, sub_command=True)  # before or after the sub-command's name
+    sp.add_argument("-o", "--output", type=path_arg, required=True, help="output text file")
+    sp.add_argument(
+        "--mask",
+        type=path_arg,
+        help="target mask image (default: a file in the "
+        "folder with 'mask' in its name; else the sphere is fitted from images)",
     )
-    sub = p.add_subparsers(dest="command", required=True, metavar="{directions,intensities}")
+    sp.add_argument(
+        "--ambient",
+        type=path_arg,
+        help="dark/ambient frame to subtract (default: a "
+        "file with 'ambient' or 'dark' in its name)",
+    )
+    sp.add_argument("--no-ambient", action="store_true", help="do not subtract any frame")
+    sp.add_argument(
+        "--focal",
+        type=positive_float,
+        help="perspective: focal length in "
+        "pixels, principal point at the image centre (default: orthographic)",
+    )
+    sp.add_argument(
+        "--intrinsics",
+        type=finite_float,
+        nargs=4,
+        metavar=("FX", "FY", "CX", "CY"),
+        help="perspective: full pinhole intrinsics in pixels (FX, FY > 0)",
+    )
+    sp.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace existing outputs (lights, confidence, diagnostic files)",
+    )
 
-    def common(sp: argparse.ArgumentParser) -> None:
-        add_common_flags(sp, sub_command=True)  # before or after the sub-command's name
-        sp.add_argument("-o", "--output", type=path_arg, required=True, help="output text file")
-        sp.add_argument(
-            "--mask",
-            type=path_arg,
-            help="target mask image (default: a file in the "
-            "folder with 'mask' in its name; else the sphere is fitted from images)",
-        )
-        sp.add_argument(
-            "--ambient",
-            type=path_arg,
-            help="dark/ambient frame to subtract (default: a "
-            "file with 'ambient' or 'dark' in its name)",
-        )
-        sp.add_argument("--no-ambient", action="store_true", help="do not subtract any frame")
-        sp.add_argument(
-            "--focal",
-            type=positive_float,
-            help="perspective: focal length in "
-            "pixels, principal point at the image centre (default: orthographic)",
-        )
-        sp.add_argument(
-            "--intrinsics",
-            type=finite_float,
-            nargs=4,
-            metavar=("FX", "FY", "CX", "CY"),
-            help="perspective: full pinhole intrinsics in pixels (FX, FY > 0)",
-        )
-        sp.add_argument(
-            "--overwrite",
-            action="store_true",
-            help="replace existing outputs (lights, confidence, diagnostic files)",
-        )
 
+def _add_directions(sub: argparse._SubParsersAction[Parser]) -> None:
+    """The ``directions`` sub-command: mirror-sphere folders, spheres, diagnostic image."""
     d = sub.add_parser(
         "directions",
         help="light directions from mirror-sphere images",
@@ -454,9 +448,12 @@ def build_parser() -> argparse.ArgumentParser:
         "<output>_diagnostic.png; with several captures, _1, _2, ... are appended)",
     )
     d.add_argument("--no-diagnostic", action="store_true", help="write no diagnostic image")
-    common(d)
+    _add_common(d)
     d.set_defaults(func=cmd_directions)
 
+
+def _add_intensities(sub: argparse._SubParsersAction[Parser]) -> None:
+    """The ``intensities`` sub-command: white-target folder, lights file, target shape."""
     i = sub.add_parser(
         "intensities",
         help="RGB light intensities from a matte white target",
@@ -489,8 +486,23 @@ def build_parser() -> argparse.ArgumentParser:
         "residual above 20%%: usually wrong light directions or a glossy target); a warning "
         "says so",
     )
-    common(i)
+    _add_common(i)
     i.set_defaults(func=cmd_intensities)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = make_parser(
+        PROG,
+        "Light directions from mirror-sphere images; RGB light intensities from a matte "
+        "white target. All outputs of a run are written together or not at all.",
+        (
+            "msf-calib directions chrome/ -o light_directions.txt",
+            "msf-calib intensities white/ --lights light_directions.txt -o light_intensities.txt",
+        ),
+    )
+    sub = p.add_subparsers(dest="command", required=True, metavar="{directions,intensities}")
+    _add_directions(sub)
+    _add_intensities(sub)
     return p
 
 

@@ -10,6 +10,7 @@ directions or a glossy target give plausible-looking intensities that are wrong.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,125 @@ def target_normals(
     return np.broadcast_to(pn, (h, w, 3)).copy(), valid
 
 
+@dataclass(frozen=True)
+class _Target:
+    """What every light's fit shares: the target's geometry, the ambient frame, the limits."""
+
+    normals: np.ndarray  # (H, W, 3)
+    valid: np.ndarray  # (H, W) bool
+    ambient: np.ndarray | None  # (H, W, 1 or 3) float64
+    white_level: float
+    min_shading: float
+    source: str | Path | None
+
+
+@dataclass(frozen=True)
+class _LightFit:
+    """One light's least-squares fit of its pixels to the shading ``s = n . l``."""
+
+    rgb: np.ndarray  # (3,) the light's intensity e_c
+    black: bool  # nothing lit on the target before any ambient subtraction
+    saturated: float  # share of the lit target at the white level
+    misfit: float  # squared fit residual over the used pixels
+    total: float  # squared signal over the used pixels
+
+
+def _fit_light(target: _Target, image: np.ndarray, light: np.ndarray, name: str) -> _LightFit:
+    """Fit one image (cast to float64 here) to its light's shading; refuse an image with too
+    few usable (lit, unsaturated) target pixels, naming the likely cause."""
+    img = np.asarray(image, np.float64)
+    if img.ndim == 2:  # grey: the same value in every channel
+        img = np.repeat(img[..., None], 3, axis=2)
+    white_level = target.white_level
+    unsat = np.all(img < 0.99 * white_level, axis=-1)
+    s = target.normals @ (light / np.linalg.norm(light))
+    lit = target.valid & (s > target.min_shading)
+    use = lit & unsat
+    if use.sum() < 30:
+        if lit.sum() >= 30:  # lit pixels enough, but at the white level: not too dark
+            raise InputError(
+                f"{name}: the lit target is saturated ({1 - unsat[lit].mean():.0%} "
+                "of it at the white level): lower the exposure",
+                target.source,
+            )
+        why = (
+            "its light points away from the camera (z <= 0; expected x right, y up, "
+            "z toward the camera): flip the sign of z"
+            if light[2] <= 0
+            else "check the mask and the light directions"
+        )
+        raise InputError(f"{name}: fewer than 30 lit target pixels ({why})", target.source)
+    black = float(img[use].max()) < 0.02 * white_level
+    if target.ambient is not None:
+        img = img - target.ambient
+    sat_share = 1.0 - unsat[target.valid & (s > target.min_shading)].mean()
+    sv, iv = s[use], img[use]
+    rgb = (iv * sv[:, None]).sum(0) / (sv * sv).sum()
+    return _LightFit(
+        rgb,
+        black,
+        sat_share,
+        float(((iv - sv[:, None] * rgb) ** 2).sum()),
+        float((iv * iv).sum()),
+    )
+
+
+def _refuse_nonpositive(
+    out: np.ndarray,
+    black: np.ndarray,
+    names: list[str],
+    has_ambient: bool,
+    source: str | Path | None,
+) -> None:
+    """Refuse zero or negative intensities, naming the lights and the likely cause."""
+    bad = np.flatnonzero(np.any(out <= 0, axis=1))
+    if len(bad):
+        which = ", ".join(names[i] for i in bad[:6]) + (" ..." if len(bad) > 6 else "")
+        # the cause said only where it is one: a black image was blamed on an ambient frame
+        # that did not exist
+        if np.all(black[bad]):
+            why = "the target is black in these images: light off, or exposure far too low"
+        elif has_ambient:
+            why = "the ambient frame is brighter than these lit images"
+        else:
+            why = "check the light directions for these images"
+        raise InputError(
+            f"zero or negative intensity for {len(bad)} light(s): {which} ({why})", source
+        )
+
+
+def _judge_fit(
+    residual: float, plane: bool, accept_poor_fit: bool, source: str | Path | None
+) -> str | None:
+    """The warning the relative fit residual calls for (None: none), or the refusal of a
+    target that matte shading under these lights does not explain."""
+    if plane:
+        # a plane's shading is one value per light: the residual sees only brightness varying
+        # across the image alike under every light (lens vignetting: 21 % at a 38 deg
+        # half-diagonal, rendered), which cancels in the ratios, or a target that is no
+        # plane; never a wrong light. So a warning, never a refusal.
+        if residual > FIT_WARN:
+            return (
+                f"{source or 'the images'}: the plane's brightness varies across the image "
+                f"more than matte shading explains (fit residual {residual:.0%}): fine if it "
+                "is vignetting (the same under every light); check the target is a plane"
+            )
+        return None
+    if residual > FIT_REFUSE and not accept_poor_fit:
+        raise InputError(
+            f"the target does not fit matte shading under these light directions (fit "
+            f"residual {residual:.0%}, at most {FIT_REFUSE:.0%} accepted): check for "
+            f"{_fit_hint()} ({opt('accept_poor_fit')} writes them anyway)",
+            source,
+        )
+    if residual > FIT_WARN:
+        return (
+            f"{source or 'the images'}: the target fits matte shading poorly (fit residual "
+            f"{residual:.0%}): check for {_fit_hint()}"
+        )
+    return None
+
+
 def estimate_intensities(
     images: np.ndarray,
     lights: np.ndarray,
@@ -93,81 +213,24 @@ def estimate_intensities(
     amb = None if ambient is None else np.asarray(ambient, np.float64)
     if amb is not None and amb.ndim == 2:
         amb = amb[..., None]
+    target = _Target(normals, valid, amb, white_level, min_shading, source)
     out = np.zeros((n, 3))
     black = np.zeros(n, bool)  # nothing lit on the target before any ambient subtraction
     warnings = []
     misfit = total = 0.0  # squared fit residual and squared signal, over every light
     for i in range(n):
-        img = np.asarray(imgs[i], np.float64)
-        if img.ndim == 2:  # grey: the same value in every channel
-            img = np.repeat(img[..., None], 3, axis=2)
-        unsat = np.all(img < 0.99 * white_level, axis=-1)
-        s = normals @ (lights[i] / np.linalg.norm(lights[i]))
-        lit = valid & (s > min_shading)
-        use = lit & unsat
-        if use.sum() < 30:
-            if lit.sum() >= 30:  # lit pixels enough, but at the white level: not too dark
-                raise InputError(
-                    f"{names[i]}: the lit target is saturated ({1 - unsat[lit].mean():.0%} "
-                    "of it at the white level): lower the exposure",
-                    source,
-                )
-            why = (
-                "its light points away from the camera (z <= 0; expected x right, y up, "
-                "z toward the camera): flip the sign of z"
-                if lights[i][2] <= 0
-                else "check the mask and the light directions"
-            )
-            raise InputError(f"{names[i]}: fewer than 30 lit target pixels ({why})", source)
-        black[i] = float(img[use].max()) < 0.02 * white_level
-        if amb is not None:
-            img = img - amb
-        sat_share = 1.0 - unsat[valid & (s > min_shading)].mean()
-        if sat_share > 0.02:
-            warnings.append(f"{names[i]}: {sat_share:.0%} of the lit target is saturated")
-        sv, iv = s[use], img[use]
-        out[i] = (iv * sv[:, None]).sum(0) / (sv * sv).sum()
-        misfit += float(((iv - sv[:, None] * out[i]) ** 2).sum())
-        total += float((iv * iv).sum())
-    bad = np.flatnonzero(np.any(out <= 0, axis=1))
-    if len(bad):
-        which = ", ".join(names[i] for i in bad[:6]) + (" ..." if len(bad) > 6 else "")
-        # the cause said only where it is one: a black image was blamed on an ambient frame
-        # that did not exist
-        if np.all(black[bad]):
-            why = "the target is black in these images: light off, or exposure far too low"
-        elif amb is not None:
-            why = "the ambient frame is brighter than these lit images"
-        else:
-            why = "check the light directions for these images"
-        raise InputError(
-            f"zero or negative intensity for {len(bad)} light(s): {which} ({why})", source
-        )
+        fit = _fit_light(target, imgs[i], lights[i], names[i])
+        black[i] = fit.black
+        if fit.saturated > 0.02:
+            warnings.append(f"{names[i]}: {fit.saturated:.0%} of the lit target is saturated")
+        out[i] = fit.rgb
+        misfit += fit.misfit
+        total += fit.total
+    _refuse_nonpositive(out, black, names, amb is not None, source)
     residual = np.sqrt(misfit / max(total, 1e-300))
-    if plane:
-        # a plane's shading is one value per light: the residual sees only brightness varying
-        # across the image alike under every light (lens vignetting: 21 % at a 38 deg
-        # half-diagonal, rendered), which cancels in the ratios, or a target that is no
-        # plane; never a wrong light. So a warning, never a refusal.
-        if residual > FIT_WARN:
-            warnings.append(
-                f"{source or 'the images'}: the plane's brightness varies across the image "
-                f"more than matte shading explains (fit residual {residual:.0%}): fine if it "
-                "is vignetting (the same under every light); check the target is a plane"
-            )
-        return out / out.mean(), warnings
-    if residual > FIT_REFUSE and not accept_poor_fit:
-        raise InputError(
-            f"the target does not fit matte shading under these light directions (fit "
-            f"residual {residual:.0%}, at most {FIT_REFUSE:.0%} accepted): check for "
-            f"{_fit_hint()} ({opt('accept_poor_fit')} writes them anyway)",
-            source,
-        )
-    if residual > FIT_WARN:
-        warnings.append(
-            f"{source or 'the images'}: the target fits matte shading poorly (fit residual "
-            f"{residual:.0%}): check for {_fit_hint()}"
-        )
+    warning = _judge_fit(residual, plane, accept_poor_fit, source)
+    if warning is not None:
+        warnings.append(warning)
     return out / out.mean(), warnings
 
 

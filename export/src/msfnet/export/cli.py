@@ -83,6 +83,15 @@ def build_parser() -> argparse.ArgumentParser:
         "the same rows (no flag = staged; e.g. --int8 = staged-int8, --plain --int8 = "
         "int8).\n\n" + (p.epilog or "")
     )
+    _add_input_output_arguments(p)
+    _add_graph_arguments(p)
+    _add_int8_arguments(p)
+    _add_storage_arguments(p)
+    return p
+
+
+def _add_input_output_arguments(p: argparse.ArgumentParser) -> None:
+    """The checkpoint, the output file and the variant choice (or the table of variants)."""
     p.add_argument(
         "checkpoint", type=path_arg, nargs="?", help="PyTorch checkpoint (.pth/.pth.tar)"
     )
@@ -106,6 +115,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="print the variants table (passes, verification rule) and exit",
     )
+
+
+def _add_graph_arguments(p: argparse.ArgumentParser) -> None:
+    """How the graph is built and checked: opset, training light count, static shapes,
+    simplification and the verification tolerance."""
     p.add_argument(
         "--opset",
         type=int_range(MIN_OPSET, MAX_OPSET),
@@ -142,6 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
         f"{TOLERANCE_DEG} max vs PyTorch for fp32/fp16, {INT8_MEAN_LIMIT_DEG} mean "
         "vs the fp32 graph for int8)",
     )
+
+
+def _add_int8_arguments(p: argparse.ArgumentParser) -> None:
+    """int8 quantisation: the flag, its calibration stacks and the weights' bit width."""
     p.add_argument(
         "--int8",
         action="store_true",
@@ -165,6 +183,10 @@ def build_parser() -> argparse.ArgumentParser:
         "kernels saturate 8-bit weights; 7-bit files compute exactly on every CPU, so "
         "export with 7 for other machines)",
     )
+
+
+def _add_storage_arguments(p: argparse.ArgumentParser) -> None:
+    """Weight storage, staged or plain graph, and overwriting the output."""
     p.add_argument(
         "--fp16-weights",
         action="store_true",
@@ -185,7 +207,6 @@ def build_parser() -> argparse.ArgumentParser:
         "several times less memory per pixel at high light counts; same normals",
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    return p
 
 
 def resolve_variant(args: argparse.Namespace) -> Variant:

@@ -416,20 +416,7 @@ def quantize_model(
     7-bit weights compute exactly on every CPU; see CpuInfo.int8_full_range). Recorded in the
     summary, which the runtime reads before running the model on a CPU without VNNI.
     """
-    from onnxruntime.quantization import (
-        CalibrationDataReader,
-        CalibrationMethod,
-        QuantFormat,
-        QuantType,
-        quantize_static,
-    )
-
-    if method not in CALIBRATION_METHODS:
-        raise InputError(
-            f"calibration method {method!r}: expected one of {', '.join(CALIBRATION_METHODS)}"
-        )
-    if any(n.op_type == "ConvTranspose" for n in model.graph.node):
-        raise ValueError("rewrite the transposed convolutions first (rewrite.rewrite_deconvs)")
+    _check_quantisable(model, method)
     check_calibration(stacks)
     given = [s.name for s in stacks]
     stacks = with_many_light_stacks(stacks)
@@ -448,6 +435,51 @@ def quantize_model(
     )
     if _is_staged(model):
         samples = staged_samples(model.SerializeToString(), samples)
+    qmodel = _quantize_static(model, samples, scratch, reduce_range)
+    ranged = 0
+    if method == "percentile":
+        ranged = _set_percentile_ranges(model, qmodel, samples)
+    summary: dict[str, object] = {
+        "calibration_samples": len(samples),
+        "calibration_stacks": given,
+        "rendered_stacks": len(stacks) - len(given),
+        "method": method,
+        "percentile": ACTIVATION_PERCENTILE if method == "percentile" else None,
+        "ranges_from_percentiles": ranged,
+        "tile": tile,
+        "lights": lights,
+        "reduce_range": reduce_range,
+        "fp32_convs": fp32_conv_names(model),
+    }
+    return qmodel, summary
+
+
+def _check_quantisable(model: onnx.ModelProto, method: str) -> None:
+    """Refuse an unknown calibration method, and a graph whose transposed convs are not yet
+    rewritten (``rewrite.rewrite_deconvs``)."""
+    if method not in CALIBRATION_METHODS:
+        raise InputError(
+            f"calibration method {method!r}: expected one of {', '.join(CALIBRATION_METHODS)}"
+        )
+    if any(n.op_type == "ConvTranspose" for n in model.graph.node):
+        raise ValueError("rewrite the transposed convolutions first (rewrite.rewrite_deconvs)")
+
+
+def _quantize_static(
+    model: onnx.ModelProto,
+    samples: list[dict[str, np.ndarray]],
+    scratch: Path,
+    reduce_range: bool,
+) -> onnx.ModelProto:
+    """ONNX Runtime's quantize_static on ``model`` (min/max ranges over ``samples``), through
+    files in ``scratch``: the QDQ graph it writes, loaded back."""
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
 
     class Reader(_Reader, CalibrationDataReader):
         pass
@@ -475,26 +507,18 @@ def quantize_model(
             nodes_to_exclude=fp32_conv_names(model),
             reduce_range=reduce_range,
         )
-        qmodel = onnx.load(str(dst))
+        return onnx.load(str(dst))
     finally:
         tempfile.tempdir = old_tempdir
         root.setLevel(level)
-    ranged = 0
-    if method == "percentile":
-        known = {o for n in model.graph.node for o in n.output}
-        names = [n for n in activation_inputs(qmodel) if n in known]
-        ranges = activation_ranges(model, samples, names, ACTIVATION_PERCENTILE)
-        ranged = set_activation_ranges(qmodel, ranges, model)
-    summary: dict[str, object] = {
-        "calibration_samples": len(samples),
-        "calibration_stacks": given,
-        "rendered_stacks": len(stacks) - len(given),
-        "method": method,
-        "percentile": ACTIVATION_PERCENTILE if method == "percentile" else None,
-        "ranges_from_percentiles": ranged,
-        "tile": tile,
-        "lights": lights,
-        "reduce_range": reduce_range,
-        "fp32_convs": fp32_conv_names(model),
-    }
-    return qmodel, summary
+
+
+def _set_percentile_ranges(
+    model: onnx.ModelProto, qmodel: onnx.ModelProto, samples: list[dict[str, np.ndarray]]
+) -> int:
+    """Replace the min/max ranges of ``qmodel``'s activations that the fp32 ``model`` computes
+    by their ACTIVATION_PERCENTILE ranges over ``samples``; returns how many changed."""
+    known = {o for n in model.graph.node for o in n.output}
+    names = [n for n in activation_inputs(qmodel) if n in known]
+    ranges = activation_ranges(model, samples, names, ACTIVATION_PERCENTILE)
+    return set_activation_ranges(qmodel, ranges, model)

@@ -17,8 +17,8 @@ import multiprocessing
 import signal
 import threading
 import time
-from collections.abc import Collection, Sequence
-from dataclasses import dataclass
+from collections.abc import Collection, Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -252,6 +252,34 @@ class TrainOutcome:
     val_ls_mae: float  # least squares on the same held-out set (deg)
     stopped: int | None = None  # the signal that stopped it early, if one did
     budget_spent: bool = False  # stopped early by --time-budget (last.pth saved)
+
+
+@dataclass
+class _Throughput:
+    """Since ``start`` (perf_counter): time blocked on data and samples trained, over a log
+    row's or an epoch's steps."""
+
+    start: float
+    wait: float = 0.0
+    samples: int = 0
+
+
+@dataclass
+class _RunState:
+    """What the training loop carries from step to step."""
+
+    total: int  # the step the run ends at
+    deadline: float | None  # --time-budget's end (time.monotonic), if any
+    last_save: float  # time.monotonic() of the last save of last.pth
+    last_snap: float  # time.monotonic() of the last --snapshot-seconds snapshot
+    loss: float | None = None  # the running (exponentially smoothed) loss
+    budget_spent: bool = False
+    win: _Throughput = field(init=False)  # since the last log row
+    ep: _Throughput = field(init=False)  # since the epoch began
+
+    def __post_init__(self) -> None:
+        self.win = _Throughput(time.perf_counter())
+        self.ep = _Throughput(self.win.start)
 
 
 class Trainer:
@@ -684,16 +712,40 @@ class Trainer:
                 path.unlink(missing_ok=True)
 
     def _train(self, progress: bool, report: bool) -> TrainOutcome:
-        from tqdm import tqdm
+        self._write_config()
+        total = self.cfg.epochs * self.cfg.steps_per_epoch
+        last_save = time.monotonic()
+        bar = self._progress_bar(total, progress)
+        old_handlers = self._install_handlers()
+        before = set(multiprocessing.active_children())  # not ours to stop afterwards
+        batches = self._batches(total)
+        # --time-budget: stop like a signal would (save, return) once it is spent
+        budget = self.cfg.time_budget
+        deadline = None if budget is None else self.created + budget
+        run = _RunState(total, deadline, last_save, last_snap=time.monotonic())
+        try:
+            self._run_steps(run, batches, bar, report)
+            if self.stop_signal is not None:
+                self.save()
+                name = signal.Signals(self.stop_signal).name
+                self.log({"step": self.step, "stopped": name, "time": time.time()})
+        finally:
+            self._end_run(batches, before, old_handlers, bar)
+        return TrainOutcome(self.step, self.best, self.val_ls, self.stop_signal, run.budget_spent)
 
+    def _write_config(self) -> None:
+        """Create OUT and write config.json (the configuration this run trains with)."""
         cfg = self.cfg
         self.out.mkdir(parents=True, exist_ok=True)
         write_atomic(
             self.out / "config.json", lambda t: t.write_text(json.dumps(cfg.stored(), indent=1))
         )
-        total = cfg.epochs * cfg.steps_per_epoch
-        last_save = time.monotonic()
-        bar = tqdm(
+
+    def _progress_bar(self, total: int, progress: bool) -> Any:
+        """The tqdm progress bar over the run's steps (disabled unless ``progress``)."""
+        from tqdm import tqdm
+
+        return tqdm(
             total=total,
             initial=self.step,
             desc="train",
@@ -702,137 +754,176 @@ class Trainer:
             mininterval=5.0,
             dynamic_ncols=True,
         )
-        old_handlers = self._install_handlers()
-        before = set(multiprocessing.active_children())  # not ours to stop afterwards
+
+    def _batches(self, total: int) -> Iterator[tuple[Batch, int, int]]:
+        """(batch, lights, crop) per step up to ``total``: rendered on the device, by loader
+        workers or in this process."""
         if self.on_device:
-            batches = self._device_batches(total)
-        elif self.workers > 0:
-            batches = self._loader_batches(total)
-        else:
-            batches = self._local_batches(total)
-        # --time-budget: stop like a signal would (save, return) once it is spent
-        deadline = None if cfg.time_budget is None else self.created + cfg.time_budget
-        last_snap = time.monotonic()
-        run_loss = None
-        budget_spent = False
-        # Throughput: per log row and per epoch, wall time, time blocked on data, samples.
-        win = {"t": time.perf_counter(), "wait": 0.0, "n": 0}
-        ep = dict(win)
-        try:
-            while self.step < total and self.stop_signal is None:
-                if deadline is not None and time.monotonic() >= deadline:
-                    self.log({"step": self.step, "stopped": "time_budget", "time": time.time()})
-                    self.save()
-                    budget_spent = True
-                    break
-                epoch = self.epoch
-                for g in self.opt.param_groups:
-                    g["lr"] = self.lr_at(epoch)
-                t0 = time.perf_counter()
-                try:
-                    batch, lights, crop = next(batches)
-                except StopIteration:
-                    break
-                except Exception:
-                    if self.stop_signal is None:
-                        raise
-                    break  # workers killed along with us (a signal to the process group)
-                batch = self.to_device(batch)
-                waited = time.perf_counter() - t0
-                for acc in (win, ep):
-                    acc["wait"] += waited
-                    acc["n"] += cfg.batch
-                loss, parts = self.train_step(batch)
-                self.step += 1
-                if cfg.snapshot_seconds and time.monotonic() - last_snap >= cfg.snapshot_seconds:
-                    # fp16: small enough to copy out of a time-boxed GPU session
-                    self._check_finite()
-                    save_checkpoint(
-                        self.model, self.out / snapshot_name(self.step), fp16=True, step=self.step
-                    )
-                    last_snap = time.monotonic()
-                run_loss = loss if run_loss is None else 0.95 * run_loss + 0.05 * loss
-                bar.update(1)
-                bar.set_postfix(loss=f"{run_loss:.4f}", ep=epoch, n=lights, crop=crop)
-                if self.step % cfg.log_every == 0:
-                    now = time.perf_counter()
-                    span = now - win["t"]
-                    row = {
-                        "step": self.step,
-                        "epoch": epoch,
-                        "loss": loss,
-                        "stages": parts,
-                        "lights": lights,
-                        "crop": crop,
-                        "lr": self.lr_at(epoch),
-                        "s_per_step": span / cfg.log_every,
-                        "samples_per_s": win["n"] / span,
-                        "data_wait": win["wait"] / span,
-                        "time": time.time(),
-                    }
-                    if self.device.type == "cuda":
-                        row["gpu_util"] = gpu_utilisation()
-                    self.log(row)
-                    win = {"t": now, "wait": 0.0, "n": 0}
-                if self.step % cfg.steps_per_epoch == 0 or self.step == total:
-                    span = time.perf_counter() - ep["t"]
-                    mae = self.validate()
-                    speed = {"samples_per_s": ep["n"] / span, "data_wait": ep["wait"] / span}
-                    util = gpu_utilisation() if self.device.type == "cuda" else None
-                    if util is not None:
-                        speed["gpu_util"] = util
-                    self.log(
-                        {
-                            "step": self.step,
-                            "epoch": epoch + 1,
-                            "val_mae": mae,
-                            "val_ls_mae": self.val_ls,
-                            **speed,
-                            "time": time.time(),
-                        }
-                    )
-                    gpu = f", GPU {util:.0f} %" if util is not None else ""
-                    if report:
-                        bar.write(
-                            f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least "
-                            f"squares {self.val_ls:.2f}), loss {run_loss:.4f}, "
-                            f"{speed['samples_per_s']:.1f} samples/s, data wait "
-                            f"{100 * speed['data_wait']:.0f} %{gpu}"
-                        )
-                    if cfg.snapshot_every and (epoch + 1) % cfg.snapshot_every == 0:
-                        # Synthetic validation does not rank real objects reliably: keep
-                        # snapshots to select on real validation objects afterwards.
-                        self._check_finite()
-                        save_checkpoint(
-                            self.model,
-                            self.out / snapshot_name(self.step),
-                            step=self.step,
-                            val_mae=mae,
-                        )
-                    if math.isfinite(mae) and mae < self.best:  # NaN is never "best"
-                        self.best = mae
-                        self._check_finite()
-                        save_checkpoint(
-                            self.model, self.out / "best.pth", step=self.step, val_mae=mae
-                        )
-                    self.save()
-                    self.plot()
-                    last_save = time.monotonic()
-                    ep = {"t": time.perf_counter(), "wait": 0.0, "n": 0}
-                elif time.monotonic() - last_save > cfg.ckpt_minutes * 60:
-                    self.save()
-                    last_save = time.monotonic()
-            if self.stop_signal is not None:
+            return self._device_batches(total)
+        if self.workers > 0:
+            return self._loader_batches(total)
+        return self._local_batches(total)
+
+    def _run_steps(
+        self,
+        run: _RunState,
+        batches: Iterator[tuple[Batch, int, int]],
+        bar: Any,
+        report: bool,
+    ) -> None:
+        """The training loop: steps until the end, a signal, the time budget or the end of
+        the batches, with logging, epoch ends and periodic saves along the way."""
+        cfg = self.cfg
+        while self.step < run.total and self.stop_signal is None:
+            if run.deadline is not None and time.monotonic() >= run.deadline:
+                self.log({"step": self.step, "stopped": "time_budget", "time": time.time()})
                 self.save()
-                name = signal.Signals(self.stop_signal).name
-                self.log({"step": self.step, "stopped": name, "time": time.time()})
-        finally:
-            close = getattr(batches, "close", None)
-            if close is not None:
-                close()  # shuts the DataLoader's workers down
-            if self.workers > 0:
-                stop_workers(spare=before)
-            for sig, handler in old_handlers.items():
-                signal.signal(sig, handler)
-            bar.close()
-        return TrainOutcome(self.step, self.best, self.val_ls, self.stop_signal, budget_spent)
+                run.budget_spent = True
+                break
+            epoch = self.epoch
+            for g in self.opt.param_groups:
+                g["lr"] = self.lr_at(epoch)
+            t0 = time.perf_counter()
+            got = self._next_batch(batches)
+            if got is None:
+                break
+            batch, lights, crop = got
+            batch = self.to_device(batch)
+            waited = time.perf_counter() - t0
+            for acc in (run.win, run.ep):
+                acc.wait += waited
+                acc.samples += cfg.batch
+            loss, parts = self.train_step(batch)
+            self.step += 1
+            self._timed_snapshot(run)
+            run.loss = loss if run.loss is None else 0.95 * run.loss + 0.05 * loss
+            bar.update(1)
+            bar.set_postfix(loss=f"{run.loss:.4f}", ep=epoch, n=lights, crop=crop)
+            if self.step % cfg.log_every == 0:
+                self._log_steps(run, epoch, loss, parts, lights, crop)
+            if self.step % cfg.steps_per_epoch == 0 or self.step == run.total:
+                self._end_epoch(run, epoch, bar, report)
+            elif time.monotonic() - run.last_save > cfg.ckpt_minutes * 60:
+                self.save()
+                run.last_save = time.monotonic()
+
+    def _next_batch(
+        self, batches: Iterator[tuple[Batch, int, int]]
+    ) -> tuple[Batch, int, int] | None:
+        """The next (batch, lights, crop); None when the batches ran out, or when fetching
+        failed after a signal (the workers were killed along with us)."""
+        try:
+            return next(batches)
+        except StopIteration:
+            return None
+        except Exception:
+            if self.stop_signal is None:
+                raise
+            return None  # workers killed along with us (a signal to the process group)
+
+    def _timed_snapshot(self, run: _RunState) -> None:
+        """--snapshot-seconds: an fp16 snapshot once that many seconds passed since the last."""
+        cfg = self.cfg
+        if cfg.snapshot_seconds and time.monotonic() - run.last_snap >= cfg.snapshot_seconds:
+            # fp16: small enough to copy out of a time-boxed GPU session
+            self._check_finite()
+            save_checkpoint(
+                self.model, self.out / snapshot_name(self.step), fp16=True, step=self.step
+            )
+            run.last_snap = time.monotonic()
+
+    def _log_steps(
+        self, run: _RunState, epoch: int, loss: float, parts: list[float], lights: int, crop: int
+    ) -> None:
+        """Every --log-every steps: a log row with the loss and the throughput since the last."""
+        cfg = self.cfg
+        now = time.perf_counter()
+        win = run.win
+        span = now - win.start
+        row = {
+            "step": self.step,
+            "epoch": epoch,
+            "loss": loss,
+            "stages": parts,
+            "lights": lights,
+            "crop": crop,
+            "lr": self.lr_at(epoch),
+            "s_per_step": span / cfg.log_every,
+            "samples_per_s": win.samples / span,
+            "data_wait": win.wait / span,
+            "time": time.time(),
+        }
+        if self.device.type == "cuda":
+            row["gpu_util"] = gpu_utilisation()
+        self.log(row)
+        run.win = _Throughput(now)
+
+    def _end_epoch(self, run: _RunState, epoch: int, bar: Any, report: bool) -> None:
+        """At an epoch's end: validate, log (and with ``report`` print) the epoch's row, keep
+        the snapshot / best.pth it earns, then save last.pth and the curve."""
+        ep = run.ep
+        span = time.perf_counter() - ep.start
+        mae = self.validate()
+        speed = {"samples_per_s": ep.samples / span, "data_wait": ep.wait / span}
+        util = gpu_utilisation() if self.device.type == "cuda" else None
+        if util is not None:
+            speed["gpu_util"] = util
+        self.log(
+            {
+                "step": self.step,
+                "epoch": epoch + 1,
+                "val_mae": mae,
+                "val_ls_mae": self.val_ls,
+                **speed,
+                "time": time.time(),
+            }
+        )
+        gpu = f", GPU {util:.0f} %" if util is not None else ""
+        if report:
+            bar.write(
+                f"epoch {epoch + 1}: val MAE {mae:.2f} deg (least "
+                f"squares {self.val_ls:.2f}), loss {run.loss:.4f}, "
+                f"{speed['samples_per_s']:.1f} samples/s, data wait "
+                f"{100 * speed['data_wait']:.0f} %{gpu}"
+            )
+        self._keep_epoch_weights(epoch, mae)
+        self.save()
+        self.plot()
+        run.last_save = time.monotonic()
+        run.ep = _Throughput(time.perf_counter())
+
+    def _keep_epoch_weights(self, epoch: int, mae: float) -> None:
+        """The epoch's --snapshot-every snapshot, and best.pth when ``mae`` is the best yet."""
+        cfg = self.cfg
+        if cfg.snapshot_every and (epoch + 1) % cfg.snapshot_every == 0:
+            # Synthetic validation does not rank real objects reliably: keep
+            # snapshots to select on real validation objects afterwards.
+            self._check_finite()
+            save_checkpoint(
+                self.model,
+                self.out / snapshot_name(self.step),
+                step=self.step,
+                val_mae=mae,
+            )
+        if math.isfinite(mae) and mae < self.best:  # NaN is never "best"
+            self.best = mae
+            self._check_finite()
+            save_checkpoint(self.model, self.out / "best.pth", step=self.step, val_mae=mae)
+
+    def _end_run(
+        self,
+        batches: Iterator[tuple[Batch, int, int]],
+        before: set[multiprocessing.process.BaseProcess],
+        old_handlers: dict[int, Any],
+        bar: Any,
+    ) -> None:
+        """However the run ended: stop the batch source and its workers, put the signal
+        handlers back and close the progress bar."""
+        close = getattr(batches, "close", None)
+        if close is not None:
+            close()  # shuts the DataLoader's workers down
+        if self.workers > 0:
+            stop_workers(spare=before)
+        for sig, handler in old_handlers.items():
+            signal.signal(sig, handler)
+        bar.close()

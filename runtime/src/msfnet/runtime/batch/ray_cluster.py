@@ -33,7 +33,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -375,6 +375,175 @@ def init_keeping_sigterm(ray: Any, **kwargs: Any) -> None:
         signal.signal(signal.SIGTERM, previous)
 
 
+# a Ray actor handle and the load options it runs its stacks with (its share of the budget)
+_Worker = tuple[Any, LoadOptions]
+
+
+def _connect(ray: Any, address: str | None) -> bool:
+    """Start Ray's session at ``address`` (True), or use the one the caller already started
+    as it is (False); InputError where no connection comes."""
+    given = address or os.environ.get("RAY_ADDRESS") or ""
+    if given.startswith("ray://"):
+        _check_client()
+    started = not ray.is_initialized()
+    if started:
+        check_reachable(given)
+        try:
+            init_keeping_sigterm(
+                ray, address=address, include_dashboard=False, logging_level="WARNING"
+            )
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            raise InputError(
+                f"{opt('ray', address or os.environ.get('RAY_ADDRESS') or '')}: cannot "
+                f"connect to Ray ({exc})".replace(":  ", ": ")
+            ) from exc
+    return started
+
+
+def _start_actors(
+    ray: Any, spec: ModelSpec, plan: WorkerPlan, base: LoadOptions, threads: int
+) -> list[_Worker]:
+    """One actor for each planned worker, pinned to its node, each with the load options it
+    runs with (its share of the budget)."""
+    actor_class = ray.remote(num_cpus=threads)(StackWorker)
+    actors: list[_Worker] = []
+    for node in plan.nodes:
+        # every worker plans its tiles and checks stack sizes with its share, not the whole
+        node_spec = replace(spec, options=spec.options.replace(max_memory_mb=node.memory_mb))
+        opts = base
+        if opts.max_memory_mb is not None:
+            opts = replace(opts, max_memory_mb=node.memory_mb)
+        where = actor_class
+        if node.node_id is not None:  # pinned: the share assumes exactly these on the node
+            strategies = ray.util.scheduling_strategies
+            where = actor_class.options(
+                scheduling_strategy=strategies.NodeAffinitySchedulingStrategy(
+                    node_id=node.node_id, soft=False
+                )
+            )
+        actors += [(where.remote(node_spec), opts) for _ in range(node.workers)]
+    return actors
+
+
+@dataclass
+class _Outputs:
+    """Where each stack's answer goes (as :func:`_record` takes it): its output folder and its
+    row of the summary."""
+
+    out_for: Callable[[str], Path | None]
+    overwrite: bool
+    inputs: tuple[Path, ...]
+    summary: BatchSummary
+    on_result: OnResult | None
+
+    def record(self, payload: dict[str, Any], item: BatchItem) -> dict[str, object]:
+        return _record(
+            payload, item, self.out_for, self.overwrite, self.inputs, self.summary, self.on_result
+        )
+
+
+@dataclass
+class _Flight:
+    """The batch as it runs on the workers: the stacks not yet sent (the next last), and what
+    each ref in flight answers: a stack, or (None) a worker that has started. A stack goes only
+    to a started worker: one still waiting for CPUs (taken by another job on its node) would
+    hold its stack, and the batch, forever."""
+
+    actors: list[_Worker]
+    todo: list[BatchItem]
+    in_flight: dict[Any, tuple[_Worker, BatchItem | None]] = field(default_factory=dict)
+    failed_starts: list[str] = field(default_factory=list)
+    worker_up: bool = False
+    noted: bool = False
+
+    def submit(self, worker: _Worker) -> None:
+        """The next stack, if any is left, to ``worker``."""
+        if self.todo:
+            item = self.todo.pop()
+            actor, worker_load = worker
+            options = item.options(worker_load)
+            ref = actor.run.remote(item.name, str(item.path.resolve()), options)
+            self.in_flight[ref] = (worker, item)
+
+    def stacks_in_flight(self) -> bool:
+        return any(item is not None for _, item in self.in_flight.values())
+
+    def collect(self, ray: Any, ref: Any) -> tuple[BatchItem, dict[str, Any], LoadOptions] | None:
+        """The answer of a finished ref, its worker given the next stack if it lives: the
+        stack, its payload (an error where the worker died) and the worker's load options;
+        None where the ref was a worker's start (or a failed one)."""
+        worker, maybe_item = self.in_flight.pop(ref)
+        try:
+            payload = ray.get(ref)
+        except Exception as exc:  # the worker died (RayActorError, OOM kill, ...)
+            if maybe_item is None:  # it never started (no stack lost)
+                self.failed_starts.append((str(exc).strip().splitlines() or [""])[0])
+                return None
+            payload = {"name": maybe_item.name, "error": f"Ray worker failed: {exc}"}
+        else:
+            self.worker_up = self.worker_up or maybe_item is None
+            self.submit(worker)  # a live worker takes the next stack at once
+        if maybe_item is None:
+            return None
+        return maybe_item, payload, worker[1]
+
+
+def _run_stacks(
+    ray: Any,
+    flight: _Flight,
+    outputs: _Outputs,
+    bar: Any,
+    start: float,
+    threads: int,
+    summary_dir: Path | None,
+    on_note: Callable[[str], None] | None,
+) -> None:
+    """Record each stack's answer as it comes, until no stack is left or running (workers
+    that never started are not waited on); ``on_note`` once when no worker has started after
+    STALL_NOTE_S seconds."""
+    summary = outputs.summary
+    while flight.in_flight and (flight.todo or flight.stacks_in_flight()):
+        quiet = flight.worker_up or flight.noted or on_note is None
+        done, _ = ray.wait(
+            list(flight.in_flight), num_returns=1, timeout=None if quiet else STALL_NOTE_S
+        )
+        if not done:  # only with a timeout: no worker has started yet
+            flight.noted = True
+            if on_note is not None:
+                on_note(
+                    f"no Ray worker of {len(flight.actors)} has started after "
+                    f"{STALL_NOTE_S:.0f} s: the CPUs they need ({threads} each) may be "
+                    "held by other jobs; still waiting (Ctrl-C stops)"
+                )
+            continue
+        answer = flight.collect(ray, done[0])
+        if answer is None:
+            continue
+        item, payload, worker_load = answer
+        if "result" in payload:  # where the selection and lights came from, as locally
+            payload["result"].input = item.describe_input(worker_load)
+        method = outputs.record(payload, item)
+        if method:
+            summary.note_model(method)
+        summary.wall_s = time.perf_counter() - start
+        if summary_dir is not None:
+            summary.write(summary_dir)
+        bar.update(1)
+
+
+def _record_not_run(flight: _Flight, outputs: _Outputs, bar: Any) -> None:
+    """Every worker failed (dead nodes, model load errors): the stacks left are listed as not
+    run, not dropped from the summary."""
+    failed = flight.failed_starts
+    last = f"; the last that could not start: {failed[-1]}" if failed else ""
+    why = f" (all {len(flight.actors)} failed{last})"
+    while flight.todo:
+        item = flight.todo.pop()
+        left = {"name": item.name, "error": f"not run: no Ray worker left{why}"}
+        outputs.record(left, item)
+        bar.update(1)
+
+
 def run_batch_ray(
     spec: ModelSpec,
     items: Sequence[BatchItem],
@@ -398,21 +567,7 @@ def run_batch_ray(
     from tqdm import tqdm
 
     ray = import_ray()
-    given = address or os.environ.get("RAY_ADDRESS") or ""
-    if given.startswith("ray://"):
-        _check_client()
-    started = not ray.is_initialized()
-    if started:
-        check_reachable(given)
-        try:
-            init_keeping_sigterm(
-                ray, address=address, include_dashboard=False, logging_level="WARNING"
-            )
-        except (ConnectionError, ValueError, RuntimeError) as exc:
-            raise InputError(
-                f"{opt('ray', address or os.environ.get('RAY_ADDRESS') or '')}: cannot "
-                f"connect to Ray ({exc})".replace(":  ", ": ")
-            ) from exc
+    started = _connect(ray, address)
     try:
         threads = spec.options.threads or 1
         plan = plan_workers(
@@ -421,47 +576,12 @@ def run_batch_ray(
         summary = BatchSummary(
             "ray", {}, workers=plan.workers, prefetch=False, worker_memory_mb=plan.memory_mb
         )
-        base = _absolute(load)
-        actor_class = ray.remote(num_cpus=threads)(StackWorker)
-        # each worker with the load options it runs with (its share of the budget)
-        actors: list[tuple[Any, LoadOptions]] = []
-        for node in plan.nodes:
-            # every worker plans its tiles and checks stack sizes with its share, not the whole
-            node_spec = replace(spec, options=spec.options.replace(max_memory_mb=node.memory_mb))
-            opts = base
-            if opts.max_memory_mb is not None:
-                opts = replace(opts, max_memory_mb=node.memory_mb)
-            where = actor_class
-            if node.node_id is not None:  # pinned: the share assumes exactly these on the node
-                strategies = ray.util.scheduling_strategies
-                where = actor_class.options(
-                    scheduling_strategy=strategies.NodeAffinitySchedulingStrategy(
-                        node_id=node.node_id, soft=False
-                    )
-                )
-            actors += [(where.remote(node_spec), opts) for _ in range(node.workers)]
-        todo = list(reversed(items))  # pop() from the end keeps the given order
-        # what each ref in flight answers: a stack, or (None) a worker that has started. A
-        # stack goes only to a started worker: one still waiting for CPUs (taken by another
-        # job on its node) would hold its stack, and the batch, forever
-        in_flight: dict[Any, tuple[tuple[Any, LoadOptions], BatchItem | None]] = {}
-        failed_starts: list[str] = []
-        worker_up = noted = False
-
-        def submit(worker: tuple[Any, LoadOptions]) -> None:
-            if todo:
-                item = todo.pop()
-                actor, worker_load = worker
-                options = item.options(worker_load)
-                ref = actor.run.remote(item.name, str(item.path.resolve()), options)
-                in_flight[ref] = (worker, item)
-
-        def stacks_in_flight() -> bool:
-            return any(item is not None for _, item in in_flight.values())
-
+        actors = _start_actors(ray, spec, plan, _absolute(load), threads)
+        outputs = _Outputs(out_for, overwrite, inputs, summary, on_result)
+        flight = _Flight(actors, list(reversed(items)))  # pop() from the end: the given order
         start = time.perf_counter()
         for worker in actors:
-            in_flight[worker[0].ready.remote()] = (worker, None)
+            flight.in_flight[worker[0].ready.remote()] = (worker, None)
         bar = tqdm(
             total=len(items),
             unit="stack",
@@ -470,53 +590,8 @@ def run_batch_ray(
             disable=True if progress is False else None,
         )
         try:
-            # done when no stack is left or running; workers that never started are not waited on
-            while in_flight and (todo or stacks_in_flight()):
-                quiet = worker_up or noted or on_note is None
-                done, _ = ray.wait(
-                    list(in_flight), num_returns=1, timeout=None if quiet else STALL_NOTE_S
-                )
-                if not done:  # only with a timeout: no worker has started yet
-                    noted = True
-                    if on_note is not None:
-                        on_note(
-                            f"no Ray worker of {len(actors)} has started after "
-                            f"{STALL_NOTE_S:.0f} s: the CPUs they need ({threads} each) may be "
-                            "held by other jobs; still waiting (Ctrl-C stops)"
-                        )
-                    continue
-                worker, maybe_item = in_flight.pop(done[0])
-                try:
-                    payload = ray.get(done[0])
-                except Exception as exc:  # the worker died (RayActorError, OOM kill, ...)
-                    if maybe_item is None:  # it never started (no stack lost)
-                        failed_starts.append((str(exc).strip().splitlines() or [""])[0])
-                        continue
-                    payload = {"name": maybe_item.name, "error": f"Ray worker failed: {exc}"}
-                else:
-                    worker_up = worker_up or maybe_item is None
-                    submit(worker)  # a live worker takes the next stack at once
-                if maybe_item is None:
-                    continue
-                item = maybe_item
-                if "result" in payload:  # where the selection and lights came from, as locally
-                    payload["result"].input = item.describe_input(worker[1])
-                method = _record(payload, item, out_for, overwrite, inputs, summary, on_result)
-                if method:
-                    summary.note_model(method)
-                summary.wall_s = time.perf_counter() - start
-                if summary_dir is not None:
-                    summary.write(summary_dir)
-                bar.update(1)
-            # every worker failed (dead nodes, model load errors): the stacks left are listed as
-            # not run, not dropped from the summary
-            last = f"; the last that could not start: {failed_starts[-1]}" if failed_starts else ""
-            why = f" (all {len(actors)} failed{last})"
-            while todo:
-                item = todo.pop()
-                left = {"name": item.name, "error": f"not run: no Ray worker left{why}"}
-                _record(left, item, out_for, overwrite, inputs, summary, on_result)
-                bar.update(1)
+            _run_stacks(ray, flight, outputs, bar, start, threads, summary_dir, on_note)
+            _record_not_run(flight, outputs, bar)
             summary.wall_s = time.perf_counter() - start
         finally:
             bar.close()

@@ -566,6 +566,107 @@ def openvino_cause(exc: BaseException, limit: int = 300) -> str:
     return cause
 
 
+def _check_precision(own: str, precision: str, info: ModelInfo) -> None:
+    """The precision asked for against the model's own: an int8 model runs int8 only, and an
+    fp32 one never int8."""
+    if own == "int8" and precision != "int8":
+        raise InputError(
+            f"this is an int8 model; precision {precision} needs an fp32 export", info.path
+        )
+    if own == "fp32" and precision == "int8":
+        raise InputError(
+            "int8 needs an int8 export (msf-export --int8); this model is fp32", info.path
+        )
+
+
+def _compile_properties(
+    device: str, precision: str, threads: int, config: dict[str, Any] | None
+) -> dict[str, Any]:
+    """OpenVINO's compile properties for ``device`` and ``precision`` (``config`` on top);
+    InputError for bf16 anywhere but on the CPU."""
+    if device.upper().startswith("CPU"):
+        props: dict[str, Any] = {
+            "INFERENCE_PRECISION_HINT": _HINTS["fp32" if precision == "int8" else precision],
+            "INFERENCE_NUM_THREADS": threads,
+            "PERFORMANCE_HINT": "LATENCY",
+            "NUM_STREAMS": 1,  # one request at a time: all threads on it
+        }
+    elif precision == "bf16":
+        raise InputError(
+            f"{opt('precision', 'bf16')} is a CPU path; {device} runs the model's precision"
+        )
+    elif device.upper().startswith("GPU"):
+        # GPUs default to f16; f32 keeps the parity with CPU fp32 that --device promises
+        props = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
+    else:  # NPU: its own precision (f16 compute), no CPU threading properties
+        props = {"PERFORMANCE_HINT": "LATENCY"}
+    props.update(config or {})
+    return props
+
+
+def _compile(
+    ov: Any, file: ModelFile, device: str, props: dict[str, Any], drop_requantisation: bool
+) -> dict[str, Any]:
+    """The file's graph compiled for ``device`` (through the compile cache where there is
+    one): output name -> compiled model, one per stage of a staged export, else "normals".
+    ``drop_requantisation``: compile the graph with ``drop_output_requantisation`` applied.
+    InputError where OpenVINO cannot compile it."""
+    info = file.info
+    cache = compile_cache() if "CACHE_DIR" not in props else None
+    core = ov.Core()
+    if cache is not None:
+        # a model loaded from the cache otherwise reads its weights from the mapped entry at
+        # every call: another process rewriting that entry turned a running engine's normals
+        # into NaN; read into memory it costs nothing measurable
+        with contextlib.suppress(Exception):
+            core.set_property({"ENABLE_MMAP": False})
+
+    def compile_all(graph: Any, props: dict[str, Any]) -> dict[str, Any]:
+        if info.staged:
+            return {
+                out: core.compile_model(_sub_model(ov, graph, out), device, props)
+                for out in STAGE_OUTPUTS
+            }
+        return {"normals": core.compile_model(graph, device, props)}
+
+    try:
+        graph = file.openvino_graph
+        if graph is None:  # read by ONNX Runtime (or unreadable to OpenVINO: fails here)
+            graph = _read_onnx(ov, info.path)
+        if drop_requantisation:
+            graph = graph.clone()  # the file's graph stays as read
+            drop_output_requantisation(graph)
+        cached = {**props, "CACHE_DIR": str(cache)} if cache else props
+        return compile_stoppable(
+            lambda: compile_all(graph, cached),
+            # the cache is a speed-up, never a new way to fail: without it, as before
+            (lambda: compile_all(graph, props)) if cache else None,
+        )
+    except InputError:
+        raise
+    except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
+        cause = openvino_cause(exc)
+        raise InputError(
+            f"OpenVINO cannot compile this model for {device} "
+            f"({type(exc).__name__}{': ' + cause if cause else ''})",
+            info.path,
+        ) from exc
+
+
+def _computed_precision(compiled: dict[str, Any], device: str, precision: str) -> str:
+    """The precision the compiled models compute in; InputError for bf16 on a CPU where
+    OpenVINO would not run it natively."""
+    effective = _effective(next(iter(compiled.values())))
+    if not device.upper().startswith("CPU"):
+        effective = _device_precision(next(iter(compiled.values())), precision)
+    elif precision == "bf16" and effective != "bf16":
+        raise InputError(
+            "OpenVINO runs bf16 only on CPUs with native bf16 (AVX-512 bf16 or "
+            f"AMX); here it would compute {effective}: use {opt('precision', 'fp32')}"
+        )
+    return effective
+
+
 def open_openvino(
     path: str | Path,
     *,
@@ -593,88 +694,20 @@ def open_openvino(
     info = file.info
     own = model_precision(info)
     precision = precision or own
-    if own == "int8" and precision != "int8":
-        raise InputError(
-            f"this is an int8 model; precision {precision} needs an fp32 export", info.path
-        )
-    if own == "fp32" and precision == "int8":
-        raise InputError(
-            "int8 needs an int8 export (msf-export --int8); this model is fp32", info.path
-        )
+    _check_precision(own, precision, info)
     threads = threads or default_threads()
     check_threads(threads)  # OpenVINO, too, starts its threads up front
-    if device.upper().startswith("CPU"):
-        props: dict[str, Any] = {
-            "INFERENCE_PRECISION_HINT": _HINTS["fp32" if precision == "int8" else precision],
-            "INFERENCE_NUM_THREADS": threads,
-            "PERFORMANCE_HINT": "LATENCY",
-            "NUM_STREAMS": 1,  # one request at a time: all threads on it
-        }
-    elif precision == "bf16":
-        raise InputError(
-            f"{opt('precision', 'bf16')} is a CPU path; {device} runs the model's precision"
-        )
-    elif device.upper().startswith("GPU"):
-        # GPUs default to f16; f32 keeps the parity with CPU fp32 that --device promises
-        props = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
-    else:  # NPU: its own precision (f16 compute), no CPU threading properties
-        props = {"PERFORMANCE_HINT": "LATENCY"}
-    props.update(config or {})
-    cache = compile_cache() if "CACHE_DIR" not in props else None
-    core = ov.Core()
-    if cache is not None:
-        # a model loaded from the cache otherwise reads its weights from the mapped entry at
-        # every call: another process rewriting that entry turned a running engine's normals
-        # into NaN; read into memory it costs nothing measurable
-        with contextlib.suppress(Exception):
-            core.set_property({"ENABLE_MMAP": False})
-
-    def compile_all(graph: Any, props: dict[str, Any]) -> dict[str, Any]:
-        if info.staged:
-            return {
-                out: core.compile_model(_sub_model(ov, graph, out), device, props)
-                for out in STAGE_OUTPUTS
-            }
-        return {"normals": core.compile_model(graph, device, props)}
-
-    try:
-        graph = file.openvino_graph
-        if graph is None:  # read by ONNX Runtime (or unreadable to OpenVINO: fails here)
-            graph = _read_onnx(ov, info.path)
-        if own == "int8" and not requantise_outputs and device.upper().startswith("CPU"):
-            graph = graph.clone()  # the file's graph stays as read
-            drop_output_requantisation(graph)
-        cached = {**props, "CACHE_DIR": str(cache)} if cache else props
-        compiled = compile_stoppable(
-            lambda: compile_all(graph, cached),
-            # the cache is a speed-up, never a new way to fail: without it, as before
-            (lambda: compile_all(graph, props)) if cache else None,
-        )
-    except InputError:
-        raise
-    except Exception as exc:  # OpenVINO raises RuntimeError with long multi-line texts
-        cause = openvino_cause(exc)
-        raise InputError(
-            f"OpenVINO cannot compile this model for {device} "
-            f"({type(exc).__name__}{': ' + cause if cause else ''})",
-            info.path,
-        ) from exc
-    effective = _effective(next(iter(compiled.values())))
-    if not device.upper().startswith("CPU"):
-        effective = _device_precision(next(iter(compiled.values())), precision)
-    elif precision == "bf16" and effective != "bf16":
-        raise InputError(
-            "OpenVINO runs bf16 only on CPUs with native bf16 (AVX-512 bf16 or "
-            f"AMX); here it would compute {effective}: use {opt('precision', 'fp32')}"
-        )
+    props = _compile_properties(device, precision, threads, config)
+    cpu = device.upper().startswith("CPU")
+    compiled = _compile(ov, file, device, props, own == "int8" and not requantise_outputs and cpu)
+    effective = _computed_precision(compiled, device, precision)
     version = getattr(ov, "__version__", "") or str(ov.get_version())
     return OpenVinoEngine(
         compiled,
         info,
         precision if precision == "int8" else effective,
         threads,
-        chunk
-        or (INT8_CHUNK if own == "int8" and device.upper().startswith("CPU") else DEFAULT_CHUNK),
+        chunk or (INT8_CHUNK if own == "int8" and cpu else DEFAULT_CHUNK),
         device,
         version,
         ov,

@@ -795,8 +795,20 @@ def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: fl
             )
 
 
-def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
-    """An .npz with images (N,H,W,3) and lights (N,3); intensities, mask, normals optional."""
+@dataclass(frozen=True)
+class _NpzArrays:
+    """What an .npz stack file holds, read and checked (the optional members defaulted)."""
+
+    images: np.ndarray  # N x H x W x 3, in their held type
+    lights: np.ndarray
+    intensities: np.ndarray
+    mask: np.ndarray
+    normals: np.ndarray | None
+
+
+def _check_npz_file(path: Path) -> None:
+    """An existing regular file starting with a zip header: np.load would try unpickling
+    anything else."""
     if not path.exists():
         raise InputError("stack file not found", path)
     if not path.is_file():
@@ -809,32 +821,48 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
             "'lights' saved with numpy.savez",
             path,
         )
+
+
+def _check_npz_members(files: set[str], path: Path) -> None:
+    """The members an .npz stack must hold, and none it may not."""
+    if not {"images", "lights"} <= files:
+        raise InputError(
+            "npz stack needs arrays 'images' and 'lights' (it has "
+            f"{', '.join(sorted(files)) or 'none'})",
+            path,
+        )
+    # an unknown member is refused, never skipped: "light_intensities" for
+    # "intensities" ran on unit intensities, 4 deg off, exit 0
+    unknown = sorted(files - set(NPZ_MEMBERS))
+    if unknown:
+        raise InputError(
+            f"npz array {unknown[0]!r} is not one of a stack's "
+            f"({', '.join(repr(m) for m in NPZ_MEMBERS)})",
+            path,
+        )
+
+
+def _npz_images(data: np.lib.npyio.NpzFile, path: Path) -> np.ndarray:
+    """The stored images in their held type as N x H x W x 3 (grey ones repeated)."""
+    images = _held_npz_images(_npz_array(data, "images", path), path)
+    if images.ndim == 4 and images.shape[3] == 1:
+        images = images[..., 0]
+    if images.ndim == 3:  # grey: repeated once held (float64 would triple 8 B a value)
+        images = np.repeat(images[..., None], 3, axis=3)
+    if images.ndim != 4 or images.shape[3] != 3 or 0 in images.shape:
+        raise InputError(f"npz images must be N x H x W (x 3), got {images.shape}", path)
+    return images
+
+
+def _read_npz(path: Path, max_memory_mb: float | None) -> _NpzArrays:
+    """Every member of an .npz stack, sized from its header before any is inflated; a file
+    numpy cannot read is an InputError."""
     try:
         data = np.load(path, allow_pickle=False)
         files = set(data.files)
-        if not {"images", "lights"} <= files:
-            raise InputError(
-                "npz stack needs arrays 'images' and 'lights' (it has "
-                f"{', '.join(sorted(files)) or 'none'})",
-                path,
-            )
-        # an unknown member is refused, never skipped: "light_intensities" for
-        # "intensities" ran on unit intensities, 4 deg off, exit 0
-        unknown = sorted(files - set(NPZ_MEMBERS))
-        if unknown:
-            raise InputError(
-                f"npz array {unknown[0]!r} is not one of a stack's "
-                f"({', '.join(repr(m) for m in NPZ_MEMBERS)})",
-                path,
-            )
-        _check_npz_headers(data, path, options.max_memory_mb)  # before anything inflates
-        images = _held_npz_images(_npz_array(data, "images", path), path)
-        if images.ndim == 4 and images.shape[3] == 1:
-            images = images[..., 0]
-        if images.ndim == 3:  # grey: repeated once held (float64 would triple 8 B a value)
-            images = np.repeat(images[..., None], 3, axis=3)
-        if images.ndim != 4 or images.shape[3] != 3 or 0 in images.shape:
-            raise InputError(f"npz images must be N x H x W (x 3), got {images.shape}", path)
+        _check_npz_members(files, path)
+        _check_npz_headers(data, path, max_memory_mb)  # before anything inflates
+        images = _npz_images(data, path)
         n, h, w = images.shape[:3]
         lights = _npz_array(data, "lights", path)
         ints = (
@@ -855,6 +883,16 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         raise
     except Exception as exc:  # zip errors, bad headers, truncated members
         raise InputError(f"cannot read npz stack ({first_line(exc)})", path) from exc
+    return _NpzArrays(images, lights, ints, mask, gt)
+
+
+def _npz_lights(
+    arrays: _NpzArrays, path: Path, options: LoadOptions
+) -> tuple[np.ndarray, np.ndarray, Path]:
+    """The light directions and intensities (the file's, or --lights / --intensities), checked
+    against the image count, and the file the directions came from."""
+    lights, ints = arrays.lights, arrays.intensities
+    n = arrays.images.shape[0]
     if options.lights is not None:
         lights = read_vectors(options.lights, "light directions")
     # a --lights JSON holding intensities too brings them (as --intensities would)
@@ -876,6 +914,16 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
             f"{n} images but light intensities of shape {ints.shape} (expected {n} x 3)",
             int_src or path,
         )
+    return lights, ints, lights_src
+
+
+def _npz_mask_normals(
+    arrays: _NpzArrays, path: Path, options: LoadOptions
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The mask (the file's, or --mask) and the unit ground-truth normals, checked against the
+    image size."""
+    h, w = arrays.images.shape[1:3]
+    mask, gt = arrays.mask, arrays.normals
     if options.mask is not None:
         mask = read_mask(options.mask, (h, w))
     elif mask.shape != (h, w):
@@ -884,9 +932,18 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
         if gt.shape != (h, w, 3):
             raise InputError(f"npz normals are {gt.shape}, expected {(h, w, 3)}", path)
         gt = unit_normals(gt)
+    return mask, gt
+
+
+def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
+    """An .npz with images (N,H,W,3) and lights (N,3); intensities, mask, normals optional."""
+    _check_npz_file(path)
+    arrays = _read_npz(path, options.max_memory_mb)
+    lights, ints, lights_src = _npz_lights(arrays, path, options)
+    mask, gt = _npz_mask_normals(arrays, path, options)
     stack = Stack(
         path.stem,
-        images,
+        arrays.images,
         unit_lights(lights, lights_src),
         ints,
         as_mask(mask, path),
