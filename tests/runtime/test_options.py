@@ -19,6 +19,8 @@ from msfnet.runtime.options import ModelOptions
         (["height"], ("height",)),
         (("albedo", "mesh"), ("albedo", "mesh")),
         ({"curvature", "height"}, ("height", "curvature")),  # a set: the usual order
+        ("inspect", ("albedo", "height", "curvature")),  # a preset: no mesh
+        ("all", ("albedo", "height", "curvature", "mesh")),
     ],
 )
 def test_maps_as_names_are_map_options(given: object, names: tuple[str, ...]) -> None:
@@ -29,6 +31,11 @@ def test_maps_as_names_are_map_options(given: object, names: tuple[str, ...]) ->
     assert Model(method="l2", maps=given).maps == MapOptions(maps=names)
     result = model(sphere_stack(n=5, h=20, w=24))
     assert result.maps is not None and result.maps.height is not None
+
+
+def test_the_preset_none_is_normals_only() -> None:
+    assert Model.least_squares(maps="none").maps is None
+    assert ModelOptions(method="l2", maps="none").maps is None
 
 
 @pytest.mark.parametrize(

@@ -132,6 +132,31 @@ def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
     assert "data:image/png;base64," in (tmp_path / "l2" / "report.html").read_text()
 
 
+@pytest.mark.parametrize(
+    ("preset", "written", "left_out"),
+    [
+        ("inspect", {"local_shape.tif", "curvature.tif", "albedo.tif"}, {"mesh.ply"}),
+        ("none", {"normals.npy"}, {"height.npy", "maps.json", "report.html"}),
+    ],
+)
+def test_maps_presets_choose_what_is_written(
+    tmp_path: Path, preset: str, written: set[str], left_out: set[str]
+) -> None:
+    stack = _npz(sphere_stack(n=6), tmp_path)
+    out = tmp_path / preset
+    assert main(["--method", "l2", str(stack), "-o", str(out), "--maps", preset, "-q"]) == 0
+    names = {p.name for p in out.iterdir()}
+    assert written <= names and not (left_out & names), sorted(names)
+
+
+def test_an_unknown_maps_word_names_the_presets(tmp_path: Path, capsys) -> None:
+    stack = _npz(sphere_stack(n=6), tmp_path)
+    with pytest.raises(SystemExit) as ended:
+        main(["--method", "l2", str(stack), "-o", str(tmp_path / "o"), "--maps", "inspekt"])
+    assert ended.value.code == 2
+    assert "or one of all, inspect, none, got 'inspekt'" in capsys.readouterr().err
+
+
 def test_normals_only_without_maps(tmp_path: Path) -> None:
     stack = sphere_stack(n=6)
     res = Model.least_squares(maps=None)(stack)

@@ -24,7 +24,7 @@ from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.engines.bundled import EngineRequest
 from msfnet.runtime.infer.compose import Layers
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB, DEFAULT_MAX_MEMORY_MB, HALO
-from msfnet.runtime.results.maps.api import MAP_NAMES, MapOptions
+from msfnet.runtime.results.maps.api import MAP_NAMES, MapOptions, preset_maps
 
 METHODS = ("msf", "l2")
 TTA_COUNTS = (1, 4, 8)  # infer.tta: the plain pass, + half turn and mirrors, + quarter turns
@@ -44,8 +44,9 @@ MIN_TILE = 2 * HALO + INPUT_MULTIPLE  # the smallest window with a core inside i
 def map_options(maps: MapOptions | str | Iterable[str] | None) -> MapOptions | None:
     """``Model(maps=...)``: a MapOptions, None (normals only), or map names as msf-run's
     ``--maps`` takes them, ``"height,curvature"`` or ``("height", "curvature")``, which give
-    ``MapOptions(maps=names)`` (the other map settings at their defaults). Anything else is
-    refused here, before any work (it used to fail after the first stack's inference)."""
+    ``MapOptions(maps=names)`` (the other map settings at their defaults), or a preset word
+    (``"inspect"``, ``"all"``, ``"none"``: None). Anything else is refused here, before any
+    work."""
     if maps is None or isinstance(maps, MapOptions):
         return maps
     names: tuple[str, ...] | None = None
@@ -63,7 +64,8 @@ def map_options(maps: MapOptions | str | Iterable[str] | None) -> MapOptions | N
         )
     if not names:
         raise InputError(f"maps={maps!r} names no map; maps=None computes none")
-    return MapOptions(maps=names)  # unknown names refused there
+    names = preset_maps(names)
+    return MapOptions(maps=names) if names else None  # unknown names refused there
 
 
 @options_type

@@ -20,7 +20,7 @@ from msfnet.common.cli import (
 )
 from msfnet.common.errors import InputError
 from msfnet.runtime.options import ModelOptions
-from msfnet.runtime.results.maps import MAP_NAMES, MapOptions
+from msfnet.runtime.results.maps import MAP_NAMES, MAP_PRESETS, MapOptions, preset_maps
 from msfnet.runtime.results.maps.integrate import METHODS as INTEGRATION_METHODS
 from msfnet.runtime.results.maps.registered import Frame, check_local_size
 from msfnet.runtime.stack import LoadOptions
@@ -50,10 +50,16 @@ def add_load_flags(
 
 
 def parse_maps(text: str) -> tuple[str, ...]:
+    """Map names, or one preset word (all, inspect, none: then no map)."""
     names = tuple(n.strip() for n in text.split(",") if n.strip())
     bad = [n for n in names if n not in MAP_NAMES]
+    if names and (len(names) == 1 and names[0] in MAP_PRESETS):
+        return preset_maps(names)
     if bad or not names:
-        raise argparse.ArgumentTypeError(f"expected names from {','.join(MAP_NAMES)}, got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected names from {','.join(MAP_NAMES)} or one of {', '.join(MAP_PRESETS)}, "
+            f"got {text!r}"
+        )
     return names
 
 
@@ -66,7 +72,9 @@ def add_map_flags(parser: argparse.ArgumentParser) -> None:
         "--maps",
         type=parse_maps,
         metavar="LIST",
-        help=f"which maps, comma-separated from {','.join(MAP_NAMES)} (default: all)",
+        help=f"which maps, comma-separated from {','.join(MAP_NAMES)}, or one of "
+        f"{', '.join(MAP_PRESETS)} (inspect: what msf-inspect reads, no mesh; none: as "
+        "--no-maps; default: all)",
     )
     insp.add_argument(
         "--integration",
@@ -116,7 +124,7 @@ def map_options(args: argparse.Namespace) -> MapOptions | None:
     """The inspection maps the flags ask for (None: normals only)."""
     if getattr(args, "no_maps", True) and getattr(args, "maps", None) is not None:
         raise InputError("--maps and --no-maps contradict each other: give one of them")
-    if getattr(args, "no_maps", True):
+    if getattr(args, "no_maps", True) or getattr(args, "maps", None) == ():  # --maps none
         return None
     intr = tuple(args.intrinsics) if args.intrinsics else None
     if intr is not None and not (intr[0] > 0 and intr[1] > 0):

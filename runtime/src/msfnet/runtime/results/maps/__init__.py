@@ -21,9 +21,11 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from msfnet.runtime.results.maps.api import (
         MAP_NAMES,
+        MAP_PRESETS,
         InspectionMaps,
         MapOptions,
         compute_maps,
+        preset_maps,
         stack_maps,
         write_maps,
     )
@@ -31,6 +33,8 @@ if TYPE_CHECKING:
 
 _WHERE = {
     "MAP_NAMES": "api",
+    "MAP_PRESETS": "api",
+    "preset_maps": "api",
     "InspectionMaps": "api",
     "MapOptions": "api",
     "compute_maps": "api",
@@ -43,12 +47,14 @@ _WHERE = {
 
 __all__ = [
     "MAP_NAMES",
+    "MAP_PRESETS",
     "METHODS",
     "InspectionMaps",
     "Intrinsics",
     "MapOptions",
     "compute_maps",
     "integrate_normals",
+    "preset_maps",
     "stack_maps",
     "write_maps",
 ]

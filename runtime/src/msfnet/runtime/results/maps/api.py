@@ -54,6 +54,20 @@ declare("image_pixel_size_mm", "--pixel-size")
 declare("local_size_px", "--local-size")
 
 MAP_NAMES = ("albedo", "height", "curvature", "mesh")
+# one word for a usual set (--maps inspect, Model(maps="inspect")): "inspect" is what
+# msf-inspect judges and aligns with (local shape comes with the height), no mesh
+MAP_PRESETS: dict[str, tuple[str, ...]] = {
+    "all": MAP_NAMES,
+    "inspect": ("albedo", "height", "curvature"),
+    "none": (),
+}
+
+
+def preset_maps(names: tuple[str, ...]) -> tuple[str, ...]:
+    """``names`` with a lone preset word replaced by its maps ("none": no map)."""
+    return MAP_PRESETS[names[0]] if len(names) == 1 and names[0] in MAP_PRESETS else names
+
+
 PIXEL_SIZE_MM = (1e-6, 1e4)  # 1 nm (microscopes) to 10 m (aerial) a pixel
 # what the registered TIFFs hold where there is no value (maps.json "outside_mask"; docs/run.md)
 OUTSIDE_MASK = (
