@@ -9,6 +9,7 @@ import pytest
 from msfnet.bench.cli import build_parser, resolve_paths
 from msfnet.bench.data import data_root
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import speaking_as
 
 
 def _tree(tmp_path: Path) -> tuple[Path, Path]:
@@ -39,7 +40,7 @@ def test_missing_folders_are_errors_naming_what_was_tried(tmp_path: Path) -> Non
     (tmp_path / "shared" / "data").mkdir(parents=True)
     with pytest.raises(InputError, match="MSFNET_DATA"):
         data_root(None, cwd=tmp_path, env={"MSFNET_DATA": str(tmp_path / "typo")})
-    with pytest.raises(InputError, match="--data"):
+    with speaking_as("msf-bench"), pytest.raises(InputError, match="--data"):
         data_root(tmp_path / "typo", cwd=tmp_path, env={})
 
 
@@ -55,7 +56,7 @@ def test_default_stack_does_not_depend_on_the_install_location(
     assert args.stack == data.resolve() / "DiLiGenT" / "ballPNG"
     assert args.calib == [args.stack, data.resolve() / "psmImages" / "cat"]
     args = build_parser().parse_args(["--data", str(tmp_path / "nowhere")])
-    with pytest.raises(InputError, match="--data"):
+    with speaking_as("msf-bench"), pytest.raises(InputError, match="--data"):
         resolve_paths(args)
 
 
@@ -69,7 +70,7 @@ def test_a_named_data_root_that_is_missing_is_an_error_beside_a_stack(
     monkeypatch.chdir(tmp_path)  # no data root beside it either
     monkeypatch.delenv("MSFNET_DATA", raising=False)
     args = build_parser().parse_args(["--stack", str(stack), "--data", str(tmp_path / "dta")])
-    with pytest.raises(InputError, match="--data: folder not found"):
+    with speaking_as("msf-bench"), pytest.raises(InputError, match="--data: folder not found"):
         resolve_paths(args)
     monkeypatch.setenv("MSFNET_DATA", str(tmp_path / "dta"))
     args = build_parser().parse_args(["--stack", str(stack)])

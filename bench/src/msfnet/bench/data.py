@@ -11,7 +11,10 @@ import os
 from pathlib import Path
 
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import declare, opt, verbatim
 
+# msf-bench --data: the folder holding the benchmark's real stacks
+declare("data", "--data")
 ENV_VAR = "MSFNET_DATA"
 RELATIVE_CANDIDATES = (Path("shared") / "data", Path("..") / "shared" / "data")
 
@@ -32,7 +35,7 @@ def data_root(
     if explicit is not None:
         path = Path(explicit).expanduser()
         if not path.is_dir():
-            raise InputError("--data: folder not found", path)
+            raise InputError(f"{opt('data')}: folder not found", path)
         return path
     if env.get(ENV_VAR):
         path = Path(env[ENV_VAR]).expanduser()
@@ -44,7 +47,7 @@ def data_root(
         if path.is_dir():
             return path.resolve()
     raise InputError(
-        "no data folder: pass --data DIR (holding DiLiGenT/ballPNG) or set "
+        f"no data folder: pass {opt('data', verbatim('DIR'))} (holding DiLiGenT/ballPNG) or set "
         f"${ENV_VAR}; also looked in {', '.join(str(p) for p in tried)}"
     )
 

@@ -32,6 +32,7 @@ import numpy as np
 from msfnet.bench.ladder import REPEAT
 from msfnet.bench.worker import run_module
 from msfnet.common.errors import InputError
+from msfnet.common.vocabulary import opt
 
 if TYPE_CHECKING:
     from msfnet.runtime.engines.base import ModelInfo
@@ -98,10 +99,12 @@ def edge_paths(model: Path, info: ModelInfo | None = None) -> tuple[list[EdgePat
         except InputError as exc:
             # the table's status: the refusal's core ("OpenVINO sees no GPU here"); the
             # whole line (what it needs) is in report.json
-            skipped.append(EdgeRow(f"--device {name}", f"skipped: {_core(exc)}", size, *[None] * 3))
+            skipped.append(
+                EdgeRow(opt("device", name), f"skipped: {_core(exc)}", size, *[None] * 3)
+            )
             continue
         assert device is not None
-        paths.append(EdgePath(f"--device {name}", device.engine, own, name))
+        paths.append(EdgePath(opt("device", name), device.engine, own, name))
     return paths, skipped
 
 

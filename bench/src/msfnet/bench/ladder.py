@@ -20,6 +20,7 @@ import numpy as np
 from msfnet.bench.worker import run_process
 from msfnet.common.errors import InputError
 from msfnet.common.files import writing_as
+from msfnet.common.vocabulary import opt
 
 # The validation objects (never calibration or training data) and their protocol selections.
 VALIDATION = (("ballPNG", None), ("bearPNG", "21-96"), ("harvestPNG", None))
@@ -160,9 +161,8 @@ def ladder_table(rows: list[LadderRow], lights: int = LADDER_LIGHTS) -> str:
     """Markdown: one line per rung, time and MAE also as ratios to the first (full) rung."""
     names = [name.removesuffix("PNG") for name, _ in VALIDATION]
     head = (
-        f"| --speed | engine | s ({len(names)} objects, {lights} lights) | x full | peak MB | "
-        + " | ".join(f"MAE {n}" for n in names)
-        + " | mean MAE | vs full | detail |"
+        f"| {opt('speed')} | engine | s ({len(names)} objects, {lights} lights) | x full "
+        "| peak MB | " + " | ".join(f"MAE {n}" for n in names) + " | mean MAE | vs full | detail |"
     )
     lines = [head, "|" + "---|" * (8 + len(names))]
     ref = rows[0] if rows else None

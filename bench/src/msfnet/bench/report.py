@@ -6,6 +6,7 @@ from pathlib import Path
 
 from msfnet.bench.workloads import VARIANTS
 from msfnet.common.files import write_atomic, write_json, write_text
+from msfnet.common.vocabulary import opt
 
 FULL_IMAGE_NOTE = (
     "per-light loop on (d) extrapolated linearly in lights x pixels from its "
@@ -420,7 +421,7 @@ def markdown(result: dict, has_plot: bool) -> str:
         "",
         "## Workloads (a)-(c)"
         + (
-            ", and the per-light loop on (d)'s input (--lights)"
+            f", and the per-light loop on (d)'s input ({opt('lights')})"
             if any(r["workload"] == "d" for r in result["rows"])
             else ""
         ),
