@@ -13,6 +13,7 @@ from _runtime_helpers import tiny_msfnet_onnx
 from msfnet.bench import edge, ladder
 from msfnet.common import cpu
 from msfnet.common.cpu import CpuInfo
+from msfnet.common.vocabulary import speaking_as
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
@@ -59,14 +60,15 @@ def test_edge_paths_say_why_a_row_cannot_run(tmp_path: Path, monkeypatch) -> Non
     monkeypatch.setattr(
         "msfnet.runtime.engines.installed_engines", lambda: {"onnxruntime", "openvino"}
     )
-    paths, skipped = edge.edge_paths(model)
+    with speaking_as("msf-bench"):  # its rows name devices as the command's flag
+        paths, skipped = edge.edge_paths(model)
     assert [p.label for p in paths[:2]] == ["ONNX Runtime fp32", "OpenVINO fp32"]
     bf16 = next(r for r in skipped if r.format == "OpenVINO bf16")
     assert bf16.status == "no native bf16 on this CPU"
     # devices absent here are rows that say so, never errors
-    for row in skipped:
-        if row.format.startswith("--device"):
-            assert row.status.startswith("skipped: ") and "\n" not in row.status
+    devices = [r for r in skipped if r.format.startswith("--device ")]
+    assert devices and all(r.status.startswith("skipped: ") for r in devices)
+    assert all("\n" not in r.status for r in devices)
     monkeypatch.setattr("msfnet.runtime.engines.installed_engines", lambda: {"onnxruntime"})
     paths, skipped = edge.edge_paths(model)
     assert [p.label for p in paths if p.device is None] == ["ONNX Runtime fp32"]
