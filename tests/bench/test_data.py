@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from msfnet.bench.cli import build_parser, resolve_paths
+from msfnet.bench.cli import build_parser, options, resolve_paths
 from msfnet.bench.data import data_root
+from msfnet.bench.options import BenchOptions
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import speaking_as
 
@@ -19,6 +20,10 @@ def _tree(tmp_path: Path) -> tuple[Path, Path]:
     data = tmp_path / "work" / "shared" / "data"
     (data / "DiLiGenT" / "ballPNG").mkdir(parents=True)
     return cwd, data
+
+
+def _options(*argv: str) -> BenchOptions:
+    return options(build_parser().parse_args(argv))
 
 
 def test_order_explicit_env_then_relative(tmp_path: Path) -> None:
@@ -51,13 +56,11 @@ def test_default_stack_does_not_depend_on_the_install_location(
     (data / "psmImages" / "cat").mkdir(parents=True)
     monkeypatch.chdir(cwd)
     monkeypatch.delenv("MSFNET_DATA", raising=False)
-    args = build_parser().parse_args([])
-    resolve_paths(args)
-    assert args.stack == data.resolve() / "DiLiGenT" / "ballPNG"
-    assert args.calib == [args.stack, data.resolve() / "psmImages" / "cat"]
-    args = build_parser().parse_args(["--data", str(tmp_path / "nowhere")])
+    stack, calib, _ = resolve_paths(_options())
+    assert stack == data.resolve() / "DiLiGenT" / "ballPNG"
+    assert calib == (stack, data.resolve() / "psmImages" / "cat")
     with speaking_as("msf-bench"), pytest.raises(InputError, match="--data"):
-        resolve_paths(args)
+        resolve_paths(_options("--data", str(tmp_path / "nowhere")))
 
 
 def test_a_named_data_root_that_is_missing_is_an_error_beside_a_stack(
@@ -69,14 +72,12 @@ def test_a_named_data_root_that_is_missing_is_an_error_beside_a_stack(
     stack.mkdir()
     monkeypatch.chdir(tmp_path)  # no data root beside it either
     monkeypatch.delenv("MSFNET_DATA", raising=False)
-    args = build_parser().parse_args(["--stack", str(stack), "--data", str(tmp_path / "dta")])
+    opts = _options("--stack", str(stack), "--data", str(tmp_path / "dta"))
     with speaking_as("msf-bench"), pytest.raises(InputError, match="--data: folder not found"):
-        resolve_paths(args)
+        resolve_paths(opts)
     monkeypatch.setenv("MSFNET_DATA", str(tmp_path / "dta"))
-    args = build_parser().parse_args(["--stack", str(stack)])
     with pytest.raises(InputError, match="MSFNET_DATA"):
-        resolve_paths(args)
+        resolve_paths(_options("--stack", str(stack)))
     monkeypatch.delenv("MSFNET_DATA")
-    args = build_parser().parse_args(["--stack", str(stack)])
-    resolve_paths(args)  # nothing named, none found: the stack alone
-    assert args.calib == [stack]
+    # nothing named, none found: the stack alone
+    assert resolve_paths(_options("--stack", str(stack)))[1] == (stack,)

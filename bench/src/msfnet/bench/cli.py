@@ -27,6 +27,17 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.bench.data import ENV_VAR, data_root
+from msfnet.bench.options import (
+    ALL_VARIANTS,
+    CALIB_IN_DATA,
+    DEFAULT_THREADS,
+    EDGE,
+    PER_LIGHT_FULL_MAX_LIGHTS,
+    STACK_IN_DATA,
+    BenchOptions,
+    flag_categories,
+    thread_counts,
+)
 from msfnet.bench.peak import engine_peaks, merge_peaks
 from msfnet.bench.report import write_report
 from msfnet.bench.worker import row_time_limit, run_module
@@ -40,16 +51,8 @@ from msfnet.bench.workloads import (
     time_msf_run,
     time_warm_model,
 )
-from msfnet.common.cli import (
-    Command,
-    command_main,
-    int_range,
-    make_parser,
-    path_arg,
-    positive_float,
-    thread_count,
-)
-from msfnet.common.cpu import PROXY_CLASSES, detect_cpu, proxy_class
+from msfnet.common.cli import Command, add_flags, command_main, make_parser, options_from_args
+from msfnet.common.cpu import detect_cpu, proxy_class
 from msfnet.common.errors import InputError
 from msfnet.common.files import (
     check_output,
@@ -64,29 +67,13 @@ from msfnet.runtime.evaluate.metrics import deviation_deg, normal_metrics
 from msfnet.runtime.infer.flops import inference_flops
 from msfnet.runtime.stack.types import MIN_LIGHTS
 
-# relative to the data root (--data, $MSFNET_DATA, ./shared/data or ../shared/data)
-STACK_IN_DATA = Path("DiLiGenT") / "ballPNG"
-CALIB_IN_DATA = [STACK_IN_DATA, *(Path("psmImages") / o for o in ("cat", "owl", "horse"))]
-
 PROG = "msf-bench"
 COMMAND = Command(PROG, extra="bench", memory_advice="lower --max-memory")
-DEFAULT_THREADS = [2, 1]
-
-# --lights N: the per-light loop is timed on (d)'s whole N-light image up to this many lights
-# (a full DiLiGenT object: 5.4 s a light and run on the AMX machine, 2 threads, quiet); above it
-# its time is extrapolated from (b), as without --lights (96 lights would take 9 min a run).
-PER_LIGHT_FULL_MAX_LIGHTS = 16
 PER_LIGHT_FULL_REPEATS = 2  # timed runs in its one process: the median of two
-MAX_BENCH_LIGHTS = 10_000  # only to refuse absurd values at parse time
 
 # variants that need the int8 exports (and so the calibration stacks)
 INT8_MODEL_VARIANTS = tuple(n for n, v in VARIANTS.items() if v.model.startswith("int8"))
-
-
-def thread_counts(text: str) -> list[int]:
-    """``2,1`` -> [2, 1]; each in 1..MAX_THREADS, refused here at parse time rather than when
-    the matmul peaks start (``--threads 100000`` once ran for 15+ minutes before failing)."""
-    return [thread_count(t) for t in text.split(",") if t.strip()] or [thread_count(text)]
+EDGE_GROUP = "torch-free modes (run on an edge install; each writes REPORT.md and report.json)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -113,144 +100,14 @@ kill -9 goes with the next run). It may not be, contain or lie inside an input
 (--stack, --calib, --checkpoint, the data root). Models are exported afresh on every
 run, never cached between runs, so a report always measures the models it holds."""
     )
-    p.add_argument(
-        "--checkpoint",
-        type=path_arg,
-        default=None,
-        help="MSF-Net checkpoint (.pth); default: the bundled trained model "
-        "(msfnet/model/weights/msfnet_default.pth)",
-    )
-    p.add_argument(
-        "--random-weights",
-        action="store_true",
-        help="seeded random weights instead of a checkpoint (accuracy figures then "
-        "only measure numerical deviation; int8 errors of a trained model differ)",
-    )
-    p.add_argument(
-        "--data",
-        type=path_arg,
-        default=None,
-        help=f"data root holding DiLiGenT/ballPNG and psmImages/ (default: "
-        f"${ENV_VAR}, else ./shared/data or ../shared/data from the current folder)",
-    )
-    p.add_argument(
-        "--stack",
-        type=path_arg,
-        default=None,
-        help=f"real stack for the inputs and workload (d) (default DATA/"
-        f"{STACK_IN_DATA.as_posix()})",
-    )
-    p.add_argument(
-        "--calib",
-        type=path_arg,
-        nargs="+",
-        default=None,
-        help="stacks to calibrate int8 on (default: the stack + DATA/psmImages cat/"
-        "owl/horse when present)",
-    )
-    p.add_argument(
-        "-o",
-        "--output",
-        "--report-dir",
-        dest="report_dir",
-        type=path_arg,
-        default=Path("msf-bench-out"),
-        help="report folder, written as a whole: REPORT.md, report.json, "
-        "latency.png, models/, e2e/ (default ./msf-bench-out)",
-    )
-    _add_run_flags(p)
-    _add_edge_flags(p)
-    p.add_argument(
-        "--timeout",
-        type=positive_float,
-        metavar="S",
-        help="stop a row, cell or speed rung still running after S seconds and report it as "
-        "failed (a model that never ends; default: no limit)",
-    )
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace an earlier report folder (only one msfnet wrote: a folder "
-        "holding other files is refused, never deleted)",
-    )
+    # one flag per BenchOptions field, in its order (the usage line's), each in its help group
+    groups: dict[str, argparse.ArgumentParser | argparse._ArgumentGroup] = {
+        "": p,
+        EDGE: p.add_argument_group(EDGE_GROUP),
+    }
+    for name, category in flag_categories():
+        add_flags(groups[category], BenchOptions, only=(name,))
     return p
-
-
-def _add_run_flags(p: argparse.ArgumentParser) -> None:
-    """What the full benchmark measures: variants, threads, CPU class, workload (d)."""
-    p.add_argument(
-        "--quick",
-        action="store_true",
-        help="smoke test: tiny workloads, one timed run each (about 4-8 minutes on 2 cores: "
-        "the models are exported and int8-calibrated first)",
-    )
-    p.add_argument(
-        "--variants",
-        default=",".join(VARIANTS),
-        help=f"comma list from {', '.join(VARIANTS)} (default: all available)",
-    )
-    p.add_argument(
-        "--threads",
-        type=thread_counts,
-        default=DEFAULT_THREADS,
-        help="thread counts, comma-separated (default 2,1; --onnx, --ladder and "
-        "--requirements take one, and measure the largest of the default)",
-    )
-    p.add_argument(
-        "--cpu-proxy",
-        choices=sorted(PROXY_CLASSES),
-        default=None,
-        help="run as if on a smaller x86 CPU class: cpuid masked for every library of the "
-        "run (numpy, ONNX Runtime, OpenVINO, torch) through Linux's CPUID faulting and a small "
-        "library built with the system C compiler (msfnet.bench.cpu_proxy). A proxy: caches, "
-        "clocks and cores stay this machine's, and the report names the class",
-    )
-    p.add_argument(
-        "--max-memory",
-        type=positive_float,
-        default=None,
-        help="msf-run --max-memory for workload (d), MB (default: msf-run's own)",
-    )
-    p.add_argument("--no-e2e", action="store_true", help="skip workload (d)")
-    p.add_argument(
-        "--lights",
-        type=int_range(MIN_LIGHTS, MAX_BENCH_LIGHTS),
-        default=None,
-        metavar="N",
-        help="workload (d) on N evenly spaced lights of the stack (msf-run --max-lights N), "
-        "and the published per-light forward timed on that same whole N-light image in its "
-        f"own process (up to {PER_LIGHT_FULL_MAX_LIGHTS} lights; above, extrapolated from (b)); "
-        "the (d) target is then >= 60x on CPUs with native bf16, >= 30x elsewhere "
-        "(default: every light, per-light time extrapolated from (b))",
-    )
-
-
-def _add_edge_flags(p: argparse.ArgumentParser) -> None:
-    """The torch-free modes: a given ONNX file, the speed ladder, the requirements grid."""
-    edge = p.add_argument_group(
-        "torch-free modes (run on an edge install; each writes REPORT.md and report.json)"
-    )
-    edge.add_argument(
-        "--onnx",
-        type=path_arg,
-        default=None,
-        metavar="MODEL",
-        help="benchmark this msfnet ONNX file on every engine, precision and device this "
-        "machine offers: format | status | size | MAE | ms | peak MB (no torch needed); with "
-        "--ladder / --requirements: the model those measure (default: the bundled model)",
-    )
-    edge.add_argument(
-        "--ladder",
-        action="store_true",
-        help="the speed ladder (msf-run --speed): time, peak memory, MAE on the DiLiGenT "
-        "validation objects at 12 lights and detail ratio, per rung",
-    )
-    edge.add_argument(
-        "--requirements",
-        action="store_true",
-        help="time and peak memory by image size x light count x engine (default engine and "
-        "ONNX Runtime fp32), whole stacks through the runtime; with --quick a small grid",
-    )
 
 
 def machine_description() -> dict[str, object]:
@@ -311,32 +168,31 @@ def dispatch_choices(models: dict) -> dict[str, str]:
     return out
 
 
-def resolve_paths(args: argparse.Namespace) -> Path | None:
-    """Fill --stack / --calib from the data root; InputError with what was tried. Returns the
-    data root, or None where none was needed or found."""
+def resolve_paths(opts: BenchOptions) -> tuple[Path, tuple[Path, ...], Path | None]:
+    """--stack and --calib, from the data root where not given; InputError with what was
+    tried. Returns them and the data root, or None where none was needed or found."""
     root = None
-    if args.stack is None or args.calib is None:
+    if opts.stack is None or opts.calib is None:
         try:
-            root = data_root(args.data)
+            root = data_root(opts.data)
         except InputError:
             # without a data root a given --stack is enough, but a root the user named
             # (--data, $MSFNET_DATA) that is not there is a typo: int8 would calibrate on
             # the one stack instead of four, silently
-            if args.stack is None or args.data is not None or os.environ.get(ENV_VAR):
+            if opts.stack is None or opts.data is not None or os.environ.get(ENV_VAR):
                 raise
-    if args.stack is None:
+    if opts.stack is not None:
+        stack = opts.stack
+    else:
         assert root is not None
-        args.stack = root / STACK_IN_DATA
-    if args.calib is None:
-        calib = [args.stack]
-        if root is not None:
-            calib += [root / p for p in CALIB_IN_DATA[1:] if (root / p).exists()]
-        args.calib = calib
-    if not args.stack.is_dir():
-        raise InputError(
-            f"stack folder not found (set --data or ${ENV_VAR}, or --stack)", args.stack
-        )
-    return root
+        stack = root / STACK_IN_DATA
+    calib = opts.calib
+    if calib is None:
+        found = [root / p for p in CALIB_IN_DATA[1:] if (root / p).exists()] if root else []
+        calib = (stack, *found)
+    if not stack.is_dir():
+        raise InputError(f"stack folder not found (set --data or ${ENV_VAR}, or --stack)", stack)
+    return stack, calib, root
 
 
 @dataclass(frozen=True)
@@ -347,50 +203,52 @@ class Plan:
     notes: list[str]  # variants skipped on this machine, and why
     threads: list[int]  # descending
     checkpoint: Path | None  # None: seeded random weights
+    stack: Path  # --stack, or the data root's
+    calib: tuple[Path, ...]  # --calib, or the stack and the data root's
 
 
-def plan_run(args: argparse.Namespace) -> Plan:
+def plan_run(opts: BenchOptions) -> Plan:
     """Check every option and input path, and the report folder against them (InputError),
     before any work: the report folder is no input, does not hold one, and replaces an earlier
     report only with --overwrite."""
     from msfnet.model.checkpoint import default_checkpoint_path
     from msfnet.runtime.api import default_model_path
 
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    variants = [v.strip() for v in opts.variants.split(",") if v.strip()]
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise InputError(f"--variants: unknown {', '.join(unknown)} (known: {', '.join(VARIANTS)})")
-    if args.random_weights and args.checkpoint is not None:
+    if opts.random_weights and opts.checkpoint is not None:
         raise InputError("--random-weights and --checkpoint exclude each other")
-    if args.lights is not None and args.no_e2e:
+    if opts.lights is not None and opts.no_e2e:
         raise InputError("--lights sets workload (d)'s light count: drop --no-e2e")
-    checkpoint = None if args.random_weights else args.checkpoint or default_checkpoint_path()
+    checkpoint = None if opts.random_weights else opts.checkpoint or default_checkpoint_path()
     if checkpoint is not None and not checkpoint.is_file():
         raise InputError("checkpoint not found", checkpoint)
-    if args.max_memory is not None and not args.no_e2e:
+    if opts.max_memory is not None and not opts.no_e2e:
         # workload (d) comes last: a budget no tile fits in would end a long run there
         from msfnet.runtime.infer.tiling import tile_size_for_memory
 
         try:
-            tile_size_for_memory(args.max_memory, lights=args.lights or MIN_LIGHTS)
+            tile_size_for_memory(opts.max_memory, lights=opts.lights or MIN_LIGHTS)
         except InputError as exc:
             raise InputError(
-                f"--max-memory {args.max_memory:g} MB is too small for workload (d), msf-run "
+                f"--max-memory {opts.max_memory:g} MB is too small for workload (d), msf-run "
                 f"on any stack: {exc.message.split(': ', 1)[-1]}"
             ) from None
-    root = resolve_paths(args)
-    for calib in args.calib:
+    stack, calibs, root = resolve_paths(opts)
+    for calib in calibs:
         if not calib.exists():
             raise InputError("--calib: stack not found", calib)
     inputs = [
-        args.stack,
-        *args.calib,
+        stack,
+        *calibs,
         checkpoint,
         root,
-        None if args.no_e2e else default_model_path(),
+        None if opts.no_e2e else default_model_path(),
     ]
     check_output(
-        args.report_dir, inputs, overwrite=args.overwrite, folder=True, command=PROG
+        opts.report_dir, inputs, overwrite=opts.overwrite, folder=True, command=PROG
     )  # --overwrite replaces an earlier report, nothing else
     notes: list[str] = []
     engines = installed_engines()
@@ -401,7 +259,8 @@ def plan_run(args: argparse.Namespace) -> Plan:
         elif VARIANTS[v].precision == "bf16" and not detect_cpu().has_bf16:
             notes.append(f"{v} skipped: this CPU has no native bf16 (OpenVINO would run fp32)")
             variants.remove(v)
-    return Plan(variants, notes, sorted(set(args.threads), reverse=True), checkpoint)
+    threads = sorted(set(opts.threads), reverse=True)
+    return Plan(variants, notes, threads, checkpoint, stack, calibs)
 
 
 @dataclass
@@ -412,17 +271,17 @@ class Inputs:
     calib: list | None  # int8 calibration stacks (None: no int8 variant)
 
 
-def load_inputs(args: argparse.Namespace, plan: Plan) -> Inputs:
+def load_inputs(opts: BenchOptions, plan: Plan) -> Inputs:
     """The workload crops of --stack and the int8 calibration stacks: a stack that cannot be
     read is one InputError line before anything is written or printed."""
     feeds = {
-        wl.key: make_input(args.stack, wl) for wl in (QUICK_WORKLOADS if args.quick else WORKLOADS)
+        wl.key: make_input(plan.stack, wl) for wl in (QUICK_WORKLOADS if opts.quick else WORKLOADS)
     }
     calib = None
     if any(v in INT8_MODEL_VARIANTS for v in plan.variants):
         from msfnet.export.quantize import load_calibration_stacks
 
-        calib = load_calibration_stacks(args.calib or [args.stack])
+        calib = load_calibration_stacks(list(plan.calib))
     return Inputs(feeds, calib)
 
 
@@ -501,12 +360,12 @@ def accuracy(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, fl
     return {"max_deg": mx, "mean_deg": mean}
 
 
-def _say(args: argparse.Namespace, line: str) -> None:
-    if not args.quiet:
+def _say(opts: BenchOptions, line: str) -> None:
+    if not opts.quiet:
         print(f"msf-bench: {line}", file=sys.stderr)
 
 
-def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratch: Path) -> dict:
+def bench(opts: BenchOptions, plan: Plan, data: Inputs, work: Path, scratch: Path) -> dict:
     """Run everything; the models and (d)'s msf-run outputs go to ``work`` (the report's
     staging folder), intermediate files to ``scratch``. Paths in the result name ``work``."""
     variants, threads = plan.variants, plan.threads
@@ -515,23 +374,23 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
     result: dict = {
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
         "machine": machine_description(),
-        "quick": args.quick,
+        "quick": opts.quick,
         "variants": {v: VARIANTS[v].about for v in variants},
         "notes": plan.notes,
-        "data": {"stack": str(args.stack), "calib": [str(p) for p in args.calib]},
-        "lights": args.lights,  # --lights: (d) on N lights against a measured per-light loop
+        "data": {"stack": str(plan.stack), "calib": [str(p) for p in plan.calib]},
+        "lights": opts.lights,  # --lights: (d) on N lights against a measured per-light loop
     }
-    _say(args, "exporting models ...")
+    _say(opts, "exporting models ...")
     models = prepare_models(plan, work / "models", data.calib)
     result["models"] = models
     result["dispatch"] = dispatch_choices(models)
-    _say(args, "measuring matmul peaks (torch, ONNX Runtime, OpenVINO) ...")
+    _say(opts, "measuring matmul peaks (torch, ONNX Runtime, OpenVINO) ...")
     peaks_before = engine_peaks(threads, engines)
     rows = []
     inputs: dict[str, tuple[Path, np.ndarray]] = {}
     refs: dict[str, np.ndarray] = {}
-    cells = schedule(args.quick, variants, threads)
-    for wl, v, t, warm, reps in tqdm(cells, desc="msf-bench", unit="cell", disable=args.quiet):
+    cells = schedule(opts.quick, variants, threads)
+    for wl, v, t, warm, reps in tqdm(cells, desc="msf-bench", unit="cell", disable=opts.quiet):
         if wl.key not in inputs:
             feed = data.feeds[wl.key]
             path = scratch / f"input_{wl.key}.npz"
@@ -568,11 +427,11 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
             row["gflops_per_s"] = wl.flops / cell["median_s"] / 1e9
         rows.append(row)
     result["rows"] = rows
-    _say(args, "measuring matmul peaks again ...")
+    _say(opts, "measuring matmul peaks again ...")
     result["peaks"] = merge_peaks(peaks_before, engine_peaks(threads, engines))
-    if not args.no_e2e:
-        result["e2e"] = end_to_end(args, models, variants, threads, work / "e2e")
-        whole = per_light_whole_image(args, models, max(threads), scratch)
+    if not opts.no_e2e:
+        result["e2e"] = end_to_end(opts, plan, models, work / "e2e")
+        whole = per_light_whole_image(opts, plan, models, scratch)
         if whole is not None:
             rows.append(whole)
     result["elapsed_s"] = time.time() - started
@@ -580,15 +439,16 @@ def bench(args: argparse.Namespace, plan: Plan, data: Inputs, work: Path, scratc
 
 
 def per_light_whole_image(
-    args: argparse.Namespace, models: dict, threads: int, scratch: Path
+    opts: BenchOptions, plan: Plan, models: dict, scratch: Path
 ) -> dict | None:
     """With --lights N (N up to PER_LIGHT_FULL_MAX_LIGHTS): the published per-light forward on
     (d)'s own input, the whole image on the N lights msf-run used, untiled, timed in a fresh
     process (median of PER_LIGHT_FULL_REPEATS runs; one with --quick). A row like (a)-(c)'s,
     workload "d", which the (d) ratios then use instead of an extrapolation. None otherwise."""
-    if args.lights is None or args.lights > PER_LIGHT_FULL_MAX_LIGHTS:
+    if opts.lights is None or opts.lights > PER_LIGHT_FULL_MAX_LIGHTS:
         return None
-    feed = full_input(args.stack, args.lights)
+    threads = max(plan.threads)
+    feed = full_input(plan.stack, opts.lights)
     path = scratch / "input_d.npz"
     np.savez(path, images=feed["images"], lights=feed["lights"])
     h, w = feed["mask"].shape
@@ -597,14 +457,14 @@ def per_light_whole_image(
         "variant": "per-light",
         "threads": threads,
         "warmup": 0,  # a run takes tens of seconds: first-call set-up is ~1 % of it
-        "repeats": 1 if args.quick else PER_LIGHT_FULL_REPEATS,
+        "repeats": 1 if opts.quick else PER_LIGHT_FULL_REPEATS,
         "input": str(path),
         "checkpoint": models["checkpoint"],
         "onnx": models["fp32"],
         "output": str(scratch / "out.npy"),
         "result": str(scratch / "result.json"),
     }
-    _say(args, f"timing the published per-light forward on the whole {lights}-light image ...")
+    _say(opts, f"timing the published per-light forward on the whole {lights}-light image ...")
     cell = run_cell_subprocess(spec, scratch)
     flops = inference_flops(lights, h * w)
     row = {
@@ -622,9 +482,7 @@ def per_light_whole_image(
     return row
 
 
-def end_to_end(
-    args: argparse.Namespace, models: dict, variants: list[str], threads: list[int], folder: Path
-) -> list[dict]:
+def end_to_end(opts: BenchOptions, plan: Plan, models: dict, folder: Path) -> list[dict]:
     """Workload (d): msf-run on the whole stack in a fresh process, normals only.
 
     First the default command (bundled model, no engine or precision flag: what dispatch picks
@@ -633,10 +491,11 @@ def end_to_end(
 
     # --lights N: msf-run --max-lights N. Without it, quick runs 8 lights (a smoke test of the
     # path, not a figure) and a full run every light.
-    max_lights = args.lights or (8 if args.quick else None)
-    stack = load_stack(args.stack, max_lights=max_lights)
+    variants, threads = plan.variants, plan.threads
+    max_lights = opts.lights or (8 if opts.quick else None)
+    stack = load_stack(plan.stack, max_lights=max_lights)
     ort = ["--engine", "onnxruntime"]
-    budget = args.max_memory  # None: msf-run's own default, as a user runs it
+    budget = opts.max_memory  # None: msf-run's own default, as a user runs it
     # The default row runs the bundled model as msf-run picks it (fp32, or its int8 twin where
     # dispatch.bundled_precision prefers it: then it differs from the fp32 rows by the
     # quantisation); for other weights (--checkpoint, --random-weights) it runs their staged
@@ -662,13 +521,13 @@ def end_to_end(
             ("ort-int8-staged", Path(models["int8_staged"]), ort),
         ]
     runs, outs = [], {}
-    for v, onnx, extra in tqdm(names, desc="msf-bench (d)", unit="run", disable=args.quiet):
+    for v, onnx, extra in tqdm(names, desc="msf-bench (d)", unit="run", disable=opts.quiet):
         outdir = folder / v
         # The default command carries the target: the median of 3 fresh processes (single runs
         # varied by +-10 % here); one run for the other rows keeps the full mode short.
-        repeats = 3 if v == "default" and not args.quick else 1
+        repeats = 3 if v == "default" and not opts.quick else 1
         walls = [
-            time_msf_run(args.stack, onnx, outdir, max(threads), budget, max_lights, extra)
+            time_msf_run(plan.stack, onnx, outdir, max(threads), budget, max_lights, extra)
             for _ in range(repeats)
         ]
         w = walls[-1]
@@ -694,7 +553,7 @@ def end_to_end(
             }
         )
     if bundled:
-        runs.append(_warm_row(args, stack, max(threads), budget, max_lights, runs[0]))
+        runs.append(_warm_row(opts, plan, stack, budget, max_lights, runs[0]))
     for run in runs:
         if run["variant"] in outs and run["variant"] != "ort-fp32":
             mean, mx = deviation_deg(outs[run["variant"]], outs["ort-fp32"], stack.mask)
@@ -703,16 +562,17 @@ def end_to_end(
 
 
 def _warm_row(
-    args: argparse.Namespace,
+    opts: BenchOptions,
+    plan: Plan,
     stack,
-    threads: int,
     budget: float | None,
     max_lights: int | None,
     default: dict,
 ) -> dict:
     """The default path again, in one warm process (workloads.time_warm_model): what a stream
     or a station loop pays per stack once the model is open."""
-    warm = time_warm_model(args.stack, threads, budget, max_lights, repeats=1 if args.quick else 3)
+    repeats = 1 if opts.quick else 3
+    warm = time_warm_model(plan.stack, max(plan.threads), budget, max_lights, repeats=repeats)
     prof = warm["profile"]
     return {
         **{k: default[k] for k in ("threads", "lights", "height", "width")},
@@ -754,21 +614,21 @@ def _mae(normals: np.ndarray, stack) -> float | None:
     return normal_metrics(normals, stack.normals_gt, stack.mask).mae_deg
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(opts: BenchOptions) -> int:
     # The models are exported with torch and onnx: find them missing before anything is
     # written or printed.
     import onnx  # noqa: F401
     import torch  # noqa: F401
 
-    plan = plan_run(args)  # every check before anything is written or printed
-    data = load_inputs(args, plan)
+    plan = plan_run(opts)  # every check before anything is written or printed
+    data = load_inputs(opts, plan)
     for note in plan.notes:
-        _say(args, note)
-    final = args.report_dir
-    with staged_folder(final, overwrite=args.overwrite) as work, scratch_folder(final) as scratch:
-        result = published(bench(args, plan, data, work, scratch), work, final)
+        _say(opts, note)
+    final = opts.report_dir
+    with staged_folder(final, overwrite=opts.overwrite) as work, scratch_folder(final) as scratch:
+        result = published(bench(opts, plan, data, work, scratch), work, final)
         files = write_report(result, work)
-    if not args.quiet:
+    if not opts.quiet:
         print(files["table"])
         for f in files["paths"]:
             print(f"wrote {final / Path(f).relative_to(work)}")
@@ -789,10 +649,6 @@ def published(result: dict, work: Path, final: Path) -> dict:
         return value
 
     return {k: rebase(v) for k, v in result.items()}
-
-
-def _edge_mode(args: argparse.Namespace) -> bool:
-    return args.onnx is not None or args.ladder or args.requirements
 
 
 def _check_crop_shape(model: Path, static: tuple[int, int, int] | None) -> None:
@@ -832,77 +688,77 @@ def _check_stack(stack: Path) -> None:
     load_stack(stack, max_lights=MIN_LIGHTS)
 
 
-def _run_edge(args: argparse.Namespace) -> int:
+def _run_edge(opts: BenchOptions) -> int:
     """--onnx / --ladder / --requirements: torch-free, inputs checked first, one report folder
     (REPORT.md, report.json) written as a whole."""
     from msfnet.bench import edge, ladder
     from msfnet.runtime.api import bundled_model_path, default_model_path
     from msfnet.runtime.engines import read_model_file
 
-    model = args.onnx or default_model_path()
+    model = opts.onnx or default_model_path()
     info = read_model_file(model)  # an unreadable or foreign file is one line before any work
-    scoring = args.ladder or not args.requirements  # --onnx and --ladder score on DiLiGenT
-    if args.onnx is not None and not (args.ladder or args.requirements):
+    scoring = opts.ladder or not opts.requirements  # --onnx and --ladder score on DiLiGenT
+    if opts.onnx is not None and not (opts.ladder or opts.requirements):
         _check_crop_shape(model, info.static_shape)
-    root = data_root(args.data) if scoring or args.stack is None else None
+    root = data_root(opts.data) if scoring or opts.stack is None else None
     if scoring:
         assert root is not None
         _check_validation_objects(root)
-    if args.stack is not None:
-        stack = args.stack
+    if opts.stack is not None:
+        stack = opts.stack
     else:
         assert root is not None
         stack = root / STACK_IN_DATA
-    if args.requirements:
+    if opts.requirements:
         _check_stack(stack)  # the grid's every cell would fail on it
     check_output(
-        args.report_dir,
+        opts.report_dir,
         [model, *([root] if root is not None else []), stack],
-        overwrite=args.overwrite,
+        overwrite=opts.overwrite,
         folder=True,
         command=PROG,
     )
-    threads = max(args.threads)
+    threads = max(opts.threads)
 
     def progress(line: str) -> None:  # fresh-process cells take minutes on a slow box
-        _say(args, f"  {line}")
+        _say(opts, f"  {line}")
 
     bundled = bundled_model_path().name  # what Model() opens here with nothing named
     result: dict = {
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
         "machine": machine_description(),
         # without --onnx the ladder and the requirements run what msf-run opens here
-        "model": str(model) if args.onnx else f"bundled ({bundled})",
+        "model": str(model) if opts.onnx else f"bundled ({bundled})",
         "threads": threads,
     }
     sections = []
-    final = args.report_dir
-    with staged_folder(final, overwrite=args.overwrite) as work, scratch_folder(final) as scratch:
-        if args.onnx is not None and not (args.ladder or args.requirements):
-            _say(args, f"measuring {model.name} on every engine and device here ...")
+    final = opts.report_dir
+    with staged_folder(final, overwrite=opts.overwrite) as work, scratch_folder(final) as scratch:
+        if opts.onnx is not None and not (opts.ladder or opts.requirements):
+            _say(opts, f"measuring {model.name} on every engine and device here ...")
             assert root is not None
             rows = edge.onnx_rows(model, root, threads, scratch, say=progress, info=info)
             result["onnx"] = [edge.asdict(r) for r in rows]
             sections.append(("Engines and devices", edge.edge_table(rows)))
-        if args.ladder:
-            _say(args, "measuring the speed ladder (each rung in a fresh process) ...")
+        if opts.ladder:
+            _say(opts, "measuring the speed ladder (each rung in a fresh process) ...")
             # without --onnx: the bundled model as msf-run picks it (fp32 or its int8 twin)
             assert root is not None
             rungs = ladder.ladder_rows(
-                args.onnx, root, threads=threads, scratch=scratch, say=progress
+                opts.onnx, root, threads=threads, scratch=scratch, say=progress
             )
             result["ladder"] = [ladder.asdict(r) for r in rungs]
             sections.append(("Speed ladder (--speed)", ladder.ladder_table(rungs)))
-        if args.requirements:
-            _say(args, "measuring the requirements grid (each cell in a fresh process) ...")
+        if opts.requirements:
+            _say(opts, "measuring the requirements grid (each cell in a fresh process) ...")
             reqs = edge.requirement_rows(
-                args.onnx,
+                opts.onnx,
                 stack,
                 threads,
                 scratch,
-                quick=args.quick,
+                quick=opts.quick,
                 say=progress,
-                info=info if args.onnx is not None else None,
+                info=info if opts.onnx is not None else None,
             )
             result["requirements"] = [edge.asdict(r) for r in reqs]
             sections.append(("Requirements", edge.requirements_table(reqs)))
@@ -910,49 +766,49 @@ def _run_edge(args: argparse.Namespace) -> int:
         head = (
             f"# msf-bench, {result['date']}\n\nCPU: {m['cpu']} ({m['cores']} cores); "
             f"{threads} threads; onnxruntime {m['onnxruntime']}, openvino {m['openvino']}; "
-            f"model {model.name if args.onnx else 'bundled, ' + bundled}\n"
+            f"model {model.name if opts.onnx else 'bundled, ' + bundled}\n"
         )
         text = head + "".join(f"\n## {t}\n\n{body}\n" for t, body in sections)
         write_text(work / "REPORT.md", text)
         write_json(work / "report.json", result)
-    if not args.quiet:
+    if not opts.quiet:
         print("\n\n".join(body for _, body in sections))
         print(f"wrote {final / 'REPORT.md'}")
     return 0
 
 
-def _body(args: argparse.Namespace, argv: list[str]) -> int:
-    if args.cpu_proxy is not None and proxy_class() != args.cpu_proxy:
+def _body(opts: BenchOptions, argv: list[str]) -> int:
+    if opts.cpu_proxy is not None and proxy_class() != opts.cpu_proxy:
         from msfnet.bench.cpu_proxy import proxy_env
 
-        env = proxy_env(args.cpu_proxy)  # where no proxy can run: one line, before anything
-        print(f"{PROG}: running as {args.cpu_proxy} (cpuid proxy)", file=sys.stderr, flush=True)
+        env = proxy_env(opts.cpu_proxy)  # where no proxy can run: one line, before anything
+        print(f"{PROG}: running as {opts.cpu_proxy} (cpuid proxy)", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os.execvpe(sys.executable, [sys.executable, "-m", "msfnet.bench.cli", *argv], env)
-    with row_time_limit(args.timeout):
-        if _edge_mode(args):
-            _refuse_torch_options(args)
-            return _run_edge(args)
-        return _run(args)
+    with row_time_limit(opts.timeout):
+        if opts.edge_mode:
+            _refuse_torch_options(opts)
+            return _run_edge(opts)
+        return _run(opts)
 
 
-def _refuse_torch_options(args: argparse.Namespace) -> None:
+def _refuse_torch_options(opts: BenchOptions) -> None:
     """--onnx / --ladder / --requirements measure ONNX files torch-free: the torch benchmark's
     options would be ignored in silence (a report on X that never names the --checkpoint Y)."""
     given = [
         flag
         for flag, value in (
-            ("--checkpoint", args.checkpoint is not None),
-            ("--random-weights", args.random_weights),
-            ("--calib", args.calib is not None),
-            ("--variants", args.variants != ",".join(VARIANTS)),
-            ("--no-e2e", args.no_e2e),
-            ("--lights", args.lights is not None),
-            ("--max-memory", args.max_memory is not None),
+            ("--checkpoint", opts.checkpoint is not None),
+            ("--random-weights", opts.random_weights),
+            ("--calib", opts.calib is not None),
+            ("--variants", opts.variants != ALL_VARIANTS),
+            ("--no-e2e", opts.no_e2e),
+            ("--lights", opts.lights is not None),
+            ("--max-memory", opts.max_memory is not None),
         )
         if value
     ]
-    mode = "--onnx" if args.onnx is not None else "--ladder" if args.ladder else "--requirements"
+    mode = "--onnx" if opts.onnx is not None else "--ladder" if opts.ladder else "--requirements"
     if given:
         raise InputError(
             f"{', '.join(given)}: options of the torch benchmark, not used with {mode} "
@@ -961,10 +817,10 @@ def _refuse_torch_options(args: argparse.Namespace) -> None:
     # what only the requirements grid reads, given to a mode that would drop it in silence
     unused = (
         []
-        if args.requirements
+        if opts.requirements
         else [
             flag
-            for flag, value in (("--stack", args.stack is not None), ("--quick", args.quick))
+            for flag, value in (("--stack", opts.stack is not None), ("--quick", opts.quick))
             if value
         ]
     )
@@ -973,16 +829,21 @@ def _refuse_torch_options(args: argparse.Namespace) -> None:
             f"{', '.join(unused)}: used by --requirements only, not by {mode} (it scores the "
             "DiLiGenT validation objects at fixed sizes); drop them"
         )
-    if len(set(args.threads)) > 1 and args.threads != DEFAULT_THREADS:
+    if len(set(opts.threads)) > 1 and opts.threads != DEFAULT_THREADS:
         raise InputError(
-            f"--threads {','.join(map(str, args.threads))}: {mode} measures one thread count; "
+            f"--threads {','.join(map(str, opts.threads))}: {mode} measures one thread count; "
             "give one (or run once per count)"
         )
 
 
 def main(argv: list[str] | None = None) -> int:
     given = list(sys.argv[1:] if argv is None else argv)
-    return command_main(COMMAND, build_parser(), lambda args: _body(args, given), argv)
+    return command_main(COMMAND, build_parser(), lambda args: _body(options(args), given), argv)
+
+
+def options(args: argparse.Namespace) -> BenchOptions:
+    """The run's options, from msf-bench's parsed flags (-q among them)."""
+    return options_from_args(BenchOptions, args, overrides={"quiet": args.quiet})
 
 
 __all__ = [
@@ -997,6 +858,7 @@ __all__ = [
     "plan_run",
     "published",
     "schedule",
+    "thread_counts",
 ]
 
 if __name__ == "__main__":

@@ -51,7 +51,7 @@ from msfnet.common.imageio import (
     read_mask,
     write_png,
 )
-from msfnet.common.vocabulary import declare, opt, verbatim
+from msfnet.common.vocabulary import opt, verbatim
 from msfnet.runtime.stack import (
     FILENAMES_FILE,
     INTENSITIES_FILE,
@@ -76,8 +76,6 @@ if TYPE_CHECKING:
     from msfnet.runtime.api import Model, Result
     from msfnet.runtime.stack import LoadOptions
 
-# msf-capture's --light-intensities (--srgb and --gamma are LoadOptions', spelled the same)
-declare("light_intensities", "--light-intensities")
 
 SESSION = "session.json"
 # Ground truth as earlier msf-capture versions wrote it: still read on resume, and kept while

@@ -23,16 +23,22 @@ from msfnet.calib.directions import (
     light_labels,
 )
 from msfnet.calib.intensities import estimate_intensities, target_normals
+from msfnet.calib.options import (
+    SHARED,
+    CalibOptions,
+    DirectionsOptions,
+    IntensitiesOptions,
+)
 from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 from msfnet.common.cli import (
     Parser,
     add_common_flags,
+    add_flags,
     command_main,
-    finite_float,
-    int_range,
+    flag_names,
     make_parser,
+    options_from_args,
     path_arg,
-    positive_float,
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, same_file, staged_files, vectors_text
@@ -47,7 +53,6 @@ from msfnet.runtime.stack import read_vectors
 
 PROG = "msf-calib"
 EXCLUDE = ("mask", "normal", "albedo", "ambient", "dark", "diagnostic")
-MAX_SPHERES = 16
 IMAGE_OUT = (".png", ".tif", ".tiff", ".bmp", ".jpg")  # what the diagnostic may be saved as
 
 
@@ -106,30 +111,30 @@ def load_capture(
     return np.stack(imgs), paths, amb
 
 
-def _check_options(args: argparse.Namespace) -> None:
+def _check_options(options: CalibOptions) -> None:
     """Option values argparse types cannot judge alone, checked before any image is read."""
-    if not Path(args.output).name:
+    if not options.output.name:
         # "." or "/": the names of the other outputs are derived from this one's
-        raise InputError("-o names the output text file, not a folder", args.output)
-    if args.intrinsics:
-        fx, fy = args.intrinsics[:2]
+        raise InputError("-o names the output text file, not a folder", options.output)
+    if options.intrinsics:
+        fx, fy = options.intrinsics[:2]
         if not (fx > 0 and fy > 0):
             # fx = 0 makes every view ray NaN, and LAPACK then spins forever
             raise InputError(
                 f"--intrinsics: FX and FY must be positive focal lengths in "
                 f"pixels, got {fx:g} {fy:g}"
             )
-        if args.focal:
+        if options.focal:
             raise InputError("--focal and --intrinsics contradict each other; give one")
 
 
-def _intrinsics(args: argparse.Namespace, shape: tuple[int, int]) -> Intrinsics | None:
+def _intrinsics(options: CalibOptions, shape: tuple[int, int]) -> Intrinsics | None:
     """The camera the options describe, checked against the images' size: finite but absurd
     values (``--focal 1e-300``, a principal point at 1e308) wrote NaN light directions."""
-    if args.intrinsics:
-        intr, option = Intrinsics(*args.intrinsics), "--intrinsics"
-    elif args.focal:
-        intr = Intrinsics(args.focal, args.focal, (shape[1] - 1) / 2, (shape[0] - 1) / 2)
+    if options.intrinsics:
+        intr, option = Intrinsics(*options.intrinsics), "--intrinsics"
+    elif options.focal:
+        intr = Intrinsics(options.focal, options.focal, (shape[1] - 1) / 2, (shape[0] - 1) / 2)
         option = "--focal"
     else:
         return None
@@ -162,11 +167,12 @@ def _circles(folder: Path, imgs: np.ndarray, mask: Path | None, spheres: int):
     return fit_circles_from_images(imgs, spheres, source=folder), None
 
 
-def _diagnostic_paths(args: argparse.Namespace, out: Path, captures: int) -> list[Path]:
-    if args.no_diagnostic:
+def _diagnostic_paths(options: DirectionsOptions, captures: int) -> list[Path]:
+    out = options.output
+    if options.no_diagnostic:
         return []
-    if args.diagnostic:
-        base = Path(args.diagnostic)
+    if options.diagnostic:
+        base = options.diagnostic
         if base.suffix.lower() not in IMAGE_OUT:
             # ".png" alone is a hidden file with no suffix, hence "a name and an ending"
             raise InputError(
@@ -241,58 +247,61 @@ def _png_writer(rgb: np.ndarray, target: Path) -> Callable[[Path], None]:
     return write
 
 
-def _say(args: argparse.Namespace, text: str) -> None:
-    if not args.quiet:
+def _say(options: CalibOptions, text: str) -> None:
+    if not options.quiet:
         print(text)
 
 
-def _warn(args: argparse.Namespace, text: str) -> None:
+def _warn(options: CalibOptions, text: str) -> None:
     """``msf-calib: warning: <image>: ...`` on stderr; not with -q (errors only)."""
-    if not args.quiet:
+    if not options.quiet:
         print(f"{PROG}: warning: {text}", file=sys.stderr)
 
 
-def cmd_directions(args: argparse.Namespace) -> int:
-    _check_options(args)
-    out = Path(args.output)
-    folders = [Path(f) for f in args.images_dir]
+def cmd_directions(options: DirectionsOptions) -> int:
+    _check_options(options)
+    out = options.output
+    folders = list(options.images_dir)
     for k, folder in enumerate(folders):  # one capture twice would weigh double in the mean
         twin = next((f for f in folders[:k] if same_file(f, folder)), None)
         if twin is not None:
             raise InputError(f"given twice (also as {twin}): give each capture once", folder)
-    diag_paths = _diagnostic_paths(args, out, len(folders))
+    diag_paths = _diagnostic_paths(options, len(folders))
     conf_path = out.with_name(out.stem + "_confidence.txt")
-    inputs: list[Path | None] = [*folders, args.mask, args.ambient]
-    _check_outputs([out, conf_path, *diag_paths], inputs, args.overwrite)
+    inputs: list[Path | None] = [*folders, options.mask, options.ambient]
+    _check_outputs([out, conf_path, *diag_paths], inputs, options.overwrite)
     captures: list[np.ndarray] = []
     circles, names, diag = [], None, []
     ambients, fitted = [], []
     for k, folder in enumerate(folders):
-        imgs, paths, amb = load_capture(folder, args.ambient, args.no_ambient)
+        imgs, paths, amb = load_capture(folder, options.ambient, options.no_ambient)
         if captures and len(imgs) != len(captures[0]):
             raise InputError(
                 f"{len(imgs)} images but {folders[0]} has {len(captures[0])}: every capture "
                 "holds one image per light",
                 folder,
             )
-        circ, mpath = _circles(folder, imgs, args.mask, args.spheres)
+        circ, mpath = _circles(folder, imgs, options.mask, options.spheres)
         how = f"mask {mpath.name}" if mpath else "fitted from the images (no mask)"
         for c in circ:
-            _say(args, f"capture {k + 1}: sphere at ({c.cx:.2f}, {c.cy:.2f}) r={c.r:.2f} px, {how}")
+            _say(
+                options,
+                f"capture {k + 1}: sphere at ({c.cx:.2f}, {c.cy:.2f}) r={c.r:.2f} px, {how}",
+            )
         captures.append(imgs)
         circles.append(circ)
         fitted.append(mpath is None)
         ambients.append(amb)
         names = names or [p.name for p in paths]
         diag.append((imgs, circ))
-    intr = _intrinsics(args, captures[0].shape[1:3])
+    intr = _intrinsics(options, captures[0].shape[1:3])
     names = names or []
     res = estimate_directions(
         captures, circles, intr, ambients, names=names, source=folders[0], fitted=fitted
     )
     _check_result(res.directions, "light directions", unit=True)
     for w in res.warnings:
-        _warn(args, w)
+        _warn(options, w)
     writers: list[tuple[Path, Callable[[Path], None]]] = [
         (out, _text_writer(vectors_text(res.directions))),
         (
@@ -317,33 +326,33 @@ def cmd_directions(args: argparse.Namespace) -> int:
                 ),
             )
         )
-    _commit(writers, args.overwrite)
+    _commit(writers, options.overwrite)
     for stale in _stale_diagnostics(out, diag_paths):
-        _warn(args, f"{stale}: from an earlier run (this run wrote no image of that name)")
-    _say(args, f"{len(res.directions)} light directions -> {out} (x right, y up, z to camera)")
+        _warn(options, f"{stale}: from an earlier run (this run wrote no image of that name)")
+    _say(options, f"{len(res.directions)} light directions -> {out} (x right, y up, z to camera)")
     for i, (d, c) in enumerate(zip(res.directions, res.confidence, strict=True)):
-        _say(args, f"  {names[i]:>20s}: {d[0]:+.4f} {d[1]:+.4f} {d[2]:+.4f}  confidence {c:.2f}")
-    _say(args, f"confidence -> {conf_path}")
+        _say(options, f"  {names[i]:>20s}: {d[0]:+.4f} {d[1]:+.4f} {d[2]:+.4f}  confidence {c:.2f}")
+    _say(options, f"confidence -> {conf_path}")
     for dpath in diag_paths:
-        _say(args, f"diagnostic image -> {dpath}")
+        _say(options, f"diagnostic image -> {dpath}")
     return 0
 
 
-def cmd_intensities(args: argparse.Namespace) -> int:
-    _check_options(args)
-    out = Path(args.output)
-    folder = Path(args.images_dir)
-    lights_path = Path(args.lights)
-    _check_outputs([out], [folder, lights_path, args.mask, args.ambient], args.overwrite)
-    if args.normal is not None and args.target != "plane":
+def cmd_intensities(options: IntensitiesOptions) -> int:
+    _check_options(options)
+    out = options.output
+    folder = options.images_dir
+    lights_path = options.lights
+    _check_outputs([out], [folder, lights_path, options.mask, options.ambient], options.overwrite)
+    if options.normal is not None and options.target != "plane":
         raise InputError("--normal is the plane target's: add --target plane, or leave it out")
-    normal = np.asarray(args.normal or (0.0, 0.0, 1.0), np.float64)
-    if args.target == "plane" and not (np.linalg.norm(normal) > 0 and normal[2] > 0):
+    normal = np.asarray(options.normal or (0.0, 0.0, 1.0), np.float64)
+    if options.target == "plane" and not (np.linalg.norm(normal) > 0 and normal[2] > 0):
         raise InputError(
             f"--normal {' '.join(f'{v:g}' for v in normal)}: the plane normal must "
             "be non-zero and face the camera (z > 0)"
         )
-    imgs, paths, amb = load_capture(folder, args.ambient, args.no_ambient)
+    imgs, paths, amb = load_capture(folder, options.ambient, options.no_ambient)
     lights = read_vectors(lights_path, "light directions").astype(np.float64)
     if len(lights) != len(imgs):
         raise InputError(
@@ -351,10 +360,10 @@ def cmd_intensities(args: argparse.Namespace) -> int:
         )
     if np.any(np.linalg.norm(lights, axis=1) < 1e-6):
         raise InputError("zero-length light direction", lights_path)
-    mask_path = args.mask or _named(folder, ("mask",))
+    mask_path = options.mask or _named(folder, ("mask",))
     mask = read_mask(mask_path, imgs.shape[1:3]) if mask_path else None
-    intr = _intrinsics(args, imgs.shape[1:3])
-    if args.target == "sphere":
+    intr = _intrinsics(options, imgs.shape[1:3])
+    if options.target == "sphere":
         circ = (
             fit_circles_from_mask(mask, source=mask_path)
             if mask is not None
@@ -371,57 +380,27 @@ def cmd_intensities(args: argparse.Namespace) -> int:
         amb,
         names=[p.name for p in paths],
         source=folder,
-        accept_poor_fit=args.accept_poor_fit,
-        plane=args.target == "plane",
+        accept_poor_fit=options.accept_poor_fit,
+        plane=options.target == "plane",
     )
     _check_result(ints, "light intensities", unit=False)
     for w in warnings:
-        _warn(args, w)
-    _commit([(out, _text_writer(vectors_text(ints)))], args.overwrite)
+        _warn(options, w)
+    _commit([(out, _text_writer(vectors_text(ints)))], options.overwrite)
     _say(
-        args,
+        options,
         f"{len(ints)} RGB light intensities (mean 1) -> {out}"
         + ("" if amb is not None else " (no ambient frame subtracted)"),
     )
     return 0
 
 
-def _add_common(sp: argparse.ArgumentParser) -> None:
+def _add_shared(sp: argparse.ArgumentParser, options: type[CalibOptions]) -> None:
     """The options both sub-commands take, after their own: output, mask, ambient frame,
     camera model, --overwrite."""
     add_common_flags(sp, sub_command=True)  # before or after the sub-command's name
     sp.add_argument("-o", "--output", type=path_arg, required=True, help="output text file")
-    sp.add_argument(
-        "--mask",
-        type=path_arg,
-        help="target mask image (default: a file in the "
-        "folder with 'mask' in its name; else the sphere is fitted from images)",
-    )
-    sp.add_argument(
-        "--ambient",
-        type=path_arg,
-        help="dark/ambient frame to subtract (default: a "
-        "file with 'ambient' or 'dark' in its name)",
-    )
-    sp.add_argument("--no-ambient", action="store_true", help="do not subtract any frame")
-    sp.add_argument(
-        "--focal",
-        type=positive_float,
-        help="perspective: focal length in "
-        "pixels, principal point at the image centre (default: orthographic)",
-    )
-    sp.add_argument(
-        "--intrinsics",
-        type=finite_float,
-        nargs=4,
-        metavar=("FX", "FY", "CX", "CY"),
-        help="perspective: full pinhole intrinsics in pixels (FX, FY > 0)",
-    )
-    sp.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace existing outputs (lights, confidence, diagnostic files)",
-    )
+    add_flags(sp, options, only=flag_names(options, SHARED))
 
 
 def _add_directions(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -435,21 +414,8 @@ def _add_directions(sub: argparse._SubParsersAction[Parser]) -> None:
         "in the mask = several spheres, averaged.",
     )
     d.add_argument("images_dir", nargs="+", type=path_arg, help="folder(s) of mirror-sphere images")
-    d.add_argument(
-        "--spheres",
-        type=int_range(1, MAX_SPHERES),
-        default=1,
-        help="spheres to find when there is no mask (default 1)",
-    )
-    d.add_argument(
-        "--diagnostic",
-        type=path_arg,
-        help="diagnostic PNG path (default "
-        "<output>_diagnostic.png; with several captures, _1, _2, ... are appended)",
-    )
-    d.add_argument("--no-diagnostic", action="store_true", help="write no diagnostic image")
-    _add_common(d)
-    d.set_defaults(func=cmd_directions)
+    add_flags(d, DirectionsOptions, only=flag_names(DirectionsOptions, ""))
+    _add_shared(d, DirectionsOptions)
 
 
 def _add_intensities(sub: argparse._SubParsersAction[Parser]) -> None:
@@ -462,32 +428,8 @@ def _add_intensities(sub: argparse._SubParsersAction[Parser]) -> None:
     i.add_argument(
         "images_dir", type=path_arg, help="folder of images of a matte white sphere or plane"
     )
-    i.add_argument(
-        "--lights", type=path_arg, required=True, help="light_directions.txt for these images"
-    )
-    i.add_argument(
-        "--target",
-        choices=("sphere", "plane"),
-        default="sphere",
-        help="the white target's shape (default sphere; plane: see --normal)",
-    )
-    i.add_argument(
-        "--normal",
-        type=finite_float,
-        nargs=3,
-        default=None,
-        metavar=("X", "Y", "Z"),
-        help="plane normal, with --target plane (default 0 0 1, facing the camera)",
-    )
-    i.add_argument(
-        "--accept-poor-fit",
-        action="store_true",
-        help="write the intensities even when the target fits matte shading poorly (fit "
-        "residual above 20%%: usually wrong light directions or a glossy target); a warning "
-        "says so",
-    )
-    _add_common(i)
-    i.set_defaults(func=cmd_intensities)
+    add_flags(i, IntensitiesOptions, only=flag_names(IntensitiesOptions, ""))
+    _add_shared(i, IntensitiesOptions)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -506,8 +448,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _main(args: argparse.Namespace) -> int:
+    """The sub-command's options, built once from the flags, and its run."""
+    given = {"output": args.output, "quiet": args.quiet}
+    if args.command == "directions":
+        given["images_dir"] = tuple(args.images_dir)
+        return cmd_directions(options_from_args(DirectionsOptions, args, overrides=given))
+    given["images_dir"] = args.images_dir
+    return cmd_intensities(options_from_args(IntensitiesOptions, args, overrides=given))
+
+
 def main(argv: list[str] | None = None) -> int:
-    return command_main(PROG, build_parser(), lambda args: args.func(args), argv)
+    return command_main(PROG, build_parser(), _main, argv)
 
 
 if __name__ == "__main__":

@@ -18,10 +18,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import declare, opt
-
-# msf-capture's --count
-declare("count", "--count")
+from msfnet.common.vocabulary import opt
 
 
 class Lights(Protocol):

@@ -12,9 +12,7 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import declare, opt
-
-declare("spheres", "--spheres")
+from msfnet.common.vocabulary import opt
 
 
 @dataclass(frozen=True)

@@ -208,9 +208,11 @@ def add_flags(
         else:
             default = defaults[name]
             kwargs["default"] = None if default is dataclasses.MISSING else default
-            for key in ("type", "choices", "metavar", "nargs"):
+            for key in ("type", "choices", "metavar", "nargs", "const"):
                 if getattr(spec, key) is not None:
                     kwargs[key] = getattr(spec, key)
+            if spec.required:
+                kwargs["required"] = True
         parser.add_argument(spec.flag_name(name), *spec.aliases, **kwargs)
 
 

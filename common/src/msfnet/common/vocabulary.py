@@ -34,6 +34,8 @@ class Flag:
     metavar: str | tuple[str, ...] | None = None
     action: str | None = None
     nargs: int | str | None = None
+    const: Any = None  # the value of a bare flag whose value is optional (nargs="?")
+    required: bool = False  # a field without a default that the command line must give
     category: str = ""
 
     def flag_name(self, field_name: str) -> str:
