@@ -11,36 +11,26 @@ of the target (``common/files.py``'s ``write_atomic``, as every msfnet output), 
 exactly that file as ONNX Runtime loads it, and only then an atomic rename into place. Nothing
 of a failed, interrupted or unverified export is left behind.
 
-This module imports only the standard library at import time, so the CLI's argument parsing
-and ``--list-variants`` stay instant; torch, onnx and onnxruntime load when an export starts.
+msf-export's flags are declared here, once, on the types that hold them (:class:`ExportOptions`,
+:class:`ExportRequest`; common.vocabulary): the command's parser is built from them, and the
+messages of this table name them through the same vocabulary.
+
+This module imports no torch, onnx or onnxruntime at import time, so the CLI's argument
+parsing and ``--list-variants`` stay instant; they load when an export starts.
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
-from msfnet.common.vocabulary import declare, opt, verbatim
+from msfnet.common.cli import int_range, path_arg, positive_float, positive_int
+from msfnet.common.vocabulary import flag, opt, options_type, verbatim
 from msfnet.runtime.contract import TRAIN_LIGHTS
-
-if TYPE_CHECKING:
-    pass
-
-# msf-export's flags (its parser's own; ExportOptions' fields and variant_for's parameters)
-declare("static", "--static")
-declare("staged", "--staged", "store_true")
-declare("plain", "--plain", "store_true")
-declare("int8", "--int8", "store_true")
-declare("fp16_weights", "--fp16-weights", "store_true")
-declare("calib", "--calib")
-declare("opset", "--opset")
-declare("train_lights", "--train-lights")
-declare("tolerance_deg", "--tolerance")
-declare("weight_bits", "--weight-bits")
-declare("simplify", "--simplify", "store_true")
 
 Graph = Literal["dynamic", "static", "staged"]
 Precision = Literal["fp32", "fp16-weights", "int8"]
@@ -85,6 +75,14 @@ class StaticShape:
 
     def __str__(self) -> str:
         return f"{self.lights},{self.height},{self.width}"
+
+
+def static_shape(text: str) -> StaticShape:
+    """The ``--static`` value: :meth:`StaticShape.parse`, refused as a usage error."""
+    try:
+        return StaticShape.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 @dataclass(frozen=True)
@@ -282,6 +280,15 @@ def variant_for(
     )
 
 
+# The categories of msf-export's flags: the sections of its help, in this order (ExportRequest's
+# flags before ExportOptions' within each); "" the variant choice after the output file.
+GRAPH_FLAGS = "graph"  # how the graph is built and checked
+INT8_FLAGS = "int8"  # int8 quantisation: the flag, its calibration stacks, the weights' bit width
+STORAGE_FLAGS = "storage"  # weight storage, staged or plain graph, overwriting the output
+FLAG_SECTIONS = ("", GRAPH_FLAGS, INT8_FLAGS, STORAGE_FLAGS)
+
+
+@options_type
 @dataclass(frozen=True)
 class ExportOptions:
     """Settings shared by all variants. ``tolerance_deg`` None: the variant's own limit.
@@ -289,24 +296,129 @@ class ExportOptions:
     or the static shape). ``calib_*``: int8 calibration (and verification) tiles.
     ``weight_bits``: int8 weights in 7 or 8 bits (None: 7 where this CPU lacks VNNI, see
     quantize.quantize_model; 7-bit files compute exactly on every CPU, so a model shipped to
-    other machines is exported with 7)."""
+    other machines is exported with 7). The flagged fields are msf-export's too."""
 
-    opset: int = DEFAULT_OPSET
-    train_lights: int = TRAIN_LIGHTS
-    static: StaticShape | None = None
-    simplify: bool = False
-    tolerance_deg: float | None = None
+    opset: int = flag(
+        DEFAULT_OPSET,
+        f"ONNX opset, {MIN_OPSET}-{MAX_OPSET} (default {DEFAULT_OPSET}: GELU as Erf, widest "
+        f"runtime support; int8 needs {MIN_INT8_OPSET} or higher)",
+        type=int_range(MIN_OPSET, MAX_OPSET),
+        category=GRAPH_FLAGS,
+    )
+    train_lights: int = flag(
+        TRAIN_LIGHTS,
+        "light count the model was trained with; stored in the metadata and used by the "
+        f"runtime's sqrt(N / train_lights) scaling (default {TRAIN_LIGHTS})",
+        type=positive_int,
+        category=GRAPH_FLAGS,
+    )
+    static: StaticShape | None = flag(
+        None,
+        "export fixed shapes (batch 1) for NPUs / OpenVINO / OAK compilers; H and W multiples of 4",
+        type=static_shape,
+        metavar="N,H,W",
+        category=GRAPH_FLAGS,
+    )
+    simplify: bool = flag(
+        False,
+        "simplify the graph with onnxslim (dynamic axes are kept)",
+        action="store_true",
+        category=GRAPH_FLAGS,
+    )
+    tolerance_deg: float | None = flag(
+        None,
+        f"verification limit in degrees (default: the variant's own, {TOLERANCE_DEG} max vs "
+        f"PyTorch for fp32/fp16, {INT8_MEAN_LIMIT_DEG} mean vs the fp32 graph for int8)",
+        name="--tolerance",
+        type=positive_float,
+        metavar="DEG",
+        category=GRAPH_FLAGS,
+    )
     checks: tuple[tuple[int, int, int], ...] | None = None
     threads: int | None = None
     calib_tile: int = 64
     calib_lights: int = 96
     calib_tiles_per_stack: int = 3
-    weight_bits: int | None = None
+    weight_bits: int | None = flag(
+        None,
+        "int8 weights in 7 or 8 bits (default: 7 where this CPU lacks VNNI, whose int8 "
+        "kernels saturate 8-bit weights; 7-bit files compute exactly on every CPU, so export "
+        "with 7 for other machines)",
+        type=int,
+        choices=(7, 8),
+        category=INT8_FLAGS,
+    )
 
     @property
     def reduce_range(self) -> bool | None:
         """quantize_model's name for 7-bit weights (None: decided by this CPU)."""
         return None if self.weight_bits is None else self.weight_bits == 7
+
+
+@options_type
+@dataclass(frozen=True, kw_only=True)
+class ExportRequest:
+    """One msf-export run: the checkpoint, the file to write, the variant (named, or picked by
+    the flags as :func:`variant_for` does), the calibration stacks and the settings
+    (``options``); ``pipeline.export_variant`` takes the same parts. No flag here: the
+    positional checkpoint, ``-o`` and ``-v`` / ``-q`` (the parser adds them by hand, as every
+    command does) and ``options`` (its own flags)."""
+
+    checkpoint: Path | None = None  # None only with list_variants
+    output: Path | None = None  # None: the checkpoint's name with .onnx (cli.default_output)
+    variant: str | None = flag(
+        None,
+        "the export variant (default staged, or what the flags below pick); see --list-variants",
+        choices=VARIANT_NAMES,
+    )
+    list_variants: bool = flag(
+        False,
+        "print the variants table (passes, verification rule) and exit",
+        action="store_true",
+    )
+    int8: bool = flag(
+        False,
+        "write a static int8 QDQ model (transposed convs rewritten as conv + depth-to-space, "
+        "per-channel weights), calibrated on --calib stacks",
+        action="store_true",
+        category=INT8_FLAGS,
+    )
+    calib: tuple[Path, ...] | None = flag(
+        None,
+        "real stacks to calibrate --int8 on (e.g. DiLiGenT/ballPNG psmImages/cat)",
+        type=path_arg,
+        nargs="+",
+        metavar="STACK",
+        category=INT8_FLAGS,
+    )
+    fp16_weights: bool = flag(
+        False,
+        "store weights as float16 (half the file size; computed in float32, verified "
+        "against the network with fp16-rounded weights)",
+        action="store_true",
+        category=STORAGE_FLAGS,
+    )
+    plain: bool = flag(
+        False,
+        "write one graph (all lights at once) for runtimes other than msf-run: ONNX "
+        "Runtime, OpenVINO, TensorRT; msf-run runs it too, with more memory",
+        action="store_true",
+        category=STORAGE_FLAGS,
+    )
+    staged: bool = flag(
+        False,
+        "the staged graph (the default; kept for older command lines): cut at the three "
+        "max-over-lights steps, msf-run feeds a few lights at a time, several times less "
+        "memory per pixel at high light counts; same normals",
+        action="store_true",
+        category=STORAGE_FLAGS,
+    )
+    overwrite: bool = flag(
+        False, "replace an existing output file", action="store_true", category=STORAGE_FLAGS
+    )
+    options: ExportOptions = field(default_factory=ExportOptions)
+    verbose: bool = False  # -v: the export's progress lines
+    quiet: bool = False  # -q: errors only
 
 
 @dataclass(frozen=True)
@@ -425,6 +537,7 @@ def check_options(variant: Variant, options: ExportOptions, calib: Sequence[obje
 
 __all__ = [
     "DEFAULT_OPSET",
+    "FLAG_SECTIONS",
     "FP16_RULE",
     "FP32_RULE",
     "INT8_RULE",
@@ -434,6 +547,7 @@ __all__ = [
     "VARIANTS",
     "VARIANT_NAMES",
     "ExportOptions",
+    "ExportRequest",
     "ExportResult",
     "StaticShape",
     "Variant",
@@ -441,5 +555,6 @@ __all__ = [
     "VerifyRule",
     "check_options",
     "get_variant",
+    "static_shape",
     "variant_for",
 ]
