@@ -117,3 +117,76 @@ def test_every_setting_a_message_names_is_declared_and_a_command_has_its_flag() 
         w.flag for k, w in vocabulary._WORDS.items() if k in named and w.flag not in surface
     )
     assert not unknown, f"no command takes {unknown}"
+
+
+def _declared_in() -> dict[str, set[str]]:
+    """keyword -> the modules whose import declares its spelling (a flag() field of an
+    @options_type class, or declare())."""
+    out: dict[str, set[str]] = {}
+    for module, path in source_files().items():
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            called = isinstance(node, ast.Call) and getattr(node.func, "id", "") == "declare"
+            if called and node.args and isinstance(node.args[0], ast.Constant):  # type: ignore[attr-defined]
+                out.setdefault(node.args[0].value, set()).add(module)  # type: ignore[attr-defined]
+            if isinstance(node, ast.ClassDef) and any(
+                getattr(d, "id", "") == "options_type" for d in node.decorator_list
+            ):
+                for stmt in node.body:
+                    value = getattr(stmt, "value", None)
+                    if (
+                        isinstance(stmt, ast.AnnAssign)
+                        and isinstance(value, ast.Call)
+                        and getattr(value.func, "id", "") == "flag"
+                        and isinstance(stmt.target, ast.Name)
+                    ):
+                        out.setdefault(stmt.target.id, set()).add(module)
+    return out
+
+
+def test_a_message_sees_the_declaration_of_every_setting_it_names() -> None:
+    """Without it a message would be spelled by the rule (``--max-memory-mb``) whenever the
+    declaring module happens not to be imported yet (a worker process, a library call). Only
+    settings the rule would get wrong count: another spelling, or a switch (``=True``)."""
+    pytest.importorskip("torch", reason="the train command's options import torch")
+    from _layout import import_graph
+
+    from msfnet.common import vocabulary
+
+    for module in source_files():
+        importlib.import_module(module)
+    special = {
+        k
+        for k, w in vocabulary._WORDS.items()
+        if w.action is not None or w.flag != "--" + k.replace("_", "-")
+    }
+
+    graph = {m: {e.target for e in edges} for m, edges in import_graph().items()}
+
+    def reach(module: str) -> set[str]:
+        seen, todo = {module}, [module]
+        while todo:
+            for t in graph.get(todo.pop(), ()):
+                if t not in seen:
+                    seen.add(t)
+                    todo.append(t)
+        return seen
+
+    declared = _declared_in()
+    blind = []
+    for module, path in source_files().items():
+        seen = None
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (
+                isinstance(node, ast.Call)
+                and getattr(node.func, "id", "") == "opt"
+                and node.args
+                and isinstance(node.args[0], ast.Constant)
+            ):
+                keyword = node.args[0].value
+                if keyword not in special or keyword == "overwrite":  # overwrite: in vocabulary
+                    continue
+                seen = reach(module) if seen is None else seen
+                if not (declared.get(keyword, set()) & seen):
+                    blind.append(f"{module}: {keyword}")
+    assert not blind, "\n".join(sorted(set(blind)))

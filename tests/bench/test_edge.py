@@ -316,9 +316,10 @@ def test_a_ladder_worker_refusing_its_input_is_an_input_error(tmp_path: Path, mo
     import json
 
     from msfnet.common.errors import InputError
+    from msfnet.common.vocabulary import opt
 
-    def refuse(spec):  # type: ignore[no-untyped-def]
-        raise InputError("exported for exactly 8 lights (static shape)", "m.onnx")
+    def refuse(spec):  # type: ignore[no-untyped-def]  # worded as msf-bench's own line
+        raise InputError(f"exported for exactly 8 lights ({opt('speed')})", "m.onnx")
 
     monkeypatch.setattr(ladder, "measure_rung", refuse)
     spec = tmp_path / "spec.json"
@@ -326,7 +327,7 @@ def test_a_ladder_worker_refusing_its_input_is_an_input_error(tmp_path: Path, mo
     spec.write_text(json.dumps({"result": str(result)}))
     assert ladder.main([str(spec)]) == 2
     assert json.loads(result.read_text()) == {
-        "input_error": "exported for exactly 8 lights (static shape)",
+        "input_error": "exported for exactly 8 lights (--speed)",
         "path": "m.onnx",
     }
 

@@ -37,6 +37,8 @@ def test_a_worker_builds_the_engine_and_precision_asked_for(random_onnx: Path) -
     )
     described = StackWorker(spec).model.describe()
     assert described["engine"] == "onnxruntime" and described["precision"] == "fp32"
+    # the choice line profile.json keeps is msf-run's, as without --ray
+    assert "--precision fp32 and --engine given" in str(described["choice"])
 
 
 def test_a_worker_returns_what_a_local_run_gives(random_onnx: Path, tmp_path: Path) -> None:

@@ -66,7 +66,8 @@ def test_stack_flags_on_a_run_folder_are_refused_not_ignored(tmp_path: Path, cap
     import shutil
 
     shutil.rmtree(out)
-    for extra in (["--no-tiff"], ["--maps", "height"], ["--no-report"]):
+    # --maps none (no map: parsed to an empty tuple) is an output choice too, not "not given"
+    for extra in (["--no-tiff"], ["--maps", "height"], ["--maps", "none"], ["--no-report"]):
         assert _code([str(run), "--depth", "0.005", "-o", str(out), *extra]) == 2
         assert "msf-inspect writes only its verdict" in _one_line(capsys)
     assert not out.exists()

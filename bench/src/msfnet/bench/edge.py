@@ -32,7 +32,7 @@ import numpy as np
 from msfnet.bench.ladder import REPEAT
 from msfnet.bench.worker import run_module
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import opt
+from msfnet.common.vocabulary import opt, speaking_as
 
 if TYPE_CHECKING:
     from msfnet.runtime.engines.base import ModelInfo
@@ -459,7 +459,8 @@ def requirements_table(rows: list[Requirement]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     spec = json.loads(Path((argv or sys.argv[1:])[0]).read_text())
-    result = measure_path(spec) if spec["kind"] == "path" else measure_requirement(spec)
+    with speaking_as("msf-bench"):  # a row's refusal names msf-bench's options
+        result = measure_path(spec) if spec["kind"] == "path" else measure_requirement(spec)
     Path(spec["result"]).write_text(json.dumps(result))
     return 0
 

@@ -20,7 +20,7 @@ import numpy as np
 from msfnet.bench.worker import run_process
 from msfnet.common.errors import InputError
 from msfnet.common.files import writing_as
-from msfnet.common.vocabulary import opt
+from msfnet.common.vocabulary import opt, speaking_as
 
 # The validation objects (never calibration or training data) and their protocol selections.
 VALIDATION = (("ballPNG", None), ("bearPNG", "21-96"), ("harvestPNG", None))
@@ -181,7 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     spec_path = Path((argv or sys.argv[1:])[0])
     spec = json.loads(spec_path.read_text())
     try:
-        with writing_as("msf-bench"):  # errors name msf-bench's options, not the Python API's
+        # errors name msf-bench's options, not the Python API's
+        with writing_as("msf-bench"), speaking_as("msf-bench"):
             row = measure_rung(spec)
     except InputError as exc:  # bad input, not a bug: handed back for one error line
         path = None if exc.path is None else str(exc.path)

@@ -18,7 +18,10 @@ import numpy as np
 from msfnet.calib.directions import Intrinsics, sphere_geometry
 from msfnet.calib.sphere import Circle
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import opt
+from msfnet.common.vocabulary import declare, opt
+
+# IntensitiesOptions' switch, named by the fit's refusal
+declare("accept_poor_fit", "--accept-poor-fit", "store_true")
 
 # Relative fit residual ||I - e s|| / ||I|| over the used pixels of every light. Measured:
 # right lights: rendered Lambertian spheres 0.0002 (16-bit), 0.005 (8-bit), 0.04 (1 % noise);

@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Protocol
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import opt
 from msfnet.runtime.evaluate.datasets import (
     find_objects,
     folder_name,
@@ -77,7 +76,7 @@ class BatchItem:
         light file came from."""
         info = self.options(load).describe()
         if load.select is not None:
-            info["select_from"] = opt("select")
+            info["select_from"] = "--select"  # a recorded value (docs/run.md), not a message
         elif self.select is not None:
             info["select_from"] = (
                 "benchmark protocol" if self.origin == "protocol" else "objects.txt"

@@ -184,7 +184,8 @@ class StackWorker:
     def __init__(self, spec: ModelSpec) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="msfnet-worker-")
         self.spec = spec
-        self.model = spec.build(Path(self._tmp.name))
+        with speaking_as("msf-run"):  # the engine-choice line profile.json keeps: its words
+            self.model = spec.build(Path(self._tmp.name))
         self.where = f"{socket.gethostname()}:{os.getpid()}"
 
     def ready(self) -> str:

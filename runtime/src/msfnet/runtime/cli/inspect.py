@@ -258,7 +258,9 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
         linked_reads(args.reference) if args.reference is not None else []
     )
     check_output(args.output, inputs, overwrite=args.overwrite, folder=True, reads=reads)
-    writing = [f"--{d.replace('_', '-')}" for d in WRITING_FLAGS if getattr(args, d, None)]
+    # given at all: --maps none parses to () (no map), still an output choice
+    given = [d for d in WRITING_FLAGS if getattr(args, d, None) not in (None, False)]
+    writing = [f"--{d.replace('_', '-')}" for d in given]
     if writing:
         raise InputError(
             f"{', '.join(writing)}: msf-run's output choices; msf-inspect writes only its "

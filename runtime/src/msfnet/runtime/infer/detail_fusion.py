@@ -41,13 +41,16 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import opt
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.infer.estimators import Estimate, Estimator, TilingOptions
 from msfnet.runtime.infer.robust_least_squares import RobustFit, band_rows, robust_least_squares
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.instrument import StageTimer, memory_in_use_mb
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.readers import unit_normals
+
+# ModelOptions.detail_fusion, named by the fusion's own refusal
+declare("detail_fusion", "--no-detail-fusion", "store_false")
 
 DEFAULT_SIGMA = 3.0  # px: 1.5x the detail check's scale (evaluate.detail_ratio.SIGMA_PX)
 # Relative residuals of the robust fit (per degree of freedom) at which the detail / shape

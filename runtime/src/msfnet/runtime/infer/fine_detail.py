@@ -19,13 +19,16 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import opt
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.evaluate.detail_ratio import SIGMA_PX, masked_smooth
 from msfnet.runtime.infer.estimators import Estimate, NetworkEstimator, TilingOptions
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.instrument import StageTimer, announce
 from msfnet.runtime.stack import Stack
 from msfnet.runtime.stack.readers import unit_normals
+
+# ModelOptions.fine_detail, named by its own refusal
+declare("fine_detail", "--fine-detail", "store_true")
 
 FACTOR = 2
 

@@ -31,7 +31,7 @@ from msfnet.common.imageio import (
     read_image,
     read_mask,
 )
-from msfnet.common.vocabulary import flag, opt, options_type
+from msfnet.common.vocabulary import declare, flag, opt, options_type
 from msfnet.runtime.contract import INPUT_MULTIPLE
 from msfnet.runtime.stack.readers import (
     check_gt_header,
@@ -58,6 +58,9 @@ from msfnet.runtime.stack.types import (
     held_dtype,
     unit_lights,
 )
+
+# ModelOptions' --max-memory, which LoadOptions holds too (the loader refuses by it)
+declare("max_memory_mb", "--max-memory")
 
 if TYPE_CHECKING:
     from os import PathLike

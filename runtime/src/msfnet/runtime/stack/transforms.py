@@ -19,8 +19,13 @@ import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
-from msfnet.common.vocabulary import opt, verbatim
+from msfnet.common.vocabulary import declare, opt, verbatim
 from msfnet.runtime.stack.types import as_held
+
+# LoadOptions' switches, named by these transforms' messages (declared here too: load.py
+# imports this module, not the other way)
+declare("srgb", "--srgb", "store_true")
+declare("auto_mask", "--auto-mask", "store_true")
 
 Roi = tuple[int, int, int, int]  # x, y, width, height in pixels of the stored images
 

@@ -20,13 +20,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from msfnet.common.vocabulary import opt, verbatim
+from msfnet.common.vocabulary import declare, opt, verbatim
 from msfnet.runtime.instrument import memory_in_use_mb
 from msfnet.runtime.results.maps.albedo import (
     BYTES_PER_PIXEL_LIGHT,
     CHUNK_PIXELS,
     MIN_CHUNK_PIXELS,
 )
+
+# --no-maps: Model(maps=None) from Python (that text is its keyword)
+declare("maps=None", "--no-maps")
+# ModelOptions' --max-memory (this module sees no options type that holds it)
+declare("max_memory_mb", "--max-memory")
 
 MB = 2**20
 # bytes per image pixel (H x W) and per mask pixel of each stage's working set

@@ -41,8 +41,11 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.imageio import image_header
-from msfnet.common.vocabulary import opt
+from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.results.maps.extent import mask_box
+
+# MapOptions.local_size_px, named by the size check here
+declare("local_size_px", "--local-size")
 
 DEFAULT_LOCAL_SIZE_PX = 12.0
 TREND_DEGREE = 2  # the local shape's trend: a quadric around each pixel (see local_trend)
