@@ -75,3 +75,19 @@ def test_a_bad_tile_is_refused_when_the_model_is_made(tile: object) -> None:
 def test_good_tiles_are_kept(tile: object) -> None:
     opts = Model(method="l2", tile=tile).options
     assert opts.tile == tile and (tile is None or type(opts.tile) is int)
+
+
+def test_a_refusal_names_the_setting_it_refuses(tmp_path) -> None:
+    """InputError.option: the keyword a caller can react to, not only prose."""
+    from _runtime_helpers import png_stack
+
+    from msfnet import load_stack
+
+    with pytest.raises(InputError) as bad_tile:
+        Model(method="l2", tile=5)
+    assert bad_tile.value.option == "tile"
+    folder = png_stack(tmp_path / "s", 8)
+    with pytest.raises(InputError) as backwards:
+        load_stack(folder, select="5-2")
+    assert backwards.value.option == "select" and str(backwards.value).startswith("select='5-2'")
+    assert InputError("plain words").option is None

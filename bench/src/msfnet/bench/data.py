@@ -35,7 +35,7 @@ def data_root(
     if explicit is not None:
         path = Path(explicit).expanduser()
         if not path.is_dir():
-            raise InputError(f"{opt('data')}: folder not found", path)
+            raise InputError(f"{opt('data')}: folder not found", path, option="data")
         return path
     if env.get(ENV_VAR):
         path = Path(env[ENV_VAR]).expanduser()

@@ -93,10 +93,13 @@ class Linearisation:
 
     def __post_init__(self) -> None:
         if self.srgb and self.gamma is not None:
-            raise InputError(f"{opt('srgb')} and {opt('gamma')} both linearise: give one of them")
+            raise InputError(
+                f"{opt('srgb')} and {opt('gamma')} both linearise: give one of them", option="srgb"
+            )
         if self.gamma is not None and not self.gamma > 0:
             raise InputError(
-                f"{opt('gamma', verbatim(str(self.gamma)))}: must be a positive number"
+                f"{opt('gamma', verbatim(str(self.gamma)))}: must be a positive number",
+                option="gamma",
             )
 
     @property
@@ -327,6 +330,7 @@ def _check_new_names(out: Path, count: int) -> None:
                     f"(it had {old} lights) and a {count}-light session would replace it: move "
                     "it away or use another folder",
                     out,
+                    option="overwrite",
                 )
 
 

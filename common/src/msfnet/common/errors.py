@@ -21,9 +21,14 @@ class MsfError(Exception):
 class InputError(Exception):
     """A user-facing problem with an input file or argument."""
 
-    def __init__(self, message: str, path: str | Path | None = None) -> None:
+    def __init__(
+        self, message: str, path: str | Path | None = None, *, option: str | None = None
+    ) -> None:
         self.path = None if path is None else Path(path)
         self.message = message
+        # the setting refused (its keyword, as ModelOptions / LoadOptions / ... name it), for a
+        # caller that reacts to it: e.g. "max_memory_mb" -> retry with a smaller stack
+        self.option = option
         super().__init__(f"{path}: {message}" if path is not None else message)
 
 

@@ -231,7 +231,7 @@ def simplify(proto: onnx.ModelProto) -> onnx.ModelProto:
         import onnxslim
     except ImportError as exc:
         raise InputError(
-            f"{opt('simplify')} needs the onnxslim package: pip install onnxslim"
+            f"{opt('simplify')} needs the onnxslim package: pip install onnxslim", option="simplify"
         ) from exc
     simplified = onnxslim.slim(proto)
     if _dims(simplified) != _dims(proto):

@@ -52,20 +52,22 @@ MIN_CALIB_LIGHTS = 8
 def check_calibration(stacks: Sequence[Stack]) -> None:
     """Refuse calibration stacks too small to set int8 ranges from, naming the minimum."""
     if not stacks:
-        raise InputError(f"{opt('calib')}: give at least one stack to calibrate on")
+        raise InputError(f"{opt('calib')}: give at least one stack to calibrate on", option="calib")
     for s in stacks:
         if s.num_lights < MIN_CALIB_LIGHTS:
             raise InputError(
                 f"{opt('calib')}: {s.num_lights} lights; int8 calibration needs at least "
                 f"{MIN_CALIB_LIGHTS} per stack",
                 s.source or s.name,
+                option="calib",
             )
     pixels = sum(int(np.count_nonzero(s.mask)) for s in stacks)
     if pixels < MIN_CALIB_PIXELS:
         sizes = ", ".join(f"{s.name} {s.shape[1]}x{s.shape[0]}" for s in stacks)
         raise InputError(
             f"{opt('calib')}: {pixels} object pixel(s) in all ({sizes}); int8 calibration needs at "
-            f"least {MIN_CALIB_PIXELS} (a {MIN_CALIB_SIDE} x {MIN_CALIB_SIDE} patch of object)"
+            f"least {MIN_CALIB_PIXELS} (a {MIN_CALIB_SIDE} x {MIN_CALIB_SIDE} patch of object)",
+            option="calib",
         )
 
 

@@ -260,13 +260,17 @@ def variant_for(
     if staged and static:
         raise InputError(
             f"{opt('staged')} and {opt('static')} do not combine (the staged graph's entry "
-            "points need dynamic shapes)"
+            "points need dynamic shapes)",
+            option="staged",
         )
     if staged and plain:
-        raise InputError(f"{opt('staged')} and {opt('plain')} contradict each other")
+        raise InputError(
+            f"{opt('staged')} and {opt('plain')} contradict each other", option="staged"
+        )
     if int8 and fp16_weights:
         raise InputError(
-            f"{opt('int8')} and {opt('fp16_weights')} do not combine (int8 stores its own weights)"
+            f"{opt('int8')} and {opt('fp16_weights')} do not combine (int8 stores its own weights)",
+            option="int8",
         )
     graph: Graph = "static" if static else "dynamic" if plain else "staged"
     precision: Precision = "int8" if int8 else "fp16-weights" if fp16_weights else "fp32"
@@ -499,34 +503,47 @@ def check_options(variant: Variant, options: ExportOptions, calib: Sequence[obje
 
     if not MIN_OPSET <= options.opset <= MAX_OPSET:
         raise InputError(
-            f"{opt('opset', options.opset)}: supported opsets are {MIN_OPSET}-{MAX_OPSET}"
+            f"{opt('opset', options.opset)}: supported opsets are {MIN_OPSET}-{MAX_OPSET}",
+            option="opset",
         )
     if variant.needs_calibration and options.opset < MIN_INT8_OPSET:
         raise InputError(
             f"{opt('opset', options.opset)}: int8 needs opset {MIN_INT8_OPSET} or "
-            "higher (per-channel quantisation)"
+            "higher (per-channel quantisation)",
+            option="opset",
         )
     if options.train_lights < 1:
-        raise InputError(f"{opt('train_lights')} must be positive, got {options.train_lights}")
+        raise InputError(
+            f"{opt('train_lights')} must be positive, got {options.train_lights}",
+            option="train_lights",
+        )
     tol = options.tolerance_deg
     if tol is not None and not (math.isfinite(tol) and tol > 0):
-        raise InputError(f"{opt('tolerance_deg')} must be a positive number of degrees, got {tol}")
+        raise InputError(
+            f"{opt('tolerance_deg')} must be a positive number of degrees, got {tol}",
+            option="tolerance_deg",
+        )
     if variant.graph == "staged" and options.static is not None:
         raise InputError(
             f"{opt('staged')} and {opt('static')} do not combine (the staged graph's entry "
-            "points need dynamic shapes)"
+            "points need dynamic shapes)",
+            option="staged",
         )
     if variant.needs_shape and options.static is None:
         raise InputError(f"variant {variant.name} needs {opt('static', verbatim('N,H,W'))}")
     if not variant.needs_shape and options.static is not None:
         raise InputError(
-            f"{opt('static', verbatim('N,H,W'))} is for the static variants, not {variant.name}"
+            f"{opt('static', verbatim('N,H,W'))} is for the static variants, not {variant.name}",
+            option="static",
         )
     if options.weight_bits not in (None, 7, 8):
-        raise InputError(f"{opt('weight_bits', options.weight_bits)}: expected 7 or 8")
+        raise InputError(
+            f"{opt('weight_bits', options.weight_bits)}: expected 7 or 8", option="weight_bits"
+        )
     if options.weight_bits is not None and not variant.needs_calibration:
         raise InputError(
-            f"{opt('weight_bits')}: only the int8 variants quantise weights, not {variant.name}"
+            f"{opt('weight_bits')}: only the int8 variants quantise weights, not {variant.name}",
+            option="weight_bits",
         )
     if variant.needs_calibration and not calib:
         raise InputError(

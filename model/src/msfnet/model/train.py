@@ -164,11 +164,14 @@ def bf16_available() -> bool:
 def resolve_device(name: str) -> torch.device:
     """``auto`` = cuda when torch sees a GPU, else cpu; ``cuda`` without one is an error."""
     if name not in ("auto", "cpu", "cuda"):
-        raise InputError(f"{opt('device', name, quote=True)}: choose auto, cpu or cuda")
+        raise InputError(
+            f"{opt('device', name, quote=True)}: choose auto, cpu or cuda", option="device"
+        )
     if name == "cuda" and not torch.cuda.is_available():
         raise InputError(
             f"{opt('device', 'cuda')}: torch sees no CUDA GPU (a CPU-only torch build, or no "
-            "driver)"
+            "driver)",
+            option="device",
         )
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
@@ -294,14 +297,18 @@ class Trainer:
         self.device = resolve_device(cfg.device)
         self.workers = default_workers(self.device) if cfg.workers is None else cfg.workers
         if self.workers < 0:
-            raise InputError(f"{opt('workers')} must be >= 0")
+            raise InputError(f"{opt('workers')} must be >= 0", option="workers")
         if cfg.render_on not in ("cpu", "device"):
-            raise InputError(f"{opt('render_on', cfg.render_on, quote=True)}: choose cpu or device")
+            raise InputError(
+                f"{opt('render_on', cfg.render_on, quote=True)}: choose cpu or device",
+                option="render_on",
+            )
         self.on_device = cfg.render_on == "device"
         if self.on_device:
             if cfg.data != "synth":
                 raise InputError(
-                    f"{opt('render_on', 'device')} renders synthetic data; drop {opt('data')}"
+                    f"{opt('render_on', 'device')} renders synthetic data; drop {opt('data')}",
+                    option="render_on",
                 )
             self.workers = 0  # nothing to render on the CPU
         torch.set_num_threads(cfg.threads)
@@ -318,7 +325,8 @@ class Trainer:
         if cfg.precision == "bf16" and not can_bf16:
             raise InputError(
                 f"{opt('precision', 'bf16')}: this {self.device.type.upper()}/torch cannot run "
-                "bf16 autocast"
+                "bf16 autocast",
+                option="precision",
             )
         self.bf16 = cfg.precision == "bf16" or (cfg.precision == "auto" and can_bf16)
         if cuda:

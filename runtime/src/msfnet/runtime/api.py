@@ -331,7 +331,7 @@ class Model:
         frame when ``load`` is None."""
         tiling = self.tiling if tiling is None else tiling
         if repeat < 1:
-            raise InputError(f"{opt('repeat')} must be at least 1, got {repeat}")
+            raise InputError(f"{opt('repeat')} must be at least 1, got {repeat}", option="repeat")
         if load is not None:
             load = self._loading(load)
         recorded = None if load is None else load.describe()  # Result.input

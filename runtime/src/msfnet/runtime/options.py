@@ -217,7 +217,8 @@ class ModelOptions:
             if self.engine or self.precision:
                 raise InputError(
                     f"{opt('engine')} / {opt('precision')} choose how the network runs; "
-                    f"{opt('method', 'l2')} has no network"
+                    f"{opt('method', 'l2')} has no network",
+                    option="engine",
                 )
             if self.fine_detail:
                 raise InputError(
@@ -228,19 +229,22 @@ class ModelOptions:
         if self.method == "l2" and (self.speed != "full" or self.device):
             raise InputError(
                 f"{opt('speed')} / {opt('device')} choose how the network runs; "
-                f"{opt('method', 'l2')} has no network"
+                f"{opt('method', 'l2')} has no network",
+                option="speed",
             )
         if self.speed not in ("full", "balanced", "fast"):
             raise InputError(f"speed {self.speed!r}: expected full, balanced or fast")
         if self.speed != "full" and self.fine_detail:
             raise InputError(
                 f"{opt('speed', self.speed)} runs the network at a reduced resolution, "
-                f"{opt('fine_detail')} at twice the full one: choose one"
+                f"{opt('fine_detail')} at twice the full one: choose one",
+                option="speed",
             )
         if self.device and self.provider:
             raise InputError(
                 f"{opt('device')} and {opt('provider')} both pick where ONNX Runtime runs: "
-                f"use {opt('device')}"
+                f"use {opt('device')}",
+                option="device",
             )
         if self.tta not in TTA_COUNTS:
             raise InputError(f"tta {self.tta!r}: expected 1 (off), 4 or 8 copies")
@@ -268,7 +272,8 @@ class ModelOptions:
                 f"{opt('tile', verbatim(repr(tile)))}: expected 0 (no tiling) or a window "
                 "edge in px, a multiple "
                 f"of {INPUT_MULTIPLE} and at least {MIN_TILE} (2 x {HALO} px halo + "
-                f"{INPUT_MULTIPLE})"
+                f"{INPUT_MULTIPLE})",
+                option="tile",
             )
 
     @property

@@ -110,6 +110,7 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
             f"{opt('overwrite')}: the folder's {MANIFEST} is damaged, so msfnet cannot "
             "tell its own files; refusing to delete anything",
             folder,
+            option="overwrite",
         )
     foreign = foreign_files(folder)
     if foreign and manifest is not None and not manifest.tree:
@@ -120,12 +121,14 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
                 f"level, so what is inside {subs[0]} cannot be told from files of yours; remove "
                 "the folder yourself or choose another",
                 folder,
+                option="overwrite",
             )
     if foreign:
         raise InputError(
             f"{opt('overwrite')}: the folder holds files msfnet did not write (e.g. "
             f"{foreign[0]}); refusing to delete them",
             folder,
+            option="overwrite",
         )
     writer = manifest.writer if manifest else None
     if command is None or writer is None or writer == command:
@@ -136,6 +139,7 @@ def refuse_foreign(folder: Path, command: str | None = None) -> None:
         f"{opt('overwrite')}: the folder is {writer}'s output, not {command}'s; "
         "refusing to replace it (choose another folder)",
         folder,
+        option="overwrite",
     )
 
 

@@ -91,7 +91,8 @@ def cluster_endpoint(address: str) -> tuple[str, int] | None:
     if not valid or not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
         raise InputError(
             f"{opt('ray', address)}: not a cluster address (expected HOST:PORT, ray://HOST[:PORT] "
-            "or auto; a port in 1..65535)"
+            "or auto; a port in 1..65535)",
+            option="ray",
         )
     return host, int(port_text)
 
@@ -123,7 +124,7 @@ def check_reachable(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
         why = exc.strerror or type(exc).__name__
     else:
         return
-    raise InputError(f"{opt('ray', address)}: cannot connect: {why}")
+    raise InputError(f"{opt('ray', address)}: cannot connect: {why}", option="ray")
 
 
 def import_ray() -> Any:
@@ -132,7 +133,8 @@ def import_ray() -> Any:
     except ImportError as exc:
         raise InputError(
             f"{opt('ray')} needs Ray, which is not installed: pip install "
-            "'msfnet[ray]' (on the driver and on every cluster node)"
+            "'msfnet[ray]' (on the driver and on every cluster node)",
+            option="ray",
         ) from exc
     return ray
 
@@ -143,7 +145,8 @@ def _check_client() -> None:
     if importlib.util.find_spec("grpc") is None:
         raise InputError(
             f"{opt('ray', 'ray://...')}: a ray:// address needs Ray's client (gRPC), which is not "
-            "installed: pip install 'msfnet[ray]' (it brings ray[client])"
+            "installed: pip install 'msfnet[ray]' (it brings ray[client])",
+            option="ray",
         )
 
 
@@ -313,14 +316,16 @@ def plan_workers(
         raise InputError(
             f"{opt('ray')}: no Ray node with CPUs has joined the cluster yet (the head may have "
             "been started as ray start --num-cpus=0, or the autoscaler is at zero nodes): start a "
-            "worker node (ray start --address=HEAD:PORT) or wait for one, then run again"
+            "worker node (ray start --address=HEAD:PORT) or wait for one, then run again",
+            option="ray",
         )
     room = [int(n.cpus // threads) for n in nodes]
     capacity = sum(room)
     if capacity == 0:
         raise InputError(
             f"{opt('threads', threads)}: no Ray node has {threads} CPUs for a worker (the "
-            f"largest has {max(n.cpus for n in nodes):g}); use fewer {opt('threads')}"
+            f"largest has {max(n.cpus for n in nodes):g}); use fewer {opt('threads')}",
+            option="threads",
         )
     if workers is None:
         most = max(1, int(max_memory_mb // WORKER_MEMORY_MB))
@@ -331,7 +336,8 @@ def plan_workers(
             f"{opt('workers', workers)}: the Ray cluster runs at most {capacity} worker(s) of "
             f"{threads} thread(s) at once ({sum(n.cpus for n in nodes):g} CPUs on "
             f"{len(nodes)} node(s)); more would wait for CPUs forever. Use fewer "
-            f"{opt('workers')} or {opt('threads')}"
+            f"{opt('workers')} or {opt('threads')}",
+            option="workers",
         )
     else:
         limits, count = room, workers
@@ -343,7 +349,8 @@ def plan_workers(
             f"{opt('max_memory_mb', max_memory_mb)} MB is one node's budget, shared by the "
             f"{busiest} Ray workers that run at once on a node: {share:.0f} MB each, not "
             f"above the {BASE_MEMORY_MB} MB a worker takes before any stack (use a larger "
-            f"{opt('max_memory_mb')}, or fewer {opt('workers')} or more {opt('threads')})"
+            f"{opt('max_memory_mb')}, or fewer {opt('workers')} or more {opt('threads')})",
+            option="max_memory_mb",
         )
     return WorkerPlan(
         tuple(

@@ -237,6 +237,7 @@ def check_batch_root(root: Path, names: Sequence[str], overwrite: bool) -> None:
             f"{opt('overwrite')}: the folder is one stack's output, not a batch's; "
             "choose another folder for the batch",
             root,
+            option="overwrite",
         )
     ours = set(names) | set(SUMMARY_FILES)
     foreign = sorted(
@@ -251,6 +252,7 @@ def check_batch_root(root: Path, names: Sequence[str], overwrite: bool) -> None:
             f"{opt('overwrite')}: the folder holds files msfnet did not write (e.g. "
             f"{foreign[0]}); refusing to write the batch among them",
             root,
+            option="overwrite",
         )
 
 

@@ -61,7 +61,8 @@ def engine_name(name: str) -> str:
     canonical = ENGINE_ALIASES.get(name.strip().lower())
     if canonical is None:
         raise InputError(
-            f"{opt('engine', name, quote=True)}: expected one of {', '.join(ENGINES)} (or ort, ov)"
+            f"{opt('engine', name, quote=True)}: expected one of {', '.join(ENGINES)} (or ort, ov)",
+            option="engine",
         )
     return canonical
 
@@ -71,7 +72,8 @@ def precision_name(name: str) -> str:
     p = {"float32": "fp32", "f32": "fp32", "bfloat16": "bf16", "i8": "int8"}.get(p, p)
     if p not in PRECISIONS:
         raise InputError(
-            f"{opt('precision', name, quote=True)}: expected one of {', '.join(PRECISIONS)}"
+            f"{opt('precision', name, quote=True)}: expected one of {', '.join(PRECISIONS)}",
+            option="precision",
         )
     return p
 

@@ -283,7 +283,8 @@ def resolve_device(
     ):
         raise InputError(
             f"{opt('device', name, quote=True)}: expected one of "
-            f"{', '.join(DEVICE_TARGETS)} (gpu.N for the N-th OpenVINO GPU)"
+            f"{', '.join(DEVICE_TARGETS)} (gpu.N for the N-th OpenVINO GPU)",
+            option="device",
         )
     if base == "cpu":
         return None
@@ -293,7 +294,8 @@ def resolve_device(
         if target not in have:
             raise InputError(
                 f"{opt('device', asked)}: ONNX Runtime has no {target} here (providers: "
-                f"{', '.join(have) or 'none'}); {DEVICE_HINTS[base]}"
+                f"{', '.join(have) or 'none'}); {DEVICE_HINTS[base]}",
+                option="device",
             )
         return Device(asked, engine, target)
     have = list(ov_devices if ov_devices is not None else available_devices(engine))
@@ -306,7 +308,8 @@ def resolve_device(
     if not found:
         raise InputError(
             f"{opt('device', asked)}: OpenVINO sees no {target} here (devices: "
-            f"{', '.join(have) or 'none, or OpenVINO is not installed'}); {DEVICE_HINTS[base]}"
+            f"{', '.join(have) or 'none, or OpenVINO is not installed'}); {DEVICE_HINTS[base]}",
+            option="device",
         )
     return Device(asked, engine, found[0] if index else target)
 
@@ -513,7 +516,8 @@ def choose_engine(
     )
     if ask.engine is not None and ask.engine not in ask.have:
         raise InputError(
-            f"{opt('engine', ask.engine)}: not installed ({_install_hint(ask.engine)})"
+            f"{opt('engine', ask.engine)}: not installed ({_install_hint(ask.engine)})",
+            option="engine",
         )
     if device is not None:  # rule 0: the device decides the engine, the model the precision
         return _on_device(ask, device)
@@ -552,12 +556,15 @@ class _Ask:
 def _on_device(ask: _Ask, device: Device) -> EngineChoice:
     if ask.engine is not None and ask.engine != device.engine:
         raise InputError(
-            f"{opt('device', device.name)} runs on {device.engine}, not {opt('engine', ask.engine)}"
+            f"{opt('device', device.name)} runs on {device.engine}, "
+            f"not {opt('engine', ask.engine)}",
+            option="device",
         )
     if device.engine not in ask.have:
         raise InputError(
             f"{opt('device', device.name)}: {device.engine} is not installed "
-            f"({_install_hint(device.engine)})"
+            f"({_install_hint(device.engine)})",
+            option="device",
         )
     own = ask.own
     # an NPU computes fp32 models in f16 (OpenVINO sets no f32 hint there, as it does on a
@@ -598,6 +605,7 @@ def _for_int8(ask: _Ask, cpu: CpuInfo) -> EngineChoice:
             f"{opt('precision', ask.precision)}: this is an int8 model; export an fp32 "
             "model (msf-export without --int8) for fp32 or bf16",
             info.path,
+            option="precision",
         )
     hw = _int8_hardware(cpu)
     if ask.engine is not None:
@@ -621,17 +629,20 @@ def _asked_bf16(ask: _Ask, cpu: CpuInfo) -> EngineChoice:
     if ask.engine == "onnxruntime":
         raise InputError(
             f"{opt('precision', 'bf16')}: ONNX Runtime's CPU provider has no bf16 path; "
-            f"use {opt('engine', 'openvino')}"
+            f"use {opt('engine', 'openvino')}",
+            option="precision",
         )
     if "openvino" not in ask.have:
         raise InputError(
             f"{opt('precision', 'bf16')} runs on OpenVINO, which is not installed "
-            f"({_install_hint('openvino')})"
+            f"({_install_hint('openvino')})",
+            option="precision",
         )
     if not cpu.has_bf16:
         raise InputError(
             f"{opt('precision', 'bf16')}: this CPU ({cpu.model}) has no native bf16 "
-            "(avx512_bf16 or AMX); bf16 would be emulated, slower than fp32"
+            "(avx512_bf16 or AMX); bf16 would be emulated, slower than fp32",
+            option="precision",
         )
     why = f"{ask.what}, {opt('precision', 'bf16')} given"
     return ask.pick("openvino", "bf16", why + _bound_note("openvino", "bf16", ask.info.staged))
@@ -646,6 +657,7 @@ def _for_fp32(ask: _Ask, cpu: CpuInfo) -> EngineChoice:
             f"{opt('precision', 'int8')} needs an int8 export (msf-export --int8); "
             "this model is fp32",
             info.path,
+            option="precision",
         )
     if ask.precision == "bf16":
         return _asked_bf16(ask, cpu)
@@ -745,7 +757,9 @@ def open_engine(
     if choice.engine == "openvino":
         if provider not in (None, "cpu"):
             raise InputError(
-                f"{opt('provider', provider)}: ONNX Runtime only (use {opt('device')} for OpenVINO)"
+                f"{opt('provider', provider)}: ONNX Runtime only "
+                f"(use {opt('device')} for OpenVINO)",
+                option="provider",
             )
         from msfnet.runtime.engines.openvino import open_openvino
 

@@ -593,7 +593,8 @@ def _compile_properties(
         }
     elif precision == "bf16":
         raise InputError(
-            f"{opt('precision', 'bf16')} is a CPU path; {device} runs the model's precision"
+            f"{opt('precision', 'bf16')} is a CPU path; {device} runs the model's precision",
+            option="precision",
         )
     elif device.upper().startswith("GPU"):
         # GPUs default to f16; f32 keeps the parity with CPU fp32 that --device promises

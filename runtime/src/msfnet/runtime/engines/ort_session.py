@@ -120,7 +120,8 @@ def resolve_provider(name: str | None) -> str:
     if provider not in available:
         raise InputError(
             f"{opt('provider', name, quote=True)}: not available in this onnxruntime build "
-            f"(available: {', '.join(available)})"
+            f"(available: {', '.join(available)})",
+            option="provider",
         )
     return provider
 

@@ -46,6 +46,7 @@ def enlarge(stack: Stack, factor: int = FACTOR, max_memory_mb: float | None = No
             f"{opt('max_memory_mb', float(max_memory_mb))} MB (use {opt('roi')}, "
             f"{opt('downscale')}, {opt('max_lights')} or a larger budget)",
             stack.source or stack.name,
+            option="fine_detail",
         )
     size = (w * factor, h * factor)
     images = np.empty((n, h * factor, w * factor, 3), stack.images.dtype)

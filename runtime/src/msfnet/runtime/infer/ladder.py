@@ -80,7 +80,9 @@ def rung(name: str) -> Rung:
     """``--speed`` value -> its Rung; InputError naming the rungs otherwise."""
     found = RUNGS.get(name.strip().lower())
     if found is None:
-        raise InputError(f"{opt('speed', name, quote=True)}: expected one of {', '.join(RUNGS)}")
+        raise InputError(
+            f"{opt('speed', name, quote=True)}: expected one of {', '.join(RUNGS)}", option="speed"
+        )
     return found
 
 

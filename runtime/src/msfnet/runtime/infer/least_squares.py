@@ -72,7 +72,8 @@ def rows_for_memory(
     names."""
     if not (np.isfinite(max_memory_mb) and max_memory_mb > 0):
         raise InputError(
-            f"{opt('max_memory_mb')} must be a positive number of MB, got {max_memory_mb}"
+            f"{opt('max_memory_mb')} must be a positive number of MB, got {max_memory_mb}",
+            option="max_memory_mb",
         )
     h, w = stack.shape
     per_row = w * stack.num_lights * bytes_per_pixel_light
@@ -89,7 +90,8 @@ def rows_for_memory(
         raise InputError(
             f"{opt('max_memory_mb', float(max_memory_mb))} MB is too small for {what} on "
             f"this stack: it takes {stack_mb:.1f} MB loaded, the process "
-            f"{in_use_mb:.0f} MB besides, and at least {need:.1f} MB in all"
+            f"{in_use_mb:.0f} MB besides, and at least {need:.1f} MB in all",
+            option="max_memory_mb",
         )
     return min(rows, h)
 

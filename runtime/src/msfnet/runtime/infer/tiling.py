@@ -121,7 +121,8 @@ def tile_size_for_memory(
         raise InputError(
             f"{opt('max_memory_mb', float(max_memory_mb))} MB is too small for {lights} lights: "
             f"the loaded stack and the smallest tile ({smallest} px) need about "
-            f"{need:.0f} MB"
+            f"{need:.0f} MB",
+            option="max_memory_mb",
         )
     return side
 
@@ -162,7 +163,8 @@ def plan_tiles(
         if tile % MULTIPLE or tile < 2 * halo + MULTIPLE:
             raise InputError(
                 f"{opt('tile', tile)}: must be a multiple of {MULTIPLE} and at least "
-                f"{2 * halo + MULTIPLE} (2 x {halo} px halo + 4)"
+                f"{2 * halo + MULTIPLE} (2 x {halo} px halo + 4)",
+                option="tile",
             )
         core_y = core_x = tile - 2 * halo
     if core_y < MULTIPLE or core_x < MULTIPLE:

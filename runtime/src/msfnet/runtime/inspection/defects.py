@@ -108,7 +108,10 @@ class DefectOptions:
             keep_out = opt("keep_out_px", verbatim(f"{self.keep_out_px}"))
             raise InputError(f"{keep_out}: must be 0 or more px")
         if self.min_area_px < 1:
-            raise InputError(f"{opt('min_area_px', self.min_area_px)}: must be at least 1 px")
+            raise InputError(
+                f"{opt('min_area_px', self.min_area_px)}: must be at least 1 px",
+                option="min_area_px",
+            )
         if self.polarity not in POLARITIES:
             polarity = opt("polarity", self.polarity, quote=True)
             raise InputError(f"{polarity}: expected one of {POLARITIES}")
@@ -773,9 +776,13 @@ def find_defects(
         raise InputError("the mask is empty: nothing to inspect", part.source)
     if options.depth is not None and part.local_shape is None:
         why = f" (a perspective run has none: use {opt('curvature')})" if part.perspective else ""
-        raise InputError(f"{opt('depth')} needs local_shape.tif{why}", part.source)
+        raise InputError(f"{opt('depth')} needs local_shape.tif{why}", part.source, option="depth")
     if options.curvature is not None and part.curvature is None:
-        raise InputError(f"{opt('curvature')} needs curvature.tif in the run folder", part.source)
+        raise InputError(
+            f"{opt('curvature')} needs curvature.tif in the run folder",
+            part.source,
+            option="curvature",
+        )
     j = _against_reference(part, options, reference, zones)
     mask = j.mask
     signed = np.zeros(mask.shape, np.float32) if j.local is None else np.nan_to_num(j.local)

@@ -191,7 +191,10 @@ class LoadOptions:
                 object.__setattr__(self, name, Path(value))
         self.transforms()  # refuse contradictory options before any decoding
         if self.auto_mask and self.mask is not None:
-            raise InputError(f"{opt('auto_mask')} and {opt('mask')} both give the mask: choose one")
+            raise InputError(
+                f"{opt('auto_mask')} and {opt('mask')} both give the mask: choose one",
+                option="auto_mask",
+            )
         if self.white_level is not None and not self.white_level > 0:
             raise InputError(f"white level {self.white_level}: must be positive")
         if self.roi_halo < 0:

@@ -49,7 +49,7 @@ def check_roi(roi: Roi, shape: tuple[int, int], src: object = None) -> None:
     ih, iw = shape
     if x + w > iw or y + h > ih:
         box = verbatim(f"{x},{y},{w},{h}")
-        raise InputError(f"{opt('roi', box)} reaches past the {iw}x{ih} image", src)  # type: ignore[arg-type]
+        raise InputError(f"{opt('roi', box)} reaches past the {iw}x{ih} image", src, option="roi")  # type: ignore[arg-type]
 
 
 def halo_roi(
@@ -107,7 +107,8 @@ def area_downscale(arr: np.ndarray, k: int) -> np.ndarray:
     if h == 0 or w == 0:
         raise InputError(
             f"{opt('downscale', k)}: the image ({arr.shape[1]}x{arr.shape[0]}) is "
-            f"smaller than one {k}x{k} block"
+            f"smaller than one {k}x{k} block",
+            option="downscale",
         )
     block = arr[: h * k, : w * k].reshape(h, k, w, k, *arr.shape[2:])
     # float64 accumulation: a 16-bit block sum can exceed float32's exact integer range
@@ -267,7 +268,8 @@ def auto_mask(images: np.ndarray, *, min_share: float = 0.1) -> np.ndarray:
     if count <= 1:
         raise InputError(
             f"{opt('auto_mask')} found no object: the per-pixel maximum over the stack "
-            f"has no bright region against a dark background (give {opt('mask')})"
+            f"has no bright region against a dark background (give {opt('mask')})",
+            option="auto_mask",
         )
     areas = stats[1:, cv2.CC_STAT_AREA]
     keep = np.flatnonzero(areas >= min_share * areas.max()) + 1
@@ -286,12 +288,17 @@ class Transforms:
 
     def __post_init__(self) -> None:
         if self.srgb and self.gamma is not None:
-            raise InputError(f"{opt('srgb')} and {opt('gamma')} both linearise: give one of them")
+            raise InputError(
+                f"{opt('srgb')} and {opt('gamma')} both linearise: give one of them", option="srgb"
+            )
         if self.gamma is not None and not (np.isfinite(self.gamma) and self.gamma > 0):
             gamma = opt("gamma", verbatim(f"{self.gamma}"))
             raise InputError(f"{gamma}: must be a positive number (e.g. 2.2)")
         if self.downscale < 1:
-            raise InputError(f"{opt('downscale', self.downscale)}: must be a positive integer")
+            raise InputError(
+                f"{opt('downscale', self.downscale)}: must be a positive integer",
+                option="downscale",
+            )
 
     @property
     def active(self) -> bool:

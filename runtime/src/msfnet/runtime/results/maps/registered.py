@@ -130,7 +130,8 @@ def check_local_size(size_px: float, shape: tuple[int, int]) -> None:
             f"{opt('local_size_px', float(size_px))} px is larger than the maps' longer side "
             f"({longer} px for {shape[1]} x {shape[0]}, after {opt('roi')} / {opt('downscale')}): "
             "the trend would span the whole part; "
-            f"give at most {max(longer, int(DEFAULT_LOCAL_SIZE_PX))}"
+            f"give at most {max(longer, int(DEFAULT_LOCAL_SIZE_PX))}",
+            option="local_size_px",
         )
 
 
