@@ -85,18 +85,24 @@ def test_the_library_names_settings_through_the_vocabulary() -> None:
     )
 
 
+def _opt_keywords(path: Path) -> list[str]:
+    """The keywords a module's messages name with opt("keyword", ...)."""
+    return [
+        node.args[0].value
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Call)
+        and getattr(node.func, "id", "") == "opt"
+        and node.args
+        and isinstance(node.args[0], ast.Constant)
+    ]
+
+
 def _named_settings() -> dict[str, str]:
-    """keyword -> a module whose messages name it with opt("keyword", ...)."""
+    """keyword -> a module whose messages name it."""
     out: dict[str, str] = {}
     for module, path in source_files().items():
-        for node in ast.walk(ast.parse(path.read_text())):
-            if (
-                isinstance(node, ast.Call)
-                and getattr(node.func, "id", "") == "opt"
-                and node.args
-                and isinstance(node.args[0], ast.Constant)
-            ):
-                out.setdefault(node.args[0].value, module)
+        for keyword in _opt_keywords(path):
+            out.setdefault(keyword, module)
     return out
 
 
@@ -175,18 +181,8 @@ def test_a_message_sees_the_declaration_of_every_setting_it_names() -> None:
     declared = _declared_in()
     blind = []
     for module, path in source_files().items():
-        seen = None
-        for node in ast.walk(ast.parse(path.read_text())):
-            if (
-                isinstance(node, ast.Call)
-                and getattr(node.func, "id", "") == "opt"
-                and node.args
-                and isinstance(node.args[0], ast.Constant)
-            ):
-                keyword = node.args[0].value
-                if keyword not in special or keyword == "overwrite":  # overwrite: in vocabulary
-                    continue
-                seen = reach(module) if seen is None else seen
-                if not (declared.get(keyword, set()) & seen):
-                    blind.append(f"{module}: {keyword}")
+        named = {k for k in _opt_keywords(path) if k in special and k != "overwrite"}
+        if named:  # overwrite: declared in the vocabulary itself
+            seen = reach(module)
+            blind += [f"{module}: {k}" for k in named if not declared.get(k, set()) & seen]
     assert not blind, "\n".join(sorted(set(blind)))
