@@ -104,10 +104,6 @@ def speaking_as(command: str) -> Iterator[None]:
         _front = previous
 
 
-def speaking_command() -> str | None:
-    return _front
-
-
 _NOTHING: Any = object()
 
 
@@ -144,7 +140,6 @@ __all__ = [
     "opt",
     "options_type",
     "speaking_as",
-    "speaking_command",
     "verbatim",
     "word",
 ]

@@ -53,7 +53,7 @@ def parse_maps(text: str) -> tuple[str, ...]:
     """Map names, or one preset word (all, inspect, none: then no map)."""
     names = tuple(n.strip() for n in text.split(",") if n.strip())
     bad = [n for n in names if n not in MAP_NAMES]
-    if names and (len(names) == 1 and names[0] in MAP_PRESETS):
+    if len(names) == 1 and names[0] in MAP_PRESETS:
         return preset_maps(names)
     if bad or not names:
         raise argparse.ArgumentTypeError(

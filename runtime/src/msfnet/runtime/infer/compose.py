@@ -36,8 +36,9 @@ def _speed(est: Estimator, layers: Layers) -> Estimator:
 
 
 def _fine_detail(est: Estimator, layers: Layers) -> Estimator:
-    wanted = layers.fine_detail and isinstance(est, NetworkEstimator)
-    return FineDetailEstimator(est) if wanted else est  # type: ignore[arg-type]
+    if layers.fine_detail and isinstance(est, NetworkEstimator):
+        return FineDetailEstimator(est)
+    return est
 
 
 def _tta(est: Estimator, layers: Layers) -> Estimator:

@@ -591,24 +591,33 @@ def curvature_colors(
     return rgb.astype(np.float32) / np.float32(255.0), top
 
 
+def _diverging_picture(
+    values: np.ndarray, mask: np.ndarray, percentile: float, what: str, title: str, unit: str
+) -> np.ndarray:
+    """``values`` on the diverging map centred on 0, symmetric range from the ``percentile``
+    of their magnitude in the mask, with a colour bar labelled ``what (unit)``."""
+    valid = mask & np.isfinite(values)
+    if not valid.any():
+        return _empty(what)
+    top = symmetric_range(values[valid], percentile)
+    return _scalar_picture(
+        values,
+        valid,
+        cmap=CURVATURE_CMAP,
+        vmin=-top,
+        vmax=top,
+        title=title,
+        label=f"{what} ({unit})",
+    )
+
+
 def curvature_picture(
     mean: np.ndarray, mask: np.ndarray, *, percentile: float = 99.0
 ) -> np.ndarray:
     """Mean curvature on a diverging map centred on 0 (red convex, blue concave), symmetric
     range from the ``percentile`` of |H|, with a colour bar in 1/px."""
-    valid = mask & np.isfinite(mean)
-    if not valid.any():
-        return _empty("mean curvature")
-    top = symmetric_range(mean[valid], percentile)
-    return _scalar_picture(
-        mean,
-        valid,
-        cmap=CURVATURE_CMAP,
-        vmin=-top,
-        vmax=top,
-        title="mean curvature (red convex, blue concave)",
-        label="mean curvature (1/px)",
-    )
+    title = "mean curvature (red convex, blue concave)"
+    return _diverging_picture(mean, mask, percentile, "mean curvature", title, "1/px")
 
 
 def local_shape_picture(
@@ -617,19 +626,8 @@ def local_shape_picture(
     """The local shape (height less its trend at ``size_px``: what msf-inspect's --depth
     judges) on the curvature's diverging map (red up, blue down), symmetric range from the
     ``percentile`` of its magnitude, with a colour bar in px."""
-    valid = mask & np.isfinite(local)
-    if not valid.any():
-        return _empty("local shape")
-    top = symmetric_range(local[valid], percentile)
-    return _scalar_picture(
-        local,
-        valid,
-        cmap=CURVATURE_CMAP,
-        vmin=-top,
-        vmax=top,
-        title=f"local shape at {size_px:g} px (red up, blue down)",
-        label="local shape (px)",
-    )
+    title = f"local shape at {size_px:g} px (red up, blue down)"
+    return _diverging_picture(local, mask, percentile, "local shape", title, "px")
 
 
 def albedo_picture(albedo: np.ndarray, mask: np.ndarray, percentile: float = 99.5) -> np.ndarray:
