@@ -6,10 +6,9 @@
 Builds a one-layer QDQ convolution (u8 activations near 255, s8 weights near 127, so adjacent
 products summed in 16 bits overflow: 255 x 127 x 2 > 32767), runs it on OpenVINO and ONNX
 Runtime, and prints each engine's largest error against an exact integer reference, for 8-bit
-and for 7-bit weights. Without VNNI both engines saturate the 8-bit case (session 23, Zen 4
-under the AVX2 proxy: 252 of 624 on both; 0 natively, and 0 with 7-bit weights): this is why a
-full-range int8 file is refused on such CPUs (engines.base.check_int8_exact) and msf-export can
-write 7-bit weights.
+and for 7-bit weights. Without VNNI both engines saturate the 8-bit case (docs/benchmark.md):
+this is why a full-range int8 file is refused on such CPUs (engines.base.check_int8_exact) and
+msf-export can write 7-bit weights.
 """
 
 from __future__ import annotations

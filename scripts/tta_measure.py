@@ -64,8 +64,8 @@ def main() -> None:
             row = {
                 "object": obj,
                 "lights": n,
-                "engine": model.describe().get("engine"),
-                "precision": model.describe().get("precision"),
+                "engine": model.describe().engine,
+                "precision": model.describe().precision,
                 "single_mae": [round(m, 3) for m in maes],
                 "spread": round(max(maes) - min(maes), 3),
                 "tta4": round(tta[4], 3),

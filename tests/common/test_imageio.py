@@ -228,14 +228,14 @@ def test_array_shapes_of_npy_and_mat_files(tmp_path: Path) -> None:
             {"other": np.ones((2, 2)), "Normal_gt": np.zeros((6, 7, 3))},
             do_compression=compress,
         )
-        assert matfile.mat_shapes(path) == {"other": (2, 2), "Normal_gt": (6, 7, 3)}
+        assert matfile.mat_directory(path).shapes == {"other": (2, 2), "Normal_gt": (6, 7, 3)}
         assert imageio.array_shape(path) == (6, 7, 3)  # Normal_gt, wherever it is stored
     damaged = tmp_path / "cut.mat"
     damaged.write_bytes((tmp_path / "nTrue.mat").read_bytes()[:150])
     with pytest.raises(InputError, match=r"damaged \.mat file"):
-        matfile.mat_shapes(damaged)
+        matfile.mat_directory(damaged)
     (tmp_path / "v4.mat").write_bytes(bytes(200))  # not level 5: no header to read
-    assert matfile.mat_shapes(tmp_path / "v4.mat") is None
+    assert matfile.mat_directory(tmp_path / "v4.mat") is None
 
 
 # ------------------------------------------------- .npy headers: the declared length first

@@ -14,9 +14,22 @@ import numpy as np
 import pytest
 
 from msfnet.common.errors import InputError
-from msfnet.common.matfile import MAX_VALUES, mat_array, mat_shapes
+from msfnet.common.matfile import MAX_VALUES, mat_directory
 
 sio = pytest.importorskip("scipy.io")
+
+
+def mat_shapes(path: Path) -> dict[str, tuple[int, ...]] | None:
+    """Every variable's name and dimensions (None: not a level-5 file)."""
+    directory = mat_directory(path)
+    return None if directory is None else directory.shapes
+
+
+def mat_array(path: Path, name: str) -> np.ndarray | None:
+    """Variable ``name``'s values as MatDirectory.array reads them (None: not level 5)."""
+    directory = mat_directory(path)
+    return None if directory is None else directory.array(name)
+
 
 # Element types and classes of the format, for the hand-built files
 MI = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 9, "i8": 12, "u8": 13}

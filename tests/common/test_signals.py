@@ -176,7 +176,7 @@ def test_two_writers_to_the_same_output(stack_dir: Path, tmp_path: Path) -> None
         "error.png",
         "metrics.json",
         "normals.npy",
-        "normals.png",
+        "normals_view.png",
         "profile.json",
         "height.npy",
         "report.html",

@@ -1,32 +1,17 @@
-"""ConvTranspose(4, s2, p1) -> Conv + DepthToSpace rewrite: exact in fp32, dynamic N kept."""
+"""ConvTranspose(4, s2, p1) -> phase Convs + DepthToSpace rewrite: exact in fp32, dynamic N kept."""
 
 from __future__ import annotations
 
-import numpy as np
 import onnxruntime as ort
 import pytest
 import torch
 
 from msfnet.export.onnx_export import random_inputs
 from msfnet.export.passes import PASSES, PassContext
-from msfnet.export.rewrite import deconv_weight_as_conv, rewrite_deconvs
+from msfnet.export.rewrite import rewrite_deconvs
 from msfnet.export.variants import ExportOptions, get_variant
 from msfnet.model.network import MSFNet
 from msfnet.runtime.evaluate.metrics import angular_error_deg
-
-
-def test_weight_transform_matches_torch_deconv(rng):
-    w = rng.normal(size=(5, 3, 4, 4)).astype(np.float32)
-    x = rng.normal(size=(2, 5, 7, 6)).astype(np.float32)
-    ref = torch.nn.functional.conv_transpose2d(
-        torch.from_numpy(x), torch.from_numpy(w), stride=2, padding=1
-    )
-    conv = torch.nn.functional.conv2d(
-        torch.from_numpy(x), torch.from_numpy(deconv_weight_as_conv(w)), padding=1
-    )
-    out = torch.nn.functional.pixel_shuffle(conv, 2)
-    assert out.shape == ref.shape == (2, 3, 14, 12)
-    assert torch.allclose(out, ref, atol=1e-5)
 
 
 @pytest.fixture(scope="module")
@@ -42,10 +27,9 @@ def fp32_model(tmp_path_factory):
     return net, PASSES["torch-export"].run(None, ctx)
 
 
-@pytest.mark.parametrize("mode", ["conv3x3", "phases"])
-def test_rewritten_graph_matches_pytorch(fp32_model, mode):
+def test_rewritten_graph_matches_pytorch(fp32_model):
     net, proto = fp32_model
-    model, count = rewrite_deconvs(proto, mode)
+    model, count = rewrite_deconvs(proto)
     assert count == 3
     assert not any(n.op_type == "ConvTranspose" for n in model.graph.node)
     sess = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])

@@ -18,7 +18,7 @@ def test_three_lights_run_least_squares_and_say_so() -> None:
     result = Model(maps=None)(given)
     assert not given.warnings  # said on the result's copy, the caller's stack left as it was
     plain = Model.least_squares(maps=None)(sphere_stack(n=3, h=32, w=32))
-    assert result.method["method"] == "l2"
+    assert result.method.method == "l2"
     assert np.array_equal(result.normals, plain.normals)
     assert any("too few for the network" in w for w in result.stack.warnings)
     assert result.profile()["warnings"]
@@ -26,7 +26,7 @@ def test_three_lights_run_least_squares_and_say_so() -> None:
 
 def test_four_lights_run_the_network() -> None:
     result = Model(maps=None)(sphere_stack(n=NETWORK_MIN_LIGHTS, h=32, w=32))
-    assert result.method["method"] == "msf"
+    assert result.method.method == "msf"
     assert not any("too few" in w for w in result.stack.warnings)
 
 

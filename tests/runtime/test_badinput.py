@@ -173,7 +173,7 @@ def test_outdir_refused_unless_overwrite(stack_dir: Path, tmp_path: Path, capfd)
     assert main(["--method", "l2", str(stack_dir), "-o", str(out)]) == 0
     first = (out / "normals.npy").stat().st_ino
     assert main(["--method", "l2", str(stack_dir), "-o", str(out), "--overwrite"]) == 0
-    assert (out / "normals.npy").stat().st_ino != first and (out / "normals.png").is_file()
+    assert (out / "normals.npy").stat().st_ino != first and (out / "normals_view.png").is_file()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
 
 

@@ -177,28 +177,28 @@ def _cpu(monkeypatch: pytest.MonkeyPatch, cpu: CpuInfo) -> None:
 def test_model_opens_the_int8_twin_on_a_cpu_without_bf16(monkeypatch: pytest.MonkeyPatch) -> None:
     _cpu(monkeypatch, ZEN3)
     d = Model(threads=1).describe()
-    assert Path(str(d["model"])) == default_model_path("int8")
-    assert d["precision"] == "int8"
-    assert "bundled int8 model" in str(d["choice"]) and "(avx2)" in str(d["choice"])
+    assert Path(str(d.model)) == default_model_path("int8")
+    assert d.precision == "int8"
+    assert "bundled int8 model" in str(d.choice) and "(avx2)" in str(d.choice)
     # a precision asked for decides; a named engine alone keeps the fp32 file (the reference)
     d = Model(threads=1, precision="fp32").describe()
-    assert Path(str(d["model"])) == default_model_path() and d["precision"] == "fp32"
+    assert Path(str(d.model)) == default_model_path() and d.precision == "fp32"
     d = Model(threads=1, engine="onnxruntime").describe()
-    assert Path(str(d["model"])) == default_model_path() and d["precision"] == "fp32"
+    assert Path(str(d.model)) == default_model_path() and d.precision == "fp32"
     d = Model(threads=1, engine="onnxruntime", precision="int8").describe()
-    assert Path(str(d["model"])) == default_model_path("int8") and d["precision"] == "int8"
+    assert Path(str(d.model)) == default_model_path("int8") and d.precision == "int8"
 
 
 def test_model_keeps_the_fp32_file_where_bf16_is_faster(monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("openvino")
     _cpu(monkeypatch, AMX)
     d = Model(threads=1).describe()
-    assert Path(str(d["model"])) == default_model_path()
+    assert Path(str(d.model)) == default_model_path()
     # chosen for bf16 (where the real CPU lacks it, opening falls back to ONNX Runtime fp32,
     # and the reason says so)
-    assert "bf16" in str(d["choice"]) and "bundled int8" not in str(d["choice"])
+    assert "bf16" in str(d.choice) and "bundled int8" not in str(d.choice)
     d = Model(threads=1, precision="int8").describe()  # the int8 twin on request
-    assert Path(str(d["model"])) == default_model_path("int8") and d["precision"] == "int8"
+    assert Path(str(d.model)) == default_model_path("int8") and d.precision == "int8"
 
 
 ZEN4 = CpuInfo.from_flags(
@@ -214,9 +214,9 @@ def test_model_opens_the_int8_twin_over_bf16_on_zen4(monkeypatch: pytest.MonkeyP
     pytest.importorskip("openvino")
     _cpu(monkeypatch, ZEN4)
     d = Model(threads=1).describe()
-    assert Path(str(d["model"])) == default_model_path("int8")
-    assert (d["engine"], d["precision"]) == ("openvino", "int8")
-    assert "would run in bf16 here" in str(d["choice"]) and "(zen4)" in str(d["choice"])
+    assert Path(str(d.model)) == default_model_path("int8")
+    assert (d.engine, d.precision) == ("openvino", "int8")
+    assert "would run in bf16 here" in str(d.choice) and "(zen4)" in str(d.choice)
     # the fp32 file in bf16 is one option away (which file only: opening bf16 where the real
     # CPU computes f32 is refused, as --precision bf16 is there)
     from msfnet.runtime.engines.bundled import EngineRequest, bundled_model
@@ -236,7 +236,7 @@ def test_a_missing_int8_twin_leaves_the_fp32_file(
     monkeypatch.setattr(bundled, "WEIGHTS", tmp_path)
     _cpu(monkeypatch, ZEN3)
     d = Model(threads=1).describe()
-    assert Path(str(d["model"])) == tmp_path / "msfnet_default.onnx"
-    assert str(d["choice"]).startswith("bundled fp32 model: its int8 twin is not installed")
+    assert Path(str(d.model)) == tmp_path / "msfnet_default.onnx"
+    assert str(d.choice).startswith("bundled fp32 model: its int8 twin is not installed")
     with pytest.raises(InputError, match=r"no bundled int8 model .*msfnet_default_int8\.onnx"):
         Model(threads=1, precision="int8")

@@ -58,7 +58,7 @@ def test_other_maps_are_refused_when_the_model_is_made(given: object, words: str
 
 
 def test_map_options_and_none_pass_unchanged() -> None:
-    chosen = MapOptions(maps=("albedo",), method="fc")
+    chosen = MapOptions(maps=("albedo",), integration="fc")
     assert Model(method="l2", maps=chosen).maps is chosen
     assert Model(method="l2", maps=None).maps is None
 

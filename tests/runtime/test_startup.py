@@ -28,7 +28,7 @@ print(json.dumps({
     "model_s": opened - imported,
     "after_import": after_import,
     "after_model": sorted({m.split(".")[0] for m in sys.modules}),
-    "engine": model.describe().get("engine"),
+    "engine": model.describe().engine,
 }))
 """
 

@@ -36,9 +36,9 @@ def test_a_worker_builds_the_engine_and_precision_asked_for(random_onnx: Path) -
         ModelOptions(random_onnx, engine="onnxruntime", precision="fp32", threads=1)
     )
     described = StackWorker(spec).model.describe()
-    assert described["engine"] == "onnxruntime" and described["precision"] == "fp32"
+    assert described.engine == "onnxruntime" and described.precision == "fp32"
     # the choice line profile.json keeps is msf-run's, as without --ray
-    assert "--precision fp32 and --engine given" in str(described["choice"])
+    assert "--precision fp32 and --engine given" in str(described.choice)
 
 
 def test_a_worker_returns_what_a_local_run_gives(random_onnx: Path, tmp_path: Path) -> None:
@@ -48,7 +48,7 @@ def test_a_worker_returns_what_a_local_run_gives(random_onnx: Path, tmp_path: Pa
     assert "error" not in got
     local = Model(random_onnx, engine="onnxruntime", threads=1)(path)
     np.testing.assert_allclose(got["result"].normals, local.normals, atol=1e-6, rtol=0)
-    assert got["result"].method["model"] == str(random_onnx)  # the driver's name, not a copy
+    assert got["result"].method.model == str(random_onnx)  # the driver's name, not a copy
     assert got["result"].stack.images.size == 0  # no images shipped back
 
 

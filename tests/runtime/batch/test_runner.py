@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from msfnet.common.errors import InputError
 from msfnet.runtime.api import Model
 from msfnet.runtime.batch.runner import BatchItem, expand_stacks, run_batch
 from msfnet.runtime.cli.run import main
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.stack import LoadOptions, save_stack
 
 
@@ -289,21 +291,23 @@ def test_a_summary_names_every_engine_choice_its_workers_made() -> None:
     the summary keeps the first as ``model`` and lists each other choice once."""
     from msfnet.runtime.batch.runner import BatchSummary, StackRow
 
-    amx = {"engine": "openvino", "precision": "bf16", "model": "msfnet_default.onnx"}
-    avx2 = {"engine": "openvino", "precision": "int8", "model": "msfnet_default_int8.onnx"}
-    one = BatchSummary("ray", {})
+    amx = RunMethod(method="msf", model="msfnet_default.onnx", engine="openvino", precision="bf16")
+    avx2 = RunMethod(
+        method="msf", model="msfnet_default_int8.onnx", engine="openvino", precision="int8"
+    )
+    one = BatchSummary("ray", None)
     for method in (amx, amx):
         one.note_model(method)
     assert one.model == amx and "other_models" not in one.as_dict()
     assert "did not all run the same" not in one.totals_line()
     # another install path and OpenVINO build, the same choice: nothing to report
-    elsewhere = {**amx, "model": "/opt/site/msfnet_default.onnx", "openvino": "2026.5"}
+    elsewhere = replace(amx, model="/opt/site/msfnet_default.onnx", openvino="2026.5")
     one.note_model(elsewhere)
     assert "other_models" not in one.as_dict()
-    mixed = BatchSummary("ray", {}, rows=[StackRow("a", "a"), StackRow("b", "b")])
+    mixed = BatchSummary("ray", None, rows=[StackRow("a", "a"), StackRow("b", "b")])
     for method in (amx, avx2, amx, elsewhere, avx2):
         mixed.note_model(method)
-    assert mixed.model == amx and mixed.as_dict()["other_models"] == [avx2]
+    assert mixed.model == amx and mixed.as_dict()["other_models"] == [avx2.as_json()]
     assert "2 engine/model choices" in mixed.totals_line()
 
 

@@ -19,12 +19,13 @@ from msfnet.runtime.cli.run import main
 def _check_outputs(out: Path, shape: tuple[int, int], with_gt: bool) -> dict:
     normals = np.load(out / "normals.npy")
     assert normals.shape == (*shape, 3) and normals.dtype == np.float32
-    png = cv2.imread(str(out / "normals.png"), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
-    assert png.dtype == np.uint16 and png.shape == (*shape, 3)
     inside = np.any(normals != 0, axis=2)
     np.testing.assert_allclose(np.linalg.norm(normals[inside], axis=1), 1.0, atol=1e-4)
-    np.testing.assert_allclose(png[inside] / 65535.0 * 2 - 1, normals[inside], atol=2e-5)
-    assert np.all(png[~inside] == 0)
+    if (out / "normals.png").is_file():  # --normals-png: the same normals, 16-bit
+        png = cv2.imread(str(out / "normals.png"), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+        assert png.dtype == np.uint16 and png.shape == (*shape, 3)
+        np.testing.assert_allclose(png[inside] / 65535.0 * 2 - 1, normals[inside], atol=2e-5)
+        assert np.all(png[~inside] == 0)
     profile = json.loads((out / "profile.json").read_text())
     for stage in ("load", "preprocess", "inference", "postprocess", "total"):
         assert profile["stages"][stage]["p90_s"] >= profile["stages"][stage]["median_s"] >= 0
@@ -36,7 +37,9 @@ def _check_outputs(out: Path, shape: tuple[int, int], with_gt: bool) -> dict:
 @pytest.mark.slow
 def test_l2_on_ball_matches_published(ball_dir: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "ball_l2"
-    assert main(["--method", "l2", str(ball_dir), "-o", str(out), "--repeat", "2"]) == 0
+    args = ["--method", "l2", str(ball_dir), "-o", str(out), "--repeat", "2", "--normals-png"]
+    assert main(args) == 0
+    assert (out / "normals.png").is_file()
     metrics = json.loads((out / "metrics.json").read_text())
     assert abs(metrics["mae_deg"] - 4.1) < 0.3, metrics  # DiLiGenT's L2 baseline: 4.10 deg
     assert metrics["pixels"] == 15791
@@ -116,7 +119,6 @@ def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
     files = l2.save(tmp_path / "l2")
     assert {f.name for f in files} == {
         "normals.npy",
-        "normals.png",
         "normals_view.png",
         "profile.json",
         "metrics.json",
@@ -236,6 +238,29 @@ def test_a_batchs_results_never_go_inside_the_batch_folder(tmp_path: Path, capsy
     finally:
         os.chdir(here)
     assert sorted(p.name for p in batch.iterdir()) == ["s0", "s1"]
+
+
+def test_the_normals_are_written_once_unless_asked_and_a_batch_keeps_the_writer_flags(
+    tmp_path: Path,
+) -> None:
+    """By default the normals' data is normals.npy (and normals.tif among the TIFF maps) and
+    their picture normals_view.png; --normals-png adds the 16-bit PNG. A batch honours the
+    writer flags as one stack does (--no-report was dropped for each stack of a batch)."""
+    from msfnet.runtime.stack import save_stack
+
+    batch = tmp_path / "batch"
+    for i in range(2):
+        save_stack(sphere_stack(n=6, h=20, w=24, seed=i, name=f"s{i}"), batch / f"s{i}")
+    one = tmp_path / "one"
+    assert main([str(batch / "s0"), "--method", "l2", "--no-maps", "-q", "-o", str(one)]) == 0
+    assert {"normals.npy", "normals_view.png"} <= {p.name for p in one.iterdir()}
+    assert not (one / "normals.png").exists()
+    out = tmp_path / "out"
+    flags = ["--method", "l2", "--maps", "height", "--no-report", "--normals-png", "-q"]
+    assert main([str(batch), *flags, "-o", str(out)]) == 0
+    for name in ("s0", "s1"):
+        written = {p.name for p in (out / name).iterdir()}
+        assert "normals.png" in written and "report.html" not in written, written
 
 
 def test_a_stack_named_like_the_batch_summary_is_refused_before_any_work(

@@ -36,7 +36,6 @@ sys.exit(code)
 FIGURES = {"normals_view.png", "error.png"}  # drawn by results.maps.pictures
 NON_PICTURES = {
     "normals.npy",
-    "normals.png",
     "metrics.json",
     "profile.json",
     "maps.json",

@@ -64,7 +64,7 @@ def test_ort_engine_is_the_model_session() -> None:
     engine = open_onnxruntime(path, threads=2)
     assert isinstance(engine, Engine) and isinstance(engine, OrtEngine)
     assert (engine.name, engine.precision, engine.threads) == ("onnxruntime", "fp32", 2)
-    assert engine.describe()["graph"] == "staged"  # the bundled model runs light-chunked
+    assert engine.describe().graph == "staged"  # the bundled model runs light-chunked
     stack = sphere_stack(n=11, h=24, w=28, seed=3)  # more lights than one chunk
     plan = plan_tiles(stack.mask, None)
     want = infer_normals(create_session(path, threads=2), stack, plan).normals

@@ -16,6 +16,7 @@ from _runtime_helpers import ring_lights
 
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import speaking_as
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import Estimate, TilingOptions
 from msfnet.runtime.infer.least_squares import memory_in_use_mb
@@ -79,8 +80,8 @@ class _Network:
     def __init__(self) -> None:
         self.ran = False
 
-    def describe(self) -> dict[str, object]:
-        return {"method": "msf"}
+    def describe(self) -> RunMethod:
+        return RunMethod(method="msf")
 
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False

@@ -147,7 +147,7 @@ def test_the_bundled_model_keeps_more_true_relief_with_fine_detail(
     truth = highpass_energy(stack.normals_gt, stack.mask)
     gained = highpass_energy(b.normals, stack.mask) - highpass_energy(a.normals, stack.mask)
     assert gained / truth > 0.25
-    assert b.method["fine_detail"] == "x2, high-pass sigma 2 px"
+    assert b.method.fine_detail == "x2, high-pass sigma 2 px"
 
 
 def test_least_squares_has_no_fine_detail_mode() -> None:

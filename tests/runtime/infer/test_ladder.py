@@ -8,12 +8,13 @@ from _runtime_helpers import sphere_stack, tiny_msfnet_onnx
 
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import speaking_as
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.metrics import normal_metrics
+from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator
 from msfnet.runtime.infer.estimators import Estimate, LeastSquaresEstimator, TilingOptions
 from msfnet.runtime.infer.ladder import (
     FAST_LIGHTS,
     RUNGS,
-    LadderEstimator,
     grow_normals,
     reduced_network,
     rung,
@@ -32,8 +33,8 @@ class FakeNetwork:
     def __init__(self) -> None:
         self.seen: list[tuple[int, tuple[int, int]]] = []
 
-    def describe(self) -> dict[str, object]:
-        return {"method": "msf", "engine": "fake"}
+    def describe(self) -> RunMethod:
+        return RunMethod(method="msf", engine="fake")
 
     def estimate(self, stack, tiling, timer, progress=False) -> Estimate:
         self.seen.append((stack.num_lights, stack.shape))
@@ -41,8 +42,9 @@ class FakeNetwork:
 
 
 def run(step: str, stack, net: FakeNetwork | None = None):
+    """The rung as Model runs it: the reduced network inside the detail fusion."""
     net = net or FakeNetwork()
-    est = LadderEstimator(net, step)  # type: ignore[arg-type]
+    est = DetailFusionEstimator(reduced_network(net, step))  # type: ignore[arg-type]
     return est.estimate(stack, TilingOptions(), StageTimer()).normals, net
 
 
@@ -128,9 +130,8 @@ def test_grow_normals_fills_the_rim_the_small_mask_lost() -> None:
 
 
 def test_describe_names_the_rung() -> None:
-    est = LadderEstimator(FakeNetwork(), "balanced")  # type: ignore[arg-type]
-    d = est.describe()
-    assert d["speed"] == "balanced" and "2/5 of the resolution" in str(d["speed_rung"])
+    d = reduced_network(FakeNetwork(), "balanced").describe()  # type: ignore[arg-type]
+    assert d.speed == "balanced" and "2/5 of the resolution" in str(d.speed_rung)
 
 
 def test_speed_and_device_options_refuse_contradictions() -> None:
@@ -162,7 +163,7 @@ def test_model_runs_a_rung_and_says_so(tmp_path) -> None:
     assert result.normals.shape == (72, 80, 3)
     np.testing.assert_allclose(np.linalg.norm(result.normals[stack.mask], axis=1), 1.0, atol=1e-5)
     described = Model(random_onnx, speed="fast", threads=1, maps=None).describe()
-    assert described["speed"] == "fast" and "8 lights" in str(described["speed_rung"])
+    assert described.speed == "fast" and "8 lights" in str(described.speed_rung)
 
 
 @pytest.mark.parametrize("device", ["cuda", "tensorrt", "gpu", "npu"])

@@ -87,7 +87,7 @@ def test_tta_of_least_squares_is_plain(stack) -> None:
     plain = LeastSquaresEstimator().estimate(stack, TilingOptions(), StageTimer())
     for count in (4, 8):
         est = TTAEstimator(LeastSquaresEstimator(), count)
-        assert est.describe()["tta"] == count
+        assert est.describe().tta == count
         out = est.estimate(stack, TilingOptions(), StageTimer())
         assert out.normals.shape == plain.normals.shape
         np.testing.assert_allclose(out.normals, plain.normals, atol=2e-5)
@@ -110,8 +110,8 @@ def test_model_option() -> None:
     with pytest.raises(InputError, match="least squares"):
         ModelOptions(method="l2", tta=4)
     model = Model(tta=4, maps=None, detail_fusion=False, threads=1)
-    assert model.describe()["tta"] == 4
-    assert "tta" not in Model(maps=None, detail_fusion=False, threads=1).describe()
+    assert model.describe().tta == 4
+    assert Model(maps=None, detail_fusion=False, threads=1).describe().tta is None
 
 
 def test_flag_parses() -> None:

@@ -7,6 +7,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from msfnet.common.cli import command_main, make_parser
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.results.provenance import Provenance, command_line
 
 
@@ -16,7 +17,7 @@ def test_a_network_run_names_its_model_by_file_and_checksum(tmp_path: Path) -> N
     when = datetime(2026, 12, 1, 21, 0, 5, tzinfo=timezone.utc)
     p = Provenance.of(
         [tmp_path / "a", tmp_path / "b"],
-        {"model": str(model), "engine": "openvino", "precision": "bf16"},
+        RunMethod(model=str(model), engine="openvino", precision="bf16"),
         argv=["/usr/bin/msf-run", "a b", "-o", "out"],
         now=when,
     )
@@ -31,7 +32,7 @@ def test_a_network_run_names_its_model_by_file_and_checksum(tmp_path: Path) -> N
 
 
 def test_least_squares_has_no_model() -> None:
-    p = Provenance.of("obj/", {"model": None, "engine": "numpy", "precision": "fp64"}, argv=["x"])
+    p = Provenance.of("obj/", RunMethod(method="l2", engine="numpy", precision="fp64"), argv=["x"])
     assert p.model is None and p.model_sha256 is None
     assert p.facts()["model"] == "none (least squares)"
     assert Provenance.from_dict({}).engine == "-"  # an old profile.json: blanks, no crash

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.bench.data import data_root
+from msfnet.bench.worker import timed_runs
 from msfnet.bench.workloads import Workload, make_input
 from msfnet.common.cli import command_main, make_parser, path_arg, positive_int, thread_count
 from msfnet.common.cpu import CpuInfo, detect_cpu
@@ -64,12 +64,8 @@ def _timed(
     engine, images: np.ndarray, lights: np.ndarray, repeats: int
 ) -> tuple[np.ndarray, float]:
     out = engine.run(images, lights)  # warm-up (arena growth, lazy compilation)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = engine.run(images, lights)
-        times.append(time.perf_counter() - t0)
-    return out, statistics.median(times) if times else float("nan")
+    times, last = timed_runs(lambda: engine.run(images, lights), repeats)
+    return out if last is None else last, statistics.median(times) if times else float("nan")
 
 
 def unsupported(path: EnginePath, model: Path, cpu: CpuInfo) -> str | None:

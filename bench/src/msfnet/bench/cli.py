@@ -2,14 +2,8 @@
 
 Runs the matmul peak measurement, workloads (a)-(c) for every variant and thread count (each
 cell in a fresh process), workload (d) end to end through msf-run, and writes REPORT.md,
-report.json and a latency plot to the report folder.
-
-The report folder is one output, like every msfnet command's (common/files.py): the inputs and
-the folder are checked before any work, the whole report (with the models it measured and
-msf-run's outputs for (d)) is built in a staging folder beside it and appears complete or not at
-all, also on Ctrl-C or kill, and an earlier report is replaced only with --overwrite. The models
-are exported afresh on every run, never cached between runs: a report always measures the
-models it holds, and no run writes outside its own staging folder.
+report.json and a latency plot to the report folder: one output, built in a staging folder
+(common/files.py), with the models it measured (exported afresh on every run, never cached).
 """
 
 from __future__ import annotations
@@ -22,6 +16,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
+from typing import cast
 
 import numpy as np
 from tqdm import tqdm
@@ -54,13 +49,7 @@ from msfnet.bench.workloads import (
 from msfnet.common.cli import Command, add_flags, command_main, make_parser, options_from_args
 from msfnet.common.cpu import detect_cpu, proxy_class
 from msfnet.common.errors import InputError
-from msfnet.common.files import (
-    check_output,
-    scratch_folder,
-    staged_folder,
-    write_json,
-    write_text,
-)
+from msfnet.common.files import check_output, scratch_folder, staged_folder, write_json, write_text
 from msfnet.runtime.engines import installed_engines
 from msfnet.runtime.engines.dispatch import choose_engine
 from msfnet.runtime.evaluate.metrics import deviation_deg, normal_metrics
@@ -181,11 +170,7 @@ def resolve_paths(opts: BenchOptions) -> tuple[Path, tuple[Path, ...], Path | No
             # the one stack instead of four, silently
             if opts.stack is None or opts.data is not None or os.environ.get(ENV_VAR):
                 raise
-    if opts.stack is not None:
-        stack = opts.stack
-    else:
-        assert root is not None
-        stack = root / STACK_IN_DATA
+    stack = opts.stack if opts.stack is not None else cast(Path, root) / STACK_IN_DATA
     calib = opts.calib
     if calib is None:
         found = [root / p for p in CALIB_IN_DATA[1:] if (root / p).exists()] if root else []
@@ -240,16 +225,9 @@ def plan_run(opts: BenchOptions) -> Plan:
     for calib in calibs:
         if not calib.exists():
             raise InputError("--calib: stack not found", calib)
-    inputs = [
-        stack,
-        *calibs,
-        checkpoint,
-        root,
-        None if opts.no_e2e else default_model_path(),
-    ]
-    check_output(
-        opts.report_dir, inputs, overwrite=opts.overwrite, folder=True, command=PROG
-    )  # --overwrite replaces an earlier report, nothing else
+    inputs = [stack, *calibs, checkpoint, root, None if opts.no_e2e else default_model_path()]
+    # --overwrite replaces an earlier report, nothing else
+    check_output(opts.report_dir, inputs, overwrite=opts.overwrite, folder=True, command=PROG)
     notes: list[str] = []
     engines = installed_engines()
     for v in [v for v in variants if VARIANTS[v].engine == "openvino"]:
@@ -355,11 +333,6 @@ def run_cell_subprocess(spec: dict, tmp: Path) -> dict:
     return run_module("msfnet.bench.workloads", spec, tmp / "spec.json")
 
 
-def accuracy(out: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> dict[str, float]:
-    mean, mx = deviation_deg(out, ref, mask)
-    return {"max_deg": mx, "mean_deg": mean}
-
-
 def _say(opts: BenchOptions, line: str) -> None:
     if not opts.quiet:
         print(f"msf-bench: {line}", file=sys.stderr)
@@ -423,7 +396,8 @@ def bench(opts: BenchOptions, plan: Plan, data: Inputs, work: Path, scratch: Pat
             if v == "torch-fp32" and wl.key not in refs:
                 refs[wl.key] = out
             if wl.key in refs:
-                row.update(accuracy(out, refs[wl.key], inputs[wl.key][1]))
+                mean, mx = deviation_deg(out, refs[wl.key], inputs[wl.key][1])
+                row.update({"max_deg": mx, "mean_deg": mean})
             row["gflops_per_s"] = wl.flops / cell["median_s"] / 1e9
         rows.append(row)
     result["rows"] = rows
@@ -587,20 +561,10 @@ def _warm_row(
     }
 
 
-PROFILE_FIELDS = (
-    "engine",
-    "precision",
-    "graph",
-    "choice",
-    "tiles",
-    "stages",
-    "inference_gflops_per_s",
-)
-
-
 def _what_ran(profile: dict) -> dict:
     """The (d) row's fields taken from a run's profile (engine, graph, tiles, stage times)."""
-    return {k: profile.get(k) for k in PROFILE_FIELDS}
+    keys = ("engine", "precision", "graph", "choice", "tiles", "stages", "inference_gflops_per_s")
+    return {k: profile.get(k) for k in keys}
 
 
 def _median_stage(profiles: list[dict], stage: str) -> float | None:
@@ -704,11 +668,7 @@ def _run_edge(opts: BenchOptions) -> int:
     if scoring:
         assert root is not None
         _check_validation_objects(root)
-    if opts.stack is not None:
-        stack = opts.stack
-    else:
-        assert root is not None
-        stack = root / STACK_IN_DATA
+    stack = opts.stack if opts.stack is not None else cast(Path, root) / STACK_IN_DATA
     if opts.requirements:
         _check_stack(stack)  # the grid's every cell would fail on it
     check_output(
@@ -751,14 +711,9 @@ def _run_edge(opts: BenchOptions) -> int:
             sections.append(("Speed ladder (--speed)", ladder.ladder_table(rungs)))
         if opts.requirements:
             _say(opts, "measuring the requirements grid (each cell in a fresh process) ...")
+            given = info if opts.onnx is not None else None  # None: the bundled model's
             reqs = edge.requirement_rows(
-                opts.onnx,
-                stack,
-                threads,
-                scratch,
-                quick=opts.quick,
-                say=progress,
-                info=info if opts.onnx is not None else None,
+                opts.onnx, stack, threads, scratch, quick=opts.quick, say=progress, info=given
             )
             result["requirements"] = [edge.asdict(r) for r in reqs]
             sections.append(("Requirements", edge.requirements_table(reqs)))
@@ -815,15 +770,8 @@ def _refuse_torch_options(opts: BenchOptions) -> None:
             "(it measures ONNX files torch-free); drop them"
         )
     # what only the requirements grid reads, given to a mode that would drop it in silence
-    unused = (
-        []
-        if opts.requirements
-        else [
-            flag
-            for flag, value in (("--stack", opts.stack is not None), ("--quick", opts.quick))
-            if value
-        ]
-    )
+    grid = [f for f, v in (("--stack", opts.stack is not None), ("--quick", opts.quick)) if v]
+    unused = [] if opts.requirements else grid
     if unused:
         raise InputError(
             f"{', '.join(unused)}: used by --requirements only, not by {mode} (it scores the "

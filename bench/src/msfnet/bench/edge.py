@@ -21,7 +21,6 @@ import json
 import math
 import statistics
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -29,8 +28,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from msfnet.bench.ladder import REPEAT
-from msfnet.bench.worker import run_module
+from msfnet.bench.ladder import REPEAT, VALIDATION, validation_stacks
+from msfnet.bench.worker import run_module, timed_runs
+from msfnet.bench.workloads import centred_crop
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import opt, speaking_as
 
@@ -39,7 +39,6 @@ if TYPE_CHECKING:
 
 CROP = 128
 CROP_LIGHTS = 12
-VALIDATION = (("ballPNG", None), ("bearPNG", "21-96"), ("harvestPNG", None))
 REQUIREMENT_SIZES = (128, 256, 512)
 REQUIREMENT_LIGHTS = (12, 32)
 QUICK_SIZES = (64, 128)
@@ -120,31 +119,15 @@ def validation_crops(
     centred on its mask, ``lights`` evenly spaced lights (after the protocol's selection),
     normalised for a model trained with ``train_lights`` (its metadata, as msf-run reads it)."""
     from msfnet.runtime.infer.normalise import network_input
-    from msfnet.runtime.stack import load_stack
 
     crops = []
-    for name, select in VALIDATION:
-        folder = data / "DiLiGenT" / name
-        if not folder.is_dir():
-            raise InputError("validation object not found (DiLiGenT)", folder)
-        stack = load_stack(folder, select=select, max_lights=lights)
-        ys, xs = np.nonzero(stack.mask)
-        h, w = stack.shape
-        y0 = int(np.clip(ys.mean() - size / 2, 0, h - size)) // 4 * 4
-        x0 = int(np.clip(xs.mean() - size / 2, 0, w - size)) // 4 * 4
-        rows, cols = slice(y0, y0 + size), slice(x0, x0 + size)
+    for (name, _), stack in zip(VALIDATION, validation_stacks(data, lights), strict=True):
+        rows, cols = centred_crop(stack.mask, size)
         images, lit = network_input(stack, rows, cols, train_lights=train_lights)
         if stack.normals_gt is None:
-            raise InputError("validation object without ground-truth normals", folder)
-        crops.append(
-            {
-                "name": name,
-                "images": images,
-                "lights": lit,
-                "mask": stack.mask[rows, cols],
-                "gt": stack.normals_gt[rows, cols],
-            }
-        )
+            raise InputError("validation object without ground-truth normals", stack.source)
+        mask, gt = stack.mask[rows, cols], stack.normals_gt[rows, cols]
+        crops.append({"name": name, "images": images, "lights": lit, "mask": mask, "gt": gt})
     return crops
 
 
@@ -154,13 +137,9 @@ def _open(spec: dict):  # type: ignore[no-untyped-def]
     from msfnet.runtime.engines.dispatch import choose_engine, open_engine, resolve_device
 
     device = resolve_device(spec.get("device"))
+    asked = (spec.get("engine"), spec.get("precision"))
     choice = choose_engine(
-        Path(spec["model"]),
-        detect_cpu(),
-        installed_engines(),
-        spec.get("engine"),
-        spec.get("precision"),
-        device=device,
+        Path(spec["model"]), detect_cpu(), installed_engines(), *asked, device=device
     )
     return open_engine(choice, spec.get("threads"))
 
@@ -181,15 +160,9 @@ def measure_path(spec: dict) -> dict:
         from msfnet.runtime.engines.dispatch import EngineChoice, open_engine
         from msfnet.runtime.evaluate.metrics import deviation_deg
 
-        cpu = open_engine(
-            EngineChoice(
-                "onnxruntime",
-                engine.precision if engine.precision == "int8" else "fp32",
-                "parity reference",
-                Path(spec["model"]),
-            ),
-            spec.get("threads"),
-        )
+        precision = engine.precision if engine.precision == "int8" else "fp32"
+        ref = EngineChoice("onnxruntime", precision, "parity reference", Path(spec["model"]))
+        cpu = open_engine(ref, spec.get("threads"))
         devs = [
             deviation_deg(
                 engine.run(c["images"], c["lights"]), cpu.run(c["images"], c["lights"]), c["mask"]
@@ -199,11 +172,9 @@ def measure_path(spec: dict) -> dict:
         parity = (float(np.mean([d[0] for d in devs])), float(max(d[1] for d in devs)))
     ball = crops[0]
     engine.run(ball["images"], ball["lights"])  # warm-up at this size
-    times = []
-    for _ in range(int(spec.get("repeats", 3))):
-        t0 = time.perf_counter()
-        engine.run(ball["images"], ball["lights"])
-        times.append(time.perf_counter() - t0)
+    times, _ = timed_runs(
+        lambda: engine.run(ball["images"], ball["lights"]), int(spec.get("repeats", 3))
+    )
     return {
         "mae_deg": float(np.mean(maes)),
         "ms": 1e3 * statistics.median(times),
@@ -250,17 +221,13 @@ def measure_requirement(spec: dict) -> dict:
     )
     del src
     model(Stack.from_arrays(images[:, :32, :32], stack.lights, intensities=stack.intensities))
-    runs = []
-    for _ in range(REPEAT):  # a shared edge box is noisy: the median of a few runs
-        t0 = time.perf_counter()
-        model(stack)
-        runs.append(time.perf_counter() - t0)
+    runs, _ = timed_runs(lambda: model(stack), REPEAT)  # a noisy box: the median of a few
     d = model.describe()
     return {
         "seconds": float(np.median(runs)),
         "samples_s": runs,
         "peak_mb": peak_rss_mb(),
-        "engine": f"{d['engine']} {d['precision']}",
+        "engine": f"{d.engine} {d.precision}",
     }
 
 
@@ -324,17 +291,9 @@ def onnx_rows(
         r = run_worker("path", spec, scratch)
         if "error" in r:
             measured.append(EdgeRow(p.label, f"failed: {r['error']}", size, None, None, None))
-        else:
-            measured.append(
-                EdgeRow(
-                    p.label,
-                    _answer_status(r["mae_deg"]) or _parity_status(r.get("parity_deg")),
-                    size,
-                    r["mae_deg"],
-                    r["ms"],
-                    r["peak_mb"],
-                )
-            )
+            continue
+        status = _answer_status(r["mae_deg"]) or _parity_status(r.get("parity_deg"))
+        measured.append(EdgeRow(p.label, status, size, r["mae_deg"], r["ms"], r["peak_mb"]))
     return measured + rows
 
 
@@ -435,12 +394,9 @@ def requirement_rows(
                 label = r.get("engine", f"{engine or 'default'} {precision or ''}".strip())
                 if "error" in r:
                     out.append(Requirement(s, n, label, None, None, f"failed: {r['error']}"))
-                else:
-                    out.append(
-                        Requirement(
-                            s, n, label, r["seconds"], r["peak_mb"], "ok", tuple(r["samples_s"])
-                        )
-                    )
+                    continue
+                runs = tuple(r["samples_s"])
+                out.append(Requirement(s, n, label, r["seconds"], r["peak_mb"], "ok", runs))
     return out
 
 

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
-from msfnet.bench.worker import run_process
+from msfnet.bench.worker import run_process, timed_runs
 from msfnet.common.errors import InputError
 from msfnet.common.files import writing_as
 from msfnet.common.vocabulary import opt, speaking_as
@@ -82,11 +82,9 @@ def measure_rung(spec: dict) -> dict:
     model(stacks[0])  # warm-up: first-call allocations and compilation at these sizes
     seconds, mae, detail, samples = 0.0, {}, [], {}
     for stack in stacks:
-        runs = []
-        for _ in range(REPEAT):  # a shared edge box is noisy: the median of a few runs
-            t0 = time.perf_counter()
-            result = model(stack)
-            runs.append(time.perf_counter() - t0)
+        # a shared edge box is noisy: the median of a few runs
+        runs, result = timed_runs(partial(model, stack), REPEAT)
+        assert result is not None
         samples[stack.name] = runs
         seconds += float(np.median(runs))
         if result.metrics is None:
@@ -98,7 +96,7 @@ def measure_rung(spec: dict) -> dict:
     row = LadderRow(
         step.name,
         step.summary,
-        f"{described.get('engine')} {described.get('precision')}",
+        f"{described.engine} {described.precision}",
         seconds,
         peak_rss_mb(),
         mae,

@@ -58,6 +58,16 @@ def bench_object(h: int = HEIGHT, w: int = WIDTH) -> tuple[np.ndarray, np.ndarra
     return np.where(mask, z, np.nan), mask, n
 
 
+def _times(walls: list[float], cpus: list[float]) -> dict[str, float]:
+    """Median, fastest and slowest wall time, and the median CPU time, in seconds."""
+    return {
+        "median_s": statistics.median(walls),
+        "min_s": min(walls),
+        "max_s": max(walls),
+        "cpu_s": statistics.median(cpus),
+    }
+
+
 def time_call(fn, repeat: int) -> tuple[list[float], list[float], object]:
     walls, cpus, out = [], [], None
     for _ in range(repeat):
@@ -87,24 +97,15 @@ def run(
         hgt = res.height  # type: ignore[attr-defined]
         d = (hgt - z)[mask]
         d -= d.mean()
+        rms = float(np.sqrt(np.mean(d * d)))
         table[method] = {
-            "median_s": statistics.median(walls),
-            "min_s": min(walls),
-            "max_s": max(walls),
-            "cpu_s": statistics.median(cpus),
+            **_times(walls, cpus),
             "iterations": res.iterations,  # type: ignore[attr-defined]
-            "rms_px": float(np.sqrt(np.mean(d * d))),
-            "rms_pct_of_range": float(
-                100 * np.sqrt(np.mean(d * d)) / (np.nanmax(z) - np.nanmin(z))
-            ),
+            "rms_px": rms,
+            "rms_pct_of_range": float(100 * rms / (np.nanmax(z) - np.nanmin(z))),
         }
     walls, cpus, _ = time_call(lambda: curvature_maps(n, mask), repeat)
-    table["curvature"] = {
-        "median_s": statistics.median(walls),
-        "min_s": min(walls),
-        "max_s": max(walls),
-        "cpu_s": statistics.median(cpus),
-    }
+    table["curvature"] = _times(walls, cpus)
     return results
 
 

@@ -29,14 +29,11 @@ def fp32_peak(result: dict, threads: int) -> tuple[float | None, str]:
 
 
 def _find(rows: list[dict], wl: str, variant: str, threads: int) -> dict | None:
-    for r in rows:
-        if (r["workload"], r["variant"], r["threads"]) == (
-            wl,
-            variant,
-            threads,
-        ) and "median_s" in r:
-            return r
-    return None
+    key = (wl, variant, threads)
+    return next(
+        (r for r in rows if (r["workload"], r["variant"], r["threads"]) == key and "median_s" in r),
+        None,
+    )
 
 
 def per_light_estimate(
@@ -134,11 +131,9 @@ def e2e_table(result: dict) -> str:
     ]
     for r in runs:
         tiles = r.get("tiles") or {}
-        dev = (
-            "-"
-            if "mean_deg_vs_fp32" not in r
-            else f"{r['max_deg_vs_fp32']:.2f} / {r['mean_deg_vs_fp32']:.3f}"
-        )
+        dev = "-"
+        if "mean_deg_vs_fp32" in r:
+            dev = f"{r['max_deg_vs_fp32']:.2f} / {r['mean_deg_vs_fp32']:.3f}"
         path = " ".join(str(r.get(k) or "?") for k in ("engine", "precision", "graph"))
         lines.append(
             f"| {r['variant']} | {path} | {r['threads']} | {r['lights']} | "
@@ -337,19 +332,8 @@ def _machine_lines(result: dict) -> list[str]:
         for p in result["peaks"]
     )
     feats = m.get("cpu_features") or {}
-    cpu_line = ", ".join(
-        f"{k} {'yes' if feats[k] else 'no'}"
-        for k in (
-            "avx2",
-            "avx512f",
-            "avx512_vnni",
-            "avx_vnni",
-            "avx512_bf16",
-            "amx_bf16",
-            "amx_int8",
-        )
-        if k in feats
-    )
+    shown = ["avx2", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_bf16", "amx_int8"]
+    cpu_line = ", ".join(f"{k} {'yes' if feats[k] else 'no'}" for k in shown if k in feats)
     return [
         f"- machine: {m['cpu']}, {m['cores']} cores, ISA {' '.join(m['isa_flags'])}; "
         f"{m['platform']}; Python {m['python']}, onnxruntime {m['onnxruntime']}",

@@ -10,11 +10,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
+from typing import TypeVar
 
+T = TypeVar("T")
 _limit: ContextVar[float | None] = ContextVar("msfnet_bench_row_limit", default=None)
 
 
@@ -31,6 +34,16 @@ def row_time_limit(seconds: float | None) -> Iterator[None]:
 def row_limit() -> float | None:
     """The time limit of the rows started now (None: none)."""
     return _limit.get()
+
+
+def timed_runs(call: Callable[[], T], repeats: int) -> tuple[list[float], T | None]:
+    """The wall seconds of ``repeats`` calls of ``call``, and the last call's result."""
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = call()
+        times.append(time.perf_counter() - t0)
+    return times, out
 
 
 def run_process(argv: list[str]) -> subprocess.CompletedProcess[str] | str:
@@ -54,4 +67,4 @@ def run_module(module: str, spec: dict, spec_file: Path) -> dict:
     return json.loads(Path(spec["result"]).read_text())
 
 
-__all__ = ["row_limit", "row_time_limit", "run_module", "run_process"]
+__all__ = ["row_limit", "row_time_limit", "run_module", "run_process", "timed_runs"]

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.bench.worker import row_limit, run_process
+from msfnet.bench.worker import row_limit, run_process, timed_runs
 from msfnet.common.errors import InputError
 from msfnet.runtime.engines.openvino import INT8_CHUNK
 from msfnet.runtime.engines.staged_loop import DEFAULT_CHUNK
@@ -120,16 +120,21 @@ VARIANTS = {
 }
 
 
+def centred_crop(mask: np.ndarray, size: int) -> tuple[slice, slice]:
+    """The (rows, cols) of a ``size`` px square centred on the mask, on a multiple of 4 px."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    y0 = int(np.clip(ys.mean() - size / 2, 0, h - size)) // 4 * 4
+    x0 = int(np.clip(xs.mean() - size / 2, 0, w - size)) // 4 * 4
+    return slice(y0, y0 + size), slice(x0, x0 + size)
+
+
 def make_input(stack_dir: Path, wl: Workload) -> dict[str, np.ndarray]:
     """Normalised (1, N, 3, s, s) crop centred on the mask, N evenly spaced lights."""
     from msfnet.runtime.stack import load_stack
 
     stack = load_stack(stack_dir, max_lights=wl.lights)
-    ys, xs = np.nonzero(stack.mask)
-    h, w = stack.mask.shape
-    y0 = int(np.clip(ys.mean() - wl.size / 2, 0, h - wl.size)) // 4 * 4
-    x0 = int(np.clip(xs.mean() - wl.size / 2, 0, w - wl.size)) // 4 * 4
-    rows, cols = slice(y0, y0 + wl.size), slice(x0, x0 + wl.size)
+    rows, cols = centred_crop(stack.mask, wl.size)
     images, lights = network_input(stack, rows, cols)
     return {"images": images, "lights": lights, "mask": stack.mask[rows, cols]}
 
@@ -175,7 +180,7 @@ def _runner(variant: str, spec: dict):
         engine = open_engine(
             EngineChoice(row.engine, row.precision, "msf-bench", Path(spec["onnx"])), threads
         )
-        return engine.run, {"precision": engine.precision, "engine": engine.describe()}
+        return engine.run, {"precision": engine.precision, "engine": engine.describe().as_json()}
     import torch
 
     from msfnet.model.checkpoint import load_model
@@ -200,14 +205,9 @@ def run_cell(spec: dict) -> dict:
     t0 = time.perf_counter()
     run, info = _runner(spec["variant"], spec)
     init_s = time.perf_counter() - t0
-    out = None
     for _ in range(int(spec["warmup"])):
-        out = run(images, lights)
-    times = []
-    for _ in range(int(spec["repeats"])):
-        t0 = time.perf_counter()
-        out = run(images, lights)
-        times.append(time.perf_counter() - t0)
+        run(images, lights)
+    times, out = timed_runs(lambda: run(images, lights), int(spec["repeats"]))
     np.save(spec["output"], np.asarray(out, dtype=np.float32))
     return {
         "times_s": times,

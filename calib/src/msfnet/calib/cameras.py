@@ -154,7 +154,11 @@ def oak_control(exposure_us: int, iso: int, wb_kelvin: int, lens_position: int):
     """A CameraControl with every automatic loop locked (host-side object, no device needed)."""
     import depthai as dai
 
-    ctrl = dai.CameraControl()
+    return _lock_controls(dai.CameraControl(), exposure_us, iso, wb_kelvin, lens_position)
+
+
+def _lock_controls(ctrl, exposure_us: int, iso: int, wb_kelvin: int, lens_position: int):  # type: ignore[no-untyped-def]
+    """``ctrl`` (a depthai CameraControl) with exposure, white balance and focus set."""
     ctrl.setManualExposure(int(exposure_us), int(iso))
     ctrl.setManualWhiteBalance(int(wb_kelvin))
     ctrl.setManualFocus(int(lens_position))
@@ -200,10 +204,7 @@ class OakCamera:
         self.device = dai.Device(info)
         self.pipeline = dai.Pipeline(self.device)
         cam = self.pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_A)
-        ctrl = cam.initialControl
-        ctrl.setManualExposure(int(exposure_us), int(iso))
-        ctrl.setManualWhiteBalance(int(wb_kelvin))
-        ctrl.setManualFocus(int(lens_position))
+        _lock_controls(cam.initialControl, **self.settings)
         full = cam.requestFullResolutionOutput(dai.ImgFrame.Type.RGB888i)
         out = cam.raw if mode == "raw" else full
         self.queue = out.createOutputQueue(maxSize=2, blocking=False)
@@ -215,11 +216,9 @@ class OakCamera:
     def capture(self) -> np.ndarray:
         for _ in range(self.flush):  # frames already in flight were exposed under the old light
             self.queue.get()
-        return (
-            oak_frame_to_rgb(self.queue.get(), self.bayer, self.black_level)
-            if self.mode == "raw"
-            else oak_frame_to_rgb(self.queue.get())
-        )
+        if self.mode == "raw":
+            return oak_frame_to_rgb(self.queue.get(), self.bayer, self.black_level)
+        return oak_frame_to_rgb(self.queue.get())
 
     def info(self) -> dict:
         return {"backend": "oak", "mode": self.mode, **self.settings}

@@ -37,12 +37,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msfnet.common.errors import InputError
-from msfnet.common.files import (
-    folder_lock,
-    remove_stale_staging_in,
-    vectors_text,
-    write_atomic,
-)
+from msfnet.common.files import folder_lock, remove_stale_staging_in, vectors_text, write_atomic
 from msfnet.common.imageio import (
     image_header,
     list_images,
@@ -133,10 +128,7 @@ class Exposure:
         # highlight) is not under-exposed, however dark the rest: more exposure would only
         # clip more.
         return cls(
-            saturated,
-            p99_5,
-            saturated > max_saturated,
-            p99_5 < min_level and not saturated > 0.0,
+            saturated, p99_5, saturated > max_saturated, p99_5 < min_level and not saturated > 0.0
         )
 
     @classmethod
@@ -399,9 +391,9 @@ def check_folder(
     if overwrite:
         return
     raw = out / "raw"
-    theirs = list_images(out, strict=False) + (
-        list_images(raw, strict=False) if raw.is_dir() else []
-    )
+    theirs = list_images(out, strict=False)
+    if raw.is_dir():
+        theirs += list_images(raw, strict=False)
     if theirs:
         example = theirs[0].name
         how = f", or {opt('overwrite')} to capture into it anyway" if overwrite_allowed else ""
@@ -539,25 +531,49 @@ def capture_stack(
         # what a capture killed with kill -9 was writing (it cannot clean up after itself)
         remove_stale_staging_in(out)
         remove_stale_staging_in(out / "raw")
-        return _capture(
+        given = _check_given(
             camera,
             lights,
             out,
             light_directions=light_directions,
             light_intensities=light_intensities,
             mask=mask,
-            ambient=ambient,
-            subtract_ambient=subtract_ambient,
             overwrite=overwrite,
-            max_saturated=max_saturated,
-            min_level=min_level,
-            strict=strict,
-            progress=progress,
-            log=log,
-            linearisation=linearisation,
-            normals_gt=normals_gt,
             overwrite_allowed=overwrite_allowed,
+            linearisation=linearisation,
         )
+        n = given.count
+        if overwrite:
+            _discard(out)
+        session = _load_session(out / SESSION, n, given.camera_info, overwrite_allowed)
+        if not isinstance(session.get("frames"), dict):
+            session["frames"] = {}
+        sess = _Session(out, session, camera, n, given.mask, max_saturated, min_level, log)
+        frames = _frames(sess, ambient, given.shape)
+
+        def finish() -> Path:
+            sess.judge_all(strict)
+            return finish_stack(
+                out,
+                given.light_directions,
+                given.light_intensities,
+                given.mask,
+                subtract_ambient,
+                given.linearisation,
+                normals_gt,
+                log=log,
+            )
+
+        nothing_new = not frames.pending and not frames.unchecked
+        if nothing_new and _finished(out, n) and sess.path.is_file():
+            log(
+                f"stack complete: all {n} frames are already in {out / 'raw'}; nothing to capture "
+                f"(kept as it is; {opt('overwrite')} captures again)"
+            )
+            return finish()
+        _start(sess, frames, given.camera_info)
+        _take(sess, lights, frames.pending, progress)
+        return finish()
 
 
 @dataclass(frozen=True)
@@ -680,13 +696,10 @@ def _frames(sess: _Session, ambient: bool, shape: tuple[int, int] | None) -> _Fr
     todo += [(_name(i), i) for i in range(sess.count)]
     _check_frames(raw, [name for name, _ in todo], shape)  # a resume's frames, before capturing
     pending = [(name, i) for name, i in todo if not (raw / name).is_file()]
-    # frames on disk without a usable exposure record (an older version wrote the frame
-    # before its record): checked again from raw/ below
-    unchecked = [
-        name
-        for name, i in todo
-        if i is not None and (raw / name).is_file() and sess.recorded(name) is None
-    ]
+    # frames on disk without a usable exposure record (a frame written before its record):
+    # checked again from raw/ below
+    on_disk = [name for name, i in todo if i is not None and (raw / name).is_file()]
+    unchecked = [name for name in on_disk if sess.recorded(name) is None]
     return _Frames(todo, pending, unchecked)
 
 
@@ -742,71 +755,6 @@ def _take(
         # never hide the original error behind a light-controller error
         with contextlib.suppress(Exception):
             lights.off()
-
-
-def _capture(
-    camera: Any,
-    lights: Any,
-    out: Path,
-    *,
-    light_directions: np.ndarray | str | Path | None,
-    light_intensities: np.ndarray | str | Path | None,
-    mask: np.ndarray | str | Path | None,
-    ambient: bool,
-    subtract_ambient: bool,
-    overwrite: bool,
-    max_saturated: float,
-    min_level: float,
-    strict: bool,
-    progress: bool | None,
-    log: Log,
-    linearisation: Linearisation | None,
-    normals_gt: np.ndarray | None,
-    overwrite_allowed: bool,
-) -> Path:
-    """:func:`capture_stack`'s work, with the folder held."""
-    given = _check_given(
-        camera,
-        lights,
-        out,
-        light_directions=light_directions,
-        light_intensities=light_intensities,
-        mask=mask,
-        overwrite=overwrite,
-        overwrite_allowed=overwrite_allowed,
-        linearisation=linearisation,
-    )
-    n = given.count
-    if overwrite:
-        _discard(out)
-    session = _load_session(out / SESSION, n, given.camera_info, overwrite_allowed)
-    if not isinstance(session.get("frames"), dict):
-        session["frames"] = {}
-    sess = _Session(out, session, camera, n, given.mask, max_saturated, min_level, log)
-    frames = _frames(sess, ambient, given.shape)
-
-    def finish() -> Path:
-        sess.judge_all(strict)
-        return finish_stack(
-            out,
-            given.light_directions,
-            given.light_intensities,
-            given.mask,
-            subtract_ambient,
-            given.linearisation,
-            normals_gt,
-            log=log,
-        )
-
-    if not frames.pending and not frames.unchecked and _finished(out, n) and sess.path.is_file():
-        log(
-            f"stack complete: all {n} frames are already in {out / 'raw'}; nothing to capture "
-            f"(kept as it is; {opt('overwrite')} captures again)"
-        )
-        return finish()
-    _start(sess, frames, given.camera_info)
-    _take(sess, lights, frames.pending, progress)
-    return finish()
 
 
 def _finished(out: Path, n: int) -> bool:
@@ -876,11 +824,8 @@ def finish_stack(
     # no record (a new or overwritten session, or new frames): images on disk are not these
     # frames' (an earlier session's, or the user's), whatever they look like
     built = all(k in session for k in _BUILT_KEYS) and _finished(out, n)
-    if (
-        built
-        and session["linearisation"] == lin.record()
-        and session["ambient_subtracted"] == subtract_ambient
-    ):
+    same = (session.get("linearisation"), session.get("ambient_subtracted"))
+    if built and same == (lin.record(), subtract_ambient):
         shape = read_image(out / names[0]).shape[:2]
     else:
         if built:
@@ -971,11 +916,8 @@ def next_take(root: Path, has_result: Callable[[Path], bool] | None = None) -> P
     """``root/001``, ``root/002``, ...: an unfinished last take is resumed (and, given
     ``has_result``, a finished one without its result: its run was interrupted), otherwise
     the number after the highest."""
-    taken = (
-        sorted((int(p.name), p) for p in root.iterdir() if p.is_dir() and _NUMBERED.match(p.name))
-        if root.is_dir()
-        else []
-    )
+    found = root.iterdir() if root.is_dir() else ()
+    taken = sorted((int(p.name), p) for p in found if p.is_dir() and _NUMBERED.match(p.name))
     if taken:
         last = taken[-1][1]
         sess = last / SESSION

@@ -176,14 +176,12 @@ def _capture_options(
     options: CaptureOptions, known: dict[str, Any], log: Callable[[str], None]
 ) -> dict[str, Any]:
     """capture_stack's keyword options: the user's files first, then what the rig knows."""
-    dirs = options.light_directions
-    given_dirs = dirs is not None
+    dirs, ints = options.light_directions, options.light_intensities
+    if dirs is None:  # the rig's intensities belong to its true directions only
+        dirs, ints = known.get("light_directions"), ints or known.get("light_intensities")
     return {
-        "light_directions": dirs if given_dirs else known.get("light_directions"),
-        # the rig's intensities belong to its true directions only
-        "light_intensities": options.light_intensities
-        if options.light_intensities is not None
-        else (None if given_dirs else known.get("light_intensities")),
+        "light_directions": dirs,
+        "light_intensities": ints,
         "mask": options.mask if options.mask is not None else known.get("mask"),
         "normals_gt": known.get("normals_gt"),
         "min_level": known.get("min_level", 0.1),
@@ -213,9 +211,20 @@ def run_capture(options: CaptureOptions, out_dir: Path) -> Path:
             kwargs = _capture_options(options, known, log)
             return capture_stack(cam, lights, out_dir, **kwargs)
         finally:
-            for dev in (lights, cam):
-                if dev is not None:
-                    dev.close()
+            _close(lights, cam)
+
+
+def _close(*devices: Any) -> None:
+    for dev in devices:
+        if dev is not None:
+            dev.close()
+
+
+def _made(stack: Path, hint: str = "") -> str:
+    """What a take left: a stack, or images awaiting their light directions."""
+    if (stack / "light_directions.txt").exists():
+        return "stack"
+    return f"images (no light directions yet{hint})"
 
 
 def _logger(options: CaptureOptions) -> Callable[[str], None]:
@@ -267,12 +276,7 @@ def _run_loop(options: CaptureOptions, root: Path) -> int:
             **opts,
         )
         for step in steps:
-            done = (
-                "stack"
-                if (step.stack / "light_directions.txt").exists()
-                else "images (no light directions yet)"
-            )
-            line = f"take {step.index:03d}: {step.stack} ({done})"
+            line = f"take {step.index:03d}: {step.stack} ({_made(step.stack)})"
             if step.result is not None:
                 m = step.result.metrics
                 line += f"; normals -> {step.output}" + (f" (MAE {m.mae_deg:.2f} deg)" if m else "")
@@ -286,9 +290,7 @@ def _run_loop(options: CaptureOptions, root: Path) -> int:
         )
         return 130
     finally:
-        for dev in (lights, cam):
-            if dev is not None:
-                dev.close()
+        _close(lights, cam)
     return 0
 
 
@@ -323,13 +325,8 @@ def _capture(options: CaptureOptions, out: Path) -> int:
         print(f"{PROG}: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
     if not options.quiet:
-        done = (
-            "stack"
-            if (out / "light_directions.txt").exists()
-            else "images (no light directions yet: run msf-calib directions)"
-        )
         # on stderr: with --run --json, stdout carries msf-run's JSON alone
-        print(f"frames -> {out} ({done})", file=sys.stderr)
+        print(f"frames -> {out} ({_made(out, ': run msf-calib directions')})", file=sys.stderr)
     if options.run is not None:
         from msfnet.runtime.cli.run import main as run_main
 

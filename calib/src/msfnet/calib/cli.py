@@ -16,19 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from msfnet.calib.directions import (
-    Intrinsics,
-    diagnostic_image,
-    estimate_directions,
-    light_labels,
-)
+from msfnet.calib.directions import Intrinsics, diagnostic_image, estimate_directions, light_labels
 from msfnet.calib.intensities import estimate_intensities, target_normals
-from msfnet.calib.options import (
-    SHARED,
-    CalibOptions,
-    DirectionsOptions,
-    IntensitiesOptions,
-)
+from msfnet.calib.options import SHARED, CalibOptions, DirectionsOptions, IntensitiesOptions
 from msfnet.calib.sphere import fit_circles_from_images, fit_circles_from_mask
 from msfnet.common.cli import (
     Parser,
@@ -42,13 +32,7 @@ from msfnet.common.cli import (
 )
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, same_file, staged_files, vectors_text
-from msfnet.common.imageio import (
-    IMAGE_SUFFIXES,
-    encode_png,
-    list_images,
-    read_image,
-    read_mask,
-)
+from msfnet.common.imageio import IMAGE_SUFFIXES, encode_png, list_images, read_image, read_mask
 from msfnet.runtime.stack import read_vectors
 
 PROG = "msf-calib"
@@ -58,13 +42,8 @@ IMAGE_OUT = (".png", ".tif", ".tiff", ".bmp", ".jpg")  # what the diagnostic may
 
 def _named(folder: Path, words: tuple[str, ...]) -> Path | None:
     # every suffix list_images reads: a mask.jpg it leaves out as an image must be used here
-    hits = sorted(
-        p
-        for p in folder.iterdir()
-        if p.is_file()
-        and any(w in p.stem.lower() for w in words)
-        and p.suffix.lower() in IMAGE_SUFFIXES
-    )
+    named = [p for p in folder.iterdir() if any(w in p.stem.lower() for w in words)]
+    hits = sorted(p for p in named if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
     return hits[0] if hits else None
 
 
@@ -302,30 +281,16 @@ def cmd_directions(options: DirectionsOptions) -> int:
     _check_result(res.directions, "light directions", unit=True)
     for w in res.warnings:
         _warn(options, w)
+    pairs = zip(res.confidence, res.spread_deg, strict=True)
+    confidence = "".join(f"{c:.4f} {s:.3f}\n" for c, s in pairs)
     writers: list[tuple[Path, Callable[[Path], None]]] = [
         (out, _text_writer(vectors_text(res.directions))),
-        (
-            conf_path,
-            _text_writer(
-                "".join(
-                    f"{c:.4f} {s:.3f}\n"
-                    for c, s in zip(res.confidence, res.spread_deg, strict=True)
-                )
-            ),
-        ),
+        (conf_path, _text_writer(confidence)),
     ]
+    labels = light_labels(names)
     for k, ((imgs, circ), dpath) in enumerate(zip(diag, diag_paths, strict=False)):
-        writers.append(
-            (
-                dpath,
-                _png_writer(
-                    diagnostic_image(
-                        imgs, circ, res.estimates, capture=k, labels=light_labels(names)
-                    ),
-                    dpath,
-                ),
-            )
-        )
+        picture = diagnostic_image(imgs, circ, res.estimates, capture=k, labels=labels)
+        writers.append((dpath, _png_writer(picture, dpath)))
     _commit(writers, options.overwrite)
     for stale in _stale_diagnostics(out, diag_paths):
         _warn(options, f"{stale}: from an earlier run (this run wrote no image of that name)")

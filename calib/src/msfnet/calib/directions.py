@@ -327,15 +327,8 @@ def place_labels(
         near = (min(max(p[0], box[0]), box[2]), min(max(p[1], box[1]), box[3]))
         steps = np.linspace(0, 1, 24)[:, None]
         line = np.asarray(p) + steps * (np.asarray(near) - np.asarray(p))
-        return any(
-            (
-                (line[:, 0] > o[0])
-                & (line[:, 0] < o[2])
-                & (line[:, 1] > o[1])
-                & (line[:, 1] < o[3])
-            ).any()
-            for o in placed
-        )
+        xs, ys = line[:, 0], line[:, 1]
+        return any(((xs > o[0]) & (xs < o[2]) & (ys > o[1]) & (ys < o[3])).any() for o in placed)
 
     bearing = np.arctan2(pts[:, 1] - centre[1], pts[:, 0] - centre[0])
     boxes: list[Box | None] = [None] * len(points)
@@ -354,28 +347,22 @@ def place_labels(
     for i in (int(j) for j in np.argsort(bearing) if boxes[j] is None):
         (w, h), away = sizes[i], float(bearing[i]) if spread > 0 else -np.pi / 4
         ring = spread + marker + 10 + max(w, h)
-        found: Box | None = None
-        for strict in (True, False):  # a leader line through a label only if nothing else
-            for extra in (0, max(w, h) + 4, 2 * (max(w, h) + 4)):
-                for t in (sign * a for a in np.radians(np.arange(0, 181, 6)) for sign in (1, -1)):
-                    cand = _clamped(
-                        centre[0] + (ring + extra) * np.cos(away + t),
-                        centre[1] + (ring + extra) * np.sin(away + t),
-                        w,
-                        h,
-                        shape,
-                    )
-                    if free(cand) and not (strict and crosses(points[i], cand)):
-                        found = cand
-                        break
-                if found is not None:
-                    break
-            if found is not None:
-                break
-        if found is None:  # nowhere free (a crowded, tiny picture): the preferred spot
-            found = _clamped(
-                centre[0] + ring * np.cos(away), centre[1] + ring * np.sin(away), w, h, shape
+
+        def at(dist: float, angle: float, w: int = w, h: int = h) -> Box:
+            return _clamped(
+                centre[0] + dist * np.cos(angle), centre[1] + dist * np.sin(angle), w, h, shape
             )
+
+        turns = [sign * a for a in np.radians(np.arange(0, 181, 6)) for sign in (1, -1)]
+        candidates = (
+            (strict, at(ring + extra, away + t))
+            for strict in (True, False)  # a leader line through a label only if nothing else
+            for extra in (0, max(w, h) + 4, 2 * (max(w, h) + 4))
+            for t in turns
+        )
+        ok = (c for strict, c in candidates if free(c) and not (strict and crosses(points[i], c)))
+        # nowhere free (a crowded, tiny picture): the preferred spot
+        found = next(ok, None) or at(ring, away)
         placed.append(found)
         boxes[i] = found
     return [b for b in boxes if b is not None]

@@ -23,12 +23,10 @@ from msfnet.common.vocabulary import declare, opt
 # IntensitiesOptions' switch, named by the fit's refusal
 declare("accept_poor_fit", "--accept-poor-fit", "store_true")
 
-# Relative fit residual ||I - e s|| / ||I|| over the used pixels of every light. Measured:
-# right lights: rendered Lambertian spheres 0.0002 (16-bit), 0.005 (8-bit), 0.04 (1 % noise);
-# real psmImages/gray 0.073 (lights.txt) / 0.065 (chrome-calibrated); real DiLiGenT ballPNG,
-# a somewhat glossy ball, 0.118 (0.122 without its mask). Wrong: y negated 0.31 (rendered),
-# 0.34 (ballPNG), 0.45 (gray); x negated 0.36 (ballPNG), 0.25 (gray); a sphere fitted as a
-# plane 0.41; a mirror sphere 0.34 (rendered) / 0.99 (psmImages/chrome).
+# Relative fit residual ||I - e s|| / ||I|| over the used pixels of every light: right lights
+# stay below ~0.12 even on a somewhat glossy real ball, wrong ones (an axis negated, a sphere
+# fitted as a plane, a mirror sphere) reach 0.25 and more (docs/benchmark.md, "Measurements
+# behind the code's rules").
 FIT_WARN = 0.15
 FIT_REFUSE = 0.20
 
@@ -118,13 +116,8 @@ def _fit_light(target: _Target, image: np.ndarray, light: np.ndarray, name: str)
     sat_share = 1.0 - unsat[target.valid & (s > target.min_shading)].mean()
     sv, iv = s[use], img[use]
     rgb = (iv * sv[:, None]).sum(0) / (sv * sv).sum()
-    return _LightFit(
-        rgb,
-        black,
-        sat_share,
-        float(((iv - sv[:, None] * rgb) ** 2).sum()),
-        float((iv * iv).sum()),
-    )
+    misfit = float(((iv - sv[:, None] * rgb) ** 2).sum())
+    return _LightFit(rgb, black, sat_share, misfit, float((iv * iv).sum()))
 
 
 def _refuse_nonpositive(

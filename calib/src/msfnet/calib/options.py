@@ -284,9 +284,4 @@ class CaptureOptions:
     quiet: bool = False  # -q: errors only (warnings still print)
 
 
-__all__ = [
-    "CalibOptions",
-    "CaptureOptions",
-    "DirectionsOptions",
-    "IntensitiesOptions",
-]
+__all__ = ["CalibOptions", "CaptureOptions", "DirectionsOptions", "IntensitiesOptions"]

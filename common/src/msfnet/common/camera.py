@@ -10,9 +10,8 @@ import numpy as np
 from msfnet.common.errors import InputError
 
 # Focal lengths a camera can have, per pixel of the image's longer side: 0.01 is a ~179 degree
-# field of view; at 10,000 the sphere fit's rays are parallel to float64 precision (measured
-# on a 160 x 128 chrome capture: 1e7 px still matched orthographic to 0.007 deg, 1e8 px was
-# 23 deg off).
+# field of view; well above 10,000 the sphere fit's rays are parallel to float64 precision
+# (docs/benchmark.md, "Measurements behind the code's rules").
 FOCAL_PER_SIDE = (0.01, 1e4)
 PRINCIPAL_REACH = 10  # image sides the principal point may lie outside the image (shift lenses)
 
@@ -73,9 +72,8 @@ class Intrinsics:
         ys = np.array([0.0, 0.0, h - 1.0, h - 1.0, (h - 1) / 2])
         with np.errstate(all="ignore"):
             rays = self.rays(xs, ys)
-            unit = np.all(np.isfinite(rays)) and np.allclose(
-                np.linalg.norm(rays, axis=-1), 1.0, atol=1e-9
-            )
+            norms = np.linalg.norm(rays, axis=-1)
+            unit = np.all(np.isfinite(rays)) and np.allclose(norms, 1.0, atol=1e-9)
         if not unit:
             raise InputError(f"{option}: the view rays through the image are not finite")
 

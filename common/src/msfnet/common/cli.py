@@ -61,11 +61,37 @@ def path_text(text: str) -> str:
     return text
 
 
-def positive_int(text: str) -> int:
-    value = int(_number(text, int))
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
+N = TypeVar("N", int, float)
+
+
+def _bounded(kind: type[N], ok: Callable[[N], bool], must: str, name: str) -> Callable[[str], N]:
+    """A parser of finite ``kind`` values for which ``ok`` holds ("must <must>, got ...")."""
+
+    def parse(text: str) -> N:
+        value = kind(_number(text, kind))
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"must {must}, got {text!r}")
+        return value
+
+    parse.__name__ = name
+    return parse
+
+
+positive_int = _bounded(int, lambda v: v >= 1, "be a positive integer", "positive_int")
+nonnegative_int = _bounded(int, lambda v: v >= 0, "be 0 or more", "nonnegative_int")
+positive_float = _bounded(float, lambda v: v > 0, "be a positive number", "positive_float")
+nonnegative_float = _bounded(float, lambda v: v >= 0, "be 0 or more", "nonnegative_float")
+finite_float = _bounded(float, lambda v: True, "be finite", "finite_float")
+
+
+def float_range(lo: float, hi: float) -> Callable[[str], float]:
+    return _bounded(
+        float, lambda v: lo <= v <= hi, f"lie in {lo:g}..{hi:g}", f"number {lo:g}..{hi:g}"
+    )
+
+
+def int_range(lo: int, hi: int) -> Callable[[str], int]:
+    return _bounded(int, lambda v: lo <= v <= hi, f"lie in {lo}..{hi}", f"integer {lo}..{hi}")
 
 
 def thread_count(text: str) -> int:
@@ -73,57 +99,7 @@ def thread_count(text: str) -> int:
     command."""
     from msfnet.common.cpu import MAX_THREADS
 
-    value = int(_number(text, int))
-    if not 1 <= value <= MAX_THREADS:
-        raise argparse.ArgumentTypeError(f"must lie in 1..{MAX_THREADS}, got {text!r}")
-    return value
-
-
-def nonnegative_int(text: str) -> int:
-    value = int(_number(text, int))
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    value = _number(text, float)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
-    return value
-
-
-def nonnegative_float(text: str) -> float:
-    value = _number(text, float)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
-    return value
-
-
-def finite_float(text: str) -> float:
-    return _number(text, float)
-
-
-def float_range(lo: float, hi: float) -> Callable[[str], float]:
-    def parse(text: str) -> float:
-        value = _number(text, float)
-        if not lo <= value <= hi:
-            raise argparse.ArgumentTypeError(f"must lie in {lo:g}..{hi:g}, got {text!r}")
-        return value
-
-    parse.__name__ = f"number {lo:g}..{hi:g}"
-    return parse
-
-
-def int_range(lo: int, hi: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        value = int(_number(text, int))
-        if not lo <= value <= hi:
-            raise argparse.ArgumentTypeError(f"must lie in {lo}..{hi}, got {text!r}")
-        return value
-
-    parse.__name__ = f"integer {lo}..{hi}"
-    return parse
+    return int_range(1, MAX_THREADS)(text)
 
 
 class Parser(argparse.ArgumentParser):
@@ -412,10 +388,8 @@ _ACTIONABLE = (InputError, MsfError, OSError, MemoryError, RecursionError)
 
 
 def _run_body(command: Command, body: Callable[[], int], debug: bool) -> int:
-    prog, failed = command.prog, command.failure_exit
-
     def fail(message: str, code: int) -> int:
-        print(f"{prog}: {one_line(message)}", file=sys.stderr)
+        print(f"{command.prog}: {one_line(message)}", file=sys.stderr)
         return code
 
     try:
@@ -423,18 +397,10 @@ def _run_body(command: Command, body: Callable[[], int], debug: bool) -> int:
             if not debug:
                 warnings.simplefilter("ignore")
             return body()
-    except InputError as exc:
-        if debug:
-            raise
-        return fail(f"error: {exc}", 2)
     except KeyboardInterrupt:
         return fail(f"interrupted; {_left_behind()}", 130)
     except Terminated as exc:
         return fail(f"terminated (signal {exc.signum}); {_left_behind()}", 128 + exc.signum)
-    except MemoryError:
-        if debug:
-            raise
-        return fail(f"error: out of memory; {command.memory_advice}", 2)
     except BrokenPipeError as exc:
         if exc.filename is not None:  # a broken pipe as an output file: an ordinary error
             return fail(f"error: {exc.filename}: {exc.strerror}", 2)
@@ -444,37 +410,37 @@ def _run_body(command: Command, body: Callable[[], int], debug: bool) -> int:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
         return 141  # 128 + SIGPIPE
-    except OSError as exc:  # disk full, permission denied, ... on an output
-        if debug:
-            raise
-        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        if exc.strerror:
-            return fail(f"error: {where}{exc.strerror}", 2)
-        # no errno: e.g. numpy's short write "4752 requested and 1968 written"
-        return fail(f"error: {where}input/output failed ({first_line(exc)}; disk full?)", 2)
-    except MsfError as exc:
-        if debug:
-            raise
-        return fail(f"error: {first_line(exc, 500)}", 2)
-    except RecursionError as exc:  # e.g. absurdly nested JSON given as input
-        if debug:
-            raise
-        return fail(f"error: input too deeply nested ({first_line(exc)})", 2)
     except Exception as exc:
         if debug:
             raise
-        missing = _missing_optional(exc)
-        if missing:  # an optional part not installed, not a bug of ours
-            return fail(
-                f"error: needs the Python package {missing!r}, which is not "
-                f"installed: {install_hint(missing, command.extra)}",
-                2,
-            )
-        return fail(
-            f"internal error: {type(exc).__name__}: {first_line(exc)} (run with "
-            "--debug for the traceback; please report it)",
-            failed,
-        )
+        return fail(*_failure(exc, command))
+
+
+def _failure(exc: Exception, command: Command) -> tuple[str, int]:
+    """The one line and the exit code of a failure :func:`run_command` caught."""
+    if isinstance(exc, InputError):
+        return f"error: {exc}", 2
+    if isinstance(exc, MemoryError):
+        return f"error: out of memory; {command.memory_advice}", 2
+    if isinstance(exc, OSError):  # disk full, permission denied, ... on an output
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        if exc.strerror:
+            return f"error: {where}{exc.strerror}", 2
+        # no errno: e.g. numpy's short write "4752 requested and 1968 written"
+        return f"error: {where}input/output failed ({first_line(exc)}; disk full?)", 2
+    if isinstance(exc, MsfError):
+        return f"error: {first_line(exc, 500)}", 2
+    if isinstance(exc, RecursionError):  # e.g. absurdly nested JSON given as input
+        return f"error: input too deeply nested ({first_line(exc)})", 2
+    missing = _missing_optional(exc)
+    if missing:  # an optional part not installed, not a bug of ours
+        hint = install_hint(missing, command.extra)
+        return f"error: needs the Python package {missing!r}, which is not installed: {hint}", 2
+    return (
+        f"internal error: {type(exc).__name__}: {first_line(exc)} (run with --debug for the "
+        "traceback; please report it)",
+        command.failure_exit,
+    )
 
 
 __all__ = [

@@ -176,15 +176,10 @@ def _from_py_cpuinfo() -> CpuInfo:
     import cpuinfo
 
     data = cpuinfo.get_cpu_info()
-    family = data.get("family")
-    return CpuInfo.from_flags(
-        data.get("flags") or [],
-        model=data.get("brand_raw") or "unknown",
-        vendor=data.get("vendor_id_raw") or "unknown",
-        cores=usable_cores(),
-        source="py-cpuinfo",
-        family=family if _is_family(family) else None,
-    )
+    family = data.get("family") if _is_family(data.get("family")) else None
+    model, vendor = data.get("brand_raw") or "unknown", data.get("vendor_id_raw") or "unknown"
+    flags = data.get("flags") or []
+    return CpuInfo.from_flags(flags, model, vendor, usable_cores(), "py-cpuinfo", family)
 
 
 def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
@@ -202,14 +197,7 @@ def _from_proc_cpuinfo(path: Path = Path("/proc/cpuinfo")) -> CpuInfo:
             family = int(value.strip())
         elif key == "flags" and not flags:
             flags = value.split()
-    return CpuInfo.from_flags(
-        flags,
-        model=model,
-        vendor=vendor,
-        cores=usable_cores(),
-        source="/proc/cpuinfo",
-        family=family,
-    )
+    return CpuInfo.from_flags(flags, model, vendor, usable_cores(), "/proc/cpuinfo", family)
 
 
 def kernel_flags() -> frozenset[str]:
@@ -270,14 +258,7 @@ def _read_cache(path: Path) -> CpuInfo | None:
         and (family is None or _is_family(family))
     ):
         return None
-    return CpuInfo.from_flags(
-        flags,
-        model=model,
-        vendor=vendor,
-        cores=usable_cores(),
-        source="py-cpuinfo",
-        family=family,
-    )
+    return CpuInfo.from_flags(flags, model, vendor, usable_cores(), "py-cpuinfo", family)
 
 
 def _write_cache(path: Path, info: CpuInfo) -> None:
@@ -289,16 +270,8 @@ def _write_cache(path: Path, info: CpuInfo) -> None:
         for old in path.parent.glob("cpu-*.json"):
             if old != path:
                 old.unlink(missing_ok=True)
-        write_json(
-            path,
-            {
-                "flags": sorted(info.all_flags),
-                "model": info.model,
-                "vendor": info.vendor,
-                "family": info.family,
-            },
-            output=False,
-        )
+        record = {"flags": sorted(info.all_flags), "model": info.model, "vendor": info.vendor}
+        write_json(path, {**record, "family": info.family}, output=False)
     except (OSError, InputError):  # a read-only home, or a link or pipe at the cache's name:
         pass  # only costs the probe next time
 
@@ -324,12 +297,8 @@ def proxy_class() -> str | None:
 def as_proxy(info: CpuInfo, name: str) -> CpuInfo:
     """``info`` as the proxy class ``name`` shows it: the features it lacks removed, and the
     model says it is a proxy (every figure states the CPU it ran on)."""
-    keep = PROXY_CLASSES[name]
-    flags = [
-        f
-        for f in info.all_flags
-        if not f.startswith(_PROXY_DROPPED) or any(_norm(f) == _norm(k) for k in keep)
-    ]
+    keep = {_norm(k) for k in PROXY_CLASSES[name]}
+    flags = [f for f in info.all_flags if not f.startswith(_PROXY_DROPPED) or _norm(f) in keep]
     return CpuInfo.from_flags(
         flags,
         model=f"{info.model}, as {name} (cpuid proxy)",

@@ -262,14 +262,9 @@ def _tiff_layout(f: BinaryIO, path: Path) -> _TiffLayout:
         if (kind, count, value[:2]) != (3, 1, struct.pack(order + "H", 1)):
             orientation_at = at
     planar, compression = values(_PLANAR), values(_COMPRESSION)
-    return _TiffLayout(
-        header,
-        order,
-        big,
-        orientation_at,
-        planar=planar is not None and planar[0] == 2,
-        compressed=compression is not None and compression[0] != 1,
-    )
+    planar_config = planar is not None and planar[0] == 2
+    compressed = compression is not None and compression[0] != 1
+    return _TiffLayout(header, order, big, orientation_at, planar_config, compressed)
 
 
 def _as_stored(data: bytes, layout: _TiffLayout) -> bytes:
@@ -429,11 +424,8 @@ def read_image(
                 path,
             )
         data = _as_stored(data, layout)
-    img = (
-        None
-        if path.suffix.lower() == ".tga" and not tiff
-        else _decode_with_opencv(data, path, listen)
-    )
+    opencv = path.suffix.lower() != ".tga" or tiff  # OpenCV cannot read TGA
+    img = _decode_with_opencv(data, path, listen) if opencv else None
     if img is None and tiff:
         # OpenCV 5.1 fails on some sound TIFFs from memory (8-bit or 1-bit with 16 x 16 or
         # 48 x 48 tiles, as tifffile writes them): Pillow reads those; a structure checked

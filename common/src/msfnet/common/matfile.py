@@ -5,10 +5,9 @@ Readers that trust no size a file declares:
 - :func:`mat_directory`: one parse of every variable's element header (a compressed element is
   inflated only as far as its header), kept as a :class:`MatDirectory` that later reads reuse:
   a ground truth's headers are checked, then its values read, from one parse.
-- :func:`mat_shapes`: every variable's name and dimensions.
-- :func:`mat_array` / :meth:`MatDirectory.array`: one variable's values, for the common case
-  only (a full, real, numeric array); None for anything else, so that callers fall back to
-  ``scipy.io.loadmat``.
+- :attr:`MatDirectory.shapes`: every variable's name and dimensions.
+- :meth:`MatDirectory.array`: one variable's values, for the common case only (a full, real,
+  numeric array); None for anything else, so that callers fall back to ``scipy.io.loadmat``.
 - :func:`normals_variable`: the one rule for which variable holds ground-truth normals.
 - :func:`not_v5`: what a file that is not level 5 is (v4, v7.3/HDF5, no .mat), for the
   message that refuses it.
@@ -255,31 +254,28 @@ class MatDirectory:
             yield f
 
     def array(self, name: str) -> np.ndarray | None:
-        """Variable ``name``'s values, as :func:`mat_array` reads them, from this parse
-        (InputError where the file changed since: :meth:`reopen`)."""
+        """Variable ``name``, with the shape and values ``scipy.io.loadmat(path)[name]`` gives,
+        in the dtype of its MATLAB class (a double array stored as miUINT8 comes back float64,
+        as ``loadmat(..., mat_dtype=True)`` returns it) and native byte order; read from this
+        parse (InputError where the file changed since: :meth:`reopen`).
+
+        Only full, real, numeric arrays (double, single, int8 ... uint64) are read; None for
+        anything else (sparse, complex, logical, char, cell, struct, a name the file lacks),
+        for callers to fall back to ``scipy.io.loadmat``. Where a name occurs twice the last
+        one counts, as in loadmat. InputError for a damaged file: a size beyond the file or
+        the data, values of no number type (loadmat can crash on those), or more than
+        :data:`MAX_VALUES` values."""
         with self.reopen() as f:
-            return self._read(f, name)
-
-    def _read(self, f: BinaryIO, name: str) -> np.ndarray | None:
-        found = None
-        for variable in self.variables:
-            if variable.header.name == name:
-                found = variable  # the last one counts, as in loadmat
-        if found is None:
-            return None
-        try:
-            return _read_values(f, found, self.order, self.path)
-        except (ValueError, struct.error) as exc:
-            raise InputError(f"damaged .mat file ({first_line(exc)})", self.path) from exc
-
-
-def _directory(f: BinaryIO, path: Path) -> MatDirectory | None:
-    """The directory of the file open as ``f`` (at its start); None where it is not v5."""
-    stamp = _stamp(f)  # before the parse: a change during it shows at the next read
-    order = _byte_order(f)
-    if order is None:
-        return None
-    return MatDirectory(path, order, tuple(_variables(f, order, path)), stamp)
+            found = None
+            for variable in self.variables:
+                if variable.header.name == name:
+                    found = variable  # the last one counts, as in loadmat
+            if found is None:
+                return None
+            try:
+                return _read_values(f, found, self.order, self.path)
+            except (ValueError, struct.error) as exc:
+                raise InputError(f"damaged .mat file ({first_line(exc)})", self.path) from exc
 
 
 def mat_directory(path: str | Path) -> MatDirectory | None:
@@ -289,7 +285,11 @@ def mat_directory(path: str | Path) -> MatDirectory | None:
     one or one of more than 4,096 variables."""
     path = Path(path)
     with open(path, "rb") as f:
-        return _directory(f, path)
+        stamp = _stamp(f)  # before the parse: a change during it shows at the next read
+        order = _byte_order(f)
+        if order is None:
+            return None
+        return MatDirectory(path, order, tuple(_variables(f, order, path)), stamp)
 
 
 def not_v5(head: bytes) -> str:
@@ -312,31 +312,6 @@ def not_v5(head: bytes) -> str:
                 return "a MATLAB v4 file"
     # a noun phrase like the others: the caller adds "not a MATLAB v5 .mat file" itself
     return "a file of another format" if head else "an empty file"
-
-
-def mat_shapes(path: str | Path) -> dict[str, tuple[int, ...]] | None:
-    """Every variable of a MATLAB v5 .mat file with its dimensions, from the element headers
-    alone (:func:`mat_directory`). None for files that are not v5."""
-    directory = mat_directory(path)
-    return None if directory is None else directory.shapes
-
-
-def mat_array(path: str | Path, name: str) -> np.ndarray | None:
-    """Variable ``name`` of a MATLAB v5 .mat file, with the shape and values
-    ``scipy.io.loadmat(path)[name]`` gives, in the dtype of its MATLAB class (a double array
-    stored as miUINT8 comes back float64, as ``loadmat(..., mat_dtype=True)`` returns it) and
-    native byte order.
-
-    Only full, real, numeric arrays (double, single, int8 ... uint64) are read; None for
-    anything else (sparse, complex, logical, char, cell, struct, a v4 or v7.3/HDF5 file, a name
-    the file lacks), for callers to fall back to ``scipy.io.loadmat``. Where a name occurs twice
-    the last one counts, as in loadmat. InputError for a damaged file: a size beyond the file or
-    the data, values of no number type (loadmat can crash on those), or more than
-    :data:`MAX_VALUES` values. With the headers already parsed, :meth:`MatDirectory.array`."""
-    path = Path(path)
-    with open(path, "rb") as f:
-        directory = _directory(f, path)
-        return None if directory is None else directory._read(f, name)
 
 
 def _read_values(f: BinaryIO, variable: _Variable, order: str, path: Path) -> np.ndarray | None:

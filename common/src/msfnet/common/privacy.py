@@ -1,6 +1,6 @@
 """No usage reports from the libraries msfnet runs on, unless the user asks for them.
 
-Four of them report usage by default (the first three measured here, 2026-12-04):
+Four of them report usage by default:
 - ONNX Runtime 1.32 (Linux builds since 1.29) opens an event store and a device id under
   ``~/.cache/Microsoft/DeveloperTools/.onnxruntime`` (and a ``$TMPDIR/.ses``) in every
   process that imports it, to upload from (process, session, model, execution-provider and
@@ -13,7 +13,7 @@ Four of them report usage by default (the first three measured here, 2026-12-04)
 - Ray (the ``[ray]`` extra, for cluster batches) collects usage stats from a cluster it
   starts (its docs: opt-out, ``RAY_USAGE_STATS_ENABLED=0``). Ray 2.60's dashboard process
   still probes the cloud metadata services (169.254.169.254, metadata.google.internal) before
-  it reads that switch; no switch stops it (a review, 2026-12-04): docs/run.md says so.
+  it reads that switch; no switch stops it: docs/run.md says so.
 
 An inspection station or a lab machine should not talk to the network on its own, so the
 first msfnet import sets the switches above for this process and its children, where the

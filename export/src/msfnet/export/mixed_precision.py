@@ -184,18 +184,11 @@ def keep_fp32(
     return out
 
 
-def _session(model: onnx.ModelProto | bytes, threads: int):  # type: ignore[no-untyped-def]
-    import onnxruntime as ort
-
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.log_severity_level = 3
-    data = model if isinstance(model, bytes) else model.SerializeToString()
-    return ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
-
-
 def _outputs(model: onnx.ModelProto | bytes, samples: Sequence[dict], threads: int) -> list:
-    sess = _session(model, threads)
+    from msfnet.export.verify import cpu_session
+
+    data = model if isinstance(model, bytes) else model.SerializeToString()
+    sess = cpu_session(data, threads)
     return [sess.run(["normals"], feeds)[0] for feeds in samples]
 
 

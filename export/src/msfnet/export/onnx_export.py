@@ -176,10 +176,7 @@ def export_proto(model: torch.nn.Module, opset: int, static: StaticShape | None)
 
 
 def set_metadata(
-    proto: onnx.ModelProto,
-    values: dict[str, str],
-    *,
-    replace_all: bool = False,
+    proto: onnx.ModelProto, values: dict[str, str], *, replace_all: bool = False
 ) -> None:
     """Update (or with ``replace_all`` replace) metadata_props in place, keys kept in order."""
     current = {} if replace_all else {p.key: p.value for p in proto.metadata_props}

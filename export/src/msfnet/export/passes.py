@@ -104,15 +104,12 @@ def _fp16_storage(proto: onnx.ModelProto | None, _: PassContext) -> onnx.ModelPr
 
 
 def _rewrite_deconvs(proto: onnx.ModelProto | None, ctx: PassContext) -> onnx.ModelProto:
-    """ConvTranspose -> four 2x2 phase convs + DepthToSpace (exact in fp32), so they quantise.
-
-    'phases' rather than rewrite.py's 'conv3x3': same accuracy, but no zero-tap work, so a
-    faster int8 model (docs/benchmark.md, "Measurements behind the code's rules").
-    """
+    """ConvTranspose -> four 2x2 phase convs + DepthToSpace (exact in fp32), so they quantise
+    (docs/benchmark.md, "Measurements behind the code's rules")."""
     from msfnet.export.rewrite import rewrite_deconvs
 
     assert proto is not None
-    rewritten, count = rewrite_deconvs(proto, "phases")
+    rewritten, count = rewrite_deconvs(proto)
     ctx.notes["deconvs_rewritten"] = count
     return rewritten
 

@@ -101,7 +101,13 @@ def calibration_tiles(
     train_lights: int = TRAIN_LIGHTS,
     seed: int = 0,
 ) -> Iterator[tuple[dict[str, np.ndarray], np.ndarray, str]]:
-    """(feeds, mask (t, t), stack name) per tile; see ``calibration_samples``."""
+    """(feeds, mask (t, t), stack name) per tile: network feeds {'images': (1,N,3,t,t),
+    'lights': (1,N,3)} from real stacks.
+
+    Normalisation is per pixel, so normalising a crop equals cropping the normalised image.
+    Each stack gives tiles at up to three light counts (``lights``, 32 and 8, capped by the
+    stack's count) so the calibrated ranges cover the sqrt(N / 32) scaling the runtime applies.
+    """
     for si, stack in enumerate(stacks):
         counts = sorted({min(k, stack.num_lights) for k in (lights, 32, 8)})
         for ti, (y0, x0) in enumerate(tile_origins(stack.mask, tile, tiles_per_stack, seed + si)):
@@ -117,31 +123,9 @@ def calibration_tiles(
             yield {"images": x, "lights": dirs}, mask, stack.name
 
 
-def calibration_samples(
-    stacks: Sequence[Stack],
-    *,
-    tile: int = CALIB_TILE,
-    lights: int = CALIB_LIGHTS,
-    tiles_per_stack: int = CALIB_TILES_PER_STACK,
-    train_lights: int = TRAIN_LIGHTS,
-    seed: int = 0,
-) -> Iterator[dict[str, np.ndarray]]:
-    """Network feeds {'images': (1,N,3,t,t), 'lights': (1,N,3)} from real stacks.
-
-    Normalisation is per pixel, so normalising a crop equals cropping the normalised image.
-    Each stack gives tiles at up to three light counts (``lights``, 32 and 8, capped by the
-    stack's count) so the calibrated ranges
-    cover the sqrt(N / 32) scaling the runtime applies.
-    """
-    for feeds, _mask, _name in calibration_tiles(
-        stacks,
-        tile=tile,
-        lights=lights,
-        tiles_per_stack=tiles_per_stack,
-        train_lights=train_lights,
-        seed=seed,
-    ):
-        yield feeds
+def calibration_samples(stacks: Sequence[Stack], **options: int) -> Iterator[dict[str, np.ndarray]]:
+    """The feeds of :func:`calibration_tiles` (same options), without masks and names."""
+    return (feeds for feeds, _mask, _name in calibration_tiles(stacks, **options))
 
 
 def load_calibration_stacks(paths: Sequence[str | Path], max_lights: int = 96) -> list[Stack]:
@@ -223,8 +207,8 @@ ACTIVATION_PERCENTILE = 99.9995
 # random draw (a 96-light tile's activation holds up to 50 M values; an evenly strided subset
 # lines up with the tile's rows and reads only a few columns)
 PERCENTILE_SUBSAMPLE = 400_000
-# Activations fetched per pass over a tile: each is up to 200 MB at 96 lights (64 px tiles);
-# every pass runs the graph again (24 activations: 4 a pass took 95 s, 16 a pass 35 s)
+# Activations fetched per pass over a tile: each is up to 200 MB at 96 lights (64 px tiles),
+# and every pass runs the graph again (fewer, larger passes are faster)
 RANGES_PER_PASS = 12
 
 # Calibration must see many-light stacks (see above); when no stack given has MANY_LIGHTS, these
@@ -468,10 +452,7 @@ def _check_quantisable(model: onnx.ModelProto, method: str) -> None:
 
 
 def _quantize_static(
-    model: onnx.ModelProto,
-    samples: list[dict[str, np.ndarray]],
-    scratch: Path,
-    reduce_range: bool,
+    model: onnx.ModelProto, samples: list[dict[str, np.ndarray]], scratch: Path, reduce_range: bool
 ) -> onnx.ModelProto:
     """ONNX Runtime's quantize_static on ``model`` (min/max ranges over ``samples``), through
     files in ``scratch``: the QDQ graph it writes, loaded back."""

@@ -2,8 +2,8 @@
 
 Each row of :data:`VARIANTS` names a graph form (dynamic, static or staged) and a precision
 (fp32, fp16-stored weights, int8), the passes that build it and the rule its written file must
-pass. The CLI (``msf-export --variant NAME`` or the older flags), the benchmark and the tests all
-go through this table.
+pass. The CLI (``msf-export --variant NAME`` or the flags), the benchmark and the tests all go
+through this table.
 
 The pipeline works on one in-memory ``onnx.ModelProto``: torch export -> metadata -> (simplify)
 -> (fp16 storage | deconv rewrite -> int8 quantisation), then ONE write to a temporary sibling
@@ -42,11 +42,9 @@ DEFAULT_OPSET = 17  # TorchScript exporter: GELU as Erf, runs on older runtimes 
 MIN_OPSET, MAX_OPSET = 9, 20
 MIN_INT8_OPSET = 13  # per-channel QuantizeLinear / DequantizeLinear (axis attribute)
 TOLERANCE_DEG = 0.01
-# int8 vs the fp32 graph, mean over held-out 64 px calibration tiles (bundled model, the
-# README's calibration set ballPNG + psm cat + owl, tiles at 8-96 lights): the shipped recipe
-# 0.99 deg (8- and 12-light tiles of the psm stacks 0.7-2.5; ballPNG at 32 / 96 lights 0.31 /
-# 0.66); the same recipe with the regressor quantised, the known failure mode, 2.49 deg. On
-# whole images the recipe is better (full ballPNG at 96 lights 0.47): tiles are mostly rim.
+# int8 vs the fp32 graph, mean over held-out 64 px calibration tiles: between the shipped
+# recipe (~1 deg) and the known failure mode, the regressor quantised (~2.5 deg; the figures:
+# docs/benchmark.md, "Measurements behind the code's rules").
 INT8_MEAN_LIMIT_DEG = 1.5
 # A trained network's normals leave its final L2 normalisation with |n| = 1 to ~1e-7; an
 # all-zero or dead network gives |n| = 0 there, which an angle check alone cannot see
@@ -124,9 +122,7 @@ class Variant:
     """One row of the table: a graph form, a precision, its passes and its verification rule.
 
     ``passes`` name entries of ``msfnet.export.passes.PASSES``, run in order on the in-memory
-    model (``simplify`` is inserted after ``metadata`` when asked for). ``slow``: the export
-    takes minutes (calibration), so tests run it only with ``-m slow``.
-    """
+    model (``simplify`` is inserted after ``metadata`` when asked for)."""
 
     name: str
     summary: str
@@ -134,7 +130,6 @@ class Variant:
     precision: Precision
     passes: tuple[str, ...]
     rule: VerifyRule
-    slow: bool = False
 
     @property
     def needs_calibration(self) -> bool:
@@ -204,7 +199,6 @@ VARIANTS: tuple[Variant, ...] = (
         "int8",
         (*_EXPORT, *_INT8),
         INT8_RULE,
-        slow=True,
     ),
     Variant(
         "int8-mixed",
@@ -214,7 +208,6 @@ VARIANTS: tuple[Variant, ...] = (
         "int8",
         (*_EXPORT, "rewrite-deconvs", "quantise-int8-mixed"),
         INT8_RULE,
-        slow=True,
     ),
     Variant(
         "staged-int8",
@@ -224,7 +217,6 @@ VARIANTS: tuple[Variant, ...] = (
         "int8",
         (*_STAGED, *_INT8),
         INT8_RULE,
-        slow=True,
     ),
 )
 
@@ -376,9 +368,7 @@ class ExportRequest:
         choices=VARIANT_NAMES,
     )
     list_variants: bool = flag(
-        False,
-        "print the variants table (passes, verification rule) and exit",
-        action="store_true",
+        False, "print the variants table (passes, verification rule) and exit", action="store_true"
     )
     int8: bool = flag(
         False,

@@ -19,7 +19,6 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.export.variants import VerificationRow, VerifyRule
-from msfnet.runtime.contract import TRAIN_LIGHTS
 from msfnet.runtime.evaluate.metrics import angular_error_deg
 
 if TYPE_CHECKING:
@@ -51,27 +50,13 @@ def rendered_cases(
         yield Case(images, lights, masks)
 
 
-def tile_cases(
-    stacks: Sequence[Stack],
-    *,
-    tile: int,
-    lights: int,
-    tiles_per_stack: int,
-    train_lights: int = TRAIN_LIGHTS,
-    seed: int = 1000,
-) -> Iterator[Case]:
-    """Calibration-like tiles (inside the stacks' masks, at up to three light counts), taken at
-    other places than the calibration's own (different seed)."""
+def tile_cases(stacks: Sequence[Stack], *, seed: int = 1000, **options: int) -> Iterator[Case]:
+    """Calibration-like tiles (``quantize.calibration_tiles``, same options: inside the stacks'
+    masks, at up to three light counts), taken at other places than the calibration's own
+    (another seed)."""
     from msfnet.export.quantize import calibration_tiles
 
-    for feeds, mask, name in calibration_tiles(
-        stacks,
-        tile=tile,
-        lights=lights,
-        tiles_per_stack=tiles_per_stack,
-        train_lights=train_lights,
-        seed=seed,
-    ):
+    for feeds, mask, name in calibration_tiles(stacks, seed=seed, **options):
         yield Case(feeds["images"], feeds["lights"], mask[None], source=f"tile of {name}")
 
 
@@ -103,16 +88,20 @@ def session_runner(session: object, staged_chunk: int | None = None) -> Runner:
     return run
 
 
-def proto_runner(data: bytes, staged_chunk: int | None, threads: int | None = None) -> Runner:
-    """An in-memory ONNX graph (serialised) on ONNX Runtime's CPU provider."""
+def cpu_session(data: bytes, threads: int | None = None):  # type: ignore[no-untyped-def]
+    """An ONNX Runtime CPU session on a serialised graph, quiet (warnings off)."""
     import onnxruntime as ort
 
     opts = ort.SessionOptions()
     if threads:
         opts.intra_op_num_threads = threads
     opts.log_severity_level = 3
-    session = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
-    return session_runner(session, staged_chunk)
+    return ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+
+
+def proto_runner(data: bytes, staged_chunk: int | None, threads: int | None = None) -> Runner:
+    """An in-memory ONNX graph (serialised) on ONNX Runtime's CPU provider."""
+    return session_runner(cpu_session(data, threads), staged_chunk)
 
 
 def file_runner(path: Path, staged_chunk: int | None, threads: int | None = None) -> Runner:

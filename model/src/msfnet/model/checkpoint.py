@@ -37,6 +37,11 @@ class CheckpointError(InputError):
     """A file that is not an MSF-Net checkpoint, or one that does not fit the network."""
 
 
+# what torch.load raises on a file it cannot read (beyond refusing a pickle)
+_UNREADABLE: tuple[type[Exception], ...] = (RuntimeError, EOFError, OSError, ValueError)
+_UNREADABLE += (zipfile.BadZipFile, KeyError, AttributeError, TypeError, IndexError)
+
+
 def sha256_of(path: str | Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -67,17 +72,7 @@ def read_torch_file(path: str | Path) -> object:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise CheckpointError(_refusal(path, exc), path) from exc
-    except (
-        RuntimeError,
-        EOFError,
-        OSError,
-        ValueError,
-        zipfile.BadZipFile,
-        KeyError,
-        AttributeError,
-        TypeError,
-        IndexError,
-    ) as exc:
+    except _UNREADABLE as exc:
         raise CheckpointError(f"not a readable PyTorch checkpoint ({_reason(exc)})", path) from exc
 
 
@@ -85,11 +80,8 @@ def _reason(exc: BaseException) -> str:
     """Why torch could not read the file, short and complete: torch's first sentence (its
     zip reader adds a paragraph of advice), a damaged zip archive said plainly."""
     text = first_line(exc, 10_000)
-    if (
-        "failed reading zip archive" in text
-        or "central directory" in text
-        or isinstance(exc, zipfile.BadZipFile)
-    ):
+    damaged = ("failed reading zip archive", "central directory")
+    if isinstance(exc, zipfile.BadZipFile) or any(s in text for s in damaged):
         return "a truncated or damaged zip archive"
     sentence = text.split(". ")[0].rstrip(".")
     if len(sentence) > 160:
@@ -113,11 +105,7 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
 def _tensors(obj: object, path: Path) -> dict[str, torch.Tensor]:
     if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
         obj = obj["state_dict"]
-    if (
-        not isinstance(obj, Mapping)
-        or not obj
-        or not all(isinstance(v, torch.Tensor) for v in obj.values())
-    ):
+    if not isinstance(obj, Mapping) or not obj or not all(map(torch.is_tensor, obj.values())):
         raise CheckpointError(
             "does not hold a state_dict of tensors (expected "
             "{'state_dict': {...}} or a bare state_dict)",
@@ -212,12 +200,8 @@ def check_state_dict(
         if k in state and not _same_kind(state[k], v)
     )
     problems = []
-    for label, keys in (
-        ("missing", missing),
-        ("unexpected", unexpected),
-        ("mis-shaped", shapes),
-        ("mis-typed", kinds),
-    ):
+    labels = ("missing", "unexpected", "mis-shaped", "mis-typed")
+    for label, keys in zip(labels, (missing, unexpected, shapes, kinds), strict=True):
         if keys:
             shown = ", ".join(keys[:6]) + (f", ... (+{len(keys) - 6})" if len(keys) > 6 else "")
             problems.append(f"{len(keys)} {label} key(s): {shown}")

@@ -99,29 +99,27 @@ def make_sample(
     train_lights: int = TRAIN_LIGHTS,
 ) -> tuple[np.ndarray, ...]:
     """One augmented training sample: (input (N,3,c,c), lights (N,3), normals (3,c,c), mask)."""
+    where = stack.source or stack.name
     if stack.normals_gt is None:
-        raise InputError("training needs ground-truth normals", stack.source or stack.name)
+        raise InputError("training needs ground-truth normals", where)
     h, w = stack.shape
     if crop > min(h, w):
-        raise InputError(
-            f"crop {crop} is larger than the stack ({w}x{h})", stack.source or stack.name
-        )
+        raise InputError(f"crop {crop} is larger than the stack ({w}x{h})", where)
     if lights < MIN_LIGHTS:  # fewer lights cannot determine a normal: nothing to learn from
         raise InputError(
             f"a training sample of {lights} light(s): photometric stereo needs at least "
             f"{MIN_LIGHTS}",
-            stack.source or stack.name,
+            where,
         )
     if lights > stack.num_lights:
         # never fewer lights than asked: the log would report a count the network never saw,
         # and samples of different counts cannot be stacked into one batch
         raise InputError(
             f"a training sample of {lights} lights, but the stack has only {stack.num_lights}",
-            stack.source or stack.name,
+            where,
         )
-    count = lights
     r, c = random_crop(stack, crop, rng)
-    idx = rng.choice(stack.num_lights, size=count, replace=False)
+    idx = rng.choice(stack.num_lights, size=lights, replace=False)
     imgs = stack.images[idx, r : r + crop, c : c + crop]
     imgs, normals, mask, dirs = rotate_flip(
         imgs,
@@ -141,12 +139,8 @@ def make_sample(
     if calib_jitter > 0:  # imperfect intensity calibration, as on real rigs
         ints = ints * np.exp(rng.normal(0, calib_jitter, ints.shape)).astype(np.float32)
     x = normalise(imgs, ints, mask, train_lights)
-    return (
-        x,
-        dirs.astype(np.float32),
-        np.ascontiguousarray(normals.transpose(2, 0, 1)),
-        np.ascontiguousarray(mask),
-    )
+    normals = np.ascontiguousarray(normals.transpose(2, 0, 1))
+    return x, dirs.astype(np.float32), normals, np.ascontiguousarray(mask)
 
 
 def collate(samples: list[tuple[np.ndarray, ...]]) -> Batch:
@@ -202,12 +196,8 @@ class SynthSource:
         for _ in range(self.refresh):
             self.pool[self.counter % len(self.pool)] = self._render()
         picks = rng.choice(len(self.pool), size=size, replace=size > len(self.pool))
-        return collate(
-            [
-                make_sample(self.pool[i], lights, crop, rng, **augment)  # type: ignore[arg-type]
-                for i in picks
-            ]
-        )
+        stacks = [self.pool[i] for i in picks]
+        return collate([make_sample(s, lights, crop, rng, **augment) for s in stacks])  # type: ignore[arg-type]
 
 
 def _read_light_list(path: Path) -> tuple[list[str], np.ndarray]:
@@ -312,10 +302,7 @@ class BlobbySource:
     """Samples from the Blobby / Sculpture sets, decoded lazily with a small LRU cache."""
 
     def __init__(
-        self,
-        root: str | Path,
-        cache: int = 64,
-        pairs: Sequence[tuple[Path, Path]] | None = None,
+        self, root: str | Path, cache: int = 64, pairs: Sequence[tuple[Path, Path]] | None = None
     ) -> None:
         # ``pairs``: an index made (and checked) already, e.g. by the main process for its
         # DataLoader workers, which then need not search the root again
@@ -337,12 +324,8 @@ class BlobbySource:
         self, size: int, lights: int, crop: int, rng: np.random.Generator, **augment: float
     ) -> Batch:
         picks = rng.choice(len(self.pairs), size=size, replace=size > len(self.pairs))
-        return collate(
-            [
-                make_sample(self.get(int(i)), lights, crop, rng, **augment)  # type: ignore[arg-type]
-                for i in picks
-            ]
-        )
+        stacks = [self.get(int(i)) for i in picks]
+        return collate([make_sample(s, lights, crop, rng, **augment) for s in stacks])  # type: ignore[arg-type]
 
 
 # ----------------------------------------------------------------------------- worker stream
@@ -437,15 +420,7 @@ class StepStream(torch.utils.data.IterableDataset):
                 rng = np.random.default_rng([self.plan.seed, 2, step])
                 lights, crop = self.plan.lights_and_crop(step, rng)
                 b = source.batch(self.plan.batch, lights, crop, rng, noise=self.plan.noise)
-                yield {
-                    "images": b.images,
-                    "lights": b.lights,
-                    "normals": b.normals,
-                    "mask": b.mask,
-                    "step": step,
-                    "n_lights": lights,
-                    "crop": crop,
-                }
+                yield {**vars(b), "step": step, "n_lights": lights, "crop": crop}
         except InputError as exc:
             if info is None:  # iterated in the calling process: nothing to carry across
                 raise

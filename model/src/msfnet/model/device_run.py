@@ -179,10 +179,6 @@ def _final_snapshot(work: Path) -> None:
         save_checkpoint(model, work / snapshot_name(step), fp16=True, step=step)
 
 
-def _copy(src: Path, dest: Path) -> None:
-    shutil.copyfile(src, dest)
-
-
 def earlier_results(out: Path) -> list[str]:
     """What an earlier run delivered into ``out`` (snapshots, log, config, summary)."""
     if not out.is_dir():
@@ -199,7 +195,7 @@ def deliver(work: Path, out: Path, summary: Summary, keep: int) -> None:
     files = [*_snapshots(work, keep), work / "log.jsonl", work / "config.json"]
     for src in files:
         if src.is_file():
-            write_atomic(out / src.name, partial(_copy, src))
+            write_atomic(out / src.name, partial(shutil.copyfile, src))
             stale.discard(src.name)
     text = json.dumps(asdict(summary), indent=1) + "\n"
     write_atomic(out / "summary.json", lambda tmp: tmp.write_text(text))
@@ -290,22 +286,10 @@ def _train_and_deliver(
     threading.Thread(target=watchdog, daemon=True).start()
     sampler.start()
     extra = unknown + [a for a in args.train if a != "--"]
-    train_argv = [
-        "--out",
-        str(work),
-        "--device",
-        args.device,
-        "--render-on",
-        "device",
-        "--init",
-        str(args.init),
-        f"--batch={args.batch}",
-        *TRAIN_DEFAULTS,
-        f"--time-budget={budget:.1f}",
-        f"--snapshot-seconds={budget / keep:.1f}",
-        "--no-progress",
-        *extra,  # later options win (argparse keeps the last)
-    ]
+    train_argv = ["--out", str(work), "--device", args.device, "--render-on", "device"]
+    train_argv += ["--init", str(args.init), f"--batch={args.batch}", *TRAIN_DEFAULTS]
+    train_argv += [f"--time-budget={budget:.1f}", f"--snapshot-seconds={budget / keep:.1f}"]
+    train_argv += ["--no-progress", *extra]  # later options win (argparse keeps the last)
     print(f"device_run: training for {budget:.0f} s: msf-train {' '.join(train_argv)}", flush=True)
     from msfnet.model.train_cli import main as train_main
 

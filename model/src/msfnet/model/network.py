@@ -79,11 +79,9 @@ class Fusion(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        self.f_x = nn.Sequential(
-            nn.Conv2d(FEATURES, FEATURES, 1, bias=False), nn.BatchNorm2d(FEATURES)
-        )
-        self.f_y = nn.Sequential(
-            nn.Conv2d(FEATURES, FEATURES, 1, bias=False), nn.BatchNorm2d(FEATURES)
+        self.f_x, self.f_y = (
+            nn.Sequential(nn.Conv2d(FEATURES, FEATURES, 1, bias=False), nn.BatchNorm2d(FEATURES))
+            for _ in range(2)
         )
 
     def forward(self, feats: Tensor, pooled: Tensor) -> Tensor:
@@ -153,7 +151,3 @@ class MSFNet(nn.Module):
     def forward(self, images: Tensor, lights: Tensor) -> Tensor:
         """Deep-path normals (B, 3, H, W)."""
         return self.regressor(self.pooled_features(images, lights)[-1])
-
-
-def count_parameters(model: nn.Module) -> int:
-    return sum(p.numel() for p in model.parameters() if p.requires_grad)

@@ -19,6 +19,7 @@ import torch
 from msfnet.common.cli import command_main, make_parser, path_arg, positive_int, thread_count
 from msfnet.model.network import MSFNet
 from msfnet.runtime.contract import INPUT_MULTIPLE, TRAIN_LIGHTS, ModelInfo
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.metrics import normal_metrics
 from msfnet.runtime.infer.tiled import infer_normals
 from msfnet.runtime.infer.tiling import plan_tiles
@@ -50,8 +51,8 @@ class TorchModel:
     def precision(self) -> str:
         return "bf16" if self.bf16 else "fp32"
 
-    def describe(self) -> dict[str, object]:
-        return {"engine": self.name, "precision": self.precision, "threads": self.threads}
+    def describe(self) -> RunMethod:
+        return RunMethod.of_engine(self)
 
     @torch.no_grad()
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:

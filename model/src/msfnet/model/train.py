@@ -117,11 +117,8 @@ def stage_losses(
 
 def later_parameters(model: MSFNet) -> list[Tensor]:
     """Every trainable parameter outside extractor1 (what the middle loss may update under SUS)."""
-    return [
-        p
-        for n, p in model.named_parameters()
-        if not n.startswith("extractor1.") and p.requires_grad
-    ]
+    named = model.named_parameters()
+    return [p for n, p in named if not n.startswith("extractor1.") and p.requires_grad]
 
 
 def backward_losses(
@@ -377,14 +374,8 @@ class Trainer:
                 self.source = BlobbySource(cfg.data, pairs=self.blobby_pairs)
         val_opts = RenderOptions(size=cfg.val_size, lights=cfg.val_lights)
         self.val_set = list(render_set(cfg.val_seed, cfg.val_objects, val_opts))
-        self.val_ls = float(
-            np.mean(
-                [
-                    normal_metrics(least_squares_normals(s), _gt(s), s.mask).mae_deg
-                    for s in self.val_set
-                ]
-            )
-        )
+        ls = [normal_metrics(least_squares_normals(s), _gt(s), s.mask) for s in self.val_set]
+        self.val_ls = float(np.mean([m.mae_deg for m in ls]))
 
     # -- state
     def _state_paths(self) -> tuple[Path, Path]:
@@ -403,11 +394,9 @@ class Trainer:
 
     def _diverged(self, what: str, step: int) -> InputError:
         """The error that ends a diverged run; nothing is saved over last.pth or best.pth."""
-        kept = (
-            "nothing was saved"
-            if self.saved_step is None
-            else f"last.pth is left at step {self.saved_step}"
-        )
+        kept = f"last.pth is left at step {self.saved_step}"
+        if self.saved_step is None:
+            kept = "nothing was saved"
         return InputError(
             f"training diverged: {what} at step {step} (a learning rate too high? "
             f"{opt('lr', verbatim(f'{self.cfg.lr:g}'))}); {kept}",
@@ -454,19 +443,14 @@ class Trainer:
             ) from exc
         # load_state_dict does not compare the moments' shapes with the parameters': a
         # damaged state would fail at the first step as an internal error
-        for group in self.opt.param_groups:
-            for param in group["params"]:
-                for name, value in self.opt.state.get(param, {}).items():
-                    if (
-                        isinstance(value, torch.Tensor)
-                        and value.dim() > 0
-                        and value.shape != param.shape
-                    ):
-                        raise InputError(
-                            f"the optimiser state does not fit this network ({name} "
-                            f"{tuple(value.shape)} for a parameter {tuple(param.shape)})",
-                            state,
-                        )
+        for param in (p for group in self.opt.param_groups for p in group["params"]):
+            for name, value in self.opt.state.get(param, {}).items():
+                if isinstance(value, Tensor) and value.dim() > 0 and value.shape != param.shape:
+                    raise InputError(
+                        f"the optimiser state does not fit this network ({name} "
+                        f"{tuple(value.shape)} for a parameter {tuple(param.shape)})",
+                        state,
+                    )
         self.step, self.best = int(st["step"]), float(st["best"])
         self.saved_step = self.step
         self.history = self._history_until(self.step)
@@ -554,24 +538,19 @@ class Trainer:
     def _device_batches(self, total: int):
         """Batches rendered by the torch renderer on the training device: the batch of step
         s comes from a generator seeded with (seed, s), so a resumed run gets the same data."""
-        from msfnet.synth.torch_render import (
-            TorchRenderOptions,
-            render_batch,
-            step_seed,
-            training_tensors,
-        )
+        from msfnet.synth import torch_render as tr
 
         cfg = self.cfg
-        options = TorchRenderOptions.preset(cfg.render_preset)
+        options = tr.TorchRenderOptions.preset(cfg.render_preset)
         gen = torch.Generator(device=self.device)
         while self.step < total:
-            gen.manual_seed(step_seed(cfg.seed, self.step))
+            gen.manual_seed(tr.step_seed(cfg.seed, self.step))
             rng = np.random.default_rng([cfg.seed, 2, self.step])
             phase = cfg.phase(self.epoch)
             lights = int(rng.integers(phase.lights_min, phase.lights_max + 1))
             with torch.no_grad():  # (closed before the yield: grad mode is thread state)
-                rendered = render_batch(cfg.batch, lights, phase.crop, gen, options, self.device)
-                batch = Batch(*training_tensors(rendered, gen))
+                rendered = tr.render_batch(cfg.batch, lights, phase.crop, gen, options, self.device)
+                batch = Batch(*tr.training_tensors(rendered, gen))
             yield batch, lights, phase.crop
 
     def to_device(self, batch: Batch) -> Batch:
@@ -753,15 +732,8 @@ class Trainer:
         """The tqdm progress bar over the run's steps (disabled unless ``progress``)."""
         from tqdm import tqdm
 
-        return tqdm(
-            total=total,
-            initial=self.step,
-            desc="train",
-            unit="step",
-            disable=not progress,
-            mininterval=5.0,
-            dynamic_ncols=True,
-        )
+        bar = {"desc": "train", "unit": "step", "mininterval": 5.0, "dynamic_ncols": True}
+        return tqdm(total=total, initial=self.step, disable=not progress, **bar)
 
     def _batches(self, total: int) -> Iterator[tuple[Batch, int, int]]:
         """(batch, lights, crop) per step up to ``total``: rendered on the device, by loader
@@ -773,11 +745,7 @@ class Trainer:
         return self._local_batches(total)
 
     def _run_steps(
-        self,
-        run: _RunState,
-        batches: Iterator[tuple[Batch, int, int]],
-        bar: Any,
-        report: bool,
+        self, run: _RunState, batches: Iterator[tuple[Batch, int, int]], bar: Any, report: bool
     ) -> None:
         """The training loop: steps until the end, a signal, the time budget or the end of
         the batches, with logging, epoch ends and periodic saves along the way."""
@@ -876,16 +844,8 @@ class Trainer:
         util = gpu_utilisation() if self.device.type == "cuda" else None
         if util is not None:
             speed["gpu_util"] = util
-        self.log(
-            {
-                "step": self.step,
-                "epoch": epoch + 1,
-                "val_mae": mae,
-                "val_ls_mae": self.val_ls,
-                **speed,
-                "time": time.time(),
-            }
-        )
+        row = {"step": self.step, "epoch": epoch + 1, "val_mae": mae, "val_ls_mae": self.val_ls}
+        self.log({**row, **speed, "time": time.time()})
         gpu = f", GPU {util:.0f} %" if util is not None else ""
         if report:
             bar.write(
@@ -907,12 +867,8 @@ class Trainer:
             # Synthetic validation does not rank real objects reliably: keep
             # snapshots to select on real validation objects afterwards.
             self._check_finite()
-            save_checkpoint(
-                self.model,
-                self.out / snapshot_name(self.step),
-                step=self.step,
-                val_mae=mae,
-            )
+            snap = self.out / snapshot_name(self.step)
+            save_checkpoint(self.model, snap, step=self.step, val_mae=mae)
         if math.isfinite(mae) and mae < self.best:  # NaN is never "best"
             self.best = mae
             self._check_finite()

@@ -32,20 +32,10 @@ from msfnet.runtime.stack.types import MIN_LIGHTS
 
 PROG = "msf-train"
 COMMAND = Command(PROG, extra="train")
-# What msf-train writes into OUT: --overwrite deletes these and nothing else.
-# (Checkpoints are written through files.write_atomic; the ".*.pth.tmp" names are temporaries
-# that earlier msfnet versions left behind when killed with kill -9.)
-TRAIN_FILES = (
-    "config.json",
-    "log.jsonl",
-    "last.pth",
-    "last_state.pth",
-    "best.pth",
-    "curve.png",
-    ".last.pth.tmp",
-    ".last_state.pth.tmp",
-    ".best.pth.tmp",
-)
+# What msf-train writes into OUT: --overwrite deletes these and nothing else (with the
+# ".*.pth.tmp" temporaries an msf-train killed with kill -9 may have left).
+_WEIGHTS = ("last.pth", "last_state.pth", "best.pth")
+TRAIN_FILES = ("config.json", "log.jsonl", "curve.png", *_WEIGHTS, *(f".{w}.tmp" for w in _WEIGHTS))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -121,16 +111,8 @@ def _explicit(argv: list[str] | None) -> dict:
 # What --render-on device does not use: its renderer draws each batch at the step's crop and
 # light count (the curriculum), with its own sensor noise and object sizes, in the training
 # process. Given with it, these would be stored in config.json yet change nothing.
-CPU_RENDER_ONLY = (
-    "noise",
-    "render_size",
-    "render_size_max",
-    "render_max_depth",
-    "render_lights",
-    "pool",
-    "refresh",
-    "workers",
-)
+CPU_RENDER_ONLY: tuple[str, ...] = ("noise", "render_size", "render_size_max", "render_max_depth")
+CPU_RENDER_ONLY += ("render_lights", "pool", "refresh", "workers")
 
 
 def _flag(name: str) -> str:
@@ -277,8 +259,7 @@ def _prepare_out(args: argparse.Namespace) -> list[Path]:
     if args.resume and (not out.exists() or not _entries(out)):
         state = "does not exist" if not out.exists() else "is empty"
         raise InputError(
-            f"--resume: nothing to resume, the folder {state} (a new run: leave out --resume)",
-            out,
+            f"--resume: nothing to resume, the folder {state} (a new run: leave out --resume)", out
         )
     if args.resume or not out.exists() or not _entries(out):
         return []
@@ -358,10 +339,8 @@ def _run_locked(args: argparse.Namespace, argv: list[str] | None, started: float
         cfg = config_from(vars(args), {}, set(explicit))
         if cfg.init is not None:
             read_state_dict(cfg.init)  # a bad --init is refused while the earlier run exists
-    try:
-        trainer = Trainer(
-            cfg, resume=resume, started=started
-        )  # device, data, precision checked: writes nothing
+    try:  # device, data, precision checked: writes nothing
+        trainer = Trainer(cfg, resume=resume, started=started)
     except (ValueError, TypeError, KeyError, RuntimeError) as exc:
         if not resume or isinstance(exc, InputError):
             raise

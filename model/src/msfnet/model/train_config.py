@@ -146,7 +146,6 @@ class TrainConfig:
         name="--no-sus",
         action="store_false",
     )
-    # weight of gradient_loss beside the cosine loss (0: the paper's)
     grad_loss: float = flag(
         0.0,
         "add W x the L1 distance between predicted and true normal changes from pixel to pixel "
@@ -155,7 +154,6 @@ class TrainConfig:
         type=nonnegative_float,
         metavar="W",
     )
-    # weight of the rotation-consistency term (model.equivariance)
     consistency: float = flag(
         0.0,
         "also train each batch turned / mirrored one of 7 ways and add W x the disagreement of "
@@ -169,7 +167,6 @@ class TrainConfig:
         "'synth' (built-in renderer, default) or a Blobby/Sculpture root folder",
         type=path_text,
     )
-    # start from these weights (fresh optimiser), e.g. the bundled model
     init: str | None = flag(
         None,
         "start from these weights with a fresh optimiser (e.g. the bundled msfnet_default.pth), "
@@ -182,7 +179,6 @@ class TrainConfig:
         "synthetic object size in pixels (default %(default)s; --render-on cpu only)",
         type=int_range(8, MAX_SIZE),
     )
-    # sizes drawn from [render_size, render_size_max]
     render_size_max: int | None = flag(
         None,
         "draw each synthetic object's size from [--render-size, this]: larger renders are "
@@ -196,7 +192,6 @@ class TrainConfig:
         "--render-on cpu only)",
         type=positive_float,
     )
-    # "default" or "hard" (msfnet.synth RenderOptions.preset)
     render_preset: str = flag(
         "default",
         "synthetic data: 'default' renderer or 'hard' (steep rims, folds and cups with "
@@ -226,21 +221,16 @@ class TrainConfig:
         type=nonnegative_float,
     )
     val_objects: int = flag(
-        8,
-        "held-out synthetic validation objects (default %(default)s)",
-        type=positive_int,
+        8, "held-out synthetic validation objects (default %(default)s)", type=positive_int
     )
     val_size: int = flag(
-        64,
-        "validation object size in pixels (default %(default)s)",
-        type=int_range(8, MAX_SIZE),
+        64, "validation object size in pixels (default %(default)s)", type=int_range(8, MAX_SIZE)
     )
     val_lights: int = 32
     val_seed: int = 999_999
     ckpt_minutes: float = flag(
         10.0, "save last.pth at least this often (default %(default)s)", type=positive_float
     )
-    # keep snap_<step>.pth every this many epochs (0: none)
     snapshot_every: int = flag(
         0,
         "also keep snap_<step>.pth every this many epochs, to select a model on real objects "
@@ -249,16 +239,13 @@ class TrainConfig:
         metavar="EPOCHS",
     )
     log_every: int = flag(
-        10,
-        "append a log.jsonl row every this many steps (default %(default)s)",
-        type=positive_int,
+        10, "append a log.jsonl row every this many steps (default %(default)s)", type=positive_int
     )
     device: str = flag(
         "auto",
         "auto (default): cuda when torch sees a GPU, else cpu",
         choices=("auto", "cpu", "cuda"),
     )
-    # DataLoader worker processes; None = default_workers(device)
     workers: int | None = flag(
         None,
         "processes rendering batches in parallel (DataLoader workers, each with its own object "
@@ -266,8 +253,6 @@ class TrainConfig:
         "min(cores - 2, 12) with cuda (--render-on cpu only)",
         type=nonnegative_int,
     )
-    # "cpu": the numpy renderer (in process or in workers); "device": the torch renderer
-    # (msfnet.synth.torch_render) on the training device itself
     render_on: str = flag(
         "cpu",
         "where synthetic batches are rendered: cpu (default: the numpy renderer, in the "
@@ -278,8 +263,6 @@ class TrainConfig:
         "only and refused with device)",
         choices=("cpu", "device"),
     )
-    # stop (and save) this many seconds after msf-train started; this invocation's only
-    # (RUN_ONLY: never stored in config.json)
     time_budget: float | None = flag(
         None,
         "stop this many seconds after msf-train starts (imports and set-up included), "
@@ -289,7 +272,6 @@ class TrainConfig:
         type=positive_float,
         metavar="SECONDS",
     )
-    # also keep snap_<step>.pth (fp16) this often (0: never)
     snapshot_seconds: float = flag(
         0.0,
         "also keep snap_<step>.pth (fp16, ~4.5 MB) every this many seconds (default 0: none)",
@@ -332,13 +314,8 @@ def stored_value_problem(name: str, value: object) -> str | None:
     if value is None:
         return None if type(None) in args else _expected(kind, value)
     # JSON numbers: an integer is a float's value too, but true / false is no number
-    if kind is bool:
-        fits = isinstance(value, bool)
-    else:
-        fits = isinstance(value, (int, float) if kind is float else kind) and not isinstance(
-            value, bool
-        )
-    if not fits:
+    number = isinstance(value, (int, float) if kind is float else kind)
+    if not (isinstance(value, bool) if kind is bool else number and not isinstance(value, bool)):
         return _expected(kind, value)
     spec = next(f.metadata.get("flag") for f in fields(TrainConfig) if f.name == name)
     if spec is not None and spec.choices is not None and value not in spec.choices:

@@ -9,7 +9,7 @@ Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any st
     result = model(stack)                    # arrays only: nothing is written
     print(result.normals.shape)              # (H, W, 3) float32 unit normals, x right, y up
     print(result.metrics)                    # MAE / median / err15 / err30 with ground truth
-    result.save("out/obj")                   # the files msf-run writes (normals.npy/.png, ...)
+    result.save("out/obj")                   # the files msf-run writes (normals.npy, ...)
 
     # many stacks, one Result at a time, the next one decoded while this one runs
     for r in model.stream("stacks/"):        # a folder of stacks, a list, or a capture loop
@@ -51,6 +51,7 @@ from msfnet.runtime.engines.bundled import (
 if TYPE_CHECKING:
     pass
 from msfnet.runtime.engines.interrupt import time_limit
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.metrics import error_map, normal_metrics
 from msfnet.runtime.infer.compose import build_estimator
 from msfnet.runtime.infer.estimators import (
@@ -183,16 +184,13 @@ class Model:
     def method(self) -> str:
         return self.estimator.method
 
-    def describe(self) -> dict[str, object]:
+    def describe(self) -> RunMethod:
         return self.estimator.describe()
 
     def __repr__(self) -> str:
         d = self.describe()
-        what = "least squares" if self.method == "l2" else f"{d.get('model')}"
-        return (
-            f"Model({what}, engine={d.get('engine')}, precision={d.get('precision')}, "
-            f"threads={d.get('threads')})"
-        )
+        what = "least squares" if self.method == "l2" else d.model
+        return f"Model({what}, engine={d.engine}, precision={d.precision}, threads={d.threads})"
 
     def __call__(
         self,

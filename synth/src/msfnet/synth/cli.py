@@ -43,9 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("outdir", type=path_arg, help="output benchmark root (one folder per object)")
     p.add_argument("--objects", type=positive_int, default=8, help="number of objects (default 8)")
     p.add_argument(
-        "--lights",
-        type=int_range(3, MAX_LIGHTS),
-        help="lights per object (default 32; plates 12)",
+        "--lights", type=int_range(3, MAX_LIGHTS), help="lights per object (default 32; plates 12)"
     )
     p.add_argument(
         "--size",

@@ -65,9 +65,8 @@ def led_ring_lights(
         polar.append(angle + rng.uniform(-jitter_deg, jitter_deg, count))
         azim.append(az + np.radians(rng.uniform(-jitter_deg, jitter_deg, count)))
     th, ph = np.radians(np.concatenate(polar)), np.concatenate(azim)
-    return np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=1).astype(
-        np.float32
-    )
+    dirs = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=1)
+    return dirs.astype(np.float32)
 
 
 def ring_rig(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -76,13 +75,11 @@ def ring_rig(n: int, rng: np.random.Generator) -> np.ndarray:
     rings = 1 if rng.random() < 0.5 else 2
     rings = max(rings, int(np.ceil(n / 16)))
     if rings == 1:
-        angles = (rng.uniform(15.0, 55.0),)
+        angles: tuple[float, ...] = (rng.uniform(15.0, 55.0),)
+    elif rings == 2:
+        angles = (rng.uniform(10.0, 30.0), rng.uniform(35.0, 60.0))
     else:
-        angles = (
-            tuple(np.sort(rng.uniform(10.0, 60.0, rings)))
-            if rings > 2
-            else (rng.uniform(10.0, 30.0), rng.uniform(35.0, 60.0))
-        )
+        angles = tuple(np.sort(rng.uniform(10.0, 60.0, rings)))
     return led_ring_lights(n, rng, angles)
 
 

@@ -138,6 +138,15 @@ def render_plate(options: PlateOptions | None = None) -> Plate:
     labels = np.zeros((h, w), np.int32)
     found: list[Defect] = []
     usable_h = h - o.background_rows
+
+    def add(kind: str, centre: np.ndarray, depth: float, width: float, shape: tuple) -> None:
+        nonlocal depth_map
+        prof, inside = shape
+        depth_map = np.maximum(depth_map, prof)
+        label = len(found) + 1
+        labels[inside & (labels == 0)] = label
+        found.append(Defect(kind, (float(centre[0]), float(centre[1])), depth, width, label))
+
     # scratches: >= 2 px wide, 0.2-0.3 px deep, roughly horizontal and vertical so one crosses
     # the region near the mask edge as well
     specs = [
@@ -150,24 +159,12 @@ def render_plate(options: PlateOptions | None = None) -> Plate:
         p1 = np.array([b[0] * usable_h, b[1] * w]) + rng.uniform(-2, 2, 2)
         width = float(rng.uniform(2.0, 3.0))
         depth = float(rng.uniform(0.2, 0.3))
-        prof, inside = _scratch(rows, cols, p0, p1, width, depth)
-        depth_map = np.maximum(depth_map, prof)
-        label = len(found) + 1
-        labels[inside & (labels == 0)] = label
-        found.append(
-            Defect(
-                kind, (float((p0[0] + p1[0]) / 2), float((p0[1] + p1[1]) / 2)), depth, width, label
-            )
-        )
+        add(kind, (p0 + p1) / 2, depth, width, _scratch(rows, cols, p0, p1, width, depth))
     for cy, cx in ((0.70, 0.15), (0.35, 0.70)):
         centre = np.array([cy * usable_h, cx * w]) + rng.uniform(-2, 2, 2)
         diameter = float(rng.uniform(7.0, 10.0))
         depth = float(rng.uniform(0.4, 0.7))
-        prof, inside = _dent(rows, cols, centre, diameter, depth)
-        depth_map = np.maximum(depth_map, prof)
-        label = len(found) + 1
-        labels[inside & (labels == 0)] = label
-        found.append(Defect("dent", (float(centre[0]), float(centre[1])), depth, diameter, label))
+        add("dent", centre, depth, diameter, _dent(rows, cols, centre, diameter, depth))
     if o.relief:
         z = z - depth_map
     normals = _height_normals(z)

@@ -231,14 +231,8 @@ def _upsample(arr: np.ndarray, size_h: int, size_w: int) -> np.ndarray:
     channels at a time)."""
     n, h, w, c = arr.shape
     flat = arr.transpose(1, 2, 0, 3).reshape(h, w, n * c)
-    parts = [
-        cv2.resize(
-            np.ascontiguousarray(flat[..., i : i + 128]),
-            (size_w, size_h),
-            interpolation=cv2.INTER_LINEAR,
-        )
-        for i in range(0, n * c, 128)
-    ]
+    chunks = (np.ascontiguousarray(flat[..., i : i + 128]) for i in range(0, n * c, 128))
+    parts = [cv2.resize(p, (size_w, size_h), interpolation=cv2.INTER_LINEAR) for p in chunks]
     up = np.concatenate([p.reshape(size_h, size_w, -1) for p in parts], axis=2)
     return up.reshape(size_h, size_w, n, c).transpose(2, 0, 1, 3)
 
@@ -272,11 +266,9 @@ def bounce_light(
     beside the 0.8-2x gain drawn per object."""
     size_h, size_w = height.shape
     step = 2.0 / (size_w - 1)
-    src = (
-        np.ones((1, size_h, size_w, 1), np.float32)
-        if direct is None
-        else direct.astype(np.float32, copy=False)
-    )
+    src = np.ones((1, size_h, size_w, 1), np.float32)
+    if direct is not None:
+        src = direct.astype(np.float32, copy=False)
     out = _gather(src, height, normals, mask, *_near_offsets(), step)
     rings, ring_area = _ring_offsets(NEAR_PX + 0.5, radius / step, rng)
     k = -(-max(size_h, size_w) // max_size)
@@ -366,11 +358,10 @@ def render_stack(
         dirs = np.asarray(lights, np.float32)
     else:
         dirs = ring_rig(n, rng) if _chance(rng, options.ring_rigs) else rig_lights(n, rng)
-    ints = (
-        rig_intensities(len(dirs), rng)
-        if intensities is None
-        else np.asarray(intensities, np.float32)
-    )
+    if intensities is None:
+        ints = rig_intensities(len(dirs), rng)
+    else:
+        ints = np.asarray(intensities, np.float32)
     radiance = shade(normals, dirs, mat)  # (N, H, W, 3)
     shadow = cast_shadow_mask(height, mask, dirs)[..., None] if options.cast_shadows else None
     if shadow is not None:

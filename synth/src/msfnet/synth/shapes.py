@@ -158,9 +158,8 @@ def make_shape(
         return z, np.ones_like(z, bool)
     if kind == "folds" and rng.random() < 0.4:
         # A full-frame patch of folded cloth.
-        return cloth_folds(x, y, rng, fold_depth) + 0.05 * fourier_noise(
-            x, y, rng, 8, 0.5, 3.0
-        ), np.ones_like(x, bool)
+        z = cloth_folds(x, y, rng, fold_depth) + 0.05 * fourier_noise(x, y, rng, 8, 0.5, 3.0)
+        return z, np.ones_like(x, bool)
     if kind not in ALL_SHAPES:
         raise ValueError(f"unknown shape {kind!r}; choose from {', '.join(ALL_SHAPES)}")
     wobble = 0.0 if kind == "sphere" else 1.0
@@ -232,11 +231,7 @@ def _segment_profile(
         clo, chi = max(int(min(c0, c1) - pad), 0), min(int(max(c0, c1) + pad) + 2, size)
         if rlo >= rhi or clo >= chi:
             continue  # entirely off the frame
-        rr, cc = np.meshgrid(
-            np.arange(rlo, rhi, dtype=np.float64),
-            np.arange(clo, chi, dtype=np.float64),
-            indexing="ij",
-        )
+        rr, cc = np.mgrid[rlo:rhi, clo:chi].astype(np.float64)
         dr, dc = r1 - r0, c1 - c0
         t = np.clip(((rr - r0) * dr + (cc - c0) * dc) / max(dr * dr + dc * dc, 1e-9), 0.0, 1.0)
         d2 = (rr - r0 - t * dr) ** 2 + (cc - c0 - t * dc) ** 2
@@ -255,12 +250,8 @@ def _polyline(
 ) -> np.ndarray:
     """Segments (steps, 4) of a smoothly turning random walk in pixel coordinates."""
     headings = heading + np.cumsum(rng.normal(0.0, turn, steps))
-    pts = start + np.concatenate(
-        [
-            [[0.0, 0.0]],
-            np.cumsum(step_px * np.stack([np.sin(headings), np.cos(headings)], axis=1), axis=0),
-        ]
-    )
+    moves = step_px * np.stack([np.sin(headings), np.cos(headings)], axis=1)
+    pts = start + np.concatenate([[[0.0, 0.0]], np.cumsum(moves, axis=0)])
     return np.concatenate([pts[:-1], pts[1:]], axis=1)
 
 
@@ -341,12 +332,7 @@ def fine_relief(
 
     One to three of ``kinds`` are drawn; depths are 0.2-1.5 px and widths / periods 1-6 px, so
     the normals tilt by up to ~40 deg over 1-3 px."""
-    makers = {
-        "engraving": _engraving,
-        "scratches": _scratches,
-        "weave": _weave,
-        "lettering": _lettering,
-    }
+    makers = dict(zip(RELIEF_KINDS, (_engraving, _scratches, _weave, _lettering), strict=True))
     picks = rng.choice(len(kinds), size=min(len(kinds), int(rng.integers(1, 4))), replace=False)
     x, y = grid(size)
     z = np.zeros((size, size))

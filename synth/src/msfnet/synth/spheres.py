@@ -27,14 +27,6 @@ class Camera:
             return self.principal
         return (self.width - 1) / 2.0, (self.height - 1) / 2.0
 
-    def project(self, point: np.ndarray) -> tuple[float, float]:
-        """Pixel (u, v) of a 3-D point."""
-        cu, cv = self.centre
-        x, y, z = (float(c) for c in point)
-        if self.focal is None:
-            return cu + self.scale * x, cv - self.scale * y
-        return cu + self.focal * x / -z, cv - self.focal * y / -z
-
 
 @dataclass(frozen=True)
 class Sphere:
@@ -140,10 +132,7 @@ def sphere_masks(scene: Scene) -> list[np.ndarray]:
     """Per sphere: pixels whose centre sees it (bool, H x W)."""
     geo = _geometry(scene)
     centre = (scene.ss * scene.ss) // 2 if scene.ss % 2 else None
-    out = []
-    for hit, *_ in geo:
-        out.append(hit[..., centre] if centre is not None else hit.mean(-1) >= 0.5)
-    return out
+    return [hit[..., centre] if centre is not None else hit.mean(-1) >= 0.5 for hit, *_ in geo]
 
 
 def sphere_normals(scene: Scene, index: int = 0) -> np.ndarray:

@@ -1,9 +1,9 @@
 """Training batches rendered on the training device itself, as batched torch operations.
 
 The numpy renderer (:mod:`msfnet.synth.render`) makes whole objects one at a time on the CPU;
-on a GPU, its worker processes could not keep up (H100: 1,260 samples/s with 13 workers, GPU
-busy 72 %). This module renders the *crops* a training step needs, B samples x N lights at
-once, on whatever device the network trains on, so no process boundary or host copy is left.
+on a GPU, its worker processes could not keep up (docs/training.md). This module renders the
+*crops* a training step needs, B samples x N lights at once, on whatever device the network
+trains on, so no process boundary or host copy is left.
 
 Each sample is a patch of a height field seen through a crop, rendered on a grid with a margin
 around the crop (shadows and bounced light come from outside it too):
@@ -444,9 +444,7 @@ def _exposure(draw: _Draw, radiance: Tensor, mask: Tensor, dark: Tensor) -> Tens
     # the 99.5th percentile of a strided subsample of object values (a quantile of millions
     # per sample would cost more than the render)
     stride = max(1, vals.shape[1] // 8192)
-    sub = torch.where(
-        m[:, ::stride], vals[:, ::stride], torch.full_like(vals[:, ::stride], float("nan"))
-    )
+    sub = torch.where(m[:, ::stride], vals[:, ::stride], float("nan"))
     ref = torch.nanquantile(sub, 0.995, dim=1)
     top = torch.where(m, vals, torch.zeros_like(vals)).amax(1)
     ref = torch.where(torch.isnan(ref), torch.ones_like(ref), ref)
@@ -495,11 +493,9 @@ def render_batch(
     x, y = t[None, None, :].expand(1, p, p), -t[None, :, None].expand(1, p, p)
     mat, dark = _materials(draw, batch, x, y, options)
     radiance = shade(normals, dirs, mat)
-    lit = (
-        cast_shadows(height, support, dirs, options.shadow_steps)
-        if options.cast_shadows
-        else torch.ones_like(radiance[:, :, :1])
-    )
+    lit = torch.ones_like(radiance[:, :, :1])
+    if options.cast_shadows:
+        lit = cast_shadows(height, support, dirs, options.shadow_steps)
     radiance = radiance * lit
     bounced = draw.chance((batch,), options.interreflection)
     gain = draw.uniform((batch,), 0.8, 2.0)
@@ -521,15 +517,9 @@ def render_batch(
     radiance = radiance * mask_c[:, None, None]
     signal = _exposure(draw, radiance, mask_c, dark)
     signal = _sensor(draw, signal, options.bit_depths) if options.noise else signal.clamp(0.0, 1.0)
-    normals_c = normals[..., crop_rows, crop_rows] * mask_c[:, None]
-    return RenderedBatch(
-        signal.contiguous(),
-        dirs,
-        ints,
-        normals_c.contiguous(),
-        mask_c.contiguous(),
-        height[:, crop_rows, crop_rows].contiguous(),
-    )
+    normals_c = (normals[..., crop_rows, crop_rows] * mask_c[:, None]).contiguous()
+    height_c = height[:, crop_rows, crop_rows].contiguous()
+    return RenderedBatch(signal.contiguous(), dirs, ints, normals_c, mask_c.contiguous(), height_c)
 
 
 def normalise(

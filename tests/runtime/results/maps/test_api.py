@@ -34,7 +34,7 @@ def stack():
 
 
 def test_compute_maps_on_a_rendered_sphere(stack) -> None:
-    maps = stack_maps(stack, stack.normals_gt, MapOptions(method="poisson"))
+    maps = stack_maps(stack, stack.normals_gt, MapOptions(integration="poisson"))
     m = stack.mask
     # sphere_stack renders albedo 0.8 at a 40000 full scale
     assert np.allclose(maps.albedo[m], 0.8 * 40000, rtol=0.01)
@@ -93,7 +93,7 @@ def test_write_failure_leaves_nothing_half_written(stack, tmp_path: Path, monkey
 
 @pytest.mark.parametrize("method", ("fc", "poisson", "bini"))
 def test_degenerate_masks_give_documented_results(stack, tmp_path: Path, method: str) -> None:
-    opts = MapOptions(method=method)
+    opts = MapOptions(integration=method)
     empty = np.zeros(stack.shape, bool)
     maps = compute_maps(
         stack.images, stack.lights, stack.intensities, empty, stack.normals_gt, opts
@@ -124,7 +124,7 @@ def test_bad_input_and_options(stack) -> None:
     with pytest.raises(InputError, match="unknown map"):
         MapOptions(maps=("albedo", "depthmap"))
     with pytest.raises(InputError, match="method"):
-        MapOptions(method="sfs")
+        MapOptions(integration="sfs")
     with pytest.raises(InputError, match="intrinsics"):
         MapOptions(intrinsics=(100.0, -1.0, 0.0, 0.0))
     assert MapOptions(intrinsics=(100, 100, 20, 18)).intrinsics.fx == 100.0
@@ -159,7 +159,7 @@ from msfnet.runtime.results.maps.mesh import height_mesh, write_ply
 m = np.zeros((12, 14), bool); m[3:9, 3:11] = True
 n = np.zeros((12, 14, 3)); n[m] = (0.1, 0.2, 0.97)
 imgs = np.ones((3, 12, 14, 3), np.float32)
-maps = compute_maps(imgs, np.eye(3), np.ones((3, 3)), m, n, MapOptions(method="bini"))
+maps = compute_maps(imgs, np.eye(3), np.ones((3, 3)), m, n, MapOptions(integration="bini"))
 write_ply(sys.argv[1] + "/mesh.ply", height_mesh(maps.height, m, normals=maps.normals))
 import msfnet.runtime.results.maps.pictures  # drawing stays torch-free too
 import msfnet.runtime.results.maps.report

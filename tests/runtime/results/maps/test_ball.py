@@ -35,7 +35,7 @@ def fit_sphere(height: np.ndarray, mask: np.ndarray) -> tuple[float, np.ndarray]
 def test_ball_height_is_a_sphere_of_the_mask_radius(ball, tmp_path: Path, method: str) -> None:
     stack, normals = ball
     maps = stack_maps(
-        stack, normals, MapOptions(maps=("albedo", "height", "curvature"), method=method)
+        stack, normals, MapOptions(maps=("albedo", "height", "curvature"), integration=method)
     )
     write_maps(tmp_path, maps, report=False)
     height = np.load(tmp_path / "height.npy")

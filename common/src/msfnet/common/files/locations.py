@@ -58,9 +58,7 @@ def check_replaceable(target: str | Path, *, folder: bool = False) -> None:
     target = Path(target)
     try:
         mode = os.lstat(target).st_mode
-    except FileNotFoundError:
-        return
-    except OSError:  # e.g. a parent that is a file: the caller's checks name that
+    except OSError:  # nothing there, or e.g. a parent that is a file: the caller names that
         return
     if stat.S_ISLNK(mode):
         try:

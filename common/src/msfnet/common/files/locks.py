@@ -96,7 +96,6 @@ def folder_lock(folder: str | Path, who: str) -> Iterator[Path]:
     except BaseException:
         remove_empty(created)
         raise
-    key = Path(os.path.realpath(folder))
     _held[key] = 1
     try:
         yield folder

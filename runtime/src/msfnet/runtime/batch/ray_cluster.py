@@ -41,9 +41,11 @@ from msfnet.common.errors import InputError
 from msfnet.common.files import writing_as
 from msfnet.common.vocabulary import declare, opt, speaking_as
 from msfnet.runtime.batch.runner import BatchItem, BatchSummary, OnResult, StackRow, row_for
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.options import ModelOptions
 from msfnet.runtime.results.profile import BatchStats
+from msfnet.runtime.results.result import SaveOptions
 from msfnet.runtime.stack import LoadOptions, load_stack
 
 if TYPE_CHECKING:
@@ -212,7 +214,7 @@ class StackWorker:
         except InputError as exc:
             return {"name": name, "error": str(exc), "where": self.where}
         if self.spec.onnx_name is not None:
-            result.method["model"] = self.spec.onnx_name  # the driver's name, not our copy
+            result.method = replace(result.method, model=self.spec.onnx_name)  # the driver's name
         runs = result.timings.runs
         runs[-1]["load"] = decode_s
         runs[-1]["total"] = runs[-1].get("total", 0.0) + decode_s
@@ -443,11 +445,10 @@ class _Outputs:
     inputs: tuple[Path, ...]
     summary: BatchSummary
     on_result: OnResult | None
+    save: SaveOptions | None = None
 
-    def record(self, payload: dict[str, Any], item: BatchItem) -> dict[str, object]:
-        return _record(
-            payload, item, self.out_for, self.overwrite, self.inputs, self.summary, self.on_result
-        )
+    def record(self, payload: dict[str, Any], item: BatchItem) -> RunMethod | None:
+        return _record(payload, item, self)
 
 
 @dataclass
@@ -561,6 +562,7 @@ def run_batch_ray(
     address: str | None = None,
     workers: int | None = None,
     overwrite: bool = False,
+    save: SaveOptions | None = None,
     summary_dir: Path | None = None,
     on_result: OnResult | None = None,
     progress: bool | None = None,
@@ -582,10 +584,10 @@ def run_batch_ray(
             cluster_nodes(ray), threads, len(items), spec.options.max_memory_mb, workers
         )
         summary = BatchSummary(
-            "ray", {}, workers=plan.workers, prefetch=False, worker_memory_mb=plan.memory_mb
+            "ray", None, workers=plan.workers, prefetch=False, worker_memory_mb=plan.memory_mb
         )
         actors = _start_actors(ray, spec, plan, _absolute(load), threads)
-        outputs = _Outputs(out_for, overwrite, inputs, summary, on_result)
+        outputs = _Outputs(out_for, overwrite, inputs, summary, on_result, save)
         flight = _Flight(actors, list(reversed(items)))  # pop() from the end: the given order
         start = time.perf_counter()
         for worker in actors:
@@ -616,16 +618,9 @@ def run_batch_ray(
             ray.shutdown()
 
 
-def _record(
-    payload: dict[str, Any],
-    item: BatchItem,
-    out_for: Callable[[str], Path | None],
-    overwrite: bool,
-    inputs: tuple[Path, ...],
-    summary: BatchSummary,
-    on_result: OnResult | None,
-) -> dict[str, object]:
-    """Write one stack's outputs and add its row; returns what ran ({} on an error)."""
+def _record(payload: dict[str, Any], item: BatchItem, outputs: _Outputs) -> RunMethod | None:
+    """Write one stack's outputs and add its row; returns what ran (None on an error)."""
+    summary, on_result = outputs.summary, outputs.on_result
     if "error" in payload:
         row = StackRow(
             item.name, str(item.path), error=payload["error"], worker=payload.get("where")
@@ -633,12 +628,12 @@ def _record(
         summary.rows.append(row)
         if on_result:
             on_result(row, None)
-        return {}
+        return None
     result: Result = payload["result"]
-    out = out_for(item.name)
+    out = outputs.out_for(item.name)
     t0 = time.perf_counter()
     if out is not None:
-        result.save(out, overwrite=overwrite, inputs=inputs)
+        result.save(out, overwrite=outputs.overwrite, inputs=outputs.inputs, options=outputs.save)
     row = row_for(result, out)
     row.decode_s, row.compute_s = payload["decode_s"], payload["compute_s"]
     row.save_s, row.worker = time.perf_counter() - t0, payload["where"]

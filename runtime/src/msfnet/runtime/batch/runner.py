@@ -18,7 +18,9 @@ from typing import TYPE_CHECKING
 from msfnet.common.errors import InputError
 from msfnet.common.files import MANIFEST, STAGING_TAG, json_text, write_text
 from msfnet.common.vocabulary import opt
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.metrics import NormalMetrics
+from msfnet.runtime.results.result import SaveOptions
 from msfnet.runtime.sources import (
     BatchItem,
     StackSource,
@@ -56,7 +58,7 @@ class StackRow:
 @dataclass
 class BatchSummary:
     mode: str  # "local" or "ray"
-    model: dict[str, object]
+    model: RunMethod | None  # None: no stack has run yet
     rows: list[StackRow] = field(default_factory=list)
     wall_s: float = 0.0
     workers: int = 1
@@ -64,13 +66,13 @@ class BatchSummary:
     worker_memory_mb: float | None = None  # ray: each worker's share of --max-memory
     # ray: what workers ran other than ``model`` (a worker on another CPU class may pick
     # another engine, precision or the bundled model's int8 twin), each listed once
-    other_models: list[dict[str, object]] = field(default_factory=list)
+    other_models: list[RunMethod] = field(default_factory=list)
 
-    def note_model(self, method: dict[str, object]) -> None:
+    def note_model(self, method: RunMethod) -> None:
         """What ran one stack: the first becomes ``model``, another choice is listed too. A
         choice is the engine, precision, device, graph and the model's file name: workers
         installed under other paths, or with another OpenVINO build, chose the same."""
-        if not self.model:
+        if self.model is None:
             self.model = method
             return
         seen = [_choice(m) for m in (self.model, *self.other_models)]
@@ -108,13 +110,14 @@ class BatchSummary:
         return [r for r in self.rows if r.error is not None]
 
     def as_dict(self) -> dict[str, object]:
+        others = [m.as_json() for m in self.other_models]
         return {
             "mode": self.mode,
             "workers": self.workers,
             "prefetch": self.prefetch,
             "worker_memory_mb": self.worker_memory_mb,
-            "model": self.model,
-            **({"other_models": self.other_models} if self.other_models else {}),
+            "model": self.model.as_json() if self.model else {},
+            **({"other_models": others} if others else {}),
             "stacks": [asdict(r) for r in self.rows],
             "totals": {
                 "stacks": len(self.rows),
@@ -210,14 +213,10 @@ class BatchSummary:
         write_text(folder / "summary.md", self.markdown())
 
 
-def _choice(method: dict[str, object]) -> tuple[str, ...]:
+def _choice(m: RunMethod) -> tuple[str | None, ...]:
     """What a worker chose to run (Model.describe), without where it is installed."""
-    model = method.get("model")
-    name = Path(str(model)).name if model is not None else ""
-    return (
-        *(str(method.get(k)) for k in ("method", "engine", "precision", "device", "graph")),
-        name,
-    )
+    name = Path(m.model).name if m.model is not None else ""
+    return (m.method, m.engine, m.precision, m.device, m.graph, name)
 
 
 def check_batch_root(root: Path, names: Sequence[str], overwrite: bool) -> None:
@@ -281,6 +280,7 @@ def run_batch(
     out_for: Callable[[str], Path | None],
     *,
     overwrite: bool = False,
+    save: SaveOptions | None = None,
     prefetch: bool = True,
     summary_dir: Path | None = None,
     on_result: OnResult | None = None,
@@ -318,7 +318,7 @@ def run_batch(
                     compute_s = time.perf_counter() - t0
                     t0 = time.perf_counter()
                     if out is not None:  # all or nothing: a refused stack leaves no folder
-                        result.save(out, overwrite=overwrite, inputs=inputs)
+                        result.save(out, overwrite=overwrite, inputs=inputs, options=save)
                 except InputError as exc:  # e.g. intrinsics this stack's normals cannot use
                     error = exc
             if error is not None:

@@ -320,10 +320,10 @@ def evaluate(
         first = runners["msf"] if "msf" in runners else runners["l2"]
         summary = EvalSummary(
             [str(o.folder) for o in objects],
-            runners["msf"].describe().get("model") if "msf" in runners else None,  # type: ignore[arg-type]
+            runners["msf"].describe().model if "msf" in runners else None,
             list(runners),
             results,
-            fine_detail="msf" in runners and "fine_detail" in runners["msf"].describe(),
+            fine_detail="msf" in runners and runners["msf"].describe().fine_detail is not None,
             provenance=Provenance.of([o.folder for o in objects], first.describe()),
             figures=pictures.can_draw(),
         )

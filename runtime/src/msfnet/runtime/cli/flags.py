@@ -1,6 +1,7 @@
 """The option groups msf-run and msf-eval share, generated from the option dataclasses.
 
-Model settings come from :class:`~msfnet.runtime.options.ModelOptions`' own field metadata;
+Model settings come from :class:`~msfnet.runtime.options.ModelOptions`' own field metadata,
+the maps' from :class:`~msfnet.runtime.results.maps.MapOptions`';
 :class:`~msfnet.runtime.stack.LoadOptions` declares its own by category. Each
 command adds the groups it needs and builds the options once, in :func:`model_options` /
 :func:`load_options`.
@@ -11,18 +12,12 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from msfnet.common.cli import (
-    add_flags,
-    flag_names,
-    nonnegative_float,
-    options_from_args,
-    positive_float,
-)
+from msfnet.common.cli import add_flags, flag_names, options_from_args
 from msfnet.common.errors import InputError
 from msfnet.runtime.options import ModelOptions
-from msfnet.runtime.results.maps import MAP_NAMES, MAP_PRESETS, MapOptions, preset_maps
-from msfnet.runtime.results.maps.integrate import METHODS as INTEGRATION_METHODS
+from msfnet.runtime.results.maps import MAP_NAMES, MapOptions
 from msfnet.runtime.results.maps.registered import Frame, check_local_size
+from msfnet.runtime.results.result import SaveOptions
 from msfnet.runtime.stack import LoadOptions
 
 
@@ -49,84 +44,28 @@ def add_load_flags(
         add_flags(cam, LoadOptions, only=("white_level", "auto_mask"))
 
 
-def parse_maps(text: str) -> tuple[str, ...]:
-    """Map names, or one preset word (all, inspect, none: then no map)."""
-    names = tuple(n.strip() for n in text.split(",") if n.strip())
-    bad = [n for n in names if n not in MAP_NAMES]
-    if len(names) == 1 and names[0] in MAP_PRESETS:
-        return preset_maps(names)
-    if bad or not names:
-        raise argparse.ArgumentTypeError(
-            f"expected names from {','.join(MAP_NAMES)} or one of {', '.join(MAP_PRESETS)}, "
-            f"got {text!r}"
-        )
-    return names
-
-
 def add_map_flags(parser: argparse.ArgumentParser) -> None:
+    """MapOptions' flags, --no-maps (Model(maps=None)) and --no-report (a writer switch)."""
     insp = parser.add_argument_group(
         "inspection maps (written by default: albedo, height, curvature, mesh, report.html)"
     )
     insp.add_argument("--no-maps", action="store_true", help="write the normals only")
-    insp.add_argument(
-        "--maps",
-        type=parse_maps,
-        metavar="LIST",
-        help=f"which maps, comma-separated from {','.join(MAP_NAMES)}, or one of "
-        f"{', '.join(MAP_PRESETS)} (inspect: what msf-inspect reads, no mesh; none: as "
-        "--no-maps; default: all)",
-    )
-    insp.add_argument(
-        "--integration",
-        choices=INTEGRATION_METHODS,
-        default="poisson",
-        help="normal integration for the height map: poisson (masked least squares, default), "
-        "bini (keeps depth discontinuities sharp, slower), fc (Frankot-Chellappa FFT, full "
-        "frame)",
-    )
-    insp.add_argument(
-        "--intrinsics",
-        type=float,
-        nargs=4,
-        metavar=("FX", "FY", "CX", "CY"),
-        help="perspective camera (pixels) for the height map; default orthographic",
-    )
-    insp.add_argument(
-        "--curvature-sigma",
-        type=nonnegative_float,
-        default=MapOptions.curvature_sigma,
-        metavar="PX",
-        help="smoothing of the normals before curvature, px (default %(default)g; 0 = none)",
-    )
-    insp.add_argument(
-        "--pixel-size",
-        type=positive_float,
-        metavar="MM",
-        help="object-side size of one pixel of the stored images in mm (as --roi is in "
-        "stored-image pixels; with --downscale K a map pixel is K times it): the TIFFs then "
-        "hold mm and 1/mm, maps.json records both sizes",
-    )
-    insp.add_argument(
-        "--local-size",
-        type=positive_float,
-        default=MapOptions.local_size_px,
-        metavar="PX",
-        help="characteristic size of the local-shape map (height minus its trend at this "
-        "size), px of the maps (default %(default)g; at most their longer side)",
-    )
-    insp.add_argument(
-        "--no-tiff", action="store_true", help="no pixel-registered float32 TIFF maps"
-    )
-    insp.add_argument("--no-report", action="store_true", help="no report.html")
+    late = ("image_pixel_size_mm", "local_size_px", "tiff")  # --help's order, not the fields'
+    add_flags(insp, MapOptions, skip=late)
+    for name in late:
+        add_flags(insp, MapOptions, only=(name,))
+    add_flags(insp, SaveOptions, only=("report",))
+    parser.set_defaults(maps=None)  # not given: --no-maps contradicts only a given --maps
 
 
 def map_options(args: argparse.Namespace) -> MapOptions | None:
     """The inspection maps the flags ask for (None: normals only)."""
-    if getattr(args, "no_maps", True) and getattr(args, "maps", None) is not None:
+    given = getattr(args, "maps", None)
+    if getattr(args, "no_maps", True) and given is not None:
         raise InputError("--maps and --no-maps contradict each other: give one of them")
-    if getattr(args, "no_maps", True) or getattr(args, "maps", None) == ():  # --maps none
+    if getattr(args, "no_maps", True) or given == ():  # --maps none
         return None
-    intr = tuple(args.intrinsics) if args.intrinsics else None
+    intr = args.intrinsics
     if intr is not None and not (intr[0] > 0 and intr[1] > 0):
         raise InputError(
             f"--intrinsics: focal lengths must be positive, got {intr[0]:g}, {intr[1]:g}"
@@ -135,16 +74,8 @@ def map_options(args: argparse.Namespace) -> MapOptions | None:
     roi = getattr(args, "roi", None)
     frame = Frame.of_cut(roi, getattr(args, "downscale", None))
     k = frame.downscale
-    maps = MapOptions(
-        maps=args.maps or MAP_NAMES,
-        method=args.integration,
-        intrinsics=intr,
-        curvature_sigma=getattr(args, "curvature_sigma", MapOptions.curvature_sigma),
-        image_pixel_size_mm=getattr(args, "pixel_size", None),
-        local_size_px=getattr(args, "local_size", MapOptions.local_size_px),
-        tiff=not getattr(args, "no_tiff", False),
-        frame=frame,
-    )
+    overrides = {"maps": given or MAP_NAMES, "frame": frame}
+    maps = options_from_args(MapOptions, args, overrides=overrides)
     if roi and maps.wants("height") and intr is None:
         # the maps' size is known now: refuse before loading and inference, not after
         check_local_size(maps.local_size_px, (max(roi[3] // k, 1), max(roi[2] // k, 1)))
@@ -176,5 +107,4 @@ __all__ = [
     "load_options",
     "map_options",
     "model_options",
-    "parse_maps",
 ]

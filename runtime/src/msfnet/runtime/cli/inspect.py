@@ -38,6 +38,8 @@ from msfnet.common.cli import (
 from msfnet.common.errors import InputError
 from msfnet.common.files import check_output, staged_folder
 from msfnet.common.imageio import encode_png
+from msfnet.common.vocabulary import word
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.inspection.defects import (
     DefectOptions,
     InspectionInput,
@@ -158,8 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-# msf-run flags about what it writes: nothing here writes them, so they are refused
-WRITING_FLAGS = ("no_maps", "maps", "no_tiff", "no_report")
+# msf-run flags about what it writes, by dest, and the value each leaves when not given (--no-tiff
+# clears tiff): nothing here writes them, so they are refused
+WRITING_FLAGS = {"no_maps": False, "maps": None, "tiff": True, "report": True, "normals_png": False}
 # how a stack would be run, not what its maps mean: harmless beside a run folder (a PLC
 # wrapper that always caps threads and memory must keep working)
 RESOURCE_FLAGS = flag_names(ModelOptions, "resources")
@@ -259,8 +262,8 @@ def _run(args: argparse.Namespace, argv: list[str] | None = None) -> int:
     )
     check_output(args.output, inputs, overwrite=args.overwrite, folder=True, reads=reads)
     # given at all: --maps none parses to () (no map), still an output choice
-    given = [d for d in WRITING_FLAGS if getattr(args, d, None) not in (None, False)]
-    writing = [f"--{d.replace('_', '-')}" for d in given]
+    given = [d for d, unset in WRITING_FLAGS.items() if getattr(args, d, unset) != unset]
+    writing = [word(d).flag for d in given]
     if writing:
         raise InputError(
             f"{', '.join(writing)}: msf-run's output choices; msf-inspect writes only its "
@@ -408,13 +411,14 @@ def _print_part(record: object) -> None:
 
 def _provenance(args: argparse.Namespace, part: InspectionInput) -> Provenance:
     """What made the part's maps: this run's model, or the run folder's own record."""
-    method: dict[str, object] = dict(part.method or {})
-    if not method and is_run(args.input):
+    method = part.method
+    if method is None and is_run(args.input):
         try:
             profile = json.loads((args.input / "profile.json").read_text(encoding="utf-8"))
-            method = dict(profile.get("provenance") or {})
+            made = Provenance.from_dict(profile.get("provenance") or {})
+            method = RunMethod(model=made.model, engine=made.engine, precision=made.precision)
         except (OSError, ValueError, TypeError, AttributeError):
-            method = {}  # a run without a readable profile: the verdict still stands
+            method = None  # a run without a readable profile: the verdict still stands
     inputs = [p for p in (args.input, args.reference) if p is not None]
     return Provenance.of(inputs, method)
 

@@ -10,10 +10,18 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from msfnet.common.cli import Command, command_main, make_parser, path_arg, positive_int
+from msfnet.common.cli import (
+    Command,
+    add_flags,
+    command_main,
+    make_parser,
+    options_from_args,
+    path_arg,
+    positive_int,
+)
 from msfnet.common.errors import InputError
 from msfnet.common.files import (
     check_not_holding,
@@ -42,6 +50,7 @@ from msfnet.runtime.cli.flags import (
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
 from msfnet.runtime.instrument import announce, announcing
 from msfnet.runtime.options import ModelOptions
+from msfnet.runtime.results.result import SaveOptions
 from msfnet.runtime.stack import LoadOptions, Stack, folder_name, linked_reads
 
 PROG = "msf-run"
@@ -65,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Estimate per-pixel surface normals from a photometric stack with MSF-Net (ONNX, tiled "
         "to a memory budget) or classical least squares. STACK is a DiLiGenT-layout folder, a "
         "folder of images with a lights file (txt/json), an .npz, or a folder of such stacks "
-        "(sub-folders, or an objects.txt as msf-eval reads). Writes normals.npy, normals.png, "
+        "(sub-folders, or an objects.txt as msf-eval reads). Writes normals.npy, "
         "normals_view.png, profile.json, with ground truth metrics.json and error.png, and "
         "unless --no-maps the inspection maps (height, albedo, curvature, TIFFs, mesh.ply, "
         "report.html; docs/run.md); for several stacks one folder each plus summary.json and "
@@ -111,6 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace an existing output folder (only one msfnet wrote)",
     )
+    add_flags(p, SaveOptions, only=("normals_png",))
     p.add_argument(
         "--json",
         action="store_true",
@@ -167,7 +177,7 @@ class RunRequest:
     repeat: int = 1
     json: bool = False
     quiet: bool = False
-    report: bool = True
+    save: SaveOptions = field(default_factory=SaveOptions)
     prefetch: bool = True
     ray: str | None = None
     workers: int | None = None
@@ -189,7 +199,7 @@ class RunRequest:
             repeat=args.repeat,
             json=args.json,
             quiet=args.quiet,
-            report=not args.no_report,
+            save=options_from_args(SaveOptions, args),
             prefetch=not args.no_prefetch,
             ray=args.ray,
             workers=args.workers,
@@ -218,15 +228,15 @@ def print_result(result: Result, outdir: Path, files: list[Path], req: RunReques
         return
     if req.quiet:
         return
+    ran = result.method
     print(
         f"{result.stack.name}: {p['lights']} lights, {p['width']}x{p['height']}, "
-        f"{p['mask_pixels']} mask px, {p['method']} ({p['engine']} {p['precision']})"
+        f"{p['mask_pixels']} mask px, {ran.method} ({ran.engine} {ran.precision})"
     )
-    if p.get("choice"):  # its first reason: the whole (~400 characters) filled a log's line
-        whole = str(p["choice"])
-        first = whole.partition("; ")[0]
+    if ran.choice:  # its first reason: the whole (~400 characters) filled a log's line
+        first = ran.choice.partition("; ")[0]
         first = first if len(first) <= 110 else first[:107] + "..."
-        rest = " (every reason: profile.json, choice)" if first != whole else ""
+        rest = " (every reason: profile.json, choice)" if first != ran.choice else ""
         print(f"engine choice: {first}{rest}")
     tiles = p.get("tiles")
     if isinstance(tiles, dict):
@@ -383,10 +393,10 @@ def _run_single(req: RunRequest, src: Path | Stack, item: BatchItem | None = Non
         )
         if item is not None:
             result.input = item.describe_input(model._loading(load))  # the ROI's halo
-        report = req.report and result.maps is not None  # the report shows the maps
+        report = req.save.report and result.maps is not None  # the report shows the maps
         announce("writing the outputs" + (" and report.html" if report else ""))
         files = result.save(
-            out, overwrite=req.overwrite, inputs=tuple(load.inputs()), report=req.report
+            out, overwrite=req.overwrite, inputs=tuple(load.inputs()), options=req.save
         )
     _print_warnings(result, req)
     _warn_without_figures(req)
@@ -494,6 +504,7 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
             address=req.ray or None,
             workers=req.workers,
             overwrite=req.overwrite,
+            save=req.save,
             summary_dir=root,
             on_result=report,
             progress=progress,
@@ -507,6 +518,7 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
             load,
             lambda n: root / n,
             overwrite=req.overwrite,
+            save=req.save,
             prefetch=req.prefetch,
             summary_dir=root,
             on_result=report,

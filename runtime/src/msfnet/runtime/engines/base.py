@@ -20,6 +20,7 @@ from msfnet.common.cpu import CpuInfo, detect_cpu
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo, read_model_info
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.engines.ort_session import check_io
 
 ENGINES = ("onnxruntime", "openvino")
@@ -53,7 +54,7 @@ class Engine(Protocol):
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray: ...
 
-    def describe(self) -> dict[str, object]: ...
+    def describe(self) -> RunMethod: ...
 
 
 def engine_name(name: str) -> str:

@@ -15,6 +15,7 @@ from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo
 from msfnet.runtime.engines.base import check_int8_exact, model_precision, quantised_full_range
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.engines.ort_session import ModelSession, create_session
 
 
@@ -50,15 +51,8 @@ class OrtEngine:
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         return self.session.run(images, lights)
 
-    def describe(self) -> dict[str, object]:
-        return {
-            "engine": self.name,
-            "precision": self.precision,
-            "provider": self.provider,
-            "threads": self.threads,
-            "graph": "staged" if self.info.staged else "monolithic",
-            "chunk": self.chunk,
-        }
+    def describe(self) -> RunMethod:
+        return RunMethod.of_engine(self, provider=self.provider)
 
     def __repr__(self) -> str:
         return f"OrtEngine({self.info.path.name}, {self.precision}, threads={self.threads})"

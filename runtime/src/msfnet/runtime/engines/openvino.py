@@ -46,6 +46,7 @@ from msfnet.runtime.engines.base import (
     read_model_file,
 )
 from msfnet.runtime.engines.interrupt import run_interruptible
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.engines.ort_session import check_io, check_normals, default_threads
 from msfnet.runtime.engines.staged_loop import (
     DEFAULT_CHUNK,
@@ -342,16 +343,8 @@ class OpenVinoEngine:
         check_normals(self.info.path, images, out)
         return out
 
-    def describe(self) -> dict[str, object]:
-        return {
-            "engine": self.name,
-            "precision": self.precision,
-            "device": self.device,
-            "threads": self.threads,
-            "openvino": self.version,
-            "graph": "staged" if self.info.staged else "monolithic",
-            "chunk": self.chunk if self.info.staged else None,
-        }
+    def describe(self) -> RunMethod:
+        return RunMethod.of_engine(self, device=self.device, openvino=self.version)
 
     def __repr__(self) -> str:
         return f"OpenVinoEngine({self.info.path.name}, {self.precision}, threads={self.threads})"

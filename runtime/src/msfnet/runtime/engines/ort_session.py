@@ -18,6 +18,7 @@ from msfnet.common.errors import InputError, first_line
 from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo, read_model_info
 from msfnet.runtime.engines.interrupt import run_interruptible
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.engines.staged_loop import (
     DEFAULT_CHUNK,
     STAGE_INPUTS,
@@ -74,14 +75,8 @@ class ModelSession:
     def chunk(self) -> int | None:
         return self.lights_per_call if self.info.staged else None
 
-    def describe(self) -> dict[str, object]:
-        return {
-            "engine": self.name,
-            "precision": self.precision,
-            "provider": self.provider,
-            "threads": self.threads,
-            "chunk": self.chunk,
-        }
+    def describe(self) -> RunMethod:
+        return RunMethod.of_engine(self, provider=self.provider)
 
     def run(self, images: np.ndarray, lights: np.ndarray) -> np.ndarray:
         """images (1, N, 3, H, W), lights (1, N, 3) float32 -> normals (1, 3, H, W); every

@@ -35,13 +35,14 @@ stack.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import declare, opt
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.infer.estimators import Estimate, Estimator, TilingOptions
 from msfnet.runtime.infer.robust_least_squares import RobustFit, band_rows, robust_least_squares
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
@@ -68,6 +69,15 @@ DEFAULT_SHAPE_SCALE = 0.03
 DETAIL_POWER = 4
 SHAPE_POWER = 2
 WEIGHT_SMOOTH_PX = 1.5  # the weight map's own smoothing: no pixel-to-pixel switching
+# A rig's calibration error (LED intensities or light directions slightly off) raises the fit's
+# residual on every pixel of a part, where a highlight, a shadow or a broken fit raise it on
+# some: the weights read the residual above the part's floor (its FLOOR_PERCENTILE-th
+# percentile), up to FLOOR_CAP, the floor a calibration within a few per cent leaves (LED +-2 %:
+# 0.012 on a matte plate, which without it lost its shape to the network and the network's rim:
+# 2.26 deg at the mask's edge against least squares' 0.63). Above the cap the floor is the
+# material's own (DiLiGenT bear 0.043, harvest 0.063) and stays. docs/benchmark.md, 2026-12-08.
+FLOOR_PERCENTILE = 25.0
+FLOOR_CAP = 0.02
 # Fusion in row bands: the working set per pixel of a band (the weights, both low-passes, the
 # sum and its normalisation; measured ~160 B with tracemalloc, kept with a margin), the band's
 # context on either side in sigmas (OpenCV's float Gaussian reaches 4 sigma), the least rows.
@@ -161,6 +171,21 @@ def _weight(residual: np.ndarray, mask: np.ndarray, scale: float, power: int) ->
     return np.where(mask, weight, 0.0).astype(np.float32)
 
 
+def residual_floor(residual: np.ndarray, mask: np.ndarray) -> float:
+    """The part's residual floor: its FLOOR_PERCENTILE-th percentile over the fitted pixels,
+    at most FLOOR_CAP (0 without a fitted pixel)."""
+    fitted = residual[mask & (residual < 1)]
+    return min(float(np.percentile(fitted, FLOOR_PERCENTILE)), FLOOR_CAP) if fitted.size else 0.0
+
+
+def above_floor(residual: np.ndarray, floor: float) -> np.ndarray:
+    """The residual above ``floor``, taken off in quadrature (a calibration error's misfit adds
+    to the surface's; taking it off linearly cost DiLiGenT ball 0.14 deg, this 0.07); failed
+    fits (1) kept."""
+    lifted = np.sqrt(np.maximum(np.square(residual, dtype=np.float32) - floor**2, 0))
+    return np.where(residual >= 1, residual, lifted).astype(np.float32)
+
+
 def validity(fit: RobustFit, mask: np.ndarray, options: FusionOptions | None = None) -> Validity:
     """The weights exp(-(residual / scale)^power) of a robust fit (DETAIL_POWER for the detail,
     SHAPE_POWER for the shape), smoothed over WEIGHT_SMOOTH_PX inside the mask and capped at
@@ -183,16 +208,14 @@ class DetailFusionEstimator:
         self.network = network
         self.options = options or FusionOptions()
 
-    def describe(self) -> dict[str, object]:
+    def describe(self) -> RunMethod:
         o = self.options
-        return {
-            **self.network.describe(),
-            "detail_fusion": (
-                f"robust least squares where its Lambertian residual r is small (detail weight "
-                f"exp(-(r/{o.residual_scale:g})^{DETAIL_POWER}), shape weight "
-                f"exp(-(r/{o.shape_scale:g})^{SHAPE_POWER}), sigma {o.sigma:g} px)"
-            ),
-        }
+        said = (
+            f"robust least squares where its Lambertian residual r is small (detail weight "
+            f"exp(-(r/{o.residual_scale:g})^{DETAIL_POWER}), shape weight "
+            f"exp(-(r/{o.shape_scale:g})^{SHAPE_POWER}), sigma {o.sigma:g} px)"
+        )
+        return replace(self.network.describe(), detail_fusion=said)
 
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False
@@ -235,14 +258,15 @@ def fuse_in_bands(
     options: FusionOptions | None = None,
     rows: int | None = None,
 ) -> np.ndarray:
-    """:func:`validity` + :func:`fuse_detail` in bands of ``rows`` image rows, each computed
-    with FUSION_HALO_SIGMAS x sigma rows of context on either side (the Gaussians' reach), so
-    the result is the whole image's and the working set one band's. A band spans only the
-    columns of its mask pixels and the same context: outside the mask every term is zero, so
-    the rest of the width changes nothing beyond float rounding (OpenCV's filters may round
-    differently at another width: within 2e-7; an object on 5 % of the image fuses ~4x
-    faster)."""
+    """:func:`validity` of the residual :func:`above_floor` + :func:`fuse_detail` in bands of
+    ``rows`` image rows, each computed with FUSION_HALO_SIGMAS x sigma rows of context on either
+    side (the Gaussians' reach), so the result is the whole image's and the working set one
+    band's. A band spans only the columns of its mask pixels and the same context: outside the
+    mask every term is zero, so the rest of the width changes nothing beyond float rounding
+    (OpenCV's filters may round differently at another width: within 2e-7; an object on 5 % of
+    the image fuses ~4x faster)."""
     o = options or FusionOptions()
+    floor = residual_floor(fit.residual, mask)  # the whole part's, applied band by band
     h = mask.shape[0]
     rows = h if rows is None else max(1, rows)
     halo = int(np.ceil(FUSION_HALO_SIGMAS * max(o.sigma, WEIGHT_SMOOTH_PX)))
@@ -255,7 +279,7 @@ def fuse_in_bands(
         cols = np.flatnonzero(mask[a:b].any(axis=0))
         c0, c1 = max(0, int(cols[0]) - halo), min(mask.shape[1], int(cols[-1]) + 1 + halo)
         m = mask[a:b, c0:c1]
-        part = RobustFit(fit.normals[a:b, c0:c1], fit.residual[a:b, c0:c1])
+        part = RobustFit(fit.normals[a:b, c0:c1], above_floor(fit.residual[a:b, c0:c1], floor))
         v = validity(part, m, o)
         fused = fuse_detail(normals_net[a:b, c0:c1], part.normals, v.detail, m, o.sigma, v.shape)
         out[r0:r1, c0:c1] = fused[r0 - a : r1 - a]
@@ -269,7 +293,9 @@ __all__ = [
     "DetailFusionEstimator",
     "FusionOptions",
     "Validity",
+    "above_floor",
     "fuse_detail",
     "fuse_in_bands",
+    "residual_floor",
     "validity",
 ]

@@ -14,6 +14,7 @@ from typing import Protocol
 import numpy as np
 
 from msfnet.runtime.engines.base import Engine
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.infer.flops import inference_flops
 from msfnet.runtime.infer.least_squares import least_squares_normals
 from msfnet.runtime.infer.tiled import choose_plan, infer_normals
@@ -38,7 +39,7 @@ class Estimate:
 class Estimator(Protocol):
     method: str  # "msf" (the network) or "l2" (least squares)
 
-    def describe(self) -> dict[str, object]:
+    def describe(self) -> RunMethod:
         """What ran, for the profile and the console (engine, precision, threads, ...)."""
         ...
 
@@ -57,16 +58,16 @@ class NetworkEstimator:
         # published protocol's zeros beyond the mask everywhere
         self.edge_context = edge_context
 
-    def describe(self) -> dict[str, object]:
+    def describe(self) -> RunMethod:
         e = self.engine
-        return {
-            "method": self.method,
-            "model": str(e.info.path),
-            **e.describe(),
-            "graph": "staged" if e.info.staged else "monolithic",
-            "choice": self.reason or None,
-            "edge_context": self.edge_context,
-        }
+        return replace(
+            e.describe(),
+            method=self.method,
+            model=str(e.info.path),
+            graph="staged" if e.info.staged else "monolithic",
+            choice=self.reason or None,
+            edge_context=self.edge_context,
+        )
 
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False
@@ -83,15 +84,8 @@ class LeastSquaresEstimator:
 
     method = "l2"
 
-    def describe(self) -> dict[str, object]:
-        return {
-            "method": self.method,
-            "model": None,
-            "engine": "numpy",
-            "precision": "fp64",
-            "threads": None,
-            "choice": None,
-        }
+    def describe(self) -> RunMethod:
+        return RunMethod(method=self.method, engine="numpy", precision="fp64")
 
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False

@@ -20,6 +20,7 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import declare, opt
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.detail_ratio import SIGMA_PX, masked_smooth
 from msfnet.runtime.infer.estimators import Estimate, NetworkEstimator, TilingOptions
 from msfnet.runtime.infer.tiling import BASE_MEMORY_MB
@@ -88,11 +89,9 @@ class FineDetailEstimator:
         self.factor = factor
         self.sigma = sigma
 
-    def describe(self) -> dict[str, object]:
-        return {
-            **self.network.describe(),
-            "fine_detail": f"x{self.factor}, high-pass sigma {self.sigma:g} px",
-        }
+    def describe(self) -> RunMethod:
+        said = f"x{self.factor}, high-pass sigma {self.sigma:g} px"
+        return replace(self.network.describe(), fine_detail=said)
 
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False

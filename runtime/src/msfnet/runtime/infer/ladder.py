@@ -16,28 +16,23 @@ holds (infer/detail_fusion.py):
               FAST_LIGHTS evenly spaced lights (least squares still uses them all)
 
 Each rung is an estimator (infer/estimators.py): ``reduced_network`` is the network as a rung
-runs it, and Model adds the detail fusion as it does for the full network (its default);
-``LadderEstimator`` is the whole rung in one estimator. Measured time, memory, MAE and detail
-per rung are in docs/benchmark.md (``msf-bench --ladder``).
+runs it, and Model adds the detail fusion as it does for the full network (its default,
+infer/compose.py). Measured time, memory, MAE and detail per rung are in docs/benchmark.md
+(``msf-bench --ladder``).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import opt
-from msfnet.runtime.infer.detail_fusion import DetailFusionEstimator, FusionOptions
-from msfnet.runtime.infer.estimators import (
-    Estimate,
-    Estimator,
-    NetworkEstimator,
-    TilingOptions,
-)
+from msfnet.runtime.engines.method import RunMethod
+from msfnet.runtime.infer.estimators import Estimate, NetworkEstimator, TilingOptions
 from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack import Stack, evenly_spaced
 from msfnet.runtime.stack.readers import unit_normals
@@ -50,26 +45,24 @@ MIN_REDUCED_PX = 32
 
 @dataclass(frozen=True)
 class Rung:
-    """One step of the ladder: the network's scale (1 = full resolution), its light budget
-    (None: all lights) and whether least squares gives the full-resolution detail back."""
+    """One step of the ladder: the network's scale (1 = full resolution) and its light budget
+    (None: all lights)."""
 
     name: str
     scale: float  # the network runs on the stack shrunk by this factor
     max_lights: int | None
-    detail: bool
     summary: str
 
 
 RUNGS: dict[str, Rung] = {
-    "full": Rung("full", 1, None, True, "network on every pixel and light"),
+    "full": Rung("full", 1, None, "network on every pixel and light"),
     "balanced": Rung(
-        "balanced", 2.5, None, True, "network at 2/5 of the resolution + least-squares detail"
+        "balanced", 2.5, None, "network at 2/5 of the resolution + least-squares detail"
     ),
     "fast": Rung(
         "fast",
         3,
         FAST_LIGHTS,
-        True,
         f"network at a third of the resolution on <= {FAST_LIGHTS} lights + least-squares detail",
     ),
 }
@@ -128,8 +121,8 @@ class ReducedNetwork(NetworkEstimator):
         self.network = network  # runs the reduced stack, with its own settings (edge context)
         self.rung = step
 
-    def describe(self) -> dict[str, object]:
-        return {**self.network.describe(), "speed": self.rung.name, "speed_rung": self.rung.summary}
+    def describe(self) -> RunMethod:
+        return replace(self.network.describe(), speed=self.rung.name, speed_rung=self.rung.summary)
 
     def reduced(self, stack: Stack) -> tuple[Stack, float]:
         """The stack the network sees, and the scale actually used (1 where the stack is too
@@ -154,30 +147,6 @@ class ReducedNetwork(NetworkEstimator):
         return Estimate(normals, base.plan, base.flops)
 
 
-class LadderEstimator:
-    """The network run as ``rung`` says (see the module notes); ``full`` is the network alone.
-    The detail comes back through infer/detail_fusion.py's estimator, unchanged."""
-
-    method = "msf"
-
-    def __init__(
-        self, network: NetworkEstimator, step: Rung | str, fusion: FusionOptions | None = None
-    ) -> None:
-        self.rung = rung(step) if isinstance(step, str) else step
-        reduced = reduced_network(network, self.rung.name)
-        self.inner: Estimator = (
-            DetailFusionEstimator(reduced, fusion) if self.rung.detail else reduced
-        )
-
-    def describe(self) -> dict[str, object]:
-        return {**self.inner.describe(), "speed": self.rung.name, "speed_rung": self.rung.summary}
-
-    def estimate(
-        self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False
-    ) -> Estimate:
-        return self.inner.estimate(stack, tiling, timer, progress)
-
-
 def reduced_network(network: NetworkEstimator, speed: str | None) -> NetworkEstimator:
     """The network as ``--speed`` runs it (None or 'full': unchanged). The caller adds the
     detail fusion (Model does, by default), as it does for the full-resolution network."""
@@ -191,7 +160,6 @@ __all__ = [
     "DEFAULT_RUNG",
     "FAST_LIGHTS",
     "RUNGS",
-    "LadderEstimator",
     "ReducedNetwork",
     "Rung",
     "grow_normals",

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.infer.estimators import Estimate, Estimator, TilingOptions
 from msfnet.runtime.instrument import StageTimer
 from msfnet.runtime.stack import Stack
@@ -104,8 +105,8 @@ class TTAEstimator:
         self.inner, self.count = inner, count
         self.method = inner.method
 
-    def describe(self) -> dict[str, object]:
-        return {**self.inner.describe(), "tta": self.count}
+    def describe(self) -> RunMethod:
+        return replace(self.inner.describe(), tta=self.count)
 
     def estimate(
         self, stack: Stack, tiling: TilingOptions, timer: StageTimer, progress: bool = False

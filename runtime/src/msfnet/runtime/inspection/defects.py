@@ -35,6 +35,7 @@ from msfnet.common.errors import InputError, first_line
 from msfnet.common.files import json_text
 from msfnet.common.imageio import image_header
 from msfnet.common.vocabulary import flag, opt, options_type, verbatim
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.inspection.zones import Zones
 from msfnet.runtime.results.maps.api import InspectionMaps
 from msfnet.runtime.results.maps.registered import Frame, read_tiff
@@ -317,7 +318,7 @@ class InspectionInput:
     local_size_px: float | None = None
     frame: Frame = field(default_factory=Frame)
     perspective: bool = False
-    method: dict[str, object] | None = None  # the Model's describe() when run in process
+    method: RunMethod | None = None  # the Model's describe() when run in process
     # a variation model's centre (inspection.variation) carries the good parts' spreads
     local_shape_spread: np.ndarray | None = None
     curvature_spread: np.ndarray | None = None

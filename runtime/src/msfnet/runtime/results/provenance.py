@@ -14,6 +14,8 @@ from datetime import datetime, timezone
 from functools import lru_cache
 from pathlib import Path
 
+from msfnet.runtime.engines.method import RunMethod
+
 SHA_DIGITS = 12  # enough to tell two model files apart, short enough to read
 
 
@@ -66,25 +68,25 @@ class Provenance:
     def of(
         cls,
         input: str | Path | Sequence[str | Path],
-        method: Mapping[str, object],
+        method: RunMethod | None,
         *,
         argv: Sequence[str] | None = None,
         now: datetime | None = None,
     ) -> Provenance:
-        """From the input(s) and a model's ``describe()`` (what ran: model, engine,
-        precision)."""
+        """From the input(s) and what ran (``Model.describe()``: model, engine, precision;
+        None: not known)."""
         from msfnet.common.version import installed_version
 
         inputs = [input] if isinstance(input, (str, Path)) else list(input)
-        model = method.get("model")
-        sha = file_sha256(str(model)) if model else None
+        m = method or RunMethod()
+        sha = file_sha256(m.model) if m.model else None
         when = (now or datetime.now(timezone.utc)).astimezone(timezone.utc)
         return cls(
             input=", ".join(str(i) for i in inputs) or "-",
-            model=str(model) if model else None,
+            model=m.model or None,
             model_sha256=sha[:SHA_DIGITS] if sha else None,
-            engine=str(method.get("engine") or "-"),
-            precision=str(method.get("precision") or "-"),
+            engine=m.engine or "-",
+            precision=m.precision or "-",
             date=when.strftime("%Y-%m-%dT%H:%M:%SZ"),
             version=installed_version(),
             command=command_line(argv),

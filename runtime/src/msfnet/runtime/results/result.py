@@ -1,7 +1,8 @@
 """``Result``: everything one run produced, as arrays, and the folder it is saved as.
 
-The folder: normals.npy (H x W x 3 float32, camera frame, zeros outside the mask), normals.png
-(:func:`~msfnet.runtime.results.outputs.normals_png`), profile.json; with ground truth
+The folder: normals.npy (H x W x 3 float32, camera frame, zeros outside the mask) and its
+picture normals_view.png, profile.json (with ``SaveOptions(normals_png=True)`` normals.png too,
+:func:`~msfnet.runtime.results.outputs.normals_png`: the same normals, 16-bit); with ground truth
 metrics.json (NormalMetrics) and error.png (angular error with a colour bar, automatic range,
 blank where not scored); the inspection maps and report.html when computed. Written all
 together through :func:`msfnet.common.files.staged_folder`.
@@ -19,6 +20,8 @@ import numpy as np
 
 from msfnet.common.errors import InputError
 from msfnet.common.files import json_text, staged_folder
+from msfnet.common.vocabulary import flag, options_type
+from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.metrics import NormalMetrics
 from msfnet.runtime.infer.tiling import TilePlan
 from msfnet.runtime.results.maps import InspectionMaps
@@ -29,6 +32,21 @@ from msfnet.runtime.stack import Stack
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
+
+
+@options_type
+@dataclass(frozen=True)
+class SaveOptions:
+    """What a result folder holds beyond the normals (normals.npy and their picture), the
+    profile and the maps: report.html, and the normals a second time as a 16-bit PNG."""
+
+    report: bool = flag(True, "no report.html", name="--no-report", action="store_false")
+    normals_png: bool = flag(
+        False,
+        "also write normals.png, the normals as 16-bit RGB (n + 1) / 2 (as benchmarks store "
+        "them; normals.npy holds the same in float32)",
+        action="store_true",
+    )
 
 
 @contextmanager
@@ -55,7 +73,7 @@ class Result:
 
     stack: Stack
     normals: np.ndarray  # (H, W, 3) float32 unit normals, zeros outside the mask
-    method: dict[str, object]  # what ran (estimator.describe())
+    method: RunMethod  # what ran (Model.describe())
     timings: Profile
     metrics: NormalMetrics | None = None  # with ground truth
     error_deg: np.ndarray | None = None  # (H, W) angular error, NaN where not scored
@@ -68,7 +86,7 @@ class Result:
         """Latency per stage, memory, work done and what ran: profile.json's content."""
         h, w = self.stack.shape
         info: dict[str, object] = {
-            **self.method,
+            **self.method.as_json(),
             "stack": str(self.stack.source or self.stack.name),
             "lights": self.stack.num_lights,
             "height": h,
@@ -105,11 +123,12 @@ class Result:
         overwrite: bool = False,
         inputs: tuple[Path, ...] = (),
         write_mask: bool | None = None,
-        report: bool = True,
+        options: SaveOptions | None = None,
     ) -> list[Path]:
-        """Write normals.npy/png, profile.json and, with ground truth, metrics.json and
-        error.png into ``folder``, all at once or not at all; mask.png too when the mask was
-        computed (``write_mask``: None = only then). Returns the files written."""
+        """Write normals.npy, their picture, profile.json and, with ground truth, metrics.json
+        and error.png into ``folder``, all at once or not at all; mask.png too when the mask was
+        computed (``write_mask``: None = only then); the maps and report.html when computed
+        (``options``: SaveOptions). Returns the files written."""
         from msfnet.common.files import check_output
         from msfnet.runtime.stack import linked_reads
 
@@ -127,7 +146,7 @@ class Result:
             self,
             folder,
             overwrite=overwrite,
-            report=report,
+            options=options,
             write_mask=self.auto_mask if write_mask is None else write_mask,
         )
 
@@ -139,9 +158,7 @@ class Result:
 
     def _what_ran(self) -> str:
         m = self.method
-        if m.get("method") == "l2":
-            return "least squares"
-        return f"msf {m.get('engine')} {m.get('precision')}"
+        return "least squares" if m.method == "l2" else f"msf {m.engine} {m.precision}"
 
     def summary(self) -> str:
         """One line: what ran on which stack, the score with ground truth, and the time."""
@@ -250,22 +267,24 @@ class Result:
         return replace(self, stack=stack)
 
 
-def fill_result_folder(folder: Path, result: Result, report: bool = True) -> None:
+def fill_result_folder(folder: Path, result: Result, options: SaveOptions | None = None) -> None:
     """Write a result's files into an (empty, staging) folder: the normals as data and as a
     picture with a colour-convention sphere, metrics and an error picture with a colour bar
     (automatic range) when there is ground truth, the profile, and the inspection maps with
     report.html when they were computed."""
     from msfnet.runtime.results.maps import pictures, write_maps
 
+    o = options or SaveOptions()
     mask = result.stack.mask
-    profile = result.profile()
-    if "provenance" not in profile:  # where it came from, in profile.json and report.html
-        src = result.stack.source or result.stack.name
-        profile["provenance"] = Provenance.of(src, profile).as_dict()
+    profile = result.profile()  # and where it came from, for profile.json and report.html
+    src = result.stack.source or result.stack.name
+    profile["provenance"] = Provenance.of(src, result.method).as_dict()
     np.save(folder / "normals.npy", np.ascontiguousarray(result.normals, np.float32))
-    write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
-    # the figures need Pillow (their text); without it everything else is written
+    # the figures need Pillow (their text); without it everything else is written, and the
+    # 16-bit normals.png is the normals' picture
     draw = pictures.can_draw()
+    if o.normals_png or not draw:
+        write_rgb_png(folder / "normals.png", normals_png(result.normals, mask))
     rendered: dict[str, bytes] = {}
     if draw:
         rendered["normals"] = pictures.png_bytes(pictures.normals_picture(result.normals, mask))
@@ -290,7 +309,7 @@ def fill_result_folder(folder: Path, result: Result, report: bool = True) -> Non
             images=images,
             error_deg=result.error_deg,
             profile=profile,
-            report=report,
+            report=o.report,
             title=f"msfnet: {result.stack.name}",
             rendered=rendered,
         )
@@ -301,17 +320,17 @@ def write_result(
     outdir: Path,
     *,
     overwrite: bool = False,
-    report: bool = True,
+    options: SaveOptions | None = None,
     write_mask: bool = False,
 ) -> list[Path]:
     """Write every result file (``write_mask``: mask.png too), or none of them. Returns the
     final paths."""
     with staged_folder(outdir, overwrite=overwrite) as tmp:
-        fill_result_folder(tmp, result, report=report)
+        fill_result_folder(tmp, result, options=options)
         if write_mask:
             write_rgb_png(tmp / "mask.png", result.stack.mask.astype(np.uint8) * 255)
         names = sorted(p.name for p in tmp.iterdir())
     return [outdir / n for n in names]
 
 
-__all__ = ["Result", "fill_result_folder", "write_result"]
+__all__ = ["Result", "SaveOptions", "fill_result_folder", "write_result"]

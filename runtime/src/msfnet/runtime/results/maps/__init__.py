@@ -2,7 +2,7 @@
 and a self-contained HTML report.
 
     from msfnet.runtime.results.maps import MapOptions, compute_maps, write_maps
-    maps = compute_maps(images, lights, intensities, mask, normals, MapOptions(method="bini"))
+    maps = compute_maps(images, lights, intensities, mask, normals, MapOptions(integration="bini"))
     files = write_maps(outdir, maps, images=images, error_deg=err, profile=profile)
 
 Modules, one job each: ``albedo`` (least-squares RGB albedo), ``integrate`` (normals -> height:

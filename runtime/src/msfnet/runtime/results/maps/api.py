@@ -1,12 +1,13 @@
 """The inspection-maps entry point: compute every map from one run, write them all.
 
 Wiring into a run is two lines (``stack``: the loaded Stack, ``normals``: the estimate):
-    maps = stack_maps(stack, normals, MapOptions(method="poisson"))
+    maps = stack_maps(stack, normals, MapOptions(integration="poisson"))
     files = write_maps(outdir, maps, images=stack.images, error_deg=err, profile=summary)
 """
 
 from __future__ import annotations
 
+import argparse
 import time
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
@@ -15,9 +16,10 @@ from typing import Any
 
 import numpy as np
 
+from msfnet.common.cli import nonnegative_float, positive_float
 from msfnet.common.errors import InputError
 from msfnet.common.files import json_text, write_atomic
-from msfnet.common.vocabulary import declare
+from msfnet.common.vocabulary import flag, options_type
 from msfnet.runtime.results.maps.albedo import DEFAULT_MIN_SHADING, checked_albedo, display_level
 from msfnet.runtime.results.maps.budget import MapsBudget
 from msfnet.runtime.results.maps.curvature import DEFAULT_SIGMA, curvature_maps
@@ -44,15 +46,6 @@ from msfnet.runtime.results.maps.registered import (
 from msfnet.runtime.results.maps.validate import check_normals
 from msfnet.runtime.stack import Stack
 
-# MapOptions' settings under their command-line spellings (msf-run's map group, built by hand
-# in runtime.cli.flags: its --integration is MapOptions.method, which ModelOptions.method would
-# clash with as a keyword). --no-maps is Model(maps=None), that text its keyword.
-declare("maps", "--maps")
-declare("maps=None", "--no-maps")
-declare("intrinsics", "--intrinsics")
-declare("image_pixel_size_mm", "--pixel-size")
-declare("local_size_px", "--local-size")
-
 MAP_NAMES = ("albedo", "height", "curvature", "mesh")
 # one word for a usual set (--maps inspect, Model(maps="inspect")): "inspect" is what
 # msf-inspect judges and aligns with (local shape comes with the height), no mesh
@@ -68,6 +61,17 @@ def preset_maps(names: tuple[str, ...]) -> tuple[str, ...]:
     return MAP_PRESETS[names[0]] if len(names) == 1 and names[0] in MAP_PRESETS else names
 
 
+def parse_maps(text: str) -> tuple[str, ...]:
+    """--maps: map names, or one preset word (all, inspect, none: then no map)."""
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if names and all(n in MAP_NAMES for n in preset_maps(names)):
+        return preset_maps(names)
+    raise argparse.ArgumentTypeError(
+        f"expected names from {','.join(MAP_NAMES)} or one of {', '.join(MAP_PRESETS)}, "
+        f"got {text!r}"
+    )
+
+
 PIXEL_SIZE_MM = (1e-6, 1e4)  # 1 nm (microscopes) to 10 m (aerial) a pixel
 # what the registered TIFFs hold where there is no value (maps.json "outside_mask"; docs/run.md)
 OUTSIDE_MASK = (
@@ -76,52 +80,91 @@ OUTSIDE_MASK = (
 )
 
 
+@options_type
 @dataclass(frozen=True)
 class MapOptions:
-    """What to compute and how.
+    """What to compute and how (the user-set fields carry their flags: msf-run's map group).
 
     maps: any of "albedo", "height", "curvature", "mesh" ("mesh" implies "height").
-    method: integration method, "fc" | "poisson" | "bini" (see maps.integrate).
+    integration: the height's, "fc" | "poisson" | "bini" (see maps.integrate).
     intrinsics: (fx, fy, cx, cy) in pixels for a perspective camera; None = orthographic.
     depth_ref: perspective only, the median object depth the unknown scale is fixed to
         (default fx: heights then read in pixels at that distance).
     min_nz: smallest nz (or |D|) used for slopes, bounding them to 1/min_nz px per px.
     min_shading, saturation: albedo observation filters (cosine; image units, None = the
         images' full scale, see maps.albedo.default_saturation).
-    curvature_sigma: Gaussian pre-smoothing of the normals for curvature, in pixels.
     bini_k, bini_max_iter, bini_tol: "bini" sharpness, rounds and energy tolerance.
     mesh_max_jump: drop mesh triangles spanning a larger height step (px); None keeps all.
     pixel_size_mm: the object-side size of one pixel of the maps; with it the registered
         TIFFs hold mm (height, local shape) and 1/mm (curvature); None = pixel units.
-    image_pixel_size_mm: the same for one pixel of the stored images (msf-run's --pixel-size,
-        as --roi is in stored-image pixels); given, it sets ``pixel_size_mm`` to it x
+    image_pixel_size_mm: the same for one pixel of the stored images (as --roi is in
+        stored-image pixels); given, it sets ``pixel_size_mm`` to it x
         ``frame.downscale`` (a map pixel is K x K stored ones); not given, it is
         ``pixel_size_mm`` / ``frame.downscale``. Both go into maps.json.
     frame: where the maps sit in the stored images (--roi corner, --downscale K; see
         maps.registered.Frame): recorded in maps.json and the TIFFs' position tags. The
         commands set it from their flags; a caller loading with LoadOptions(roi=...,
         downscale=...) passes it here (the maps cannot know how their stack was cut).
-    local_size_px: the characteristic size of the local-shape map (height minus its trend
-        smoothed at this many px; see maps.registered); at most the maps' longer side.
-    tiff: write the pixel-registered float32 TIFFs (maps.registered).
+    curvature_sigma, local_size_px (see maps.registered), tiff: as their flags say.
     """
 
-    maps: tuple[str, ...] = MAP_NAMES
-    method: str = "poisson"
-    intrinsics: Intrinsics | tuple[float, float, float, float] | None = None
+    maps: tuple[str, ...] = flag(
+        MAP_NAMES,
+        f"which maps, comma-separated from {','.join(MAP_NAMES)}, or one of "
+        f"{', '.join(MAP_PRESETS)} (inspect: what msf-inspect reads, no mesh; none: as "
+        "--no-maps; default: all)",
+        type=parse_maps,
+        metavar="LIST",
+    )
+    integration: str = flag(
+        "poisson",
+        "normal integration for the height map: poisson (masked least squares, default), "
+        "bini (keeps depth discontinuities sharp, slower), fc (Frankot-Chellappa FFT, full "
+        "frame)",
+        choices=METHODS,
+    )
+    intrinsics: Intrinsics | tuple[float, float, float, float] | None = flag(
+        None,
+        "perspective camera (pixels) for the height map; default orthographic",
+        type=float,
+        nargs=4,
+        metavar=("FX", "FY", "CX", "CY"),
+    )
     depth_ref: float | None = None
     min_nz: float = DEFAULT_MIN_NZ
     min_shading: float = DEFAULT_MIN_SHADING
     saturation: float | None = None
-    curvature_sigma: float = DEFAULT_SIGMA
+    curvature_sigma: float = flag(
+        DEFAULT_SIGMA,
+        "smoothing of the normals before curvature, px (default %(default)g; 0 = none)",
+        type=nonnegative_float,
+        metavar="PX",
+    )
     bini_k: float = 2.0
     bini_max_iter: int = 50
     bini_tol: float = 1e-4
     mesh_max_jump: float | None = None
     pixel_size_mm: float | None = None
-    local_size_px: float = DEFAULT_LOCAL_SIZE_PX
-    tiff: bool = True
-    image_pixel_size_mm: float | None = None
+    local_size_px: float = flag(
+        DEFAULT_LOCAL_SIZE_PX,
+        "characteristic size of the local-shape map (height minus its trend at this "
+        "size), px of the maps (default %(default)g; at most their longer side)",
+        name="--local-size",
+        type=positive_float,
+        metavar="PX",
+    )
+    tiff: bool = flag(
+        True, "no pixel-registered float32 TIFF maps", name="--no-tiff", action="store_false"
+    )
+    image_pixel_size_mm: float | None = flag(
+        None,
+        "object-side size of one pixel of the stored images in mm (as --roi is in "
+        "stored-image pixels; with --downscale K a map pixel is K times it): the TIFFs then "
+        "hold mm and 1/mm, maps.json records both sizes",
+        name="--pixel-size",
+        type=positive_float,
+        metavar="MM",
+    )
     frame: Frame = field(default_factory=Frame)
 
     def __post_init__(self) -> None:
@@ -165,9 +208,9 @@ class MapOptions:
                 f"unknown map(s) {', '.join(map(repr, unknown))}: expected any of "
                 f"{', '.join(MAP_NAMES)}"
             )
-        if self.method not in METHODS:
+        if self.integration not in METHODS:
             raise InputError(
-                f"integration method {self.method!r}: expected one of {', '.join(METHODS)}"
+                f"integration method {self.integration!r}: expected one of {', '.join(METHODS)}"
             )
         object.__setattr__(self, "maps", tuple(self.maps))
         object.__setattr__(self, "intrinsics", Intrinsics.coerce(self.intrinsics))
@@ -223,7 +266,8 @@ class InspectionMaps:
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready facts: options, units, timings, integration details, value ranges."""
-        opts = asdict(self.options)
+        # maps.json keeps the integration's key "method"
+        opts = {"method" if k == "integration" else k: v for k, v in asdict(self.options).items()}
         out: dict[str, Any] = {
             "options": opts,
             # map pixel (col, row) is stored-image pixel (x0 + K col + (K-1)/2, y0 + ...)
@@ -357,10 +401,10 @@ def compute_maps(
     needs: dict[str, float] = {}
 
     def fits(name: str) -> bool:
-        if budget.fits(name, opts.method):
+        if budget.fits(name, opts.integration):
             return True
         spare = (budget.spare_mb() or 0.0) - budget.write_reserve_mb()
-        needs[name] = budget.need_mb(name, opts.method) - spare
+        needs[name] = budget.need_mb(name, opts.integration) - spare
         skipped.append(name)
         return False
 
@@ -417,7 +461,7 @@ def _height_maps(maps: InspectionMaps, unit: np.ndarray, valid: np.ndarray) -> N
     integ = integrate_normals(
         unit,
         valid,
-        opts.method,
+        opts.integration,
         intrinsics=opts.intrinsics,
         depth_ref=opts.depth_ref,
         min_nz=opts.min_nz,
@@ -426,7 +470,7 @@ def _height_maps(maps: InspectionMaps, unit: np.ndarray, valid: np.ndarray) -> N
         tol=opts.bini_tol,
     )
     maps.integration, maps.height, maps.depth = integ, integ.height, integ.depth
-    maps.timings[f"height ({opts.method})"] = time.perf_counter() - start
+    maps.timings[f"height ({opts.integration})"] = time.perf_counter() - start
     if opts.intrinsics is None:  # a perspective height is log-depth based: no local shape
         maps.local_shape = local_shape(integ.height, valid, opts.local_size_px)
 
@@ -643,7 +687,7 @@ def _view_jobs(maps: InspectionMaps, draw: bool) -> tuple[list[Job], list[tuple[
         units = "px" if maps.options.intrinsics is None else "depth_ref units"
         if draw:
             figure = pictures.png_bytes(pictures.height_picture(maps.height, m, units=units))
-            figures.append((f"height ({maps.options.method})", figure))
+            figures.append((f"height ({maps.options.integration})", figure))
         view = described_png(
             pictures.png_bytes(grey16_view(maps.height, m)),
             "height, min..max in the mask stretched to 1..65535, 0 outside; values in height.tif",
@@ -726,7 +770,7 @@ def _report_text(
     from msfnet.runtime.results.maps.report import build_report
 
     meta: dict[str, object] = {**provenance(profile), "pixels": summary["pixels"]}
-    meta["height integration"] = maps.options.method
+    meta["height integration"] = maps.options.integration
     if not draw:
         meta["figures"] = pictures.missing_note()
     if maps.integration is not None:

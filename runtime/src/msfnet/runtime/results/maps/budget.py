@@ -60,7 +60,7 @@ class MapsBudget:
     mask_pixels: int
     lights: int
 
-    def need_mb(self, name: str, method: str = "poisson") -> float:
+    def need_mb(self, name: str, integration: str = "poisson") -> float:
         """The working set of one map (or "base": the checks all maps share) in MB."""
         p, m = self.pixels, self.mask_pixels
         if name == "base":
@@ -70,7 +70,7 @@ class MapsBudget:
                 ALBEDO_OUT_PER_PIXEL * p + MIN_CHUNK_PIXELS * self.lights * BYTES_PER_PIXEL_LIGHT
             ) / MB
         if name == "height":
-            need = HEIGHT_PER_PIXEL[method] * p + HEIGHT_PER_MASK_PIXEL[method] * m
+            need = HEIGHT_PER_PIXEL[integration] * p + HEIGHT_PER_MASK_PIXEL[integration] * m
             return HEIGHT_FIXED_MB + need / MB
         if name == "curvature":
             return CURVATURE_PER_PIXEL * p / MB
@@ -93,9 +93,9 @@ class MapsBudget:
         rss = memory_in_use_mb()
         return None if rss is None else self.max_memory_mb - rss
 
-    def fits(self, name: str, method: str = "poisson") -> bool:
+    def fits(self, name: str, integration: str = "poisson") -> bool:
         spare = self.spare_mb()
-        return spare is None or self.need_mb(name, method) + self.write_reserve_mb() <= spare
+        return spare is None or self.need_mb(name, integration) + self.write_reserve_mb() <= spare
 
     def albedo_chunk(self) -> int:
         """Pixels per albedo chunk: as many as the spare budget allows, at most CHUNK_PIXELS."""
