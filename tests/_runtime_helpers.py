@@ -27,21 +27,17 @@ BUNDLED_CHECKPOINT = (
 )
 
 # What a run with the default inspection maps writes beside the normals (results.maps and
-# results.maps.registered)
+# results.maps.registered): each map's data once, as its registered TIFF
 MAP_FILES = frozenset(
     {
         "albedo.png",
-        "albedo.npy",
-        "height.npy",
         "height.png",
-        "curvature.npy",
         "curvature.png",
         "shape_index.npy",
         "mesh.ply",
         "maps.json",
         "report.html",
         "local_shape.png",
-        "normals.tif",
         "gradient_p.tif",
         "gradient_q.tif",
         "height.tif",

@@ -178,7 +178,7 @@ def test_two_writers_to_the_same_output(stack_dir: Path, tmp_path: Path) -> None
         "normals.npy",
         "normals_view.png",
         "profile.json",
-        "height.npy",
+        "height.tif",
         "report.html",
     } <= set(names)
     assert json.loads((out / MANIFEST).read_text())["files"] == sorted(set(names) - {MANIFEST})

@@ -79,7 +79,7 @@ def test_maps_keep_the_whole_process_within_max_memory(room_mb: float, tmp_path:
     assert got["peak"] <= got["budget"], got
     said = [w for w in got["warnings"] if "max_memory_mb=" in w]  # the API's words
     assert len(said) == 1 and "height" in said[0] and "skipped" in said[0], got
-    assert "height.npy" not in got["files"] and "mesh.ply" not in got["files"], got
+    assert "height.tif" not in got["files"] and "mesh.ply" not in got["files"], got
     assert {"normals.npy", "maps.json", "report.html"} <= set(got["files"]), got
 
 
@@ -88,7 +88,7 @@ def test_a_large_enough_budget_computes_every_map_within_it(tmp_path: Path) -> N
     got = _run(1400, tmp_path / "out")
     assert got["peak"] <= got["budget"], got
     assert not [w for w in got["warnings"] if "max_memory_mb" in w], got
-    assert {"albedo.npy", "height.npy", "curvature.npy", "mesh.ply"} <= set(got["files"]), got
+    assert {"albedo.tif", "height.tif", "curvature.tif", "mesh.ply"} <= set(got["files"]), got
 
 
 LOAD = """

@@ -116,7 +116,7 @@ def test_the_budget_is_shared_by_the_workers_a_node_runs_at_once(
     want: tuple[int, int, float],
 ) -> None:
     plan = plan_workers(nodes, threads, stacks, 4096.0, workers)
-    assert (plan.workers, plan.per_node) == want[:2]
+    assert (plan.workers, max(n.workers for n in plan.nodes)) == want[:2]
     assert plan.memory_mb == pytest.approx(want[2], rel=1e-12)
     # what runs at once on each node stays within the budget, and within its CPUs
     cpus = {n.node_id: n.cpus for n in _nodes(nodes)}
@@ -146,7 +146,7 @@ def test_nodes_of_different_sizes_each_get_what_they_hold() -> None:
     assert _counts(plan) == {"n0": 1, "n1": 2, "n2": 4}  # the CPU-less node gets none
     shares = {n.node_id: n.memory_mb for n in plan.nodes}
     assert shares == {"n0": 4096.0, "n1": 2048.0, "n2": 1024.0}
-    assert plan.memory_mb == 1024.0 and plan.per_node == 4
+    assert plan.memory_mb == 1024.0 and max(n.workers for n in plan.nodes) == 4
     # --workers 12: dealt one at a time, the small nodes full first, the rest on the large one
     assert _counts(plan_workers([2.0, 4.0, 32.0], 2, 100, 8192.0, workers=12)) == {
         "n0": 1,

@@ -125,7 +125,9 @@ def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
         "error.png",
     } | MAP_FILES
     assert l2.maps is not None and l2.maps.height is not None
-    height = np.load(tmp_path / "l2" / "height.npy")
+    from msfnet.runtime.results.maps.registered import read_tiff
+
+    height = read_tiff(tmp_path / "l2" / "height.tif")
     assert np.isnan(height[~stack.mask]).all() and np.isfinite(height[stack.mask]).all()
     # a sphere bulges towards the camera: the centre is higher than the rim
     h, w = stack.shape
@@ -138,7 +140,7 @@ def test_model_api_on_stack_object(random_onnx: Path, tmp_path: Path) -> None:
     ("preset", "written", "left_out"),
     [
         ("inspect", {"local_shape.tif", "curvature.tif", "albedo.tif"}, {"mesh.ply"}),
-        ("none", {"normals.npy"}, {"height.npy", "maps.json", "report.html"}),
+        ("none", {"normals.npy"}, {"height.tif", "maps.json", "report.html"}),
     ],
 )
 def test_maps_presets_choose_what_is_written(
@@ -164,7 +166,7 @@ def test_normals_only_without_maps(tmp_path: Path) -> None:
     res = Model.least_squares(maps=None)(stack)
     assert res.maps is None
     names = {f.name for f in res.save(tmp_path / "o")}
-    assert "height.npy" not in names and "normals.npy" in names
+    assert "height.tif" not in names and "normals.npy" in names
     assert (
         main(
             [
@@ -183,8 +185,8 @@ def test_normals_only_without_maps(tmp_path: Path) -> None:
         == 0
     )
     written = {p.name for p in (tmp_path / "cli").iterdir()}
-    assert {"height.npy", "height.png"} <= written
-    assert not {"albedo.png", "curvature.npy", "mesh.ply", "report.html"} & written
+    assert {"height.tif", "height.png"} <= written
+    assert not {"albedo.png", "curvature.tif", "height.npy", "mesh.ply", "report.html"} & written
 
 
 def _npz(stack, tmp_path: Path) -> Path:
@@ -243,8 +245,8 @@ def test_a_batchs_results_never_go_inside_the_batch_folder(tmp_path: Path, capsy
 def test_the_normals_are_written_once_unless_asked_and_a_batch_keeps_the_writer_flags(
     tmp_path: Path,
 ) -> None:
-    """By default the normals' data is normals.npy (and normals.tif among the TIFF maps) and
-    their picture normals_view.png; --normals-png adds the 16-bit PNG. A batch honours the
+    """By default the normals' data is normals.npy, once (no normals.tif), and their picture
+    normals_view.png; --normals-png adds the 16-bit PNG. A batch honours the
     writer flags as one stack does (--no-report was dropped for each stack of a batch)."""
     from msfnet.runtime.stack import save_stack
 
@@ -254,13 +256,14 @@ def test_the_normals_are_written_once_unless_asked_and_a_batch_keeps_the_writer_
     one = tmp_path / "one"
     assert main([str(batch / "s0"), "--method", "l2", "--no-maps", "-q", "-o", str(one)]) == 0
     assert {"normals.npy", "normals_view.png"} <= {p.name for p in one.iterdir()}
-    assert not (one / "normals.png").exists()
+    assert not (one / "normals.png").exists() and not (one / "normals.tif").exists()
     out = tmp_path / "out"
     flags = ["--method", "l2", "--maps", "height", "--no-report", "--normals-png", "-q"]
     assert main([str(batch), *flags, "-o", str(out)]) == 0
     for name in ("s0", "s1"):
         written = {p.name for p in (out / name).iterdir()}
         assert "normals.png" in written and "report.html" not in written, written
+        assert "height.tif" in written and not {"height.npy", "normals.tif"} & written
 
 
 def test_a_stack_named_like_the_batch_summary_is_refused_before_any_work(

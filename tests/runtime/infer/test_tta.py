@@ -15,7 +15,6 @@ from msfnet.runtime.infer.tta import (
     normals_back,
     transform_stack,
     tta_transforms,
-    with_tta,
 )
 from msfnet.runtime.instrument import StageTimer
 from msfnet.synth.render import RenderOptions, render_stack
@@ -92,12 +91,6 @@ def test_tta_of_least_squares_is_plain(stack) -> None:
         assert out.normals.shape == plain.normals.shape
         np.testing.assert_allclose(out.normals, plain.normals, atol=2e-5)
         assert not out.normals[~stack.mask].any()
-
-
-def test_with_tta_one_is_identity() -> None:
-    inner = LeastSquaresEstimator()
-    assert with_tta(inner, 1) is inner
-    assert isinstance(with_tta(inner, 8), TTAEstimator)
 
 
 def test_model_option() -> None:

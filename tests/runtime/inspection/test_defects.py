@@ -15,7 +15,7 @@ from msfnet.runtime.cli.inspect import main as inspect_main
 from msfnet.runtime.inspection.defects import (
     DefectOptions,
     InspectionInput,
-    align_shift,
+    _align,
     find_defects,
     from_maps,
     read_run,
@@ -90,7 +90,7 @@ def test_reference_alignment_recovers_a_shift() -> None:
     rng = np.random.default_rng(0)
     base = cv2_smooth(rng.normal(size=(96, 120)).astype(np.float32))
     moved = shift_map(base, 3.0, -2.0)
-    dx, dy = align_shift(base, moved)
+    dx, dy, _ = _align(base, moved)
     assert dx == pytest.approx(3.0, abs=0.2) and dy == pytest.approx(-2.0, abs=0.2)
 
 

@@ -24,7 +24,6 @@ from msfnet.runtime.stack.transforms import (
     Transforms,
     area_downscale,
     auto_mask,
-    otsu_threshold,
     srgb_to_linear,
 )
 from msfnet.synth import RenderOptions, render_stack
@@ -120,12 +119,6 @@ def test_transforms_keep_the_type_only_when_no_value_changes() -> None:
         white = Transforms(t.roi, t.downscale, t.srgb, t.gamma, 65535.0)
         np.testing.assert_array_equal(out, white.image(img.astype(np.float32)))
     assert Transforms().image(img.astype(np.float64)).dtype == np.float32
-
-
-def test_otsu_splits_two_populations() -> None:
-    rng = np.random.default_rng(0)
-    values = np.concatenate([rng.normal(10, 2, 5000), rng.normal(100, 5, 1000)])
-    assert 40 < otsu_threshold(values) < 70  # inside the gap, away from both tails
 
 
 def test_roi_crops_images_mask_and_ground_truth_alike(tmp_path: Path) -> None:

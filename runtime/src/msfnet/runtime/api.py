@@ -42,11 +42,7 @@ import numpy.typing as npt
 from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.engines.base import Engine
-from msfnet.runtime.engines.bundled import (
-    bundled_model_path,
-    default_model_path,
-    open_network,
-)
+from msfnet.runtime.engines.bundled import bundled_model_path, default_model_path, open_network
 
 if TYPE_CHECKING:
     pass
@@ -412,12 +408,7 @@ class Model:
         the normals bend toward the brighter lights (15.6 deg instead of 4.1 on DiLiGenT's
         ball with least squares, 8 lights)."""
         stack = Stack.from_arrays(
-            images,
-            lights,
-            mask=mask,
-            intensities=intensities,
-            normals_gt=normals_gt,
-            name="array",
+            images, lights, mask=mask, intensities=intensities, normals_gt=normals_gt, name="array"
         )
         return self(stack)
 

@@ -87,9 +87,7 @@ class ModelOptions:
         metavar="MODEL",
     )
     method: str = flag(
-        "msf",
-        "msf: the network (default); l2: per-pixel least squares, no model",
-        choices=METHODS,
+        "msf", "msf: the network (default); l2: per-pixel least squares, no model", choices=METHODS
     )
     engine: str | None = flag(
         None,

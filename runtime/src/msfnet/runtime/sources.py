@@ -192,6 +192,18 @@ def _decode(item: StackSource, load: LoadOptions) -> Stack:
 
 
 _END = object()
+# the item, its stack or the InputError that refused it, and the seconds it took
+Outcome = tuple[object, Stack | None, InputError | None, float]
+_END_OUTCOME: Outcome = (_END, None, None, 0.0)
+
+
+def _timed_decode(item: object, load: LoadOptions) -> Outcome:
+    start = time.perf_counter()
+    try:
+        stack = _decode(item, load)  # type: ignore[arg-type]
+    except InputError as exc:
+        return item, None, exc, time.perf_counter() - start
+    return item, stack, None, time.perf_counter() - start
 
 
 @dataclass
@@ -243,7 +255,7 @@ class _Pull:
     ) -> None:
         self._source, self._load, self._leftovers = source, load, leftovers
         self._done = threading.Event()
-        self._outcome: tuple[object, Stack | None, InputError | None, float] | None = None
+        self._outcome: Outcome | None = None
         self._raised: BaseException | None = None
         self._item: object | None = None  # taken from the source, not yet handed out
         self._lock = threading.Lock()
@@ -270,22 +282,13 @@ class _Pull:
                 self._done.set()
                 return
         try:
-            if item is _END:
-                self._outcome = (_END, None, None, 0.0)
-                return
-            start = time.perf_counter()
-            try:
-                stack = _decode(item, self._load)  # type: ignore[arg-type]
-            except InputError as exc:
-                self._outcome = (item, None, exc, time.perf_counter() - start)
-            else:
-                self._outcome = (item, stack, None, time.perf_counter() - start)
+            self._outcome = _END_OUTCOME if item is _END else _timed_decode(item, self._load)
         except BaseException as exc:  # e.g. MemoryError: re-raised, the item kept
             self._raised = exc
         finally:
             self._done.set()
 
-    def result(self) -> tuple[object, Stack | None, InputError | None, float]:
+    def result(self) -> Outcome:
         self._done.wait()  # a lock wait: Ctrl-C interrupts it
         if self._raised is not None:
             if self._item is not None:  # taken, not decoded: the caller gets it back
@@ -314,21 +317,15 @@ class _Pull:
         self._outcome = None
 
 
-def _pull_here(
-    source: Iterator[StackSource], load: LoadOptions, leftovers: Leftovers
-) -> tuple[object, Stack | None, InputError | None, float]:
+def _pull_here(source: Iterator[StackSource], load: LoadOptions, leftovers: Leftovers) -> Outcome:
     item = next(source, _END)
     if item is _END:
-        return _END, None, None, 0.0
-    start = time.perf_counter()
+        return _END_OUTCOME
     try:
-        stack = _decode(item, load)  # type: ignore[arg-type]
-    except InputError as exc:
-        return item, None, exc, time.perf_counter() - start
+        return _timed_decode(item, load)
     except BaseException:  # Ctrl-C while decoding, MemoryError: the caller gets it back
         leftovers.add(item)  # type: ignore[arg-type]
         raise
-    return item, stack, None, time.perf_counter() - start
 
 
 def decode_ahead(

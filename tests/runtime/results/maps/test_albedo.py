@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from msfnet.common.errors import InputError
-from msfnet.runtime.results.maps.albedo import albedo_map, default_saturation
+from msfnet.runtime.results.maps.albedo import checked_albedo, default_saturation
+from msfnet.runtime.results.maps.validate import check_normals
+
+
+def albedo_map(images, lights, intensities, mask, normals, **options) -> np.ndarray:
+    """The albedo of normals over a mask, as the maps compute it."""
+    unit, valid = check_normals(normals, mask)
+    return checked_albedo(np.asarray(images), lights, intensities, valid, unit, **options)
 
 
 def _render(surfaces, n_lights: int = 12, seed: int = 3, full_scale: float = 40000.0):

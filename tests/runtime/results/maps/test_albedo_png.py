@@ -47,7 +47,7 @@ def test_the_png_is_marked_linear_and_says_how_it_is_scaled() -> None:
     im = Image.open(io.BytesIO(data))
     im.load()  # checks every chunk's CRC on the way
     assert im.info["gamma"] == 1.0
-    assert "99.5th percentile" in im.info["Description"] and "albedo.npy" in im.info["Description"]
+    assert "99.5th percentile" in im.info["Description"] and "albedo.tif" in im.info["Description"]
     np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(raw))), np.asarray(im))
     tagged = Image.open(io.BytesIO(png_with_text(raw, "Comment", "x")))
     assert tagged.info["Comment"] == "x"

@@ -24,6 +24,7 @@ from msfnet.runtime.results.maps import (
     write_maps,
 )
 from msfnet.runtime.results.maps import api as maps_api
+from msfnet.runtime.results.maps.registered import read_tiff
 
 EXPECTED_FILES = MAP_FILES
 
@@ -63,9 +64,9 @@ def test_write_maps_files_report_and_json(stack, tmp_path: Path) -> None:
     alb = cv2.imread(str(tmp_path / "albedo.png"), cv2.IMREAD_UNCHANGED)
     assert alb.dtype == np.uint16 and alb.shape == (*stack.shape, 3)
     assert alb[stack.mask].max() == 65535 and not alb[~stack.mask].any()
-    height = np.load(tmp_path / "height.npy")
+    height = read_tiff(tmp_path / "height.tif")
     assert height.dtype == np.float32 and np.isnan(height[~stack.mask]).all()
-    assert np.array_equal(np.isfinite(np.load(tmp_path / "curvature.npy")), stack.mask)
+    assert np.array_equal(np.isfinite(read_tiff(tmp_path / "curvature.tif")), stack.mask)
     info = json.loads((tmp_path / "maps.json").read_text())
     assert info["options"]["method"] == "poisson" and info["units"]["height"] == "px"
     assert info["pixels"] == int(stack.mask.sum())
@@ -136,6 +137,7 @@ def test_perspective_options_write_depth(stack, tmp_path: Path) -> None:
     assert isinstance(maps, InspectionMaps) and maps.depth is not None
     assert np.nanmedian(maps.depth) == pytest.approx(60.0, rel=1e-4)  # depth_ref = fx
     names = {p.name for p in write_maps(tmp_path, maps, report=False)}
+    # a perspective height is no px / mm height: no height.tif, so its data is height.npy
     assert {"depth.npy", "mesh.ply", "height.npy"} <= names and "report.html" not in names
     assert json.loads((tmp_path / "maps.json").read_text())["units"]["height"] == "depth_ref units"
 

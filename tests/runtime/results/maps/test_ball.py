@@ -1,4 +1,4 @@
-"""DiLiGenT ball (real data, slow): least-squares normals -> height.npy is a sphere of the
+"""DiLiGenT ball (real data, slow): least-squares normals -> height.tif is a sphere of the
 mask's radius."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import pytest
 
 from msfnet.runtime.infer.least_squares import least_squares_normals
 from msfnet.runtime.results.maps import MapOptions, stack_maps, write_maps
+from msfnet.runtime.results.maps.registered import read_tiff
 from msfnet.runtime.stack import load_stack
 
 pytestmark = pytest.mark.slow
@@ -38,7 +39,7 @@ def test_ball_height_is_a_sphere_of_the_mask_radius(ball, tmp_path: Path, method
         stack, normals, MapOptions(maps=("albedo", "height", "curvature"), integration=method)
     )
     write_maps(tmp_path, maps, report=False)
-    height = np.load(tmp_path / "height.npy")
+    height = read_tiff(tmp_path / "height.tif")
     mask = stack.mask
     assert np.isfinite(height[mask]).all() and np.isnan(height[~mask]).all()
     mask_radius = np.sqrt(mask.sum() / np.pi)

@@ -43,9 +43,8 @@ def _saturated_sphere():
 
 
 def test_registered_tiffs_hold_what_maps_json_says_outside_the_mask(tmp_path: Path) -> None:
-    """Every TIFF maps.json lists is NaN outside the mask but normals.tif, which is (0, 0, 0);
-    albedo.tif / .npy are NaN where no observation was kept (was: 0, a black surface), and
-    albedo.png is black there."""
+    """Every TIFF maps.json lists is NaN outside the mask; albedo.tif is NaN where no
+    observation was kept (was: 0, a black surface), and albedo.png is black there."""
     stack = _saturated_sphere()
     maps = stack_maps(stack, stack.normals_gt, MapOptions(maps=("albedo", "height", "curvature")))
     write_maps(tmp_path, maps, report=False)
@@ -55,17 +54,13 @@ def test_registered_tiffs_hold_what_maps_json_says_outside_the_mask(tmp_path: Pa
     assert sorted(files) == sorted(p.name for p in tmp_path.glob("*.tif"))
     out = ~maps.mask
     for name in files:
-        data = read_tiff(tmp_path / name)
-        if name == "normals.tif":
-            assert np.all(data[out] == 0)
-        else:
-            assert np.isnan(data[out]).all(), name
+        assert np.isnan(read_tiff(tmp_path / name)[out]).all(), name
     unknown = maps.mask.copy()
     unknown[18:, :] = False
     unknown[:, 22:] = False  # the saturated quarter inside the mask
     known = maps.mask & ~unknown
     assert unknown.sum() > 20 and known.sum() > 200
-    for albedo in (np.load(tmp_path / "albedo.npy"), read_tiff(tmp_path / "albedo.tif")):
+    for albedo in (read_tiff(tmp_path / "albedo.tif"),):
         assert np.isnan(albedo[unknown]).all() and np.isnan(albedo[out]).all()
         # sphere_stack renders albedo 0.8 at a 40000 full scale (below 60000: not clipped)
         np.testing.assert_allclose(albedo[known], 0.8 * 40000, rtol=0.01)
@@ -121,7 +116,7 @@ def test_frame_in_maps_json_and_tiff_tags(tmp_path: Path) -> None:
     # without a pixel size: one stored-image pixel is the unit
     opts = MapOptions(maps=("height",), frame=frame)
     write_maps(tmp_path / "px", stack_maps(stack, stack.normals_gt, opts), report=False)
-    tags = _tags(tmp_path / "px" / "normals.tif")
+    tags = _tags(tmp_path / "px" / "height.tif")
     assert int(tags["ResolutionUnit"]) == 1
     assert tags["XResolution"] == (1, 2) and tags["XPosition"] == (64, 1)
     assert tags["YPosition"] == (10, 1)
@@ -177,7 +172,7 @@ def test_maps_json_lists_only_the_tiffs_written(tmp_path: Path, tiff: bool) -> N
     assert sorted(reg["files"]) == on_disk
     assert "height" not in reg and "local_shape" not in reg
     if tiff:
-        assert {"normals.tif", "curvature.tif", "albedo.tif"} <= set(on_disk)
+        assert {"gradient_p.tif", "curvature.tif", "albedo.tif"} <= set(on_disk)
         assert reg["curvature"] == "1/px" and "height.tif" not in on_disk
     else:
         assert on_disk == [] and "curvature" not in reg and "normals" not in reg

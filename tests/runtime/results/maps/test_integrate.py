@@ -427,7 +427,7 @@ def test_a_kept_hierarchy_that_does_not_fit_the_next_part_is_replaced() -> None:
     dy, dx = np.gradient(z)
     n = np.dstack([-dx, dy, np.ones_like(z)])
     n /= np.linalg.norm(n, axis=2, keepdims=True)
-    integrate.forget_kept()
+    integrate._Kept.mask = None  # a cold start
     fresh = integrate.integrate_normals(n, valid, "poisson")
 
     class NoHelp:  # as poor a preconditioner as there is: the identity

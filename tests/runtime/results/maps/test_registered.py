@@ -170,7 +170,7 @@ def test_write_maps_registered_files_and_units(tmp_path: Path) -> None:
         data = read_tiff(tmp_path / f"{name}.tif")
         assert data.shape == (h, w) and data.dtype == np.float32
         assert np.array_equal(np.isfinite(data), stack.mask)
-    assert read_tiff(tmp_path / "normals.tif").shape == (h, w, 3)
+    assert not (tmp_path / "normals.tif").exists()  # normals.npy holds them: no second copy
     # physical units: heights x pixel size, curvature / pixel size
     height = read_tiff(tmp_path / "height.tif")
     m = stack.mask

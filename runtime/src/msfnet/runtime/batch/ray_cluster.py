@@ -16,8 +16,7 @@ WORKER_MEMORY_MB each (one at least); a share no larger than the runtime's own f
 (tiling's BASE_MEMORY_MB) is refused before any worker starts. When Ray cannot list its nodes
 the cluster is planned as one node and nothing is pinned (the safe side: every worker shares
 one budget). Ray's own processes (GCS, raylet, object store) and the driver are outside the
-budget. A Ray worker with the bundled model peaked at 200-255 MiB on a 16 x 16 stack (ONNX
-Runtime / OpenVINO, one thread), under that floor, so a worker needs no allowance beyond it.
+budget; a worker's own overhead stays under that floor.
 
 Ray is imported only here, only when asked for: the edge runtime does not depend on it.
 """
@@ -56,8 +55,7 @@ declare("ray", "--ray")
 declare("workers", "--workers")
 
 # The least share of --max-memory a worker is started with when --workers is not given: a full
-# DiLiGenT object (96 lights, 612 x 512) peaks at 1.0-1.3 GiB at the default budget
-# (docs/benchmark.md), and within 1 GiB it still runs, in smaller tiles.
+# DiLiGenT object still runs within it, in smaller tiles (docs/benchmark.md).
 WORKER_MEMORY_MB = 1024
 # Seconds without any worker started before the batch says why it waits: a worker starts once
 # Ray has its CPUs, which another job may hold for as long as it runs.
@@ -255,11 +253,6 @@ class WorkerPlan:
     @property
     def workers(self) -> int:
         return sum(n.workers for n in self.nodes)
-
-    @property
-    def per_node(self) -> int:
-        """The most workers on one node."""
-        return max(n.workers for n in self.nodes)
 
     @property
     def memory_mb(self) -> float:

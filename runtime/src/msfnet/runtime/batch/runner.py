@@ -21,12 +21,7 @@ from msfnet.common.vocabulary import opt
 from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.metrics import NormalMetrics
 from msfnet.runtime.results.result import SaveOptions
-from msfnet.runtime.sources import (
-    BatchItem,
-    StackSource,
-    decode_ahead,
-    expand_stacks,
-)
+from msfnet.runtime.sources import BatchItem, StackSource, decode_ahead, expand_stacks
 from msfnet.runtime.stack import LoadOptions
 
 if TYPE_CHECKING:

@@ -181,9 +181,7 @@ def _stack_flags(argv: list[str] | None) -> list[str]:
         dest = action.dest
         if not action.option_strings or dest not in given:
             continue
-        if dest in ("help", "version") or dest in _OWN or dest in RESOURCE_FLAGS:
-            continue
-        if dest in WRITING_FLAGS:
+        if dest in ("help", "version", *_OWN, *RESOURCE_FLAGS, *WRITING_FLAGS):
             continue
         names.append(max(action.option_strings, key=len))
     return names

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 from msfnet.common.cli import (
@@ -495,36 +496,28 @@ def _run_batch(req: RunRequest, items: list[BatchItem]) -> int:
         _say(req, item.note(load))
     report = _batch_reporter(req)
     progress = None if req.chatty else False
-    if model is None:
-        summary = run_batch_ray(
+    batch = (
+        partial(run_batch, model, prefetch=req.prefetch)
+        if model is not None
+        else partial(
+            run_batch_ray,
             spec,
-            items,
-            load,
-            lambda n: root / n,
             address=req.ray or None,
             workers=req.workers,
-            overwrite=req.overwrite,
-            save=req.save,
-            summary_dir=root,
-            on_result=report,
-            progress=progress,
-            inputs=tuple(load.inputs()),
             on_note=None if req.quiet else _warn,
         )
-    else:
-        summary = run_batch(
-            model,
-            items,
-            load,
-            lambda n: root / n,
-            overwrite=req.overwrite,
-            save=req.save,
-            prefetch=req.prefetch,
-            summary_dir=root,
-            on_result=report,
-            progress=progress,
-            inputs=tuple(load.inputs()),
-        )
+    )
+    summary = batch(
+        items,
+        load,
+        lambda n: root / n,
+        overwrite=req.overwrite,
+        save=req.save,
+        summary_dir=root,
+        on_result=report,
+        progress=progress,
+        inputs=tuple(load.inputs()),
+    )
     if summary.rows and len(summary.failed) < len(summary.rows):
         _warn_without_figures(req)  # once for the batch, not once per stack
     if req.json:

@@ -116,10 +116,8 @@ def open_network(path: Path | None, req: EngineRequest) -> tuple[Engine, str]:
 
 def _oversubscribed(threads: int | None, engine: str) -> str:
     """A note for the choice line when ONNX Runtime is given more threads than this process
-    may run at once (an affinity mask, taskset): its threads then wait on each other (the
-    8-light ball crop ran 2.35x slower at --threads 8 on 1 CPU than at 1). OpenVINO did not
-    slow down (1.66 against 1.61 s): no note there. Said, not capped: the user's number is
-    run as given."""
+    may run at once (an affinity mask, taskset): its threads then wait on each other (OpenVINO's
+    do not). Said, not capped: the user's number is run as given."""
     from msfnet.common.cpu import usable_cores
 
     cores = usable_cores()

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from msfnet.common.cpu import CpuInfo, check_threads
@@ -80,8 +80,8 @@ MEASURED: dict[tuple[str, str, bool], Measured] = {
     ("openvino", "int8", False): Measured({32: (0.291, 1.207), 96: (0.396, 2.733)}),
     ("openvino", "int8", True): Measured({32: (0.170, 0.763), 96: (0.295, 2.535)}),
 }
-# int8 exports with min/max activation ranges (msf-export before 2026-12-02: their
-# msfnet.quantization metadata counts no ranges set from percentiles), same crops
+# int8 exports with min/max activation ranges (older msf-export: their msfnet.quantization
+# metadata counts no ranges set from percentiles), same crops
 MINMAX_INT8_MEASURED: dict[tuple[str, bool], Measured] = {
     ("onnxruntime", False): Measured({32: (0.673, 2.934), 96: (0.917, 4.886)}),
     ("onnxruntime", True): Measured({32: (0.673, 2.934), 96: (0.917, 4.886)}),
@@ -161,7 +161,7 @@ def int8_class(cpu: CpuInfo) -> str:
 # were not measured: the fp32 file there.
 INT8_SPEEDUP: dict[str, float] = {
     "avx2": 1.52,  # OpenVINO 1.52-1.55x, ONNX Runtime 1.89x (7-bit weights)
-    "avx2_vnni": 1.74,  # 5.64 against 9.83 s (load ~2)
+    "avx2_vnni": 1.74,
     "vnni": 1.96,  # ONNX Runtime 1.96x, OpenVINO 2.11x
     "zen4": 1.70,  # ONNX Runtime 1.92x cat, 1.50x ball; OpenVINO 2.29x / 1.44x
     "amx": 1.80,  # ONNX Runtime 1.80x, OpenVINO 2.98x (bf16 is faster still: 4.7x)
@@ -177,10 +177,8 @@ OV_INT8_SPEEDUP: dict[str, float] = {
     "amx": 1.24,  # cat 2.70 / 3.47 s, ball 1.16 / 1.37 s
 }
 # CPU class -> the bundled int8 twin on OpenVINO over the fp32 file in bf16 on OpenVINO, where
-# bf16 is the fp32 file's default. Where it is above 1 the twin is the default although the CPU
-# has native bf16 (both are within the accuracy bound). A class missing here keeps bf16: AMD Zen
-# 5 and Intel Cooper Lake (avx512-bf16) were not measured with OpenVINO int8 (on Zen 5 ONNX
-# Runtime int8 ran 1.94x ONNX Runtime fp32 and bf16 3.31x, field notes).
+# bf16 is the fp32 file's default: above 1 the twin is the default although the CPU has native
+# bf16 (both within the accuracy bound). A class missing here (not measured) keeps bf16.
 INT8_OVER_BF16: dict[str, float] = {
     "zen4": 1.16,  # AMD EPYC Zen 4, natively: the cat and the 8-light full ball, end to end
     "amx": 0.63,  # Intel Xeon with AMX: bf16 tiles beat int8 on these convolutions
@@ -188,10 +186,7 @@ INT8_OVER_BF16: dict[str, float] = {
 
 
 # OpenVINO stays the int8 default down to this ratio (the run-to-run spread of the figures
-# above) for exports where it was measured the closer to fp32 (ov_int8_closer): staged with
-# percentile ranges, as the bundled twin (MEASURED: 0.17 / 0.30 deg mean at 32 / 96 lights
-# against ONNX Runtime's 0.31 / 0.43, its convolution outputs not rounded); not for plain int8
-# exports (0.29 / 0.40 against 0.27 / 0.39, with that edit too)
+# above) for exports where it was measured the closer to fp32 (ov_int8_closer, from MEASURED)
 OV_INT8_MIN_SPEEDUP = 0.95
 
 
@@ -199,22 +194,16 @@ def ov_int8_closer(info: ModelInfo | None = None) -> bool:
     """Whether OpenVINO's int8 was measured closer to fp32 than ONNX Runtime's for this kind of
     export (``info``; None: the bundled kind, staged with percentile ranges). Mixed-precision
     exports were not measured on OpenVINO: no."""
-    staged = True
-    if info is not None:
-        if info.metadata.get("msfnet.variant") == "int8-mixed":
-            return False
-        staged = info.staged
-        if _minmax_int8(info):
-            ov, ort = (
-                MINMAX_INT8_MEASURED.get(("openvino", staged)),
-                MINMAX_INT8_MEASURED.get(("onnxruntime", staged)),
-            )
-            return ov is not None and ort is not None and ov.worst_mean < ort.worst_mean
-    ov_m, ort_m = (
-        MEASURED.get(("openvino", "int8", staged)),
-        MEASURED.get(("onnxruntime", "int8", staged)),
-    )
-    return ov_m is not None and ort_m is not None and ov_m.worst_mean < ort_m.worst_mean
+    if info is not None and info.metadata.get("msfnet.variant") == "int8-mixed":
+        return False
+    staged = True if info is None else info.staged
+    if info is not None and _minmax_int8(info):
+        ov = MINMAX_INT8_MEASURED.get(("openvino", staged))
+        ort = MINMAX_INT8_MEASURED.get(("onnxruntime", staged))
+    else:
+        ov = MEASURED.get(("openvino", "int8", staged))
+        ort = MEASURED.get(("onnxruntime", "int8", staged))
+    return ov is not None and ort is not None and ov.worst_mean < ort.worst_mean
 
 
 def ov_int8_preferred(cpu: CpuInfo, info: ModelInfo | None = None) -> bool:
@@ -406,14 +395,11 @@ def likely_engine(
     return choice.engine
 
 
-_INT8_GUESS = ModelInfo(
+_INT8_GUESS = replace(
+    _FP32_GUESS,
     path=Path("model_int8.onnx"),
-    train_lights=32,
-    input_multiple=4,
-    static_shape=None,
     precision="int8",
     metadata={"msfnet.quantization": '{"ranges_from_percentiles": 1, "reduce_range": true}'},
-    staged=True,
 )
 
 

@@ -3,20 +3,17 @@
 Why it is here: on CPUs with native bf16 (AVX-512 bf16 or AMX), ``INFERENCE_PRECISION_HINT=bf16``
 runs the fp32 model's convolutions in bf16 (speed and accuracy per CPU: docs/benchmark.md);
 ONNX Runtime's CPU provider has no such path on x86. OpenVINO reads the ONNX file directly,
-with the dynamic N, H, W kept (one compile serves every tile size; a static-shape compile was
-no faster). Staged exports are compiled as four sub-models, one per entry point, and run
-through the same light-chunked loop as ONNX Runtime (``staged_loop.run_staged``).
+with the dynamic N, H, W kept (one compile serves every tile size). Staged exports are compiled
+as four sub-models, one per entry point, and run through the same light-chunked loop as ONNX
+Runtime (``staged_loop.run_staged``).
 
 ``openvino`` is part of the base install (x86-64 and ARM64 wheels), imported only when an engine
 is opened. ``device``: CPU (default), GPU / GPU.N (Intel GPUs, f32 for parity with the CPU) or
 NPU (Intel NPUs, their own f16), chosen through ``--device`` (dispatch.resolve_device).
 
-Start-up: OpenVINO parses the file once (``read_openvino``); the msfnet metadata comes from that
-parse (ONNX metadata_props are the graph's ``rt_info["framework"]``), and the staged sub-models
-are cut from it, so this path starts no ONNX Runtime session. ``import openvino`` would also
-pull in its model converter, ``openvino.tools.ovc`` (the package's ``__init__`` does that for
-every ``openvino.*`` import), which the runtime never uses: :func:`import_openvino` leaves it
-out and keeps its telemetry off.
+Start-up: OpenVINO parses the file once (``read_openvino``); the msfnet metadata (the graph's
+``rt_info["framework"]``) and the staged sub-models come from that parse, so this path starts no
+ONNX Runtime session. :func:`import_openvino` leaves out the model converter and its telemetry.
 """
 
 from __future__ import annotations
@@ -39,12 +36,7 @@ from msfnet.common.errors import InputError
 from msfnet.common.privacy import telemetry_allowed
 from msfnet.common.vocabulary import opt
 from msfnet.runtime.contract import ModelInfo, read_model_info
-from msfnet.runtime.engines.base import (
-    ModelFile,
-    model_file_path,
-    model_precision,
-    read_model_file,
-)
+from msfnet.runtime.engines.base import ModelFile, model_file_path, model_precision, read_model_file
 from msfnet.runtime.engines.interrupt import run_interruptible
 from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.engines.ort_session import check_io, check_normals, default_threads
@@ -59,17 +51,13 @@ from msfnet.runtime.engines.staged_loop import (
 _HINTS = {"fp32": "f32", "bf16": "bf16"}
 
 # Compiled models are kept between processes in OpenVINO's model cache (keyed by the graph, the
-# device and OpenVINO's version; precision and threads are applied when an entry is loaded; a
-# truncated entry is compiled again, other damage is not detected): a fresh process opened the
-# bundled int8 twin in 0.19 s from it against 0.45 s compiling (docs/benchmark.md, session
-# 15). MSFNET_OPENVINO_CACHE turns it off or on (spellings below; unset or empty: on).
+# device and OpenVINO's version; a truncated entry is compiled again, other damage is not
+# detected). MSFNET_OPENVINO_CACHE turns it off or on (spellings below; unset or empty: on).
 CACHE_ENV = "MSFNET_OPENVINO_CACHE"
 CACHE_OFF = ("0", "off", "false", "no")
 CACHE_ON = ("1", "on", "true", "yes")
-# lights per stage call for int8 models on the CPU (staged_loop.DEFAULT_CHUNK for the others,
-# and on GPU / NPU, not measured): each stage model keeps an arena sized by its call, and a
-# fresh process pays a page fault for every page of it; 2 lights a call kept the times and
-# cut the 96-light ball's peak by a fifth (docs/benchmark.md).
+# lights per stage call for int8 models on the CPU (staged_loop.DEFAULT_CHUNK elsewhere): each
+# stage model keeps an arena sized by its call; 2 lights a call keeps the times, a lower peak.
 INT8_CHUNK = 2
 _SS_DISABLE = 2  # sigaltstack's flag for "no alternate stack" (Linux)
 
@@ -167,24 +155,14 @@ INSTALL_HINT = "pip install openvino (part of msfnet's base install)"
 def import_openvino() -> Any:
     """``openvino``, imported with its usage telemetry off and without its model converter.
 
-    ``import openvino`` (2026.4, with openvino-telemetry installed, as pip does) sends a usage
-    event to Google Analytics unless the user has opted out: it forks the process to do so,
-    and at exit the process waits for that child up to 3 s (longer where a DNS lookup hangs
-    offline). A station running msf-run per part should make no network calls of its own, so
-    the telemetry package is hidden while OpenVINO is first imported and OpenVINO falls back
-    to its own no-op stub (its ``openvino.tools.ovc`` imports the package under try / except
-    ImportError for exactly that). The hiding is process-wide for the moment of that import
-    (another thread importing the telemetry package then fails); a telemetry module the program
-    had loaded already is hidden too and put back after.
-
-    The converter (``openvino.tools.ovc``, what sends that event) is left out the same way:
-    OpenVINO's ``__init__`` imports it under try / except ImportError, the runtime never
-    converts (the Core reads ONNX files), and its import took ~100 ms of every fresh msf-run
-    (importlib.metadata, numpy.ma). ``openvino.convert_model`` still works for a program that
-    uses it afterwards: the converter is imported on first use, its telemetry hidden too.
-
-    ``MSFNET_TELEMETRY=1`` leaves OpenVINO as configured, converter included
-    (msfnet.common.privacy); an OpenVINO the program imported itself is left alone."""
+    ``import openvino`` with openvino-telemetry installed sends a usage event (forking, and
+    waiting for the child at exit); a station should make no network calls of its own. So the
+    telemetry package and the converter (``openvino.tools.ovc``, what sends it; the runtime
+    never converts) are hidden while OpenVINO is first imported: OpenVINO imports both under
+    try / except ImportError. The hiding is process-wide for that moment; a module the program
+    had loaded is put back after. ``openvino.convert_model`` still works: the converter is
+    imported on first use, its telemetry hidden too. ``MSFNET_TELEMETRY=1`` leaves OpenVINO as
+    configured (msfnet.common.privacy); an OpenVINO the program imported itself is left alone."""
     hide = "openvino" not in sys.modules and not telemetry_allowed()
     try:
         with _hidden(TELEMETRY, CONVERTER) if hide else contextlib.nullcontext():
@@ -287,9 +265,8 @@ class OpenVinoEngine:
     def _run_stage(self, output: str, feeds: dict[str, np.ndarray], out: np.ndarray) -> np.ndarray:
         """One chunk of a staged graph (staged_loop.StageCall): on the CPU the request reads its
         inputs where they lie and writes the per-light result straight into ``out`` (the loop's
-        feature buffer): 1.19-1.25x faster at 96 lights than copying it there (bf16, 188-320 px
-        tiles, interleaved runs). The chunk's max is taken here by numpy: a ReduceMax added to
-        the graph as a second output cost OpenVINO more than it saved."""
+        feature buffer), not copied there. The chunk's max is taken here by numpy: a ReduceMax
+        output in the graph cost OpenVINO more than it saved."""
         request, names = self._requests[output]
         inputs = {n: feeds[n] for n in names}
         direct = self.device.upper().startswith("CPU") and out.flags.c_contiguous
@@ -495,14 +472,11 @@ def drop_output_requantisation(graph: Any) -> int:
     """Remove, in place, the quantise-dequantise pairs an int8 QDQ export puts on convolution
     outputs where the next layer quantises its own input again; returns how many.
 
-    Why: those pairs only round a convolution's f32 result to 8 bits and back. OpenVINO's CPU
-    plugin runs them as separate kernels (Convert, Subtract, Reorder: ~15 % of an int8 run on
-    AVX2), while the convolution itself stays int8 through its input and weight quantisation.
-    Without them the bundled twin came closer to fp32 and ran faster (docs/benchmark.md).
-    ONNX Runtime needs the pairs for its own
-    int8 fusion (1.8x slower without): the file keeps them, and this edits OpenVINO's graph
-    only. Only the exact FakeQuantize -> Convert -> Convert -> [Subtract] -> Multiply shape of
-    a pair is removed."""
+    Why: those pairs only round a convolution's f32 result to 8 bits and back, and OpenVINO's
+    CPU plugin runs them as separate kernels; the convolution stays int8 through its input and
+    weight quantisation, and runs faster and closer to fp32 without them. ONNX Runtime needs
+    the pairs for its int8 fusion: the file keeps them, this edits OpenVINO's graph only. Only
+    the exact FakeQuantize -> Convert -> Convert -> [Subtract] -> Multiply shape is removed."""
     dropped = 0
     for fq in graph.get_ordered_ops():
         if fq.get_type_name() != "FakeQuantize" or not _conv_output(fq):

@@ -2,9 +2,9 @@
 
 The network takes a max over all lights after each of its three stages. A staged export cuts the
 graph there, so this loop can run a few lights at a time per stage and keep only each light's
-stage output (96 channels at half resolution) between stages: per pixel and light that is 96 B
-instead of the 1.3-3 KB of activations a monolithic graph holds at once, so tiles can be several
-times larger for the same memory and less of the work goes into halos.
+stage output (96 channels at half resolution) between stages: 96 B per pixel and light instead
+of the KBs of activations a monolithic graph holds at once, so tiles can be several times
+larger for the same memory and less of the work goes into halos.
 The result equals the monolithic graph's: the max is exact and every other op is per light.
 """
 
@@ -19,11 +19,7 @@ STAGE_OUTPUTS = ("feat1", "feat2", "feat3", "normals")
 FEATURES = 96  # channels of each stage's per-light output (half resolution)
 # lights per call. Each call's activations are the working set that grows with it (OpenVINO
 # keeps one arena per stage model), while a call of 4 lights on a real window is still large
-# enough work: msf-run on the full ball (96 lights), 4 against 8, peaks 1,229-1,231 vs
-# 1,730-1,735 MiB (OpenVINO fp32 capped at AVX2) and 1,014-1,023 vs 1,305-1,307 MiB (bf16) at
-# the same time; psmImages cat (12 lights) fp32 1,580 vs 2,697 MiB (ONNX Runtime 1,320 vs
-# 1,752), 9.0-9.2 vs 9.5-9.6 s. 2 lights saved
-# another 250 / 140 MiB but ran 5 % slower with bf16 (docs/benchmark.md, 2026-12-02 (last)).
+# enough work: a lower peak than 8 at the same time, 2 ran slower (docs/benchmark.md).
 DEFAULT_CHUNK = 4
 # kept for the whole tile: one float32 stage output (96 ch on 1/4 of the pixels) + the input
 STORED_BYTES_PER_PIXEL_LIGHT = FEATURES * 4 // 4 + 3 * 4

@@ -20,8 +20,7 @@ def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
     arccos of a float32 dot product cannot resolve angles below ~0.03 deg; this form can.
     """
-    a = np.asarray(a, np.float64)
-    b = np.asarray(b, np.float64)
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     cross = np.linalg.norm(np.cross(a, b), axis=-1)
     dot = np.sum(a * b, axis=-1)
     return np.degrees(np.arctan2(cross, dot))

@@ -16,17 +16,10 @@ relative residual is at the noise level, falling smoothly to 0 where even the ro
 ``s`` falls off sooner (a biased fit hurts the shape more than its detail). The detail weight
 is exp(-(r / scale)^4): flat while the residual is a few per cent (noise, a mild gloss: the
 fit's detail is still the surface's), steep once the fit breaks (shadow edges, inter-reflection),
-which a Gaussian exp(-(r / scale)^2) cannot do at once: trusting more at small residuals meant
-trusting more at large ones too. Smooth weights, not a binary switch, so no seam is drawn where
-the fit goes bad. ``sigma`` sits above the detail
-check's scale (evaluate/detail_ratio.py, 2 px): a split at the check's own scale hands over only
-part of that band (a Gaussian split is gradual), capping the detail kept at 0.84-0.90 of least
-squares' even with w = 1 everywhere; at 3 px the band passes whole.
-
-Measured (docs/run.md, "Detail fusion"), network alone -> fused: DiLiGenT ball / bear /
-harvest 2.15 / 4.89 / 17.83 -> 1.81 / 4.76 / 17.27 deg (msf-eval); psmImages detail ratio 0.61
-/ 0.58 / 0.65 -> 0.99 / 0.98 / 0.92; a rendered matte plate 3.40 -> 0.05 deg (the network's
-rim at true silhouettes goes too), glossy plate 4.45 -> 1.98 deg (least squares 2.10).
+which a Gaussian exp(-(r / scale)^2) cannot do at once. Smooth weights, not a binary switch,
+so no seam is drawn where the fit goes bad. ``sigma`` sits above the detail check's scale
+(evaluate/detail_ratio.py, 2 px): a Gaussian split at the check's own scale hands over only part
+of that band; at 3 px the band passes whole. Measured: docs/run.md, "Detail fusion".
 
 Call it directly (``fuse_detail``; e.g. a half-resolution network upsampled to full size plus a
 full-resolution robust solve) or through :class:`DetailFusionEstimator`, which runs both on one
@@ -56,14 +49,7 @@ declare("detail_fusion", "--no-detail-fusion", "store_false")
 DEFAULT_SIGMA = 3.0  # px: 1.5x the detail check's scale (evaluate.detail_ratio.SIGMA_PX)
 # Relative residuals of the robust fit (per degree of freedom) at which the detail / shape
 # weights are exp(-1), and the powers of their fall-off. Chosen on DiLiGenT (MAE) and psmImages
-# (detail ratio) together, split 3 px (docs/run.md, Detail fusion). With power 2 (a Gaussian),
-# scale 0.25 -> 1.81 / 4.74 / 17.40 deg and 0.96 / 0.95 / 0.89; 0.3 -> 1.81 / 4.76 / 17.59 and
-# 1.00 / 0.98 / 0.91: more detail on 12-light captures cost harvest. Power 4 trusts the few-per-
-# cent residuals of a mild gloss and drops a broken fit faster: 0.18 -> 1.81 / 4.75 / 17.26 and
-# 0.98 / 0.97 / 0.91; 0.19 -> 1.81 / 4.76 / 17.27 and 0.99 / 0.98 / 0.92; 0.22 -> 1.81 / 4.77 /
-# 17.33 and 1.02 / 1.00 / 0.94 (power 3, 0.2: 17.28 and 0.97 / 0.97 / 0.90; power 6, 0.16:
-# 17.27 and 0.98 / 0.98 / 0.92: a flat optimum). Shape: scale 0.03, power 2 (power 4 moved
-# ball by +0.05 deg; scale 0.04 ball / bear by +0.04 / +0.08).
+# (detail ratio) together, split 3 px; the sweep is in docs/run.md, "Detail fusion".
 DEFAULT_RESIDUAL_SCALE = 0.19
 DEFAULT_SHAPE_SCALE = 0.03
 DETAIL_POWER = 4
@@ -72,10 +58,8 @@ WEIGHT_SMOOTH_PX = 1.5  # the weight map's own smoothing: no pixel-to-pixel swit
 # A rig's calibration error (LED intensities or light directions slightly off) raises the fit's
 # residual on every pixel of a part, where a highlight, a shadow or a broken fit raise it on
 # some: the weights read the residual above the part's floor (its FLOOR_PERCENTILE-th
-# percentile), up to FLOOR_CAP, the floor a calibration within a few per cent leaves (LED +-2 %:
-# 0.012 on a matte plate, which without it lost its shape to the network and the network's rim:
-# 2.26 deg at the mask's edge against least squares' 0.63). Above the cap the floor is the
-# material's own (DiLiGenT bear 0.043, harvest 0.063) and stays. docs/benchmark.md, 2026-12-08.
+# percentile), up to FLOOR_CAP, the floor a calibration within a few per cent leaves. Above the
+# cap the floor is the material's own and stays (docs/benchmark.md, 2026-12-08).
 FLOOR_PERCENTILE = 25.0
 FLOOR_CAP = 0.02
 # Fusion in row bands: the working set per pixel of a band (the weights, both low-passes, the

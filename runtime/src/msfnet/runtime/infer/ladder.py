@@ -1,17 +1,14 @@
 """The speed ladder (``--speed``): one option trades time for accuracy in measured rungs.
 
-The network costs ~1.1 MFLOP per pixel per light (infer/flops.py), so its time scales with
-pixels x lights; a least-squares fit costs little (plain 0.15 s, robust ~0.3 s on a 12-light
-512 x 340 part). The rungs below the default cut the network's pixels and lights and give the
+The network's time scales with pixels x lights (infer/flops.py); a least-squares fit costs
+little. The rungs below the default cut the network's pixels and lights and give the
 fine detail back from a full-resolution robust least-squares fit where its Lambertian model
 holds (infer/detail_fusion.py):
 
     full      the network on every pixel and light (the default)
     balanced  the network at 2/5 of the resolution (1/6.25 of the pixels), upsampled;
-              full-resolution detail from least squares where the fit holds. Half resolution
-              measured 2.3-2.7x faster than full with OpenVINO fp32 at AVX2 (the target was
-              3x), 2/5 3.2-3.7x at +0.36 deg (12 lights, DiLiGenT, the detail weight of
-              2026-12-02; was 3.3x at +0.32 deg; docs/benchmark.md)
+              full-resolution detail from least squares where the fit holds (2/5, not half
+              resolution: half fell short of the 3x target)
     fast      the network at a third of the resolution (1/9 of the pixels) on at most
               FAST_LIGHTS evenly spaced lights (least squares still uses them all)
 

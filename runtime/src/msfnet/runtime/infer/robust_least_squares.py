@@ -22,9 +22,8 @@ they drop out. Details that matter:
   MIN_LIGHTS + 1 observations remain, so a pixel with no redundancy (3 lights, or 3 left after
   rejection) can never look like a perfect fit.
 
-The detail fusion (infer/detail_fusion.py) takes its fine detail and its validity from this fit.
-Measured against plain least squares (its own MAE, 96 lights) and its high-pass energy on
-psmImages: see docs/run.md, "Detail fusion".
+The detail fusion (infer/detail_fusion.py) takes its fine detail and its validity from this fit
+(measured: docs/run.md, "Detail fusion").
 """
 
 from __future__ import annotations
@@ -51,14 +50,11 @@ MIN_RELATIVE_NOISE = 1e-4
 NOISE_QUANTILE = 0.5
 MAX_WORKERS = 4  # threads for the fit: its array loops scale to about this many cores
 MIN_PIXELS_PER_WORKER = 4096  # below this a thread costs more than it saves
-NOISE_SAMPLE = 4096  # pixels sampled (evenly) for the stack's typical relative noise: within 2 % of
-# 20,000 on ball, bear, harvest and horse, at a fifth of the cost (0.5 s less on a 96-light object)
+NOISE_SAMPLE = 4096  # pixels sampled (evenly) for the stack's typical relative noise
 # working set of a band: per (mask pixel x light) the gather and usable mask, float64 grey
 # values, their float32 copy, fit, residuals, weights and the median's sorted copy; per pixel
-# the 3 x 3 systems and their solves (measured with tracemalloc, gather included: 440-460 B a
-# pixel at 3-4 lights, 750 at 12, 5,030 at 96). The margin covers the allocator's slack with
-# the band split among threads: peaks measured within 1-3 % of the budget (96 lights, 612 x
-# 512; tests/runtime/infer/test_detail_fusion_memory.py)
+# the 3 x 3 systems and their solves, with a margin for the allocator's slack
+# (tests/runtime/infer/test_detail_fusion_memory.py checks the peaks)
 BYTES_PER_PIXEL_LIGHT = 72
 BYTES_PER_PIXEL = 400
 OUTPUT_BYTES_PER_PIXEL = 16  # the whole-image float32 normals (12) and residual (4)
@@ -154,10 +150,7 @@ def _unclipped(pixels: np.ndarray, full: float) -> np.ndarray:
 
 
 def stack_noise(
-    stack: Stack,
-    lights: np.ndarray,
-    full: float | None = None,
-    max_pixels: int = NOISE_SAMPLE,
+    stack: Stack, lights: np.ndarray, full: float | None = None, max_pixels: int = NOISE_SAMPLE
 ) -> float:
     """The stack's typical relative noise: the median over evenly sampled mask pixels (at most
     NOISE_SAMPLE and ``max_pixels``: one band's working set) of each one's robust spread (no
@@ -236,10 +229,7 @@ def _iterate(
 
 
 def tukey_fit(
-    grey: np.ndarray,
-    lights: np.ndarray,
-    noise: float = 0.0,
-    usable: np.ndarray | None = None,
+    grey: np.ndarray, lights: np.ndarray, noise: float = 0.0, usable: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """g = albedo x normal, (3, P) float64, and the relative residual, (P,) float32, of each
     pixel's robust fit (module notes).

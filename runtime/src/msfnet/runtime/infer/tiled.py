@@ -33,9 +33,8 @@ if TYPE_CHECKING:
 
 
 # An outside pixel counts as surface when its brightness under most lights (the 75th percentile
-# over the stack) is at least this fraction of the mask's median one. Measured (rings of 20 px
-# around the mask): DiLiGenT and psmImages backgrounds sit at 0.03-0.14 (90th percentile), a
-# rendered plate's continuing surface at 0.8-1.2.
+# over the stack) is at least this fraction of the mask's median one: real backgrounds sit
+# well below it, a plate's continuing surface near 1.
 CONTEXT_LIT = 0.3
 CONTEXT_MIN_WIDTH = 5  # px: thinner lit slivers along a silhouette are anti-aliasing, not surface
 CONTEXT_SAMPLE = 20000  # mask pixels sampled for the object's brightness level

@@ -23,26 +23,18 @@ from msfnet.runtime.infer.flops import receptive_field
 from msfnet.runtime.infer.normalise import padded_size
 
 HALO = padded_size(max(receptive_field()), MULTIPLE)  # 20 px: keeps window origins on the grid
-# Activations per (network-input pixel x light of one call): 3000 B, first measured with ONNX
-# Runtime fp32 (arena off, engines/ort_session.py), stays the bound for what has not been
-# measured since. Measured whole-process peaks (msf-run on the full ball, one window, 16-96
-# lights; docs/benchmark.md, "--max-memory is exceeded by OpenVINO fp32") put ONNX Runtime fp32
-# at 3,300-3,530 and OpenVINO fp32 at ~3,560 (its three stage models each keep their
-# activations), OpenVINO bf16 at ~2,000 (kept at the bound); the figures below add a margin
-# for run-to-run spread (the same command's peak moved by 55 MiB), so peak RSS stays under
-# --max-memory. Measured on staged graphs (the bundled export); plain graphs keep the bound.
+# Activations per (network-input pixel x light of one call): the bound for what has not been
+# measured (ONNX Runtime fp32, arena off, engines/ort_session.py). ACTIVATION_BYTES: measured
+# whole-process peaks on staged graphs with a margin for run-to-run spread, so peak RSS stays
+# under --max-memory (OpenVINO int8's arenas per pixel-light grow as its 2-light call shrinks);
+# figures in docs/benchmark.md, "Measurements behind the code's rules".
 BYTES_PER_PIXEL_LIGHT = 3000
-# OpenVINO int8 (the bundled twin, convolution outputs f32, 2 lights a call: its arenas per
-# pixel-light grow as the call shrinks): 8 lights on a 384 px window peaked at 1,641 MiB at 2
-# lights a call, ~4,600 B a pixel-light besides the base (3,900 at 4 lights)
 ACTIVATION_BYTES = {
     ("onnxruntime", "fp32"): 3600,
     ("openvino", "fp32"): 3800,
     ("openvino", "int8"): 4800,
 }
-# runtime + engine + model, outside the per-tile working set: a 16 x 16 px ROI of ball peaked
-# at 246-288 MiB (ONNX Runtime, OpenVINO bf16 and fp32)
-BASE_MEMORY_MB = 300
+BASE_MEMORY_MB = 300  # runtime + engine + model, outside the per-tile working set
 DEFAULT_MAX_MEMORY_MB = 4096
 
 
@@ -78,9 +70,8 @@ def _down(v: int) -> int:
 def activation_bytes(engine: str, precision: str, staged: bool = True) -> int:
     """Activations per (window pixel x light of one call) for ``engine`` at ``precision``: for a
     staged graph the measured figure where there is one, else the BYTES_PER_PIXEL_LIGHT bound.
-    The figures were measured on staged calls; plain graphs stay under the bound (ball, 32
-    lights, 80 px windows: ONNX Runtime fp32 ~2,650 B, OpenVINO fp32 ~1,400), so they keep it
-    (the staged figures would shrink their windows for nothing). Names are matched without
+    Plain graphs stay under the bound, so they keep it (the staged figures would shrink their
+    windows for nothing). Names are matched without
     case, and an export's label by its leading precision (a ModelSession reports "int8-qdq" or
     "fp32 (fp16-stored weights)", not "int8" / "fp32")."""
     if not staged:

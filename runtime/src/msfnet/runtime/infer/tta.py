@@ -124,11 +124,6 @@ class TTAEstimator:
         return Estimate(normals.astype(np.float32), plan, flops)
 
 
-def with_tta(estimator: Estimator, count: int) -> Estimator:
-    """``estimator`` itself for count 1, else wrapped."""
-    return estimator if count == 1 else TTAEstimator(estimator, count)
-
-
 __all__ = [
     "TTA_COUNTS",
     "Dihedral",
@@ -136,5 +131,4 @@ __all__ = [
     "normals_back",
     "transform_stack",
     "tta_transforms",
-    "with_tta",
 ]

@@ -520,18 +520,11 @@ def _read(path: Path, ndim: int, size: tuple[int, ...] | None = None) -> np.ndar
     return data
 
 
-def align_shift(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float]:
-    """(dx, dy) such that ``moving`` shifted by it matches ``fixed``: phase correlation (NaN as
-    0, Hann-windowed) for the coarse shift, refined by OpenCV's ECC (translation only) over the
-    pixels both maps hold. InputError when it is larger than MAX_SHIFT_PX."""
-    dx, dy, _ = _align(moving, fixed)
-    _check_shift(dx, dy)
-    return dx, dy
-
-
 def _align(moving: np.ndarray, fixed: np.ndarray) -> tuple[float, float, float]:
-    """align_shift's shift and the phase correlation's peak (0..1): how much the two maps had
-    in common to align on (a featureless map's peak is noise, low)."""
+    """(dx, dy) such that ``moving`` shifted by it matches ``fixed``, and the phase
+    correlation's peak (0..1): how much the two maps had in common to align on (a featureless
+    map's peak is noise, low). Phase correlation (NaN as 0, Hann-windowed) for the coarse
+    shift, refined by OpenCV's ECC (translation only) over the pixels both maps hold."""
     # each map less its mean: a constant (a uniform albedo) correlates perfectly at zero shift
     # and would outvote the features
     a = np.nan_to_num(fixed.astype(np.float32) - np.float32(np.nanmean(fixed)))
@@ -629,8 +622,7 @@ def align_to(part: InspectionInput, reference: InspectionInput, *, limit: bool =
             reference.source,
         )
     best = max(
-        ((name, *_align(moving, fixed)) for name, moving, fixed in candidates),
-        key=lambda c: c[3],
+        ((name, *_align(moving, fixed)) for name, moving, fixed in candidates), key=lambda c: c[3]
     )
     name, dx, dy, response = best
     if response < MIN_ALIGN_RESPONSE:
@@ -1013,7 +1005,6 @@ __all__ = [
     "JudgedStatistics",
     "Region",
     "Verdict",
-    "align_shift",
     "align_to",
     "check_run_memory",
     "deviation_picture",

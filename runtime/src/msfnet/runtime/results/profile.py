@@ -47,10 +47,8 @@ class Profile:
         stages = s["stages"]
         assert isinstance(stages, dict)
         lines = [f"{'stage':<12} {'median s':>10} {'p90 s':>10}   (repeat {s['repeat']})"]
-        for stage in STAGES:
-            lines.append(
-                f"{stage:<12} {stages[stage]['median_s']:>10.3f} {stages[stage]['p90_s']:>10.3f}"
-            )
+        for stage, t in ((stage, stages[stage]) for stage in STAGES):
+            lines.append(f"{stage:<12} {t['median_s']:>10.3f} {t['p90_s']:>10.3f}")
         lines.append(f"peak RSS     {s['peak_rss_mb']:>10.0f} MB")
         if s["inference_gflops_per_s"] is not None:
             lines.append(

@@ -142,13 +142,8 @@ class Result:
         reads = linked_reads(self.stack.source) if self.stack.source is not None else []
         check_output(folder, src, overwrite=overwrite, folder=True, reads=reads)
         # an automatic mask is a result the user should be able to inspect and reuse
-        return write_result(
-            self,
-            folder,
-            overwrite=overwrite,
-            options=options,
-            write_mask=self.auto_mask if write_mask is None else write_mask,
-        )
+        mask = self.auto_mask if write_mask is None else write_mask
+        return write_result(self, folder, overwrite=overwrite, options=options, write_mask=mask)
 
     # ------------------------------------------------------------ for a person or a log
 
@@ -294,9 +289,8 @@ def fill_result_folder(folder: Path, result: Result, options: SaveOptions | None
         if draw:
             vmax = pictures.error_range(result.error_deg, mask)
             metrics["error_png_max_deg"] = vmax
-            rendered["error"] = pictures.png_bytes(
-                pictures.error_picture(result.error_deg, mask, vmax=vmax)
-            )
+            drawn = pictures.error_picture(result.error_deg, mask, vmax=vmax)
+            rendered["error"] = pictures.png_bytes(drawn)
             (folder / "error.png").write_bytes(rendered["error"])
         (folder / "metrics.json").write_text(json_text(metrics))
     (folder / "profile.json").write_text(json_text(profile))

@@ -1,16 +1,11 @@
 """The photometric stack: its type, loaders, image selection and the DiLiGenT-layout writers."""
 
 from msfnet.runtime.stack.load import (
-    GT_NAMES,
-    INTENSITY_NAMES,
     LIGHTS_NAMES,
-    MASK_NAMES,
     LoadOptions,
     check_stack_size,
     folder_name,
     linked_reads,
-    load_folder,
-    load_npz,
     load_stack,
     prepare_stack,
 )
@@ -31,40 +26,26 @@ from msfnet.runtime.stack.save import (
     write_normals,
 )
 from msfnet.runtime.stack.select import evenly_spaced, parse_select, selection
-from msfnet.runtime.stack.transforms import auto_mask, parse_roi
-from msfnet.runtime.stack.types import (
-    MIN_LIGHTS,
-    Stack,
-    as_held,
-    held_dtype,
-    light_condition,
-    unit_lights,
-)
+from msfnet.runtime.stack.transforms import parse_roi
+from msfnet.runtime.stack.types import MIN_LIGHTS, Stack, as_held, held_dtype, unit_lights
 
 __all__ = [
     "FILENAMES_FILE",
-    "GT_NAMES",
     "INTENSITIES_FILE",
-    "INTENSITY_NAMES",
     "LIGHTS_FILE",
     "LIGHTS_NAMES",
     "MASK_FILE",
-    "MASK_NAMES",
     "MIN_LIGHTS",
     "NORMALS_FILE",
     "LoadOptions",
     "Stack",
     "as_held",
-    "auto_mask",
     "check_stack_size",
     "evenly_spaced",
     "filenames_text",
     "folder_name",
     "held_dtype",
-    "light_condition",
     "linked_reads",
-    "load_folder",
-    "load_npz",
     "load_stack",
     "parse_roi",
     "parse_select",

@@ -238,10 +238,17 @@ class LoadOptions:
         return replace(t, roi=roi), box
 
 
+def _intensities_file(options: LoadOptions) -> Path | None:
+    """--intensities, else the intensities a --lights JSON holds (as the file overrides the
+    stack's directions, it brings its intensities too)."""
+    if options.intensities is not None or options.lights is None:
+        return options.intensities
+    return companion_intensities(options.lights)
+
+
 def _first_existing(folder: Path, names: Sequence[str]) -> Path | None:
     """The first of ``names`` present in ``folder``. One that is there but no readable file (a
-    dangling link, a folder, a pipe) is refused: taken as absent, a moved intensities file
-    ran with unit intensities and a dangling mask.png as no mask, without a word."""
+    dangling link, a folder, a pipe) is refused, never taken as absent."""
     for name in names:
         path = folder / name
         if os.path.lexists(path):
@@ -261,9 +268,7 @@ def _regular_file(path: Path) -> None:
 def _listed_images(folder: Path, names_file: Path) -> list[Path]:
     """The images filenames.txt lists, which must lie in the stack folder: an entry reaching
     outside it (``../x.png``, an absolute path) would be an input no output check knows of."""
-    names = [
-        ln.strip() for ln in names_file.read_text(encoding="utf-8-sig").splitlines() if ln.strip()
-    ]
+    names = _names(names_file)
     for name in names:
         if "\0" in name:  # no file system takes it; os.stat raised a bare ValueError
             raise InputError(f"entry {name[:80]!r} holds a NUL byte: no file name does", names_file)
@@ -275,6 +280,12 @@ def _listed_images(folder: Path, names_file: Path) -> list[Path]:
                 names_file,
             )
     return [folder / n for n in names]
+
+
+def _names(names_file: Path) -> list[str]:
+    """The non-blank lines of filenames.txt, stripped."""
+    lines = names_file.read_text(encoding="utf-8-sig").splitlines()
+    return [ln.strip() for ln in lines if ln.strip()]
 
 
 def check_stack_size(
@@ -327,20 +338,20 @@ def check_headers(
     p0, h0 = known[0]
     for p, h in known[1:]:
         if h.shape != h0.shape:
-            raise InputError(
-                f"image is {h.width}x{h.height} but {p0.name} is {h0.width}x{h0.height}", p
-            )
+            raise _unlike(p, p0, f"{h.width}x{h.height}", f"{h0.width}x{h0.height}")
         if h.bits in _BITS_DTYPE and h0.bits in _BITS_DTYPE and h.bits != h0.bits:
-            raise InputError(
-                f"image is {_BITS_DTYPE[h.bits]} but {p0.name} is {_BITS_DTYPE[h0.bits]}: "
-                "one bit depth per stack",
-                p,
-            )
+            raise _unlike(p, p0, _BITS_DTYPE[h.bits], _BITS_DTYPE[h0.bits], "one bit depth")
     hh, ww = _held_size(h0.shape, transforms, p0)
     check_stack_size(
         len(paths), hh, ww, max_memory_mb, p0.parent, _held_from_header(h0, transforms)
     )
     return h0.shape
+
+
+def _unlike(path: Path, first: Path, this: object, that: object, rule: str = "") -> InputError:
+    """An image unlike the stack's first one: ``rule`` names the stack's rule it breaks."""
+    tail = f": {rule} per stack" if rule else ""
+    return InputError(f"image is {this} but {first.name} is {that}{tail}", path)
 
 
 def _held_from_header(header: ImageHeader, transforms: Transforms) -> np.dtype:
@@ -389,25 +400,15 @@ def _read_images(
     def read_into(i: int) -> None:
         img, dtype, shape, channels = read(paths[i])
         if shape != shape0:
-            raise InputError(
-                f"image is {shape[1]}x{shape[0]} but {paths[0].name} is {shape0[1]}x{shape0[0]}",
-                paths[i],
-            )
+            raise _unlike(paths[i], paths[0], f"{shape[1]}x{shape[0]}", f"{shape0[1]}x{shape0[0]}")
         if dtype != dtype0:
             # an 8-bit image among 16-bit ones is 257x too dark: silently wrong normals
-            raise InputError(
-                f"image is {dtype} but {paths[0].name} is {dtype0}: one bit depth per stack",
-                paths[i],
-            )
+            raise _unlike(paths[i], paths[0], dtype, dtype0, "one bit depth")
         if channels != channels0:
             # a grey frame among colour ones would stand for all three colours of its light
-            # (a coloured object's normals 0.7 deg off, without a word)
             kind = {1: "grey", 3: "colour (RGB)"}
-            raise InputError(
-                f"image is {kind.get(channels, f'{channels}-channel')} but {paths[0].name} is "
-                f"{kind.get(channels0, f'{channels0}-channel')}: one kind of image per stack",
-                paths[i],
-            )
+            this, that = (kind.get(c, f"{c}-channel") for c in (channels, channels0))
+            raise _unlike(paths[i], paths[0], this, that, "one kind of image")
         out[i] = img  # grey (H, W, 1) broadcasts to RGB
 
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
@@ -458,8 +459,8 @@ def _finish(stack: Stack, options: LoadOptions, own_mask: str = "mask") -> Stack
 def _check_box(stack: Stack) -> Stack:
     """A halo-grown crop keeps its own mask around the ROI: the network sees the object there
     as a full-image run does (shadowed parts included, which the lit rule of infer.tiled's
-    edge context would drop: 7 % of the halo on psmImages cat). The ROI itself must hold
-    some of the object, as a plain crop must."""
+    edge context would drop). The ROI itself must hold some of the object, as a plain crop
+    must."""
     if stack.roi_box is not None:
         y0, y1, x0, x1 = stack.roi_box
         if not stack.mask[y0:y1, x0:x1].any():
@@ -527,13 +528,7 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
         raise InputError(
             f"{len(light_dirs)} light directions for {len(paths)} images in {folder}", lights_path
         )
-    # a --lights JSON holding intensities brings them, over the folder's file, as it
-    # overrides the folder's directions (and as it does for an .npz)
-    int_path = options.intensities or (
-        companion_intensities(options.lights) if options.lights is not None else None
-    )
-    if int_path is None:
-        int_path = _intensity_file(folder, lights_path)
+    int_path = _intensities_file(options) or _intensity_file(folder, lights_path)
     if int_path is not None:
         ints = read_vectors(int_path, "light intensities")
         if len(ints) != len(paths):
@@ -546,8 +541,7 @@ def _folder_files(folder: Path, options: LoadOptions) -> _FolderFiles:
 
 def folder_name(path: str | Path) -> str:
     """The name a stack folder goes by, also when it is given as ``.`` or ``sub/..`` (whose
-    ``Path.name`` is empty or ``..``: results were written into a batch's root, and msf-eval
-    failed)."""
+    ``Path.name`` is empty or ``..``)."""
     return Path(os.path.abspath(path)).name or "stack"
 
 
@@ -569,9 +563,9 @@ def linked_reads(path: str | Path) -> list[Path]:
     """The files a stack folder reads that live elsewhere: a symlink or a hard-linked file
     among its images (as filenames.txt lists them, or the folder's), light, intensity, mask
     and ground-truth files, or a file reached through a linked sub-folder. Output checks take
-    them as inputs: an earlier output's mask.png linked into a stack was deleted by that
-    output's --overwrite. Only these: a link the loader never reads (a ``results`` link to
-    the output) is no input. Lenient: a stack the loader will refuse lists what it can."""
+    them as inputs (an --overwrite must not delete one). Only these: a link the loader never
+    reads (a ``results`` link to the output) is no input. Lenient: a stack the loader will
+    refuse lists what it can."""
     folder = Path(path)
     if not folder.is_dir():
         return []
@@ -591,8 +585,8 @@ def linked_reads(path: str | Path) -> list[Path]:
             st = os.lstat(file)
         except OSError:  # missing: nothing there to replace
             continue
-        # one lstat a file (a batch of 300 linked stacks: 30,000 of them); a name through a
-        # sub-folder (filenames.txt's sub/x.png) may pass a link on its way
+        # one lstat a file (a batch of linked stacks makes many); a name through a sub-folder
+        # (filenames.txt's sub/x.png) may pass a link on its way
         if stat.S_ISLNK(st.st_mode) or st.st_nlink > 1 or file.parent != folder:
             found.append(file)
     return found
@@ -634,10 +628,7 @@ def load_folder(
     t, box = (
         options.grown(_stored_shape(paths[0]), paths[0])
         if options.roi_halo
-        else (
-            options.transforms(),
-            None,
-        )
+        else (options.transforms(), None)
     )
     images, hw = _read_images(paths, options.threads, t, options.max_memory_mb)
     # read with --auto-mask too: the automatic mask is compared with it (see _finish)
@@ -654,20 +645,9 @@ def load_folder(
         # one parse of a .mat; an .npy or image checked from the handle read
         gt = t.normals(read_normals(gt_path, check_gt_header(gt_path, hw), shape=hw))
     stack = Stack(
-        folder_name(folder),
-        images,
-        light_dirs,
-        ints,
-        mask_arr,
-        gt,
-        [p.name for p in paths],
-        folder,
+        folder_name(folder), images, light_dirs, ints, mask_arr, gt, [p.name for p in paths], folder
     )
-    return _finish(
-        replace(stack, roi_box=box),
-        options,
-        mask_path.name if mask_path else "mask",
-    )
+    return _finish(replace(stack, roi_box=box), options, mask_path.name if mask_path else "mask")
 
 
 def _stored_shape(path: Path) -> tuple[int, int]:
@@ -721,9 +701,22 @@ def _other_mask(folder: Path) -> Path | None:
 
 def _npz_array(data: np.lib.npyio.NpzFile, key: str, path: Path) -> np.ndarray:
     arr = np.asarray(data[key])
-    if arr.dtype.kind not in "biuf":  # complex, strings, objects: not pixel values
-        raise InputError(f"npz array {key!r} has dtype {arr.dtype}; expected numbers", path)
+    _check_numbers(arr.dtype, key, path)
     return arr
+
+
+def _check_numbers(dtype: np.dtype, key: str, path: Path) -> None:
+    if dtype.kind not in "biuf":  # complex, strings, objects: not pixel values
+        raise InputError(f"npz array {key!r} has dtype {dtype}; expected numbers", path)
+
+
+def _check_float32_range(values: np.ndarray, what: str, path: Path) -> None:
+    """float64 values beyond float32's range would become inf once held: refused."""
+    if values.dtype.kind == "f" and values.dtype.itemsize > 4:
+        finite = np.isfinite(values)
+        top = np.abs(values, where=finite, out=np.zeros(values.shape)).max(initial=0.0)
+        if top > np.finfo(np.float32).max:
+            raise InputError(f"npz {what} hold values beyond the float32 range", path)
 
 
 def _npz_header(data: np.lib.npyio.NpzFile, key: str) -> tuple[tuple[int, ...], np.dtype]:
@@ -742,14 +735,9 @@ def _held_npz_images(images: np.ndarray, path: Path) -> np.ndarray:
     if images.dtype == held or images.ndim < 3:
         return images
     out = np.empty(images.shape, held)
-    top = float(np.finfo(np.float32).max)
     for i in range(images.shape[0]):
-        frame = images[i]
-        if frame.dtype.kind == "f" and frame.dtype.itemsize > 4:
-            finite = np.isfinite(frame)
-            if np.abs(frame, where=finite, out=np.zeros(frame.shape)).max(initial=0.0) > top:
-                raise InputError("npz images hold values beyond the float32 range", path)
-        out[i] = frame
+        _check_float32_range(images[i], "images", path)
+        out[i] = images[i]
     return out
 
 
@@ -758,8 +746,7 @@ def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: fl
     images against the budget and the pixel limit, the others against what the images allow
     (a zip member may inflate to any size, whatever its name)."""
     shape, dtype = _npz_header(data, "images")
-    if dtype.kind not in "biuf":  # complex, strings, objects: not pixel values
-        raise InputError(f"npz array 'images' has dtype {dtype}; expected numbers", path)
+    _check_numbers(dtype, "images", path)
     if len(shape) not in (3, 4):
         raise InputError(f"npz images must be N x H x W (x 3), got {shape}", path)
     n, h, w = shape[:3]
@@ -790,8 +777,7 @@ def _check_npz_headers(data: np.lib.npyio.NpzFile, path: Path, max_memory_mb: fl
         found, _ = _npz_header(data, key)
         if key in ("lights", "intensities") and len(found) == 2 and found[1] != 3:
             raise InputError(
-                f"npz array {key!r} is {found}: 3 numbers per row expected (x y z / r g b)",
-                path,
+                f"npz array {key!r} is {found}: 3 numbers per row expected (x y z / r g b)", path
             )
         if int(np.prod(found, dtype=np.int64)) > limit:
             raise InputError(
@@ -837,8 +823,7 @@ def _check_npz_members(files: set[str], path: Path) -> None:
             f"{', '.join(sorted(files)) or 'none'})",
             path,
         )
-    # an unknown member is refused, never skipped: "light_intensities" for
-    # "intensities" ran on unit intensities, 4 deg off, exit 0
+    # an unknown member is refused, never skipped ("light_intensities" for "intensities")
     unknown = sorted(files - set(NPZ_MEMBERS))
     if unknown:
         raise InputError(
@@ -878,12 +863,8 @@ def _read_npz(path: Path, max_memory_mb: float | None) -> _NpzArrays:
         )
         mask = _npz_array(data, "mask", path) if "mask" in files else np.ones((h, w), bool)
         gt = _npz_array(data, "normals", path) if "normals" in files else None
-        # float64 values beyond float32's range would become inf below: refuse them here
-        for key, arr in (("lights", lights), ("intensities", ints)):
-            if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:
-                big = np.abs(arr[np.isfinite(arr)], dtype=np.float64)
-                if big.size and big.max() > np.finfo(np.float32).max:
-                    raise InputError(f"npz {key} hold values beyond the float32 range", path)
+        _check_float32_range(lights, "lights", path)
+        _check_float32_range(ints, "intensities", path)
         images = as_held(images)  # uint8/uint16 kept: values exact, 2-4x smaller than float32
     except InputError:
         raise
@@ -901,10 +882,7 @@ def _npz_lights(
     n = arrays.images.shape[0]
     if options.lights is not None:
         lights = read_vectors(options.lights, "light directions")
-    # a --lights JSON holding intensities too brings them (as --intensities would)
-    int_src = options.intensities or (
-        companion_intensities(options.lights) if options.lights is not None else None
-    )
+    int_src = _intensities_file(options)
     if int_src is not None:
         ints = read_vectors(int_src, "light intensities")
     lights_src = options.lights or path
@@ -947,18 +925,11 @@ def load_npz(path: Path, options: LoadOptions = LoadOptions()) -> Stack:
     arrays = _read_npz(path, options.max_memory_mb)
     lights, ints, lights_src = _npz_lights(arrays, path, options)
     mask, gt = _npz_mask_normals(arrays, path, options)
-    stack = Stack(
-        path.stem,
-        arrays.images,
-        unit_lights(lights, lights_src),
-        ints,
-        as_mask(mask, path),
-        gt,
-        [],
-        path,
-    ).validate()
+    lights = unit_lights(lights, lights_src)
+    stack = Stack(path.stem, arrays.images, lights, ints, as_mask(mask, path), gt, [], path)
     # the files are read: the rest is what prepare_stack does to any in-memory stack
-    return prepare_stack(stack, replace(options, lights=None, intensities=None, mask=None))
+    files_read = replace(options, lights=None, intensities=None, mask=None)
+    return prepare_stack(stack.validate(), files_read)
 
 
 def count_images(folder: Path) -> int:
@@ -967,9 +938,7 @@ def count_images(folder: Path) -> int:
         return 0
     names_file = folder / "filenames.txt"
     if names_file.is_file():
-        return sum(
-            1 for ln in names_file.read_text(encoding="utf-8-sig").splitlines() if ln.strip()
-        )
+        return len(_names(names_file))
     return len(list_images(folder, strict=False))
 
 

@@ -10,24 +10,16 @@ from pathlib import Path
 import numpy as np
 
 from msfnet.common.errors import InputError, first_line
-from msfnet.common.imageio import (
-    MAX_PIXELS,
-    array_shape,
-    check_same_size,
-    npy_layout,
-    read_image,
-)
+from msfnet.common.imageio import MAX_PIXELS, array_shape, check_same_size, npy_layout, read_image
 from msfnet.common.matfile import MatDirectory, mat_directory, normals_variable, not_v5
 
 # A light file lists one row per light. Real rigs have tens to a few hundred lights; the bounds
-# refuse a wrong file (a point cloud, a log) at once instead of parsing it for minutes and
-# gigabytes (a 57 MB, 1.7-million-row file did, before these checks).
+# refuse a wrong file (a point cloud, a log) at once instead of parsing it for minutes.
 MAX_LIGHTS = 10_000
 MAX_VECTOR_FILE_BYTES = 4 * 2**20  # 10,000 rows of three long numbers, pretty-printed, fit
 
 # The names a JSON light file may give its rows: an object's other keys are refused, never
-# guessed at (the first list in the file was read whatever its key, so "positions_mm" was taken
-# for directions, 17 deg off, exit 0).
+# guessed at (a "positions_mm" list is no directions).
 JSON_KEYS = {
     "light directions": ("light_directions", "directions", "lights"),
     "light intensities": ("light_intensities", "intensities"),
@@ -125,8 +117,7 @@ def _text_rows(text: str, what: str, path: Path) -> list[list[float]]:
     widths = {len(r) for r in rows}
     if len(widths) > 1:
         raise InputError(
-            f"cannot parse {what}: rows have {sorted(widths)} numbers (expected 3 per row)",
-            path,
+            f"cannot parse {what}: rows have {sorted(widths)} numbers (expected 3 per row)", path
         )
     out = []
     for i, row in enumerate(rows):
@@ -174,8 +165,8 @@ def read_vectors(path: Path, what: str) -> np.ndarray:
 
 def companion_intensities(lights: Path) -> Path | None:
     """``lights`` itself when it is a JSON object that also holds the intensities (under a
-    name of :data:`JSON_KEYS`), else None: such a file's intensities had been dropped without
-    a word, 4 deg off on a coloured rig. Damage is left to :func:`read_vectors` to report."""
+    name of :data:`JSON_KEYS`), else None: such a file's intensities are used, never dropped.
+    Damage is left to :func:`read_vectors` to report."""
     if lights.suffix.lower() != ".json":
         return None
     try:
@@ -197,8 +188,8 @@ def unit_normals(n: np.ndarray) -> np.ndarray:
     bad = ~np.isfinite(out)
     if bad.any():
         out[bad] = 0.0
-    # lengths summed in float64 (no overflow of huge float32 values), one per pixel: 3-5x
-    # faster than float64 copies of the whole map in a fresh process (page faults)
+    # lengths summed in float64 (no overflow of huge float32 values), one per pixel: no
+    # float64 copy of the whole map
     length = np.sqrt(np.einsum("...i,...i->...", out, out, dtype=np.float64))
     scale = np.divide(1.0, length, out=np.zeros_like(length), where=length > 1e-6)
     out *= scale[..., None].astype(out.dtype, copy=False)
@@ -248,11 +239,9 @@ def _mat_normals(path: Path, mat: MatDirectory | None) -> np.ndarray:
     if mat is None:
         mat = mat_directory(path)
     if mat is None:
-        # Level 4 and v7.3 are refused, not handed to loadmat unchecked. Neither is in use:
-        # DiLiGenT's Normal_gt.mat files (ball, bear, harvest here; its L2 baseline too) and
-        # msfnet's writers are level 5. A v4 file holds only 2-D matrices, never an
-        # H x W x 3 map, so checking its headers would only lead to that refusal later,
-        # after loadmat had parsed a possibly hostile file. v7.3 is HDF5: loadmat cannot.
+        # Level 4 and v7.3 are refused, not handed to loadmat unchecked: DiLiGenT's and
+        # msfnet's files are level 5, a v4 file never holds an H x W x 3 map, and v7.3 is
+        # HDF5, which loadmat cannot read.
         with open(path, "rb") as f:
             what = not_v5(f.read(128))
         raise InputError(
@@ -308,8 +297,7 @@ def _npy_normals(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
         left = os.fstat(f.fileno()).st_size - f.tell()
         if left < want:  # known before reading (or allocating): no partial array
             raise InputError(
-                f"truncated .npy file ({left:,} of the {want:,} bytes its header declares)",
-                path,
+                f"truncated .npy file ({left:,} of the {want:,} bytes its header declares)", path
             )
         values = np.empty(count, dtype)
         got = f.readinto(values.view(np.uint8).data)

@@ -65,7 +65,7 @@ def halo_roi(
     ``align``: where it can, the grown crop starts on a multiple of ``align`` held pixels of
     the image (grown by up to ``align - 1`` more): the network downsamples, so a crop off the
     grid of a full-image run's tiles (contract.INPUT_MULTIPLE) gives other, equally valid,
-    numbers (0.8 deg apart on psmImages horse).
+    numbers.
     """
     x, y, w, h = roi
     ih, iw = shape
@@ -83,8 +83,7 @@ def halo_roi(
         return plain
 
     left, top = before(x), before(y)
-    right = min(g, iw - (x + w))
-    bottom = min(g, ih - (y + h))
+    right, bottom = min(g, iw - (x + w)), min(g, ih - (y + h))
     grown = (x - left, y - top, w + left + right, h + top + bottom)
     box = (top // k, top // k + h // k, left // k, left // k + w // k)
     return grown, box
@@ -159,13 +158,10 @@ def linearise(
     return (lin * np.float32(white)).astype(np.float32)
 
 
-def _histogram(v: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
-    hist, edges = np.histogram(v, bins=bins, range=(float(v.min()), float(v.max())))
-    return hist.astype(np.float64), edges
-
-
 def _otsu_bin(hist: np.ndarray, centres: np.ndarray) -> int:
-    """Last bin of the lower class; the middle of the best plateau (see otsu_threshold)."""
+    """Last bin of the lower class of Otsu's split (Otsu 1979). When the two populations are
+    separated by empty bins every split in the gap scores the same: take the middle of that
+    plateau, not its first bin on the lower population's tail."""
     w0 = np.cumsum(hist)  # pixels at or below each bin
     w1 = w0[-1] - w0
     s0 = np.cumsum(hist * centres)
@@ -179,20 +175,6 @@ def _otsu_bin(hist: np.ndarray, centres: np.ndarray) -> int:
     return (best + end) // 2
 
 
-def otsu_threshold(values: np.ndarray, bins: int = 1024) -> float:
-    """The threshold maximising the between-class variance of a 1-D sample (Otsu 1979).
-
-    When the two populations are separated by empty bins, every threshold in the gap scores
-    the same: take the middle of that plateau rather than its first bin, which would sit on
-    the lower population's tail and let its noise through.
-    """
-    v = np.asarray(values, np.float64).ravel()
-    if v.max() <= v.min():
-        return float(v.max())
-    hist, edges = _histogram(v, bins)
-    return float(edges[_otsu_bin(hist, (edges[:-1] + edges[1:]) / 2) + 1])
-
-
 def valley_threshold(values: np.ndarray, bins: int = 256) -> float:
     """Otsu's split moved to the emptiest point of the (lightly smoothed) histogram between
     the two classes' modes.
@@ -204,7 +186,8 @@ def valley_threshold(values: np.ndarray, bins: int = 256) -> float:
     v = np.asarray(values, np.float64).ravel()
     if v.max() <= v.min():
         return float(v.max())
-    hist, edges = _histogram(v, bins)
+    hist, edges = np.histogram(v, bins=bins, range=(float(v.min()), float(v.max())))
+    hist = hist.astype(np.float64)
     centres = (edges[:-1] + edges[1:]) / 2
     t = _otsu_bin(hist, centres)
     x = np.arange(-6, 7)
@@ -238,13 +221,12 @@ def auto_mask(images: np.ndarray, *, min_share: float = 0.1) -> np.ndarray:
     single image. The split is made on ``log(peak + typical)``, ``typical`` being the median
     peak: logarithmic above it (on linear values the split would fall between highlights and
     the rest of the object: a shiny object's peak spans decades), linear below it (a plain
-    logarithm stretches the backdrop's few dark codes, 0-16 of 255 on psmImages' cloth, into
-    a mode of their own and splits the backdrop instead: IoU 0.21-0.58 with the dataset's
-    masks, against 0.98-0.99 with the offset; DiLiGenT 0.91-0.99 either way). Otsu's
-    threshold, moved to the histogram's valley between the two classes
-    (:func:`valley_threshold`), then a morphological open (specks of lit background) and
-    close (dark pits inside the object) with a kernel of ~1 % of the image, then only the
-    connected components of at least ``min_share`` of the largest one's area.
+    logarithm stretches the backdrop's few dark codes into a mode of their own and splits the
+    backdrop instead: docs/benchmark.md). Otsu's threshold, moved to the histogram's valley
+    between the two classes (:func:`valley_threshold`), then a morphological open (specks of
+    lit background) and close (dark pits inside the object) with a kernel of ~1 % of the
+    image, then only the connected components of at least ``min_share`` of the largest one's
+    area.
     """
     peak = images.max(axis=(0, 3)) if images.ndim == 4 else images.max(axis=0)
     step = 1.0 if peak.dtype.kind in "ui" else _step(peak)
@@ -329,11 +311,8 @@ class Transforms:
 
     def describe(self) -> dict[str, object]:
         lin = "srgb" if self.srgb else (f"gamma {self.gamma:g}" if self.gamma else None)
-        return {
-            "roi": list(self.roi) if self.roi else None,
-            "downscale": self.downscale,
-            "linearise": lin,
-        }
+        roi = list(self.roi) if self.roi else None
+        return {"roi": roi, "downscale": self.downscale, "linearise": lin}
 
 
 __all__ = [
@@ -347,7 +326,6 @@ __all__ = [
     "downscale_normals",
     "halo_roi",
     "linearise",
-    "otsu_threshold",
     "parse_roi",
     "srgb_to_linear",
     "valley_threshold",

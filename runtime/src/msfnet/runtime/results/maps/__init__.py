@@ -21,49 +21,19 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from msfnet.runtime.results.maps.api import (
         MAP_NAMES,
-        MAP_PRESETS,
         InspectionMaps,
         MapOptions,
         compute_maps,
-        preset_maps,
         stack_maps,
         write_maps,
     )
-    from msfnet.runtime.results.maps.integrate import METHODS, Intrinsics, integrate_normals
 
-_WHERE = {
-    "MAP_NAMES": "api",
-    "MAP_PRESETS": "api",
-    "preset_maps": "api",
-    "InspectionMaps": "api",
-    "MapOptions": "api",
-    "compute_maps": "api",
-    "stack_maps": "api",
-    "write_maps": "api",
-    "METHODS": "integrate",
-    "Intrinsics": "integrate",
-    "integrate_normals": "integrate",
-}
-
-__all__ = [
-    "MAP_NAMES",
-    "MAP_PRESETS",
-    "METHODS",
-    "InspectionMaps",
-    "Intrinsics",
-    "MapOptions",
-    "compute_maps",
-    "integrate_normals",
-    "preset_maps",
-    "stack_maps",
-    "write_maps",
-]
+__all__ = ["MAP_NAMES", "InspectionMaps", "MapOptions", "compute_maps", "stack_maps", "write_maps"]
 
 
 def __getattr__(name: str) -> object:
-    module = _WHERE.get(name)
-    if module is None:
+    if name not in __all__:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(import_module(f"{__name__}.{module}"), name)
+    value = getattr(import_module(f"{__name__}.api"), name)
     globals()[name] = value  # resolved once
     return value

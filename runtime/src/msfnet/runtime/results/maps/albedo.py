@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 
 from msfnet.common.errors import InputError
-from msfnet.runtime.results.maps.validate import check_normals
 from msfnet.runtime.stack.types import float_full_scale, full_scale
 
 DEFAULT_MIN_SHADING = 0.1
@@ -52,38 +51,6 @@ def display_level(albedo: np.ndarray, mask: np.ndarray, percentile: float) -> fl
     return float(np.percentile(vals, percentile)) if vals.size else 0.0
 
 
-def albedo_map(
-    images: np.ndarray,
-    lights: np.ndarray,
-    intensities: np.ndarray,
-    mask: np.ndarray,
-    normals: np.ndarray,
-    *,
-    min_shading: float = DEFAULT_MIN_SHADING,
-    saturation: float | None = None,
-    chunk_pixels: int = CHUNK_PIXELS,
-) -> np.ndarray:
-    """Least-squares RGB albedo, (H, W, 3) float32.
-
-    images: (N, H, W, 3) linear values as stored; lights: (N, 3) directions (normalised here);
-    intensities: (N, 3) RGB light intensities; mask: (H, W) bool; normals: (H, W, 3) unit.
-    min_shading: smallest n . l kept (dimensionless cosine).
-    saturation: values at or above it are dropped (default: :func:`default_saturation`, the
-    images' full scale).
-    Pixels outside the mask or with a zero normal get NaN, and so does a channel with no kept
-    observation (its albedo is unknown).
-    chunk_pixels: pixels solved at once (the working set is about
-    ``chunk_pixels * N * BYTES_PER_PIXEL_LIGHT`` bytes; maps.budget sizes it to --max-memory).
-    """
-    imgs = np.asarray(images)
-    if imgs.ndim != 4 or imgs.shape[3] != 3:
-        raise InputError(f"images must be N x H x W x 3, got shape {imgs.shape}")
-    unit, valid = check_normals(normals, mask)
-    return checked_albedo(
-        imgs, lights, intensities, valid, unit, min_shading, saturation, chunk_pixels
-    )
-
-
 def checked_albedo(
     imgs: np.ndarray,
     lights: np.ndarray,
@@ -94,7 +61,21 @@ def checked_albedo(
     saturation: float | None = None,
     chunk_pixels: int = CHUNK_PIXELS,
 ) -> np.ndarray:
-    """:func:`albedo_map` of normals already through ``check_normals`` (no second copy)."""
+    """Least-squares RGB albedo, (H, W, 3) float32.
+
+    imgs: (N, H, W, 3) linear values as stored; lights: (N, 3) directions (normalised here);
+    intensities: (N, 3) RGB light intensities; ``valid`` and ``unit``: what
+    ``validate.check_normals`` makes of the normals and the mask (no second copy of them).
+    min_shading: smallest n . l kept (dimensionless cosine).
+    saturation: values at or above it are dropped (default: :func:`default_saturation`, the
+    images' full scale).
+    Pixels outside ``valid`` get NaN, and so does a channel with no kept observation (its
+    albedo is unknown).
+    chunk_pixels: pixels solved at once (the working set is about
+    ``chunk_pixels * N * BYTES_PER_PIXEL_LIGHT`` bytes; maps.budget sizes it to --max-memory).
+    """
+    if imgs.ndim != 4 or imgs.shape[3] != 3:
+        raise InputError(f"images must be N x H x W x 3, got shape {imgs.shape}")
     n_lights, h, w = imgs.shape[:3]
     if unit.shape[:2] != (h, w):
         raise InputError(f"normals are {unit.shape[:2]} but images are {(h, w)}")
@@ -130,7 +111,6 @@ def checked_albedo(
 
 __all__ = [
     "DEFAULT_MIN_SHADING",
-    "albedo_map",
     "checked_albedo",
     "default_saturation",
     "display_level",

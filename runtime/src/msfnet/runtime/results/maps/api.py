@@ -74,10 +74,7 @@ def parse_maps(text: str) -> tuple[str, ...]:
 
 PIXEL_SIZE_MM = (1e-6, 1e4)  # 1 nm (microscopes) to 10 m (aerial) a pixel
 # what the registered TIFFs hold where there is no value (maps.json "outside_mask"; docs/run.md)
-OUTSIDE_MASK = (
-    "NaN, except normals.tif: (0, 0, 0) (no normal); albedo.tif is NaN inside the mask too "
-    "where no observation was kept"
-)
+OUTSIDE_MASK = "NaN; albedo.tif is NaN inside the mask too where no observation was kept"
 
 
 @options_type
@@ -191,12 +188,9 @@ class MapOptions:
             v = getattr(self, name)
             if v is None and name == "pixel_size_mm":
                 continue
-            ok = (
-                v is not None
-                and np.isfinite(v)
-                and (v >= 0 if name == "curvature_sigma" else v > 0)
-            )
-            if not ok:
+            if v is None or not (
+                np.isfinite(v) and (v >= 0 if name == "curvature_sigma" else v > 0)
+            ):
                 raise InputError(f"{name.replace('_', ' ')} {v}: must be a positive number")
         lo, hi = PIXEL_SIZE_MM
         if self.pixel_size_mm is not None and not lo <= self.pixel_size_mm <= hi:
@@ -317,7 +311,7 @@ class InspectionMaps:
     def written_units(self) -> dict[str, object]:
         """:meth:`registered_units` of the TIFFs :func:`write_maps` writes (none with
         ``tiff=False``; no height or local shape for a perspective run), with their names."""
-        written = self.physical_names() if self.options.tiff else []
+        written = self.tiff_names()
         units = self.registered_units()
         for key, name in (
             ("height", "height"),
@@ -331,6 +325,12 @@ class InspectionMaps:
                 del units[key]
         units["files"] = [f"{name}.tif" for name in written]
         return units
+
+    def tiff_names(self) -> list[str]:
+        """The maps :func:`write_maps` writes as registered TIFFs (none with ``tiff=False``):
+        the physical ones but the normals, which normals.npy holds (gradient_p / gradient_q are
+        their TIFF form for other tools). A map with a TIFF gets no .npy copy."""
+        return [n for n in self.physical_names() if n != "normals"] if self.options.tiff else []
 
     def physical(self) -> dict[str, np.ndarray]:
         """The registered data maps in their TIFF units (mm with a pixel size): name -> (H, W)
@@ -390,12 +390,8 @@ def compute_maps(
         raise InputError("the albedo needs the images, lights and intensities")
     m = np.asarray(mask, bool)
     opts.check_shape((int(m.shape[0]), int(m.shape[1])))
-    budget = MapsBudget(
-        max_memory_mb,
-        int(m.size),
-        int(np.count_nonzero(m)),
-        0 if images is None else int(images.shape[0]),
-    )
+    lights_n = 0 if images is None else int(images.shape[0])
+    budget = MapsBudget(max_memory_mb, int(m.size), int(np.count_nonzero(m)), lights_n)
     wanted = [n for n in ("albedo", "height", "curvature", "mesh") if opts.wants(n)]
     skipped: list[str] = []
     needs: dict[str, float] = {}
@@ -422,16 +418,9 @@ def compute_maps(
     if opts.wants("albedo") and fits("albedo"):
         assert images is not None and lights is not None and intensities is not None
         start = time.perf_counter()
-        maps.albedo = checked_albedo(
-            np.asarray(images),
-            lights,
-            intensities,
-            valid,
-            unit,
-            min_shading=opts.min_shading,
-            saturation=opts.saturation,
-            chunk_pixels=budget.albedo_chunk(),
-        )
+        args = (np.asarray(images), lights, intensities, valid, unit)
+        chunk = budget.albedo_chunk()
+        maps.albedo = checked_albedo(*args, opts.min_shading, opts.saturation, chunk)
         maps.timings["albedo"] = time.perf_counter() - start
     if opts.wants("height") and fits("height"):
         _height_maps(maps, unit, valid)
@@ -483,15 +472,8 @@ def stack_maps(
     max_memory_mb: float | None = None,
 ) -> InspectionMaps:
     """:func:`compute_maps` for a ``msfnet.runtime.stack.Stack`` and its estimated normals."""
-    return compute_maps(
-        stack.images,
-        stack.lights,
-        stack.intensities,
-        stack.mask,
-        normals,
-        options,
-        max_memory_mb=max_memory_mb,
-    )
+    arrays = (stack.images, stack.lights, stack.intensities, stack.mask, normals)
+    return compute_maps(*arrays, options, max_memory_mb=max_memory_mb)
 
 
 ALBEDO_PNG_PERCENTILE = 99.5
@@ -502,9 +484,9 @@ def albedo_png(
 ) -> np.ndarray:
     """(H, W, 3) albedo -> 16-bit linear RGB with the ``percentile`` of each pixel's
     brightest channel in the mask at 65535, brighter values clipped (relative; the absolute
-    values are in albedo.npy). Scaled to the one brightest pixel, a specular speck, the rest
-    of harvest sat at ~10 % of full scale: black in a viewer. Zeros outside the mask and
-    where the albedo is unknown (NaN: no observation kept), so black there."""
+    values are in albedo.npy): scaled to the one brightest pixel, a specular speck, the rest
+    would be black in a viewer. Zeros outside the mask and where the albedo is unknown (NaN:
+    no observation kept), so black there."""
     top = display_level(albedo, mask, percentile)
     scale = 65535.0 / top if top > 0 else 0.0
     img = np.clip(np.rint(np.nan_to_num(albedo) * scale), 0, 65535).astype(np.uint16)
@@ -539,7 +521,7 @@ def linear_png(png: bytes, note: str) -> bytes:
 ALBEDO_PNG_NOTE = (
     f"relative linear albedo (gamma 1.0): the {ALBEDO_PNG_PERCENTILE:g}th percentile of the "
     "brightest channel in the mask is 65535, brighter pixels clipped; absolute values in "
-    "albedo.npy"
+    "albedo.tif (albedo.npy without TIFFs)"
 )
 
 
@@ -561,14 +543,13 @@ def provenance(profile: Mapping[str, object] | None) -> dict[str, object]:
             facts["lights"] = lights
         return facts
     engine = " ".join(str(p[k]) for k in ("engine", "precision") if p.get(k))
-    out: dict[str, object] = {
+    return {
         "model": p.get("model") or ("none (least squares)" if p.get("method") == "l2" else "-"),
         "engine": engine or "-",
         "lights": lights or p.get("stack") or "-",
         "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv else "-",
         "time": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
     }
-    return out
 
 
 def height_range_text(value: float, options: MapOptions) -> str:
@@ -607,10 +588,11 @@ def write_maps(
     """Write the computed maps into ``folder`` (created if needed; it may already hold the
     run's normals.npy etc., which are left alone); returns the written paths.
 
-    albedo.png (16-bit linear RGB, relative: see :func:`albedo_png`) + albedo.npy;
-    height.npy (float32, NaN outside) + height.png (hill-shaded picture) [+ depth.npy with
-    intrinsics]; curvature.npy (mean, 1/px) + curvature.png + shape_index.npy; mesh.ply;
-    maps.json (options, units, timings) and, with
+    albedo.png (16-bit linear RGB, relative: see :func:`albedo_png`), height.png (16-bit grey
+    view), local_shape.png and curvature.png (signed views); the data once each
+    (:meth:`InspectionMaps.tiff_names`): as registered float32 TIFFs, or as .npy (float32, NaN
+    outside) without TIFFs or for a perspective height [+ depth.npy]; shape_index.npy;
+    mesh.ply; maps.json (options, units, timings) and, with
     ``report``, report.html (inputs from ``images``, normals, maps, ``error_deg`` (H, W) in
     degrees, and the latency table from ``profile``, a profile.json summary).
     ``rendered``: pictures the caller already drew ("normals", "error" PNG bytes), reused
@@ -627,31 +609,19 @@ def write_maps(
     draw = pictures.can_draw()  # without Pillow no figures, all else written
     figures: list[tuple[str, bytes]] = []
     if images is not None and draw:
-        figures.append(
-            (
-                "wide: inputs: maximum over all images and a few of them",
-                pictures.png_bytes(pictures.inputs_picture(images, m)),
-            )
-        )
+        inputs = pictures.png_bytes(pictures.inputs_picture(images, m))
+        figures.append(("wide: inputs: maximum over all images and a few of them", inputs))
     done = dict(rendered or {})
     if draw:
-        figures.append(
-            (
-                "normals",
-                done.get("normals")
-                or pictures.png_bytes(pictures.normals_picture(maps.normals, m)),
-            )
-        )
+        normals = done.get("normals")
+        normals = normals or pictures.png_bytes(pictures.normals_picture(maps.normals, m))
+        figures.append(("normals", normals))
     jobs, views = _view_jobs(maps, draw)
     figures += views
     jobs += _data_jobs(maps)
     if error_deg is not None and draw:
-        figures.append(
-            (
-                "angular error vs ground truth",
-                done.get("error") or pictures.png_bytes(pictures.error_picture(error_deg, m)),
-            )
-        )
+        error = done.get("error") or pictures.png_bytes(pictures.error_picture(error_deg, m))
+        figures.append(("angular error vs ground truth", error))
     summary = maps.summary()
     jobs.append(("maps.json", _bytes_writer(json_text(summary).encode())))
     if report:
@@ -677,10 +647,12 @@ def _view_jobs(maps: InspectionMaps, draw: bool) -> tuple[list[Job], list[tuple[
     m = maps.mask
     jobs: list[Job] = []
     figures: list[tuple[str, bytes]] = []
+    tiffs = maps.tiff_names()  # each map's data once: its TIFF, else a .npy
     if maps.albedo is not None:
         png = linear_png(pictures.png_bytes(albedo_png(maps.albedo, m)), ALBEDO_PNG_NOTE)
         jobs.append(("albedo.png", _bytes_writer(png)))
-        jobs.append(("albedo.npy", _npy_writer(maps.albedo)))
+        if "albedo" not in tiffs:
+            jobs.append(("albedo.npy", _npy_writer(maps.albedo)))
         if draw:
             figures.append(("albedo", pictures.png_bytes(pictures.albedo_picture(maps.albedo, m))))
     if maps.height is not None:
@@ -692,7 +664,9 @@ def _view_jobs(maps: InspectionMaps, draw: bool) -> tuple[list[Job], list[tuple[
             pictures.png_bytes(grey16_view(maps.height, m)),
             "height, min..max in the mask stretched to 1..65535, 0 outside; values in height.tif",
         )
-        jobs += [("height.npy", _npy_writer(maps.height)), ("height.png", _bytes_writer(view))]
+        jobs.append(("height.png", _bytes_writer(view)))
+        if "height" not in tiffs:
+            jobs.append(("height.npy", _npy_writer(maps.height)))
         if maps.depth is not None:
             jobs.append(("depth.npy", _npy_writer(maps.depth)))
     if maps.local_shape is not None:
@@ -711,10 +685,9 @@ def _view_jobs(maps: InspectionMaps, draw: bool) -> tuple[list[Job], list[tuple[
             figures.append(("mean curvature", figure))
         rgb, top = signed_view(maps.curvature, m)
         note = f"mean curvature, red convex / blue concave, +-{top:.4g} 1/px full colour"
-        jobs += [
-            ("curvature.npy", _npy_writer(maps.curvature)),
-            ("curvature.png", _bytes_writer(described_png(pictures.png_bytes(rgb), note))),
-        ]
+        jobs.append(("curvature.png", _bytes_writer(described_png(pictures.png_bytes(rgb), note))))
+        if "curvature" not in tiffs:
+            jobs.append(("curvature.npy", _npy_writer(maps.curvature)))
         if maps.shape_index is not None:
             jobs.append(("shape_index.npy", _npy_writer(maps.shape_index)))
     return jobs, figures
@@ -725,17 +698,15 @@ def _data_jobs(maps: InspectionMaps) -> list[Job]:
     from msfnet.runtime.results.maps.mesh import albedo_colors, height_mesh, write_ply
 
     jobs: list[Job] = []
-    if maps.options.tiff:
-        reg_units = maps.registered_units()
-        placement = tiff_placement(maps.options.frame, maps.options.image_pixel_size_mm)
-        for name in maps.physical_names():
-            text = f"msfnet {name} ({reg_units.get(name, 'see maps.json')}), float32, registered"
-            jobs.append(
-                (
-                    f"{name}.tif",
-                    lambda tmp, n=name, t=text: write_tiff(tmp, maps.physical_map(n), t, placement),
-                )
-            )
+    reg_units = maps.registered_units()
+    placement = tiff_placement(maps.options.frame, maps.options.image_pixel_size_mm)
+    for name in maps.tiff_names():
+        text = f"msfnet {name} ({reg_units.get(name, 'see maps.json')}), float32, registered"
+
+        def write(tmp: Path, n: str = name, t: str = text) -> None:
+            write_tiff(tmp, maps.physical_map(n), t, placement)
+
+        jobs.append((f"{name}.tif", write))
     if "mesh" in maps.options.maps and maps.height is not None and "mesh" not in maps.skipped:
         m = maps.mask
 
@@ -777,13 +748,7 @@ def _report_text(
         meta["integration iterations"] = maps.integration.iterations
     if "height_range" in summary:
         meta["height range"] = height_range_text(summary["height_range"], maps.options)
-    return build_report(
-        title,
-        figures,
-        meta=meta,
-        profile=profile,
-        map_seconds=maps.timings,
-    )
+    return build_report(title, figures, meta=meta, profile=profile, map_seconds=maps.timings)
 
 
 __all__ = [

@@ -6,14 +6,7 @@ does not fit is skipped before any of its work, and the run says so in one warni
 normals and the maps that fit are still written). The albedo is solved in chunks of pixels
 sized to what is left.
 
-Working sets, measured as peak resident growth (``/proc/self/clear_refs`` between stages) on
-synthetic spheres of 0.48 and 1.6 MP with masks of 0.1-1.6 MP, rounded up to bound them all:
-check + gradients ~50 B per image pixel (the float64 unit normals are kept while maps run);
-height with its local shape, Poisson: 118-921 MB, fitted by 100 MB + 40 B per image pixel +
-560 B per mask pixel (the sparse system, multigrid levels, conjugate-gradient vectors, then
-the float32 moment images of the local fit); Frankot-Chellappa 882 MB at 1.6 MP (FFTs of the
-whole grid); bini 379 MB at 0.48 MP; curvature up to 235 MB at 1.6 MP (150 B per image
-pixel); the mesh ~120 B per mask pixel (vertices, normals, colours, faces).
+The working sets below bound the peak resident growth measured per stage (docs/benchmark.md).
 """
 
 from __future__ import annotations
@@ -22,11 +15,7 @@ from dataclasses import dataclass
 
 from msfnet.common.vocabulary import declare, opt, verbatim
 from msfnet.runtime.instrument import memory_in_use_mb
-from msfnet.runtime.results.maps.albedo import (
-    BYTES_PER_PIXEL_LIGHT,
-    CHUNK_PIXELS,
-    MIN_CHUNK_PIXELS,
-)
+from msfnet.runtime.results.maps.albedo import BYTES_PER_PIXEL_LIGHT, CHUNK_PIXELS, MIN_CHUNK_PIXELS
 
 # --no-maps: Model(maps=None) from Python (that text is its keyword)
 declare("maps=None", "--no-maps")
@@ -43,12 +32,9 @@ CURVATURE_PER_PIXEL = 150
 MESH_PER_MASK_PIXEL = 120
 ALBEDO_OUT_PER_PIXEL = 12
 # what writing the results takes after the maps: Pillow's drawing, its font and the first
-# pictures (16 MB resident growth measured for ball's four pictures, when not yet imported;
-# matplotlib took 70-86 MB) and the largest one-at-a-time output's temporaries (the 16-bit
-# normals picture, ~20 B per pixel)
+# pictures, and the largest one-at-a-time output's temporaries (the 16-bit normals picture)
 WRITE_RESERVE_MB = 20
 WRITE_PER_PIXEL = 32
-ALBEDO_OUT_PER_PIXEL = 12
 
 
 @dataclass(frozen=True)
@@ -102,9 +88,8 @@ class MapsBudget:
         spare = self.spare_mb()
         if spare is None:
             return CHUNK_PIXELS
-        room = ((spare - self.write_reserve_mb()) * MB - ALBEDO_OUT_PER_PIXEL * self.pixels) / max(
-            self.lights * BYTES_PER_PIXEL_LIGHT, 1
-        )
+        room = (spare - self.write_reserve_mb()) * MB - ALBEDO_OUT_PER_PIXEL * self.pixels
+        room /= max(self.lights * BYTES_PER_PIXEL_LIGHT, 1)
         return int(min(max(room, MIN_CHUNK_PIXELS), CHUNK_PIXELS))
 
     def skipped_line(self, names: list[str], needs: dict[str, float], every: bool) -> str:

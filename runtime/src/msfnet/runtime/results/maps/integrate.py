@@ -74,27 +74,20 @@ METHODS = ("fc", "poisson", "bini")
 DEFAULT_MIN_NZ = 0.05
 CG_RTOL = 1e-8  # relative residual of the final solves; heights then agree to ~1e-6 px
 SOLVE_ITER = 100  # CG steps allowed for a full solve (multigrid needs ~10 on a Poisson system)
-# A solve whose residual is still above PROBE_RESIDUAL after PROBE_ITER steps retries with 2 x 2
-# aggregates (healthy solves are at 1e-15..1e-4 by then; 60 % grazing normals in blobs: 2e-2)
+# a solve still above PROBE_RESIDUAL after PROBE_ITER steps retries with 2 x 2 aggregates
 PROBE_ITER = 20
 PROBE_RESIDUAL = 1e-3
 INNER_ITER = 6  # CG steps per reweighting round (inexact: the weights move on anyway)
 REBUILD_RESIDUAL = 1e-2  # an inner solve left above this: rebuild the multigrid hierarchy
 COARSE_SIZE = 400  # unknowns on the coarsest multigrid level, solved by SuperLU
-# Side of the square blocks that multigrid aggregates. With 3 x 3 the coarse levels of a
-# 5-point Laplacian keep ~9-point stencils; with 2 x 2 they widened to ~500 entries a row on
-# the deep levels of a 2.4 M-pixel part, whose setup then took 4.8-5.6 s against 1.7 s (CG
-# needs 12 steps instead of 7, each cheaper: docs/benchmark.md).
+# side of the square blocks multigrid aggregates: 3 x 3 keeps coarse stencils narrow, 2 x 2
+# widened them and slowed the setup on large parts (docs/benchmark.md)
 AGGREGATE = 3
-# the graph and multigrid hierarchy kept for the next surface with the same mask (a station's
-# parts), up to a 1 MP mask
-KEEP_PIXELS = 1 << 20
+KEEP_PIXELS = 1 << 20  # graph and hierarchy kept for the next part with the same mask, to 1 MP
 STRENGTH = 0.08
 RIDGE = 1e-10  # relative diagonal ridge of the normal equations (see _system)
 # damping of the Jacobi smoother and of the prolongator smoothing: 4 / (3 rho), rho the
-# spectral radius of D^-1 A on that level (2 on the finest; the Galerkin levels below reach
-# 3.3-5.0 on a 2.4 M-pixel part, where a fixed 2/3 made the smoother diverge and CG took 34
-# steps instead of 7)
+# spectral radius of D^-1 A on that level (a fixed 2/3 diverged on deep Galerkin levels)
 JACOBI_SCALE = 4.0 / 3.0
 RADIUS_STEPS = 12  # power-iteration steps estimating rho on a Galerkin level
 RADIUS_MARGIN = 1.1  # power iteration approaches rho from below
@@ -164,13 +157,9 @@ def target_gradients(
         h, w = valid.shape
         rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
         mx, my, mz = nx, -ny, -nz  # the OpenCV camera frame: y down, z forward
-        d = (
-            mx * (cols - intrinsics.cx) / intrinsics.fx
-            + my * (rows - intrinsics.cy) / intrinsics.fy
-            + mz
-        )
-        d = np.minimum(d, -min_nz)
-        du, dv = -mx / (intrinsics.fx * d), -my / (intrinsics.fy * d)
+        fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
+        d = np.minimum(mx * (cols - cx) / fx + my * (rows - cy) / fy + mz, -min_nz)
+        du, dv = -mx / (fx * d), -my / (fy * d)
         c = -d
     zero = np.zeros_like(du)
     return Gradients(
@@ -254,8 +243,7 @@ def _side_weights(
         if axis == 0:
             lo, hi = lo[::-1], hi[::-1]  # type: ignore[assignment]
         pair = valid[lo] & valid[hi]
-        has_f = np.zeros_like(valid)
-        has_b = np.zeros_like(valid)
+        has_f, has_b = np.zeros_like(valid), np.zeros_like(valid)
         has_f[lo] = pair
         has_b[hi] = pair
         both = has_f & has_b
@@ -263,8 +251,7 @@ def _side_weights(
             wf = np.where(both, 0.5, 1.0)
         else:
             step = (z[hi] - z[lo]) * scale  # NaN where an end is outside the mask
-            fwd = np.full(valid.shape, np.nan)
-            back = np.full(valid.shape, np.nan)
+            fwd, back = np.full(valid.shape, np.nan), np.full(valid.shape, np.nan)
             fwd[lo] = step
             back[hi] = step
             with np.errstate(invalid="ignore"):
@@ -314,13 +301,12 @@ class Multigrid:
     the level's grid (pixels on the finest level; a coarse unknown sits at its block's place
     on the grid one level coarser), split into the pieces the level's operator connects
     inside the block. A block holding parts of two separate lines of the mask thus gives two
-    aggregates, not one that ties unrelated heights together (CG stalled on such masks and
-    fell back to a sparse LU). The tentative prolongator maps each aggregate to its unknowns
-    with weight 1 (it reproduces constants, the Laplacian's near-null space) and is smoothed
-    by one damped Jacobi step. Coarse operators are Galerkin products P^T A P, down to
-    ``coarse_size`` unknowns, which SuperLU factorises. ``solve(r)`` applies one symmetric
-    V-cycle (two damped Jacobi sweeps before and after), an approximation of A^-1 r. Every
-    level's Jacobi damping is 4 / (3 rho) with rho its own spectral radius
+    aggregates, not one that ties unrelated heights together. The tentative prolongator maps
+    each aggregate to its unknowns with weight 1 (it reproduces constants, the Laplacian's
+    near-null space) and is smoothed by one damped Jacobi step. Coarse operators are Galerkin
+    products P^T A P, down to ``coarse_size`` unknowns, which SuperLU factorises. ``solve(r)``
+    applies one symmetric V-cycle (two damped Jacobi sweeps before and after), an approximation
+    of A^-1 r. Every level's Jacobi damping is 4 / (3 rho) with rho its own spectral radius
     (:func:`_jacobi_radius`).
     """
 
@@ -389,8 +375,7 @@ def _aggregates(
     strong = linked & (np.abs(a.data) >= strength * root[row] * root[col])
     for keep in (strong, linked):
         inside = sp.csr_matrix(
-            (np.ones(int(np.count_nonzero(keep)), np.int8), (row[keep], col[keep])),
-            shape=(n, n),
+            (np.ones(int(np.count_nonzero(keep)), np.int8), (row[keep], col[keep])), shape=(n, n)
         )
         count, owner = connected_components(inside, directed=False)
         if count <= n // 2:
@@ -403,10 +388,9 @@ def _jacobi_radius(a: sp.csr_matrix, dinv: np.ndarray) -> float:
     damping 4 / (3 rho) contracts only while omega x rho < 2). The row-sum bound where it is at
     most 2 (the finest level, a weighted Laplacian, and some coarse ones: a little over-damped
     there); else a 10 % margin over a short power iteration on S = D^-1/2 A D^-1/2, but at
-    least 1 + max |s_ij| (a 2 x 2 principal block's top eigenvalue, a true lower bound: the
-    power iteration alone missed a mode held by a few unknowns, 1.67 for 2.69, in a review),
-    and at most the row-sum bound (5-500x too large on Galerkin levels: their stencils hold
-    many small entries of both signs)."""
+    least 1 + max |s_ij| (a 2 x 2 principal block's top eigenvalue, a true lower bound the
+    power iteration can miss), and at most the row-sum bound (far too large on Galerkin
+    levels, whose stencils hold many small entries of both signs)."""
     bound = float(np.max(abs(a).sum(axis=1).A1 * dinv))
     if bound <= 2.0 + 1e-9:
         return bound
@@ -427,8 +411,7 @@ def _jacobi_radius(a: sp.csr_matrix, dinv: np.ndarray) -> float:
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    # einsum runs in this thread: a threaded BLAS dot on a busy machine can be 30x slower for
-    # vectors of this size (its threads spin waiting for cores)
+    # einsum runs in this thread: a threaded BLAS dot spins waiting for cores on a busy machine
     return float(np.einsum("i,i->", a, b))
 
 
@@ -463,9 +446,8 @@ def _pcg(
 def _solve(mat: sp.csr_matrix, b: np.ndarray, x0: np.ndarray, mg: Multigrid) -> np.ndarray:
     """Solve to CG_RTOL with multigrid-preconditioned CG. Should that stall, go on from where
     it stopped with a hierarchy of 2 x 2 aggregates (stronger where confidences change
-    sharply, e.g. large regions of grazing normals, where 3 x 3 blocks stalled: 1 M pixels took
-    101 steps and an LU of 1.75 GB against 27 steps); a solve far from done after PROBE_ITER
-    steps retries at once. As a last resort, a sparse LU, slower but direct."""
+    sharply, e.g. large regions of grazing normals: docs/benchmark.md); a solve far from done
+    after PROBE_ITER steps retries at once. As a last resort, a sparse LU, slower but direct."""
     x, relres = _pcg(mat, b, x0, mg, CG_RTOL, PROBE_ITER)
     if relres <= 10 * CG_RTOL:
         return x
@@ -486,11 +468,9 @@ def _factorise(mat: sp.csr_matrix) -> Any:
     pivoting off the diagonal, which such a system never needs."""
     import scipy.sparse.linalg as sla
 
+    symmetric = {"SymmetricMode": True}
     return sla.splu(
-        mat.tocsc(),
-        permc_spec="MMD_AT_PLUS_A",
-        diag_pivot_thresh=0.0,
-        options={"SymmetricMode": True},
+        mat.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=symmetric
     )
 
 
@@ -510,12 +490,6 @@ class _Kept:
     mask: np.ndarray | None = None
     graph: _Graph | None = None
     hierarchy: Multigrid | None = None
-
-
-def forget_kept() -> None:
-    """Drop the kept graph and hierarchy (tests that compare cold and warm solves)."""
-    with _Kept.lock:
-        _Kept.mask, _Kept.graph, _Kept.hierarchy = None, None, None
 
 
 def _kept_for(valid: np.ndarray) -> tuple[_Graph, Multigrid | None]:
@@ -629,8 +603,8 @@ def _check_depth(depth: np.ndarray, intrinsics: Intrinsics, depth_ref: float | N
 def _anchor(
     z: np.ndarray, valid: np.ndarray, intrinsics: Intrinsics | None, depth_ref: float | None
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Fix the free constant per 4-connected component; see the module docstring. Every
-    component at once (a loop over them took 4 s for the 20 k pieces of a speckled mask)."""
+    """Fix the free constant per 4-connected component (see the module docstring), for every
+    component at once: a speckled mask has tens of thousands."""
     count, labels = components(valid)
     height = np.full(valid.shape, np.nan)
     depth = None if intrinsics is None else np.full(valid.shape, np.nan)

@@ -75,14 +75,9 @@ def height_mesh(
         if depth is None or np.shape(depth) != m.shape:
             raise InputError("a perspective mesh needs the depth map beside the intrinsics")
         dist = np.asarray(depth, np.float64)[valid]
-        verts = np.stack(
-            [
-                dist * (cols - intrinsics.cx) / intrinsics.fx,
-                -dist * (rows - intrinsics.cy) / intrinsics.fy,
-                -dist,
-            ],
-            axis=1,
-        )
+        x = dist * (cols - intrinsics.cx) / intrinsics.fx
+        y = -dist * (rows - intrinsics.cy) / intrinsics.fy
+        verts = np.stack([x, y, -dist], axis=1)
     else:
         verts = np.stack([cols, -rows, z[valid]], axis=1).astype(np.float64)
     # corners of every 2 x 2 block: a top-left, b top-right, c bottom-left, d bottom-right
@@ -112,24 +107,20 @@ def write_ply(path: str | Path, mesh: Mesh) -> Path:
     the data as whole arrays."""
     from plyfile import PlyData, PlyElement
 
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if mesh.normals is not None:
-        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
-    if mesh.colors is not None:
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    vert = np.empty(len(mesh.vertices), dtype=fields)
-    for i, name in enumerate("xyz"):
-        vert[name] = mesh.vertices[:, i]
-    if mesh.normals is not None:
-        for i, name in enumerate(("nx", "ny", "nz")):
-            vert[name] = mesh.normals[:, i]
-    if mesh.colors is not None:
-        for i, name in enumerate(("red", "green", "blue")):
-            vert[name] = mesh.colors[:, i]
+    groups = [
+        (("x", "y", "z"), "<f4", mesh.vertices),
+        (("nx", "ny", "nz"), "<f4", mesh.normals),
+        (("red", "green", "blue"), "u1", mesh.colors),
+    ]
+    present = [(names, kind, values) for names, kind, values in groups if values is not None]
+    vert = np.empty(len(mesh.vertices), dtype=[(n, k) for names, k, _ in present for n in names])
+    for names, _, values in present:
+        for i, name in enumerate(names):
+            vert[name] = values[:, i]
     # plyfile states the format (the header); the data go out as whole arrays, since plyfile
-    # writes list properties one face at a time in Python (0.15 s for the ball's 31 k faces,
-    # seconds for a megapixel part). Each face is its count (uchar 3) and three int32; the
-    # face element is described from an empty array, with the count given, to copy no face.
+    # writes list properties one face at a time in Python (docs/benchmark.md). Each face is its
+    # count (uchar 3) and three int32; the face element is described from an empty array, with
+    # the count given, to copy no face.
     no_faces = np.empty(0, dtype=[("vertex_indices", "<i4", (3,))])
     face = PlyElement("face", PlyElement.describe(no_faces, "face").properties, len(mesh.faces))
     header = PlyData([PlyElement.describe(vert, "vertex"), face], text=False, byte_order="<").header

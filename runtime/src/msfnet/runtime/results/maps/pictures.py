@@ -25,6 +25,8 @@ from msfnet.runtime.results.maps.extent import mask_box
 if TYPE_CHECKING:
     from PIL import Image, ImageFont
 
+    _Font = ImageFont.FreeTypeFont | ImageFont.ImageFont
+
 BACKGROUND = (0.88, 0.88, 0.88)
 WIDTH_PX = 500  # pictures are ~500 px wide, readable side by side in a report
 ERROR_PERCENTILE = 99.0
@@ -72,8 +74,8 @@ def nice_ceiling(value: float) -> float:
     return 10.0 ** (exp + 1)
 
 
-# finer than nice_ceiling's 1-2-2.5-5: a colour scale should end near the data (harvest's
-# least-squares errors, 99th percentile 109 deg, were drawn on 0..200, most of it near-black)
+# finer than nice_ceiling's 1-2-2.5-5: a colour scale should end near the data (a 99th
+# percentile of 109 deg drawn on 0..200 is mostly near-black)
 _SCALE_STEPS = (1.0, 1.2, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 
 
@@ -190,10 +192,9 @@ _DIVERGING_ANCHORS = [
 
 @functools.cache
 def _lut(name: str) -> np.ndarray:
-    if name == "inferno":
-        return _cv2_lut(cv2.COLORMAP_INFERNO)
-    if name == "viridis":
-        return _cv2_lut(cv2.COLORMAP_VIRIDIS)
+    opencv = {"inferno": cv2.COLORMAP_INFERNO, "viridis": cv2.COLORMAP_VIRIDIS}
+    if name in opencv:
+        return _cv2_lut(opencv[name])
     if name == "diverging":
         return _anchor_lut(_DIVERGING_ANCHORS)
     raise ValueError(name)
@@ -202,10 +203,8 @@ def _lut(name: str) -> np.ndarray:
 def _levels(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
     """Values scaled onto the 256 table entries (NaN as vmin), as uint8 indices."""
     span = vmax - vmin if vmax > vmin else 1.0
-    scaled = (np.nan_to_num(values.astype(np.float32), nan=vmin) - np.float32(vmin)) * np.float32(
-        255.0 / span
-    )
-    return np.clip(scaled + 0.5, 0, 255).astype(np.uint8)
+    shifted = np.nan_to_num(values.astype(np.float32), nan=vmin) - np.float32(vmin)
+    return np.clip(shifted * np.float32(255.0 / span) + 0.5, 0, 255).astype(np.uint8)
 
 
 def _colour(values: np.ndarray, cmap: str, vmin: float, vmax: float) -> np.ndarray:
@@ -226,13 +225,6 @@ def _on_background(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return out
 
 
-def _rgb_on_background(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    out = np.empty(rgb.shape, np.float32)  # display values: float32 is plenty
-    out[:] = BACKGROUND
-    out[mask] = np.clip(rgb[mask], 0.0, 1.0)
-    return out
-
-
 def _fit(rgb: np.ndarray, box_w: int, box_h: int) -> np.ndarray:
     """``rgb`` (uint8) scaled to fit the box, its aspect kept: whole samples when enlarging
     (each pixel stays a crisp square), area averages when shrinking."""
@@ -249,7 +241,7 @@ def _fit(rgb: np.ndarray, box_w: int, box_h: int) -> np.ndarray:
 
 
 @functools.cache
-def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
+def _font(size: int) -> _Font:
     """Pillow's own scalable font (Pillow >= 10.1 with FreeType; it has the degree sign the
     titles use, not Greek: keep units in Latin letters), else its fixed bitmap font: one
     size, but legible."""
@@ -261,12 +253,12 @@ def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
         return ImageFont.load_default()
 
 
-def _text_size(text: str, font: ImageFont.FreeTypeFont | ImageFont.ImageFont) -> tuple[int, int]:
+def _text_size(text: str, font: _Font) -> tuple[int, int]:
     left, top, right, bottom = font.getbbox(text)
     return math.ceil(right - left), math.ceil(bottom - top)
 
 
-def _fitting_font(text: str, size: int, width: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
+def _fitting_font(text: str, size: int, width: int) -> _Font:
     """The largest font up to ``size`` px in which ``text`` is at most ``width`` wide (a long
     title is made smaller, not clipped)."""
     font = _font(size)
@@ -279,7 +271,7 @@ def _fitting_font(text: str, size: int, width: int) -> ImageFont.FreeTypeFont | 
 def _put_text(
     canvas: Image.Image,
     text: str,
-    font: ImageFont.FreeTypeFont | ImageFont.ImageFont,
+    font: _Font,
     x: float,
     y: float,
     *,
@@ -300,13 +292,12 @@ def _put_text(
     ImageDraw.Draw(canvas).text((x0 - left, y0 - top), text, fill=_INK, font=font)
 
 
-def _put_vertical_text(
-    canvas: Image.Image,
-    text: str,
-    font: ImageFont.FreeTypeFont | ImageFont.ImageFont,
-    x: int,
-    y_mid: float,
-) -> None:
+def _centred(canvas: Image.Image, text: str, font: _Font, x: float, y: float) -> None:
+    """``text`` centred on (x, y)."""
+    _put_text(canvas, text, font, x, y, align="center", valign="middle")
+
+
+def _put_vertical_text(canvas: Image.Image, text: str, font: _Font, x: int, y_mid: float) -> None:
     """``text`` reading upward, its left ink edge at ``x``, centred on ``y_mid``: drawn level
     into a mask and turned a quarter (exact, so it stays as crisp as level text)."""
     from PIL import Image, ImageDraw
@@ -386,7 +377,7 @@ def _titled(
     from PIL import Image
 
     side = bar.width() if bar is not None else reserve
-    # with a bar the image takes ~74 % of the width, as before; without one, nearly all
+    # with a bar the image takes ~74 % of the width; without one, nearly all
     room = WIDTH_PX - 2 * _MARGIN - side
     box_w, box_h = _box_size(rgb.shape[:2], min(room, 370) if bar else room)
     width = max(WIDTH_PX, _MARGIN + box_w + side + _MARGIN)
@@ -396,9 +387,12 @@ def _titled(
     x0 = _MARGIN + (box_w - sw) // 2
     y0 = _TITLE_H + (box_h - sh) // 2
     canvas.paste(Image.fromarray(shown), (x0, y0))
-    font = _fitting_font(title, _TITLE_PX, width - 2 * _MARGIN)
-    _put_text(
-        canvas, title, font, _MARGIN + box_w / 2, _TITLE_H / 2, align="center", valign="middle"
+    _centred(
+        canvas,
+        title,
+        _fitting_font(title, _TITLE_PX, width - 2 * _MARGIN),
+        _MARGIN + box_w / 2,
+        _TITLE_H / 2,
     )
     if bar is not None:
         bar_h = max(int(0.8 * box_h), 40)
@@ -419,19 +413,9 @@ def _empty(title: str) -> np.ndarray:
     ImageDraw.Draw(canvas).rectangle(
         (_MARGIN, _TITLE_H, _MARGIN + box_w - 1, _TITLE_H + box_h - 1), fill=_BACKGROUND_U8
     )
-    _put_text(
-        canvas, title, _font(_TITLE_PX), WIDTH_PX / 2, _TITLE_H / 2, align="center", valign="middle"
-    )
+    _centred(canvas, title, _font(_TITLE_PX), WIDTH_PX / 2, _TITLE_H / 2)
     note = "no object pixels (empty mask)"
-    _put_text(
-        canvas,
-        note,
-        _font(_TITLE_PX),
-        WIDTH_PX / 2,
-        _TITLE_H + box_h / 2,
-        align="center",
-        valign="middle",
-    )
+    _centred(canvas, note, _font(_TITLE_PX), WIDTH_PX / 2, _TITLE_H + box_h / 2)
     return _array(canvas)
 
 
@@ -482,8 +466,10 @@ def legend_sphere(size: int = 64) -> tuple[np.ndarray, np.ndarray]:
     x, y = np.meshgrid(t, -t)  # y up: the top of the disc is y = +1
     disc = x**2 + y**2 < 1
     z = np.sqrt(np.clip(1 - x**2 - y**2, 0, None))
-    rgb = (np.stack([x, y, z], -1) + 1) / 2
-    return _rgb_on_background(rgb, disc), disc
+    rgb = np.empty((size, size, 3), np.float32)  # display values: float32 is plenty
+    rgb[:] = BACKGROUND
+    rgb[disc] = np.clip((np.stack([x, y, z], -1)[disc] + 1) / 2, 0.0, 1.0)
+    return rgb, disc
 
 
 _SPHERE_MIN, _SPHERE_MAX = 48, 96  # the sphere inset's side
@@ -499,14 +485,8 @@ def _sphere_inset(canvas: Image.Image, left: int, top: int, side: int) -> None:
     canvas.paste(Image.fromarray(small), (left, top))
     ImageDraw.Draw(canvas).rectangle((left - 1, top - 1, left + side, top + side), outline=_INK)
     label = _font(_SMALL_PX)
-    _put_text(
-        canvas,
-        "sphere",
-        label,
-        left + side / 2,
-        top - _text_size("sphere", label)[1] - 3,
-        align="center",
-    )
+    y = top - _text_size("sphere", label)[1] - 3
+    _put_text(canvas, "sphere", label, left + side / 2, y, align="center")
 
 
 def normals_picture(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -576,19 +556,6 @@ def height_picture(height: np.ndarray, mask: np.ndarray, *, units: str = "px") -
 
 
 CURVATURE_CMAP = "diverging"  # blue concave, near-white flat, red convex
-
-
-def curvature_colors(
-    mean: np.ndarray, mask: np.ndarray, percentile: float = 99.0, *, top: float | None = None
-) -> tuple[np.ndarray, float]:
-    """(H, W, 3) float32 RGB in [0, 1] of a mean-curvature map on the diverging map centred
-    on 0, and the symmetric range r used (-r .. +r, the ``percentile`` of |H| in the mask, or
-    ``top``)."""
-    if top is None:
-        valid = mask & np.isfinite(mean)
-        top = symmetric_range(mean[valid], percentile)
-    rgb = _colour(np.nan_to_num(mean), CURVATURE_CMAP, -top, top)
-    return rgb.astype(np.float32) / np.float32(255.0), top
 
 
 def _diverging_picture(
@@ -677,15 +644,7 @@ def inputs_picture(
         shown = np.broadcast_to(shown, (*shown.shape[:2], 3))  # a grey stack shows grey
         x0 = k * _PANEL_W + 5 + (box_w - size[0]) // 2
         canvas.paste(Image.fromarray(_u8(shown)), (x0, _TITLE_H - 5 + (box_h - size[1]) // 2))
-        _put_text(
-            canvas,
-            name,
-            font,
-            k * _PANEL_W + _PANEL_W / 2,
-            _TITLE_H / 2 - 3,
-            align="center",
-            valign="middle",
-        )
+        _centred(canvas, name, font, k * _PANEL_W + _PANEL_W / 2, _TITLE_H / 2 - 3)
     return _array(canvas)
 
 
@@ -703,7 +662,6 @@ __all__ = [
     "can_draw",
     "colorbar_ticks",
     "crop_box",
-    "curvature_colors",
     "curvature_picture",
     "error_picture",
     "error_range",

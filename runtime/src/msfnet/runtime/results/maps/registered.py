@@ -17,10 +17,11 @@ Conventions (documented in maps.json too):
   pixel with Gaussian weights of ``local_size`` px inside the mask (:func:`local_trend`).
   Relief narrower than about that size stays, the part's tilt and bow go (Matrox' "local
   shape", Keyence's "characteristic size").
-- normals.tif and albedo.tif hold three samples per pixel in x, y, z (R, G, B) order; OpenCV's
-  imread returns them reversed (its BGR order), tifffile and HALCON as stored. Outside the mask
-  every TIFF holds NaN but normals.tif, which holds (0, 0, 0), the project's "no normal" (as
-  normals.npy); albedo.tif is NaN inside too where no observation was kept (maps.albedo).
+- albedo.tif holds three samples per pixel in R, G, B order; OpenCV's imread returns them
+  reversed (its BGR order), tifffile and HALCON as stored. Outside the mask every TIFF holds
+  NaN; albedo.tif is NaN inside too where no observation was kept (maps.albedo). The normals
+  are not repeated as a TIFF (normals.npy holds them; gradient_p / gradient_q are their
+  registered form).
 - placement: with --roi / --downscale the maps are a part of the stored image (:class:`Frame`,
   maps.json's "frame"); the TIFFs carry it in their XPosition / YPosition tags and the scale in
   XResolution / YResolution (:func:`tiff_placement`).
@@ -50,13 +51,9 @@ declare("local_size_px", "--local-size")
 DEFAULT_LOCAL_SIZE_PX = 12.0
 TREND_DEGREE = 2  # the local shape's trend: a quadric around each pixel (see local_trend)
 TREND_TRUNCATE = 4.0  # the trend's Gaussian weights end at 4 sigma (as OpenCV's float kernels)
-# kernels wider than this many px each side are applied by FFT: faster beyond ~6 px sigma on
-# 150-600 px maps (Zen 4, 2026-12-04)
-TREND_FFT_RADIUS = 24
+TREND_FFT_RADIUS = 24  # kernels wider than this many px each side are applied by FFT
 TREND_CHUNK = 1 << 16  # pixels whose 6 x 6 systems are solved together
-# the trend weights kept for the next map with the same mask (48 B a pixel): a station's
-# parts, up to a 1 MP mask
-TREND_CACHE_PIXELS = 1 << 20
+TREND_CACHE_PIXELS = 1 << 20  # trend weights (48 B a pixel) kept for the next part's mask
 VIEW_PERCENTILE = 99.5  # a view's range: this percentile of |value| (one hot pixel does not set it)
 
 
@@ -121,9 +118,8 @@ class Frame:
 def check_local_size(size_px: float, shape: tuple[int, int]) -> None:
     """InputError when the local shape's characteristic size exceeds the maps' longer side: its
     trend would span more than the whole image (nothing left to measure), and the Gaussian
-    sums behind it grow with the size (minutes, then out of memory, at 1e5 px on 64 x 64).
-    The default size is always accepted: on a part smaller than it (a thumbnail, a tiny ROI)
-    its trend is one quadric over the whole part, as before, at no cost."""
+    sums behind it grow with the size. The default size is always accepted: on a part smaller
+    than it (a thumbnail, a tiny ROI) its trend is one quadric over the whole part."""
     longer = max(shape)
     if size_px > max(longer, DEFAULT_LOCAL_SIZE_PX):
         raise InputError(
@@ -241,8 +237,8 @@ def local_trend(
     quadric) fitted to the ``valid`` neighbours with Gaussian weights of ``sigma`` px (local
     polynomial regression, i.e. higher-order normalised convolution). A plain masked Gaussian
     is off by about slope x sigma at the mask's edge and by curvature x sigma^2 / 2 on a bowed
-    part (0.17 px on a rendered plate: as deep as the scratches looked for); a local quadric
-    follows tilt and bow alike. NaN outside ``valid``.
+    part (as deep as the scratches looked for); a local quadric follows tilt and bow alike.
+    NaN outside ``valid``.
 
     The polynomial is written in offsets from the pixel, so its constant term is the trend
     there and every normal equation is a Gaussian-weighted moment of the mask or of the
@@ -285,12 +281,6 @@ class _TrendCache:
     key: tuple[float, int] | None = None
     mask: np.ndarray | None = None
     weights: np.ndarray | None = None
-
-
-def forget_trend_weights() -> None:
-    """Drop the kept trend weights (tests that compare cold and warm trends)."""
-    with _TrendCache.lock:
-        _TrendCache.key, _TrendCache.mask, _TrendCache.weights = None, None, None
 
 
 def _trend_weights(ok: np.ndarray, sigma: float, degree: int, filters: _Moments) -> np.ndarray:
@@ -342,10 +332,7 @@ def local_shape(height: np.ndarray, valid: np.ndarray, size_px: float) -> np.nda
 
 
 def write_tiff(
-    path: Path,
-    data: np.ndarray,
-    description: str = "",
-    placement: dict[str, Any] | None = None,
+    path: Path, data: np.ndarray, description: str = "", placement: dict[str, Any] | None = None
 ) -> None:
     """A float32 TIFF, (H, W) or (H, W, C) as RGB-like samples, uncompressed; ``placement``:
     :func:`tiff_placement`'s resolution and position tags."""
@@ -353,13 +340,9 @@ def write_tiff(
 
     arr = np.ascontiguousarray(data, np.float32)
     photometric = "rgb" if arr.ndim == 3 and arr.shape[2] == 3 else "minisblack"
+    note = description or None
     tifffile.imwrite(
-        path,
-        arr,
-        photometric=photometric,
-        description=description or None,
-        metadata=None,
-        **(placement or {}),
+        path, arr, photometric=photometric, description=note, metadata=None, **(placement or {})
     )
 
 
@@ -412,10 +395,7 @@ def signed_view(values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, floa
     t = np.clip(np.nan_to_num(values) / top, -1.0, 1.0)
     pos, neg = np.clip(t, 0, 1), np.clip(-t, 0, 1)
     # white at 0, pure red at +r, pure blue at -r
-    r = 255.0 * (1.0 - neg)
-    g = 255.0 * (1.0 - pos - neg)
-    b = 255.0 * (1.0 - pos)
-    rgb = np.stack([r, g, b], axis=-1)
+    rgb = 255.0 * np.stack([1.0 - neg, 1.0 - pos - neg, 1.0 - pos], axis=-1)
     out[ok] = np.rint(rgb[ok]).astype(np.uint8)
     return out, top
 

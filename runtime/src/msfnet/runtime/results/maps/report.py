@@ -40,13 +40,8 @@ def latency_rows(
     if isinstance(stages, Mapping):
         for name, vals in stages.items():
             if isinstance(vals, Mapping):
-                rows.append(
-                    (
-                        str(name),
-                        f"{float(vals.get('median_s', float('nan'))):.3f}",
-                        f"{float(vals.get('p90_s', float('nan'))):.3f}",
-                    )
-                )
+                median, p90 = (float(vals.get(k, float("nan"))) for k in ("median_s", "p90_s"))
+                rows.append((str(name), f"{median:.3f}", f"{p90:.3f}"))
     for name, sec in (map_seconds or {}).items():
         rows.append((f"maps: {name}", f"{sec:.3f}", "-"))
     return rows

@@ -51,8 +51,7 @@ def check_normals(normals: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np
     valid = m & (norm > MIN_NORM)
     n /= np.maximum(norm, MIN_NORM)[..., None]
     n[~valid] = 0.0
-    unit = n
-    return unit, valid
+    return n, valid
 
 
 __all__ = ["MIN_NORM", "check_mask", "check_normals"]
