@@ -19,11 +19,8 @@ Example (tests/runtime/test_api_example.py runs exactly this; ``obj/`` is any st
     baseline = Model.least_squares()         # classical least squares, same API
     l2 = baseline(stack)                     # the stack's own intensities, mask, ground truth
 
-``Model("x.onnx", threads=2)`` loads another msfnet export. ``model.predict(images, lights,
-mask=..., intensities=...)`` runs on plain arrays: images as stored (a Stack's ``images``) are
-not yet divided by their lights' intensities, so a calibrated rig's must be passed too (or run
-``model(stack)``, which cannot leave them out). The data flows stack -> estimator
-(normalise -> infer, tiled) -> metrics -> Result; nothing is written until ``Result.save``.
+The data flows stack -> estimator (normalise -> infer, tiled) -> metrics -> maps -> Result;
+nothing is written until ``Result.save``. README's "Python API" has the rest.
 """
 
 from __future__ import annotations
@@ -34,7 +31,7 @@ import warnings
 from collections.abc import Generator, Iterable
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -43,9 +40,6 @@ from msfnet.common.errors import InputError
 from msfnet.common.vocabulary import declare, opt
 from msfnet.runtime.engines.base import Engine
 from msfnet.runtime.engines.bundled import bundled_model_path, default_model_path, open_network
-
-if TYPE_CHECKING:
-    pass
 from msfnet.runtime.engines.interrupt import time_limit
 from msfnet.runtime.engines.method import RunMethod
 from msfnet.runtime.evaluate.metrics import error_map, normal_metrics
@@ -86,12 +80,9 @@ declare("repeat", "--repeat")
 def load_stack(
     path: str | os.PathLike[str], options: LoadOptions | None = None, **overrides: Any
 ) -> Stack:
-    """Read a stack (folder, .npz, ...) as :func:`msfnet.runtime.stack.load_stack` does, with
-    errors in the API's words: ``load_stack("obj/", max_lights=8)``, ``load_stack(p,
-    LoadOptions(lights="lights.txt"))``. A folder named for a benchmark object with that
-    object's images is read with the benchmark's selection, as ``model(path)``, streams and
-    msf-run read it (DiLiGenT's ``bearPNG``: images 21-96, with a UserWarning that says so);
-    a ``select`` of your own overrides it."""
+    """Read a stack (folder, .npz, ...): ``load_stack("obj/", max_lights=8)``, ``load_stack(p,
+    LoadOptions(lights="lights.txt"))``. A folder named for a benchmark object is read with
+    the benchmark's selection (``bearPNG``: 21-96, with a UserWarning) unless ``select`` given."""
     given = options if options is not None else LoadOptions()
     if overrides:
         given = replace(given, **overrides)
@@ -117,19 +108,13 @@ def _protocol(
 class Model:
     """A loaded estimator with its run options: create once, call on many stacks.
 
-    ``Model()`` is the bundled network; ``Model("x.onnx", threads=2)`` another msfnet ONNX
-    export (loaded once, here); ``Model.least_squares()`` classical least squares. The keyword
-    settings are the fields of :class:`~msfnet.runtime.options.ModelOptions` (``method``,
-    ``engine``, ``precision``, ``threads``, ``provider``, ``tile``, ``max_memory_mb``,
-    ``maps``, ``fine_detail``, ...), each checked here, before any work; ``options=`` passes a
-    whole ModelOptions instead. ``maps``: the inspection maps computed after the normals, a
-    :class:`msfnet.MapOptions`, map names as msf-run's ``--maps`` takes them
-    (``"height,curvature"`` or ``["height", "curvature"]``: a MapOptions with those maps), or
-    None for the normals only.
-    ``fine_detail`` also runs the network at 2x for relief of a few pixels
-    (:mod:`msfnet.runtime.infer.fine_detail`).
-    Calling it (``model(stack)``, :meth:`predict`) returns a :class:`Result` and writes
-    nothing; a model may be called any number of times.
+    ``model``: None for the bundled network, an msfnet ONNX export's path (loaded once, here)
+    or an Engine; ``Model.least_squares()`` is classical least squares. The keyword settings
+    are the fields of :class:`~msfnet.runtime.options.ModelOptions` (``method``, ``engine``,
+    ``precision``, ``threads``, ``tile``, ``max_memory_mb``, ``fine_detail``, ...), checked
+    here; ``options=`` passes a whole ModelOptions instead. ``maps``: a
+    :class:`msfnet.MapOptions`, map names as ``--maps`` takes them, or None for normals only.
+    Calling it (``model(stack)``, :meth:`predict`) returns a :class:`Result`, writes nothing.
     """
 
     def __init__(
@@ -198,14 +183,10 @@ class Model:
     ) -> Result:
         """Normals (+ metrics with ground truth) for a Stack or a stack path; writes nothing.
 
-        ``load``: how to read a path (selection, files, ROI, downscale, linearisation,
-        auto-mask); on a Stack already in memory its selection and real-camera options are
-        applied to a copy. A folder named for a benchmark object is read with the benchmark's
-        selection unless ``load`` selects images, as streams and msf-run read it (DiLiGenT's
-        ``bearPNG``: images 21-96; a UserWarning says so, and ``Result.input`` records
-        ``select`` and ``select_from``). ``repeat``: run load -> metrics that many times for
-        the latency profile. For many stacks (a folder, a list, a capture loop) see
-        :meth:`stream`.
+        ``load``: how to read a path (on a Stack in memory, applied to a copy); a folder named
+        for a benchmark object is read with its selection unless ``load`` selects images.
+        ``repeat``: run load -> metrics that many times for the latency profile. For many
+        stacks see :meth:`stream`.
         """
         if isinstance(stack, (list, tuple)) or not isinstance(stack, (Stack, str, Path)):
             raise InputError(
@@ -223,25 +204,16 @@ class Model:
         prefetch: bool = True,
         on_error: str = "raise",
     ) -> Stream[Result]:
-        """Run many stacks, yielding one :class:`Result` at a time (an iterator: nothing is
-        written; the stream holds at most two stacks, the current one and the next being
-        decoded, beside the Results you keep: ``r.without_images()`` keeps one small).
+        """Run many stacks, yielding one :class:`Result` at a time; writes nothing, and holds
+        at most two stacks (the current one and the next being decoded).
 
-        ``source``: a folder of stacks (sub-folders, an objects.txt, or sub-folders sharing
-        one light file, as msf-run reads it), a single stack path, a Stack, or any iterable
-        of paths and Stacks: a list, or a capture loop that yields each new stack. With
-        ``prefetch`` the next stack is read and decoded in a background thread while the
-        current one runs (so a generator source is advanced from that thread, one item at a
-        time, and a capture overlaps the previous part's inference); ``prefetch=False`` does
-        everything in the calling thread. ``load`` applies to every stack, as in
-        ``model(path, load)``.
-
-        A stack that cannot be read or run (bad input: a broken image, intrinsics its
-        normals cannot use) raises InputError at its turn and ends the stream
-        (results already yielded stay valid); ``on_error="skip"`` warns, records it in
-        ``stream.skipped`` and goes on, as msf-run's batches do. Stopping early (``break``,
-        Ctrl-C, an error) never drops a stack taken from the source: ``stream.stop()``
-        returns those not run (:class:`~msfnet.runtime.stream.Stream`).
+        ``source``: a folder of stacks (as msf-run reads it), a stack path, a Stack, or any
+        iterable of paths and Stacks (a list, a capture loop). ``load`` applies to every stack.
+        ``prefetch``: decode the next stack in a background thread (a generator source is
+        then advanced from it); False does everything in the calling thread. ``on_error``:
+        "raise" (a stack that cannot be read or run raises InputError at its turn and ends the
+        stream) or "skip" (warn, record it in ``stream.skipped``, go on). Stopping early never
+        drops a stack taken from the source: ``stream.stop()`` returns those not run.
         """
         if on_error not in ("raise", "skip"):
             raise InputError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
@@ -285,9 +257,7 @@ class Model:
     def _loading(self, load: LoadOptions) -> LoadOptions:
         """``load`` with an ROI grown by the network's halo where the network runs with edge
         context: it then sees the real image around the ROI, not zeros, and draws no rim at
-        the crop's edges (3-4 deg -> 0.4-1.4 deg within 4 px of them on psmImages). Least
-        squares is per pixel and needs no context; ``edge_context=False`` keeps the published
-        protocol's zeros. Streams and batches load with it too (batch.runner, Ray workers)."""
+        the crop's edges. ``edge_context=False`` keeps the published protocol's zeros."""
         if load.roi is None or load.roi_halo or not self.options.is_network:
             return load
         if not self.options.edge_context:
@@ -403,10 +373,8 @@ class Model:
         intensities (N, 3) optional. Writes nothing.
 
         ``intensities``: the lights' RGB intensities the images are divided by (ones when
-        omitted). Images as a calibrated rig stores them, a Stack's ``images`` among them, are
-        not divided yet: pass ``intensities=stack.intensities`` (or run ``model(stack)``), or
-        the normals bend toward the brighter lights (15.6 deg instead of 4.1 on DiLiGenT's
-        ball with least squares, 8 lights)."""
+        omitted): pass ``intensities=stack.intensities`` for a Stack's images, which are not
+        divided yet, or the normals bend toward the brighter lights."""
         stack = Stack.from_arrays(
             images, lights, mask=mask, intensities=intensities, normals_gt=normals_gt, name="array"
         )

@@ -1,9 +1,7 @@
 """What ``Model.stream`` returns: its Results one at a time, and what it did not run.
 
-A stream that prefetches has always taken the next item from its source before the caller
-decides to stop; with a capture loop that item is a part already photographed. Stopping
-therefore hands it back (:meth:`Stream.stop`) instead of dropping it, and a stream left to
-the garbage collector with such an item says so.
+A prefetching stream has always taken the next item from its source (with a capture loop, a
+part already photographed): stopping hands it back (:meth:`Stream.stop`) instead of dropping it.
 """
 
 from __future__ import annotations

@@ -1,10 +1,8 @@
 """msf-eval: a model (ONNX, through the runtime) and the least-squares baseline over a benchmark.
 
-ROOT is a benchmark folder with ``objects.txt`` (one object folder per line, optionally followed
-by an image selection such as ``21-96`` for DiLiGenT bear) or, without it, every sub-folder that
-holds a stack (sharing ROOT's own light file when ROOT has one but no images: psmImages); ROOT may
-also be a single object folder. Objects need ground-truth normals.
-Writes results.json, results.md and <object>/<method>_error.png (+ normals png) to OUTDIR.
+ROOT: a benchmark folder (``objects.txt``, or stack sub-folders) or one object folder, objects
+with ground-truth normals. Writes results.json, results.md and per-object error pictures to
+OUTDIR. docs/run.md, "msf-eval".
 """
 
 from __future__ import annotations

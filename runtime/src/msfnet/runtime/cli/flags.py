@@ -1,9 +1,5 @@
-"""The option groups msf-run and msf-eval share, generated from the option dataclasses.
-
-Model settings come from :class:`~msfnet.runtime.options.ModelOptions`' own field metadata,
-the maps' from :class:`~msfnet.runtime.results.maps.MapOptions`';
-:class:`~msfnet.runtime.stack.LoadOptions` declares its own by category. Each
-command adds the groups it needs and builds the options once, in :func:`model_options` /
+"""The option groups msf-run and msf-eval share, generated from the option dataclasses'
+field metadata (ModelOptions, MapOptions, LoadOptions); built once in :func:`model_options` /
 :func:`load_options`.
 """
 

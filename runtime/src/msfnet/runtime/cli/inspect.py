@@ -1,20 +1,9 @@
 """msf-inspect: relief defects from a run's registered maps, a verdict and a PLC exit code.
 
-    msf-inspect out/part17 --depth 0.02 -o verdicts/part17           # an msf-run output folder
-    msf-inspect captures/part17 --pixel-size 0.05 --depth 0.02 -o v/  # a stack: runs msf-run's
-                                                                      # pipeline first
-    msf-inspect out/part17 --reference out/golden --depth 0.02 -o v/ # against a good part
-    msf-inspect --watch incoming/ --reference golden/ --depth 0.1 -o station/  # a line: each
-                                            # part that appears in incoming/, judged once
-
-Exit code: 0 pass (no defect), 1 defects found, 2 bad input or output (one line on stderr,
-nothing written; a full disk and out of memory too), 3 a failure of the tool itself (never read
-as a verdict; Ctrl-C 130, SIGTERM 143), 4 the part does not match its reference or variation
-model (another part, or not in its place). --watch exits 0 when stopped by SIGTERM / Ctrl-C.
-The verdict (verdict.json), its regions as a table (regions.csv: size, length, width,
-orientation, depth, kind), the overlay picture (overlay.png, the input's size) and the
-deviation picture (deviation.png: the judged map over its threshold, one fixed scale, a colour
-bar) are written together into the -o folder, or not at all.
+Input: an msf-run output folder, or a stack (msf-run's pipeline runs first); ``--watch`` a
+folder of parts, ``--train-good`` good parts. Output: verdict.json, regions.csv, overlay.png and
+deviation.png written together into -o, or nothing. Exit codes as ``--help`` lists them (3: the
+tool's own failure). docs/run.md, "Inspection: ... msf-inspect" and "Inspection station".
 """
 
 from __future__ import annotations
@@ -311,11 +300,10 @@ def _zones(args: argparse.Namespace) -> Zones | None:
 
 def _train(args: argparse.Namespace) -> int:
     """--train-good: a variation model from good parts (inspection.variation)."""
-    from msfnet.runtime.inspection.variation import train_variation
+    from msfnet.runtime.inspection.variation import MIN_GOOD_PARTS, train_variation
 
     if args.input is not None or args.watch is not None or args.reference is not None:
         raise InputError("--train-good takes no INPUT, --watch or --reference")
-    from msfnet.runtime.inspection.variation import MIN_GOOD_PARTS
 
     goods = list(args.train_good)
     if len(goods) < MIN_GOOD_PARTS:

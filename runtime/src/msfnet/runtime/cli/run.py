@@ -214,18 +214,9 @@ class RunRequest:
 def print_result(result: Result, outdir: Path, files: list[Path], req: RunRequest) -> None:
     p = result.profile()
     if req.json:
-        print(
-            json_text(
-                {
-                    "stack": p["stack"],
-                    "output": str(outdir),
-                    "files": [f.name for f in files],
-                    "profile": p,
-                    "metrics": result.metrics.as_dict() if result.metrics else None,
-                }
-            ),
-            end="",
-        )
+        metrics = result.metrics.as_dict() if result.metrics else None
+        data = {"stack": p["stack"], "output": str(outdir), "files": [f.name for f in files]}
+        print(json_text(data | {"profile": p, "metrics": metrics}), end="")
         return
     if req.quiet:
         return
@@ -296,9 +287,7 @@ def _terminal() -> bool:
 def stage_status(name: str, enabled: bool, lines: bool = False) -> Iterator[Callable[[str], None]]:
     """Where a run stands, so that long work does not look dead. On a terminal (``enabled``):
     a status line on stderr naming the step under way and the time so far, ticking each
-    second (it showed the time a step started, and never moved), erased when the run ends,
-    so what stays is the result, or one error line. In a pipe (``lines``): one line a step on
-    stdout, beside the result lines a log keeps (a run said nothing there for minutes)."""
+    second, erased when the run ends. In a pipe (``lines``): one line a step on stdout."""
     started = time.perf_counter()
     current = [""]
     bar = None
@@ -349,9 +338,8 @@ def _say(req: RunRequest, line: str | None) -> None:
 
 
 def _default_name(path: Path) -> str:
-    """The name a single run's default output folder takes after its stack: the stem of the
-    path made absolute (``part.npz`` -> part; ``ballPNG/..`` is named after the folder it
-    means, not "..", which sent the output into the current folder)."""
+    """A single run's default output folder name: the stem of the stack's absolute path
+    (``part.npz`` -> part; ``ballPNG/..`` is named after the folder it means, not "..")."""
     return Path(os.path.abspath(path)).stem or "stack"
 
 

@@ -1,21 +1,9 @@
 """The defect step: registered maps -> connected defect regions -> a verdict.
 
-Relief defects (scratches, dents, bumps) stand out in the *local shape* (height minus its trend
-at the characteristic size, :mod:`msfnet.runtime.results.maps.registered`) and in the mean
-curvature; printed marks do not, because both maps come from the normals, and the normals
-of a mark (a change of albedo only) are those of the surface around it. So a pixel is a
-defect candidate when
-
-    |local shape| >= depth            (height units: mm with a pixel size, else px)
- or |mean curvature| >= curvature     (1/mm or 1/px; optional)
-
-Candidates are grown by hysteresis (neighbours above half the thresholds join a region that
-has a pixel above them), so a scratch is one region and not a string of beads. Regions smaller
-than ``min_area_px`` are noise. With a golden reference (a good part captured in the same
-fixture) the local shape and curvature of the reference, aligned by phase correlation (a
-shift of a few pixels), are subtracted first: only what differs from the good part counts.
-The reference must have been mapped alike (units, pixel size, local size), else the
-difference would mean nothing.
+A pixel is a candidate where |local shape| >= depth or |mean curvature| >= curvature (the maps'
+units); candidates grow by hysteresis (half the thresholds), regions under ``min_area_px`` are
+dropped. With a reference (mapped alike), its maps, aligned by phase correlation, are
+subtracted first. docs/run.md, "Inspection: mask and ROI edges, ..., msf-inspect".
 """
 
 from __future__ import annotations
@@ -42,26 +30,18 @@ from msfnet.runtime.results.maps.registered import Frame, read_tiff
 
 POLARITIES = ("both", "down", "up")
 EXIT_MISMATCH = 4
-# a region over this share of the inspected pixels: the part is not the one the reference shows
-# (or not in its place). A defect is compact; many of them with their halos (the local shape
-# spreads a dent over about the local size) joined into one region of 54 % of a 96 px plate at
-# a threshold 20x below their depth; a rendered relief judged against a plate's model: 96-99 %.
+# a region over this share of the inspected pixels: not the reference's part, or not in its place
 MISMATCH_FRACTION = 0.8
 MAX_SHIFT_PX = 32  # a reference further off than this is not "the same fixture"
-# The phase correlation's peak below which two maps share no feature to align on. Measured on
-# rendered plates (each map less its mean): plain parts' albedo and local shape, noise only,
-# -0.02..0.14; a printed albedo 0.99; a designed relief ring 0.88.
+# the phase correlation's peak below which two maps share no feature to align on
 MIN_ALIGN_RESPONSE = 0.3
 
 
 @options_type
 @dataclass(frozen=True)
 class DefectOptions:
-    """The rule, in the maps' units (mm with a pixel size, else px). depth: |local shape|
-    threshold (with a variation model: the floor under ``sigmas`` spreads); curvature: |mean
-    curvature| threshold (None: not used); min_area_px: smallest region; polarity: "down"
-    (dents, scratches), "up" (bumps) or "both"; sigmas: with a variation model, how many
-    robust standard deviations of the good parts a pixel must leave their centre by."""
+    """The rule, in the maps' units (mm with a pixel size, else px); each field's help says
+    what it does (depth or curvature None: not used; one of them is needed)."""
 
     depth: float | None = flag(
         None, "|local shape| at or above this is a defect", type=positive_float

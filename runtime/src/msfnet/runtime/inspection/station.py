@@ -1,11 +1,5 @@
 """The inspection station: the model, the rule and the reference loaded once, then one verdict
-per part, computing only the maps the rule reads.
-
-A line inspects part after part with the same settings, so everything that does not change
-between parts (the engine, the reference's maps) is made once in :class:`Station`, and each
-part pays only decode -> normals -> the judged maps -> judge. The rule decides the maps: a
-depth threshold needs the height (for the local shape), a curvature threshold the curvature;
-the albedo is computed only for the overlay picture's grey base when asked (``pictures``).
+per part, computing only the maps the rule reads (docs/run.md, "Inspection station").
 """
 
 from __future__ import annotations

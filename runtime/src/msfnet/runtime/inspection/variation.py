@@ -1,17 +1,8 @@
 """A variation model learnt from good parts: per pixel, the centre and the robust spread of the
-local shape (and curvature) over N good parts aligned to the first.
-
-One golden part says where a good part's surface is, not how much good parts differ: a dome's
-rim, a highlight the fit bends around, a label's relief all differ a little from part to part,
-and an absolute threshold either floods there or misses small defects elsewhere. With N good
-parts, a pixel of a new part is a defect where it leaves the centre by more than ``sigmas``
-robust standard deviations *and* by at least the depth threshold (the floor: a pixel that never
-varied would otherwise flag noise).
-
-The model is written as a run folder (maps.json, local_shape.tif and curvature.tif holding the
-centre, albedo.tif the first part's, for alignment) plus ``spread_local_shape.tif`` /
-``spread_curvature.tif`` and ``variation.json``: :func:`~msfnet.runtime.inspection.defects.read_run`
-reads it as a reference that carries its spreads.
+local shape (and curvature) over N good parts aligned to the first (docs/run.md, "Inspection
+station", Variation model). It is written as a run folder plus ``spread_*.tif`` and
+``variation.json``, which :func:`~msfnet.runtime.inspection.defects.read_run` reads as a
+reference that carries its spreads.
 """
 
 from __future__ import annotations

@@ -1,21 +1,10 @@
-"""The station's watch loop: each complete part that appears in a folder judged exactly once.
+"""The station's watch loop (``msf-inspect --watch``): each complete part that appears in a
+folder judged exactly once; docs/run.md, "Inspection station: msf-inspect --watch".
 
-A part is a sub-folder of the watched folder (hidden names, a staging folder being written,
-are not). It is complete when it holds a file named ``READY`` (a capture script that knows
-when it is done writes one last), or else when its listing (names, sizes, times) has not
-changed between two polls and it reads as a stack. One that stays unreadable and unchanged for
-``stale_s`` (a capture that stopped half-way) is recorded as an error and left alone until it
-changes (a part whose last record is an error is taken again after a restart).
-
-The output folder holds ``parts.jsonl`` (one JSON line per attempt: its verdict, regions and
-per-stage times, or its error; a part's last line stands) and one folder per judged part
-(verdict.json, regions.csv, overlay.png), each written whole. The journal is the state: a part
-judged is not taken again, so a restart neither skips nor repeats a part; a folder name used
-again (another folder, told by its inode and modification time) is judged as ``name~2``. A part
-folder is written before its line; a restart adds the line of a folder that was written just
-before a kill, and drops a line cut short by one. The next complete part is decoded in a
-background thread while the current one is judged.
-The loop stops after the part in hand on SIGTERM or Ctrl-C (a second one stops at once).
+A part is a sub-folder, complete when it holds ``READY`` or its listing is unchanged between
+two polls. The output folder holds ``parts.jsonl`` (one line per attempt, a part's last line
+stands: the journal is the state a restart resumes from) and one folder per judged part, each
+written whole.
 """
 
 from __future__ import annotations
@@ -54,9 +43,7 @@ SETTINGS = "settings.json"  # what decides the verdicts: a restart must give the
 @options_type
 @dataclass(frozen=True)
 class WatchOptions:
-    """How the loop watches: ``once``: judge what is complete now and stop; ``poll_s``:
-    seconds between looks at the folder; ``stale_s``: how long an unreadable, unchanging part
-    is waited for before it is recorded as an error."""
+    """How the loop watches (each field's help says what it does)."""
 
     once: bool = flag(
         False,
@@ -172,19 +159,10 @@ class WatchSummary:
         """--once's, over the parts in the folder (``present``; else this run's): 2 if a part
         could not be judged, else 4 if one did not match the reference, else 1 if one had
         defects, else 0."""
-        words = (
-            set(self.present.values())
-            if self.present is not None
-            else {
-                w
-                for w, n in (
-                    ("error", self.errors),
-                    ("mismatch", self.mismatched),
-                    ("fail", self.failed),
-                )
-                if n
-            }
-        )
+        counts = {"error": self.errors, "mismatch": self.mismatched, "fail": self.failed}
+        words = {w for w, n in counts.items() if n}
+        if self.present is not None:
+            words = set(self.present.values())
         return 2 if "error" in words else 4 if "mismatch" in words else 1 if "fail" in words else 0
 
     def as_dict(self) -> dict[str, object]:
@@ -564,7 +542,7 @@ def _watch(
         pool.shutdown(wait=finished, cancel_futures=True)
     if options.once and not stop.event.is_set():
         summary.present = finder.present()
-    _write_summary(output, summary)
+    write_text(output / STATION_SUMMARY, json_text(summary.as_dict()))
     return summary
 
 
@@ -633,10 +611,6 @@ def _judge_all(
         record(PartRecord.of(inspection, write_s, taken))
     if ahead is not None:
         ahead.cancel()
-
-
-def _write_summary(output: Path, summary: WatchSummary) -> None:
-    write_text(output / STATION_SUMMARY, json_text(summary.as_dict()))
 
 
 __all__ = [

@@ -1,18 +1,7 @@
-"""Zones of a part: areas with their own thresholds, or left out (a logo, a sprue, a datum
-face), given as polygons in the camera image's pixels in a small JSON file.
-
-    {"zones": [
-        {"name": "sealing face", "polygon": [[120, 40], [400, 40], [400, 90], [120, 90]],
-         "depth": 0.02},
-        {"name": "logo", "polygon": [[300, 200], [360, 200], [360, 240], [300, 240]],
-         "ignore": true}
-    ]}
-
-Each zone has a ``name``, a ``polygon`` (at least 3 [x, y] points, the camera image's pixels:
-the same as a verdict's ``image_*`` fields, so a zone drawn on a camera frame fits a cropped or
-downscaled run too) and either ``ignore: true`` or its own ``depth`` / ``curvature`` thresholds
-(a missing one keeps the rule's). Later zones win where zones overlap; pixels in no zone keep
-the rule.
+"""Zones of a part: areas with their own thresholds, or left out, given as polygons in the
+camera image's pixels in a small JSON file (format: docs/run.md, "Inspection station", Zones).
+Each zone has a ``name``, a ``polygon`` (3+ [x, y] points) and ``ignore: true`` or its own
+``depth`` / ``curvature`` (a missing one keeps the rule's); later zones win where they overlap.
 """
 
 from __future__ import annotations
