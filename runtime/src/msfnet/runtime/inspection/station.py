@@ -145,13 +145,12 @@ class Station:
             self.reference = self._maps(stack, str(stack.source or reference))[0]
         if self.reference is not None:
             _check_reference(self.reference, rule)
-        self._options = opts.replace(maps=maps)
 
     def settings(self) -> dict[str, object]:
         """What decides a verdict, for a station folder to hold: the rule, the reference and
         zones, how parts are run and mapped, and how they are read (resource settings such as
         threads, engine or memory left out: they change times, not verdicts)."""
-        o = self._options
+        o = self.model.options  # the station's settings, with the maps the rule reads
         kept = ("model", "method", "speed", "fine_detail", "detail_fusion", "edge_context", "tta")
         run = {k: v for k, v in o.describe().items() if k in kept}
         maps = o.maps or MapOptions()
