@@ -296,21 +296,23 @@ def test_the_weights_read_the_residual_above_the_parts_floor() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("draw", [0, 1])
-def test_led_intensities_off_by_two_per_cent_cost_no_more_than_the_robust_fit(draw: int) -> None:
+@pytest.mark.parametrize(("plate", "gains"), [(0, 47), (1, 47), (0, (0, 47, 1))])
+def test_led_intensities_off_by_two_per_cent_cost_no_more_than_least_squares(
+    plate: int, gains: int | tuple[int, ...]
+) -> None:
     """LED intensities +-2 % off what the tool is told (a matte plate cut by its mask): the
-    default path within 1.15x its robust fit's error inside and 0.3 deg of it at the mask's
-    edge, where it used to take the network's rim (measured: inside 0.103 / 0.549 deg against
-    0.094 / 0.536, edge 0.289 / 0.683 against 0.087 / 0.517; scripts/rig_errors.py, 3 plates:
-    edge 2.26 -> 0.67 deg). The robust fit itself may lose to plain least squares here (0.56
-    against 0.41 deg on one draw): it down-weights the lights the calibration got most wrong."""
+    robust fit within 5 % of plain least squares (it used to drop the lights the calibration got
+    most wrong: 0.56 / 0.65 against 0.41 deg on the first two), and the default path within
+    1.15x least squares inside and 0.3 deg of it at the mask's edge, where it used to take the
+    network's rim (measured: inside 0.409 / 0.429 / 0.103 against 0.412 / 0.411 / 0.094 deg, edge
+    0.429 / 0.503 / 0.289 against 0.406 / 0.421 / 0.087; the network alone 19-20 deg there)."""
     from dataclasses import replace
 
     from msfnet.runtime.api import Model
     from msfnet.synth.plates import PlateOptions, render_plate
 
-    p = render_plate(PlateOptions(seed=draw))
-    gain = 1.0 + np.random.default_rng([draw, 47, 1]).uniform(-0.02, 0.02, p.stack.num_lights)
+    p = render_plate(PlateOptions(seed=plate))
+    gain = 1.0 + np.random.default_rng(gains).uniform(-0.02, 0.02, p.stack.num_lights)
     images = p.stack.images.astype(np.float32) * gain[:, None, None, None].astype(np.float32)
     st = replace(p.stack, images=images)
     m = st.mask
@@ -318,5 +320,7 @@ def test_led_intensities_off_by_two_per_cent_cost_no_more_than_the_robust_fit(dr
     inner = m & ~edge
     fused = _angle(Model(threads=2, maps=None)(st).normals, p.normals)
     fit = _angle(robust_least_squares(st).normals, p.normals)
-    assert fused[inner].mean() <= 1.15 * fit[inner].mean()
-    assert fused[edge].mean() <= fit[edge].mean() + 0.3  # the network alone: 19-20 deg there
+    plain = _angle(Model.least_squares(maps=None)(st).normals, p.normals)
+    assert fit[inner].mean() <= 1.05 * plain[inner].mean()
+    assert fused[inner].mean() <= 1.15 * plain[inner].mean()
+    assert fused[edge].mean() <= plain[edge].mean() + 0.3
