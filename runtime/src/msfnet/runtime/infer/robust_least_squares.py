@@ -3,11 +3,11 @@
 Plain least squares (infer/least_squares.py) weighs every light alike, so one highlight or a
 cast shadow at a pixel tilts its normal, and the tilt changes from pixel to pixel along a shadow
 edge: false detail exactly where an inspection user looks. Here each pixel's fit is re-solved a
-few times with Tukey's biweight on its residuals (iteratively reweighted least squares, from the
-plain solution), then solved once more, unweighted, on the observations within ``KEEP_SPREADS``
-robust spreads. So where every light fits, the result is plain least squares with its noise and
-no more (a weighted solve would add the weights' own noise); where a few lights break the model
-they drop out. Details that matter:
+few times with Tukey's biweight on its residuals (iteratively reweighted least squares, from a
+solve on its brighter observations: shadows are dark), then solved once more, unweighted, on the
+observations within ``KEEP_SPREADS`` robust spreads. So where every light fits, the result is
+plain least squares with its noise and no more (a weighted solve would add the weights' own
+noise); where a few lights break the model they drop out. Details that matter:
 
 - the model is clamped, I = max(0, l . g): a light behind the surface (l . g <= 0) that reads
   dark is an attached shadow, consistent with the model but no equation for g, so it gets no
@@ -42,7 +42,8 @@ from msfnet.runtime.stack import MIN_LIGHTS, Stack
 from msfnet.runtime.stack.types import full_scale  # the albedo drops the same values
 
 TUKEY_C = 4.685  # spreads at which an observation's weight reaches 0 (95 % Gaussian efficiency)
-ITERATIONS = 3  # reweighting passes after the plain solve (the fits barely move after the third)
+ITERATIONS = 3  # reweighting passes after the first solve (the fits barely move after the third)
+START_LIGHTS = 4  # the first solve's fewest observations (the brightest left out)
 KEEP_SPREADS = 3.0  # the final unweighted solve keeps observations within this many spreads
 # the spread's floor never falls below this share of the brightness: a rig's LED intensities
 # are known to a few per cent, and a light 2 % off must not become an outlier (at 1e-4 the fit
@@ -203,6 +204,19 @@ def _median_of(values: np.ndarray, include: np.ndarray) -> np.ndarray:
     return np.where(count > 0, (lo + hi) / 2, np.float32(np.inf)).astype(np.float32)
 
 
+def _bright_start(grey: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """(N, P) float32 weights of the first solve: each pixel's brighter half of observations
+    (at least START_LIGHTS) but its brightest. A cast shadow is dark and a highlight bright:
+    from plain least squares, two shadowed lights of 12 tilted the start so far (26 deg) that
+    the reweighting never recovered; from the brighter half it recovers with up to four."""
+    n = len(grey)
+    m = max(START_LIGHTS, n // 2)
+    if n < m + 2:  # too few lights to leave any out
+        return use
+    kth = np.partition(grey, n - m, axis=0)[n - m]  # the m-th brightest
+    return use * ((grey >= kth) & (grey < grey.max(axis=0)))
+
+
 def _iterate(
     grey: np.ndarray, lights: np.ndarray, noise: float, usable: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -210,7 +224,9 @@ def _iterate(
     n = len(lights)
     use = np.ones(grey.shape, np.float32) if usable is None else usable.astype(np.float32)
     lights32 = lights.astype(np.float32)
-    g, _ = _solve(use, grey, lights)
+    g, ok = _solve(_bright_start(grey, use), grey, lights)
+    if not ok.all():
+        g = np.where(ok, g, _solve(use, grey, lights)[0])
     bright = np.median(grey, axis=0)  # clipped observations read bright: still a brightness
     floor = np.float32(max(noise, MIN_RELATIVE_SPREAD)) * bright + np.float32(1e-12)
     correction = np.float32(np.sqrt(n / max(n - 3, 1)))
